@@ -1,0 +1,203 @@
+/*
+ * pbrdf.h -- device functions of the six-parameter pBRDF model (Zhu et al. 2020).
+ *
+ * The physics lives here and in pbrdf_cl/reference.py, which mirrors this file
+ * function by function (same names without the "pb_" prefix, same steps in the
+ * same order).  Change one, change the other.  See shared/SPEC.md for the
+ * equations; the forms used here are algebraically equal but avoid cancellation:
+ *
+ *   cos^2 b = cos^2((ti+tr)/2) + sin ti sin tr cos^2(phi/2)      (all terms >= 0)
+ *   sin^2 b = sin^2((ti-tr)/2) + sin ti sin tr sin^2(phi/2)
+ *   tan^2 a = ((sin ti - sin tr)^2 + 4 sin ti sin tr cos^2(phi/2)) / (cos ti + cos tr)^2
+ *   Fresnel A, B from the non-cancelling root and A*B = n*k;
+ *   Rs - Rp = 4 A t Rs / ((A + t)^2 + B^2), t = sin b tan b (>= 0: no cancellation);
+ *   the specular scale K is carried as log K so that no 0*inf or inf/inf can occur.
+ *
+ * Precision: compile with -DPBRDF_DOUBLE for float64, without it for float32.
+ * Angles are in radians here; the kernels convert from degrees.
+ */
+#ifndef PBRDF_H
+#define PBRDF_H
+
+#ifdef PBRDF_DOUBLE
+#pragma OPENCL EXTENSION cl_khr_fp64 : enable
+typedef double real;
+#else
+typedef float real;
+#endif
+
+#define PB_SHADOW_NONE 0
+#define PB_SHADOW_PAPER 1
+#define PB_SHADOW_SMITH 2
+
+/* Beyond this argument the shadowing function S is below 1e-36 and is taken as 0. */
+#define PB_SHADOW_ARG_MAX ((real)9)
+#define PB_PI ((real)3.14159265358979323846)
+#define PB_SQRT_PI ((real)1.77245385090551602730)
+#define PB_SQRT2 ((real)1.41421356237309504880)
+
+typedef struct {
+    real cti, sti, ctr, str;   /* cos/sin of the zenith angles */
+    real cph, sph;             /* cos/sin of the relative azimuth phi */
+    real cb, sb;               /* cos/sin of the facet incidence angle b (eq. 2) */
+    real tan2a;                /* tan^2 of the facet tilt a (eq. 3) */
+} pb_geom;
+
+/* Eq. 2-3 in stable form. */
+inline pb_geom pb_geometry(real ti, real tr, real phi)
+{
+    pb_geom g;
+    real c;
+    g.sti = sincos(ti, &c); g.cti = c;
+    g.str = sincos(tr, &c); g.ctr = c;
+    g.sph = sincos(phi, &c); g.cph = c;
+    real sh = sincos((real)0.5 * phi, &c);
+    real ch = c;
+    real cp = cos((real)0.5 * (ti + tr));
+    real sm = sin((real)0.5 * (ti - tr));
+    real q = g.sti * g.str;
+    g.cb = sqrt(cp * cp + q * ch * ch);
+    g.sb = sqrt(sm * sm + q * sh * sh);
+    real ds = g.sti - g.str;
+    real cs = g.cti + g.ctr;
+    g.tan2a = (ds * ds + (real)4 * q * ch * ch) / (cs * cs);
+    return g;
+}
+
+typedef struct {
+    real Rs, Rp;     /* |rs|^2, |rp|^2 (eq. 11-13) */
+    real diff;       /* Rs - Rp, >= 0 */
+    real re_x, im_x; /* x = rs rp* (eq. 10) */
+} pb_fresnel_t;
+
+/* Eq. 11-13 on the facet, angle b, complex index n + ik. */
+inline pb_fresnel_t pb_fresnel(real n, real k, real cb, real sb)
+{
+    pb_fresnel_t f;
+    real nk = n * k;
+    real D = (n - k) * (n + k) - sb * sb;
+    real sC = hypot((real)2 * nk, D);
+    real A, B;
+    if (D >= (real)0) {
+        A = sqrt((real)0.5 * (sC + D));
+        B = A > (real)0 ? nk / A : (real)0;
+    } else {
+        B = sqrt((real)0.5 * (sC - D));
+        A = nk / B;
+    }
+    real B2 = B * B;
+    real am = A - cb, ap = A + cb;
+    f.Rs = (am * am + B2) / (ap * ap + B2);
+    real t = sb * sb / cb;
+    real tm = A - t, tp = A + t;
+    real den = tp * tp + B2;
+    f.Rp = f.Rs * (tm * tm + B2) / den;
+    f.diff = f.Rs * (real)4 * A * t / den;
+    f.re_x = -f.Rs * ((A - t) * (A + t) + B2) / den;
+    f.im_x = f.Rs * (real)2 * B * t / den;
+    return f;
+}
+
+/* Eq. 7-9: the shadowing function S(theta) of one beam, for the three variants. */
+inline real pb_shadow_S(real ct, real st, real sigma, int variant)
+{
+    if (variant == PB_SHADOW_NONE)
+        return (real)0;
+    real w = variant == PB_SHADOW_SMITH ? PB_SQRT2 * sigma : sigma;
+    if (ct >= PB_SHADOW_ARG_MAX * w * st)
+        return (real)0;
+    real a = ct / (w * st);
+    real den = variant == PB_SHADOW_SMITH ? a : a * a;
+    return exp(-a * a) / ((real)2 * PB_SQRT_PI * den) - (real)0.5 * erfc(a);
+}
+
+/* G = 1 / (1 + S(ti) + S(tr)). */
+inline real pb_shadowing_factor(pb_geom g, real sigma, int variant)
+{
+    return (real)1 / ((real)1 + pb_shadow_S(g.cti, g.sti, sigma, variant)
+                              + pb_shadow_S(g.ctr, g.str, sigma, variant));
+}
+
+/* log of the scalar factor K of the specular term (eq. 6):
+ * K = ks exp(-tan^2 a / (2 sigma^2)) G / (8 pi sigma^2 cos^4 a cos ti cos tr). */
+inline real pb_log_specular_scale(pb_geom g, real sigma, real ks, real G)
+{
+    real u = sqrt(g.tan2a) / sigma;
+    real inv_cos2a = (real)1 + g.tan2a;
+    return log(ks * G * inv_cos2a * inv_cos2a / ((real)8 * PB_PI * g.cti * g.ctr))
+           - (real)2 * log(sigma) - (real)0.5 * u * u;
+}
+
+/* Eq. 15: Minnaert diffuse term kd/pi (cos ti cos tr)^c. */
+inline real pb_diffuse(pb_geom g, real kd, real c)
+{
+    if (kd == (real)0)
+        return (real)0;
+    return kd / PB_PI * exp(c * log(g.cti * g.ctr));
+}
+
+/* Eq. 17-18: DOP for unpolarized incidence, = K (Rs - Rp) / (K (Rs + Rp) + 2 fd). */
+inline real pb_dop(pb_fresnel_t f, real logK, real fd)
+{
+    real r = fd > (real)0 ? (real)2 * fd * exp(-logK) : (real)0;
+    real den = f.Rs + f.Rp + r;
+    return den > (real)0 ? f.diff / den : (real)0;
+}
+
+/* F00 = K (Rs + Rp) / 2 + fd. */
+inline real pb_brdf(pb_fresnel_t f, real logK, real fd)
+{
+    return (real)0.5 * exp(logK) * (f.Rs + f.Rp) + fd;
+}
+
+typedef struct {
+    real ci, si;  /* cos/sin of the rotation from the incident beam's macro frame to the facet frame */
+    real co, so;  /* cos/sin of the rotation from the facet frame to the reflected beam's macro frame */
+} pb_frames;
+
+/* Frame rotations of the out-of-plane Mueller matrix (SPEC, psps convention).
+ * w_i = (sti cph, sti sph, cti) towards the source, w_r = (str, 0, ctr) towards the viewer;
+ * macro bases s = unit(k x z), p = k x s; facet s_f = unit(k_in x h) = unit(w_r x w_i). */
+inline pb_frames pb_frame_rotations(pb_geom g)
+{
+    pb_frames fr;
+    real vx = -g.ctr * g.sti * g.sph;
+    real vy = g.ctr * g.sti * g.cph - g.str * g.cti;
+    real vz = g.str * g.sti * g.sph;
+    real nv = sqrt(vx * vx + vy * vy + vz * vz);
+    if (nv > (real)0) {
+        vx /= nv; vy /= nv; vz /= nv;
+    } else {  /* retro-reflection: any facet frame gives the same matrix; take s_in */
+        vx = -g.sph; vy = g.cph; vz = (real)0;
+    }
+    /* s_in = (-sph, cph, 0), p_in = (cti cph, cti sph, -sti) */
+    fr.ci = -vx * g.sph + vy * g.cph;
+    fr.si = vx * g.cti * g.cph + vy * g.cti * g.sph - vz * g.sti;
+    /* s_out = (0, -1, 0), p_out = (ctr, 0, -str); so = s_out . (k_out x s_f) = -s_f . p_out */
+    fr.co = -vy;
+    fr.so = -(vx * g.ctr - vz * g.str);
+    return fr;
+}
+
+/* The 4x4 Mueller matrix F = K R_out M^s R_in + fd e00 (eq. 10, 15, 16), row-major into m[16].
+ * R(c, s) = [[1,0,0,0],[0,c2,s2,0],[0,-s2,c2,0],[0,0,0,1]], c2 = c^2 - s^2, s2 = 2 c s. */
+inline void pb_mueller(pb_fresnel_t f, pb_frames fr, real logK, real fd, real *m)
+{
+    real K = exp(logK);
+    real m00 = (real)0.5 * K * (f.Rs + f.Rp);
+    real m01 = (real)0.5 * K * f.diff;
+    real rx = K * f.re_x, ix = K * f.im_x;
+    real c = fr.ci * fr.ci - fr.si * fr.si, s = (real)2 * fr.ci * fr.si;
+    real C = fr.co * fr.co - fr.so * fr.so, S = (real)2 * fr.co * fr.so;
+    /* A = M^s R_in */
+    real a1[4] = {m01, m00 * c, m00 * s, (real)0};
+    real a2[4] = {(real)0, -rx * s, rx * c, ix};
+    m[0] = m00 + fd; m[1] = m01 * c; m[2] = m01 * s; m[3] = (real)0;
+    for (int j = 0; j < 4; j++) {
+        m[4 + j] = C * a1[j] + S * a2[j];
+        m[8 + j] = -S * a1[j] + C * a2[j];
+    }
+    m[12] = (real)0; m[13] = ix * s; m[14] = -ix * c; m[15] = rx;
+}
+
+#endif /* PBRDF_H */

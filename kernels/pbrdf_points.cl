@@ -1,0 +1,54 @@
+/*
+ * pbrdf_points.cl -- element-wise evaluation of the pBRDF model over arrays.
+ *
+ * Build options: -DPBRDF_DOUBLE (float64, else float32), -DPBRDF_SHADOWING=<0 none|1 paper|2 smith>,
+ * -I <this folder>.  Each of the nine inputs is a buffer with a stride: 1 for a full array of
+ * length n, 0 for one value broadcast to every point.  Angles are in degrees.
+ */
+#include "pbrdf.h"
+
+#ifndef PBRDF_SHADOWING
+#define PBRDF_SHADOWING PB_SHADOW_PAPER
+#endif
+
+#define PB_DEG ((real)0.0174532925199432957692)
+
+#define PB_POINT_ARGS                                                        \
+    const int n,                                                             \
+    __global const real *ti, const int s_ti, __global const real *tr, const int s_tr, \
+    __global const real *ph, const int s_ph, __global const real *nn, const int s_n,  \
+    __global const real *kk, const int s_k, __global const real *sg, const int s_sg,  \
+    __global const real *ks, const int s_ks, __global const real *kd, const int s_kd, \
+    __global const real *cc, const int s_c
+
+/* Everything a point needs: geometry, Fresnel, log K and the diffuse term. */
+#define PB_POINT_BODY                                                        \
+    const int i = get_global_id(0);                                          \
+    if (i >= n) return;                                                      \
+    pb_geom g = pb_geometry(PB_DEG * ti[i * s_ti], PB_DEG * tr[i * s_tr], PB_DEG * ph[i * s_ph]); \
+    pb_fresnel_t f = pb_fresnel(nn[i * s_n], kk[i * s_k], g.cb, g.sb);       \
+    const real sigma = sg[i * s_sg];                                         \
+    const real G = pb_shadowing_factor(g, sigma, PBRDF_SHADOWING);                  \
+    const real logK = pb_log_specular_scale(g, sigma, ks[i * s_ks], G);      \
+    const real fd = pb_diffuse(g, kd[i * s_kd], cc[i * s_c]);
+
+__kernel void dop_points(__global real *out, PB_POINT_ARGS)
+{
+    PB_POINT_BODY
+    out[i] = pb_dop(f, logK, fd);
+}
+
+__kernel void brdf_points(__global real *out, PB_POINT_ARGS)
+{
+    PB_POINT_BODY
+    out[i] = pb_brdf(f, logK, fd);
+}
+
+__kernel void mueller_points(__global real *out, PB_POINT_ARGS)
+{
+    PB_POINT_BODY
+    real m[16];
+    pb_mueller(f, pb_frame_rotations(g), logK, fd, m);
+    for (int j = 0; j < 16; j++)
+        out[(size_t)16 * i + j] = m[j];
+}

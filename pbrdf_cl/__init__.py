@@ -1,0 +1,17 @@
+"""pbrdf-cl: the six-parameter polarized BRDF model (Zhu et al. 2020) on OpenCL.
+
+Quick start::
+
+    import pbrdf_cl
+    pbrdf_cl.dop(40, [20, 45, 65], n=1.6, k=2.139, sigma=0.5, ks=0.9, kd=0.15, c=-0.3)
+
+Angles are in degrees; phi = 180 (the default) is the in-plane geometry.
+"""
+from .api import MODELS, brdf, dop, mueller, validate
+from .engine import (Engine, OpenCLUnavailableError, get_default_engine, list_devices, select_device,
+                     set_default_engine)
+
+__version__ = "0.1.0"
+
+__all__ = ["dop", "brdf", "mueller", "validate", "MODELS", "Engine", "OpenCLUnavailableError",
+           "get_default_engine", "set_default_engine", "list_devices", "select_device", "__version__"]

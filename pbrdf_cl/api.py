@@ -1,0 +1,117 @@
+"""Public API: DOP, F00 and the Mueller matrix of the six-parameter pBRDF model.
+
+Angles are in degrees: ``theta_i``, ``theta_r`` in [0, 90); ``phi`` is the relative
+azimuth phi_i - phi_r, 180 being the in-plane (specular) geometry.  ``sigma`` is the
+per-axis slope standard deviation.  All array arguments broadcast together.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from . import reference
+from .engine import DTYPES, POINT_INPUTS, get_default_engine
+
+MODELS = ("six-param", "specular")
+BACKENDS = ("opencl", "numpy")
+QUANTITIES = ("dop", "brdf", "mueller")
+
+
+def _as_array(name, value):
+    try:
+        a = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a number or an array of numbers, got {value!r}") from None
+    bad = ~np.isfinite(a)
+    if bad.any():
+        raise ValueError(f"{name} must be finite, got {a[bad].flat[0]!r}"
+                         + (f" at index {np.argwhere(bad)[0].tolist()}" if a.ndim else ""))
+    return a
+
+
+def _check(name, a, ok, rule):
+    bad = ~ok(a)
+    if bad.any():
+        where = f" at index {np.argwhere(bad)[0].tolist()}" if a.ndim else ""
+        raise ValueError(f"{name} must be {rule}, got {a[bad].flat[0]!r}{where}")
+
+
+def validate(theta_i, theta_r, phi, n, k, sigma, ks, kd, c, *, shadowing="paper", dtype="float64",
+             backend="opencl", model="six-param"):
+    """Check and broadcast the inputs; returns ``(arrays dict, shape, dtype name)``.
+
+    Raises ``ValueError`` naming the offending argument and value.
+    """
+    if shadowing not in reference.SHADOWING:
+        raise ValueError(f"shadowing must be one of {sorted(reference.SHADOWING)}, got {shadowing!r}")
+    dtype_name = np.dtype(dtype).name if dtype in (np.float32, np.float64) else dtype
+    if dtype_name not in DTYPES:
+        raise ValueError(f"dtype must be 'float32' or 'float64', got {dtype!r}")
+    if backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+    if model not in MODELS:
+        raise ValueError(f"model must be one of {MODELS}, got {model!r}")
+    if sigma is None:
+        raise ValueError("sigma is required (the per-axis slope standard deviation, > 0)")
+    values = dict(theta_i=theta_i, theta_r=theta_r, phi=phi, n=n, k=k, sigma=sigma, ks=ks, kd=kd, c=c)
+    arrays = {name: _as_array(name, values[name]) for name in POINT_INPUTS}
+    for name in ("theta_i", "theta_r"):
+        _check(name, arrays[name], lambda a: (a >= 0) & (a < 90), "in [0, 90) degrees")
+    _check("n", arrays["n"], lambda a: a > 0, "> 0")
+    _check("k", arrays["k"], lambda a: a >= 0, ">= 0")
+    _check("sigma", arrays["sigma"], lambda a: a > 0, "> 0")
+    _check("ks", arrays["ks"], lambda a: a > 0, "> 0")
+    _check("kd", arrays["kd"], lambda a: a >= 0, ">= 0")
+    if model == "specular":
+        _check("kd", arrays["kd"], lambda a: a == 0, "0 in the specular (ref. [7]) model")
+    try:
+        shape = np.broadcast_shapes(*(arrays[name].shape for name in POINT_INPUTS))
+    except ValueError:
+        shapes = ", ".join(f"{name}{arrays[name].shape}" for name in POINT_INPUTS if arrays[name].ndim)
+        raise ValueError(f"array arguments do not broadcast together: {shapes}") from None
+    return arrays, shape, dtype_name
+
+
+def _evaluate(quantity, theta_i, theta_r, phi, n, k, sigma, ks, kd, c, shadowing, dtype, backend,
+              model, engine):
+    arrays, shape, dtype_name = validate(theta_i, theta_r, phi, n, k, sigma, ks, kd, c,
+                                         shadowing=shadowing, dtype=dtype, backend=backend, model=model)
+    if backend == "numpy":
+        out = reference.evaluate(quantity, *(arrays[name] for name in POINT_INPUTS), shadowing=shadowing)
+        out = np.asarray(out, dtype=DTYPES[dtype_name])
+    else:
+        inputs = {name: (a if a.size == 1 else np.broadcast_to(a, shape)) for name, a in arrays.items()}
+        eng = engine if engine is not None else get_default_engine()
+        out = eng.evaluate(quantity, inputs, shape, dtype=dtype_name, shadowing=shadowing)
+    if not np.all(np.isfinite(out)):
+        raise FloatingPointError(
+            f"{quantity} overflowed {dtype_name} (sigma too small for the specular peak's height?); "
+            "use dtype='float64' or a larger sigma")
+    return out
+
+
+def dop(theta_i, theta_r, phi=180.0, *, n, k, sigma=None, ks=1.0, kd=0.0, c=0.0, shadowing="paper",
+        dtype="float64", backend="opencl", model="six-param", engine=None):
+    """Degree of polarization for unpolarized incidence (eq. 17-18).
+
+    ``model="specular"`` is the paper's ref. [7] (Thilak et al. 2007): kd = 0, and the DOP
+    depends only on n, k and the geometry, so ``sigma`` may be omitted.
+    Returns an array of the broadcast shape, in ``dtype``.
+    """
+    if sigma is None and model == "specular":
+        sigma = 1.0  # cancels: DOP of the specular term does not depend on sigma, ks or G
+    return _evaluate("dop", theta_i, theta_r, phi, n, k, sigma, ks, kd, c, shadowing, dtype, backend,
+                     model, engine)
+
+
+def brdf(theta_i, theta_r, phi=180.0, *, n, k, sigma, ks=1.0, kd=0.0, c=0.0, shadowing="paper",
+         dtype="float64", backend="opencl", model="six-param", engine=None):
+    """The BRDF for unpolarized light, F00 = F^s_00 + F^d_00, in 1/sr."""
+    return _evaluate("brdf", theta_i, theta_r, phi, n, k, sigma, ks, kd, c, shadowing, dtype, backend,
+                     model, engine)
+
+
+def mueller(theta_i, theta_r, phi=180.0, *, n, k, sigma, ks=1.0, kd=0.0, c=0.0, shadowing="paper",
+            dtype="float64", backend="opencl", model="six-param", engine=None):
+    """The 4x4 Mueller-matrix BRDF in the psps frames (NIST SCATMECH's convention), shape (..., 4, 4)."""
+    return _evaluate("mueller", theta_i, theta_r, phi, n, k, sigma, ks, kd, c, shadowing, dtype, backend,
+                     model, engine)

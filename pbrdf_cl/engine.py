@@ -1,0 +1,237 @@
+"""OpenCL engine: one object owning the context, queue, built programs and kernels.
+
+Device choice, in order: an explicit ``device`` argument, then the ``PYOPENCL_CTX``
+environment variable, then the first CPU device of a PoCL platform, then any other
+device that is not the Oclgrind simulator.  A device is named by a ``cl.Device``,
+by ``"P"`` or ``"P:D"`` (platform and device indices, as ``pbrdf-cl devices`` lists
+them), or by a case-insensitive substring of "platform name / device name"
+(``"pocl"``, ``"nvidia"``, ``"oclgrind"``).
+
+Programs are built once per (precision, shadowing variant) with ``-D`` options and
+kept, with their ``cl.Kernel`` objects, for the life of the engine.
+"""
+from __future__ import annotations
+
+import os
+import warnings
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+
+from . import reference
+
+try:
+    import pyopencl as cl
+except ImportError as exc:  # pragma: no cover - pyopencl is a hard dependency
+    cl = None
+    _IMPORT_ERROR = exc
+else:
+    _IMPORT_ERROR = None
+
+KERNEL_FILES = ("pbrdf.h", "pbrdf_points.cl")
+POINT_INPUTS = ("theta_i", "theta_r", "phi", "n", "k", "sigma", "ks", "kd", "c")
+DTYPES = {"float32": np.float32, "float64": np.float64}
+#: Points per kernel launch; bounds the temporary device memory of one call.
+LAUNCH_POINTS = 1 << 22
+
+_HOW_TO_GET_ONE = ("install a CPU OpenCL driver with `pip install pocl-binary-distribution`, "
+                   "or evaluate with backend=\"numpy\" (the float64 reference)")
+
+
+class OpenCLUnavailableError(RuntimeError):
+    """No usable OpenCL platform or device."""
+
+
+def kernel_dir() -> Path:
+    """The folder holding the OpenCL sources: the installed ``pbrdf_cl.kernels`` package
+    resource, or the source tree's top-level ``kernels/`` when running from a checkout."""
+    try:
+        folder = resources.files("pbrdf_cl.kernels")
+        if folder.joinpath("pbrdf.h").is_file():
+            return Path(str(folder))
+    except ModuleNotFoundError:
+        pass
+    folder = Path(__file__).resolve().parent.parent / "kernels"
+    if (folder / "pbrdf.h").is_file():
+        return folder
+    raise FileNotFoundError("the OpenCL sources of pbrdf_cl (pbrdf_cl/kernels/pbrdf.h) are missing "
+                            "from this installation; reinstall the package")
+
+
+def _platforms():
+    if cl is None:
+        raise OpenCLUnavailableError(f"pyopencl cannot be imported ({_IMPORT_ERROR}); {_HOW_TO_GET_ONE}")
+    try:
+        platforms = cl.get_platforms()
+    except cl.Error as exc:
+        raise OpenCLUnavailableError(f"no OpenCL platform found ({exc}); {_HOW_TO_GET_ONE}") from None
+    if not platforms:
+        raise OpenCLUnavailableError(f"no OpenCL platform found; {_HOW_TO_GET_ONE}")
+    return platforms
+
+
+def list_devices():
+    """All OpenCL devices as a list of ``(platform_index, device_index, platform, device)``."""
+    out = []
+    for ip, plat in enumerate(_platforms()):
+        try:
+            devices = plat.get_devices()
+        except cl.Error:
+            continue
+        for idev, dev in enumerate(devices):
+            out.append((ip, idev, plat, dev))
+    return out
+
+
+def _is_simulator(plat) -> bool:
+    return "oclgrind" in plat.name.lower()
+
+
+def select_device(device=None):
+    """Pick a ``cl.Device`` (see the module docstring for the order)."""
+    if cl is not None and isinstance(device, cl.Device):
+        return device
+    spec = device if device is not None else os.environ.get("PYOPENCL_CTX") or None
+    found = list_devices()
+    if not found:
+        raise OpenCLUnavailableError(f"OpenCL platforms exist but have no devices; {_HOW_TO_GET_ONE}")
+    if spec is not None:
+        spec = str(spec).strip()
+        where = "device" if device is not None else "PYOPENCL_CTX"
+        parts = spec.split(":")
+        if all(p.isdigit() for p in parts) and 1 <= len(parts) <= 2:
+            ip, idev = int(parts[0]), int(parts[1]) if len(parts) == 2 else 0
+            for p_, d_, _, dev in found:
+                if (p_, d_) == (ip, idev):
+                    return dev
+            raise ValueError(f"{where}={spec!r}: no OpenCL device {ip}:{idev}; "
+                             f"`pbrdf-cl devices` lists the ones present")
+        for _, _, plat, dev in found:
+            if spec.lower() in f"{plat.name} / {dev.name}".lower():
+                return dev
+        raise ValueError(f"{where}={spec!r} matches no OpenCL platform or device name; "
+                         f"`pbrdf-cl devices` lists the ones present")
+    real = [(plat, dev) for _, _, plat, dev in found if not _is_simulator(plat)]
+    for plat, dev in real:
+        if dev.type & cl.device_type.CPU and "portable computing language" in plat.name.lower():
+            return dev
+    for plat, dev in real:
+        if dev.type & cl.device_type.CPU:
+            return dev
+    if real:
+        return real[0][1]
+    return found[0][3]
+
+
+def has_fp64(device) -> bool:
+    return bool(device.double_fp_config) or "cl_khr_fp64" in device.extensions
+
+
+class Engine:
+    """Owns an OpenCL context and queue on one device and the programs built for it.
+
+    Parameters
+    ----------
+    device : cl.Device, str or None
+        See :func:`select_device`.
+    profiling : bool
+        Create the queue with profiling enabled (``last_event_seconds`` then reports the
+        device time of the last launch).
+    """
+
+    def __init__(self, device=None, *, profiling=False):
+        self.device = select_device(device)
+        self.context = cl.Context([self.device])
+        props = cl.command_queue_properties.PROFILING_ENABLE if profiling else 0
+        self.queue = cl.CommandQueue(self.context, properties=props)
+        self.profiling = profiling
+        self.fp64 = has_fp64(self.device)
+        self._kernels = {}
+        self._last_event = None
+
+    def __repr__(self):
+        return (f"Engine(device={self.device.name.strip()!r}, "
+                f"platform={self.device.platform.name.strip()!r}, fp64={self.fp64})")
+
+    def build_options(self, dtype: str, shadowing: str):
+        opts = ["-I", str(kernel_dir()), f"-DPBRDF_SHADOWING={reference.SHADOWING[shadowing]}"]
+        if dtype == "float64":
+            opts.append("-DPBRDF_DOUBLE")
+        return opts
+
+    def kernel(self, name: str, dtype: str, shadowing: str):
+        """The ``cl.Kernel`` ``name`` of ``pbrdf_points.cl`` for this precision and variant (built once)."""
+        key = (dtype, shadowing)
+        if key not in self._kernels:
+            if dtype == "float64" and not self.fp64:
+                raise ValueError(f"dtype='float64': device {self.device.name.strip()!r} has no float64 "
+                                 "support; use dtype='float32' or another device")
+            src = (kernel_dir() / "pbrdf_points.cl").read_text()
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", cl.CompilerWarning)
+                program = cl.Program(self.context, src).build(options=self.build_options(dtype, shadowing))
+            self._kernels[key] = {k.function_name: k for k in program.all_kernels()}
+        return self._kernels[key][name]
+
+    def evaluate(self, quantity: str, inputs: dict, shape, dtype="float64", shadowing="paper"):
+        """Evaluate ``quantity`` ("dop", "brdf", "mueller") element-wise.
+
+        ``inputs`` maps each name of :data:`POINT_INPUTS` to an array that is either of
+        ``shape`` (already broadcast) or of size 1.  Angles in degrees.  Returns an array of
+        ``shape`` (``shape + (4, 4)`` for "mueller") in ``dtype``.  No validation here.
+        """
+        npdt = DTYPES[dtype]
+        kern = self.kernel(f"{quantity}_points", dtype, shadowing)
+        size = int(np.prod(shape, dtype=np.int64))
+        width = 16 if quantity == "mueller" else 1
+        out = np.empty(size * width, dtype=npdt)
+        if size == 0:
+            return out.reshape(tuple(shape) + ((4, 4) if width == 16 else ()))
+        flat = {}
+        for name in POINT_INPUTS:
+            a = np.ascontiguousarray(inputs[name], dtype=npdt).reshape(-1)
+            flat[name] = a
+        mf = cl.mem_flags
+        for start in range(0, size, LAUNCH_POINTS):
+            count = min(LAUNCH_POINTS, size - start)
+            args = [None, np.int32(count)]
+            bufs = []
+            for name in POINT_INPUTS:
+                a = flat[name]
+                part = a if a.size == 1 else a[start:start + count]
+                buf = cl.Buffer(self.context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=part)
+                bufs.append(buf)
+                args += [buf, np.int32(0 if a.size == 1 else 1)]
+            out_buf = cl.Buffer(self.context, mf.WRITE_ONLY, count * width * out.itemsize)
+            args[0] = out_buf
+            kern.set_args(*args)
+            self._last_event = cl.enqueue_nd_range_kernel(self.queue, kern, (count,), None)
+            cl.enqueue_copy(self.queue, out[start * width:(start + count) * width], out_buf)
+        self.queue.finish()
+        return out.reshape(tuple(shape) + ((4, 4) if width == 16 else ()))
+
+    @property
+    def last_event_seconds(self):
+        """Device time of the last kernel launch (needs ``profiling=True``)."""
+        if not self.profiling or self._last_event is None:
+            return None
+        ev = self._last_event
+        return (ev.profile.end - ev.profile.start) * 1e-9
+
+
+_default_engine = None
+
+
+def get_default_engine() -> Engine:
+    """The engine used by the module-level functions (created on first use)."""
+    global _default_engine
+    if _default_engine is None:
+        _default_engine = Engine()
+    return _default_engine
+
+
+def set_default_engine(engine) -> None:
+    """Replace the default engine (``None`` to create a fresh one on next use)."""
+    global _default_engine
+    _default_engine = engine

@@ -1,0 +1,190 @@
+"""Float64 numpy reference of the six-parameter pBRDF model.
+
+This module mirrors ``kernels/pbrdf.h`` function by function: ``geometry`` is
+``pb_geometry``, ``fresnel`` is ``pb_fresnel`` and so on, with the same steps in
+the same order.  Change one, change the other.  Angles are in **radians** here,
+as in the header; :func:`evaluate` is the degree-based entry point used by the
+public API's ``backend="numpy"``.  All functions broadcast over numpy arrays.
+"""
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+from scipy.special import erfc
+
+SHADOW_NONE, SHADOW_PAPER, SHADOW_SMITH = 0, 1, 2
+SHADOWING = {"none": SHADOW_NONE, "paper": SHADOW_PAPER, "smith": SHADOW_SMITH}
+
+#: Beyond this argument the shadowing function S is below 1e-36 and is taken as 0.
+SHADOW_ARG_MAX = 9.0
+
+
+def geometry(ti, tr, phi):
+    """Eq. 2-3 in stable form (``pb_geometry``)."""
+    g = SimpleNamespace()
+    g.sti, g.cti = np.sin(ti), np.cos(ti)
+    g.str, g.ctr = np.sin(tr), np.cos(tr)
+    g.sph, g.cph = np.sin(phi), np.cos(phi)
+    sh, ch = np.sin(0.5 * phi), np.cos(0.5 * phi)
+    cp = np.cos(0.5 * (ti + tr))
+    sm = np.sin(0.5 * (ti - tr))
+    q = g.sti * g.str
+    g.cb = np.sqrt(cp * cp + q * ch * ch)
+    g.sb = np.sqrt(sm * sm + q * sh * sh)
+    ds = g.sti - g.str
+    cs = g.cti + g.ctr
+    g.tan2a = (ds * ds + 4.0 * q * ch * ch) / (cs * cs)
+    return g
+
+
+def fresnel(n, k, cb, sb):
+    """Eq. 11-13 on the facet (``pb_fresnel``): Rs, Rp, Rs - Rp and x = rs rp*."""
+    n, k, cb, sb = np.broadcast_arrays(*(np.asarray(v, dtype=np.float64) for v in (n, k, cb, sb)))
+    f = SimpleNamespace()
+    nk = n * k
+    D = (n - k) * (n + k) - sb * sb
+    sC = np.hypot(2.0 * nk, D)
+    pos = D >= 0.0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        A_pos = np.sqrt(0.5 * (sC + D))
+        B_pos = np.where(A_pos > 0.0, nk / A_pos, 0.0)
+        B_neg = np.sqrt(0.5 * (sC - D))
+        A_neg = nk / B_neg
+    A = np.where(pos, A_pos, A_neg)
+    B = np.where(pos, B_pos, B_neg)
+    B2 = B * B
+    am, ap = A - cb, A + cb
+    f.Rs = (am * am + B2) / (ap * ap + B2)
+    t = sb * sb / cb
+    tm, tp = A - t, A + t
+    den = tp * tp + B2
+    f.Rp = f.Rs * (tm * tm + B2) / den
+    f.diff = f.Rs * 4.0 * A * t / den
+    f.re_x = -f.Rs * ((A - t) * (A + t) + B2) / den
+    f.im_x = f.Rs * 2.0 * B * t / den
+    return f
+
+
+def shadow_S(ct, st, sigma, variant):
+    """Eq. 7-9: the shadowing function S(theta) of one beam (``pb_shadow_S``)."""
+    ct, st, sigma = np.broadcast_arrays(*(np.asarray(v, dtype=np.float64) for v in (ct, st, sigma)))
+    if variant == SHADOW_NONE:
+        return np.zeros(ct.shape)
+    w = np.sqrt(2.0) * sigma if variant == SHADOW_SMITH else sigma
+    cut = ct >= SHADOW_ARG_MAX * w * st
+    with np.errstate(divide="ignore", invalid="ignore"):
+        a = np.where(cut, SHADOW_ARG_MAX, ct / (w * st))
+    den = a if variant == SHADOW_SMITH else a * a
+    S = np.exp(-a * a) / (2.0 * np.sqrt(np.pi) * den) - 0.5 * erfc(a)
+    return np.where(cut, 0.0, S)
+
+
+def shadowing_factor(g, sigma, variant):
+    """G = 1 / (1 + S(ti) + S(tr)) (``pb_shadowing_factor``)."""
+    return 1.0 / (1.0 + shadow_S(g.cti, g.sti, sigma, variant) + shadow_S(g.ctr, g.str, sigma, variant))
+
+
+def log_specular_scale(g, sigma, ks, G):
+    """log K, K = ks exp(-tan^2 a/(2 sigma^2)) G / (8 pi sigma^2 cos^4 a cos ti cos tr) (eq. 6)."""
+    u = np.sqrt(g.tan2a) / sigma
+    inv_cos2a = 1.0 + g.tan2a
+    return (np.log(ks * G * inv_cos2a * inv_cos2a / (8.0 * np.pi * g.cti * g.ctr))
+            - 2.0 * np.log(sigma) - 0.5 * u * u)
+
+
+def diffuse(g, kd, c):
+    """Eq. 15: Minnaert diffuse term kd/pi (cos ti cos tr)^c (``pb_diffuse``)."""
+    kd = np.asarray(kd, dtype=np.float64)
+    return np.where(kd == 0.0, 0.0, kd / np.pi * np.exp(c * np.log(g.cti * g.ctr)))
+
+
+def dop(f, logK, fd):
+    """Eq. 17-18: K (Rs - Rp) / (K (Rs + Rp) + 2 fd) (``pb_dop``)."""
+    with np.errstate(over="ignore"):
+        r = np.where(fd > 0.0, 2.0 * fd * np.exp(-logK), 0.0)
+    den = f.Rs + f.Rp + r
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(den > 0.0, f.diff / den, 0.0)
+
+
+def brdf(f, logK, fd):
+    """F00 = K (Rs + Rp) / 2 + fd (``pb_brdf``)."""
+    with np.errstate(over="ignore"):
+        return 0.5 * np.exp(logK) * (f.Rs + f.Rp) + fd
+
+
+def frame_rotations(g):
+    """cos/sin of the in/out frame rotations of the out-of-plane Mueller matrix (``pb_frame_rotations``).
+
+    w_i = (sti cph, sti sph, cti) towards the source, w_r = (str, 0, ctr) towards the viewer;
+    macro bases s = unit(k x z), p = k x s; facet s_f = unit(k_in x h) = unit(w_r x w_i).
+    """
+    fr = SimpleNamespace()
+    vx = -g.ctr * g.sti * g.sph
+    vy = g.ctr * g.sti * g.cph - g.str * g.cti
+    vz = g.str * g.sti * g.sph
+    vx, vy, vz = np.broadcast_arrays(vx, vy, vz)
+    nv = np.sqrt(vx * vx + vy * vy + vz * vz)
+    ok = nv > 0.0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        # retro-reflection: any facet frame gives the same matrix; take s_in
+        vx = np.where(ok, vx / nv, -g.sph)
+        vy = np.where(ok, vy / nv, g.cph)
+        vz = np.where(ok, vz / nv, 0.0)
+    # s_in = (-sph, cph, 0), p_in = (cti cph, cti sph, -sti)
+    fr.ci = -vx * g.sph + vy * g.cph
+    fr.si = vx * g.cti * g.cph + vy * g.cti * g.sph - vz * g.sti
+    # s_out = (0, -1, 0), p_out = (ctr, 0, -str); so = s_out . (k_out x s_f) = -s_f . p_out
+    fr.co = -vy
+    fr.so = -(vx * g.ctr - vz * g.str)
+    return fr
+
+
+def mueller(f, fr, logK, fd):
+    """F = K R_out M^s R_in + fd e00, shape (..., 4, 4) (``pb_mueller``).
+
+    R(c, s) = [[1,0,0,0],[0,c2,s2,0],[0,-s2,c2,0],[0,0,0,1]], c2 = c^2 - s^2, s2 = 2 c s.
+    """
+    with np.errstate(over="ignore", invalid="ignore"):
+        K = np.exp(logK)
+        m00 = 0.5 * K * (f.Rs + f.Rp)
+        m01 = 0.5 * K * f.diff
+        rx, ix = K * f.re_x, K * f.im_x
+        c, s = fr.ci * fr.ci - fr.si * fr.si, 2.0 * fr.ci * fr.si
+        C, S = fr.co * fr.co - fr.so * fr.so, 2.0 * fr.co * fr.so
+        m00, m01, rx, ix, c, s, C, S, fd = np.broadcast_arrays(m00, m01, rx, ix, c, s, C, S, fd)
+        zero = np.zeros(m00.shape)
+        # A = M^s R_in
+        a1 = [m01, m00 * c, m00 * s, zero]
+        a2 = [zero, -rx * s, rx * c, ix]
+        m = np.empty(m00.shape + (16,))
+        m[..., 0], m[..., 1], m[..., 2], m[..., 3] = m00 + fd, m01 * c, m01 * s, zero
+        for j in range(4):
+            m[..., 4 + j] = C * a1[j] + S * a2[j]
+            m[..., 8 + j] = -S * a1[j] + C * a2[j]
+        m[..., 12], m[..., 13], m[..., 14], m[..., 15] = zero, ix * s, -ix * c, rx
+    return m.reshape(m00.shape + (4, 4))
+
+
+def evaluate(quantity, theta_i, theta_r, phi, n, k, sigma, ks, kd, c, shadowing="paper"):
+    """Evaluate ``quantity`` ("dop", "brdf" or "mueller") in float64; angles in degrees.
+
+    Mirrors the body shared by the kernels of ``kernels/pbrdf_points.cl``.  No input validation:
+    the public API (:mod:`pbrdf_cl.api`) validates before calling this.
+    """
+    variant = SHADOWING[shadowing]
+    deg = np.pi / 180.0
+    g = geometry(deg * np.asarray(theta_i, dtype=np.float64), deg * np.asarray(theta_r, dtype=np.float64),
+                 deg * np.asarray(phi, dtype=np.float64))
+    f = fresnel(n, k, g.cb, g.sb)
+    G = shadowing_factor(g, sigma, variant)
+    logK = log_specular_scale(g, sigma, ks, G)
+    fd = diffuse(g, kd, c)
+    if quantity == "dop":
+        return dop(f, logK, fd)
+    if quantity == "brdf":
+        return brdf(f, logK, fd)
+    if quantity == "mueller":
+        return mueller(f, frame_rotations(g), logK, fd)
+    raise ValueError(f"quantity must be 'dop', 'brdf' or 'mueller', got {quantity!r}")
