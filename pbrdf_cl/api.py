@@ -23,7 +23,7 @@ def _as_array(name, value):
         raise ValueError(f"{name} must be a number or an array of numbers, got {value!r}") from None
     bad = ~np.isfinite(a)
     if bad.any():
-        raise ValueError(f"{name} must be finite, got {a[bad].flat[0]!r}"
+        raise ValueError(f"{name} must be finite, got {float(a[bad].flat[0])!r}"
                          + (f" at index {np.argwhere(bad)[0].tolist()}" if a.ndim else ""))
     return a
 
@@ -32,7 +32,7 @@ def _check(name, a, ok, rule):
     bad = ~ok(a)
     if bad.any():
         where = f" at index {np.argwhere(bad)[0].tolist()}" if a.ndim else ""
-        raise ValueError(f"{name} must be {rule}, got {a[bad].flat[0]!r}{where}")
+        raise ValueError(f"{name} must be {rule}, got {float(a[bad].flat[0])!r}{where}")
 
 
 def validate(theta_i, theta_r, phi, n, k, sigma, ks, kd, c, *, shadowing="paper", dtype="float64",

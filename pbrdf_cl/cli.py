@@ -1,0 +1,147 @@
+"""Command line interface: ``pbrdf-cl devices`` and ``pbrdf-cl eval``."""
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import sys
+
+import numpy as np
+
+from . import api, engine as _engine
+from .reference import SHADOWING
+
+PARAMS = (("theta_i", None), ("theta_r", None), ("phi", "180"), ("n", None), ("k", None),
+          ("sigma", None), ("ks", "1"), ("kd", "0"), ("c", "0"))
+
+
+def parse_values(option: str, text: str) -> np.ndarray:
+    """``"40"``, ``"20,30,45"`` or an inclusive range ``"20:65:5"`` -> 1-d float array."""
+    try:
+        if ":" in text:
+            parts = [float(p) for p in text.split(":")]
+            if len(parts) != 3:
+                raise ValueError
+            start, stop, step = parts
+            if step <= 0 or stop < start:
+                raise ValueError
+            count = int(np.floor((stop - start) / step + 1e-9)) + 1
+            return start + step * np.arange(count)
+        return np.array([float(p) for p in text.split(",")])
+    except ValueError:
+        raise SystemExit(f"pbrdf-cl: error: {option}: {text!r} is not a number, a comma list "
+                         "or an inclusive start:stop:step range with step > 0") from None
+
+
+def _device_type(bits: int) -> str:
+    dt = _engine.cl.device_type
+    names = [name for name in ("CPU", "GPU", "ACCELERATOR") if bits & getattr(dt, name)]
+    return "/".join(names) or "OTHER"
+
+
+def cmd_devices(args) -> int:
+    try:
+        found = _engine.list_devices()
+        default = _engine.select_device(args.device)
+    except (_engine.OpenCLUnavailableError, ValueError) as exc:
+        print(f"pbrdf-cl: error: {exc}", file=sys.stderr)
+        return 1
+    rows = []
+    for ip, idev, plat, dev in found:
+        rows.append(dict(id=f"{ip}:{idev}", platform=plat.name.strip(), device=dev.name.strip(),
+                         type=_device_type(dev.type), fp64=_engine.has_fp64(dev),
+                         compute_units=dev.max_compute_units, version=dev.version.strip(),
+                         default=dev.int_ptr == default.int_ptr))
+    if args.json:
+        print(json.dumps(rows, indent=2))
+        return 0
+    for r in rows:
+        mark = "*" if r["default"] else " "
+        print(f"{mark} {r['id']:5s} {r['platform']} / {r['device']}  [{r['type']}, "
+              f"{r['compute_units']} CUs, fp64={'yes' if r['fp64'] else 'no'}, {r['version']}]")
+    print("* = the default device (choose another with --device P:D or PYOPENCL_CTX=P:D)")
+    return 0
+
+
+def cmd_eval(args) -> int:
+    values = {}
+    for name, default in PARAMS:
+        text = getattr(args, name)
+        if text is None:
+            text = default
+        if text is None and not (name == "sigma" and args.model == "specular" and args.quantity == "dop"):
+            print(f"pbrdf-cl: error: --{name.replace('_', '-')} is required", file=sys.stderr)
+            return 2
+        values[name] = parse_values(f"--{name.replace('_', '-')}", text) if text is not None else None
+    names = [n for n, _ in PARAMS if values[n] is not None]
+    rows = list(itertools.product(*(values[n] for n in names)))
+    cols = {n: np.array([r[i] for r in rows]) for i, n in enumerate(names)}
+    kw = dict(shadowing=args.shadowing, dtype=args.dtype, backend=args.backend, model=args.model)
+    if args.backend == "opencl":
+        try:
+            kw["engine"] = _engine.Engine(args.device) if args.device else None
+        except (_engine.OpenCLUnavailableError, ValueError) as exc:
+            print(f"pbrdf-cl: error: {exc}", file=sys.stderr)
+            return 1
+    pos = {n: cols[n] for n in ("theta_i", "theta_r", "phi")}
+    par = {n: cols[n] for n in ("n", "k", "sigma", "ks", "kd", "c") if n in cols}
+    try:
+        func = {"dop": api.dop, "brdf": api.brdf, "mueller": api.mueller}[args.quantity]
+        result = func(pos["theta_i"], pos["theta_r"], pos["phi"], **par, **kw)
+    except (ValueError, FloatingPointError, _engine.OpenCLUnavailableError) as exc:
+        print(f"pbrdf-cl: error: {exc}", file=sys.stderr)
+        return 1
+    out_name = {"dop": "dop", "brdf": "f00", "mueller": "mueller"}[args.quantity]
+    if args.json:
+        records = [{**{n: float(cols[n][i]) for n in names},
+                    out_name: result[i].tolist() if args.quantity == "mueller" else float(result[i])}
+                   for i in range(len(rows))]
+        print(json.dumps(dict(quantity=out_name, shadowing=args.shadowing, dtype=args.dtype,
+                              backend=args.backend, model=args.model, rows=records), indent=2))
+        return 0
+    header = [n for n in names]
+    print("  ".join(f"{h:>8s}" for h in header) + "  " + (out_name if args.quantity != "mueller"
+                                                          else "mueller (row-major, 16 values)"))
+    for i in range(len(rows)):
+        lead = "  ".join(f"{cols[n][i]:8.4g}" for n in names)
+        if args.quantity == "mueller":
+            val = " ".join(f"{v: .6e}" for v in result[i].ravel())
+        else:
+            val = f"{result[i]:.8g}"
+        print(f"{lead}  {val}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="pbrdf-cl", description="The six-parameter pBRDF model on OpenCL. "
+                                "Angles in degrees; phi = 180 is the in-plane geometry.")
+    sub = p.add_subparsers(dest="command", required=True)
+    d = sub.add_parser("devices", help="list OpenCL platforms and devices")
+    d.add_argument("--device", help="mark this device as the one chosen (P:D or a name substring)")
+    d.add_argument("--json", action="store_true", help="JSON output")
+    d.set_defaults(func=cmd_devices)
+    e = sub.add_parser("eval", help="evaluate DOP, F00 or the Mueller matrix",
+                       description="Each value option takes a number, a comma list or an inclusive "
+                       "start:stop:step range; the output has one row per combination.")
+    for name, default in PARAMS:
+        unit = " (degrees)" if name in ("theta_i", "theta_r", "phi") else ""
+        e.add_argument(f"--{name.replace('_', '-')}", dest=name, metavar="V",
+                       help=f"{name}{unit}" + (f", default {default}" if default else ", required"))
+    e.add_argument("--quantity", choices=api.QUANTITIES, default="dop")
+    e.add_argument("--shadowing", choices=sorted(SHADOWING), default="paper")
+    e.add_argument("--model", choices=api.MODELS, default="six-param")
+    e.add_argument("--dtype", choices=("float32", "float64"), default="float64")
+    e.add_argument("--backend", choices=api.BACKENDS, default="opencl")
+    e.add_argument("--device", help="OpenCL device: P:D or a name substring (default: PYOPENCL_CTX, then PoCL)")
+    e.add_argument("--json", action="store_true", help="JSON output")
+    e.set_defaults(func=cmd_eval)
+    return p
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    return args.func(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
