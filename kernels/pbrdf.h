@@ -9,12 +9,13 @@
  *   cos^2 b = cos^2((ti+tr)/2) + sin ti sin tr cos^2(phi/2)      (all terms >= 0)
  *   sin^2 b = sin^2((ti-tr)/2) + sin ti sin tr sin^2(phi/2)
  *   tan^2 a = ((sin ti - sin tr)^2 + 4 sin ti sin tr cos^2(phi/2)) / (cos ti + cos tr)^2
- *   Fresnel A, B from the non-cancelling root and A*B = n*k;
+ *   Fresnel D = ((n-k)(n+k) - 1) + cos^2 b, A, B from the non-cancelling root and A*B = n*k,
+ *   A - cos b = (E + B^2)/(A + cos b) with E = D - cos^2 b when E >= 0 (near-index-matched media);
  *   Rs - Rp = 4 A t Rs / ((A + t)^2 + B^2), t = sin b tan b (>= 0: no cancellation);
  *   the specular scale K is carried as log K so that no 0*inf or inf/inf can occur.
  *
  * Precision: compile with -DPBRDF_DOUBLE for float64, without it for float32.
- * Angles are in radians here; the kernels convert from degrees.
+ * Angles are in degrees; trigonometry reduces them exactly before converting to radians.
  */
 #ifndef PBRDF_H
 #define PBRDF_H
@@ -43,18 +44,33 @@ typedef struct {
     real tan2a;                /* tan^2 of the facet tilt a (eq. 3) */
 } pb_geom;
 
-/* Eq. 2-3 in stable form. */
+#define PB_DEG ((real)0.0174532925199432957692)
+
+/* sin and cos of x degrees with exact argument reduction to [-45, 45]: relative accuracy
+ * near multiples of 90 degrees (cos 89.9 in float32 would otherwise lose four digits). */
+inline real pb_sincosd(real x, real *c)
+{
+    real r = x - (real)360 * rint(x / (real)360);
+    real q = rint(r / (real)90);
+    real cy;
+    real sy = sincos((r - (real)90 * q) * PB_DEG, &cy);
+    int iq = (int)q & 3;
+    *c = iq == 0 ? cy : iq == 1 ? -sy : iq == 2 ? -cy : sy;
+    return iq == 0 ? sy : iq == 1 ? cy : iq == 2 ? -sy : -cy;
+}
+
+/* Eq. 2-3 in stable form; angles in degrees. */
 inline pb_geom pb_geometry(real ti, real tr, real phi)
 {
     pb_geom g;
     real c;
-    g.sti = sincos(ti, &c); g.cti = c;
-    g.str = sincos(tr, &c); g.ctr = c;
-    g.sph = sincos(phi, &c); g.cph = c;
-    real sh = sincos((real)0.5 * phi, &c);
+    g.sti = pb_sincosd(ti, &c); g.cti = c;
+    g.str = pb_sincosd(tr, &c); g.ctr = c;
+    g.sph = pb_sincosd(phi, &c); g.cph = c;
+    real sh = pb_sincosd((real)0.5 * phi, &c);
     real ch = c;
-    real cp = cos((real)0.5 * (ti + tr));
-    real sm = sin((real)0.5 * (ti - tr));
+    real cp = pb_sincosd((real)0.5 * (((real)90 - ti) + ((real)90 - tr)), &c);  /* cos((ti+tr)/2) */
+    real sm = pb_sincosd((real)0.5 * (ti - tr), &c);
     real q = g.sti * g.str;
     g.cb = sqrt(cp * cp + q * ch * ch);
     g.sb = sqrt(sm * sm + q * sh * sh);
@@ -75,7 +91,8 @@ inline pb_fresnel_t pb_fresnel(real n, real k, real cb, real sb)
 {
     pb_fresnel_t f;
     real nk = n * k;
-    real D = (n - k) * (n + k) - sb * sb;
+    real E = (n - k) * (n + k) - (real)1;   /* D - cos^2 b: exact for n = 1, k = 0 */
+    real D = E + cb * cb;
     real sC = hypot((real)2 * nk, D);
     real A, B;
     if (D >= (real)0) {
@@ -86,7 +103,8 @@ inline pb_fresnel_t pb_fresnel(real n, real k, real cb, real sb)
         A = nk / B;
     }
     real B2 = B * B;
-    real am = A - cb, ap = A + cb;
+    real ap = A + cb;
+    real am = E >= (real)0 ? (E + B2) / ap : A - cb;  /* A - cb = (A^2 - cb^2)/(A + cb) */
     f.Rs = (am * am + B2) / (ap * ap + B2);
     real t = sb * sb / cb;
     real tm = A - t, tp = A + t;

@@ -11,8 +11,6 @@
 #define PBRDF_SHADOWING PB_SHADOW_PAPER
 #endif
 
-#define PB_DEG ((real)0.0174532925199432957692)
-
 #define PB_POINT_ARGS                                                        \
     const int n,                                                             \
     __global const real *ti, const int s_ti, __global const real *tr, const int s_tr, \
@@ -25,7 +23,7 @@
 #define PB_POINT_BODY                                                        \
     const int i = get_global_id(0);                                          \
     if (i >= n) return;                                                      \
-    pb_geom g = pb_geometry(PB_DEG * ti[i * s_ti], PB_DEG * tr[i * s_tr], PB_DEG * ph[i * s_ph]); \
+    pb_geom g = pb_geometry(ti[i * s_ti], tr[i * s_tr], ph[i * s_ph]); \
     pb_fresnel_t f = pb_fresnel(nn[i * s_n], kk[i * s_k], g.cb, g.sb);       \
     const real sigma = sg[i * s_sg];                                         \
     const real G = pb_shadowing_factor(g, sigma, PBRDF_SHADOWING);                  \

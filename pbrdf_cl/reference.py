@@ -2,9 +2,9 @@
 
 This module mirrors ``kernels/pbrdf.h`` function by function: ``geometry`` is
 ``pb_geometry``, ``fresnel`` is ``pb_fresnel`` and so on, with the same steps in
-the same order.  Change one, change the other.  Angles are in **radians** here,
-as in the header; :func:`evaluate` is the degree-based entry point used by the
-public API's ``backend="numpy"``.  All functions broadcast over numpy arrays.
+the same order.  Change one, change the other.  Angles are in degrees, as in
+the header; :func:`evaluate` is the entry point used by the public API's
+``backend="numpy"``.  All functions broadcast over numpy arrays.
 """
 from __future__ import annotations
 
@@ -20,15 +20,31 @@ SHADOWING = {"none": SHADOW_NONE, "paper": SHADOW_PAPER, "smith": SHADOW_SMITH}
 SHADOW_ARG_MAX = 9.0
 
 
+DEG = np.pi / 180.0
+
+
+def sincosd(x):
+    """(sin, cos) of x degrees with exact argument reduction to [-45, 45] (``pb_sincosd``)."""
+    x = np.asarray(x, dtype=np.float64)
+    r = x - 360.0 * np.rint(x / 360.0)
+    q = np.rint(r / 90.0)
+    y = (r - 90.0 * q) * DEG
+    sy, cy = np.sin(y), np.cos(y)
+    iq = q.astype(np.int64) & 3
+    c = np.choose(iq, [cy, -sy, -cy, sy])
+    return np.choose(iq, [sy, cy, -sy, -cy]), c
+
+
 def geometry(ti, tr, phi):
-    """Eq. 2-3 in stable form (``pb_geometry``)."""
+    """Eq. 2-3 in stable form; angles in degrees (``pb_geometry``)."""
+    ti, tr, phi = (np.asarray(v, dtype=np.float64) for v in (ti, tr, phi))
     g = SimpleNamespace()
-    g.sti, g.cti = np.sin(ti), np.cos(ti)
-    g.str, g.ctr = np.sin(tr), np.cos(tr)
-    g.sph, g.cph = np.sin(phi), np.cos(phi)
-    sh, ch = np.sin(0.5 * phi), np.cos(0.5 * phi)
-    cp = np.cos(0.5 * (ti + tr))
-    sm = np.sin(0.5 * (ti - tr))
+    g.sti, g.cti = sincosd(ti)
+    g.str, g.ctr = sincosd(tr)
+    g.sph, g.cph = sincosd(phi)
+    sh, ch = sincosd(0.5 * phi)
+    cp, _ = sincosd(0.5 * ((90.0 - ti) + (90.0 - tr)))  # cos((ti+tr)/2)
+    sm, _ = sincosd(0.5 * (ti - tr))
     q = g.sti * g.str
     g.cb = np.sqrt(cp * cp + q * ch * ch)
     g.sb = np.sqrt(sm * sm + q * sh * sh)
@@ -43,7 +59,8 @@ def fresnel(n, k, cb, sb):
     n, k, cb, sb = np.broadcast_arrays(*(np.asarray(v, dtype=np.float64) for v in (n, k, cb, sb)))
     f = SimpleNamespace()
     nk = n * k
-    D = (n - k) * (n + k) - sb * sb
+    E = (n - k) * (n + k) - 1.0  # D - cos^2 b: exact for n = 1, k = 0
+    D = E + cb * cb
     sC = np.hypot(2.0 * nk, D)
     pos = D >= 0.0
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -54,7 +71,8 @@ def fresnel(n, k, cb, sb):
     A = np.where(pos, A_pos, A_neg)
     B = np.where(pos, B_pos, B_neg)
     B2 = B * B
-    am, ap = A - cb, A + cb
+    ap = A + cb
+    am = np.where(E >= 0.0, (E + B2) / ap, A - cb)  # A - cb = (A^2 - cb^2)/(A + cb)
     f.Rs = (am * am + B2) / (ap * ap + B2)
     t = sb * sb / cb
     tm, tp = A - t, A + t
@@ -101,7 +119,7 @@ def diffuse(g, kd, c):
 
 def dop(f, logK, fd):
     """Eq. 17-18: K (Rs - Rp) / (K (Rs + Rp) + 2 fd) (``pb_dop``)."""
-    with np.errstate(over="ignore"):
+    with np.errstate(over="ignore", invalid="ignore"):
         r = np.where(fd > 0.0, 2.0 * fd * np.exp(-logK), 0.0)
     den = f.Rs + f.Rp + r
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -174,9 +192,7 @@ def evaluate(quantity, theta_i, theta_r, phi, n, k, sigma, ks, kd, c, shadowing=
     the public API (:mod:`pbrdf_cl.api`) validates before calling this.
     """
     variant = SHADOWING[shadowing]
-    deg = np.pi / 180.0
-    g = geometry(deg * np.asarray(theta_i, dtype=np.float64), deg * np.asarray(theta_r, dtype=np.float64),
-                 deg * np.asarray(phi, dtype=np.float64))
+    g = geometry(theta_i, theta_r, phi)
     f = fresnel(n, k, g.cb, g.sb)
     G = shadowing_factor(g, sigma, variant)
     logK = log_specular_scale(g, sigma, ks, G)
