@@ -1,0 +1,69 @@
+"""Every bad input gets a ValueError naming the argument and the bad value; no silent NaN."""
+import numpy as np
+import pytest
+
+import pbrdf_cl
+from pbrdf_cl import engine as engine_mod
+
+GOOD = dict(n=1.6, k=2.1, sigma=0.5, ks=0.9, kd=0.15, c=-0.3)
+
+
+@pytest.mark.parametrize("backend", ["opencl", "numpy"])
+@pytest.mark.parametrize("func", [pbrdf_cl.dop, pbrdf_cl.brdf, pbrdf_cl.mueller])
+@pytest.mark.parametrize("args,kwargs,pattern", [
+    ((90.0, 20.0), {}, r"theta_i must be in \[0, 90\) degrees, got 90\.0"),
+    ((-1.0, 20.0), {}, r"theta_i .* got -1\.0"),
+    ((40.0, [20.0, 95.0]), {}, r"theta_r .* got 95\.0 at index \[1\]"),
+    ((np.nan, 20.0), {}, r"theta_i must be finite, got nan"),
+    ((40.0, 20.0, np.inf), {}, r"phi must be finite, got inf"),
+    ((40.0, 20.0), {"sigma": 0.0}, r"sigma must be > 0, got 0\.0"),
+    ((40.0, 20.0), {"sigma": -0.2}, r"sigma must be > 0, got -0\.2"),
+    ((40.0, 20.0), {"k": -0.1}, r"k must be >= 0, got -0\.1"),
+    ((40.0, 20.0), {"n": 0.0}, r"n must be > 0, got 0\.0"),
+    ((40.0, 20.0), {"ks": 0.0}, r"ks must be > 0, got 0\.0"),
+    ((40.0, 20.0), {"kd": -1.0}, r"kd must be >= 0, got -1\.0"),
+    ((40.0, 20.0), {"c": np.nan}, r"c must be finite, got nan"),
+    ((40.0, 20.0), {"n": "glass"}, r"n must be a number or an array of numbers, got 'glass'"),
+    ((40.0, 20.0), {"shadowing": "torrance"}, r"shadowing must be one of .*'torrance'"),
+    ((40.0, 20.0), {"dtype": "float16"}, r"dtype must be 'float32' or 'float64', got 'float16'"),
+    (([10.0, 20.0, 30.0], [10.0, 20.0]), {}, r"do not broadcast together: theta_i\(3,\), theta_r\(2,\)"),
+    ((40.0, 20.0), {"model": "specular"}, r"kd must be 0 in the specular"),
+    ((40.0, 20.0), {"model": "torrance"}, r"model must be one of"),
+])
+def test_bad_input_names_argument_and_value(func, backend, args, kwargs, pattern):
+    kw = dict(GOOD, backend=backend)
+    kw.update(kwargs)
+    with pytest.raises(ValueError, match=pattern):
+        func(*args, **kw)
+
+
+def test_bad_backend_and_missing_sigma():
+    with pytest.raises(ValueError, match="backend must be one of"):
+        pbrdf_cl.dop(40, 20, n=1.6, k=2, sigma=0.5, backend="cuda")
+    with pytest.raises(ValueError, match="sigma is required"):
+        pbrdf_cl.dop(40, 20, n=1.6, k=2)
+    # the specular model's DOP does not depend on sigma, so it may be left out
+    assert 0 < pbrdf_cl.dop(40, 20, n=1.6, k=2, model="specular") < 1
+
+
+def test_no_platform_gives_an_error_that_says_how_to_get_one(monkeypatch):
+    class NoPlatforms:
+        Error = Exception
+        Device = type("Device", (), {})
+
+        @staticmethod
+        def get_platforms():
+            raise Exception("clGetPlatformIDs failed: PLATFORM_NOT_FOUND_KHR")
+    monkeypatch.setattr(engine_mod, "cl", NoPlatforms)
+    with pytest.raises(pbrdf_cl.OpenCLUnavailableError, match=r"pip install pocl-binary-distribution.*backend=\"numpy\""):
+        engine_mod.Engine()
+    monkeypatch.setattr(engine_mod, "cl", None)
+    with pytest.raises(pbrdf_cl.OpenCLUnavailableError, match="pocl-binary-distribution"):
+        engine_mod.select_device()
+
+
+def test_float64_on_a_device_without_it_is_refused():
+    e = pbrdf_cl.Engine()
+    e.fp64 = False
+    with pytest.raises(ValueError, match="dtype='float64'.*no float64 support"):
+        pbrdf_cl.dop(40, 20, n=1.6, k=2, sigma=0.5, engine=e, dtype="float64")
