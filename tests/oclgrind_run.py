@@ -1,0 +1,46 @@
+"""Run every kernel of pbrdf_cl on small inputs under the Oclgrind simulator.
+
+Used by test_oclgrind.py in a subprocess; Oclgrind prints its reports (out-of-bounds accesses,
+data races, ...) to stderr.  ``--negative`` runs a deliberately broken kernel instead, to show
+that the harness sees such reports.
+"""
+import sys
+
+import numpy as np
+
+import pbrdf_cl
+from pbrdf_cl import engine as engine_mod
+
+
+def main():
+    eng = pbrdf_cl.Engine("oclgrind")
+    if "--negative" in sys.argv:
+        import pyopencl as cl
+        prg = cl.Program(eng.context, "__kernel void k(__global float *a) {"
+                         " int i = get_global_id(0); a[i + 1] = 2 * a[i]; }").build()
+        buf = cl.Buffer(eng.context, cl.mem_flags.READ_WRITE, 8 * 4)
+        prg.k(eng.queue, (8,), None, buf)
+        eng.queue.finish()
+        return
+    rng = np.random.default_rng(3)
+    size = 37
+    ti = np.concatenate([[0.0, 40.0, 89.9, 89.9], rng.uniform(0, 89.9, size - 4)])
+    tr = np.concatenate([[0.0, 40.0, 89.9, 0.0], rng.uniform(0, 89.9, size - 4)])
+    phi = np.concatenate([[180.0, 180.0, 0.0, 37.0], rng.uniform(0, 360, size - 4)])
+    k = rng.uniform(0, 8, size)
+    k[:2] = 0.0
+    kw = dict(n=1.6, k=k, sigma=0.3, ks=0.9, kd=rng.uniform(0, 1, size), c=-0.3)
+    engine_mod.LAUNCH_POINTS = 16  # exercise the chunked launches too
+    for dtype in ("float32", "float64"):
+        for shadowing in ("paper", "smith", "none"):
+            for func in (pbrdf_cl.dop, pbrdf_cl.brdf, pbrdf_cl.mueller):
+                out = func(ti, tr, phi, dtype=dtype, shadowing=shadowing, engine=eng, **kw)
+                ref = func(ti, tr, phi, dtype=dtype, shadowing=shadowing, backend="numpy", **kw)
+                scale = np.abs(ref).max()
+                if not np.allclose(out, ref, rtol=1e-4, atol=1e-5 * scale):
+                    raise SystemExit(f"{func.__name__} {dtype} {shadowing}: Oclgrind result differs from the reference")
+    print("ran", 2 * 3 * 3, "kernel configurations")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,80 @@
+"""The pbrdf-cl command line: devices and eval."""
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import pbrdf_cl
+from pbrdf_cl import cli
+
+STEEL = ["--n", "1.6", "--k", "2.139", "--sigma", "0.5", "--ks", "0.9", "--kd", "0.15", "--c", "-0.3"]
+
+
+def run_cli(*args):
+    """Run the CLI as a user would, in a subprocess (python -m pbrdf_cl == the pbrdf-cl script)."""
+    return subprocess.run([sys.executable, "-m", "pbrdf_cl", *args], capture_output=True, text=True,
+                          timeout=300, env=dict(os.environ, PYTHONWARNINGS="ignore"))
+
+
+def test_devices_lists_pocl_with_fp64_and_marks_default():
+    proc = run_cli("devices", "--json")
+    assert proc.returncode == 0, proc.stderr
+    rows = json.loads(proc.stdout)
+    pocl = [r for r in rows if "portable computing language" in r["platform"].lower()]
+    assert pocl and pocl[0]["fp64"] is True and pocl[0]["type"] == "CPU"
+    assert sum(r["default"] for r in rows) == 1 and pocl[0]["default"]
+    text = run_cli("devices").stdout
+    assert "Portable Computing Language" in text and "fp64=yes" in text and text.count("*") >= 2
+
+
+def test_eval_json_matches_api():
+    proc = run_cli("eval", "--theta-i", "30,40,50", "--theta-r", "20:65:5", *STEEL, "--json")
+    assert proc.returncode == 0, proc.stderr
+    out = json.loads(proc.stdout)
+    rows = out["rows"]
+    assert len(rows) == 30 and out["quantity"] == "dop" and out["shadowing"] == "paper"
+    ti = np.array([r["theta_i"] for r in rows])
+    tr = np.array([r["theta_r"] for r in rows])
+    want = pbrdf_cl.dop(ti, tr, n=1.6, k=2.139, sigma=0.5, ks=0.9, kd=0.15, c=-0.3, backend="numpy")
+    np.testing.assert_allclose([r["dop"] for r in rows], want, atol=1e-12)
+    assert rows[0]["theta_i"] == 30 and rows[0]["theta_r"] == 20 and abs(rows[0]["dop"] - 0.051841) < 5e-7
+
+
+def test_eval_table_mueller_and_f00(capsys):
+    assert cli.main(["eval", "--theta-i", "40", "--theta-r", "45", "--phi", "130", *STEEL,
+                     "--quantity", "mueller"]) == 0
+    line = capsys.readouterr().out.strip().splitlines()[-1].split()
+    m = np.array([float(v) for v in line[-16:]]).reshape(4, 4)
+    want = pbrdf_cl.mueller(40, 45, 130, n=1.6, k=2.139, sigma=0.5, ks=0.9, kd=0.15, c=-0.3, backend="numpy")
+    np.testing.assert_allclose(m, want, rtol=1e-6, atol=1e-12)
+    assert cli.main(["eval", "--theta-i", "40", "--theta-r", "45", *STEEL, "--quantity", "brdf",
+                     "--backend", "numpy", "--shadowing", "smith", "--dtype", "float32"]) == 0
+    out = capsys.readouterr().out
+    assert "f00" in out.splitlines()[0]
+    assert float(out.splitlines()[-1].split()[-1]) == pytest.approx(
+        pbrdf_cl.brdf(40, 45, n=1.6, k=2.139, sigma=0.5, ks=0.9, kd=0.15, c=-0.3, shadowing="smith"), rel=1e-6)
+
+
+def test_eval_specular_model_needs_no_sigma(capsys):
+    assert cli.main(["eval", "--theta-i", "40", "--theta-r", "45", "--n", "1.6", "--k", "2.1",
+                     "--model", "specular", "--json"]) == 0
+    rows = json.loads(capsys.readouterr().out)["rows"]
+    assert rows[0]["dop"] == pytest.approx(float(pbrdf_cl.dop(40, 45, n=1.6, k=2.1, model="specular")), abs=1e-12)
+
+
+@pytest.mark.parametrize("args,message", [
+    (["--theta-i", "95", "--theta-r", "20", *STEEL], "theta_i must be in [0, 90) degrees, got 95.0"),
+    (["--theta-i", "40", "--theta-r", "20:x:5", *STEEL], "--theta-r: '20:x:5' is not a number"),
+    (["--theta-i", "40", "--theta-r", "60:20:5", *STEEL], "--theta-r: '60:20:5'"),
+    (["--theta-i", "40", "--theta-r", "20", "--n", "1.6", "--k", "2"], "--sigma is required"),
+    (["--theta-i", "40", "--theta-r", "20", *STEEL[:6], "--kd", "-1"], "kd must be >= 0, got -1.0"),
+    (["--theta-i", "40", "--theta-r", "20", *STEEL, "--device", "no-such-device"], "matches no OpenCL"),
+])
+def test_eval_errors_name_the_option(args, message):
+    proc = run_cli("eval", *args)
+    assert proc.returncode != 0
+    assert message in proc.stderr, proc.stderr
+    assert "Traceback" not in proc.stderr
