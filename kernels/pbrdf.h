@@ -154,18 +154,31 @@ inline real pb_diffuse(pb_geom g, real kd, real c)
     return kd / PB_PI * exp(c * log(g.cti * g.ctr));
 }
 
+/* Eq. 17-18 from precomputed factors: DOP = (Rs - Rp) / (Rs + Rp + fd2 / K), where
+ * fd2 = 2 fd and inv_K = 1/K (an infinite inv_K with fd2 = 0 means no diffuse term). */
+inline real pb_dop_combine(real sum, real diff, real fd2, real inv_K)
+{
+    real r = fd2 > (real)0 ? fd2 * inv_K : (real)0;
+    real den = sum + r;
+    return den > (real)0 ? diff / den : (real)0;
+}
+
+/* F00 = K (Rs + Rp) / 2 + fd from precomputed factors. */
+inline real pb_brdf_combine(real sum, real K, real fd)
+{
+    return (real)0.5 * K * sum + fd;
+}
+
 /* Eq. 17-18: DOP for unpolarized incidence, = K (Rs - Rp) / (K (Rs + Rp) + 2 fd). */
 inline real pb_dop(pb_fresnel_t f, real logK, real fd)
 {
-    real r = fd > (real)0 ? (real)2 * fd * exp(-logK) : (real)0;
-    real den = f.Rs + f.Rp + r;
-    return den > (real)0 ? f.diff / den : (real)0;
+    return pb_dop_combine(f.Rs + f.Rp, f.diff, (real)2 * fd, exp(-logK));
 }
 
 /* F00 = K (Rs + Rp) / 2 + fd. */
 inline real pb_brdf(pb_fresnel_t f, real logK, real fd)
 {
-    return (real)0.5 * exp(logK) * (f.Rs + f.Rp) + fd;
+    return pb_brdf_combine(f.Rs + f.Rp, exp(logK), fd);
 }
 
 typedef struct {

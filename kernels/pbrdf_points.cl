@@ -50,3 +50,25 @@ __kernel void mueller_points(__global real *out, PB_POINT_ARGS)
     for (int j = 0; j < 16; j++)
         out[(size_t)16 * i + j] = m[j];
 }
+
+/* Weighted sum of squared DOP residuals for an explicit list of P parameter vectors (one
+ * work-item each) over M measurements (theta_i, theta_r, phi in degrees, observed DOP, weight). */
+__kernel void objective_points(__global real *sse, const int P,
+                               __global const real *nn, __global const real *kk, __global const real *sg,
+                               __global const real *ks, __global const real *kd, __global const real *cc,
+                               __global const real *ti, __global const real *tr, __global const real *ph,
+                               __global const real *obs, __global const real *w, const int M)
+{
+    const int p = get_global_id(0);
+    if (p >= P) return;
+    real acc = (real)0;
+    for (int m = 0; m < M; m++) {
+        pb_geom g = pb_geometry(ti[m], tr[m], ph[m]);
+        pb_fresnel_t f = pb_fresnel(nn[p], kk[p], g.cb, g.sb);
+        const real G = pb_shadowing_factor(g, sg[p], PBRDF_SHADOWING);
+        const real logK = pb_log_specular_scale(g, sg[p], ks[p], G);
+        const real r = pb_dop(f, logK, pb_diffuse(g, kd[p], cc[p])) - obs[m];
+        acc += w[m] * r * r;
+    }
+    sse[p] = acc;
+}

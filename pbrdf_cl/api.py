@@ -35,17 +35,44 @@ def _check(name, a, ok, rule):
         raise ValueError(f"{name} must be {rule}, got {float(a[bad].flat[0])!r}{where}")
 
 
+#: The valid range of each input, as (test, words).
+RULES = {
+    "theta_i": (lambda a: (a >= 0) & (a < 90), "in [0, 90) degrees"),
+    "theta_r": (lambda a: (a >= 0) & (a < 90), "in [0, 90) degrees"),
+    "phi": (lambda a: np.ones(a.shape, bool), "finite"),
+    "n": (lambda a: a > 0, "> 0"),
+    "k": (lambda a: a >= 0, ">= 0"),
+    "sigma": (lambda a: a > 0, "> 0"),
+    "ks": (lambda a: a > 0, "> 0"),
+    "kd": (lambda a: a >= 0, ">= 0"),
+    "c": (lambda a: np.ones(a.shape, bool), "finite"),
+}
+
+
+def check_values(name, value):
+    """``value`` as a float64 array, or a ``ValueError`` naming ``name`` and the first bad value."""
+    a = _as_array(name, value)
+    _check(name, a, *RULES[name])
+    return a
+
+
+def check_options(shadowing, dtype):
+    """Check the shadowing name and the dtype; returns the dtype's name."""
+    if shadowing not in reference.SHADOWING:
+        raise ValueError(f"shadowing must be one of {sorted(reference.SHADOWING)}, got {shadowing!r}")
+    dtype_name = np.dtype(dtype).name if dtype in (np.float32, np.float64) else dtype
+    if dtype_name not in DTYPES:
+        raise ValueError(f"dtype must be 'float32' or 'float64', got {dtype!r}")
+    return dtype_name
+
+
 def validate(theta_i, theta_r, phi, n, k, sigma, ks, kd, c, *, shadowing="paper", dtype="float64",
              backend="opencl", model="six-param"):
     """Check and broadcast the inputs; returns ``(arrays dict, shape, dtype name)``.
 
     Raises ``ValueError`` naming the offending argument and value.
     """
-    if shadowing not in reference.SHADOWING:
-        raise ValueError(f"shadowing must be one of {sorted(reference.SHADOWING)}, got {shadowing!r}")
-    dtype_name = np.dtype(dtype).name if dtype in (np.float32, np.float64) else dtype
-    if dtype_name not in DTYPES:
-        raise ValueError(f"dtype must be 'float32' or 'float64', got {dtype!r}")
+    dtype_name = check_options(shadowing, dtype)
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
     if model not in MODELS:
@@ -53,14 +80,7 @@ def validate(theta_i, theta_r, phi, n, k, sigma, ks, kd, c, *, shadowing="paper"
     if sigma is None:
         raise ValueError("sigma is required (the per-axis slope standard deviation, > 0)")
     values = dict(theta_i=theta_i, theta_r=theta_r, phi=phi, n=n, k=k, sigma=sigma, ks=ks, kd=kd, c=c)
-    arrays = {name: _as_array(name, values[name]) for name in POINT_INPUTS}
-    for name in ("theta_i", "theta_r"):
-        _check(name, arrays[name], lambda a: (a >= 0) & (a < 90), "in [0, 90) degrees")
-    _check("n", arrays["n"], lambda a: a > 0, "> 0")
-    _check("k", arrays["k"], lambda a: a >= 0, ">= 0")
-    _check("sigma", arrays["sigma"], lambda a: a > 0, "> 0")
-    _check("ks", arrays["ks"], lambda a: a > 0, "> 0")
-    _check("kd", arrays["kd"], lambda a: a >= 0, ">= 0")
+    arrays = {name: check_values(name, values[name]) for name in POINT_INPUTS}
     if model == "specular":
         _check("kd", arrays["kd"], lambda a: a == 0, "0 in the specular (ref. [7]) model")
     try:

@@ -29,7 +29,7 @@ except ImportError as exc:  # pragma: no cover - pyopencl is a hard dependency
 else:
     _IMPORT_ERROR = None
 
-KERNEL_FILES = ("pbrdf.h", "pbrdf_points.cl")
+KERNEL_FILES = ("pbrdf.h", "pbrdf_points.cl", "pbrdf_tables.cl", "pbrdf_grid.cl")
 POINT_INPUTS = ("theta_i", "theta_r", "phi", "n", "k", "sigma", "ks", "kd", "c")
 DTYPES = {"float32": np.float32, "float64": np.float64}
 #: Points per kernel launch; bounds the temporary device memory of one call.
@@ -154,25 +154,43 @@ class Engine:
         return (f"Engine(device={self.device.name.strip()!r}, "
                 f"platform={self.device.platform.name.strip()!r}, fp64={self.fp64})")
 
-    def build_options(self, dtype: str, shadowing: str):
-        opts = ["-I", str(kernel_dir()), f"-DPBRDF_SHADOWING={reference.SHADOWING[shadowing]}"]
-        if dtype == "float64":
-            opts.append("-DPBRDF_DOUBLE")
-        return opts
-
-    def kernel(self, name: str, dtype: str, shadowing: str):
-        """The ``cl.Kernel`` ``name`` of ``pbrdf_points.cl`` for this precision and variant (built once)."""
-        key = (dtype, shadowing)
+    def program(self, filename: str, dtype: str, defines=None, prefix: str = ""):
+        """The kernels of ``kernels/<filename>`` built for ``dtype`` with ``-D`` ``defines`` (and
+        ``prefix`` source text prepended), as a dict name -> ``cl.Kernel``; built once per key."""
+        defines = dict(defines or {})
+        key = (filename, dtype, tuple(sorted(defines.items())), prefix)
         if key not in self._kernels:
             if dtype == "float64" and not self.fp64:
                 raise ValueError(f"dtype='float64': device {self.device.name.strip()!r} has no float64 "
                                  "support; use dtype='float32' or another device")
-            src = (kernel_dir() / "pbrdf_points.cl").read_text()
+            opts = ["-I", str(kernel_dir())]
+            if dtype == "float64":
+                opts.append("-DPBRDF_DOUBLE")
+            opts += [f"-D{name}" if value is None else f"-D{name}={value}" for name, value in defines.items()]
+            src = prefix + (kernel_dir() / filename).read_text()
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", cl.CompilerWarning)
-                program = cl.Program(self.context, src).build(options=self.build_options(dtype, shadowing))
+                program = cl.Program(self.context, src).build(options=opts)
             self._kernels[key] = {k.function_name: k for k in program.all_kernels()}
-        return self._kernels[key][name]
+        return self._kernels[key]
+
+    def kernel(self, name: str, dtype: str, shadowing: str):
+        """The ``cl.Kernel`` ``name`` of ``pbrdf_points.cl`` for this precision and variant (built once)."""
+        return self.program("pbrdf_points.cl", dtype, {"PBRDF_SHADOWING": reference.SHADOWING[shadowing]})[name]
+
+    def launch(self, kernel, global_size, *args):
+        """Set ``args`` and enqueue ``kernel`` over ``global_size``; returns the event."""
+        kernel.set_args(*args)
+        self._last_event = cl.enqueue_nd_range_kernel(self.queue, kernel, tuple(global_size), None)
+        return self._last_event
+
+    def to_device(self, array, dtype):
+        """A read-only device copy of ``array`` as ``dtype`` (contiguous)."""
+        a = np.ascontiguousarray(array, dtype=DTYPES[dtype] if isinstance(dtype, str) else dtype)
+        return cl.Buffer(self.context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=a)
+
+    def empty(self, nbytes):
+        return cl.Buffer(self.context, cl.mem_flags.READ_WRITE, max(int(nbytes), 1))
 
     def evaluate(self, quantity: str, inputs: dict, shape, dtype="float64", shadowing="paper"):
         """Evaluate ``quantity`` ("dop", "brdf", "mueller") element-wise.
@@ -205,8 +223,7 @@ class Engine:
                 args += [buf, np.int32(0 if a.size == 1 else 1)]
             out_buf = cl.Buffer(self.context, mf.WRITE_ONLY, count * width * out.itemsize)
             args[0] = out_buf
-            kern.set_args(*args)
-            self._last_event = cl.enqueue_nd_range_kernel(self.queue, kern, (count,), None)
+            self.launch(kern, (count,), *args)
             cl.enqueue_copy(self.queue, out[start * width:(start + count) * width], out_buf)
         self.queue.finish()
         return out.reshape(tuple(shape) + ((4, 4) if width == 16 else ()))

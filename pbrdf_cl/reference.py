@@ -117,19 +117,30 @@ def diffuse(g, kd, c):
     return np.where(kd == 0.0, 0.0, kd / np.pi * np.exp(c * np.log(g.cti * g.ctr)))
 
 
+def dop_combine(sum_, diff, fd2, inv_K):
+    """DOP = (Rs - Rp) / (Rs + Rp + fd2 / K) from precomputed factors (``pb_dop_combine``)."""
+    with np.errstate(invalid="ignore"):
+        r = np.where(fd2 > 0.0, fd2 * inv_K, 0.0)
+    den = sum_ + r
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(den > 0.0, diff / den, 0.0)
+
+
+def brdf_combine(sum_, K, fd):
+    """F00 = K (Rs + Rp) / 2 + fd from precomputed factors (``pb_brdf_combine``)."""
+    return 0.5 * K * sum_ + fd
+
+
 def dop(f, logK, fd):
     """Eq. 17-18: K (Rs - Rp) / (K (Rs + Rp) + 2 fd) (``pb_dop``)."""
-    with np.errstate(over="ignore", invalid="ignore"):
-        r = np.where(fd > 0.0, 2.0 * fd * np.exp(-logK), 0.0)
-    den = f.Rs + f.Rp + r
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return np.where(den > 0.0, f.diff / den, 0.0)
+    with np.errstate(over="ignore"):
+        return dop_combine(f.Rs + f.Rp, f.diff, 2.0 * fd, np.exp(-logK))
 
 
 def brdf(f, logK, fd):
     """F00 = K (Rs + Rp) / 2 + fd (``pb_brdf``)."""
     with np.errstate(over="ignore"):
-        return 0.5 * np.exp(logK) * (f.Rs + f.Rp) + fd
+        return brdf_combine(f.Rs + f.Rp, np.exp(logK), fd)
 
 
 def frame_rotations(g):

@@ -1,0 +1,104 @@
+/*
+ * pbrdf_grid.cl -- dense grids, on-device reductions and the least-squares objective, all
+ * combining the tables of pbrdf_tables.cl (no transcendental function per grid point).
+ *
+ * The full grid's flat index is ((g * PB_NNK + nk) * PB_NM + s) * PB_NI + j with
+ *   g  = (i_theta_i * N_theta_r + i_theta_r) * N_phi + i_phi     geometry
+ *   nk = i_n * N_k + i_k,  s = i_sigma * N_ks + i_ks,  j = i_kd * N_c + i_c.
+ * Build options: -DPBRDF_DOUBLE, -DPB_NNK, -DPB_NM, -DPB_NI (compile-time sizes let the index
+ * arithmetic vectorise), -DPB_INDEX=uint|ulong, -DPB_DOP (else F00).
+ * Tables for geometry rows g0 ..: sum/diff[(g - g0) * PB_NNK + nk], scale[(g - g0) * PB_NM + s],
+ * diffuse[(g - g0) * PB_NI + j].
+ */
+#include "pbrdf.h"
+
+#ifndef PB_INDEX
+#define PB_INDEX uint
+#endif
+typedef PB_INDEX pbidx;
+
+#ifdef PB_DOP
+#define PB_COMBINE(sum, diff, dif, scl) pb_dop_combine(sum, diff, dif, scl)
+#else
+#define PB_COMBINE(sum, diff, dif, scl) pb_brdf_combine(sum, scl, dif)
+#endif
+
+#define PB_TABLES                                                            \
+    __global const real *sum, __global const real *diff,                     \
+    __global const real *scale, __global const real *dif
+
+__kernel void grid_values(__global real *out, const pbidx start, const pbidx count, const pbidx g0,
+                          PB_TABLES)
+{
+    const pbidx gid = get_global_id(0);
+    if (gid >= count) return;
+    pbidx i = start + gid;
+    const pbidx j = i % PB_NI; i /= PB_NI;
+    const pbidx s = i % PB_NM; i /= PB_NM;
+    const pbidx nk = i % PB_NNK;
+    const pbidx g = i / PB_NNK - g0;
+    out[gid] = PB_COMBINE(sum[g * PB_NNK + nk], diff[g * PB_NNK + nk], dif[g * PB_NI + j],
+                          scale[g * PB_NM + s]);
+}
+
+#ifdef PB_REDUCE
+/* Reductions over a set of axes without materialising the grid.  Generated definitions:
+ * PB_NKEPT, PB_KEPT_SIZE[], PB_KEPT_FAM[], PB_KEPT_COEF[] (kept axes, outermost first) and
+ * PB_NRED, PB_RED_SIZE[], PB_RED_FAM[], PB_RED_COEF[] (reduced axes), PB_RED_TOTAL; family
+ * 0..3 = g, nk, s, j; coef = the axis' stride inside its family.  Work-item (o, part) reduces
+ * the reduced indices r = part, part + n_part, ... of kept output o: min, argmin (r) and sum. */
+__kernel void grid_reduce(__global real *vmin, __global pbidx *vargmin, __global real *vsum,
+                          const pbidx o_start, const pbidx o_count, const pbidx n_part, PB_TABLES)
+{
+    const pbidx o_local = get_global_id(0), part = get_global_id(1);
+    if (o_local >= o_count || part >= n_part) return;
+    pbidx base[4] = {0, 0, 0, 0};
+    pbidx o = o_start + o_local;
+    for (int a = PB_NKEPT - 1; a >= 0; a--) {
+        base[PB_KEPT_FAM[a]] += (o % PB_KEPT_SIZE[a]) * PB_KEPT_COEF[a];
+        o /= PB_KEPT_SIZE[a];
+    }
+    real best = INFINITY, acc = (real)0, comp = (real)0;
+    pbidx best_r = 0;
+    for (pbidx r = part; r < PB_RED_TOTAL; r += n_part) {
+        pbidx idx[4] = {base[0], base[1], base[2], base[3]};
+        pbidx q = r;
+        for (int a = PB_NRED - 1; a >= 0; a--) {
+            idx[PB_RED_FAM[a]] += (q % PB_RED_SIZE[a]) * PB_RED_COEF[a];
+            q /= PB_RED_SIZE[a];
+        }
+        const real v = PB_COMBINE(sum[idx[0] * PB_NNK + idx[1]], diff[idx[0] * PB_NNK + idx[1]],
+                                  dif[idx[0] * PB_NI + idx[3]], scale[idx[0] * PB_NM + idx[2]]);
+        if (v < best) { best = v; best_r = r; }
+        const real y = v - comp;  /* Kahan summation */
+        const real t = acc + y;
+        comp = (t - acc) - y;
+        acc = t;
+    }
+    const pbidx out = o_local * n_part + part;
+    vmin[out] = best;
+    vargmin[out] = best_r;
+    vsum[out] = acc;
+}
+#endif
+
+/* Weighted sum of squared DOP residuals for a grid of parameter vectors
+ * p = (nk * PB_NM + s) * PB_NI + j over M measurements.  Tables are measurement-major:
+ * sum/diff[nk * M + m], scale[s * M + m], dif[j * M + m]. */
+__kernel void objective_grid(__global real *sse, const pbidx start, const pbidx count,
+                             PB_TABLES, __global const real *obs, __global const real *w, const int M)
+{
+    const pbidx gid = get_global_id(0);
+    if (gid >= count) return;
+    pbidx p = start + gid;
+    const pbidx j = p % PB_NI; p /= PB_NI;
+    const pbidx s = p % PB_NM;
+    const pbidx nk = p / PB_NM;
+    __global const real *su = sum + nk * M, *di = diff + nk * M, *sc = scale + s * M, *fd = dif + j * M;
+    real acc = (real)0;
+    for (int m = 0; m < M; m++) {
+        const real r = pb_dop_combine(su[m], di[m], fd[m], sc[m]) - obs[m];
+        acc += w[m] * r * r;
+    }
+    sse[gid] = acc;
+}

@@ -1,0 +1,475 @@
+"""Dense grids: the model over Cartesian products of angles and parameters, on-device
+reductions, and the least-squares objective used by the inversion.
+
+The Cartesian product is never materialised on the host.  The model factorises as
+
+    DOP = (Rs - Rp) / (Rs + Rp + 2 fd / K),    F00 = K (Rs + Rp) / 2 + fd,
+
+with Rs +- Rp depending on (geometry, n, k), K on (geometry, sigma, ks) and fd on
+(geometry, kd, c).  These tables are computed once by ``kernels/pbrdf_tables.cl`` (with the
+device functions of ``pbrdf.h``) and combined per grid point by ``kernels/pbrdf_grid.cl``,
+which decodes the flat grid index itself.  Grids whose device memory would exceed
+``memory_budget`` bytes run in chunks.
+
+Axes are ordered canonically: theta_i, theta_r, phi, n, k, sigma, ks, kd, c.
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from . import api
+from .engine import DTYPES, get_default_engine
+
+AXES = ("theta_i", "theta_r", "phi", "n", "k", "sigma", "ks", "kd", "c")
+PARAMETERS = AXES[3:]
+UNITS = {"theta_i": "deg", "theta_r": "deg", "phi": "deg", "n": "1", "k": "1",
+         "sigma": "1 (per-axis rms slope)", "ks": "1", "kd": "1", "c": "1"}
+LONG_NAMES = {"theta_i": "incidence zenith angle", "theta_r": "reflection zenith angle",
+              "phi": "relative azimuth (180 = in plane)", "n": "refractive index", "k": "extinction coefficient",
+              "sigma": "slope standard deviation per axis", "ks": "specular weight", "kd": "diffuse weight",
+              "c": "Minnaert exponent"}
+DEFAULTS = {"phi": 180.0, "ks": 1.0, "kd": 0.0, "c": 0.0}
+QUANTITIES = {"dop": "degree of polarization", "f00": "BRDF F00 (1/sr)"}
+DEFAULT_BUDGET = 1 << 30
+#: Family (0 geometry, 1 n-k, 2 sigma-ks, 3 kd-c) of each canonical axis.
+FAMILY = {"theta_i": 0, "theta_r": 0, "phi": 0, "n": 1, "k": 1, "sigma": 2, "ks": 2, "kd": 3, "c": 3}
+
+
+class GridPlan:
+    """Validated axes (every canonical axis as a 1-d float64 array, fixed ones of length 1)."""
+
+    def __init__(self, axes, fixed=None, names=AXES, defaults=DEFAULTS):
+        axes = dict(axes or {})
+        fixed = dict(fixed or {})
+        for where, d in (("axes", axes), ("fixed", fixed)):
+            for name in d:
+                if name not in names:
+                    raise ValueError(f"{where}: unknown axis {name!r}; valid names are {', '.join(names)}")
+        both = set(axes) & set(fixed)
+        if both:
+            raise ValueError(f"{sorted(both)[0]!r} is given both as an axis and as a fixed value")
+        self.names = tuple(names)
+        self.axis_names = tuple(n for n in names if n in axes)
+        self.values = {}
+        for name in names:
+            if name in axes:
+                a = np.asarray(axes[name], dtype=object)
+                if a.ndim != 1:
+                    raise ValueError(f"axis {name} must be a 1-d array, got shape {a.shape}")
+                if a.size == 0:
+                    raise ValueError(f"axis {name} is empty")
+                a = api.check_values(name, axes[name])
+                d = np.diff(a)
+                if a.size > 1 and not (np.all(d > 0) or np.all(d < 0)):
+                    bad = int(np.argmax(d <= 0) if d[0] > 0 else np.argmax(d >= 0)) + 1
+                    raise ValueError(f"axis {name} must be strictly increasing or decreasing; "
+                                     f"value {a[bad]!r} at index {bad} breaks it")
+            elif name in fixed:
+                a = api.check_values(name, fixed[name])
+                if a.ndim != 0:
+                    raise ValueError(f"fixed value {name} must be a scalar, got shape {a.shape}; "
+                                     f"give it as an axis instead")
+                a = a.reshape(1)
+            elif name in defaults:
+                a = np.array([defaults[name]])
+            else:
+                raise ValueError(f"{name} is required: give it as an axis or a fixed value")
+            self.values[name] = a
+        self.sizes = {name: self.values[name].size for name in names}
+
+    @property
+    def shape(self):
+        return tuple(self.sizes[n] for n in self.axis_names)
+
+    @property
+    def size(self):
+        return int(np.prod([self.sizes[n] for n in self.names], dtype=np.int64))
+
+    def fixed_values(self):
+        return {n: float(self.values[n][0]) for n in self.names if n not in self.axis_names}
+
+    def coords(self):
+        import xarray as xr
+        return {n: xr.Variable((n,), self.values[n], {"units": UNITS[n], "long_name": LONG_NAMES[n]})
+                for n in self.axis_names}
+
+
+class _Tables:
+    """Device tables of the factorised model for a geometry list and parameter axes."""
+
+    def __init__(self, engine, dtype, shadowing, quantity, ti, tr, ph, v, layout):
+        """layout "grid": table[g][param]; "measurement": table[param][m]."""
+        self.engine = engine
+        kern = engine.program("pbrdf_tables.cl", dtype, {"PBRDF_SHADOWING": api.reference.SHADOWING[shadowing]})
+        npdt = DTYPES[dtype]
+        ng = ti.size
+        geo = [engine.to_device(a, dtype) for a in (ti, tr, ph)]
+        self.bufs = {}
+
+        def table(kname, outs, p1, p2, *extra):
+            np_ = p1.size * p2.size
+            s_g, s_p = (np_, 1) if layout == "grid" else (1, ng)
+            bufs = [engine.empty(ng * np_ * np.dtype(npdt).itemsize) for _ in range(outs)]
+            engine.launch(kern[kname], (ng, np_), *bufs, np.int32(ng), np.int32(s_g), np.int32(s_p), *geo,
+                          engine.to_device(p1, dtype), engine.to_device(p2, dtype), np.int32(p2.size), *extra)
+            return bufs
+
+        self.sum, self.diff = table("fresnel_table", 2, v["n"], v["k"])
+        dop = quantity == "dop"
+        self.scale, = table("scale_table", 1, v["sigma"], v["ks"], npdt(-1.0 if dop else 1.0))
+        self.dif, = table("diffuse_table", 1, v["kd"], v["c"], npdt(2.0 if dop else 1.0))
+
+    def args(self):
+        return self.sum, self.diff, self.scale, self.dif
+
+
+def _geometry_list(plan, g0, g1):
+    """The (theta_i, theta_r, phi) triples of geometry rows g0..g1 (row-major over the three axes)."""
+    g = np.arange(g0, g1)
+    n_tr, n_ph = plan.sizes["theta_r"], plan.sizes["phi"]
+    return (plan.values["theta_i"][g // (n_tr * n_ph)], plan.values["theta_r"][(g // n_ph) % n_tr],
+            plan.values["phi"][g % n_ph])
+
+
+def _family_sizes(plan):
+    s = plan.sizes
+    return (s["theta_i"] * s["theta_r"] * s["phi"], s["n"] * s["k"], s["sigma"] * s["ks"], s["kd"] * s["c"])
+
+
+def _index_type(total):
+    return ("uint", np.uint32) if total < 2 ** 32 - 2 else ("ulong", np.uint64)
+
+
+def _check_quantity(quantity):
+    if quantity not in QUANTITIES:
+        raise ValueError(f"quantity must be one of {sorted(QUANTITIES)}, got {quantity!r}")
+
+
+def _progress(total, enabled, desc):
+    if not enabled:
+        return None
+    try:
+        from tqdm.auto import tqdm
+    except ImportError:  # pragma: no cover - tqdm is a dependency
+        return None
+    return tqdm(total=total, desc=desc, unit="pt", unit_scale=True, leave=False)
+
+
+def grid(axes, fixed=None, quantity="dop", dtype="float32", shadowing="paper", *, engine=None,
+         memory_budget=DEFAULT_BUDGET, progress=False):
+    """Evaluate ``quantity`` ("dop" or "f00") over the Cartesian product of ``axes``.
+
+    Parameters
+    ----------
+    axes : dict
+        Name -> 1-d strictly monotonic array, for any of theta_i, theta_r, phi (degrees), n, k,
+        sigma, ks, kd, c.
+    fixed : dict
+        Name -> scalar for the remaining inputs; phi, ks, kd, c default to 180, 1, 0, 0.
+    memory_budget : int
+        Bytes of device memory a chunk may use (tables plus output); larger grids run in chunks.
+
+    Returns
+    -------
+    xarray.DataArray with the axes as dimensions in canonical order, labelled coordinates with
+    units, and the fixed values, quantity, shadowing and dtype in ``attrs``.
+    """
+    import xarray as xr
+
+    _check_quantity(quantity)
+    dtype = api.check_options(shadowing, dtype)
+    plan = GridPlan(axes, fixed)
+    eng = engine if engine is not None else get_default_engine()
+    out = np.empty(plan.size, dtype=DTYPES[dtype])
+    for start, block in _grid_blocks(eng, plan, quantity, dtype, shadowing, memory_budget, progress):
+        out[start:start + block.size] = block
+    attrs = dict(quantity=quantity, long_name=QUANTITIES[quantity], units="1" if quantity == "dop" else "1/sr",
+                 shadowing=shadowing, dtype=dtype, **{f"fixed_{k}": v for k, v in plan.fixed_values().items()})
+    return xr.DataArray(out.reshape(plan.shape), coords=plan.coords(), dims=plan.axis_names, name=quantity,
+                        attrs=attrs)
+
+
+def _grid_blocks(eng, plan, quantity, dtype, shadowing, memory_budget, progress=False):
+    """Yield (flat start, values) chunks of the grid in order, each within ``memory_budget``."""
+    itemsize = np.dtype(DTYPES[dtype]).itemsize
+    ng, nnk, nm, ni = _family_sizes(plan)
+    per_g = nnk * nm * ni  # grid points per geometry row
+    table_row = (2 * nnk + nm + ni) * itemsize
+    if memory_budget < 2 * table_row + 64 * itemsize:
+        raise ValueError(f"memory_budget={memory_budget} bytes is too small for one geometry row's tables "
+                         f"({table_row} bytes); raise it")
+    rows = int(max(1, min(ng, (memory_budget // 2) // table_row)))
+    chunk = int(max(64, min((memory_budget - rows * table_row) // itemsize, 2 ** 31 - 1)))
+    idx_name, idx_np = _index_type(plan.size)
+    prog = eng.program("pbrdf_grid.cl", dtype, {"PB_NNK": nnk, "PB_NM": nm, "PB_NI": ni, "PB_INDEX": idx_name,
+                                                "PB_DOP" if quantity == "dop" else "PB_F00": None})
+    kern = prog["grid_values"]
+    bar = _progress(plan.size, progress, f"grid {quantity}")
+    import pyopencl as cl
+    for g0 in range(0, ng, rows):
+        g1 = min(ng, g0 + rows)
+        tables = _Tables(eng, dtype, shadowing, quantity, *_geometry_list(plan, g0, g1), plan.values, "grid")
+        for start in range(g0 * per_g, g1 * per_g, chunk):
+            count = min(chunk, g1 * per_g - start)
+            buf = eng.empty(count * itemsize)
+            eng.launch(kern, (count,), buf, idx_np(start), idx_np(count), idx_np(g0), *tables.args())
+            host = np.empty(count, dtype=DTYPES[dtype])
+            cl.enqueue_copy(eng.queue, host, buf)
+            if bar is not None:
+                bar.update(count)
+            yield start, host
+    if bar is not None:
+        bar.close()
+
+
+def reduce_grid(axes, fixed=None, over=(), quantity="dop", dtype="float32", shadowing="paper", *,
+                engine=None, memory_budget=DEFAULT_BUDGET):
+    """Min, argmin and mean of ``quantity`` over the axes ``over``, computed on the device
+    without materialising the grid.
+
+    Returns an ``xarray.Dataset`` over the remaining axes with variables ``min``, ``mean`` and,
+    for each reduced axis, ``argmin_<axis>`` (that axis' coordinate value at the minimum).
+    """
+    import pyopencl as cl
+    import xarray as xr
+
+    _check_quantity(quantity)
+    dtype = api.check_options(shadowing, dtype)
+    plan = GridPlan(axes, fixed)
+    over = (over,) if isinstance(over, str) else tuple(over)
+    if not over:
+        raise ValueError("over: name at least one axis to reduce")
+    for name in over:
+        if name not in plan.axis_names:
+            raise ValueError(f"over: {name!r} is not one of the grid's axes {plan.axis_names}")
+    eng = engine if engine is not None else get_default_engine()
+    npdt = DTYPES[dtype]
+    itemsize = np.dtype(npdt).itemsize
+    ng, nnk, nm, ni = _family_sizes(plan)
+    table_bytes = ng * (2 * nnk + nm + ni) * itemsize
+    if table_bytes > memory_budget // 2:
+        raise ValueError(f"the model's tables for this grid need {table_bytes} bytes, more than half of "
+                         f"memory_budget={memory_budget}; raise the budget or split the geometry axes")
+    s = plan.sizes
+    coef = {"theta_i": s["theta_r"] * s["phi"], "theta_r": s["phi"], "phi": 1, "n": s["k"], "k": 1,
+            "sigma": s["ks"], "ks": 1, "kd": s["c"], "c": 1}
+    kept = [n for n in AXES if n not in over]
+    red = [n for n in AXES if n in over]
+    red_total = int(np.prod([s[n] for n in red], dtype=np.int64))
+    out_total = int(np.prod([s[n] for n in kept], dtype=np.int64))
+    idx_name, idx_np = _index_type(max(plan.size, red_total))
+
+    def arr(name, vals):
+        return f"__constant {idx_name} {name}[] = {{{', '.join(str(int(v)) for v in vals)}}};\n"
+    prefix = ("#define PB_REDUCE\n" + f"#define PB_NKEPT {len(kept)}\n#define PB_NRED {len(red)}\n"
+              f"#define PB_RED_TOTAL (({idx_name}){red_total})\n"
+              + arr("PB_KEPT_SIZE", [s[n] for n in kept]) + arr("PB_KEPT_FAM", [FAMILY[n] for n in kept])
+              + arr("PB_KEPT_COEF", [coef[n] for n in kept]) + arr("PB_RED_SIZE", [s[n] for n in red])
+              + arr("PB_RED_FAM", [FAMILY[n] for n in red]) + arr("PB_RED_COEF", [coef[n] for n in red]))
+    prog = eng.program("pbrdf_grid.cl", dtype, {"PB_NNK": nnk, "PB_NM": nm, "PB_NI": ni, "PB_INDEX": idx_name,
+                                                "PB_DOP" if quantity == "dop" else "PB_F00": None}, prefix)
+    tables = _Tables(eng, dtype, shadowing, quantity, *_geometry_list(plan, 0, ng), plan.values, "grid")
+    n_part = int(min(red_total, max(1, 16384 // max(out_total, 1))))
+    per_out = n_part * (2 * itemsize + np.dtype(idx_np).itemsize)
+    o_chunk = int(max(1, min(out_total, (memory_budget // 2) // per_out, 2 ** 31 // n_part)))
+    vmin = np.empty(out_total, npdt)
+    vmean = np.empty(out_total, np.float64)
+    varg = np.empty(out_total, np.int64)
+    for o0 in range(0, out_total, o_chunk):
+        cnt = min(o_chunk, out_total - o0)
+        bmin, barg, bsum = (eng.empty(cnt * n_part * sz) for sz in (itemsize, np.dtype(idx_np).itemsize, itemsize))
+        eng.launch(prog["grid_reduce"], (cnt, n_part), bmin, barg, bsum, idx_np(o0), idx_np(cnt), idx_np(n_part),
+                   *tables.args())
+        hmin = np.empty((cnt, n_part), npdt)
+        harg = np.empty((cnt, n_part), idx_np)
+        hsum = np.empty((cnt, n_part), npdt)
+        for h, b in ((hmin, bmin), (harg, barg), (hsum, bsum)):
+            cl.enqueue_copy(eng.queue, h, b)
+        best = np.argmin(hmin, axis=1)
+        rows = np.arange(cnt)
+        vmin[o0:o0 + cnt] = hmin[rows, best]
+        varg[o0:o0 + cnt] = harg[rows, best]
+        vmean[o0:o0 + cnt] = hsum.astype(np.float64).sum(axis=1) / red_total
+    kept_axes = [n for n in kept if n in plan.axis_names]
+    shape = tuple(s[n] for n in kept_axes)
+    coords = {n: c for n, c in plan.coords().items() if n in kept_axes}
+    data = {"min": (kept_axes, vmin.reshape(shape)), "mean": (kept_axes, vmean.astype(npdt).reshape(shape))}
+    red_idx = np.unravel_index(varg, [s[n] for n in red])
+    for n, ix in zip(red, red_idx):
+        data[f"argmin_{n}"] = (kept_axes, plan.values[n][ix].reshape(shape), {"units": UNITS[n]})
+    attrs = dict(quantity=quantity, reduced_over=list(over), shadowing=shadowing, dtype=dtype,
+                 **{f"fixed_{k}": v for k, v in plan.fixed_values().items()})
+    return xr.Dataset(data, coords=coords, attrs=attrs)
+
+
+class ObjectiveResult(dict):
+    """Result of :func:`objective` (attribute access, like scipy's ``OptimizeResult``).
+
+    sse : xarray.DataArray over the parameter axes (grid) or 1-d array (points), or None
+    best : dict of the k best parameter vectors (each parameter an array, best first) and their "sse"
+    n_pairs : parameter vectors x measurements evaluated
+    seconds : wall time
+    """
+
+    def __getattr__(self, name):
+        try:
+            return self[name]
+        except KeyError:
+            raise AttributeError(name) from None
+
+    def __repr__(self):
+        best = {k: v[0] for k, v in self["best"].items()} if len(self["best"]["sse"]) else {}
+        return f"ObjectiveResult(n_pairs={self['n_pairs']}, seconds={self['seconds']:.3g}, best={best})"
+
+
+def measurements(theta_i, theta_r, dop, phi=180.0, dop_std=None):
+    """Validated measurement arrays (theta_i, theta_r, phi, dop, weight = 1/dop_std^2 or 1)."""
+    ti = np.atleast_1d(api.check_values("theta_i", theta_i))
+    tr = np.atleast_1d(api.check_values("theta_r", theta_r))
+    ph = np.atleast_1d(api.check_values("phi", phi))
+    d = np.atleast_1d(api._as_array("dop", dop))
+    api._check("dop", d, lambda a: (a >= 0) & (a <= 1), "in [0, 1]")
+    if dop_std is None:
+        w = np.ones(d.shape)
+    else:
+        sd = np.atleast_1d(api._as_array("dop_std", dop_std))
+        api._check("dop_std", sd, lambda a: a > 0, "> 0")
+        w = 1.0 / sd ** 2
+    try:
+        ti, tr, ph, d, w = np.broadcast_arrays(ti, tr, ph, d, w)
+    except ValueError:
+        raise ValueError("measurement arrays theta_i, theta_r, phi, dop, dop_std differ in length") from None
+    if ti.ndim != 1 or ti.size == 0:
+        raise ValueError("measurements must be non-empty 1-d arrays")
+    return ti, tr, ph, d, w
+
+
+def _update_best(best_idx, best_sse, idx, sse, k):
+    idx = np.concatenate([best_idx, idx])
+    sse = np.concatenate([best_sse, sse])
+    if sse.size > k:
+        keep = np.argpartition(sse, k - 1)[:k]
+        idx, sse = idx[keep], sse[keep]
+    return idx, sse
+
+
+def objective(data, grid=None, points=None, *, k_best=10, dtype="float32", shadowing="paper", engine=None,
+              memory_budget=DEFAULT_BUDGET, return_sse=True, progress=False):
+    """Weighted sum of squared DOP residuals, sum_m w_m (DOP(p, m) - dop_m)^2, for many parameter
+    vectors p over the measurements m, on the device.
+
+    Parameters
+    ----------
+    data : dict
+        theta_i, theta_r (degrees), dop, optionally phi (default 180) and dop_std (weights 1/dop_std^2).
+    grid : dict
+        Parameter axes (n, k, sigma, ks, kd, c -> 1-d array or scalar) whose Cartesian product is
+        searched (factorised: no transcendental function per pair).  ks, kd, c default to 1, 0, 0.
+    points : dict
+        Or an explicit list: n, k, sigma, ks, kd, c -> equal-length arrays (one full model
+        evaluation per pair).
+    k_best : int
+        How many of the best parameter vectors to return.
+    """
+    t0 = time.perf_counter()
+    if (grid is None) == (points is None):
+        raise ValueError("give exactly one of grid= (parameter axes) or points= (explicit parameter vectors)")
+    dtype = api.check_options(shadowing, dtype)
+    if not isinstance(data, dict):
+        raise ValueError("data must be a dict with theta_i, theta_r, dop and optionally phi, dop_std")
+    unknown = set(data) - {"theta_i", "theta_r", "phi", "dop", "dop_std"}
+    if unknown:
+        raise ValueError(f"data: unknown column {sorted(unknown)[0]!r}")
+    for need in ("theta_i", "theta_r", "dop"):
+        if need not in data:
+            raise ValueError(f"data: missing {need!r}")
+    ti, tr, ph, obs, w = measurements(data["theta_i"], data["theta_r"], data["dop"], data.get("phi", 180.0),
+                                      data.get("dop_std"))
+    eng = engine if engine is not None else get_default_engine()
+    npdt = DTYPES[dtype]
+    itemsize = np.dtype(npdt).itemsize
+    M = ti.size
+    import pyopencl as cl
+    if points is not None:
+        return _objective_points(eng, points, (ti, tr, ph, obs, w), k_best, dtype, shadowing, return_sse, t0)
+    axes = {n: v for n, v in grid.items() if np.ndim(v) > 0}
+    fixed = {n: v for n, v in grid.items() if np.ndim(v) == 0}
+    plan = GridPlan(axes, fixed, names=PARAMETERS, defaults={"ks": 1.0, "kd": 0.0, "c": 0.0})
+    v = plan.values
+    nnk, nm, ni = v["n"].size * v["k"].size, v["sigma"].size * v["ks"].size, v["kd"].size * v["c"].size
+    table_bytes = M * (2 * nnk + nm + ni) * itemsize
+    if table_bytes > memory_budget // 2:
+        raise ValueError(f"the objective's tables need {table_bytes} bytes, more than half of "
+                         f"memory_budget={memory_budget}; raise it or use fewer n, k values")
+    P = plan.size
+    idx_name, idx_np = _index_type(P)
+    prog = eng.program("pbrdf_grid.cl", dtype, {"PB_NNK": nnk, "PB_NM": nm, "PB_NI": ni, "PB_INDEX": idx_name,
+                                                "PB_DOP": None})
+    tables = _Tables(eng, dtype, shadowing, "dop", ti, tr, ph, v, "measurement")
+    bobs, bw = eng.to_device(obs, dtype), eng.to_device(w, dtype)
+    chunk = int(max(64, min((memory_budget - table_bytes) // itemsize, 2 ** 31 - 1)))
+    sse = np.empty(P, npdt) if return_sse else None
+    best_idx, best_sse = np.empty(0, np.int64), np.empty(0, npdt)
+    bar = _progress(P, progress, "objective")
+    for start in range(0, P, chunk):
+        count = min(chunk, P - start)
+        buf = eng.empty(count * itemsize)
+        eng.launch(prog["objective_grid"], (count,), buf, idx_np(start), idx_np(count), *tables.args(),
+                   bobs, bw, np.int32(M))
+        host = np.empty(count, npdt)
+        cl.enqueue_copy(eng.queue, host, buf)
+        if sse is not None:
+            sse[start:start + count] = host
+        best_idx, best_sse = _update_best(best_idx, best_sse, np.arange(start, start + count), host, k_best)
+        if bar is not None:
+            bar.update(count)
+    if bar is not None:
+        bar.close()
+    order = np.argsort(best_sse, kind="stable")
+    best_idx, best_sse = best_idx[order], best_sse[order]
+    unr = np.unravel_index(best_idx, [plan.sizes[n] for n in PARAMETERS])
+    best = {n: v[n][i] for n, i in zip(PARAMETERS, unr)}
+    best["sse"] = best_sse
+    best["index"] = best_idx
+    sse_da = None
+    if sse is not None:
+        import xarray as xr
+        sse_da = xr.DataArray(sse.reshape(plan.shape), coords=plan.coords(), dims=plan.axis_names, name="sse",
+                              attrs=dict(long_name="weighted sum of squared DOP residuals", n_measurements=M,
+                                         shadowing=shadowing, dtype=dtype,
+                                         **{f"fixed_{k}": val for k, val in plan.fixed_values().items()}))
+    return ObjectiveResult(sse=sse_da, best=best, n_pairs=P * M, seconds=time.perf_counter() - t0)
+
+
+def _objective_points(eng, points, meas, k_best, dtype, shadowing, return_sse, t0):
+    import pyopencl as cl
+    ti, tr, ph, obs, w = meas
+    unknown = set(points) - set(PARAMETERS)
+    if unknown:
+        raise ValueError(f"points: unknown parameter {sorted(unknown)[0]!r}; valid names are {', '.join(PARAMETERS)}")
+    defaults = {"ks": 1.0, "kd": 0.0, "c": 0.0}
+    vals = {}
+    for n in PARAMETERS:
+        if n not in points and n not in defaults:
+            raise ValueError(f"points: {n} is required")
+        vals[n] = np.atleast_1d(api.check_values(n, points.get(n, defaults.get(n))))
+    try:
+        arrays = np.broadcast_arrays(*(vals[n] for n in PARAMETERS))
+    except ValueError:
+        raise ValueError("points: parameter arrays differ in length") from None
+    arrays = [a.reshape(-1) for a in arrays]
+    P = arrays[0].size
+    kern = eng.kernel("objective_points", dtype, shadowing)
+    buf = eng.empty(P * np.dtype(DTYPES[dtype]).itemsize)
+    eng.launch(kern, (P,), buf, np.int32(P), *(eng.to_device(a, dtype) for a in arrays),
+               *(eng.to_device(a, dtype) for a in (ti, tr, ph, obs, w)), np.int32(ti.size))
+    sse = np.empty(P, DTYPES[dtype])
+    cl.enqueue_copy(eng.queue, sse, buf)
+    order = np.argsort(sse, kind="stable")[:k_best]
+    best = {n: a[order] for n, a in zip(PARAMETERS, arrays)}
+    best["sse"] = sse[order]
+    best["index"] = order
+    return ObjectiveResult(sse=sse if return_sse else None, best=best, n_pairs=P * ti.size,
+                           seconds=time.perf_counter() - t0)
