@@ -6,7 +6,8 @@
  *   g  = (i_theta_i * N_theta_r + i_theta_r) * N_phi + i_phi     geometry
  *   nk = i_n * N_k + i_k,  s = i_sigma * N_ks + i_ks,  j = i_kd * N_c + i_c.
  * Build options: -DPBRDF_DOUBLE, -DPB_NNK, -DPB_NM, -DPB_NI (compile-time sizes let the index
- * arithmetic vectorise), -DPB_INDEX=uint|ulong, -DPB_DOP (else F00).
+ * arithmetic vectorise), -DPB_INDEX=uint|ulong, -DPB_DOP (else F00), -DPB_ROW_LEVEL and
+ * -DPB_ROW_LEN for the row kernels, -DPB_OBJECTIVE for objective_rows.
  * Tables for geometry rows g0 ..: sum/diff[(g - g0) * PB_NNK + nk], scale[(g - g0) * PB_NM + s],
  * diffuse[(g - g0) * PB_NI + j].
  */
@@ -83,8 +84,8 @@ __kernel void grid_reduce(__global real *vmin, __global pbidx *vargmin, __global
 #endif
 
 /* Weighted sum of squared DOP residuals for a grid of parameter vectors
- * p = (nk * PB_NM + s) * PB_NI + j over M measurements.  Tables are measurement-major:
- * sum/diff[nk * M + m], scale[s * M + m], dif[j * M + m]. */
+ * p = (nk * PB_NM + s) * PB_NI + j over M measurements, one work-item per vector (used when the
+ * rows of objective_rows would be too long).  Tables as for objective_rows. */
 __kernel void objective_grid(__global real *sse, const pbidx start, const pbidx count,
                              PB_TABLES, __global const real *obs, __global const real *w, const int M)
 {
@@ -94,11 +95,94 @@ __kernel void objective_grid(__global real *sse, const pbidx start, const pbidx 
     const pbidx j = p % PB_NI; p /= PB_NI;
     const pbidx s = p % PB_NM;
     const pbidx nk = p / PB_NM;
-    __global const real *su = sum + nk * M, *di = diff + nk * M, *sc = scale + s * M, *fd = dif + j * M;
     real acc = (real)0;
     for (int m = 0; m < M; m++) {
-        const real r = pb_dop_combine(su[m], di[m], fd[m], sc[m]) - obs[m];
+        const real r = pb_dop_combine(sum[m * PB_NNK + nk], diff[m * PB_NNK + nk], dif[m * PB_NI + j],
+                                      scale[m * PB_NM + s]) - obs[m];
         acc += w[m] * r * r;
     }
     sse[gid] = acc;
 }
+
+/* One work-item per row of PB_ROW_LEN contiguous values sharing their outer indices, so the
+ * inner loops vectorise.  PB_ROW_LEVEL 1: rows (g, nk, s), loop j; 2: rows (g, nk), loop s, j;
+ * 3: rows g, loop nk, s, j. */
+__kernel void grid_rows(__global real *out, const pbidx row_start, const pbidx rows, const pbidx g0,
+                        PB_TABLES)
+{
+    const pbidx gid = get_global_id(0);
+    if (gid >= rows) return;
+    pbidx i = row_start + gid;
+#if PB_ROW_LEVEL == 1
+    const pbidx s = i % PB_NM; i /= PB_NM;
+    const pbidx nk = i % PB_NNK;
+    const pbidx g = i / PB_NNK - g0;
+    const real su = sum[g * PB_NNK + nk], di = diff[g * PB_NNK + nk], sc = scale[g * PB_NM + s];
+    __global const real *fd = dif + g * PB_NI;
+    __global real *o = out + gid * PB_NI;
+    for (int j = 0; j < PB_NI; j++)
+        o[j] = PB_COMBINE(su, di, fd[j], sc);
+#elif PB_ROW_LEVEL == 2
+    const pbidx nk = i % PB_NNK;
+    const pbidx g = i / PB_NNK - g0;
+    const real su = sum[g * PB_NNK + nk], di = diff[g * PB_NNK + nk];
+    __global const real *fd = dif + g * PB_NI, *sc = scale + g * PB_NM;
+    __global real *o = out + gid * (PB_NM * PB_NI);
+    for (int s = 0; s < PB_NM; s++)
+        for (int j = 0; j < PB_NI; j++)
+            o[s * PB_NI + j] = PB_COMBINE(su, di, fd[j], sc[s]);
+#else
+    const pbidx g = i - g0;
+    __global const real *fd = dif + g * PB_NI, *sc = scale + g * PB_NM;
+    __global const real *su = sum + g * PB_NNK, *di = diff + g * PB_NNK;
+    __global real *o = out + gid * (PB_NNK * PB_NM * PB_NI);
+    for (int nk = 0; nk < PB_NNK; nk++)
+        for (int s = 0; s < PB_NM; s++)
+            for (int j = 0; j < PB_NI; j++)
+                o[(nk * PB_NM + s) * PB_NI + j] = PB_COMBINE(su[nk], di[nk], fd[j], sc[s]);
+#endif
+}
+
+/* The objective by rows: work-item (nk, s) [PB_ROW_LEVEL 1] or nk [level 2] accumulates the
+ * PB_ROW_LEN parameter vectors of its row over the M measurements; tables are laid out
+ * measurement by measurement: sum/diff[m * PB_NNK + nk], scale[m * PB_NM + s], dif[m * PB_NI + j]. */
+#ifdef PB_OBJECTIVE
+__kernel void objective_rows(__global real *sse, const pbidx row_start, const pbidx rows, PB_TABLES,
+                             __global const real *obs, __global const real *w, const int M)
+{
+    const pbidx gid = get_global_id(0);
+    if (gid >= rows) return;
+    pbidx i = row_start + gid;
+    real acc[PB_ROW_LEN];
+    for (int q = 0; q < PB_ROW_LEN; q++)
+        acc[q] = (real)0;
+#if PB_ROW_LEVEL == 1
+    const pbidx s = i % PB_NM;
+    const pbidx nk = i / PB_NM;
+    for (int m = 0; m < M; m++) {
+        const real su = sum[m * PB_NNK + nk], di = diff[m * PB_NNK + nk], sc = scale[m * PB_NM + s];
+        const real ob = obs[m], wm = w[m];
+        __global const real *fd = dif + m * PB_NI;
+        for (int j = 0; j < PB_NI; j++) {
+            const real r = pb_dop_combine(su, di, fd[j], sc) - ob;
+            acc[j] += wm * r * r;
+        }
+    }
+#else
+    const pbidx nk = i;
+    for (int m = 0; m < M; m++) {
+        const real su = sum[m * PB_NNK + nk], di = diff[m * PB_NNK + nk];
+        const real ob = obs[m], wm = w[m];
+        __global const real *fd = dif + m * PB_NI, *sc = scale + m * PB_NM;
+        for (int s = 0; s < PB_NM; s++)
+            for (int j = 0; j < PB_NI; j++) {
+                const real r = pb_dop_combine(su, di, fd[j], sc[s]) - ob;
+                acc[s * PB_NI + j] += wm * r * r;
+            }
+    }
+#endif
+    __global real *o = sse + gid * PB_ROW_LEN;
+    for (int q = 0; q < PB_ROW_LEN; q++)
+        o[q] = acc[q];
+}
+#endif

@@ -99,8 +99,8 @@ class GridPlan:
 class _Tables:
     """Device tables of the factorised model for a geometry list and parameter axes."""
 
-    def __init__(self, engine, dtype, shadowing, quantity, ti, tr, ph, v, layout):
-        """layout "grid": table[g][param]; "measurement": table[param][m]."""
+    def __init__(self, engine, dtype, shadowing, quantity, ti, tr, ph, v):
+        """Tables laid out geometry by geometry: table[g * n_params + param]."""
         self.engine = engine
         kern = engine.program("pbrdf_tables.cl", dtype, {"PBRDF_SHADOWING": api.reference.SHADOWING[shadowing]})
         npdt = DTYPES[dtype]
@@ -110,9 +110,8 @@ class _Tables:
 
         def table(kname, outs, p1, p2, *extra):
             np_ = p1.size * p2.size
-            s_g, s_p = (np_, 1) if layout == "grid" else (1, ng)
             bufs = [engine.empty(ng * np_ * np.dtype(npdt).itemsize) for _ in range(outs)]
-            engine.launch(kern[kname], (ng, np_), *bufs, np.int32(ng), np.int32(s_g), np.int32(s_p), *geo,
+            engine.launch(kern[kname], (ng, np_), *bufs, np.int32(ng), np.int32(np_), np.int32(1), *geo,
                           engine.to_device(p1, dtype), engine.to_device(p2, dtype), np.int32(p2.size), *extra)
             return bufs
 
@@ -191,6 +190,23 @@ def grid(axes, fixed=None, quantity="dop", dtype="float32", shadowing="paper", *
                         attrs=attrs)
 
 
+#: Rows shorter than this leave the vector units idle; longer ones than ROW_MAX use too much
+#: private memory (objective) or too few work-items.
+ROW_MIN, ROW_MAX = 16, 4096
+
+
+def _row_level(nnk, nm, ni, ng, chunk, max_level=3):
+    """(level, row length) for the row kernels, or (0, 1) for the one-point-per-work-item kernels."""
+    for level, length, n_rows in ((1, ni, ng * nnk * nm), (2, nm * ni, ng * nnk), (3, nnk * nm * ni, ng)):
+        if level > max_level:
+            break
+        if length >= ROW_MIN:
+            if length <= min(ROW_MAX, chunk) and n_rows >= 8:
+                return level, length
+            break
+    return 0, 1
+
+
 def _grid_blocks(eng, plan, quantity, dtype, shadowing, memory_budget, progress=False):
     """Yield (flat start, values) chunks of the grid in order, each within ``memory_budget``."""
     itemsize = np.dtype(DTYPES[dtype]).itemsize
@@ -203,18 +219,25 @@ def _grid_blocks(eng, plan, quantity, dtype, shadowing, memory_budget, progress=
     rows = int(max(1, min(ng, (memory_budget // 2) // table_row)))
     chunk = int(max(64, min((memory_budget - rows * table_row) // itemsize, 2 ** 31 - 1)))
     idx_name, idx_np = _index_type(plan.size)
+    level, row_len = _row_level(nnk, nm, ni, ng, chunk)
     prog = eng.program("pbrdf_grid.cl", dtype, {"PB_NNK": nnk, "PB_NM": nm, "PB_NI": ni, "PB_INDEX": idx_name,
-                                                "PB_DOP" if quantity == "dop" else "PB_F00": None})
-    kern = prog["grid_values"]
+                                                "PB_DOP" if quantity == "dop" else "PB_F00": None,
+                                                "PB_ROW_LEVEL": level, "PB_ROW_LEN": row_len})
+    kern = prog["grid_rows" if level else "grid_values"]
+    chunk = chunk // row_len * row_len
     bar = _progress(plan.size, progress, f"grid {quantity}")
     import pyopencl as cl
     for g0 in range(0, ng, rows):
         g1 = min(ng, g0 + rows)
-        tables = _Tables(eng, dtype, shadowing, quantity, *_geometry_list(plan, g0, g1), plan.values, "grid")
+        tables = _Tables(eng, dtype, shadowing, quantity, *_geometry_list(plan, g0, g1), plan.values)
         for start in range(g0 * per_g, g1 * per_g, chunk):
             count = min(chunk, g1 * per_g - start)
             buf = eng.empty(count * itemsize)
-            eng.launch(kern, (count,), buf, idx_np(start), idx_np(count), idx_np(g0), *tables.args())
+            if level:
+                eng.launch(kern, (count // row_len,), buf, idx_np(start // row_len), idx_np(count // row_len),
+                           idx_np(g0), *tables.args())
+            else:
+                eng.launch(kern, (count,), buf, idx_np(start), idx_np(count), idx_np(g0), *tables.args())
             host = np.empty(count, dtype=DTYPES[dtype])
             cl.enqueue_copy(eng.queue, host, buf)
             if bar is not None:
@@ -270,7 +293,7 @@ def reduce_grid(axes, fixed=None, over=(), quantity="dop", dtype="float32", shad
               + arr("PB_RED_FAM", [FAMILY[n] for n in red]) + arr("PB_RED_COEF", [coef[n] for n in red]))
     prog = eng.program("pbrdf_grid.cl", dtype, {"PB_NNK": nnk, "PB_NM": nm, "PB_NI": ni, "PB_INDEX": idx_name,
                                                 "PB_DOP" if quantity == "dop" else "PB_F00": None}, prefix)
-    tables = _Tables(eng, dtype, shadowing, quantity, *_geometry_list(plan, 0, ng), plan.values, "grid")
+    tables = _Tables(eng, dtype, shadowing, quantity, *_geometry_list(plan, 0, ng), plan.values)
     n_part = int(min(red_total, max(1, 16384 // max(out_total, 1))))
     per_out = n_part * (2 * itemsize + np.dtype(idx_np).itemsize)
     o_chunk = int(max(1, min(out_total, (memory_budget // 2) // per_out, 2 ** 31 // n_part)))
@@ -405,19 +428,26 @@ def objective(data, grid=None, points=None, *, k_best=10, dtype="float32", shado
                          f"memory_budget={memory_budget}; raise it or use fewer n, k values")
     P = plan.size
     idx_name, idx_np = _index_type(P)
-    prog = eng.program("pbrdf_grid.cl", dtype, {"PB_NNK": nnk, "PB_NM": nm, "PB_NI": ni, "PB_INDEX": idx_name,
-                                                "PB_DOP": None})
-    tables = _Tables(eng, dtype, shadowing, "dop", ti, tr, ph, v, "measurement")
-    bobs, bw = eng.to_device(obs, dtype), eng.to_device(w, dtype)
     chunk = int(max(64, min((memory_budget - table_bytes) // itemsize, 2 ** 31 - 1)))
+    level, row_len = _row_level(nnk, nm, ni, 1, chunk, max_level=2)
+    prog = eng.program("pbrdf_grid.cl", dtype, {"PB_NNK": nnk, "PB_NM": nm, "PB_NI": ni, "PB_INDEX": idx_name,
+                                                "PB_DOP": None, "PB_OBJECTIVE": None, "PB_ROW_LEVEL": level,
+                                                "PB_ROW_LEN": row_len})
+    chunk = max(row_len, chunk // row_len * row_len)
+    tables = _Tables(eng, dtype, shadowing, "dop", ti, tr, ph, v)
+    bobs, bw = eng.to_device(obs, dtype), eng.to_device(w, dtype)
     sse = np.empty(P, npdt) if return_sse else None
     best_idx, best_sse = np.empty(0, np.int64), np.empty(0, npdt)
     bar = _progress(P, progress, "objective")
     for start in range(0, P, chunk):
         count = min(chunk, P - start)
         buf = eng.empty(count * itemsize)
-        eng.launch(prog["objective_grid"], (count,), buf, idx_np(start), idx_np(count), *tables.args(),
-                   bobs, bw, np.int32(M))
+        if level:
+            eng.launch(prog["objective_rows"], (count // row_len,), buf, idx_np(start // row_len),
+                       idx_np(count // row_len), *tables.args(), bobs, bw, np.int32(M))
+        else:
+            eng.launch(prog["objective_grid"], (count,), buf, idx_np(start), idx_np(count), *tables.args(),
+                       bobs, bw, np.int32(M))
         host = np.empty(count, npdt)
         cl.enqueue_copy(eng.queue, host, buf)
         if sse is not None:
