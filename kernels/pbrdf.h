@@ -155,13 +155,31 @@ inline real pb_diffuse(pb_geom g, real kd, real c)
 }
 
 /* Eq. 17-18 from precomputed factors: DOP = (Rs - Rp) / (Rs + Rp + fd2 / K), where
- * fd2 = 2 fd and inv_K = 1/K (an infinite inv_K with fd2 = 0 means no diffuse term). */
-inline real pb_dop_combine(real sum, real diff, real fd2, real inv_K)
-{
-    real r = fd2 > (real)0 ? fd2 * inv_K : (real)0;
-    real den = sum + r;
-    return den > (real)0 ? diff / den : (real)0;
-}
+ * fd2 = 2 fd and inv_K = 1/K (an infinite inv_K with fd2 = 0 means no diffuse term).
+ * Written once as a body for any real type T (scalar or vector: ?: selects per element). */
+#define PB_DOP_COMBINE_BODY(T)                                               \
+    {                                                                        \
+        const T r = fd2 > (T)0 ? fd2 * inv_K : (T)0;                         \
+        const T den = sum + r;                                               \
+        return den > (T)0 ? diff / den : (T)0;                               \
+    }
+inline real pb_dop_combine(real sum, real diff, real fd2, real inv_K) PB_DOP_COMBINE_BODY(real)
+
+/* Vector width PB_VW (build option; default 8): 4, 8 or 16 (16 only for float32). */
+#ifndef PB_VW
+#define PB_VW 8
+#endif
+#define PB_CAT_(a, b) a##b
+#define PB_CAT(a, b) PB_CAT_(a, b)
+#ifdef PBRDF_DOUBLE
+typedef PB_CAT(double, PB_VW) realv;
+#else
+typedef PB_CAT(float, PB_VW) realv;
+#endif
+#define pb_vload PB_CAT(vload, PB_VW)
+#define pb_vstore PB_CAT(vstore, PB_VW)
+/* pb_dop_combine on PB_VW values at once (the same body). */
+inline realv pb_dop_combine_v(realv sum, realv diff, realv fd2, realv inv_K) PB_DOP_COMBINE_BODY(realv)
 
 /* F00 = K (Rs + Rp) / 2 + fd from precomputed factors. */
 inline real pb_brdf_combine(real sum, real K, real fd)

@@ -120,7 +120,12 @@ __kernel void grid_rows(__global real *out, const pbidx row_start, const pbidx r
     const real su = sum[g * PB_NNK + nk], di = diff[g * PB_NNK + nk], sc = scale[g * PB_NM + s];
     __global const real *fd = dif + g * PB_NI;
     __global real *o = out + gid * PB_NI;
-    for (int j = 0; j < PB_NI; j++)
+    int j = 0;
+#ifdef PB_DOP
+    for (; j + PB_VW <= PB_NI; j += PB_VW)
+        pb_vstore(pb_dop_combine_v((realv)su, (realv)di, pb_vload(0, fd + j), (realv)sc), 0, o + j);
+#endif
+    for (; j < PB_NI; j++)
         o[j] = PB_COMBINE(su, di, fd[j], sc);
 #elif PB_ROW_LEVEL == 2
     const pbidx nk = i % PB_NNK;
@@ -144,45 +149,59 @@ __kernel void grid_rows(__global real *out, const pbidx row_start, const pbidx r
 }
 
 /* The objective by rows: work-item (nk, s) [PB_ROW_LEVEL 1] or nk [level 2] accumulates the
- * PB_ROW_LEN parameter vectors of its row over the M measurements; tables are laid out
- * measurement by measurement: sum/diff[m * PB_NNK + nk], scale[m * PB_NM + s], dif[m * PB_NI + j]. */
+ * PB_ROW_LEN parameter vectors of its row over the M measurements, PB_QB at a time; tables are
+ * laid out measurement by measurement: sum/diff[m * PB_NNK + nk], scale[m * PB_NM + s],
+ * dif[m * PB_NI + j]. */
 #ifdef PB_OBJECTIVE
+#define PB_QB 16
 __kernel void objective_rows(__global real *sse, const pbidx row_start, const pbidx rows, PB_TABLES,
                              __global const real *obs, __global const real *w, const int M)
 {
     const pbidx gid = get_global_id(0);
     if (gid >= rows) return;
-    pbidx i = row_start + gid;
-    real acc[PB_ROW_LEN];
-    for (int q = 0; q < PB_ROW_LEN; q++)
-        acc[q] = (real)0;
+    const pbidx i = row_start + gid;
 #if PB_ROW_LEVEL == 1
     const pbidx s = i % PB_NM;
     const pbidx nk = i / PB_NM;
-    for (int m = 0; m < M; m++) {
-        const real su = sum[m * PB_NNK + nk], di = diff[m * PB_NNK + nk], sc = scale[m * PB_NM + s];
-        const real ob = obs[m], wm = w[m];
-        __global const real *fd = dif + m * PB_NI;
-        for (int j = 0; j < PB_NI; j++) {
-            const real r = pb_dop_combine(su, di, fd[j], sc) - ob;
-            acc[j] += wm * r * r;
-        }
-    }
 #else
     const pbidx nk = i;
-    for (int m = 0; m < M; m++) {
-        const real su = sum[m * PB_NNK + nk], di = diff[m * PB_NNK + nk];
-        const real ob = obs[m], wm = w[m];
-        __global const real *fd = dif + m * PB_NI, *sc = scale + m * PB_NM;
-        for (int s = 0; s < PB_NM; s++)
-            for (int j = 0; j < PB_NI; j++) {
-                const real r = pb_dop_combine(su, di, fd[j], sc[s]) - ob;
-                acc[s * PB_NI + j] += wm * r * r;
-            }
-    }
 #endif
     __global real *o = sse + gid * PB_ROW_LEN;
-    for (int q = 0; q < PB_ROW_LEN; q++)
-        o[q] = acc[q];
+#if PB_ROW_LEVEL == 1
+    /* whole vectors first, the tail below */
+    for (int q0 = 0; q0 + PB_VW <= PB_ROW_LEN; q0 += PB_VW) {
+        realv acc = (realv)0;
+        for (int m = 0; m < M; m++) {
+            const realv r = pb_dop_combine_v((realv)sum[m * PB_NNK + nk], (realv)diff[m * PB_NNK + nk],
+                                             pb_vload(0, dif + m * PB_NI + q0), (realv)scale[m * PB_NM + s])
+                            - (realv)obs[m];
+            acc += (realv)w[m] * r * r;
+        }
+        pb_vstore(acc, 0, o + q0);
+    }
+    for (int q0 = PB_ROW_LEN / PB_VW * PB_VW; q0 < PB_ROW_LEN; q0 += PB_QB) {
+#else
+    for (int q0 = 0; q0 < PB_ROW_LEN; q0 += PB_QB) {
+#endif
+        real acc[PB_QB];
+        for (int q = 0; q < PB_QB; q++)
+            acc[q] = (real)0;
+        for (int m = 0; m < M; m++) {
+            const real su = sum[m * PB_NNK + nk], di = diff[m * PB_NNK + nk];
+            const real ob = obs[m], wm = w[m];
+            __global const real *fd = dif + m * PB_NI, *sc = scale + m * PB_NM;
+            for (int q = 0; q < PB_QB; q++) {
+                const int qq = min(q0 + q, PB_ROW_LEN - 1);  /* clamped: the tail block re-reads */
+#if PB_ROW_LEVEL == 1
+                const real r = pb_dop_combine(su, di, fd[qq], sc[s]) - ob;
+#else
+                const real r = pb_dop_combine(su, di, fd[qq % PB_NI], sc[qq / PB_NI]) - ob;
+#endif
+                acc[q] += wm * r * r;
+            }
+        }
+        for (int q = 0; q < PB_QB && q0 + q < PB_ROW_LEN; q++)
+            o[q0 + q] = acc[q];
+    }
 }
 #endif
