@@ -65,7 +65,7 @@ class GridPlan:
                 if a.size > 1 and not (np.all(d > 0) or np.all(d < 0)):
                     bad = int(np.argmax(d <= 0) if d[0] > 0 else np.argmax(d >= 0)) + 1
                     raise ValueError(f"axis {name} must be strictly increasing or decreasing; "
-                                     f"value {a[bad]!r} at index {bad} breaks it")
+                                     f"value {float(a[bad])!r} at index {bad} breaks it")
             elif name in fixed:
                 a = api.check_values(name, fixed[name])
                 if a.ndim != 0:

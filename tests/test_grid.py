@@ -1,0 +1,231 @@
+"""Dense grids, reductions and the objective against the float64 reference."""
+import numpy as np
+import pytest
+
+import pbrdf_cl
+from pbrdf_cl import grid as G
+
+FIXED = dict(theta_i=40.0, theta_r=30.0, phi=180.0, n=1.6, k=2.1, sigma=0.4, ks=0.9, kd=0.2, c=-0.3)
+RANGES = dict(theta_i=(0, 89), theta_r=(0, 89), phi=(0, 360), n=(0.5, 4), k=(0, 8), sigma=(0.05, 1),
+              ks=(0.2, 2), kd=(0, 3), c=(-1, 0))
+
+
+def reference_grid(axes, fixed, quantity="dop"):
+    names = [n for n in G.AXES if n in axes]
+    mesh = np.meshgrid(*[np.asarray(axes[n], float) for n in names], indexing="ij")
+    kw = {n: fixed.get(n, G.DEFAULTS.get(n)) for n in G.AXES if n not in axes}
+    kw.update(zip(names, mesh))
+    func = pbrdf_cl.dop if quantity == "dop" else pbrdf_cl.brdf
+    return func(kw.pop("theta_i"), kw.pop("theta_r"), kw.pop("phi"), backend="numpy", **kw)
+
+
+def random_axes(rng, names, sizes):
+    axes = {}
+    for n, size in zip(names, sizes):
+        lo, hi = RANGES[n]
+        axes[n] = np.sort(rng.uniform(lo, hi, size))
+        while size > 1 and np.any(np.diff(axes[n]) <= 0):
+            axes[n] = np.sort(rng.uniform(lo, hi, size))
+    return axes, {n: v for n, v in FIXED.items() if n not in names}
+
+
+# axis sets chosen to hit every kernel path: rows over (kd, c) [level 1], over (sigma, ks, kd, c)
+# [level 2], over everything after the geometry [level 3], and one point per work-item
+CASES = [
+    (("theta_i", "theta_r"), (5, 7)),
+    (("theta_r", "sigma"), (9, 6)),
+    (("theta_i", "kd", "c"), (9, 6, 5)),
+    (("theta_r", "phi", "sigma", "kd"), (4, 3, 5, 4)),
+    (("n", "k", "sigma", "ks"), (3, 4, 5, 4)),
+    (("theta_i", "theta_r", "phi", "n", "k", "sigma", "ks", "kd", "c"), (2, 3, 2, 2, 3, 2, 2, 3, 2)),
+    (("phi",), (40,)),
+    (("k", "c"), (3, 17)),
+    (("theta_r", "n"), (20, 40)),
+]
+
+
+@pytest.mark.parametrize("names,sizes", CASES, ids=["-".join(c[0]) for c in CASES])
+def test_grid_equals_reference(rng, names, sizes):
+    axes, fixed = random_axes(rng, names, sizes)
+    ref = reference_grid(axes, fixed)
+    d64 = G.grid(axes, fixed, dtype="float64")
+    assert d64.dims == tuple(n for n in G.AXES if n in names) and d64.shape == ref.shape
+    assert np.max(np.abs(d64.values - ref)) <= 1e-12
+    d32 = G.grid(axes, fixed, dtype="float32")
+    assert d32.dtype == np.float32 and np.max(np.abs(d32.values - ref)) <= 2e-5
+    f_ref = reference_grid(axes, fixed, "f00")
+    np.testing.assert_allclose(G.grid(axes, fixed, quantity="f00", dtype="float64").values, f_ref, rtol=1e-11)
+    for n in names:
+        np.testing.assert_array_equal(d64[n].values, axes[n])
+        assert d64[n].attrs["units"] == G.UNITS[n]
+    assert d64.attrs["quantity"] == "dop" and d64.attrs["shadowing"] == "paper"
+    for n, v in fixed.items():
+        assert d64.attrs[f"fixed_{n}"] == v
+
+
+def test_row_levels_are_all_exercised():
+    seen = set()
+    for names, sizes in CASES:
+        s = dict.fromkeys(G.AXES, 1)
+        s.update(zip(names, sizes))
+        fam = (s["theta_i"] * s["theta_r"] * s["phi"], s["n"] * s["k"], s["sigma"] * s["ks"], s["kd"] * s["c"])
+        seen.add(G._row_level(fam[1], fam[2], fam[3], fam[0], 1 << 20)[0])
+    assert seen == {0, 1, 2, 3}
+
+
+def test_chunked_equals_unchunked_exactly(rng):
+    axes, fixed = random_axes(rng, ("theta_i", "theta_r", "sigma", "kd", "c"), (7, 9, 5, 6, 4))
+    whole = G.grid(axes, fixed, dtype="float32")
+    for budget in (4096, 20000, 100003):
+        np.testing.assert_array_equal(G.grid(axes, fixed, dtype="float32", memory_budget=budget).values, whole.values)
+    np.testing.assert_array_equal(G.grid(axes, fixed, quantity="f00", memory_budget=5000).values,
+                                  G.grid(axes, fixed, quantity="f00").values)
+
+
+def test_grid_larger_than_budget_runs_in_bounded_chunks(monkeypatch):
+    axes = dict(theta_i=np.linspace(10, 80, 30), theta_r=np.linspace(0, 85, 100), sigma=np.linspace(0.05, 1, 50),
+                kd=np.linspace(0, 1, 40), c=np.linspace(-1, 0, 10))
+    plan = G.GridPlan(axes, dict(n=1.6, k=2.1))
+    budget = 1 << 20  # 1 MiB against a 240 MB result
+    eng = pbrdf_cl.get_default_engine()
+    sizes = []
+    real_empty = type(eng).empty
+    monkeypatch.setattr(type(eng), "empty", lambda self, nbytes: sizes.append(nbytes) or real_empty(self, nbytes))
+    done, chunks, probe = 0, 0, {}
+    picks = set(np.random.default_rng(0).integers(0, plan.size, 50).tolist())
+    for start, block in G._grid_blocks(eng, plan, "dop", "float32", "paper", budget):
+        assert start == done and block.nbytes <= budget
+        for p in picks:
+            if start <= p < start + block.size:
+                probe[p] = block[p - start]
+        done += block.size
+        chunks += 1
+    assert done == plan.size and chunks > 200
+    assert max(sizes) <= budget
+    idx = np.array(sorted(probe))
+    coords = np.unravel_index(idx, plan.shape)
+    want = pbrdf_cl.dop(*(axes[n][c] for n, c in zip(("theta_i", "theta_r"), coords[:2])), 180.0, n=1.6, k=2.1,
+                        sigma=axes["sigma"][coords[2]], kd=axes["kd"][coords[3]], c=axes["c"][coords[4]], backend="numpy")
+    assert np.max(np.abs(np.array([probe[i] for i in idx]) - want)) <= 2e-5
+
+
+@pytest.mark.parametrize("over", [("theta_r",), ("sigma", "kd"), ("theta_i", "theta_r", "sigma", "kd", "c")])
+@pytest.mark.parametrize("dtype", ["float64", "float32"])
+def test_reductions_equal_numpy(rng, over, dtype):
+    axes, fixed = random_axes(rng, ("theta_i", "theta_r", "sigma", "kd", "c"), (4, 9, 5, 3, 2))
+    full = G.grid(axes, fixed, dtype=dtype).values
+    names = [n for n in G.AXES if n in axes]
+    red = tuple(names.index(n) for n in over)
+    kept = [n for n in names if n not in over]
+    moved = np.moveaxis(full, red, tuple(range(len(names) - len(red), len(names))))
+    flat = moved.reshape(moved.shape[:len(kept)] + (-1,))
+    ds = G.reduce_grid(axes, fixed, over=over, dtype=dtype)
+    np.testing.assert_array_equal(ds["min"].values, flat.min(axis=-1))
+    tol = 1e-13 if dtype == "float64" else 1e-6
+    np.testing.assert_allclose(ds["mean"].values, flat.astype(np.float64).mean(axis=-1), rtol=0, atol=tol)
+    arg = np.unravel_index(flat.argmin(axis=-1), [axes[n].size for n in names if n in over])
+    for n, a in zip([n for n in names if n in over], arg):
+        np.testing.assert_array_equal(ds[f"argmin_{n}"].values, axes[n][a])
+    assert list(ds["min"].dims) == kept
+
+
+def measurements(rng, m=12):
+    ti = rng.uniform(10, 70, m)
+    tr = rng.uniform(5, 80, m)
+    phi = rng.choice([180.0, 150.0, 120.0], m)
+    d = pbrdf_cl.dop(ti, tr, phi, n=1.8, k=1.2, sigma=0.4, kd=0.3, c=-0.4, backend="numpy")
+    return dict(theta_i=ti, theta_r=tr, phi=phi, dop=np.clip(d + rng.normal(0, 0.01, m), 0, 1),
+                dop_std=rng.uniform(0.005, 0.02, m))
+
+
+def numpy_sse(data, params):
+    d = pbrdf_cl.dop(data["theta_i"][:, None], data["theta_r"][:, None], data["phi"][:, None], backend="numpy",
+                     **{n: np.asarray(v)[None, :] for n, v in params.items()})
+    return (((d - data["dop"][:, None]) / data["dop_std"][:, None]) ** 2).sum(axis=0)
+
+
+@pytest.mark.parametrize("grid", [
+    dict(n=np.linspace(1, 3, 5), k=np.linspace(0, 3, 4), sigma=np.linspace(0.1, 0.8, 3), kd=np.linspace(0, 1, 20),
+         c=np.array([-0.6, -0.2])),
+    dict(n=np.linspace(1, 3, 5), k=np.linspace(0, 3, 4), sigma=np.linspace(0.1, 0.8, 6), kd=np.linspace(0, 1, 3)),
+    dict(n=np.linspace(1, 3, 5), k=np.linspace(0, 3, 4), sigma=0.4, kd=0.3, c=-0.4),
+], ids=["rows-level1", "rows-level2", "per-vector"])
+@pytest.mark.parametrize("dtype", ["float64", "float32"])
+def test_objective_grid_equals_numpy_sse(rng, grid, dtype):
+    data = measurements(rng)
+    res = G.objective(data, grid=grid, dtype=dtype, k_best=5)
+    axes = [n for n in G.PARAMETERS if np.ndim(grid.get(n, 0)) > 0]
+    mesh = np.meshgrid(*[grid[n] for n in axes], indexing="ij")
+    params = {n: grid.get(n, {"ks": 1.0, "kd": 0.0, "c": 0.0}.get(n)) for n in G.PARAMETERS}
+    params.update({n: m.ravel() for n, m in zip(axes, mesh)})
+    want = numpy_sse(data, {n: np.broadcast_to(v, mesh[0].size) for n, v in params.items()}).reshape(mesh[0].shape)
+    rtol = 1e-11 if dtype == "float64" else 2e-4
+    np.testing.assert_allclose(res.sse.values, want, rtol=rtol)
+    order = np.argsort(want.ravel())[:5]
+    np.testing.assert_array_equal(res.best["index"], order)
+    np.testing.assert_allclose(res.best["sse"], want.ravel()[order], rtol=rtol)
+    for n in axes:
+        np.testing.assert_array_equal(res.best[n], mesh[axes.index(n)].ravel()[order])
+    assert res.n_pairs == mesh[0].size * data["dop"].size
+
+
+def test_objective_points_equals_numpy_sse(rng):
+    data = measurements(rng)
+    P = 300
+    pts = dict(n=rng.uniform(1, 3, P), k=rng.uniform(0, 3, P), sigma=rng.uniform(0.1, 0.9, P), ks=1.0,
+               kd=rng.uniform(0, 1, P), c=rng.uniform(-1, 0, P))
+    res = G.objective(data, points=pts, dtype="float64", k_best=3)
+    want = numpy_sse(data, {n: np.broadcast_to(v, P) for n, v in pts.items()})
+    np.testing.assert_allclose(res.sse, want, rtol=1e-11)
+    np.testing.assert_array_equal(res.best["index"], np.argsort(want)[:3])
+    res32 = G.objective(data, points=pts, dtype="float32")
+    np.testing.assert_allclose(res32.sse, want, rtol=2e-4)
+
+
+def test_objective_chunked_equals_unchunked(rng):
+    data = measurements(rng)
+    grid = dict(n=np.linspace(1, 3, 9), k=np.linspace(0, 3, 7), sigma=np.linspace(0.1, 0.8, 5),
+                kd=np.linspace(0, 1, 32), c=np.array([-0.6, -0.2]))
+    whole = G.objective(data, grid=grid)
+    part = G.objective(data, grid=grid, memory_budget=40000)
+    np.testing.assert_array_equal(part.sse.values, whole.sse.values)
+    np.testing.assert_array_equal(part.best["index"], whole.best["index"])
+
+
+@pytest.mark.parametrize("axes,fixed,pattern", [
+    (dict(theta_x=[1, 2]), dict(n=1.5, k=0, sigma=0.3, theta_i=40, theta_r=30), "unknown axis 'theta_x'"),
+    (dict(theta_r=[]), dict(n=1.5, k=0, sigma=0.3, theta_i=40), "axis theta_r is empty"),
+    (dict(theta_r=[10, 30, 20]), dict(n=1.5, k=0, sigma=0.3, theta_i=40), "strictly increasing or decreasing; value 20.0 at index 2"),
+    (dict(theta_r=[10, 10]), dict(n=1.5, k=0, sigma=0.3, theta_i=40), "strictly"),
+    (dict(sigma=[0.1, np.nan]), dict(n=1.5, k=0, theta_r=30, theta_i=40), "sigma must be finite, got nan"),
+    (dict(theta_r=[10, 95]), dict(n=1.5, k=0, sigma=0.3, theta_i=40), r"theta_r must be in \[0, 90\) degrees, got 95.0"),
+    (dict(theta_r=[[10, 20]]), dict(n=1.5, k=0, sigma=0.3, theta_i=40), "must be a 1-d array"),
+    (dict(theta_r=[10, 20]), dict(n=1.5, k=0, theta_i=40), "sigma is required"),
+    (dict(theta_r=[10, 20]), dict(n=1.5, k=0, sigma=0.3, theta_i=40, theta_r=3), "both as an axis and as a fixed"),
+    (dict(theta_r=[10, 20]), dict(n=1.5, k=[0, 1], sigma=0.3, theta_i=40), "fixed value k must be a scalar"),
+])
+def test_bad_axes_give_clear_errors(axes, fixed, pattern):
+    with pytest.raises(ValueError, match=pattern):
+        G.grid(axes, fixed)
+
+
+def test_bad_reduction_and_objective_inputs(rng):
+    axes = dict(theta_r=np.linspace(0, 80, 5))
+    fixed = dict(theta_i=40, n=1.5, k=1, sigma=0.3)
+    with pytest.raises(ValueError, match="'sigma' is not one of the grid's axes"):
+        G.reduce_grid(axes, fixed, over=["sigma"])
+    with pytest.raises(ValueError, match="name at least one axis"):
+        G.reduce_grid(axes, fixed, over=[])
+    with pytest.raises(ValueError, match="quantity must be one of"):
+        G.grid(axes, fixed, quantity="s1")
+    data = measurements(rng)
+    with pytest.raises(ValueError, match="exactly one of grid"):
+        G.objective(data)
+    with pytest.raises(ValueError, match=r"dop must be in \[0, 1\], got 1.5"):
+        G.objective(dict(data, dop=np.full(12, 1.5)), grid=dict(n=[1, 2], k=[0, 1], sigma=0.3))
+    with pytest.raises(ValueError, match="dop_std must be > 0"):
+        G.objective(dict(data, dop_std=np.zeros(12)), grid=dict(n=[1, 2], k=[0, 1], sigma=0.3))
+    with pytest.raises(ValueError, match="unknown parameter 'theta_i'"):
+        G.objective(data, points=dict(theta_i=[1.0], n=[1.0], k=[0.0], sigma=[0.3]))
+    with pytest.raises(ValueError, match="unknown axis 'q'"):
+        G.objective(data, grid=dict(q=[1, 2], n=[1, 2], k=[0, 1], sigma=0.3))
