@@ -8,10 +8,11 @@ Quick start::
 Angles are in degrees; phi = 180 (the default) is the in-plane geometry.
 """
 from .api import MODELS, brdf, dop, mueller, validate
+from .dense import ObjectiveResult, grid, objective, reduce_grid
 from .engine import (Engine, OpenCLUnavailableError, get_default_engine, list_devices, select_device,
                      set_default_engine)
 
 __version__ = "0.1.0"
 
-__all__ = ["dop", "brdf", "mueller", "validate", "MODELS", "Engine", "OpenCLUnavailableError",
+__all__ = ["dop", "brdf", "mueller", "validate", "MODELS", "grid", "reduce_grid", "objective", "ObjectiveResult", "Engine", "OpenCLUnavailableError",
            "get_default_engine", "set_default_engine", "list_devices", "select_device", "__version__"]

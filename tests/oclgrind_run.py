@@ -39,7 +39,30 @@ def main():
                 scale = np.abs(ref).max()
                 if not np.allclose(out, ref, rtol=1e-4, atol=1e-5 * scale):
                     raise SystemExit(f"{func.__name__} {dtype} {shadowing}: Oclgrind result differs from the reference")
-    print("ran", 2 * 3 * 3, "kernel configurations")
+    # grid kernels: every row level and the one-point-per-work-item path, reductions, objective
+    from pbrdf_cl import dense as G
+    fixed = dict(theta_i=40.0, theta_r=30.0, n=1.6, k=2.0, sigma=0.4, kd=0.2, c=-0.3)
+    cases = [dict(theta_r=np.linspace(0, 80, 9), kd=np.linspace(0, 1, 17)),        # level 1 + tail
+             dict(theta_r=np.linspace(0, 80, 9), sigma=np.linspace(0.1, 1, 5), kd=[0.0, 0.5, 1.0]),  # level 2
+             dict(theta_r=np.linspace(0, 80, 9), n=np.linspace(1, 2, 4), k=np.linspace(0, 2, 5)),   # level 3
+             dict(theta_r=np.linspace(0, 80, 5), phi=[0.0, 90.0, 180.0])]           # per point
+    configs = 0
+    for dtype in ("float32", "float64"):
+        for axes in cases:
+            fx = {n: v for n, v in fixed.items() if n not in axes}
+            for quantity in ("dop", "f00"):
+                G.grid(axes, fx, quantity=quantity, dtype=dtype, engine=eng, memory_budget=4096)
+            G.reduce_grid(axes, fx, over=[next(iter(axes))], dtype=dtype, engine=eng)
+            configs += 3
+        data = dict(theta_i=ti[:7], theta_r=tr[:7], phi=phi[:7], dop=np.full(7, 0.2))
+        for grid in (dict(n=[1.2, 2.0], k=[0.0, 1.0], sigma=0.3, kd=np.linspace(0, 1, 19)),
+                     dict(n=[1.2, 2.0], k=[0.0, 1.0], sigma=[0.2, 0.4, 0.6, 0.8, 1.0], kd=[0.0, 0.3, 0.6, 0.9]),
+                     dict(n=[1.2, 2.0], k=[0.0, 1.0], sigma=0.3)):
+            G.objective(data, grid=grid, dtype=dtype, engine=eng)
+            configs += 1
+        G.objective(data, points=dict(n=[1.2, 2.0], k=[0.0, 1.0], sigma=[0.3, 0.5]), dtype=dtype, engine=eng)
+        configs += 1
+    print("ran", 2 * 3 * 3, "kernel configurations and", configs, "grid configurations")
 
 
 if __name__ == "__main__":

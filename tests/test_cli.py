@@ -3,6 +3,7 @@ import json
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -10,13 +11,14 @@ import pytest
 import pbrdf_cl
 from pbrdf_cl import cli
 
+PACKAGE_ROOT = str(Path(pbrdf_cl.__file__).resolve().parent.parent)  # run the pbrdf_cl under test
 STEEL = ["--n", "1.6", "--k", "2.139", "--sigma", "0.5", "--ks", "0.9", "--kd", "0.15", "--c", "-0.3"]
 
 
 def run_cli(*args):
     """Run the CLI as a user would, in a subprocess (python -m pbrdf_cl == the pbrdf-cl script)."""
     return subprocess.run([sys.executable, "-m", "pbrdf_cl", *args], capture_output=True, text=True,
-                          timeout=300, env=dict(os.environ, PYTHONWARNINGS="ignore"))
+                          timeout=300, env=dict(os.environ, PYTHONWARNINGS="ignore", PYTHONPATH=PACKAGE_ROOT))
 
 
 def test_devices_lists_pocl_with_fp64_and_marks_default():

@@ -21,7 +21,8 @@ def oclgrind_available():
 def run_harness(*args):
     # OCLGRIND_UNINITIALIZED is left off: its plugin aborts on builtins that write through a
     # private pointer (sincos), a limitation of the plugin rather than a finding
-    env = dict(os.environ, OCLGRIND_DATA_RACES="1", PYOPENCL_COMPILER_OUTPUT="0")
+    env = dict(os.environ, OCLGRIND_DATA_RACES="1", PYOPENCL_COMPILER_OUTPUT="0",
+               PYTHONPATH=str(Path(pbrdf_cl.__file__).resolve().parent.parent))  # the pbrdf_cl under test
     env.pop("PYOPENCL_CTX", None)
     return subprocess.run([sys.executable, "-W", "ignore", str(HARNESS), *args], env=env,
                           capture_output=True, text=True, timeout=600)
@@ -36,7 +37,7 @@ def need_oclgrind():
 def test_kernels_run_clean_under_oclgrind():
     proc = run_harness()
     assert proc.returncode == 0, proc.stdout + proc.stderr
-    assert "ran 18 kernel configurations" in proc.stdout
+    assert "ran 18 kernel configurations and 32 grid configurations" in proc.stdout
     assert proc.stderr.strip() == "", proc.stderr[-5000:]
 
 
