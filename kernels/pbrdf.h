@@ -20,11 +20,29 @@
 #ifndef PBRDF_H
 #define PBRDF_H
 
+#define PB_CAT_(a, b) a##b
+#define PB_CAT(a, b) PB_CAT_(a, b)
+
 #ifdef PBRDF_DOUBLE
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
-typedef double real;
+#define PB_SCALAR double
+#define PB_ISCALAR long
 #else
-typedef float real;
+#define PB_SCALAR float
+#define PB_ISCALAR int
+#endif
+
+/* Every function below is branch-free in its real arguments (?: selects), so with
+ * -DPB_VECTOR_REAL=N the same source computes N points at once: real is then floatN/doubleN
+ * and ireal the integer vector of the same element width. */
+#ifdef PB_VECTOR_REAL
+typedef PB_CAT(PB_SCALAR, PB_VECTOR_REAL) real;
+typedef PB_CAT(PB_ISCALAR, PB_VECTOR_REAL) ireal;
+#define PB_TO_IREAL(x) PB_CAT(convert_, PB_CAT(PB_ISCALAR, PB_VECTOR_REAL))(x)
+#else
+typedef PB_SCALAR real;
+typedef int ireal;
+#define PB_TO_IREAL(x) ((int)(x))
 #endif
 
 #define PB_SHADOW_NONE 0
@@ -54,7 +72,7 @@ inline real pb_sincosd(real x, real *c)
     real q = rint(r / (real)90);
     real cy;
     real sy = sincos((r - (real)90 * q) * PB_DEG, &cy);
-    int iq = (int)q & 3;
+    ireal iq = PB_TO_IREAL(q) & 3;
     *c = iq == 0 ? cy : iq == 1 ? -sy : iq == 2 ? -cy : sy;
     return iq == 0 ? sy : iq == 1 ? cy : iq == 2 ? -sy : -cy;
 }
@@ -94,14 +112,13 @@ inline pb_fresnel_t pb_fresnel(real n, real k, real cb, real sb)
     real E = (n - k) * (n + k) - (real)1;   /* D - cos^2 b: exact for n = 1, k = 0 */
     real D = E + cb * cb;
     real sC = hypot((real)2 * nk, D);
-    real A, B;
-    if (D >= (real)0) {
-        A = sqrt((real)0.5 * (sC + D));
-        B = A > (real)0 ? nk / A : (real)0;
-    } else {
-        B = sqrt((real)0.5 * (sC - D));
-        A = nk / B;
-    }
+    /* the root that does not cancel: A for D >= 0, B for D < 0; the other from A B = n k */
+    real A_pos = sqrt((real)0.5 * (sC + D));
+    real B_pos = A_pos > (real)0 ? nk / A_pos : (real)0;
+    real B_neg = sqrt((real)0.5 * (sC - D));
+    real A_neg = nk / B_neg;
+    real A = D >= (real)0 ? A_pos : A_neg;
+    real B = D >= (real)0 ? B_pos : B_neg;
     real B2 = B * B;
     real ap = A + cb;
     real am = E >= (real)0 ? (E + B2) / ap : A - cb;  /* A - cb = (A^2 - cb^2)/(A + cb) */
@@ -121,12 +138,16 @@ inline real pb_shadow_S(real ct, real st, real sigma, int variant)
 {
     if (variant == PB_SHADOW_NONE)
         return (real)0;
-    real w = variant == PB_SHADOW_SMITH ? PB_SQRT2 * sigma : sigma;
-    if (ct >= PB_SHADOW_ARG_MAX * w * st)
-        return (real)0;
-    real a = ct / (w * st);
-    real den = variant == PB_SHADOW_SMITH ? a : a * a;
-    return exp(-a * a) / ((real)2 * PB_SQRT_PI * den) - (real)0.5 * erfc(a);
+    /* ifs, min and step rather than ?: here: Oclgrind miscomputes these selects on vectors */
+    real w = sigma;
+    if (variant == PB_SHADOW_SMITH)
+        w = PB_SQRT2 * sigma;
+    real a = min(ct / (w * st), PB_SHADOW_ARG_MAX);
+    real den = a * a;
+    if (variant == PB_SHADOW_SMITH)
+        den = a;
+    real S = exp(-a * a) / ((real)2 * PB_SQRT_PI * den) - (real)0.5 * erfc(a);
+    return S * ((real)1 - step(PB_SHADOW_ARG_MAX, a));
 }
 
 /* G = 1 / (1 + S(ti) + S(tr)). */
@@ -149,9 +170,7 @@ inline real pb_log_specular_scale(pb_geom g, real sigma, real ks, real G)
 /* Eq. 15: Minnaert diffuse term kd/pi (cos ti cos tr)^c. */
 inline real pb_diffuse(pb_geom g, real kd, real c)
 {
-    if (kd == (real)0)
-        return (real)0;
-    return kd / PB_PI * exp(c * log(g.cti * g.ctr));
+    return kd == (real)0 ? (real)0 : kd / PB_PI * exp(c * log(g.cti * g.ctr));
 }
 
 /* Eq. 17-18 from precomputed factors: DOP = (Rs - Rp) / (Rs + Rp + fd2 / K), where
@@ -165,21 +184,17 @@ inline real pb_diffuse(pb_geom g, real kd, real c)
     }
 inline real pb_dop_combine(real sum, real diff, real fd2, real inv_K) PB_DOP_COMBINE_BODY(real)
 
-/* Vector width PB_VW (build option; default 8): 4, 8 or 16 (16 only for float32). */
+/* Vector width PB_VW of the row kernels (build option; default 8). */
 #ifndef PB_VW
 #define PB_VW 8
 #endif
-#define PB_CAT_(a, b) a##b
-#define PB_CAT(a, b) PB_CAT_(a, b)
-#ifdef PBRDF_DOUBLE
-typedef PB_CAT(double, PB_VW) realv;
-#else
-typedef PB_CAT(float, PB_VW) realv;
-#endif
 #define pb_vload PB_CAT(vload, PB_VW)
 #define pb_vstore PB_CAT(vstore, PB_VW)
+#ifndef PB_VECTOR_REAL
+typedef PB_CAT(PB_SCALAR, PB_VW) realv;
 /* pb_dop_combine on PB_VW values at once (the same body). */
 inline realv pb_dop_combine_v(realv sum, realv diff, realv fd2, realv inv_K) PB_DOP_COMBINE_BODY(realv)
+#endif
 
 /* F00 = K (Rs + Rp) / 2 + fd from precomputed factors. */
 inline real pb_brdf_combine(real sum, real K, real fd)
@@ -214,11 +229,10 @@ inline pb_frames pb_frame_rotations(pb_geom g)
     real vy = g.ctr * g.sti * g.cph - g.str * g.cti;
     real vz = g.str * g.sti * g.sph;
     real nv = sqrt(vx * vx + vy * vy + vz * vz);
-    if (nv > (real)0) {
-        vx /= nv; vy /= nv; vz /= nv;
-    } else {  /* retro-reflection: any facet frame gives the same matrix; take s_in */
-        vx = -g.sph; vy = g.cph; vz = (real)0;
-    }
+    /* retro-reflection (nv = 0): any facet frame gives the same matrix; take s_in */
+    vx = nv > (real)0 ? vx / nv : -g.sph;
+    vy = nv > (real)0 ? vy / nv : g.cph;
+    vz = nv > (real)0 ? vz / nv : (real)0;
     /* s_in = (-sph, cph, 0), p_in = (cti cph, cti sph, -sti) */
     fr.ci = -vx * g.sph + vy * g.cph;
     fr.si = vx * g.cti * g.cph + vy * g.cti * g.sph - vz * g.sti;

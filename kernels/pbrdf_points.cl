@@ -2,14 +2,18 @@
  * pbrdf_points.cl -- element-wise evaluation of the pBRDF model over arrays.
  *
  * Build options: -DPBRDF_DOUBLE (float64, else float32), -DPBRDF_SHADOWING=<0 none|1 paper|2 smith>,
- * -I <this folder>.  Each of the nine inputs is a buffer with a stride: 1 for a full array of
- * length n, 0 for one value broadcast to every point.  Angles are in degrees.
+ * -I <this folder>; -DPB_VECTOR_REAL=N builds the *_vec kernels instead, which evaluate N
+ * consecutive points per work-item with the same device functions on vector types.
+ * Each of the nine inputs is a buffer with a stride: 1 for a full array of length n, 0 for one
+ * value broadcast to every point.  Angles are in degrees.
  */
 #include "pbrdf.h"
 
 #ifndef PBRDF_SHADOWING
 #define PBRDF_SHADOWING PB_SHADOW_PAPER
 #endif
+
+#ifndef PB_VECTOR_REAL
 
 #define PB_POINT_ARGS                                                        \
     const int n,                                                             \
@@ -72,3 +76,50 @@ __kernel void objective_points(__global real *sse, const int P,
     }
     sse[p] = acc;
 }
+
+#else  /* PB_VECTOR_REAL */
+
+#define pb_vloadn PB_CAT(vload, PB_VECTOR_REAL)
+#define pb_vstoren PB_CAT(vstore, PB_VECTOR_REAL)
+/* input x of stride s (0 or 1) for the N points of work-item i (an if: PoCL 3.0's compiler
+ * crashes on a ?: between a vload and a broadcast) */
+inline real pb_in(__global const PB_SCALAR *x, const int s, const int i)
+{
+    if (s)
+        return pb_vloadn(i, x);
+    return (real)x[0];
+}
+#define PB_IN(x, s) pb_in(x, s, i)
+
+#define PB_VEC_ARGS                                                          \
+    const int nvec,                                                          \
+    __global const PB_SCALAR *ti, const int s_ti, __global const PB_SCALAR *tr, const int s_tr, \
+    __global const PB_SCALAR *ph, const int s_ph, __global const PB_SCALAR *nn, const int s_n,  \
+    __global const PB_SCALAR *kk, const int s_k, __global const PB_SCALAR *sg, const int s_sg,  \
+    __global const PB_SCALAR *ks, const int s_ks, __global const PB_SCALAR *kd, const int s_kd, \
+    __global const PB_SCALAR *cc, const int s_c
+
+#define PB_VEC_BODY                                                          \
+    const int i = get_global_id(0);                                          \
+    if (i >= nvec) return;                                                   \
+    pb_geom g = pb_geometry(PB_IN(ti, s_ti), PB_IN(tr, s_tr), PB_IN(ph, s_ph)); \
+    pb_fresnel_t f = pb_fresnel(PB_IN(nn, s_n), PB_IN(kk, s_k), g.cb, g.sb); \
+    const real sigma = PB_IN(sg, s_sg);                                      \
+    const real G = pb_shadowing_factor(g, sigma, PBRDF_SHADOWING);           \
+    const real logK = pb_log_specular_scale(g, sigma, PB_IN(ks, s_ks), G);   \
+    const real fd = pb_diffuse(g, PB_IN(kd, s_kd), PB_IN(cc, s_c));
+
+/* nvec work-items of N points each: the arrays hold nvec * N points (the host pads). */
+__kernel void dop_points_vec(__global PB_SCALAR *out, PB_VEC_ARGS)
+{
+    PB_VEC_BODY
+    pb_vstoren(pb_dop(f, logK, fd), i, out);
+}
+
+__kernel void brdf_points_vec(__global PB_SCALAR *out, PB_VEC_ARGS)
+{
+    PB_VEC_BODY
+    pb_vstoren(pb_brdf(f, logK, fd), i, out);
+}
+
+#endif  /* PB_VECTOR_REAL */

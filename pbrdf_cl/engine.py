@@ -149,6 +149,8 @@ class Engine:
         self.queue = cl.CommandQueue(self.context, properties=props)
         self.profiling = profiling
         self.fp64 = has_fp64(self.device)
+        #: DOP and F00 use the vector build of the per-point kernels (False: one point per work-item)
+        self.vectorise = True
         self._kernels = {}
         self._last_event = None
 
@@ -178,8 +180,12 @@ class Engine:
         return self._kernels[key]
 
     def kernel(self, name: str, dtype: str, shadowing: str):
-        """The ``cl.Kernel`` ``name`` of ``pbrdf_points.cl`` for this precision and variant (built once)."""
-        return self.program("pbrdf_points.cl", dtype, {"PBRDF_SHADOWING": reference.SHADOWING[shadowing]})[name]
+        """The ``cl.Kernel`` ``name`` of ``pbrdf_points.cl`` for this precision and variant (built once);
+        names ending in ``_vec`` come from the vector build (``VECTOR_WIDTH`` points per work-item)."""
+        defines = {"PBRDF_SHADOWING": reference.SHADOWING[shadowing]}
+        if name.endswith("_vec"):
+            defines["PB_VECTOR_REAL"] = VECTOR_WIDTH[dtype]
+        return self.program("pbrdf_points.cl", dtype, defines)[name]
 
     def launch(self, kernel, global_size, *args):
         """Set ``args`` and enqueue ``kernel`` over ``global_size``; returns the event."""
@@ -203,30 +209,33 @@ class Engine:
         ``shape`` (``shape + (4, 4)`` for "mueller") in ``dtype``.  No validation here.
         """
         npdt = DTYPES[dtype]
-        kern = self.kernel(f"{quantity}_points", dtype, shadowing)
+        vec = quantity in ("dop", "brdf") and self.vectorise
+        lanes = VECTOR_WIDTH[dtype] if vec else 1
+        kern = self.kernel(f"{quantity}_points" + ("_vec" if vec else ""), dtype, shadowing)
         size = int(np.prod(shape, dtype=np.int64))
         width = 16 if quantity == "mueller" else 1
         out = np.empty(size * width, dtype=npdt)
         if size == 0:
             return out.reshape(tuple(shape) + ((4, 4) if width == 16 else ()))
-        flat = {}
-        for name in POINT_INPUTS:
-            a = np.ascontiguousarray(inputs[name], dtype=npdt).reshape(-1)
-            flat[name] = a
+        flat = {name: np.ascontiguousarray(inputs[name], dtype=npdt).reshape(-1) for name in POINT_INPUTS}
         mf = cl.mem_flags
-        for start in range(0, size, LAUNCH_POINTS):
-            count = min(LAUNCH_POINTS, size - start)
-            args = [None, np.int32(count)]
+        step = LAUNCH_POINTS // lanes * lanes
+        for start in range(0, size, step):
+            count = min(step, size - start)
+            padded = -(-count // lanes) * lanes  # the vector kernels take whole vectors
+            args = [None, np.int32(padded // lanes)]
             bufs = []
             for name in POINT_INPUTS:
                 a = flat[name]
                 part = a if a.size == 1 else a[start:start + count]
+                if part.size != 1 and padded != count:
+                    part = np.concatenate([part, np.repeat(part[-1:], padded - count)])
                 buf = cl.Buffer(self.context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=part)
                 bufs.append(buf)
                 args += [buf, np.int32(0 if a.size == 1 else 1)]
-            out_buf = cl.Buffer(self.context, mf.WRITE_ONLY, count * width * out.itemsize)
+            out_buf = cl.Buffer(self.context, mf.WRITE_ONLY, padded * width * out.itemsize)
             args[0] = out_buf
-            self.launch(kern, (count,), *args)
+            self.launch(kern, (padded // lanes,), *args)
             cl.enqueue_copy(self.queue, out[start * width:(start + count) * width], out_buf)
         self.queue.finish()
         return out.reshape(tuple(shape) + ((4, 4) if width == 16 else ()))

@@ -62,14 +62,14 @@ def fresnel(n, k, cb, sb):
     E = (n - k) * (n + k) - 1.0  # D - cos^2 b: exact for n = 1, k = 0
     D = E + cb * cb
     sC = np.hypot(2.0 * nk, D)
-    pos = D >= 0.0
+    # the root that does not cancel: A for D >= 0, B for D < 0; the other from A B = n k
     with np.errstate(divide="ignore", invalid="ignore"):
         A_pos = np.sqrt(0.5 * (sC + D))
         B_pos = np.where(A_pos > 0.0, nk / A_pos, 0.0)
         B_neg = np.sqrt(0.5 * (sC - D))
         A_neg = nk / B_neg
-    A = np.where(pos, A_pos, A_neg)
-    B = np.where(pos, B_pos, B_neg)
+    A = np.where(D >= 0.0, A_pos, A_neg)
+    B = np.where(D >= 0.0, B_pos, B_neg)
     B2 = B * B
     ap = A + cb
     am = np.where(E >= 0.0, (E + B2) / ap, A - cb)  # A - cb = (A^2 - cb^2)/(A + cb)
@@ -90,12 +90,11 @@ def shadow_S(ct, st, sigma, variant):
     if variant == SHADOW_NONE:
         return np.zeros(ct.shape)
     w = np.sqrt(2.0) * sigma if variant == SHADOW_SMITH else sigma
-    cut = ct >= SHADOW_ARG_MAX * w * st
-    with np.errstate(divide="ignore", invalid="ignore"):
-        a = np.where(cut, SHADOW_ARG_MAX, ct / (w * st))
+    with np.errstate(divide="ignore"):
+        a = np.minimum(ct / (w * st), SHADOW_ARG_MAX)
     den = a if variant == SHADOW_SMITH else a * a
     S = np.exp(-a * a) / (2.0 * np.sqrt(np.pi) * den) - 0.5 * erfc(a)
-    return np.where(cut, 0.0, S)
+    return S * (1.0 - (a >= SHADOW_ARG_MAX))  # step(ARG_MAX, a)
 
 
 def shadowing_factor(g, sigma, variant):
@@ -155,12 +154,11 @@ def frame_rotations(g):
     vz = g.str * g.sti * g.sph
     vx, vy, vz = np.broadcast_arrays(vx, vy, vz)
     nv = np.sqrt(vx * vx + vy * vy + vz * vz)
-    ok = nv > 0.0
+    # retro-reflection (nv = 0): any facet frame gives the same matrix; take s_in
     with np.errstate(divide="ignore", invalid="ignore"):
-        # retro-reflection: any facet frame gives the same matrix; take s_in
-        vx = np.where(ok, vx / nv, -g.sph)
-        vy = np.where(ok, vy / nv, g.cph)
-        vz = np.where(ok, vz / nv, 0.0)
+        vx = np.where(nv > 0.0, vx / nv, -g.sph)
+        vy = np.where(nv > 0.0, vy / nv, g.cph)
+        vz = np.where(nv > 0.0, vz / nv, 0.0)
     # s_in = (-sph, cph, 0), p_in = (cti cph, cti sph, -sti)
     fr.ci = -vx * g.sph + vy * g.cph
     fr.si = vx * g.cti * g.cph + vy * g.cti * g.sph - vz * g.sti
