@@ -112,6 +112,11 @@ def cmd_eval(args) -> int:
     return 0
 
 
+def cmd_bench(args) -> int:
+    from . import bench
+    return bench.main(args.rest)
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="pbrdf-cl", description="The six-parameter pBRDF model on OpenCL. "
                                 "Angles in degrees; phi = 180 is the in-plane geometry.")
@@ -135,6 +140,10 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--device", help="OpenCL device: P:D or a name substring (default: PYOPENCL_CTX, then PoCL)")
     e.add_argument("--json", action="store_true", help="JSON output")
     e.set_defaults(func=cmd_eval)
+    b = sub.add_parser("bench", help="benchmark every evaluation path (options: pbrdf-cl bench -- --help)",
+                       add_help=False)
+    b.add_argument("rest", nargs=argparse.REMAINDER)
+    b.set_defaults(func=cmd_bench)
     return p
 
 

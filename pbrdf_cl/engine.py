@@ -34,6 +34,8 @@ POINT_INPUTS = ("theta_i", "theta_r", "phi", "n", "k", "sigma", "ks", "kd", "c")
 DTYPES = {"float32": np.float32, "float64": np.float64}
 #: Vector width of the explicitly vectorised kernels (float16 / double8 were fastest on PoCL 3.0).
 VECTOR_WIDTH = {"float32": 16, "float64": 8}
+#: Work-group size of the vector per-point kernels.
+VECTOR_LOCAL_SIZE = 8
 #: Points per kernel launch; bounds the temporary device memory of one call.
 LAUNCH_POINTS = 1 << 22
 
@@ -187,10 +189,15 @@ class Engine:
             defines["PB_VECTOR_REAL"] = VECTOR_WIDTH[dtype]
         return self.program("pbrdf_points.cl", dtype, defines)[name]
 
-    def launch(self, kernel, global_size, *args):
-        """Set ``args`` and enqueue ``kernel`` over ``global_size``; returns the event."""
+    def launch(self, kernel, global_size, *args, local_size=None):
+        """Set ``args`` and enqueue ``kernel`` over ``global_size`` (padded up to a multiple of
+        ``local_size`` when one is given: kernels check their bounds); returns the event."""
         kernel.set_args(*args)
-        self._last_event = cl.enqueue_nd_range_kernel(self.queue, kernel, tuple(global_size), None)
+        global_size = tuple(int(g) for g in global_size)
+        if local_size is not None:
+            local_size = tuple(int(v) for v in local_size)
+            global_size = tuple(-(-g // v) * v for g, v in zip(global_size, local_size))
+        self._last_event = cl.enqueue_nd_range_kernel(self.queue, kernel, global_size, local_size)
         return self._last_event
 
     def to_device(self, array, dtype):
@@ -235,7 +242,9 @@ class Engine:
                 args += [buf, np.int32(0 if a.size == 1 else 1)]
             out_buf = cl.Buffer(self.context, mf.WRITE_ONLY, padded * width * out.itemsize)
             args[0] = out_buf
-            self.launch(kern, (padded // lanes,), *args)
+            # a small work-group: PoCL keeps every work-item's private state of a group on one
+            # thread's stack, and the vector kernels' state overflows it in large groups
+            self.launch(kern, (padded // lanes,), *args, local_size=(VECTOR_LOCAL_SIZE,) if vec else None)
             cl.enqueue_copy(self.queue, out[start * width:(start + count) * width], out_buf)
         self.queue.finish()
         return out.reshape(tuple(shape) + ((4, 4) if width == 16 else ()))

@@ -1,0 +1,33 @@
+"""scripts/bench.py runs (quick sizes) and reports every path with a small error; speed is
+measured by running the script, never asserted in tests."""
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pbrdf_cl
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def test_bench_quick_reports_every_path(tmp_path):
+    out = tmp_path / "bench.json"
+    env = dict(os.environ, PYTHONPATH=str(Path(pbrdf_cl.__file__).resolve().parent.parent), PYTHONWARNINGS="ignore")
+    proc = subprocess.run([sys.executable, str(ROOT / "scripts" / "bench.py"), "--quick", "--json", str(out)],
+                          capture_output=True, text=True, timeout=600, env=env, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    report = json.loads(out.read_text())
+    assert "Portable Computing Language" in report["device"]
+    paths = {(r["path"].split(" (")[0], r["dtype"]) for r in report["rows"]}
+    for path in ("per-point kernel", "factorised grid", "pbrdf_cl.grid -> host DataArray", "objective, grid x 30 measurements"):
+        assert (path, "float32") in paths and (path, "float64") in paths, path
+    assert ("numpy reference", "float64") in paths
+    for r in report["rows"]:
+        assert r["rate"] > 0
+        if r["path"].startswith("objective"):
+            assert r["max_abs_err"] <= (1e-12 if r["dtype"] == "float64" else 1e-4), r
+        else:
+            assert r["max_abs_err"] <= (1e-12 if r["dtype"] == "float64" else 2e-5), r
+    for line in ("per-point kernel", "factorised grid", "objective"):
+        assert line in proc.stdout
