@@ -57,7 +57,6 @@ typedef int ireal;
 
 typedef struct {
     real cti, sti, ctr, str;   /* cos/sin of the zenith angles */
-    real cph, sph;             /* cos/sin of the relative azimuth phi */
     real cb, sb;               /* cos/sin of the facet incidence angle b (eq. 2) */
     real tan2a;                /* tan^2 of the facet tilt a (eq. 3) */
 } pb_geom;
@@ -84,7 +83,6 @@ inline pb_geom pb_geometry(real ti, real tr, real phi)
     real c;
     g.sti = pb_sincosd(ti, &c); g.cti = c;
     g.str = pb_sincosd(tr, &c); g.ctr = c;
-    g.sph = pb_sincosd(phi, &c); g.cph = c;
     real sh = pb_sincosd((real)0.5 * phi, &c);
     real ch = c;
     real cp = pb_sincosd((real)0.5 * (((real)90 - ti) + ((real)90 - tr)), &c);  /* cos((ti+tr)/2) */
@@ -219,23 +217,25 @@ typedef struct {
     real co, so;  /* cos/sin of the rotation from the facet frame to the reflected beam's macro frame */
 } pb_frames;
 
-/* Frame rotations of the out-of-plane Mueller matrix (SPEC, psps convention).
+/* Frame rotations of the out-of-plane Mueller matrix (SPEC, psps convention); phi in degrees.
  * w_i = (sti cph, sti sph, cti) towards the source, w_r = (str, 0, ctr) towards the viewer;
  * macro bases s = unit(k x z), p = k x s; facet s_f = unit(k_in x h) = unit(w_r x w_i). */
-inline pb_frames pb_frame_rotations(pb_geom g)
+inline pb_frames pb_frame_rotations(pb_geom g, real phi)
 {
     pb_frames fr;
-    real vx = -g.ctr * g.sti * g.sph;
-    real vy = g.ctr * g.sti * g.cph - g.str * g.cti;
-    real vz = g.str * g.sti * g.sph;
+    real cph;
+    real sph = pb_sincosd(phi, &cph);
+    real vx = -g.ctr * g.sti * sph;
+    real vy = g.ctr * g.sti * cph - g.str * g.cti;
+    real vz = g.str * g.sti * sph;
     real nv = sqrt(vx * vx + vy * vy + vz * vz);
     /* retro-reflection (nv = 0): any facet frame gives the same matrix; take s_in */
-    vx = nv > (real)0 ? vx / nv : -g.sph;
-    vy = nv > (real)0 ? vy / nv : g.cph;
+    vx = nv > (real)0 ? vx / nv : -sph;
+    vy = nv > (real)0 ? vy / nv : cph;
     vz = nv > (real)0 ? vz / nv : (real)0;
     /* s_in = (-sph, cph, 0), p_in = (cti cph, cti sph, -sti) */
-    fr.ci = -vx * g.sph + vy * g.cph;
-    fr.si = vx * g.cti * g.cph + vy * g.cti * g.sph - vz * g.sti;
+    fr.ci = -vx * sph + vy * cph;
+    fr.si = vx * g.cti * cph + vy * g.cti * sph - vz * g.sti;
     /* s_out = (0, -1, 0), p_out = (ctr, 0, -str); so = s_out . (k_out x s_f) = -s_f . p_out */
     fr.co = -vy;
     fr.so = -(vx * g.ctr - vz * g.str);

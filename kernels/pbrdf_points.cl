@@ -50,7 +50,7 @@ __kernel void mueller_points(__global real *out, PB_POINT_ARGS)
 {
     PB_POINT_BODY
     real m[16];
-    pb_mueller(f, pb_frame_rotations(g), logK, fd, m);
+    pb_mueller(f, pb_frame_rotations(g, ph[i * s_ph]), logK, fd, m);
     for (int j = 0; j < 16; j++)
         out[(size_t)16 * i + j] = m[j];
 }

@@ -41,7 +41,6 @@ def geometry(ti, tr, phi):
     g = SimpleNamespace()
     g.sti, g.cti = sincosd(ti)
     g.str, g.ctr = sincosd(tr)
-    g.sph, g.cph = sincosd(phi)
     sh, ch = sincosd(0.5 * phi)
     cp, _ = sincosd(0.5 * ((90.0 - ti) + (90.0 - tr)))  # cos((ti+tr)/2)
     sm, _ = sincosd(0.5 * (ti - tr))
@@ -142,26 +141,28 @@ def brdf(f, logK, fd):
         return brdf_combine(f.Rs + f.Rp, np.exp(logK), fd)
 
 
-def frame_rotations(g):
-    """cos/sin of the in/out frame rotations of the out-of-plane Mueller matrix (``pb_frame_rotations``).
+def frame_rotations(g, phi):
+    """cos/sin of the in/out frame rotations of the out-of-plane Mueller matrix; phi in degrees
+    (``pb_frame_rotations``).
 
     w_i = (sti cph, sti sph, cti) towards the source, w_r = (str, 0, ctr) towards the viewer;
     macro bases s = unit(k x z), p = k x s; facet s_f = unit(k_in x h) = unit(w_r x w_i).
     """
     fr = SimpleNamespace()
-    vx = -g.ctr * g.sti * g.sph
-    vy = g.ctr * g.sti * g.cph - g.str * g.cti
-    vz = g.str * g.sti * g.sph
+    sph, cph = sincosd(phi)
+    vx = -g.ctr * g.sti * sph
+    vy = g.ctr * g.sti * cph - g.str * g.cti
+    vz = g.str * g.sti * sph
     vx, vy, vz = np.broadcast_arrays(vx, vy, vz)
     nv = np.sqrt(vx * vx + vy * vy + vz * vz)
     # retro-reflection (nv = 0): any facet frame gives the same matrix; take s_in
     with np.errstate(divide="ignore", invalid="ignore"):
-        vx = np.where(nv > 0.0, vx / nv, -g.sph)
-        vy = np.where(nv > 0.0, vy / nv, g.cph)
+        vx = np.where(nv > 0.0, vx / nv, -sph)
+        vy = np.where(nv > 0.0, vy / nv, cph)
         vz = np.where(nv > 0.0, vz / nv, 0.0)
     # s_in = (-sph, cph, 0), p_in = (cti cph, cti sph, -sti)
-    fr.ci = -vx * g.sph + vy * g.cph
-    fr.si = vx * g.cti * g.cph + vy * g.cti * g.sph - vz * g.sti
+    fr.ci = -vx * sph + vy * cph
+    fr.si = vx * g.cti * cph + vy * g.cti * sph - vz * g.sti
     # s_out = (0, -1, 0), p_out = (ctr, 0, -str); so = s_out . (k_out x s_f) = -s_f . p_out
     fr.co = -vy
     fr.so = -(vx * g.ctr - vz * g.str)
@@ -211,5 +212,5 @@ def evaluate(quantity, theta_i, theta_r, phi, n, k, sigma, ks, kd, c, shadowing=
     if quantity == "brdf":
         return brdf(f, logK, fd)
     if quantity == "mueller":
-        return mueller(f, frame_rotations(g), logK, fd)
+        return mueller(f, frame_rotations(g, phi), logK, fd)
     raise ValueError(f"quantity must be 'dop', 'brdf' or 'mueller', got {quantity!r}")

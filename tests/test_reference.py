@@ -133,7 +133,7 @@ def test_mueller_matches_independent_jones_construction(rng):
         if g.sb < np.sin(np.radians(2)):
             continue
         f = ref.fresnel(n, k, g.cb, g.sb)
-        M = ref.mueller(f, ref.frame_rotations(g), np.log(1.0), 0.0)
+        M = ref.mueller(f, ref.frame_rotations(g, np.degrees(phi)), np.log(1.0), 0.0)
         J = jones_mueller(ti, tr, phi, n, k)
         np.testing.assert_allclose(M, J, atol=1e-12)
 
