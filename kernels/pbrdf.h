@@ -67,8 +67,8 @@ typedef struct {
  * near multiples of 90 degrees (cos 89.9 in float32 would otherwise lose four digits). */
 inline real pb_sincosd(real x, real *c)
 {
-    real r = x - (real)360 * rint(x / (real)360);
-    real q = rint(r / (real)90);
+    real r = x - (real)360 * rint(x * (real)(1.0 / 360));  /* a tie either way reduces exactly */
+    real q = rint(r * (real)(1.0 / 90));
     real cy;
     real sy = sincos((r - (real)90 * q) * PB_DEG, &cy);
     ireal iq = PB_TO_IREAL(q) & 3;
