@@ -327,7 +327,20 @@ def reduce_grid(axes, fixed=None, over=(), quantity="dop", dtype="float32", shad
     return xr.Dataset(data, coords=coords, attrs=attrs)
 
 
-class ObjectiveResult(dict):
+class Result(dict):
+    """A dict with attribute access, like scipy's ``OptimizeResult``."""
+
+    def __getattr__(self, name):
+        try:
+            return self[name]
+        except KeyError:
+            raise AttributeError(name) from None
+
+    def __dir__(self):
+        return list(self.keys())
+
+
+class ObjectiveResult(Result):
     """Result of :func:`objective` (attribute access, like scipy's ``OptimizeResult``).
 
     sse : xarray.DataArray over the parameter axes (grid) or 1-d array (points), or None
@@ -335,12 +348,6 @@ class ObjectiveResult(dict):
     n_pairs : parameter vectors x measurements evaluated
     seconds : wall time
     """
-
-    def __getattr__(self, name):
-        try:
-            return self[name]
-        except KeyError:
-            raise AttributeError(name) from None
 
     def __repr__(self):
         best = {k: v[0] for k, v in self["best"].items()} if len(self["best"]["sse"]) else {}

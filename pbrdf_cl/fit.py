@@ -1,0 +1,462 @@
+"""Robust global inversion of measured DOP: device grid -> distinct basins -> nlopt DIRECT-L
+-> BOBYQA, with uncertainties, identifiability diagnostics and model comparison.
+
+DOP depends on ks and kd only through kd/ks (SPEC), so DOP-only fits fix ks = 1 and report
+kd as kd/ks.  When intensities (``f00`` or ``s0``) are given, a last stage fits ks and kd
+separately with the intensity residuals added.
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from . import dense, reference
+from .data import Measurements, from_arrays, read_csv
+
+MODEL_PARAMS = {"six-param": ("n", "k", "sigma", "kd", "c"), "specular": ("n", "k")}
+DEFAULT_BOUNDS = {"n": (1.0, 5.0), "k": (0.0, 10.0), "sigma": (0.05, 1.0), "kd": (0.0, 5.0), "c": (-1.0, 0.0),
+                  "ks": (1e-3, 1e3)}
+#: Grid points per free parameter for the device stage.
+DEFAULT_GRID = {"n": 24, "k": 32, "sigma": 16, "kd": 16, "c": 8}
+SPECULAR_GRID = {"n": 160, "k": 200}
+#: The value a fixed-by-the-model parameter takes (specular: no diffuse term; sigma cancels).
+MODEL_FIXED = {"six-param": {"ks": 1.0}, "specular": {"ks": 1.0, "kd": 0.0, "c": 0.0, "sigma": 0.5}}
+#: Default relative uncertainty of intensities when no f00_std column is given.
+F00_REL_STD = 0.05
+
+
+class FitResult(dense.Result):
+    """Result of :func:`fit`; keys are also attributes (like scipy's ``OptimizeResult``).
+
+    x (dict: every model parameter, fitted and fixed), free (names fitted), sse, chi2,
+    reduced_chi2, rmse, residuals, stderr, ci95 (dict name -> (lo, hi)), ci95_jacobian,
+    ci95_profile, corr (matrix over ``free``), condition_number, aic, bic, dof, nfev and
+    seconds per stage, basins (candidates with their SSE), ambiguous, notes (list of sentences).
+    """
+
+    def summary(self):
+        lines = [f"model: {self['model']}  (shadowing {self['shadowing']}, {self['n_points']} points, "
+                 f"{len(self['free'])} free parameters)"]
+        for name in self["x"]:
+            if name in self["free"]:
+                lo, hi = self["ci95"][name]
+                lines.append(f"  {name:6s} = {self['x'][name]:10.5g}  +- {self['stderr'][name]:.3g}   "
+                             f"95% interval [{lo:.4g}, {hi:.4g}]")
+            else:
+                lines.append(f"  {name:6s} = {self['x'][name]:10.5g}  (fixed)")
+        lines.append(f"  SSE {self['sse']:.4g}, RMSE {self['rmse']:.4g}, reduced chi2 {self['reduced_chi2']:.4g}, "
+                     f"AIC {self['aic']:.2f}, BIC {self['bic']:.2f}")
+        lines.append("  stages: " + ", ".join(f"{k} {self['nfev'][k]} evals / {self['seconds'][k]:.3f} s"
+                                               for k in self["nfev"]))
+        for note in self["notes"]:
+            lines.append(f"  note: {note}")
+        return "\n".join(lines)
+
+    def __repr__(self):
+        return self.summary()
+
+
+def _measurements(data):
+    if isinstance(data, Measurements):
+        return data
+    if isinstance(data, (str, bytes)) or hasattr(data, "__fspath__"):
+        return read_csv(data)
+    if isinstance(data, dict):
+        unknown = set(data) - {"theta_i", "theta_r", "dop", "phi", "dop_std", "f00", "s0", "f00_std"}
+        if unknown:
+            raise ValueError(f"data: unknown column {sorted(unknown)[0]!r}")
+        for need in ("theta_i", "theta_r", "dop"):
+            if need not in data:
+                raise ValueError(f"data: missing column {need!r}")
+        return from_arrays(data["theta_i"], data["theta_r"], data["dop"], data.get("phi", 180.0),
+                           data.get("dop_std"), data.get("f00", data.get("s0")), data.get("f00_std"), source="data")
+    raise ValueError("data must be a CSV path, a dict of arrays or a Measurements object")
+
+
+class _Model:
+    """DOP (and F00) of the reference model at fixed geometry, for the local stages."""
+
+    def __init__(self, meas, shadowing):
+        self.g = reference.geometry(meas.theta_i, meas.theta_r, meas.phi)
+        self.variant = reference.SHADOWING[shadowing]
+
+    def parts(self, p):
+        f = reference.fresnel(p["n"], p["k"], self.g.cb, self.g.sb)
+        G = reference.shadowing_factor(self.g, p["sigma"], self.variant)
+        logK = reference.log_specular_scale(self.g, p["sigma"], p["ks"], G)
+        return f, logK, reference.diffuse(self.g, p["kd"], p["c"])
+
+    def dop(self, p):
+        return reference.dop(*self.parts(p))
+
+    def f00(self, p):
+        return reference.brdf(*self.parts(p))
+
+
+def _check_bounds(model, bounds, fixed):
+    names = MODEL_PARAMS[model]
+    b = {n: DEFAULT_BOUNDS[n] for n in names}
+    for name, v in (bounds or {}).items():
+        if name not in DEFAULT_BOUNDS:
+            raise ValueError(f"bounds: unknown parameter {name!r}; parameters are {', '.join(DEFAULT_BOUNDS)}")
+        try:
+            lo, hi = (float(x) for x in v)
+        except (TypeError, ValueError):
+            raise ValueError(f"bounds: {name} must be a (low, high) pair, got {v!r}") from None
+        if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
+            raise ValueError(f"bounds: {name} = ({lo}, {hi}) must be finite with low < high")
+        b[name] = (lo, hi)
+    phys = {"n": lambda v: v > 0, "k": lambda v: v >= 0, "sigma": lambda v: v > 0, "kd": lambda v: v >= 0,
+            "ks": lambda v: v > 0, "c": lambda v: np.isfinite(v)}
+    for name, (lo, hi) in b.items():
+        if not phys[name](lo):
+            raise ValueError(f"bounds: {name} low = {lo} is outside the model's domain")
+    fx = {}
+    for name, v in (fixed or {}).items():
+        if name not in DEFAULT_BOUNDS:
+            raise ValueError(f"fixed: unknown parameter {name!r}; parameters are {', '.join(DEFAULT_BOUNDS)}")
+        v = float(v)
+        if not (np.isfinite(v) and phys[name](v)):
+            raise ValueError(f"fixed: {name} = {v} is outside the model's domain")
+        if name in MODEL_FIXED[model] and name not in names:
+            raise ValueError(f"fixed: {name} is not a parameter of the {model} model")
+        fx[name] = v
+    return b, fx
+
+
+def fit(data, model="six-param", bounds=None, fixed=None, shadowing="paper", *, grid_shape=None, n_basins=4,
+        engine=None, progress=False):
+    """Fit the model to measured DOP (see the module docstring for the pipeline).
+
+    Parameters
+    ----------
+    data : CSV path, dict of arrays (theta_i, theta_r, dop[, phi, dop_std, f00|s0, f00_std]) or Measurements
+    model : "six-param" (n, k, sigma, kd/ks, c; ks = 1) or "specular" (the paper's ref. [7]: n, k)
+    bounds : dict name -> (low, high); defaults n [1, 5], k [0, 10], sigma [0.05, 1], kd [0, 5], c [-1, 0]
+    fixed : dict name -> value, parameters held fixed (e.g. ``{"sigma": 0.45}``)
+    grid_shape : dict name -> points of the device grid stage
+    """
+    if model not in MODEL_PARAMS:
+        raise ValueError(f"model must be one of {sorted(MODEL_PARAMS)}, got {model!r}")
+    if shadowing not in reference.SHADOWING:
+        raise ValueError(f"shadowing must be one of {sorted(reference.SHADOWING)}, got {shadowing!r}")
+    meas = _measurements(data)
+    bnds, fx = _check_bounds(model, bounds, fixed)
+    free = [n for n in MODEL_PARAMS[model] if n not in fx]
+    if not free:
+        raise ValueError("every parameter is fixed: nothing to fit")
+    if len(meas) <= len(free):
+        raise ValueError(f"{meas.source}: {len(meas)} measurements for {len(free)} free parameters "
+                         f"({', '.join(free)}); at least {len(free) + 1} are needed")
+    base = dict(MODEL_FIXED[model])
+    base.update({n: v for n, v in fx.items()})
+    lo = np.array([bnds[n][0] for n in free])
+    hi = np.array([bnds[n][1] for n in free])
+    span = hi - lo
+    std = meas.dop_std if meas.dop_std is not None else np.ones(len(meas))
+    mdl = _Model(meas, shadowing)
+    nfev, seconds = {}, {}
+
+    def params(x):
+        p = dict(base)
+        p.update(zip(free, x))
+        return p
+
+    def sse_of(x):
+        r = (mdl.dop(params(x)) - meas.dop) / std
+        v = float(r @ r)
+        return v if np.isfinite(v) else 1e300
+
+    # (a) the objective on a dense grid over the bounds, on the OpenCL device
+    t0 = time.perf_counter()
+    shape = dict(SPECULAR_GRID if model == "specular" else DEFAULT_GRID)
+    shape.update(grid_shape or {})
+    axes = {n: np.linspace(bnds[n][0], bnds[n][1], int(shape[n])) for n in free}
+    grid_params = {**{n: v for n, v in base.items()}, **axes}
+    res = dense.objective(meas.as_dict(), grid=grid_params, k_best=1, dtype="float32", shadowing=shadowing,
+                          engine=engine, progress=progress)
+    sse_grid = res.sse.transpose(*free).values.astype(np.float64)
+    nfev["grid"] = int(sse_grid.size)
+    seconds["grid"] = time.perf_counter() - t0
+
+    # (b) distinct basins: local minima of the grid objective, best first, one per neighbourhood
+    t0 = time.perf_counter()
+    basins = _grid_basins(sse_grid, n_basins)
+    spacing = np.array([axes[n][1] - axes[n][0] for n in free])
+    seeds = [lo + spacing * np.array(idx) for idx in basins]
+    seconds["basins"] = time.perf_counter() - t0
+    nfev["basins"] = 0
+
+    # (c) DIRECT-L inside a box of +-1.5 grid spacings around each basin, (d) BOBYQA polish
+    import nlopt
+    cands = []
+    nfev["direct"] = nfev["bobyqa"] = 0
+    seconds["direct"] = seconds["bobyqa"] = 0.0
+    for seed in seeds:
+        t0 = time.perf_counter()
+        blo = np.maximum(lo, seed - 1.5 * spacing)
+        bhi = np.minimum(hi, seed + 1.5 * spacing)
+        x_d, f_d, ne = _nlopt_min(nlopt.GN_DIRECT_L, sse_of, blo, bhi, (blo + bhi) / 2, maxeval=60 * len(free),
+                                  start=seed)
+        nfev["direct"] += ne
+        seconds["direct"] += time.perf_counter() - t0
+        t0 = time.perf_counter()
+        x_b, f_b, ne = _nlopt_min(nlopt.LN_BOBYQA, sse_of, lo, hi, x_d, maxeval=4000, step=spacing)
+        nfev["bobyqa"] += ne
+        seconds["bobyqa"] += time.perf_counter() - t0
+        cands.append((f_b, x_b, seed))
+    cands.sort(key=lambda c: c[0])
+    best_sse, best_x, _ = cands[0]
+
+    # intensities: fit ks and kd separately (DOP alone cannot)
+    use_f00 = meas.f00 is not None and model == "six-param" and "ks" not in fx and "kd" not in fx
+    f00_std = None
+    free_all = list(free)
+    if use_f00:
+        t0 = time.perf_counter()
+        f00_std = meas.f00_std if meas.f00_std is not None else F00_REL_STD * np.maximum(meas.f00, 1e-300)
+        p = params(best_x)
+        m1 = mdl.f00(p)  # ks = 1, kd = kd/ks
+        w = 1 / f00_std ** 2
+        ks0 = float(np.clip((w * meas.f00 * m1).sum() / max((w * m1 * m1).sum(), 1e-300), *DEFAULT_BOUNDS["ks"]))
+        free_all = free + ["ks"]
+        lo_all = np.append(lo, DEFAULT_BOUNDS["ks"][0])
+        hi_all = np.append(hi, DEFAULT_BOUNDS["ks"][1])
+
+        def params_all(x):
+            p = dict(base)
+            p.update(zip(free_all, x))
+            p["kd"] = p["kd"] * p["ks"]  # fitted as the ratio kd/ks, reported as both
+            return p
+
+        def sse_all(x):
+            p = params_all(x)
+            r1 = (mdl.dop(p) - meas.dop) / std
+            r2 = (mdl.f00(p) - meas.f00) / f00_std
+            v = float(r1 @ r1 + r2 @ r2)
+            return v if np.isfinite(v) else 1e300
+        x_i, f_i, ne = _nlopt_min(nlopt.LN_BOBYQA, sse_all, lo_all, hi_all, np.append(best_x, ks0), maxeval=6000,
+                                  step=np.append(spacing, ks0 * 0.1))
+        nfev["intensity"] = ne
+        seconds["intensity"] = time.perf_counter() - t0
+
+    # (e) the best wins; statistics and uncertainties
+    if use_f00:
+        x_final, lo_f, hi_f = x_i, lo_all, hi_all
+        p_final = params_all(x_i)
+
+        def resid(x):
+            p = params_all(x)
+            return np.concatenate([(mdl.dop(p) - meas.dop) / std, (mdl.f00(p) - meas.f00) / f00_std])
+    else:
+        x_final, lo_f, hi_f = best_x, lo, hi
+        p_final = params(best_x)
+
+        def resid(x):
+            return (mdl.dop(params(x)) - meas.dop) / std
+    r = resid(x_final)
+    m_obs, n_free = r.size, len(free_all)
+    dof = m_obs - n_free
+    chi2 = float(r @ r)
+    sigma_known = meas.dop_std is not None
+    s2 = 1.0 if sigma_known else chi2 / dof
+    J = _jacobian(resid, x_final, lo_f, hi_f)
+    cov, cond, eig = _covariance(J, s2, hi_f - lo_f)
+    se = np.sqrt(np.clip(np.diag(cov), 0, None))
+    from scipy.stats import t as student_t
+    tq = float(student_t.ppf(0.975, dof))
+    ci_jac = {n: (max(lo_f[i], x_final[i] - tq * se[i]), min(hi_f[i], x_final[i] + tq * se[i]))
+              for i, n in enumerate(free_all)}
+    # profile intervals from the grid objective (banana-shaped valleys are not ellipses)
+    ci_prof = _profile_intervals(sse_grid, axes, free, best_sse + 3.84 * (1.0 if sigma_known else best_sse / dof))
+    ci = {}
+    for n in free_all:
+        a, b = ci_jac[n]
+        if n in ci_prof and ci_prof[n] is not None:
+            a, b = min(a, ci_prof[n][0]), max(b, ci_prof[n][1])
+        ci[n] = (float(a), float(b))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        corr = cov / np.outer(se, se)
+    dop_resid = mdl.dop(p_final) - meas.dop
+    k_par = n_free
+    if sigma_known:
+        aic, bic = chi2 + 2 * k_par, chi2 + k_par * np.log(m_obs)
+    else:
+        aic = m_obs * np.log(max(chi2, 1e-300) / m_obs) + 2 * k_par
+        bic = m_obs * np.log(max(chi2, 1e-300) / m_obs) + k_par * np.log(m_obs)
+
+    notes = []
+    if model == "six-param" and not use_f00:
+        notes.append("DOP depends on ks and kd only through kd/ks: ks is fixed at 1 and kd is the ratio kd/ks "
+                     "(add an f00 or s0 intensity column to separate them)")
+    if model == "specular" and meas.f00 is not None:
+        notes.append("the specular model is fitted to the DOP only; the intensity column was not used")
+    if use_f00 and meas.f00_std is None:
+        notes.append(f"intensities weighted with an assumed {F00_REL_STD:.0%} relative uncertainty "
+                     "(give an f00_std column to set it)")
+    notes += _identifiability_notes(free_all, J, cond, eig, x_final, se, corr, hi_f - lo_f)
+    ambiguous = []
+    for f_c, x_c, seed in cands[1:]:
+        delta = f_c - best_sse
+        if delta <= (1.0 if sigma_known else best_sse / dof) and np.any(np.abs(x_c - best_x) > 2 * np.maximum(se[:len(free)], 1e-12)):
+            ambiguous.append(dict(zip(free, map(float, x_c)), sse=float(f_c)))
+    if ambiguous:
+        alt = ", ".join(f"{n}={ambiguous[0][n]:.4g}" for n in free)
+        notes.append(f"ambiguous: another basin fits equally well ({alt}, SSE {ambiguous[0]['sse']:.4g} vs "
+                     f"{best_sse:.4g}); the data cannot decide between them")
+    x_out = {n: float(p_final[n]) for n in ("n", "k", "sigma", "ks", "kd", "c")}
+    if model == "specular":
+        x_out = {n: x_out[n] for n in ("n", "k")}
+    return FitResult(
+        model=model, shadowing=shadowing, x=x_out, free=free_all, sse=float(dop_resid @ dop_resid), chi2=chi2,
+        reduced_chi2=chi2 / dof, rmse=float(np.sqrt(np.mean(dop_resid ** 2))), residuals=dop_resid, dof=dof,
+        n_points=len(meas), stderr=dict(zip(free_all, map(float, se))), ci95=ci, ci95_jacobian=ci_jac,
+        ci95_profile=ci_prof, corr=corr, condition_number=float(cond), aic=float(aic), bic=float(bic),
+        nfev=nfev, seconds=seconds,
+        basins=[dict(zip(free, map(float, x)), sse=float(f), seed=dict(zip(free, map(float, s)))) for f, x, s in cands],
+        ambiguous=ambiguous, notes=notes, sigma_known=sigma_known)
+
+
+def _grid_basins(sse, n_basins):
+    """Grid indices of the best ``n_basins`` local minima, at least 3 cells apart in some axis."""
+    padded = np.pad(sse, 1, constant_values=np.inf)
+    core = tuple(slice(1, -1) for _ in range(sse.ndim))
+    is_min = np.ones(sse.shape, bool)
+    for ax in range(sse.ndim):
+        for shift in (-1, 1):
+            sl = list(core)
+            sl[ax] = slice(1 + shift, sse.shape[ax] + 1 + shift)
+            is_min &= sse <= padded[tuple(sl)]
+    cand = np.argwhere(is_min)
+    order = np.argsort(sse[tuple(cand.T)], kind="stable")
+    chosen = []
+    for c in cand[order]:
+        if all(np.max(np.abs(c - o)) >= 3 for o in chosen):
+            chosen.append(c)
+        if len(chosen) == n_basins:
+            break
+    return [tuple(int(v) for v in c) for c in chosen]
+
+
+def _nlopt_min(algorithm, func, lo, hi, x0, maxeval, step=None, start=None):
+    """Minimise in coordinates scaled to [0, 1] per parameter; returns (x, f, evaluations).
+
+    The best point seen is kept in a closure (nlopt can lose it on RoundoffLimited); ``start``
+    (e.g. the grid seed) counts as seen."""
+    import nlopt
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    span = hi - lo
+    best = {"f": np.inf, "x": None, "n": 0}
+
+    def f(u, grad):
+        x = lo + u * span
+        v = func(x)
+        best["n"] += 1
+        if v < best["f"]:
+            best["f"], best["x"] = v, x.copy()
+        return float(v)
+    if start is not None:
+        s = np.clip(np.asarray(start, float), lo, hi)
+        f((s - lo) / span, None)
+    opt = nlopt.opt(algorithm, lo.size)
+    opt.set_lower_bounds(np.zeros(lo.size))
+    opt.set_upper_bounds(np.ones(lo.size))
+    opt.set_min_objective(f)
+    opt.set_maxeval(int(maxeval))
+    if algorithm == nlopt.LN_BOBYQA:
+        opt.set_ftol_rel(1e-15)
+        opt.set_xtol_rel(1e-12)
+        if step is not None:
+            opt.set_initial_step(np.clip(np.asarray(step, float) / span, 1e-9, 0.5))
+    u0 = np.clip((np.asarray(x0, float) - lo) / span, 0, 1)
+    try:
+        opt.optimize(u0)
+    except (nlopt.RoundoffLimited, RuntimeError, ValueError):
+        pass
+    return np.clip(best["x"], lo, hi), float(best["f"]), best["n"]
+
+
+def _jacobian(resid, x, lo, hi):
+    """Central-difference Jacobian of the residual vector (one-sided at a bound)."""
+    h = 1e-6 * (hi - lo)
+    cols = []
+    for j in range(x.size):
+        e = np.zeros_like(x)
+        e[j] = h[j]
+        up, dn = min(x[j] + h[j], hi[j]), max(x[j] - h[j], lo[j])
+        xu, xd = x.copy(), x.copy()
+        xu[j], xd[j] = up, dn
+        cols.append((resid(xu) - resid(xd)) / (up - dn))
+    return np.array(cols).T
+
+
+def _covariance(J, s2, scale):
+    """Covariance s2 (J^T J)^+ and, in parameters scaled by their bound ranges, the condition
+    number and eigen-decomposition of J^T J."""
+    JtJ = J.T @ J
+    cov = s2 * np.linalg.pinv(JtJ, rcond=1e-15)
+    Js = J * scale[None, :]
+    w, v = np.linalg.eigh(Js.T @ Js)
+    cond = w[-1] / w[0] if w[0] > 0 else np.inf
+    return cov, cond, (w, v)
+
+
+def _profile_intervals(sse, axes, free, threshold):
+    """For each free parameter, the range of grid values whose profile (min SSE over the other
+    parameters) is below ``threshold``, widened by one grid spacing; None where no node is."""
+    out = {}
+    for i, n in enumerate(free):
+        others = tuple(j for j in range(sse.ndim) if j != i)
+        prof = sse.min(axis=others) if others else sse
+        ok = np.nonzero(prof <= threshold)[0]
+        if ok.size == 0:
+            out[n] = None
+            continue
+        vals = axes[n]
+        step = vals[1] - vals[0]
+        out[n] = (float(max(vals[0], vals[ok[0]] - step)), float(min(vals[-1], vals[ok[-1]] + step)))
+    return out
+
+
+def _identifiability_notes(names, J, cond, eig, x, se, corr, scale):
+    notes = []
+    w, v = eig
+    if not np.isfinite(cond) or cond > 1e4:
+        weak = v[:, 0]
+        order = np.argsort(-np.abs(weak))
+        terms = " ".join(f"{'+' if weak[i] >= 0 else '-'} {abs(weak[i]):.2f} d{names[i]}" for i in order[:3]
+                         if abs(weak[i]) > 0.1)
+        notes.append(f"near-degenerate direction (condition number {cond:.2g} in parameters scaled to their "
+                     f"bounds): the data barely constrain the combination {terms.lstrip('+ ')}")
+    col = np.linalg.norm(J, axis=0) * scale
+    for i, n in enumerate(names):
+        if col[i] < 1e-8 * max(col.max(), 1e-300):
+            notes.append(f"{n} is not determined by these data (the DOP does not change with it here"
+                         + ("; with kd = 0 the DOP does not depend on sigma or c" if n in ("sigma", "c") else "")
+                         + ")")
+        elif abs(x[i]) > 0 and se[i] > 0.5 * abs(x[i]):
+            notes.append(f"{n} is poorly determined: standard error {se[i]:.3g} on {x[i]:.4g}")
+    for i in range(len(names)):
+        for j in range(i + 1, len(names)):
+            if np.isfinite(corr[i, j]) and abs(corr[i, j]) > 0.95:
+                notes.append(f"{names[i]} and {names[j]} are strongly correlated (r = {corr[i, j]:+.3f})")
+    return notes
+
+
+def compare_models(data, shadowing="paper", bounds=None, fixed=None, engine=None):
+    """Fit the six-parameter model and the ref. [7] specular model to the same data.
+
+    Returns a dict: "six-param" and "specular" FitResults, "preferred" (lower BIC) and "table"
+    (a text table of both with SSE, AIC and BIC)."""
+    meas = _measurements(data)
+    six = fit(meas, "six-param", bounds=bounds, fixed=fixed, shadowing=shadowing, engine=engine)
+    spec_fixed = {k: v for k, v in (fixed or {}).items() if k in ("n", "k")}
+    spec_bounds = {k: v for k, v in (bounds or {}).items() if k in ("n", "k")}
+    spec = fit(meas, "specular", bounds=spec_bounds, fixed=spec_fixed, shadowing=shadowing, engine=engine)
+    rows = ["| model | n | k | free params | SSE | AIC | BIC |", "|---|---|---|---|---|---|---|"]
+    for name, r in (("six-param", six), ("specular (ref. [7])", spec)):
+        rows.append(f"| {name} | {r.x['n']:.4g} | {r.x['k']:.4g} | {len(r.free)} | {r.sse:.4g} | {r.aic:.2f} | "
+                    f"{r.bic:.2f} |")
+    preferred = "six-param" if six.bic <= spec.bic else "specular"
+    return {"six-param": six, "specular": spec, "preferred": preferred, "table": "\n".join(rows)}
