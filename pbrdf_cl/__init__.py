@@ -8,11 +8,14 @@ Quick start::
 Angles are in degrees; phi = 180 (the default) is the in-plane geometry.
 """
 from .api import MODELS, brdf, dop, mueller, validate
+from .data import Measurements, read_csv
 from .dense import ObjectiveResult, grid, objective, reduce_grid
+from .inversion import FitResult, compare_models, fit
 from .engine import (Engine, OpenCLUnavailableError, get_default_engine, list_devices, select_device,
                      set_default_engine)
 
 __version__ = "0.1.0"
 
-__all__ = ["dop", "brdf", "mueller", "validate", "MODELS", "grid", "reduce_grid", "objective", "ObjectiveResult", "Engine", "OpenCLUnavailableError",
+__all__ = ["dop", "brdf", "mueller", "validate", "MODELS", "grid", "reduce_grid", "objective", "ObjectiveResult",
+           "fit", "compare_models", "FitResult", "read_csv", "Measurements", "Engine", "OpenCLUnavailableError",
            "get_default_engine", "set_default_engine", "list_devices", "select_device", "__version__"]

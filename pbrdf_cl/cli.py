@@ -112,6 +112,74 @@ def cmd_eval(args) -> int:
     return 0
 
 
+def parse_assignments(option, items, ranges=False):
+    """``["sigma=0.45"]`` -> {"sigma": 0.45}; with ranges, ``["n=1:3"]`` -> {"n": (1.0, 3.0)}."""
+    out = {}
+    for item in items or []:
+        name, sep, value = item.partition("=")
+        try:
+            if not sep or not name:
+                raise ValueError
+            if ranges:
+                lo, hi = value.split(":")
+                out[name.strip()] = (float(lo), float(hi))
+            else:
+                out[name.strip()] = float(value)
+        except ValueError:
+            form = "name=low:high" if ranges else "name=value"
+            raise SystemExit(f"pbrdf-cl: error: {option}: {item!r} is not of the form {form}") from None
+    return out
+
+
+def _fit_json(r):
+    return dict(model=r.model, shadowing=r.shadowing, x=r.x, free=r.free, stderr=r.stderr,
+                ci95={k: list(v) for k, v in r.ci95.items()}, sse=r.sse, rmse=r.rmse, chi2=r.chi2,
+                reduced_chi2=r.reduced_chi2, aic=r.aic, bic=r.bic, dof=r.dof, residuals=r.residuals.tolist(),
+                corr=np.where(np.isfinite(r.corr), r.corr, None).tolist(), condition_number=r.condition_number,
+                nfev=r.nfev, seconds=r.seconds, ambiguous=r.ambiguous, notes=r.notes)
+
+
+def cmd_fit(args) -> int:
+    from . import inversion as _fit
+    from .data import read_csv
+    fixed = parse_assignments("--fix", args.fix)
+    bounds = parse_assignments("--bounds", args.bounds, ranges=True)
+    try:
+        meas = read_csv(args.data)
+        engine = _engine.Engine(args.device) if args.device else None
+        primary = _fit.fit(meas, args.model, bounds=bounds, fixed=fixed, shadowing=args.shadowing, engine=engine,
+                           progress=not args.quiet)
+        other_model = "specular" if args.model == "six-param" else "six-param"
+        keep = ("n", "k") if other_model == "specular" else tuple(fixed)
+        other = _fit.fit(meas, other_model, bounds={k: v for k, v in bounds.items() if k in keep},
+                         fixed={k: v for k, v in fixed.items() if k in keep}, shadowing=args.shadowing,
+                         engine=engine, progress=not args.quiet)
+    except (OSError, ValueError, _engine.OpenCLUnavailableError) as exc:
+        print(f"pbrdf-cl: error: {exc}", file=sys.stderr)
+        return 1
+    fits = {args.model: primary, other_model: other}
+    print(f"data: {meas.source} ({len(meas)} points)")
+    print(primary.summary())
+    print()
+    print(other.summary())
+    print()
+    print("model comparison (lower AIC/BIC is better):")
+    for name, r in fits.items():
+        print(f"  {name:10s} SSE {r.sse:10.4g}  AIC {r.aic:9.2f}  BIC {r.bic:9.2f}  ({len(r.free)} free)")
+    best = min(fits, key=lambda m: fits[m].bic)
+    print(f"  preferred by BIC: {best}")
+    if args.json:
+        with open(args.json, "w") as fh:
+            json.dump(dict(data=meas.source, n_points=len(meas), fits={k: _fit_json(v) for k, v in fits.items()},
+                           preferred=best), fh, indent=2)
+        print(f"wrote {args.json}")
+    if args.plot:
+        from .plots import plot_fit
+        plot_fit(meas, fits, args.plot)
+        print(f"wrote {args.plot}")
+    return 0
+
+
 def cmd_bench(args) -> int:
     from . import bench
     return bench.main(args.rest)
@@ -140,6 +208,19 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--device", help="OpenCL device: P:D or a name substring (default: PYOPENCL_CTX, then PoCL)")
     e.add_argument("--json", action="store_true", help="JSON output")
     e.set_defaults(func=cmd_eval)
+    f = sub.add_parser("fit", help="invert n, k, sigma, kd/ks, c from measured DOP (CSV)",
+                       description="Fit the six-parameter model and the ref. [7] specular model to a CSV of "
+                       "measurements (columns theta_i, theta_r, dop[, phi, dop_std, f00|s0, f00_std]).")
+    f.add_argument("data", help="measurement CSV")
+    f.add_argument("--model", choices=("six-param", "specular"), default="six-param")
+    f.add_argument("--fix", nargs="*", metavar="NAME=VALUE", help="hold parameters fixed, e.g. sigma=0.45")
+    f.add_argument("--bounds", nargs="*", metavar="NAME=LO:HI", help="search bounds, e.g. n=1:3 k=0:5")
+    f.add_argument("--shadowing", choices=sorted(SHADOWING), default="paper")
+    f.add_argument("--device", help="OpenCL device for the grid stage (P:D or a name substring)")
+    f.add_argument("--json", metavar="OUT", help="write both fits as JSON")
+    f.add_argument("--plot", metavar="PNG", help="plot data, both models and residuals")
+    f.add_argument("--quiet", action="store_true", help="no progress bar")
+    f.set_defaults(func=cmd_fit)
     b = sub.add_parser("bench", help="benchmark every evaluation path (options: pbrdf-cl bench -- --help)",
                        add_help=False)
     b.add_argument("rest", nargs=argparse.REMAINDER)

@@ -153,6 +153,8 @@ def write_csv(path, meas: Measurements, header_comment: str = ""):
         cols.append(("dop_std", meas.dop_std))
     if meas.f00 is not None:
         cols.append(("f00", meas.f00))
+    if meas.f00_std is not None:
+        cols.append(("f00_std", meas.f00_std))
     with open(path, "w", encoding="utf-8") as fh:
         for line in header_comment.strip().splitlines():
             fh.write(f"# {line}\n")

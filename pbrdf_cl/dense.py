@@ -153,7 +153,7 @@ def _progress(total, enabled, desc):
         from tqdm.auto import tqdm
     except ImportError:  # pragma: no cover - tqdm is a dependency
         return None
-    return tqdm(total=total, desc=desc, unit="pt", unit_scale=True, leave=False)
+    return tqdm(total=total, desc=desc, unit="pt", unit_scale=True, leave=False, delay=1.0)  # only if > 1 s
 
 
 def grid(axes, fixed=None, quantity="dop", dtype="float32", shadowing="paper", *, engine=None,
