@@ -54,7 +54,7 @@ def _validate(cols, source, lines):
         bad = ~np.isfinite(a)
         if bad.any():
             i = int(np.argmax(bad))
-            raise ValueError(f"{_where(source, lines, i)}: {name} is {a[i]!r}; every value must be a finite number")
+            raise ValueError(f"{_where(source, lines, i)}: {name} is {float(a[i])!r}; every value must be a finite number")
     checks = {"theta_i": (lambda a: (a >= 0) & (a < 90), "in [0, 90) degrees"),
               "theta_r": (lambda a: (a >= 0) & (a < 90), "in [0, 90) degrees"),
               "dop": (lambda a: (a >= 0) & (a <= 1), "in [0, 1]"),

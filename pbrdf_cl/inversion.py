@@ -22,6 +22,9 @@ DEFAULT_GRID = {"n": 24, "k": 32, "sigma": 16, "kd": 16, "c": 8}
 SPECULAR_GRID = {"n": 160, "k": 200}
 #: The value a fixed-by-the-model parameter takes (specular: no diffuse term; sigma cancels).
 MODEL_FIXED = {"six-param": {"ks": 1.0}, "specular": {"ks": 1.0, "kd": 0.0, "c": 0.0, "sigma": 0.5}}
+#: Resolution of the located optimum, as a fraction of each parameter's bound range: the
+#: smallest half-width a 95% interval is given.
+X_RESOLUTION = 1e-8
 #: Default relative uncertainty of intensities when no f00_std column is given.
 F00_REL_STD = 0.05
 
@@ -266,7 +269,9 @@ def fit(data, model="six-param", bounds=None, fixed=None, shadowing="paper", *, 
     se = np.sqrt(np.clip(np.diag(cov), 0, None))
     from scipy.stats import t as student_t
     tq = float(student_t.ppf(0.975, dof))
-    ci_jac = {n: (max(lo_f[i], x_final[i] - tq * se[i]), min(hi_f[i], x_final[i] + tq * se[i]))
+    # never narrower than the optimizer's resolution (noise-free data would give a zero width)
+    half = np.maximum(tq * se, X_RESOLUTION * (hi_f - lo_f))
+    ci_jac = {n: (max(lo_f[i], x_final[i] - half[i]), min(hi_f[i], x_final[i] + half[i]))
               for i, n in enumerate(free_all)}
     # profile intervals from the grid objective (banana-shaped valleys are not ellipses)
     ci_prof = _profile_intervals(sse_grid, axes, free, best_sse + 3.84 * (1.0 if sigma_known else best_sse / dof))

@@ -1,0 +1,170 @@
+"""Inversion: recovery of known parameters, honest intervals, the global stage, validation, CLI."""
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import nlopt
+import numpy as np
+import pytest
+
+import pbrdf_cl
+from pbrdf_cl import inversion as F
+from pbrdf_cl.data import from_arrays, read_csv
+
+ROOT = Path(__file__).resolve().parent.parent
+TI = np.repeat([30.0, 40.0, 50.0], 10)
+TR = np.tile(np.arange(20.0, 66.0, 5.0), 3)
+TRUTH = dict(n=1.6, k=2.139, sigma=0.5, kd=0.15 / 0.9, c=-0.3)  # the paper's steel, kd as kd/ks
+
+
+def synthetic(truth=TRUTH, noise=0.0, seed=0, ti=TI, tr=TR, **kw):
+    d = pbrdf_cl.dop(ti, tr, 180.0, backend="numpy", **truth, **kw)
+    if noise:
+        d = np.clip(d + np.random.default_rng(seed).normal(0, noise, d.size), 0, 1)
+        return dict(theta_i=ti, theta_r=tr, dop=d, dop_std=np.full(d.size, noise))
+    return dict(theta_i=ti, theta_r=tr, dop=d)
+
+
+def test_noise_free_recovers_truth_exactly():
+    r = pbrdf_cl.fit(synthetic())
+    assert r.sse <= 1e-12
+    for name, v in TRUTH.items():
+        lo, hi = r.ci95[name]
+        assert lo <= v <= hi
+        assert r.x[name] == pytest.approx(v, rel=1e-5, abs=1e-6)
+    assert r.x["ks"] == 1.0 and "ks" not in r.free
+    assert any("kd/ks" in note for note in r.notes)
+    assert set(r.nfev) >= {"grid", "direct", "bobyqa"} and r.nfev["grid"] == 24 * 32 * 16 * 16 * 8
+    assert all(t >= 0 for t in r.seconds.values())
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_noisy_data_truth_inside_reported_intervals(seed):
+    r = pbrdf_cl.fit(synthetic(noise=0.002, seed=seed))
+    for name, v in TRUTH.items():
+        lo, hi = r.ci95[name]
+        assert lo <= v <= hi, (name, v, lo, hi)
+    assert 0.3 < r.reduced_chi2 < 3
+    assert r.residuals.shape == (30,) and r.rmse == pytest.approx(np.sqrt(np.mean(r.residuals ** 2)))
+    assert r.corr.shape == (5, 5) and np.allclose(np.diag(r.corr), 1)
+    # DOP data barely determine n and k: the intervals are wide, and say so
+    assert r.ci95["k"][1] - r.ci95["k"][0] > 0.5
+
+
+def test_grid_seed_beats_a_single_local_start_on_a_false_minimum():
+    tr = np.arange(20.0, 66.0, 5.0)
+    ti = np.full(tr.size, 40.0)
+    truth = dict(n=1.066707353082284, k=2.4674784115974804, sigma=0.8681994056377615, kd=0.8184708030012616,
+                 c=-0.31037739981093404)
+    data = synthetic(truth, ti=ti, tr=tr)
+    meas = from_arrays(data["theta_i"], data["theta_r"], data["dop"])
+    mdl = F._Model(meas, "paper")
+    names = ("n", "k", "sigma", "kd", "c")
+    lo = np.array([F.DEFAULT_BOUNDS[n][0] for n in names])
+    hi = np.array([F.DEFAULT_BOUNDS[n][1] for n in names])
+
+    def sse(x):
+        r = mdl.dop(dict(zip(names, x), ks=1.0)) - meas.dop
+        return float(r @ r)
+    _, local, _ = F._nlopt_min(nlopt.LN_BOBYQA, sse, lo, hi, (lo + hi) / 2, maxeval=4000, step=(hi - lo) / 10)
+    r = pbrdf_cl.fit(data)
+    assert local > 1e-7          # the single start from the centre stops in a false minimum
+    assert r.sse <= 1e-12        # the grid-seeded search finds the truth
+
+
+def test_specular_model_and_comparison():
+    data = synthetic(dict(n=1.24, k=6.6, sigma=0.3, kd=0.0, c=0.0))  # aluminium, no diffuse part
+    r = pbrdf_cl.fit(data, model="specular")
+    assert r.free == ["n", "k"] and r.sse <= 1e-12
+    assert r.x["n"] == pytest.approx(1.24, rel=1e-5) and r.x["k"] == pytest.approx(6.6, rel=1e-5)
+    both = pbrdf_cl.compare_models(synthetic(noise=0.002, seed=3))
+    six, spec = both["six-param"], both["specular"]
+    assert six.sse <= spec.sse * (1 + 1e-9)   # the specular model is the six-param one with kd = 0
+    assert np.isfinite(six.aic) and np.isfinite(spec.bic)
+    assert "| six-param |" in both["table"] and "| specular (ref. [7]) |" in both["table"]
+    assert both["preferred"] in ("six-param", "specular")
+
+
+def test_fixed_and_bounds():
+    r = pbrdf_cl.fit(synthetic(noise=0.002, seed=4), fixed=dict(sigma=0.5), bounds=dict(n=(1.2, 2.5)))
+    assert "sigma" not in r.free and r.x["sigma"] == 0.5
+    assert 1.2 <= r.x["n"] <= 2.5 and r.ci95["n"][0] >= 1.2 and r.ci95["n"][1] <= 2.5
+
+
+def test_intensities_separate_ks_and_kd():
+    r = pbrdf_cl.fit(ROOT / "examples" / "steel_435nm_with_f00.csv")
+    assert "ks" in r.free
+    for name, v in dict(ks=0.9, kd=0.15, n=1.6, k=2.139).items():
+        lo, hi = r.ci95[name]
+        assert lo <= v <= hi, (name, v, lo, hi)
+    assert not any("kd/ks" in n and "fixed at 1" in n for n in r.notes)
+
+
+def test_identifiability_notes_name_the_weak_direction():
+    r = pbrdf_cl.fit(synthetic(dict(TRUTH, kd=0.0), noise=0.002, seed=5))
+    text = " ".join(r.notes)
+    assert "condition number" in text or "not determined" in text or "poorly determined" in text
+
+
+def write(tmp_path, text, name="d.csv"):
+    p = tmp_path / name
+    p.write_text(text)
+    return p
+
+
+@pytest.mark.parametrize("text,pattern", [
+    ("theta_i,dop\n40,0.1\n", r"line 1: missing column 'theta_r'"),
+    ("theta_i,theta_r,dop,foo\n40,30,0.1,1\n", r"line 1: unknown column 'foo'"),
+    ("# comment\ntheta_i,theta_r,dop\n40,30,0.1\n40,abc,0.2\n", r"line 4: theta_r = 'abc' is not a number"),
+    ("theta_i,theta_r,dop\n40,30,0.1\n40,30,nan\n", r"line 3: dop is nan"),
+    ("theta_i,theta_r,dop\n40,30,0.1\n95,30,0.2\n", r"line 3: theta_i = 95.0 is not in \[0, 90\) degrees"),
+    ("theta_i,theta_r,dop\n\n40,30,1.2  # too high\n", r"line 3: dop = 1.2 is not in \[0, 1\]"),
+    ("theta_i,theta_r,dop,dop_std\n40,30,0.2,0\n", r"line 2: dop_std = 0.0 is not > 0"),
+    ("theta_i,theta_r,dop\n40,30\n", r"line 2: 2 values for 3 columns"),
+    ("theta_i,theta_r,dop\n", r"no measurements"),
+    ("", r"empty file"),
+])
+def test_csv_validation_names_the_line(tmp_path, text, pattern):
+    with pytest.raises(ValueError, match=pattern):
+        read_csv(write(tmp_path, text))
+
+
+def test_fit_validation(tmp_path):
+    few = write(tmp_path, "theta_i,theta_r,dop\n40,30,0.1\n40,35,0.12\n40,40,0.15\n")
+    with pytest.raises(ValueError, match="3 measurements for 5 free parameters"):
+        pbrdf_cl.fit(few)
+    data = synthetic()
+    with pytest.raises(ValueError, match="bounds: unknown parameter 'q'"):
+        pbrdf_cl.fit(data, bounds=dict(q=(0, 1)))
+    with pytest.raises(ValueError, match=r"bounds: n = \(3.0, 2.0\) must be finite with low < high"):
+        pbrdf_cl.fit(data, bounds=dict(n=(3, 2)))
+    with pytest.raises(ValueError, match="fixed: sigma = -1.0 is outside"):
+        pbrdf_cl.fit(data, fixed=dict(sigma=-1))
+    with pytest.raises(ValueError, match="model must be one of"):
+        pbrdf_cl.fit(data, model="torrance")
+    with pytest.raises(ValueError, match="data: missing column 'dop'"):
+        pbrdf_cl.fit(dict(theta_i=TI, theta_r=TR))
+
+
+def test_cli_fit_round_trip(tmp_path):
+    out, png = tmp_path / "fit.json", tmp_path / "fit.png"
+    env = dict(os.environ, PYTHONPATH=str(Path(pbrdf_cl.__file__).resolve().parent.parent), PYTHONWARNINGS="ignore")
+    proc = subprocess.run([sys.executable, "-m", "pbrdf_cl", "fit", str(ROOT / "examples" / "steel_435nm.csv"),
+                           "--fix", "sigma=0.5", "--bounds", "n=1:3", "--json", str(out), "--plot", str(png),
+                           "--quiet"], capture_output=True, text=True, timeout=600, env=env)
+    assert proc.returncode == 0, proc.stderr
+    assert "model: six-param" in proc.stdout and "model: specular" in proc.stdout
+    assert "preferred by BIC" in proc.stdout
+    res = json.loads(out.read_text())
+    six = res["fits"]["six-param"]
+    assert six["x"]["sigma"] == 0.5 and "sigma" not in six["free"] and 1 <= six["x"]["n"] <= 3
+    assert set(res["fits"]) == {"six-param", "specular"}
+    assert len(six["residuals"]) == 30
+    from_json = pbrdf_cl.dop(TI, TR, backend="numpy", **six["x"]) - read_csv(ROOT / "examples" / "steel_435nm.csv").dop
+    np.testing.assert_allclose(six["residuals"], from_json, atol=1e-12)
+    assert png.stat().st_size > 10000 and png.read_bytes()[:4] == b"\x89PNG"
+    bad = subprocess.run([sys.executable, "-m", "pbrdf_cl", "fit", str(ROOT / "examples" / "steel_435nm.csv"),
+                          "--bounds", "n=1-3"], capture_output=True, text=True, timeout=120, env=env)
+    assert bad.returncode != 0 and "--bounds: 'n=1-3' is not of the form name=low:high" in bad.stderr
