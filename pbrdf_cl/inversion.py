@@ -122,7 +122,7 @@ def _check_bounds(model, bounds, fixed):
         v = float(v)
         if not (np.isfinite(v) and phys[name](v)):
             raise ValueError(f"fixed: {name} = {v} is outside the model's domain")
-        if name in MODEL_FIXED[model] and name not in names:
+        if name not in names and not (model == "six-param" and name == "ks"):
             raise ValueError(f"fixed: {name} is not a parameter of the {model} model")
         fx[name] = v
     return b, fx
@@ -236,10 +236,11 @@ def fit(data, model="six-param", bounds=None, fixed=None, shadowing="paper", *, 
         p = params(best_x)
         m1 = mdl.f00(p)  # ks = 1, kd = kd/ks
         w = 1 / f00_std ** 2
-        ks0 = float(np.clip((w * meas.f00 * m1).sum() / max((w * m1 * m1).sum(), 1e-300), *DEFAULT_BOUNDS["ks"]))
+        ks_lo, ks_hi = bnds.get("ks", DEFAULT_BOUNDS["ks"])
+        ks0 = float(np.clip((w * meas.f00 * m1).sum() / max((w * m1 * m1).sum(), 1e-300), ks_lo, ks_hi))
         free_all = free + ["ks"]
-        lo_all = np.append(lo, DEFAULT_BOUNDS["ks"][0])
-        hi_all = np.append(hi, DEFAULT_BOUNDS["ks"][1])
+        lo_all = np.append(lo, ks_lo)
+        hi_all = np.append(hi, ks_hi)
 
         def params_all(x):
             p = dict(base)
@@ -307,8 +308,12 @@ def fit(data, model="six-param", bounds=None, fixed=None, shadowing="paper", *, 
 
     notes = []
     if model == "six-param" and not use_f00:
-        notes.append("DOP depends on ks and kd only through kd/ks: ks is fixed at 1 and kd is the ratio kd/ks "
-                     "(add an f00 or s0 intensity column to separate them)")
+        if "ks" in fx:
+            notes.append(f"ks is fixed at {fx['ks']:g} by the caller; DOP depends on ks and kd only through "
+                         "kd/ks, so kd is determined only relative to that choice")
+        else:
+            notes.append("DOP depends on ks and kd only through kd/ks: ks is fixed at 1 and kd is the ratio "
+                         "kd/ks (add an f00 or s0 intensity column to separate them)")
     if model == "specular" and meas.f00 is not None:
         notes.append("the specular model is fitted to the DOP only; the intensity column was not used")
     if use_f00 and meas.f00_std is None:

@@ -93,6 +93,14 @@ def test_fixed_and_bounds():
     assert 1.2 <= r.x["n"] <= 2.5 and r.ci95["n"][0] >= 1.2 and r.ci95["n"][1] <= 2.5
 
 
+def test_fixing_ks_makes_kd_absolute():
+    r = pbrdf_cl.fit(synthetic(), fixed=dict(ks=0.9))
+    assert r.x["ks"] == 0.9 and r.x["kd"] == pytest.approx(0.15, rel=1e-5)
+    assert any("ks is fixed at 0.9" in n for n in r.notes)
+    with pytest.raises(ValueError, match="fixed: sigma is not a parameter of the specular model"):
+        pbrdf_cl.fit(synthetic(), model="specular", fixed=dict(sigma=0.3))
+
+
 def test_intensities_separate_ks_and_kd():
     r = pbrdf_cl.fit(ROOT / "examples" / "steel_435nm_with_f00.csv")
     assert "ks" in r.free
