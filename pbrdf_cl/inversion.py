@@ -207,12 +207,12 @@ def fit(data, model="six-param", bounds=None, fixed=None, shadowing="paper", *, 
         t0 = time.perf_counter()
         blo = np.maximum(lo, seed - 1.5 * spacing)
         bhi = np.minimum(hi, seed + 1.5 * spacing)
-        x_d, f_d, ne = _nlopt_min(nlopt.GN_DIRECT_L, sse_of, blo, bhi, (blo + bhi) / 2, maxeval=30 * len(free),
+        x_d, f_d, ne = _nlopt_min(nlopt.GN_DIRECT_L, sse_of, blo, bhi, (blo + bhi) / 2, maxeval=20 * len(free),
                                   start=seed)
         nfev["direct"] += ne
         seconds["direct"] += time.perf_counter() - t0
         t0 = time.perf_counter()
-        x_b, f_b, ne = _nlopt_min(nlopt.LN_BOBYQA, sse_of, lo, hi, x_d, maxeval=100 * len(free), step=spacing)
+        x_b, f_b, ne = _nlopt_min(nlopt.LN_BOBYQA, sse_of, lo, hi, x_d, maxeval=40 * len(free), step=spacing)
         nfev["bobyqa"] += ne
         seconds["bobyqa"] += time.perf_counter() - t0
         t0 = time.perf_counter()
