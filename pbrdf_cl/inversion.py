@@ -175,7 +175,7 @@ def fit(data, model="six-param", bounds=None, fixed=None, shadowing="paper", *, 
     t0 = time.perf_counter()
     shape = dict(SPECULAR_GRID if model == "specular" else DEFAULT_GRID)
     shape.update(grid_shape or {})
-    axes = {n: np.linspace(bnds[n][0], bnds[n][1], int(shape[n])) for n in free}
+    axes = {n: _grid_axis(n, bnds[n], int(shape[n])) for n in free}
     grid_params = {**{n: v for n, v in base.items()}, **axes}
     res = dense.objective(meas.as_dict(), grid=grid_params, k_best=1, dtype="float32", shadowing=shadowing,
                           engine=engine, progress=progress)
@@ -186,8 +186,9 @@ def fit(data, model="six-param", bounds=None, fixed=None, shadowing="paper", *, 
     # (b) distinct basins: local minima of the grid objective, best first, one per neighbourhood
     t0 = time.perf_counter()
     basins = _grid_basins(sse_grid, n_basins)
-    spacing = np.array([axes[n][1] - axes[n][0] for n in free])
-    seeds = [lo + spacing * np.array(idx) for idx in basins]
+    seeds = [np.array([axes[n][i] for n, i in zip(free, idx)]) for idx in basins]
+    spacings = [np.array([_local_spacing(axes[n], i) for n, i in zip(free, idx)]) for idx in basins]
+    spacing = np.array([np.median(np.diff(axes[n])) for n in free])
     seconds["basins"] = time.perf_counter() - t0
     nfev["basins"] = 0
 
@@ -203,16 +204,16 @@ def fit(data, model="six-param", bounds=None, fixed=None, shadowing="paper", *, 
     def resid_of(x):
         r = (mdl.dop(params(x)) - meas.dop) / std
         return np.where(np.isfinite(r), r, 1e150)
-    for seed in seeds:
+    for seed, step in zip(seeds, spacings):
         t0 = time.perf_counter()
-        blo = np.maximum(lo, seed - 1.5 * spacing)
-        bhi = np.minimum(hi, seed + 1.5 * spacing)
+        blo = np.maximum(lo, seed - 1.5 * step)
+        bhi = np.minimum(hi, seed + 1.5 * step)
         x_d, f_d, ne = _nlopt_min(nlopt.GN_DIRECT_L, sse_of, blo, bhi, (blo + bhi) / 2, maxeval=20 * len(free),
                                   start=seed)
         nfev["direct"] += ne
         seconds["direct"] += time.perf_counter() - t0
         t0 = time.perf_counter()
-        x_b, f_b, ne = _nlopt_min(nlopt.LN_BOBYQA, sse_of, lo, hi, x_d, maxeval=40 * len(free), step=spacing)
+        x_b, f_b, ne = _nlopt_min(nlopt.LN_BOBYQA, sse_of, lo, hi, x_d, maxeval=40 * len(free), step=step)
         nfev["bobyqa"] += ne
         seconds["bobyqa"] += time.perf_counter() - t0
         t0 = time.perf_counter()
@@ -342,6 +343,23 @@ def fit(data, model="six-param", bounds=None, fixed=None, shadowing="paper", *, 
         ambiguous=ambiguous, notes=notes, sigma_known=sigma_known)
 
 
+def _grid_axis(name, bounds, count):
+    """Grid values of one parameter.  n and k are spaced quadratically from their lower bound:
+    near n = 1, k = 0 (an almost index-matched surface) the DOP changes fastest and its
+    minima are narrowest."""
+    u = np.linspace(0.0, 1.0, count)
+    if name in ("n", "k"):
+        u = u * u
+    return bounds[0] + (bounds[1] - bounds[0]) * u
+
+
+def _local_spacing(values, i):
+    """The larger of the two grid steps around index i."""
+    left = values[i] - values[i - 1] if i > 0 else 0.0
+    right = values[i + 1] - values[i] if i + 1 < values.size else 0.0
+    return max(left, right)
+
+
 def _grid_basins(sse, n_basins):
     """Grid indices of the best ``n_basins`` local minima, at least 3 cells apart in some axis."""
     padded = np.pad(sse, 1, constant_values=np.inf)
@@ -428,7 +446,7 @@ def _covariance(J, s2, scale):
 
 def _profile_intervals(sse, axes, free, threshold):
     """For each free parameter, the range of grid values whose profile (min SSE over the other
-    parameters) is below ``threshold``, widened by one grid spacing; None where no node is."""
+    parameters) is below ``threshold``, widened to the neighbouring nodes; None where no node is."""
     out = {}
     for i, n in enumerate(free):
         others = tuple(j for j in range(sse.ndim) if j != i)
@@ -438,8 +456,7 @@ def _profile_intervals(sse, axes, free, threshold):
             out[n] = None
             continue
         vals = axes[n]
-        step = vals[1] - vals[0]
-        out[n] = (float(max(vals[0], vals[ok[0]] - step)), float(min(vals[-1], vals[ok[-1]] + step)))
+        out[n] = (float(vals[max(ok[0] - 1, 0)]), float(vals[min(ok[-1] + 1, vals.size - 1)]))
     return out
 
 
