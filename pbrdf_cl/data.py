@@ -161,3 +161,21 @@ def write_csv(path, meas: Measurements, header_comment: str = ""):
         fh.write(",".join(c for c, _ in cols) + "\n")
         for i in range(len(meas)):
             fh.write(",".join(f"{v[i]:.10g}" for _, v in cols) + "\n")
+
+
+def as_measurements(data) -> "Measurements":
+    """Measurements from a CSV path, a dict of arrays or a Measurements object (validated)."""
+    if isinstance(data, Measurements):
+        return data
+    if isinstance(data, (str, bytes)) or hasattr(data, "__fspath__"):
+        return read_csv(data)
+    if isinstance(data, dict):
+        unknown = set(data) - {"theta_i", "theta_r", "dop", "phi", "dop_std", "f00", "s0", "f00_std"}
+        if unknown:
+            raise ValueError(f"data: unknown column {sorted(unknown)[0]!r}")
+        for need in ("theta_i", "theta_r", "dop"):
+            if need not in data:
+                raise ValueError(f"data: missing column {need!r}")
+        return from_arrays(data["theta_i"], data["theta_r"], data["dop"], data.get("phi", 180.0),
+                           data.get("dop_std"), data.get("f00", data.get("s0")), data.get("f00_std"), source="data")
+    raise ValueError("data must be a CSV path, a dict of arrays or a Measurements object")

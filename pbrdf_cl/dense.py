@@ -354,28 +354,6 @@ class ObjectiveResult(Result):
         return f"ObjectiveResult(n_pairs={self['n_pairs']}, seconds={self['seconds']:.3g}, best={best})"
 
 
-def measurements(theta_i, theta_r, dop, phi=180.0, dop_std=None):
-    """Validated measurement arrays (theta_i, theta_r, phi, dop, weight = 1/dop_std^2 or 1)."""
-    ti = np.atleast_1d(api.check_values("theta_i", theta_i))
-    tr = np.atleast_1d(api.check_values("theta_r", theta_r))
-    ph = np.atleast_1d(api.check_values("phi", phi))
-    d = np.atleast_1d(api._as_array("dop", dop))
-    api._check("dop", d, lambda a: (a >= 0) & (a <= 1), "in [0, 1]")
-    if dop_std is None:
-        w = np.ones(d.shape)
-    else:
-        sd = np.atleast_1d(api._as_array("dop_std", dop_std))
-        api._check("dop_std", sd, lambda a: a > 0, "> 0")
-        w = 1.0 / sd ** 2
-    try:
-        ti, tr, ph, d, w = np.broadcast_arrays(ti, tr, ph, d, w)
-    except ValueError:
-        raise ValueError("measurement arrays theta_i, theta_r, phi, dop, dop_std differ in length") from None
-    if ti.ndim != 1 or ti.size == 0:
-        raise ValueError("measurements must be non-empty 1-d arrays")
-    return ti, tr, ph, d, w
-
-
 def _update_best(best_idx, best_sse, idx, sse, k):
     idx = np.concatenate([best_idx, idx])
     sse = np.concatenate([best_sse, sse])
@@ -392,7 +370,7 @@ def objective(data, grid=None, points=None, *, k_best=10, dtype="float32", shado
 
     Parameters
     ----------
-    data : dict
+    data : dict, CSV path or Measurements
         theta_i, theta_r (degrees), dop, optionally phi (default 180) and dop_std (weights 1/dop_std^2).
     grid : dict
         Parameter axes (n, k, sigma, ks, kd, c -> 1-d array or scalar) whose Cartesian product is
@@ -407,16 +385,10 @@ def objective(data, grid=None, points=None, *, k_best=10, dtype="float32", shado
     if (grid is None) == (points is None):
         raise ValueError("give exactly one of grid= (parameter axes) or points= (explicit parameter vectors)")
     dtype = api.check_options(shadowing, dtype)
-    if not isinstance(data, dict):
-        raise ValueError("data must be a dict with theta_i, theta_r, dop and optionally phi, dop_std")
-    unknown = set(data) - {"theta_i", "theta_r", "phi", "dop", "dop_std"}
-    if unknown:
-        raise ValueError(f"data: unknown column {sorted(unknown)[0]!r}")
-    for need in ("theta_i", "theta_r", "dop"):
-        if need not in data:
-            raise ValueError(f"data: missing {need!r}")
-    ti, tr, ph, obs, w = measurements(data["theta_i"], data["theta_r"], data["dop"], data.get("phi", 180.0),
-                                      data.get("dop_std"))
+    from .data import as_measurements
+    meas = as_measurements(data)
+    ti, tr, ph, obs = meas.theta_i, meas.theta_r, meas.phi, meas.dop
+    w = meas.weights if meas.dop_std is not None else np.ones(len(meas))
     eng = engine if engine is not None else get_default_engine()
     npdt = DTYPES[dtype]
     itemsize = np.dtype(npdt).itemsize

@@ -29,7 +29,6 @@ except ImportError as exc:  # pragma: no cover - pyopencl is a hard dependency
 else:
     _IMPORT_ERROR = None
 
-KERNEL_FILES = ("pbrdf.h", "pbrdf_points.cl", "pbrdf_tables.cl", "pbrdf_grid.cl")
 POINT_INPUTS = ("theta_i", "theta_r", "phi", "n", "k", "sigma", "ks", "kd", "c")
 DTYPES = {"float32": np.float32, "float64": np.float64}
 #: Vector width of the explicitly vectorised kernels (float16 / double8 were fastest on PoCL 3.0).

@@ -12,7 +12,7 @@ import time
 import numpy as np
 
 from . import dense, reference
-from .data import Measurements, from_arrays, read_csv
+from .data import as_measurements
 
 MODEL_PARAMS = {"six-param": ("n", "k", "sigma", "kd", "c"), "specular": ("n", "k")}
 DEFAULT_BOUNDS = {"n": (1.0, 5.0), "k": (0.0, 10.0), "sigma": (0.05, 1.0), "kd": (0.0, 5.0), "c": (-1.0, 0.0),
@@ -60,23 +60,6 @@ class FitResult(dense.Result):
 
     def __repr__(self):
         return self.summary()
-
-
-def _measurements(data):
-    if isinstance(data, Measurements):
-        return data
-    if isinstance(data, (str, bytes)) or hasattr(data, "__fspath__"):
-        return read_csv(data)
-    if isinstance(data, dict):
-        unknown = set(data) - {"theta_i", "theta_r", "dop", "phi", "dop_std", "f00", "s0", "f00_std"}
-        if unknown:
-            raise ValueError(f"data: unknown column {sorted(unknown)[0]!r}")
-        for need in ("theta_i", "theta_r", "dop"):
-            if need not in data:
-                raise ValueError(f"data: missing column {need!r}")
-        return from_arrays(data["theta_i"], data["theta_r"], data["dop"], data.get("phi", 180.0),
-                           data.get("dop_std"), data.get("f00", data.get("s0")), data.get("f00_std"), source="data")
-    raise ValueError("data must be a CSV path, a dict of arrays or a Measurements object")
 
 
 class _Model:
@@ -146,7 +129,7 @@ def fit(data, model="six-param", bounds=None, fixed=None, shadowing="paper", *, 
         raise ValueError(f"model must be one of {sorted(MODEL_PARAMS)}, got {model!r}")
     if shadowing not in reference.SHADOWING:
         raise ValueError(f"shadowing must be one of {sorted(reference.SHADOWING)}, got {shadowing!r}")
-    meas = _measurements(data)
+    meas = as_measurements(data)
     bnds, fx = _check_bounds(model, bounds, fixed)
     free = [n for n in MODEL_PARAMS[model] if n not in fx]
     if not free:
@@ -495,7 +478,7 @@ def compare_models(data, shadowing="paper", bounds=None, fixed=None, engine=None
 
     Returns a dict: "six-param" and "specular" FitResults, "preferred" (lower BIC) and "table"
     (a text table of both with SSE, AIC and BIC)."""
-    meas = _measurements(data)
+    meas = as_measurements(data)
     six = fit(meas, "six-param", bounds=bounds, fixed=fixed, shadowing=shadowing, engine=engine)
     spec_fixed = {k: v for k, v in (fixed or {}).items() if k in ("n", "k")}
     spec_bounds = {k: v for k, v in (bounds or {}).items() if k in ("n", "k")}

@@ -221,9 +221,9 @@ def test_bad_reduction_and_objective_inputs(rng):
     data = measurements(rng)
     with pytest.raises(ValueError, match="exactly one of grid"):
         G.objective(data)
-    with pytest.raises(ValueError, match=r"dop must be in \[0, 1\], got 1.5"):
+    with pytest.raises(ValueError, match=r"data, row 0: dop = 1.5 is not in \[0, 1\]"):
         G.objective(dict(data, dop=np.full(12, 1.5)), grid=dict(n=[1, 2], k=[0, 1], sigma=0.3))
-    with pytest.raises(ValueError, match="dop_std must be > 0"):
+    with pytest.raises(ValueError, match=r"data, row 0: dop_std = 0.0 is not > 0"):
         G.objective(dict(data, dop_std=np.zeros(12)), grid=dict(n=[1, 2], k=[0, 1], sigma=0.3))
     with pytest.raises(ValueError, match="unknown parameter 'theta_i'"):
         G.objective(data, points=dict(theta_i=[1.0], n=[1.0], k=[0.0], sigma=[0.3]))

@@ -4,7 +4,7 @@ import pytest
 
 import pbrdf_cl
 from pbrdf_cl import reference
-from conftest import PARAMS, call, edge_inputs, random_inputs
+from conftest import call, edge_inputs, random_inputs
 
 SHADOWINGS = ["paper", "smith", "none"]
 

@@ -113,7 +113,6 @@ def jones_mueller(ti, tr, phi, n, k):
     B_in = np.array([[s_f @ s_in, s_f @ p_in], [pf_in @ s_in, pf_in @ p_in]])
     B_out = np.array([[s_out @ s_f, s_out @ pf_out], [p_out @ s_f, p_out @ pf_out]])
     J = B_out @ np.diag([rs, rp]) @ B_in
-    M = np.empty((4, 4))
     basis = [np.array([1, 0]), np.array([0, 1]), np.array([1, 1]) / np.sqrt(2), np.array([1, 1j]) / np.sqrt(2)]
 
     def stokes(E):
