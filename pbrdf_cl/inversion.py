@@ -63,17 +63,30 @@ class FitResult(dense.Result):
 
 
 class _Model:
-    """DOP (and F00) of the reference model at fixed geometry, for the local stages."""
+    """DOP (and F00) of the reference model at fixed geometry, for the local stages.
+
+    The factors depend on (n, k), (sigma, ks) and (kd, c) separately; each is recomputed only
+    when its parameters change (finite-difference Jacobians and DIRECT move one at a time)."""
 
     def __init__(self, meas, shadowing):
         self.g = reference.geometry(meas.theta_i, meas.theta_r, meas.phi)
         self.variant = reference.SHADOWING[shadowing]
+        self._cache = {}
+
+    def _factor(self, name, key, compute):
+        hit = self._cache.get(name)
+        if hit is None or hit[0] != key:
+            hit = (key, compute())
+            self._cache[name] = hit
+        return hit[1]
 
     def parts(self, p):
-        f = reference.fresnel(p["n"], p["k"], self.g.cb, self.g.sb)
-        G = reference.shadowing_factor(self.g, p["sigma"], self.variant)
-        logK = reference.log_specular_scale(self.g, p["sigma"], p["ks"], G)
-        return f, logK, reference.diffuse(self.g, p["kd"], p["c"])
+        g = self.g
+        f = self._factor("fresnel", (p["n"], p["k"]), lambda: reference.fresnel(p["n"], p["k"], g.cb, g.sb))
+        logK = self._factor("scale", (p["sigma"], p["ks"]), lambda: reference.log_specular_scale(
+            g, p["sigma"], p["ks"], reference.shadowing_factor(g, p["sigma"], self.variant)))
+        fd = self._factor("diffuse", (p["kd"], p["c"]), lambda: reference.diffuse(g, p["kd"], p["c"]))
+        return f, logK, fd
 
     def dop(self, p):
         return reference.dop(*self.parts(p))
