@@ -13,15 +13,17 @@
 #define PBRDF_SHADOWING PB_SHADOW_PAPER
 #endif
 
+/* The nine inputs, each a buffer of element type T and a stride. */
+#define PB_INPUT_ARGS(T)                                                     \
+    __global const T *ti, const int s_ti, __global const T *tr, const int s_tr, \
+    __global const T *ph, const int s_ph, __global const T *nn, const int s_n,  \
+    __global const T *kk, const int s_k, __global const T *sg, const int s_sg,  \
+    __global const T *ks, const int s_ks, __global const T *kd, const int s_kd, \
+    __global const T *cc, const int s_c
+
 #ifndef PB_VECTOR_REAL
 
-#define PB_POINT_ARGS                                                        \
-    const int n,                                                             \
-    __global const real *ti, const int s_ti, __global const real *tr, const int s_tr, \
-    __global const real *ph, const int s_ph, __global const real *nn, const int s_n,  \
-    __global const real *kk, const int s_k, __global const real *sg, const int s_sg,  \
-    __global const real *ks, const int s_ks, __global const real *kd, const int s_kd, \
-    __global const real *cc, const int s_c
+#define PB_POINT_ARGS const int n, PB_INPUT_ARGS(real)
 
 /* Everything a point needs: geometry, Fresnel, log K and the diffuse term. */
 #define PB_POINT_BODY                                                        \
@@ -91,13 +93,7 @@ inline real pb_in(__global const PB_SCALAR *x, const int s, const int i)
 }
 #define PB_IN(x, s) pb_in(x, s, i)
 
-#define PB_VEC_ARGS                                                          \
-    const int nvec,                                                          \
-    __global const PB_SCALAR *ti, const int s_ti, __global const PB_SCALAR *tr, const int s_tr, \
-    __global const PB_SCALAR *ph, const int s_ph, __global const PB_SCALAR *nn, const int s_n,  \
-    __global const PB_SCALAR *kk, const int s_k, __global const PB_SCALAR *sg, const int s_sg,  \
-    __global const PB_SCALAR *ks, const int s_ks, __global const PB_SCALAR *kd, const int s_kd, \
-    __global const PB_SCALAR *cc, const int s_c
+#define PB_VEC_ARGS const int nvec, PB_INPUT_ARGS(PB_SCALAR)
 
 #define PB_VEC_BODY                                                          \
     const int i = get_global_id(0);                                          \
