@@ -207,6 +207,11 @@ class Engine:
     def empty(self, nbytes):
         return cl.Buffer(self.context, cl.mem_flags.READ_WRITE, max(int(nbytes), 1))
 
+    def read(self, buf, out):
+        """Copy the device buffer ``buf`` into the contiguous host array ``out`` (blocking); returns ``out``."""
+        cl.enqueue_copy(self.queue, out, buf)
+        return out
+
     def evaluate(self, quantity: str, inputs: dict, shape, dtype="float64", shadowing="paper"):
         """Evaluate ``quantity`` ("dop", "brdf", "mueller") element-wise.
 
@@ -224,27 +229,22 @@ class Engine:
         if size == 0:
             return out.reshape(tuple(shape) + ((4, 4) if width == 16 else ()))
         flat = {name: np.ascontiguousarray(inputs[name], dtype=npdt).reshape(-1) for name in POINT_INPUTS}
-        mf = cl.mem_flags
         step = LAUNCH_POINTS // lanes * lanes
         for start in range(0, size, step):
             count = min(step, size - start)
             padded = -(-count // lanes) * lanes  # the vector kernels take whole vectors
-            args = [None, np.int32(padded // lanes)]
-            bufs = []
+            out_buf = self.empty(padded * width * out.itemsize)
+            args = [out_buf, np.int32(padded // lanes)]
             for name in POINT_INPUTS:
                 a = flat[name]
                 part = a if a.size == 1 else a[start:start + count]
-                if part.size != 1 and padded != count:
+                if a.size != 1 and padded != count:  # a full input, even when this chunk holds one point
                     part = np.concatenate([part, np.repeat(part[-1:], padded - count)])
-                buf = cl.Buffer(self.context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=part)
-                bufs.append(buf)
-                args += [buf, np.int32(0 if a.size == 1 else 1)]
-            out_buf = cl.Buffer(self.context, mf.WRITE_ONLY, padded * width * out.itemsize)
-            args[0] = out_buf
+                args += [self.to_device(part, npdt), np.int32(0 if a.size == 1 else 1)]
             # a small work-group: PoCL keeps every work-item's private state of a group on one
             # thread's stack, and the vector kernels' state overflows it in large groups
             self.launch(kern, (padded // lanes,), *args, local_size=(VECTOR_LOCAL_SIZE,) if vec else None)
-            cl.enqueue_copy(self.queue, out[start * width:(start + count) * width], out_buf)
+            self.read(out_buf, out[start * width:(start + count) * width])
         self.queue.finish()
         return out.reshape(tuple(shape) + ((4, 4) if width == 16 else ()))
 

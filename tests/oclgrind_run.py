@@ -23,7 +23,7 @@ def main():
         eng.queue.finish()
         return
     rng = np.random.default_rng(3)
-    size = 37
+    size = 33  # with LAUNCH_POINTS = 16, the last chunk holds a single point
     ti = np.concatenate([[0.0, 40.0, 89.9, 89.9], rng.uniform(0, 89.9, size - 4)])
     tr = np.concatenate([[0.0, 40.0, 89.9, 0.0], rng.uniform(0, 89.9, size - 4)])
     phi = np.concatenate([[180.0, 180.0, 0.0, 37.0], rng.uniform(0, 360, size - 4)])

@@ -99,6 +99,12 @@ def test_launches_larger_than_one_chunk(monkeypatch, rng):
     m = call(pbrdf_cl.mueller, inp)
     monkeypatch.setattr(eng, "LAUNCH_POINTS", 1 << 22)
     np.testing.assert_array_equal(call(pbrdf_cl.mueller, inp), m)
+    # a last chunk of a single point still gets whole vectors of its full-array inputs
+    monkeypatch.setattr(eng, "LAUNCH_POINTS", 32)
+    few = {name: v[:33] for name, v in inp.items()}
+    for dtype, tol in (("float64", 1e-12), ("float32", 2e-5)):
+        got = call(pbrdf_cl.dop, few, dtype=dtype)
+        assert np.max(np.abs(got - call(pbrdf_cl.dop, few, backend="numpy"))) <= tol
 
 
 def test_explicit_engine_and_device_choice(monkeypatch):
