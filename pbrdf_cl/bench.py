@@ -102,8 +102,7 @@ def bench_grid(eng, rows, rng, scale, repeats):
     for dtype in ("float32", "float64"):
         npdt = _engine.DTYPES[dtype]
         level, row_len = dense._row_level(nnk, nm, ni, ng, 1 << 30)
-        prog = eng.program("pbrdf_grid.cl", dtype, {"PB_NNK": nnk, "PB_NM": nm, "PB_NI": ni, "PB_INDEX": "uint",
-                                                    "PB_DOP": None, "PB_ROW_LEVEL": level, "PB_ROW_LEN": row_len})
+        prog = dense._grid_program(eng, dtype, (nnk, nm, ni), "uint", "dop", PB_ROW_LEVEL=level, PB_ROW_LEN=row_len)
         tables = dense._Tables(eng, dtype, "paper", "dop", *dense._geometry_list(plan, 0, ng), plan.values)
         chunk_rows = max(1, (1 << 24) // row_len)
         total_rows = plan.size // row_len

@@ -147,26 +147,21 @@ def cmd_fit(args) -> int:
     try:
         meas = read_csv(args.data)
         engine = _engine.Engine(args.device) if args.device else None
-        primary = _fit.fit(meas, args.model, bounds=bounds, fixed=fixed, shadowing=args.shadowing, engine=engine,
-                           progress=not args.quiet)
-        other_model = "specular" if args.model == "six-param" else "six-param"
-        keep = ("n", "k") if other_model == "specular" else tuple(fixed)
-        other = _fit.fit(meas, other_model, bounds={k: v for k, v in bounds.items() if k in keep},
-                         fixed={k: v for k, v in fixed.items() if k in keep}, shadowing=args.shadowing,
-                         engine=engine, progress=not args.quiet)
+        both = _fit.compare_models(meas, shadowing=args.shadowing, bounds=bounds, fixed=fixed, engine=engine,
+                                   progress=not args.quiet)
     except (OSError, ValueError, _engine.OpenCLUnavailableError) as exc:
         print(f"pbrdf-cl: error: {exc}", file=sys.stderr)
         return 1
-    fits = {args.model: primary, other_model: other}
+    other_model = "specular" if args.model == "six-param" else "six-param"
+    fits = {args.model: both[args.model], other_model: both[other_model]}
     print(f"data: {meas.source} ({len(meas)} points)")
-    print(primary.summary())
-    print()
-    print(other.summary())
-    print()
+    for r in fits.values():
+        print(r.summary())
+        print()
     print("model comparison (lower AIC/BIC is better):")
     for name, r in fits.items():
         print(f"  {name:10s} SSE {r.sse:10.4g}  AIC {r.aic:9.2f}  BIC {r.bic:9.2f}  ({len(r.free)} free)")
-    best = min(fits, key=lambda m: fits[m].bic)
+    best = both["preferred"]
     print(f"  preferred by BIC: {best}")
     if args.json:
         with open(args.json, "w") as fh:
@@ -212,7 +207,8 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Fit the six-parameter model and the ref. [7] specular model to a CSV of "
                        "measurements (columns theta_i, theta_r, dop[, phi, dop_std, f00|s0, f00_std]).")
     f.add_argument("data", help="measurement CSV")
-    f.add_argument("--model", choices=("six-param", "specular"), default="six-param")
+    f.add_argument("--model", choices=("six-param", "specular"), default="six-param",
+                   help="which fit is listed first (both are fitted and compared)")
     f.add_argument("--fix", nargs="*", metavar="NAME=VALUE", help="hold parameters fixed, e.g. sigma=0.45")
     f.add_argument("--bounds", nargs="*", metavar="NAME=LO:HI", help="search bounds, e.g. n=1:3 k=0:5")
     f.add_argument("--shadowing", choices=sorted(SHADOWING), default="paper")

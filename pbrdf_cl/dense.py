@@ -90,6 +90,10 @@ class GridPlan:
     def fixed_values(self):
         return {n: float(self.values[n][0]) for n in self.names if n not in self.axis_names}
 
+    def fixed_attrs(self):
+        """The fixed values as DataArray attrs, ``fixed_<name>``."""
+        return {f"fixed_{k}": v for k, v in self.fixed_values().items()}
+
     def coords(self):
         import xarray as xr
         return {n: xr.Variable((n,), self.values[n], {"units": UNITS[n], "long_name": LONG_NAMES[n]})
@@ -101,12 +105,10 @@ class _Tables:
 
     def __init__(self, engine, dtype, shadowing, quantity, ti, tr, ph, v):
         """Tables laid out geometry by geometry: table[g * n_params + param]."""
-        self.engine = engine
         kern = engine.program("pbrdf_tables.cl", dtype, {"PBRDF_SHADOWING": api.reference.SHADOWING[shadowing]})
         npdt = DTYPES[dtype]
         ng = ti.size
         geo = [engine.to_device(a, dtype) for a in (ti, tr, ph)]
-        self.bufs = {}
 
         def table(kname, outs, p1, p2, *extra):
             np_ = p1.size * p2.size
@@ -133,8 +135,18 @@ def _geometry_list(plan, g0, g1):
 
 
 def _family_sizes(plan):
-    s = plan.sizes
+    """Sizes of the families (geometry, n-k, sigma-ks, kd-c); an axis the plan lacks counts 1."""
+    s = {n: plan.sizes.get(n, 1) for n in AXES}
     return (s["theta_i"] * s["theta_r"] * s["phi"], s["n"] * s["k"], s["sigma"] * s["ks"], s["kd"] * s["c"])
+
+
+def _grid_program(eng, dtype, sizes, idx_name, quantity, prefix="", **extra):
+    """The kernels of pbrdf_grid.cl for family sizes (nnk, nm, ni), index type and quantity;
+    ``extra`` are further -D defines (None: defined without a value)."""
+    nnk, nm, ni = sizes
+    defines = {"PB_NNK": nnk, "PB_NM": nm, "PB_NI": ni, "PB_INDEX": idx_name,
+               "PB_DOP" if quantity == "dop" else "PB_F00": None, **extra}
+    return eng.program("pbrdf_grid.cl", dtype, defines, prefix)
 
 
 def _index_type(total):
@@ -182,10 +194,10 @@ def grid(axes, fixed=None, quantity="dop", dtype="float32", shadowing="paper", *
     plan = GridPlan(axes, fixed)
     eng = engine if engine is not None else get_default_engine()
     out = np.empty(plan.size, dtype=DTYPES[dtype])
-    for start, block in _grid_blocks(eng, plan, quantity, dtype, shadowing, memory_budget, progress):
-        out[start:start + block.size] = block
+    for _ in _grid_blocks(eng, plan, quantity, dtype, shadowing, memory_budget, progress, out=out):
+        pass  # each block is copied straight into its slice of out
     attrs = dict(quantity=quantity, long_name=QUANTITIES[quantity], units="1" if quantity == "dop" else "1/sr",
-                 shadowing=shadowing, dtype=dtype, **{f"fixed_{k}": v for k, v in plan.fixed_values().items()})
+                 shadowing=shadowing, dtype=dtype, **plan.fixed_attrs())
     return xr.DataArray(out.reshape(plan.shape), coords=plan.coords(), dims=plan.axis_names, name=quantity,
                         attrs=attrs)
 
@@ -207,8 +219,9 @@ def _row_level(nnk, nm, ni, ng, chunk, max_level=3):
     return 0, 1
 
 
-def _grid_blocks(eng, plan, quantity, dtype, shadowing, memory_budget, progress=False):
-    """Yield (flat start, values) chunks of the grid in order, each within ``memory_budget``."""
+def _grid_blocks(eng, plan, quantity, dtype, shadowing, memory_budget, progress=False, out=None):
+    """Yield (flat start, values) chunks of the grid in order, each within ``memory_budget``;
+    with ``out`` (the whole flat grid) the values land in, and are views of, its slices."""
     itemsize = np.dtype(DTYPES[dtype]).itemsize
     ng, nnk, nm, ni = _family_sizes(plan)
     per_g = nnk * nm * ni  # grid points per geometry row
@@ -220,13 +233,10 @@ def _grid_blocks(eng, plan, quantity, dtype, shadowing, memory_budget, progress=
     chunk = int(max(64, min((memory_budget - rows * table_row) // itemsize, 2 ** 31 - 1)))
     idx_name, idx_np = _index_type(plan.size)
     level, row_len = _row_level(nnk, nm, ni, ng, chunk)
-    prog = eng.program("pbrdf_grid.cl", dtype, {"PB_NNK": nnk, "PB_NM": nm, "PB_NI": ni, "PB_INDEX": idx_name,
-                                                "PB_DOP" if quantity == "dop" else "PB_F00": None,
-                                                "PB_ROW_LEVEL": level, "PB_ROW_LEN": row_len})
+    prog = _grid_program(eng, dtype, (nnk, nm, ni), idx_name, quantity, PB_ROW_LEVEL=level, PB_ROW_LEN=row_len)
     kern = prog["grid_rows" if level else "grid_values"]
     chunk = chunk // row_len * row_len
     bar = _progress(plan.size, progress, f"grid {quantity}")
-    import pyopencl as cl
     for g0 in range(0, ng, rows):
         g1 = min(ng, g0 + rows)
         tables = _Tables(eng, dtype, shadowing, quantity, *_geometry_list(plan, g0, g1), plan.values)
@@ -238,8 +248,8 @@ def _grid_blocks(eng, plan, quantity, dtype, shadowing, memory_budget, progress=
                            idx_np(g0), *tables.args())
             else:
                 eng.launch(kern, (count,), buf, idx_np(start), idx_np(count), idx_np(g0), *tables.args())
-            host = np.empty(count, dtype=DTYPES[dtype])
-            cl.enqueue_copy(eng.queue, host, buf)
+            host = out[start:start + count] if out is not None else np.empty(count, dtype=DTYPES[dtype])
+            eng.read(buf, host)
             if bar is not None:
                 bar.update(count)
             yield start, host
@@ -255,7 +265,6 @@ def reduce_grid(axes, fixed=None, over=(), quantity="dop", dtype="float32", shad
     Returns an ``xarray.Dataset`` over the remaining axes with variables ``min``, ``mean`` and,
     for each reduced axis, ``argmin_<axis>`` (that axis' coordinate value at the minimum).
     """
-    import pyopencl as cl
     import xarray as xr
 
     _check_quantity(quantity)
@@ -291,8 +300,7 @@ def reduce_grid(axes, fixed=None, over=(), quantity="dop", dtype="float32", shad
               + arr("PB_KEPT_SIZE", [s[n] for n in kept]) + arr("PB_KEPT_FAM", [FAMILY[n] for n in kept])
               + arr("PB_KEPT_COEF", [coef[n] for n in kept]) + arr("PB_RED_SIZE", [s[n] for n in red])
               + arr("PB_RED_FAM", [FAMILY[n] for n in red]) + arr("PB_RED_COEF", [coef[n] for n in red]))
-    prog = eng.program("pbrdf_grid.cl", dtype, {"PB_NNK": nnk, "PB_NM": nm, "PB_NI": ni, "PB_INDEX": idx_name,
-                                                "PB_DOP" if quantity == "dop" else "PB_F00": None}, prefix)
+    prog = _grid_program(eng, dtype, (nnk, nm, ni), idx_name, quantity, prefix)
     tables = _Tables(eng, dtype, shadowing, quantity, *_geometry_list(plan, 0, ng), plan.values)
     n_part = int(min(red_total, max(1, 16384 // max(out_total, 1))))
     per_out = n_part * (2 * itemsize + np.dtype(idx_np).itemsize)
@@ -305,11 +313,9 @@ def reduce_grid(axes, fixed=None, over=(), quantity="dop", dtype="float32", shad
         bmin, barg, bsum = (eng.empty(cnt * n_part * sz) for sz in (itemsize, np.dtype(idx_np).itemsize, itemsize))
         eng.launch(prog["grid_reduce"], (cnt, n_part), bmin, barg, bsum, idx_np(o0), idx_np(cnt), idx_np(n_part),
                    *tables.args())
-        hmin = np.empty((cnt, n_part), npdt)
-        harg = np.empty((cnt, n_part), idx_np)
-        hsum = np.empty((cnt, n_part), npdt)
-        for h, b in ((hmin, bmin), (harg, barg), (hsum, bsum)):
-            cl.enqueue_copy(eng.queue, h, b)
+        hmin = eng.read(bmin, np.empty((cnt, n_part), npdt))
+        harg = eng.read(barg, np.empty((cnt, n_part), idx_np))
+        hsum = eng.read(bsum, np.empty((cnt, n_part), npdt))
         best = np.argmin(hmin, axis=1)
         rows = np.arange(cnt)
         vmin[o0:o0 + cnt] = hmin[rows, best]
@@ -323,7 +329,7 @@ def reduce_grid(axes, fixed=None, over=(), quantity="dop", dtype="float32", shad
     for n, ix in zip(red, red_idx):
         data[f"argmin_{n}"] = (kept_axes, plan.values[n][ix].reshape(shape), {"units": UNITS[n]})
     attrs = dict(quantity=quantity, reduced_over=list(over), shadowing=shadowing, dtype=dtype,
-                 **{f"fixed_{k}": v for k, v in plan.fixed_values().items()})
+                 **plan.fixed_attrs())
     return xr.Dataset(data, coords=coords, attrs=attrs)
 
 
@@ -393,14 +399,13 @@ def objective(data, grid=None, points=None, *, k_best=10, dtype="float32", shado
     npdt = DTYPES[dtype]
     itemsize = np.dtype(npdt).itemsize
     M = ti.size
-    import pyopencl as cl
     if points is not None:
         return _objective_points(eng, points, (ti, tr, ph, obs, w), k_best, dtype, shadowing, return_sse, t0)
     axes = {n: v for n, v in grid.items() if np.ndim(v) > 0}
     fixed = {n: v for n, v in grid.items() if np.ndim(v) == 0}
     plan = GridPlan(axes, fixed, names=PARAMETERS, defaults={"ks": 1.0, "kd": 0.0, "c": 0.0})
     v = plan.values
-    nnk, nm, ni = v["n"].size * v["k"].size, v["sigma"].size * v["ks"].size, v["kd"].size * v["c"].size
+    _, nnk, nm, ni = _family_sizes(plan)
     table_bytes = M * (2 * nnk + nm + ni) * itemsize
     if table_bytes > memory_budget // 2:
         raise ValueError(f"the objective's tables need {table_bytes} bytes, more than half of "
@@ -409,9 +414,8 @@ def objective(data, grid=None, points=None, *, k_best=10, dtype="float32", shado
     idx_name, idx_np = _index_type(P)
     chunk = int(max(64, min((memory_budget - table_bytes) // itemsize, 2 ** 31 - 1)))
     level, row_len = _row_level(nnk, nm, ni, 1, chunk, max_level=2)
-    prog = eng.program("pbrdf_grid.cl", dtype, {"PB_NNK": nnk, "PB_NM": nm, "PB_NI": ni, "PB_INDEX": idx_name,
-                                                "PB_DOP": None, "PB_OBJECTIVE": None, "PB_ROW_LEVEL": level,
-                                                "PB_ROW_LEN": row_len})
+    prog = _grid_program(eng, dtype, (nnk, nm, ni), idx_name, "dop", PB_OBJECTIVE=None, PB_ROW_LEVEL=level,
+                         PB_ROW_LEN=row_len)
     chunk = max(row_len, chunk // row_len * row_len)
     tables = _Tables(eng, dtype, shadowing, "dop", ti, tr, ph, v)
     bobs, bw = eng.to_device(obs, dtype), eng.to_device(w, dtype)
@@ -427,10 +431,7 @@ def objective(data, grid=None, points=None, *, k_best=10, dtype="float32", shado
         else:
             eng.launch(prog["objective_grid"], (count,), buf, idx_np(start), idx_np(count), *tables.args(),
                        bobs, bw, np.int32(M))
-        host = np.empty(count, npdt)
-        cl.enqueue_copy(eng.queue, host, buf)
-        if sse is not None:
-            sse[start:start + count] = host
+        host = eng.read(buf, sse[start:start + count] if sse is not None else np.empty(count, npdt))
         best_idx, best_sse = _update_best(best_idx, best_sse, np.arange(start, start + count), host, k_best)
         if bar is not None:
             bar.update(count)
@@ -447,13 +448,11 @@ def objective(data, grid=None, points=None, *, k_best=10, dtype="float32", shado
         import xarray as xr
         sse_da = xr.DataArray(sse.reshape(plan.shape), coords=plan.coords(), dims=plan.axis_names, name="sse",
                               attrs=dict(long_name="weighted sum of squared DOP residuals", n_measurements=M,
-                                         shadowing=shadowing, dtype=dtype,
-                                         **{f"fixed_{k}": val for k, val in plan.fixed_values().items()}))
+                                         shadowing=shadowing, dtype=dtype, **plan.fixed_attrs()))
     return ObjectiveResult(sse=sse_da, best=best, n_pairs=P * M, seconds=time.perf_counter() - t0)
 
 
 def _objective_points(eng, points, meas, k_best, dtype, shadowing, return_sse, t0):
-    import pyopencl as cl
     ti, tr, ph, obs, w = meas
     unknown = set(points) - set(PARAMETERS)
     if unknown:
@@ -474,8 +473,7 @@ def _objective_points(eng, points, meas, k_best, dtype, shadowing, return_sse, t
     buf = eng.empty(P * np.dtype(DTYPES[dtype]).itemsize)
     eng.launch(kern, (P,), buf, np.int32(P), *(eng.to_device(a, dtype) for a in arrays),
                *(eng.to_device(a, dtype) for a in (ti, tr, ph, obs, w)), np.int32(ti.size))
-    sse = np.empty(P, DTYPES[dtype])
-    cl.enqueue_copy(eng.queue, sse, buf)
+    sse = eng.read(buf, np.empty(P, DTYPES[dtype]))
     order = np.argsort(sse, kind="stable")[:k_best]
     best = {n: a[order] for n, a in zip(PARAMETERS, arrays)}
     best["sse"] = sse[order]

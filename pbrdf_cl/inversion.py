@@ -164,10 +164,9 @@ def fit(data, model="six-param", bounds=None, fixed=None, shadowing="paper", *, 
         p.update(zip(free, x))
         return p
 
-    def sse_of(x):
-        r = (mdl.dop(params(x)) - meas.dop) / std
-        v = float(r @ r)
-        return v if np.isfinite(v) else 1e300
+    def resid_dop(x):
+        return _finite((mdl.dop(params(x)) - meas.dop) / std)
+    sse_of = _sum_of_squares(resid_dop)
 
     # (a) the objective on a dense grid over the bounds, on the OpenCL device
     t0 = time.perf_counter()
@@ -198,10 +197,6 @@ def fit(data, model="six-param", bounds=None, fixed=None, shadowing="paper", *, 
     cands = []
     for stage in ("direct", "bobyqa", "least_squares"):
         nfev[stage], seconds[stage] = 0, 0.0
-
-    def resid_of(x):
-        r = (mdl.dop(params(x)) - meas.dop) / std
-        return np.where(np.isfinite(r), r, 1e150)
     for seed, step in zip(seeds, spacings):
         t0 = time.perf_counter()
         blo = np.maximum(lo, seed - 1.5 * step)
@@ -219,7 +214,7 @@ def fit(data, model="six-param", bounds=None, fixed=None, shadowing="paper", *, 
     for i in range(min(LS_POLISH, len(cands))):  # the best candidates, least squares to the end
         t0 = time.perf_counter()
         f_b, x_b, seed = cands[i]
-        ls = least_squares(resid_of, x_b, bounds=(lo, hi), x_scale=span, ftol=1e-15, xtol=1e-15, gtol=1e-15,
+        ls = least_squares(resid_dop, x_b, bounds=(lo, hi), x_scale=span, ftol=1e-15, xtol=1e-15, gtol=1e-15,
                            max_nfev=100 * len(free))
         nfev["least_squares"] += int(ls.nfev) * (len(free) + 1)  # with the finite-difference Jacobians
         seconds["least_squares"] += time.perf_counter() - t0
@@ -250,37 +245,26 @@ def fit(data, model="six-param", bounds=None, fixed=None, shadowing="paper", *, 
             p["kd"] = p["kd"] * p["ks"]  # fitted as the ratio kd/ks, reported as both
             return p
 
-        def sse_all(x):
+        def resid_all(x):
             p = params_all(x)
-            r1 = (mdl.dop(p) - meas.dop) / std
-            r2 = (mdl.f00(p) - meas.f00) / f00_std
-            v = float(r1 @ r1 + r2 @ r2)
-            return v if np.isfinite(v) else 1e300
-        x_i, f_i, ne = _nlopt_min(nlopt.LN_BOBYQA, sse_all, lo_all, hi_all, np.append(best_x, ks0), maxeval=6000,
+            return _finite(np.concatenate([(mdl.dop(p) - meas.dop) / std, (mdl.f00(p) - meas.f00) / f00_std]))
+        x_i, f_i, ne = _nlopt_min(nlopt.LN_BOBYQA, _sum_of_squares(resid_all), lo_all, hi_all, np.append(best_x, ks0), maxeval=6000,
                                   step=np.append(spacing, ks0 * 0.1))
         nfev["intensity"] = ne
         seconds["intensity"] = time.perf_counter() - t0
 
     # (e) the best wins; statistics and uncertainties
     if use_f00:
-        x_final, lo_f, hi_f = x_i, lo_all, hi_all
-        p_final = params_all(x_i)
-
-        def resid(x):
-            p = params_all(x)
-            return np.concatenate([(mdl.dop(p) - meas.dop) / std, (mdl.f00(p) - meas.f00) / f00_std])
+        x_final, lo_f, hi_f, p_final, resid = x_i, lo_all, hi_all, params_all(x_i), resid_all
     else:
-        x_final, lo_f, hi_f = best_x, lo, hi
-        p_final = params(best_x)
-
-        def resid(x):
-            return (mdl.dop(params(x)) - meas.dop) / std
+        x_final, lo_f, hi_f, p_final, resid = best_x, lo, hi, params(best_x), resid_dop
     r = resid(x_final)
     m_obs, n_free = r.size, len(free_all)
     dof = m_obs - n_free
     chi2 = float(r @ r)
     sigma_known = meas.dop_std is not None
     s2 = 1.0 if sigma_known else chi2 / dof
+    unit = 1.0 if sigma_known else best_sse / dof  # one unit of chi^2 on the DOP-only SSE scale
     J = _jacobian(resid, x_final, lo_f, hi_f)
     cov, cond, eig = _covariance(J, s2, hi_f - lo_f)
     se = np.sqrt(np.clip(np.diag(cov), 0, None))
@@ -291,7 +275,7 @@ def fit(data, model="six-param", bounds=None, fixed=None, shadowing="paper", *, 
     ci_jac = {n: (max(lo_f[i], x_final[i] - half[i]), min(hi_f[i], x_final[i] + half[i]))
               for i, n in enumerate(free_all)}
     # profile intervals from the grid objective (banana-shaped valleys are not ellipses)
-    ci_prof = _profile_intervals(sse_grid, axes, free, best_sse + 3.84 * (1.0 if sigma_known else best_sse / dof))
+    ci_prof = _profile_intervals(sse_grid, axes, free, best_sse + 3.84 * unit)
     ci = {}
     for n in free_all:
         a, b = ci_jac[n]
@@ -301,12 +285,9 @@ def fit(data, model="six-param", bounds=None, fixed=None, shadowing="paper", *, 
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = cov / np.outer(se, se)
     dop_resid = mdl.dop(p_final) - meas.dop
-    k_par = n_free
-    if sigma_known:
-        aic, bic = chi2 + 2 * k_par, chi2 + k_par * np.log(m_obs)
-    else:
-        aic = m_obs * np.log(max(chi2, 1e-300) / m_obs) + 2 * k_par
-        bic = m_obs * np.log(max(chi2, 1e-300) / m_obs) + k_par * np.log(m_obs)
+    # -2 log-likelihood up to a constant: chi^2 with known sigmas, else m log(SSE / m)
+    neg2ll = chi2 if sigma_known else m_obs * np.log(max(chi2, 1e-300) / m_obs)
+    aic, bic = neg2ll + 2 * n_free, neg2ll + n_free * np.log(m_obs)
 
     notes = []
     if model == "six-param" and not use_f00:
@@ -324,8 +305,7 @@ def fit(data, model="six-param", bounds=None, fixed=None, shadowing="paper", *, 
     notes += _identifiability_notes(free_all, J, cond, eig, x_final, se, corr, hi_f - lo_f)
     ambiguous = []
     for f_c, x_c, seed in cands[1:]:
-        delta = f_c - best_sse
-        if delta <= (1.0 if sigma_known else best_sse / dof) and np.any(np.abs(x_c - best_x) > 2 * np.maximum(se[:len(free)], 1e-12)):
+        if f_c - best_sse <= unit and np.any(np.abs(x_c - best_x) > 2 * np.maximum(se[:len(free)], 1e-12)):
             ambiguous.append(dict(zip(free, map(float, x_c)), sse=float(f_c)))
     if ambiguous:
         alt = ", ".join(f"{n}={ambiguous[0][n]:.4g}" for n in free)
@@ -342,6 +322,19 @@ def fit(data, model="six-param", bounds=None, fixed=None, shadowing="paper", *, 
         nfev=nfev, seconds=seconds,
         basins=[dict(zip(free, map(float, x)), sse=float(f), seed=dict(zip(free, map(float, s)))) for f, x, s in cands],
         ambiguous=ambiguous, notes=notes, sigma_known=sigma_known)
+
+
+def _finite(r):
+    """Residuals with non-finite entries replaced by a huge value (never NaN to the optimisers)."""
+    return np.where(np.isfinite(r), r, 1e150)
+
+
+def _sum_of_squares(resid):
+    """The objective sum(resid(x)^2) as a Python float, for nlopt."""
+    def sse(x):
+        r = resid(x)
+        return float(min(r @ r, 1e300))
+    return sse
 
 
 def _grid_axis(name, bounds, count):
@@ -425,8 +418,6 @@ def _jacobian(resid, x, lo, hi):
     h = 1e-6 * (hi - lo)
     cols = []
     for j in range(x.size):
-        e = np.zeros_like(x)
-        e[j] = h[j]
         up, dn = min(x[j] + h[j], hi[j]), max(x[j] - h[j], lo[j])
         xu, xd = x.copy(), x.copy()
         xu[j], xd[j] = up, dn
@@ -486,16 +477,18 @@ def _identifiability_notes(names, J, cond, eig, x, se, corr, scale):
     return notes
 
 
-def compare_models(data, shadowing="paper", bounds=None, fixed=None, engine=None):
-    """Fit the six-parameter model and the ref. [7] specular model to the same data.
+def compare_models(data, shadowing="paper", bounds=None, fixed=None, engine=None, progress=False):
+    """Fit the six-parameter model and the ref. [7] specular model to the same data (the
+    specular fit takes the bounds and fixed values of n and k only).
 
     Returns a dict: "six-param" and "specular" FitResults, "preferred" (lower BIC) and "table"
     (a text table of both with SSE, AIC and BIC)."""
     meas = as_measurements(data)
-    six = fit(meas, "six-param", bounds=bounds, fixed=fixed, shadowing=shadowing, engine=engine)
+    six = fit(meas, "six-param", bounds=bounds, fixed=fixed, shadowing=shadowing, engine=engine, progress=progress)
     spec_fixed = {k: v for k, v in (fixed or {}).items() if k in ("n", "k")}
     spec_bounds = {k: v for k, v in (bounds or {}).items() if k in ("n", "k")}
-    spec = fit(meas, "specular", bounds=spec_bounds, fixed=spec_fixed, shadowing=shadowing, engine=engine)
+    spec = fit(meas, "specular", bounds=spec_bounds, fixed=spec_fixed, shadowing=shadowing, engine=engine,
+               progress=progress)
     rows = ["| model | n | k | free params | SSE | AIC | BIC |", "|---|---|---|---|---|---|---|"]
     for name, r in (("six-param", six), ("specular (ref. [7])", spec)):
         rows.append(f"| {name} | {r.x['n']:.4g} | {r.x['k']:.4g} | {len(r.free)} | {r.sse:.4g} | {r.aic:.2f} | "
