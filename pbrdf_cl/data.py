@@ -12,6 +12,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .api import RULES
+
 REQUIRED = ("theta_i", "theta_r", "dop")
 OPTIONAL = ("phi", "dop_std", "f00", "s0", "f00_std")
 
@@ -55,8 +57,7 @@ def _validate(cols, source, lines):
         if bad.any():
             i = int(np.argmax(bad))
             raise ValueError(f"{_where(source, lines, i)}: {name} is {float(a[i])!r}; every value must be a finite number")
-    checks = {"theta_i": (lambda a: (a >= 0) & (a < 90), "in [0, 90) degrees"),
-              "theta_r": (lambda a: (a >= 0) & (a < 90), "in [0, 90) degrees"),
+    checks = {"theta_i": RULES["theta_i"], "theta_r": RULES["theta_r"],
               "dop": (lambda a: (a >= 0) & (a <= 1), "in [0, 1]"),
               "dop_std": (lambda a: a > 0, "> 0"),
               "f00": (lambda a: a >= 0, ">= 0"),
