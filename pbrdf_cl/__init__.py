@@ -10,6 +10,7 @@ Angles are in degrees; phi = 180 (the default) is the in-plane geometry.
 from .api import MODELS, brdf, dop, mueller, validate
 from .data import Measurements, read_csv
 from .dense import ObjectiveResult, grid, objective, reduce_grid
+from .sweep import SpecError, SweepResult, SweepSpec, load_spec, sweep
 from .inversion import FitResult, compare_models, fit
 from .engine import (Engine, OpenCLUnavailableError, get_default_engine, list_devices, select_device,
                      set_default_engine)
@@ -17,5 +18,6 @@ from .engine import (Engine, OpenCLUnavailableError, get_default_engine, list_de
 __version__ = "0.1.0"
 
 __all__ = ["dop", "brdf", "mueller", "validate", "MODELS", "grid", "reduce_grid", "objective", "ObjectiveResult",
+           "sweep", "load_spec", "SweepSpec", "SweepResult", "SpecError",
            "fit", "compare_models", "FitResult", "read_csv", "Measurements", "Engine", "OpenCLUnavailableError",
            "get_default_engine", "set_default_engine", "list_devices", "select_device", "__version__"]

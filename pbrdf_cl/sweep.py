@@ -1,0 +1,818 @@
+"""Sweeps larger than memory and larger than one machine: the grid engine of :mod:`pbrdf_cl.dense`
+chunk by chunk into a Zarr store, resumable, optionally over a ``dask.distributed`` cluster.
+
+A sweep is described by a spec (TOML, see ``examples/sweep_sigma_theta.toml``)::
+
+    quantity = "dop"                 # dop | f00
+    dtype = "float32"                # float32 | float64
+    shadowing = "paper"              # paper | smith | none
+    memory_budget = "256 MiB"        # one chunk in flight: its values + the device's working memory
+
+    [axes]                           # canonical names of pbrdf_cl.dense.AXES; angles in degrees
+    theta_i = "10:80:10"             # inclusive start:stop:step, as on the command line
+    theta_r = {start = 0, stop = 85, num = 256}
+    sigma = [0.1, 0.2, 0.5]
+
+    [fixed]                          # the other inputs; phi, ks, kd, c default to 180, 1, 0, 0
+    n = 1.6
+    k = 2.139
+
+    [chunks]                         # points = N (leading axes split), or per-axis sizes
+    theta_i = 1
+
+    [reduce]                         # optional: min / mean / argmin over these axes, on the device
+    over = ["theta_r"]
+
+Layout of the store (Zarr format 2, consolidated metadata; ``xarray.open_zarr`` reads it):
+
+- one 1-d coordinate array per axis (``units``, ``long_name``);
+- the values: ``dop`` or ``f00`` over all axes, or ``min``, ``mean`` and ``argmin_<axis>`` over
+  the axes not reduced; each Zarr chunk is exactly one compute chunk (a sub-box of the axes,
+  evaluated as a small grid), so no two writers ever share a Zarr chunk;
+- ``_sweep/done``: one uint8 per chunk, written (1) only after that chunk's values are in the
+  store (write-then-mark); a resumed sweep computes the chunks not marked;
+- root attrs: the canonical spec as JSON (``sweep_spec``), its SHA-256 (``sweep_spec_sha256``),
+  the TOML it came from, the fixed values, and ``sweep_complete``.
+
+Testing aid: ``PBRDF_SWEEP_CHUNK_DELAY=<seconds>`` sleeps that long per chunk (half before the
+values are written, half between writing them and marking the chunk done), so that an
+interruption reliably lands in the middle of a sweep.
+"""
+from __future__ import annotations
+
+import itertools
+import json
+import hashlib
+import logging
+import math
+import os
+import re
+import tempfile
+import threading
+import time
+import uuid
+import weakref
+from pathlib import Path
+
+import numpy as np
+
+from . import api, dense
+from .engine import DTYPES
+from .reference import SHADOWING
+
+try:
+    import tomllib
+except ModuleNotFoundError:  # pragma: no cover - Python < 3.11
+    import tomli as tomllib
+
+log = logging.getLogger(__name__)
+
+#: Version of the canonical spec (part of the hash).
+SPEC_VERSION = 1
+DEFAULT_MEMORY_BUDGET = 256 << 20
+#: Blosc compresses at most 2 GiB per call.
+MAX_CHUNK_BYTES = (1 << 31) - 1024
+DELAY_ENV = "PBRDF_SWEEP_CHUNK_DELAY"
+KEYS = ("title", "quantity", "dtype", "shadowing", "memory_budget", "axes", "fixed", "chunks", "reduce")
+DONE = "_sweep/done"
+
+
+class SpecError(ValueError):
+    """A sweep spec (or the store it is resumed into) is not valid; the message names the field."""
+
+
+# ---------------------------------------------------------------------------------------------
+# the spec
+
+def _fmt(v):
+    return f"{v:g}" if isinstance(v, float) else repr(v)
+
+
+def _number(field, v):
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        raise SpecError(f"{field}: {v!r} is not a number")
+    return float(v)
+
+
+def _range_string(field, text):
+    """``"40"``, ``"20,30,45"`` or an inclusive ``"start:stop:step"`` (step > 0), as on the command line."""
+    try:
+        if ":" in text:
+            parts = [float(p) for p in text.split(":")]
+            if len(parts) != 3:
+                raise ValueError
+        else:
+            return np.array([float(p) for p in text.split(",")])
+    except ValueError:
+        raise SpecError(f"{field}: {text!r} is not a number, a comma list or an inclusive "
+                        f"start:stop:step range") from None
+    start, stop, step = parts
+    if not step > 0:
+        raise SpecError(f"{field}: step must be > 0 in {text!r}")
+    if stop < start:
+        raise SpecError(f"{field}: empty range {text}")
+    return start + step * np.arange(int(np.floor((stop - start) / step + 1e-9)) + 1)
+
+
+def _axis_values(field, value):
+    if isinstance(value, str):
+        return _range_string(field, value)
+    if isinstance(value, list):
+        if not value:
+            raise SpecError(f"{field}: empty list")
+        return np.array([_number(f"{field}[{i}]", v) for i, v in enumerate(value)])
+    if isinstance(value, dict):
+        keys = set(value)
+        text = "{" + ", ".join(f"{k} = {_fmt(v)}" for k, v in value.items()) + "}"
+        if keys not in ({"start", "stop", "num"}, {"start", "stop", "step"}):
+            raise SpecError(f"{field}: a range table takes start, stop and num (or step), got {text}")
+        start, stop = _number(f"{field}.start", value["start"]), _number(f"{field}.stop", value["stop"])
+        if "num" in keys:
+            num = value["num"]
+            if isinstance(num, bool) or not isinstance(num, int) or num < 0:
+                raise SpecError(f"{field}.num: {num!r} is not a non-negative integer")
+            if num == 0:
+                raise SpecError(f"{field}: empty range {text}")
+            return np.linspace(start, stop, num)
+        step = _number(f"{field}.step", value["step"])
+        if not step > 0:
+            raise SpecError(f"{field}.step: must be > 0, got {_fmt(step)}")
+        if stop < start:
+            raise SpecError(f"{field}: empty range {text}")
+        return start + step * np.arange(int(np.floor((stop - start) / step + 1e-9)) + 1)
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        raise SpecError(f"{field}: a single value; give it under [fixed], or as a one-element list [{_fmt(value)}]")
+    raise SpecError(f"{field}: {value!r} is not a list, a \"start:stop:step\" string or a "
+                    "{start, stop, num} table")
+
+
+_UNITS = {"": 1, "b": 1, "kb": 10 ** 3, "mb": 10 ** 6, "gb": 10 ** 9, "tb": 10 ** 12,
+          "kib": 1 << 10, "mib": 1 << 20, "gib": 1 << 30, "tib": 1 << 40}
+
+
+def parse_bytes(field, value):
+    """``268435456``, ``"256 MiB"``, ``"1.5GB"`` -> bytes (int)."""
+    if isinstance(value, int) and not isinstance(value, bool):
+        n = value
+    elif isinstance(value, str):
+        m = re.fullmatch(r"\s*([0-9]*\.?[0-9]+(?:[eE][0-9]+)?)\s*([KMGT]i?B|B)?\s*", value, re.I)
+        if not m:
+            raise SpecError(f"{field}: {value!r} is not a size such as 268435456, \"256 MiB\" or \"1 GB\"")
+        n = int(float(m.group(1)) * _UNITS[(m.group(2) or "").lower()])
+    else:
+        raise SpecError(f"{field}: {value!r} is not a size such as 268435456, \"256 MiB\" or \"1 GB\"")
+    if n <= 0:
+        raise SpecError(f"{field}: must be > 0 bytes, got {value!r}")
+    return n
+
+
+def _human(nbytes):
+    for unit, size in (("GiB", 1 << 30), ("MiB", 1 << 20), ("KiB", 1 << 10)):
+        if nbytes >= size:
+            return f"{nbytes / size:.4g} {unit}"
+    return f"{nbytes} B"
+
+
+class SweepSpec:
+    """A validated sweep.
+
+    Attributes: ``quantity``, ``dtype``, ``shadowing``, ``memory_budget`` (bytes), ``title``,
+    ``axes`` (name -> float64 array, canonical order), ``fixed`` (every other input, defaults
+    filled in), ``over`` (reduced axes), ``dims`` / ``shape`` / ``chunks`` of the stored
+    variables, ``n_chunks`` and the canonical form (:meth:`canonical`, :attr:`sha256`).
+    """
+
+    def __init__(self, data, source=None, text=None):
+        if not isinstance(data, dict):
+            raise SpecError(f"a sweep spec is a table (dict), got {type(data).__name__}")
+        self.source, self.text = source, text
+        for key in data:
+            if key not in KEYS:
+                raise SpecError(f"unknown key {key!r}; valid keys are {', '.join(KEYS)}")
+        self.title = str(data.get("title", ""))
+        self.quantity = data.get("quantity", "dop")
+        if self.quantity not in dense.QUANTITIES:
+            raise SpecError(f"quantity: must be one of {', '.join(sorted(dense.QUANTITIES))}, got {self.quantity!r}")
+        self.dtype = data.get("dtype", "float32")
+        if self.dtype not in DTYPES:
+            raise SpecError(f"dtype: must be float32 or float64, got {self.dtype!r}")
+        self.shadowing = data.get("shadowing", "paper")
+        if self.shadowing not in SHADOWING:
+            raise SpecError(f"shadowing: must be one of {', '.join(sorted(SHADOWING))}, got {self.shadowing!r}")
+        self.memory_budget = parse_bytes("memory_budget", data.get("memory_budget", DEFAULT_MEMORY_BUDGET))
+        self.itemsize = np.dtype(DTYPES[self.dtype]).itemsize
+
+        axes_in = data.get("axes")
+        if not isinstance(axes_in, dict) or not axes_in:
+            raise SpecError("axes: name at least one axis, e.g. [axes] theta_r = \"0:85:5\"")
+        fixed_in = data.get("fixed", {})
+        if not isinstance(fixed_in, dict):
+            raise SpecError(f"fixed: must be a table of name = value, got {fixed_in!r}")
+        for where, d in (("axes", axes_in), ("fixed", fixed_in)):
+            for name in d:
+                if name not in dense.AXES:
+                    raise SpecError(f"{where}.{name}: unknown axis; valid names are {', '.join(dense.AXES)}")
+        for name in fixed_in:
+            if name in axes_in:
+                raise SpecError(f"fixed.{name}: {name} is also an axis; give it in one place only")
+        axes = {}
+        for name in dense.AXES:
+            if name not in axes_in:
+                continue
+            field = f"axes.{name}"
+            a = _axis_values(field, axes_in[name])
+            try:
+                a = api.check_values(name, a)
+            except ValueError as exc:
+                raise SpecError(f"{field}: {exc}") from None
+            d = np.diff(a)
+            if a.size > 1 and not (np.all(d > 0) or np.all(d < 0)):
+                raise SpecError(f"{field}: values must be strictly increasing or decreasing, got "
+                                f"{', '.join(_fmt(float(v)) for v in a[:6])}{', ...' if a.size > 6 else ''}")
+            axes[name] = a
+        fixed = {}
+        for name, v in fixed_in.items():
+            v = _number(f"fixed.{name}", v)
+            try:
+                api.check_values(name, v)
+            except ValueError as exc:
+                raise SpecError(f"fixed.{name}: {exc}") from None
+            fixed[name] = v
+        try:
+            self.plan = dense.GridPlan(axes, fixed)
+        except ValueError as exc:  # a required input given nowhere
+            raise SpecError(f"fixed: {exc}") from None
+        self.axes = {n: self.plan.values[n] for n in self.plan.axis_names}
+        self.fixed = self.plan.fixed_values()
+
+        red = data.get("reduce", {})
+        if isinstance(red, list):
+            red = {"over": red}
+        if not isinstance(red, dict) or set(red) - {"over"}:
+            raise SpecError(f"reduce: must be a table with over = [axis names], got {red!r}")
+        over = red.get("over", [])
+        if isinstance(over, str):
+            over = [over]
+        if not isinstance(over, list) or not all(isinstance(n, str) for n in over):
+            raise SpecError(f"reduce.over: must be a list of axis names, got {over!r}")
+        for n in over:
+            if n not in self.axes:
+                raise SpecError(f"reduce.over: {n!r} is not an axis of this sweep ({', '.join(self.axes)})")
+        if "reduce" in data and not over:
+            raise SpecError("reduce.over: name at least one axis to reduce")
+        self.over = tuple(n for n in self.axes if n in over)
+        self.dims = tuple(n for n in self.axes if n not in self.over)
+        self.shape = tuple(self.axes[n].size for n in self.dims)
+        self.reduced_points = int(np.prod([self.axes[n].size for n in self.over], dtype=np.int64))
+        self.chunks = self._chunk_shape(data.get("chunks"))
+        self._check_budget()
+        self.chunk_grid = tuple(-(-s // c) for s, c in zip(self.shape, self.chunks))
+        self.n_chunks = int(np.prod(self.chunk_grid, dtype=np.int64))
+        self.points = int(np.prod([a.size for a in self.axes.values()], dtype=np.int64))
+        self.canonical_json = json.dumps(self.canonical(), separators=(",", ":"))
+        self.sha256 = hashlib.sha256(self.canonical_json.encode()).hexdigest()
+
+    # -- construction -------------------------------------------------------------------------
+    @classmethod
+    def from_toml(cls, text, source=None):
+        try:
+            data = tomllib.loads(text)
+        except tomllib.TOMLDecodeError as exc:
+            raise SpecError(f"{source or 'spec'}: not valid TOML: {exc}") from None
+        return cls(data, source=source, text=text)
+
+    # -- chunks -------------------------------------------------------------------------------
+    def _chunk_shape(self, spec):
+        spec = {} if spec is None else spec
+        if not isinstance(spec, dict):
+            raise SpecError(f"chunks: must be a table (points = N, or axis = size), got {spec!r}")
+        half = self.memory_budget // 2
+        if "points" in spec:
+            if len(spec) > 1:
+                raise SpecError("chunks: give either points = N or per-axis sizes, not both")
+            target = spec["points"]
+            if isinstance(target, bool) or not isinstance(target, int) or target < 1:
+                raise SpecError(f"chunks.points: {target!r} is not a positive integer")
+            if not self.over and target * self.itemsize > half:
+                raise SpecError(
+                    f"chunks.points: a chunk of {target} points x {self.itemsize} bytes = "
+                    f"{_human(target * self.itemsize)} is larger than the budget for one chunk's values, "
+                    f"half of memory_budget = {_human(self.memory_budget)} (the other half is the device's "
+                    f"working memory); use fewer points per chunk or a larger memory_budget")
+        elif spec:
+            out = []
+            for name, size in spec.items():
+                field = f"chunks.{name}"
+                if name not in self.axes:
+                    raise SpecError(f"{field}: not an axis of this sweep ({', '.join(self.axes)})")
+                if isinstance(size, bool) or not isinstance(size, int) or size < 1:
+                    raise SpecError(f"{field}: {size!r} is not a positive integer")
+                if name in self.over and size < self.axes[name].size:
+                    raise SpecError(f"{field}: {name} is reduced (reduce.over), so it is never split")
+            for n in self.dims:
+                out.append(min(int(spec.get(n, self.axes[n].size)), self.axes[n].size))
+            return tuple(out)
+        else:
+            target = max(1, half // self.itemsize)
+        # leading axes split, trailing ones whole (reduced axes are whole inside every chunk)
+        per, out = self.reduced_points, [1] * len(self.dims)
+        for j in range(len(self.dims) - 1, -1, -1):
+            size = self.shape[j]
+            if per * size <= target:
+                out[j], per = size, per * size
+            else:
+                out[j] = int(max(1, target // per))
+                break
+        return tuple(out)
+
+    @property
+    def chunk_points(self):
+        """Grid points evaluated for one (full-size) chunk."""
+        return int(np.prod(self.chunks, dtype=np.int64)) * self.reduced_points
+
+    def _box_family_sizes(self):
+        s = dict.fromkeys(dense.AXES, 1)
+        s.update({n: self.axes[n].size for n in self.over})
+        s.update(zip(self.dims, self.chunks))
+        return (s["theta_i"] * s["theta_r"] * s["phi"], s["n"] * s["k"], s["sigma"] * s["ks"], s["kd"] * s["c"])
+
+    def _check_budget(self):
+        ng, nnk, nm, ni = self._box_family_sizes()
+        budget, isz = self.memory_budget, self.itemsize
+        shape = " x ".join(str(c) for c in self.chunks) or "1"
+        if self.over:
+            tables = ng * (2 * nnk + nm + ni) * isz
+            if tables > budget // 2:
+                raise SpecError(
+                    f"chunks: the model's tables for a chunk of {shape} (times the reduced axes "
+                    f"{', '.join(self.over)}) need {_human(tables)}, more than half of memory_budget = "
+                    f"{_human(budget)}; use smaller chunks of the geometry axes or a larger memory_budget")
+            return
+        values = self.chunk_points * isz
+        if values > budget // 2:
+            raise SpecError(
+                f"chunks: a chunk of {shape} = {self.chunk_points} points x {isz} bytes = {_human(values)} is "
+                f"larger than the budget for one chunk's values, half of memory_budget = {_human(budget)} "
+                f"(the other half is the device's working memory); use smaller chunks or a larger memory_budget")
+        if values > MAX_CHUNK_BYTES:
+            raise SpecError(f"chunks: a chunk of {_human(values)} is over the 2 GiB a Zarr/Blosc chunk can hold; "
+                            "use smaller chunks")
+        row = (2 * nnk + nm + ni) * isz
+        if budget // 2 < 2 * row + 64 * isz:
+            raise SpecError(f"memory_budget: {_human(budget)} is too small for one geometry row's tables "
+                            f"({_human(row)}) of a chunk; raise it")
+
+    def chunk_index(self, i):
+        return np.unravel_index(int(i), self.chunk_grid) if self.dims else ()
+
+    def region(self, i):
+        """The slices (over :attr:`dims`) of chunk ``i``."""
+        return tuple(slice(j * c, min((j + 1) * c, s)) for j, c, s in zip(self.chunk_index(i), self.chunks, self.shape))
+
+    def box(self, i):
+        """The axes (name -> values) of chunk ``i``: a sub-box of the sweep, itself a small grid."""
+        sub = dict(zip(self.dims, self.region(i)))
+        return {n: (a[sub[n]] if n in sub else a) for n, a in self.axes.items()}
+
+    def box_points(self, i):
+        return int(np.prod([r.stop - r.start for r in self.region(i)], dtype=np.int64)) * self.reduced_points
+
+    # -- identity -----------------------------------------------------------------------------
+    def canonical(self):
+        """Everything that determines the stored bytes (not the memory budget or the title)."""
+        return {"pbrdf_sweep": SPEC_VERSION, "quantity": self.quantity, "dtype": self.dtype,
+                "shadowing": self.shadowing, "axes": {n: [float(v) for v in a] for n, a in self.axes.items()},
+                "fixed": self.fixed, "reduce_over": list(self.over), "chunks": dict(zip(self.dims, self.chunks))}
+
+    @property
+    def variables(self):
+        if not self.over:
+            return (self.quantity,)
+        return ("min", "mean") + tuple(f"argmin_{n}" for n in self.over)
+
+    def __repr__(self):
+        kind = f"reduced over {', '.join(self.over)}" if self.over else self.quantity
+        return (f"SweepSpec({self.points} points of {self.quantity} ({self.dtype}) over "
+                f"{' x '.join(f'{n}[{a.size}]' for n, a in self.axes.items())}, {kind}, "
+                f"{self.n_chunks} chunks of {' x '.join(map(str, self.chunks)) or '1'}, sha256 {self.sha256[:12]})")
+
+
+def load_spec(spec):
+    """A :class:`SweepSpec` from a TOML file path, a dict, or a SweepSpec (returned as is)."""
+    if isinstance(spec, SweepSpec):
+        return spec
+    if isinstance(spec, dict):
+        return SweepSpec(spec)
+    if isinstance(spec, (str, os.PathLike)):
+        path = Path(spec)
+        try:
+            text = path.read_text()
+        except OSError as exc:
+            raise SpecError(f"cannot read the spec {str(path)!r}: {exc.strerror or exc}") from None
+        return SweepSpec.from_toml(text, source=str(path))
+    raise SpecError(f"spec must be a TOML file path, a dict or a SweepSpec, got {type(spec).__name__}")
+
+
+def _differences(old, new):
+    """Readable list of what differs between two canonical specs."""
+    def describe(v):
+        if isinstance(v, list) and len(v) > 4 and all(isinstance(x, float) for x in v):
+            return f"{len(v)} values {_fmt(v[0])}..{_fmt(v[-1])}"
+        return json.dumps(v)
+    out = []
+    for key in sorted(set(old) | set(new)):
+        a, b = old.get(key), new.get(key)
+        if isinstance(a, dict) and isinstance(b, dict):
+            for sub in sorted(set(a) | set(b)):
+                if a.get(sub) != b.get(sub):
+                    out.append(f"{key}.{sub}: {describe(a.get(sub)) if sub in a else '(absent)'} in the store, "
+                               f"{describe(b.get(sub)) if sub in b else '(absent)'} now")
+        elif a != b:
+            out.append(f"{key}: {describe(a)} in the store, {describe(b)} now")
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# the store
+
+def _zarr():
+    import zarr
+    return zarr
+
+
+def _zarr3():
+    return int(_zarr().__version__.split(".")[0]) >= 3
+
+
+def _is_local(store):
+    return isinstance(store, os.PathLike) or (isinstance(store, str) and "://" not in store)
+
+
+def _store_name(store):
+    return os.path.abspath(os.fspath(store)) if _is_local(store) else store
+
+
+def _open_group(store, mode):
+    zarr = _zarr()
+    if _zarr3():
+        return zarr.open_group(store, mode=mode, zarr_format=2)
+    return zarr.open_group(store, mode=mode)
+
+
+def _create_array(group, name, shape, chunks, dtype, fill_value, compressor, attrs):
+    if _zarr3():
+        arr = group.create_array(name, shape=shape, chunks=chunks, dtype=dtype, fill_value=fill_value,
+                                 compressors=compressor, overwrite=True)
+    else:  # pragma: no cover - zarr 2
+        arr = group.create_dataset(name, shape=shape, chunks=chunks, dtype=dtype, fill_value=fill_value,
+                                   compressor=compressor, overwrite=True)
+    arr.attrs.update(attrs)
+    return arr
+
+
+def _compressor():
+    from numcodecs import Blosc
+    return Blosc(cname="lz4", clevel=5, shuffle=Blosc.SHUFFLE)
+
+
+def _root_attrs(spec, complete=False):
+    from . import __version__
+    attrs = dict(title=spec.title or f"pbrdf-cl sweep of {spec.quantity}", quantity=spec.quantity,
+                 long_name=dense.QUANTITIES[spec.quantity], units="1" if spec.quantity == "dop" else "1/sr",
+                 shadowing=spec.shadowing, dtype=spec.dtype, **spec.plan.fixed_attrs())
+    if spec.over:
+        attrs["reduced_over"] = list(spec.over)
+    attrs.update(pbrdf_cl_version=__version__, sweep_spec=spec.canonical_json, sweep_spec_sha256=spec.sha256,
+                 sweep_spec_toml=spec.text or "", sweep_chunks=spec.n_chunks, sweep_complete=complete)
+    return attrs
+
+
+def _write_skeleton(spec, store):
+    """Coordinates, empty variables, the done record, then (last: the commit point) the root attrs."""
+    g = _open_group(store, "w")
+    for n, a in spec.axes.items():
+        c = _create_array(g, n, a.shape, a.shape, "f8", None, None,
+                          {"_ARRAY_DIMENSIONS": [n], "units": dense.UNITS[n], "long_name": dense.LONG_NAMES[n]})
+        c[...] = a
+    npdt = np.dtype(DTYPES[spec.dtype])
+    dims = list(spec.dims)
+    units = "1" if spec.quantity == "dop" else "1/sr"
+    if spec.over:
+        over = ", ".join(spec.over)
+        var_attrs = {"min": dict(long_name=f"minimum of {spec.quantity} over {over}", units=units),
+                     "mean": dict(long_name=f"mean of {spec.quantity} over {over}", units=units)}
+        var_attrs.update({f"argmin_{n}": dict(long_name=f"{n} at the minimum of {spec.quantity}", units=dense.UNITS[n])
+                          for n in spec.over})
+    else:
+        var_attrs = {spec.quantity: dict(long_name=dense.QUANTITIES[spec.quantity], units=units)}
+    for name, attrs in var_attrs.items():
+        dt = "f8" if name.startswith("argmin_") else npdt
+        _create_array(g, name, spec.shape, spec.chunks, dt, np.nan, _compressor(),
+                      {"_ARRAY_DIMENSIONS": dims, **attrs})
+    sub = g.require_group("_sweep")
+    sub.attrs.update(description="done[i] = 1 once chunk i (C order over the chunk grid) is in the store",
+                     chunk_grid=list(spec.chunk_grid))
+    _create_array(sub, "done", (spec.n_chunks,), (1,), "u1", 0, None, {})
+    g.attrs.update(_root_attrs(spec))
+    _zarr().consolidate_metadata(store)
+
+
+def _local_is_empty(path):
+    return not path.exists() or (path.is_dir() and not any(path.iterdir()))
+
+
+def open_store(spec, store):
+    """Create the store for ``spec``, or check that an existing one was started with the same
+    spec; returns the absolute store name."""
+    name = _store_name(store)
+    if _is_local(store):
+        path = Path(name)
+        if _local_is_empty(path):
+            # build beside it and rename into place: a store either exists whole or not at all
+            tmp = path.with_name(f"{path.name}.creating-{uuid.uuid4().hex[:8]}")
+            try:
+                _write_skeleton(spec, str(tmp))
+                if path.exists():
+                    path.rmdir()
+                os.rename(tmp, path)
+            except OSError:
+                if not (path / ".zattrs").exists():
+                    raise
+            finally:
+                if tmp.exists():
+                    import shutil
+                    shutil.rmtree(tmp, ignore_errors=True)
+            return name
+        if not (path / ".zgroup").exists():
+            raise SpecError(f"{name} exists and is not a pbrdf-cl sweep store; choose another --out or delete it")
+    attrs = None
+    try:
+        attrs = dict(_open_group(name, "r").attrs)
+    except Exception:  # noqa: BLE001 - zarr raises various errors for a missing group
+        if not _is_local(store):
+            _write_skeleton(spec, name)
+            return name
+    if not attrs or "sweep_spec_sha256" not in attrs:
+        raise SpecError(f"{name} exists and is not a pbrdf-cl sweep store (or its creation was interrupted); "
+                        "choose another --out or delete it")
+    if attrs["sweep_spec_sha256"] != spec.sha256:
+        try:
+            diffs = _differences(json.loads(attrs.get("sweep_spec", "{}")), spec.canonical())
+        except ValueError:
+            diffs = []
+        raise SpecError(f"{name} was started with a different spec ({'; '.join(diffs) or 'sha256 differs'}); "
+                        f"choose another --out, or delete {name} to start over")
+    return name
+
+
+def _clean_partials(name):
+    """Remove the temporary files of writes interrupted by a kill (zarr writes ``*.partial`` then renames)."""
+    for root, _, files in os.walk(name):
+        for f in files:
+            if f.endswith(".partial"):
+                try:
+                    os.unlink(os.path.join(root, f))
+                except OSError:
+                    pass
+
+
+def read_done(spec, store):
+    """Boolean array: which chunks are marked done in the store."""
+    name = _store_name(store)
+    done = np.zeros(spec.n_chunks, bool)
+    folder = Path(name, *DONE.split("/"))
+    if _is_local(store) and folder.is_dir():
+        idx = [int(f) for f in os.listdir(folder) if f.isdigit()]
+        idx = [i for i in idx if i < spec.n_chunks]
+        done[idx] = True
+        return done
+    return _open_group(name, "r")[DONE][:] == 1
+
+
+# ---------------------------------------------------------------------------------------------
+# one chunk: compute, write, then mark
+
+_ENGINES = {}
+_ENGINE_LOCKS = weakref.WeakKeyDictionary()
+_RUNNERS = {}
+_CACHE_LOCK = threading.Lock()
+
+
+def worker_engine(device=None):
+    """This process's engine for ``device`` (built once, then reused by every chunk)."""
+    with _CACHE_LOCK:
+        if device not in _ENGINES:
+            os.environ.setdefault("POCL_CACHE_DIR", os.path.join(tempfile.gettempdir(), "pbrdf-cl-pocl-cache"))
+            if device is None:
+                from .engine import get_default_engine
+                _ENGINES[device] = get_default_engine()
+            else:
+                from .engine import Engine
+                _ENGINES[device] = Engine(device)
+        return _ENGINES[device]
+
+
+def _engine_lock(eng):
+    # kernels hold their arguments, so one engine computes one chunk at a time
+    with _CACHE_LOCK:
+        return _ENGINE_LOCKS.setdefault(eng, threading.Lock())
+
+
+def compute_chunk(spec, eng, i):
+    """The values of chunk ``i``: variable name -> array of the chunk's region shape."""
+    box = spec.box(i)
+    with _engine_lock(eng):
+        if not spec.over:
+            plan = dense.GridPlan(box, spec.fixed)
+            out = np.empty(plan.size, DTYPES[spec.dtype])
+            for _ in dense._grid_blocks(eng, plan, spec.quantity, spec.dtype, spec.shadowing,
+                                        spec.memory_budget // 2, out=out):
+                pass
+            return {spec.quantity: out.reshape(plan.shape)}
+        ds = dense.reduce_grid(box, spec.fixed, over=spec.over, quantity=spec.quantity, dtype=spec.dtype,
+                               shadowing=spec.shadowing, engine=eng, memory_budget=spec.memory_budget)
+        return {v: ds[v].values for v in spec.variables}
+
+
+class _Runner:
+    """Writes chunks of one spec into one store."""
+
+    def __init__(self, spec, name):
+        g = _open_group(name, "r+")
+        self.spec = spec
+        self.arrays = {v: g[v] for v in spec.variables}
+        self.done = g[DONE]
+
+    def run(self, eng, i):
+        t0 = time.perf_counter()
+        values = compute_chunk(self.spec, eng, i)
+        delay = float(os.environ.get(DELAY_ENV) or 0)
+        if delay:
+            time.sleep(delay / 2)
+        region = self.spec.region(i)
+        for v, a in values.items():
+            self.arrays[v][region] = a  # one whole Zarr chunk, written atomically by zarr
+        if delay:
+            time.sleep(delay / 2)
+        self.done[int(i)] = 1  # ... and only then marked done
+        return int(i), self.spec.box_points(i), time.perf_counter() - t0
+
+
+def _runner(spec, name):
+    key = (name, spec.sha256)
+    with _CACHE_LOCK:
+        if key not in _RUNNERS:
+            _RUNNERS[key] = _Runner(spec, name)
+        return _RUNNERS[key]
+
+
+def run_chunk(spec, name, i, device=None):
+    """Dask task: compute chunk ``i`` of ``spec`` with this worker's engine and write it into the
+    store ``name``; returns (i, points, seconds)."""
+    return _runner(spec, name).run(worker_engine(device), i)
+
+
+# ---------------------------------------------------------------------------------------------
+# the driver
+
+class SweepResult(dense.Result):
+    """Result of :func:`sweep` (attribute access).
+
+    store : the store's path or URL;  spec : the :class:`SweepSpec`
+    chunks_total, chunks_computed (this run), chunks_skipped (already done), points_computed,
+    seconds, points_per_s : this run's work and throughput (Zarr writes included);
+    complete : every chunk is in the store.  ``open()`` returns the ``xarray.Dataset``.
+    """
+
+    def open(self):
+        import xarray as xr
+        return xr.open_zarr(self["store"])
+
+    def summary(self):
+        return (f"sweep: {self['chunks_computed']} of {self['chunks_total']} chunks computed "
+                f"({self['chunks_skipped']} already done), {self['points_computed']:.4g} points in "
+                f"{self['seconds']:.3g} s, {self['points_per_s']:.4g} points/s -> {self['store']}")
+
+    def __repr__(self):
+        return f"SweepResult({self.summary()})"
+
+
+def _bar(spec, initial, enabled):
+    if not enabled:
+        return None
+    from tqdm import tqdm
+    return tqdm(total=spec.n_chunks, initial=initial, unit="chunk", desc="sweep", dynamic_ncols=True)
+
+
+def sweep(spec, store, *, engine=None, device=None, workers=None, scheduler=None, client=None, progress=True):
+    """Evaluate a sweep into a Zarr store, computing only the chunks not already there.
+
+    Parameters
+    ----------
+    spec : path of a TOML spec, dict or :class:`SweepSpec`
+    store : path (or URL of an fsspec store) of the Zarr store; created if absent, resumed if
+        it holds the same spec, refused if it holds another.
+    engine, device : the engine (or device, see :func:`pbrdf_cl.select_device`) for a local run;
+        ``device`` is also what every cluster worker builds its own engine for.
+    workers : start a local ``dask.distributed`` cluster of this many processes (1 thread each).
+    scheduler : address of a running scheduler (``tcp://host:8786``); or pass ``client``.
+    progress : a tqdm bar (chunks, points/s, ETA).
+
+    Returns a :class:`SweepResult`; ``.open()`` gives the ``xarray.Dataset``.
+    """
+    spec = load_spec(spec)
+    given = sum(x is not None for x in (workers, scheduler, client))
+    if given > 1:
+        raise ValueError("give at most one of workers=, scheduler= and client=")
+    if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 1):
+        raise ValueError(f"workers must be a positive integer, got {workers!r}")
+    name = open_store(spec, store)
+    if _is_local(store):
+        _clean_partials(name)
+    done = read_done(spec, name)
+    todo = np.flatnonzero(~done)
+    skipped = spec.n_chunks - todo.size
+    stats = dict(chunks=0, points=0)
+    bar = _bar(spec, skipped, progress and todo.size > 0)
+    t0 = time.perf_counter()
+
+    def finished(i, points):
+        stats["chunks"] += 1
+        stats["points"] += points
+        if bar is not None:
+            bar.update(1)
+            bar.set_postfix_str(f"{stats['points'] / max(time.perf_counter() - t0, 1e-9):.3g} points/s", refresh=False)
+
+    try:
+        if todo.size and given == 0:
+            eng = engine if engine is not None else worker_engine(device)
+            runner = _Runner(spec, name)
+            for i in todo:
+                _, points, _ = runner.run(eng, i)
+                finished(i, points)
+        elif todo.size:
+            _run_distributed(spec, name, todo, device, workers, scheduler, client, finished)
+    finally:
+        if bar is not None:
+            bar.close()
+    seconds = time.perf_counter() - t0
+    complete = skipped + stats["chunks"] == spec.n_chunks
+    if complete:
+        _mark_complete(spec, name)
+    res = SweepResult(store=name, spec=spec, chunks_total=spec.n_chunks, chunks_computed=stats["chunks"],
+                      chunks_skipped=int(skipped), points_computed=stats["points"], seconds=seconds,
+                      points_per_s=stats["points"] / seconds if stats["points"] else 0.0, complete=complete)
+    log.info(res.summary())
+    return res
+
+
+def _mark_complete(spec, name):
+    g = _open_group(name, "r+")
+    if not g.attrs.get("sweep_complete"):
+        if not read_done(spec, name).all():
+            return
+        g.attrs["sweep_complete"] = True
+    _zarr().consolidate_metadata(name)
+
+
+def _run_distributed(spec, name, todo, device, workers, scheduler, client, finished):
+    try:
+        from distributed import Client, LocalCluster, as_completed
+    except ImportError:
+        raise RuntimeError("a cluster sweep needs dask.distributed: pip install 'pbrdf-cl[cluster]'") from None
+    cluster = own_client = None
+    try:
+        if client is None:
+            if workers is not None:
+                os.environ.setdefault("POCL_CACHE_DIR", os.path.join(tempfile.gettempdir(), "pbrdf-cl-pocl-cache"))
+                cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                                       dashboard_address=None, silence_logs=logging.ERROR)
+                own_client = client = Client(cluster)
+            else:
+                own_client = client = Client(scheduler, timeout=60)
+        n_threads = sum(client.nthreads().values()) or 1
+        token = uuid.uuid4().hex[:8]
+        spec_future = client.scatter(spec, broadcast=True)
+        pending = iter(todo)
+
+        def submit(i):
+            return client.submit(run_chunk, spec_future, name, int(i), device, key=f"pbrdf-sweep-{token}-{i}",
+                                 pure=False, retries=1)
+        first = [submit(i) for i in itertools.islice(pending, 2 * n_threads + 2)]
+        queue = as_completed(first)
+        try:
+            for fut in queue:
+                i, points, _ = fut.result()
+                fut.release()
+                finished(i, points)
+                nxt = next(pending, None)
+                if nxt is not None:
+                    queue.add(submit(nxt))
+        except BaseException:
+            client.cancel(list(queue.futures))
+            raise
+    finally:
+        if own_client is not None:
+            own_client.close()
+        if cluster is not None:
+            cluster.close()
