@@ -338,11 +338,11 @@ def _sum_of_squares(resid):
 
 
 def _grid_axis(name, bounds, count):
-    """Grid values of one parameter.  n and k are spaced quadratically from their lower bound:
-    near n = 1, k = 0 (an almost index-matched surface) the DOP changes fastest and its
-    minima are narrowest."""
+    """Grid values of one parameter.  n, k and kd are spaced quadratically from their lower
+    bound: near n = 1, k = 0 (an almost index-matched surface) and near kd = 0 (a small diffuse
+    share) the DOP changes fastest and its minima are narrowest."""
     u = np.linspace(0.0, 1.0, count)
-    if name in ("n", "k"):
+    if name in ("n", "k", "kd"):
         u = u * u
     return bounds[0] + (bounds[1] - bounds[0]) * u
 
