@@ -1,4 +1,4 @@
-"""Command line interface: ``pbrdf-cl devices`` and ``pbrdf-cl eval``."""
+"""Command line interface: ``pbrdf-cl devices|eval|fit|reproduce|map|bench``."""
 from __future__ import annotations
 
 import argparse
@@ -175,9 +175,71 @@ def cmd_fit(args) -> int:
     return 0
 
 
+def cmd_sweep(args) -> int:
+    from .sweep import load_spec, read_done, sweep  # the module pbrdf_cl.sweep (the package exports the function)
+    try:
+        spec = load_spec(args.spec)
+        engine = _engine.Engine(args.device) if args.device and not (args.workers or args.scheduler) else None
+        res = sweep(spec, args.out, engine=engine, device=args.device, workers=args.workers,
+                    scheduler=args.scheduler, progress=not args.quiet)
+    except KeyboardInterrupt:
+        try:
+            done = int(read_done(spec, args.out).sum())
+            where = f"{done} of {spec.n_chunks} chunks are in {args.out}"
+        except Exception:  # noqa: BLE001 - the store may not exist yet
+            where = "nothing was written"
+        print(f"pbrdf-cl: interrupted; {where}; run the same command again to resume", file=sys.stderr)
+        return 130
+    except (OSError, ValueError, RuntimeError, _engine.OpenCLUnavailableError) as exc:
+        print(f"pbrdf-cl: error: {exc}", file=sys.stderr)
+        return 1
+    print(res.summary())
+    return 0
+
+
 def cmd_bench(args) -> int:
     from . import bench
     return bench.main(args.rest)
+
+
+def _error(exc) -> int:
+    print(f"pbrdf-cl: error: {exc}", file=sys.stderr)
+    return 1
+
+
+def cmd_reproduce(args) -> int:
+    from . import paper
+    try:
+        engine = _engine.Engine(args.device) if args.device else None
+        files = paper.reproduce(args.out, resolution=args.resolution, engine=engine,
+                                log=(lambda *a: None) if args.quiet else print)
+    except (OSError, ValueError, _engine.OpenCLUnavailableError) as exc:
+        return _error(exc)
+    print(f"wrote {len(files)} files to {args.out}/ (list: {args.out}/summary.md):")
+    for name in files:
+        print(f"  {args.out}/{name}")
+    return 0
+
+
+def cmd_map(args) -> int:
+    from . import maps
+    try:
+        x = maps.parse_axis("--x", args.x)
+        y = maps.parse_axis("--y", args.y)
+        fixed = maps.parse_fixed("--fix", args.fix)
+        engine = _engine.Engine(args.device) if args.device else None
+        ds = maps.make_map(x, y, fixed, quantity=args.quantity, derivative=args.derivative, dtype=args.dtype,
+                           shadowing=args.shadowing, engine=engine)
+        maps.plot_map(ds, args.out)
+        if args.npz:
+            maps.save_npz(ds, args.npz)
+    except (OSError, ValueError, _engine.OpenCLUnavailableError) as exc:
+        return _error(exc)
+    v = ds[args.quantity].values
+    print(f"{args.quantity} over {x[0]} ({x[1].size} points) x {y[0]} ({y[1].size} points): "
+          f"min {np.nanmin(v):.6g}, max {np.nanmax(v):.6g}")
+    print(f"wrote {args.out}" + (f" and {args.npz}" if args.npz else ""))
+    return 0
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -203,6 +265,19 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--device", help="OpenCL device: P:D or a name substring (default: PYOPENCL_CTX, then PoCL)")
     e.add_argument("--json", action="store_true", help="JSON output")
     e.set_defaults(func=cmd_eval)
+    s = sub.add_parser("sweep", help="a sweep of any size into a Zarr store (resumable; dask cluster)",
+                       description="Evaluate the sweep described by a TOML spec (axes, fixed values, quantity, "
+                       "dtype, chunks, optional reductions; see examples/sweep_sigma_theta.toml) chunk by chunk "
+                       "into a Zarr store. Run the same command again after an interruption: only the missing "
+                       "chunks are computed.")
+    s.add_argument("spec", help="TOML spec")
+    s.add_argument("--out", required=True, metavar="STORE", help="Zarr store to create or resume (e.g. result.zarr)")
+    where = s.add_mutually_exclusive_group()
+    where.add_argument("--workers", type=int, metavar="N", help="run on a local dask cluster of N processes")
+    where.add_argument("--scheduler", metavar="ADDR", help="run on a dask.distributed cluster (tcp://host:8786)")
+    s.add_argument("--device", help="OpenCL device, here or on every worker (P:D or a name substring)")
+    s.add_argument("--quiet", action="store_true", help="no progress bar; one summary line at the end")
+    s.set_defaults(func=cmd_sweep)
     f = sub.add_parser("fit", help="invert n, k, sigma, kd/ks, c from measured DOP (CSV)",
                        description="Fit the six-parameter model and the ref. [7] specular model to a CSV of "
                        "measurements (columns theta_i, theta_r, dop[, phi, dop_std, f00|s0, f00_std]).")
@@ -217,6 +292,32 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--plot", metavar="PNG", help="plot data, both models and residuals")
     f.add_argument("--quiet", action="store_true", help="no progress bar")
     f.set_defaults(func=cmd_fit)
+    r = sub.add_parser("reproduce", help="reproduce the paper's figures and Table 1, plus roughness maps",
+                       description="Writes Fig. 2 (aluminum, black paint: synthetic data, both models fitted), "
+                       "Table 1, Fig. 4, Fig. 5, two dense DOP maps, the arrays of each figure (.npz) and "
+                       "summary.md into one folder.")
+    r.add_argument("--out", default="paper-figures", help="output folder (default: paper-figures)")
+    r.add_argument("--resolution", type=int, default=256, help="points per map axis (default 256)")
+    r.add_argument("--device", help="OpenCL device (P:D or a name substring)")
+    r.add_argument("--quiet", action="store_true", help="no progress lines")
+    r.set_defaults(func=cmd_reproduce)
+    m = sub.add_parser("map", help="a dense map of DOP or F00 over any two axes (PNG + optional .npz)",
+                       description="Axes: name=start:stop:count (ends included) or name=v1,v2,...; angles in "
+                       "degrees. Inputs not on an axis are fixed with --fix (phi, ks, kd, c default to "
+                       "180, 1, 0, 0). Example: pbrdf-cl map --x theta_r=0:85:256 --y sigma=0.05:1:256 "
+                       "--fix theta_i=40 n=1.6 k=2.139 ks=0.9 kd=0.15 c=-0.3 --derivative sigma --out map.png")
+    m.add_argument("--x", required=True, metavar="NAME=START:STOP:COUNT", help="horizontal axis")
+    m.add_argument("--y", required=True, metavar="NAME=START:STOP:COUNT", help="vertical axis")
+    m.add_argument("--fix", nargs="*", metavar="NAME=VALUE", help="the other inputs, e.g. theta_i=40 n=1.6")
+    m.add_argument("--quantity", choices=("dop", "f00"), default="dop")
+    m.add_argument("--derivative", metavar="NAME",
+                   help="add a panel with d(quantity)/d(NAME): finite differences on the device grid")
+    m.add_argument("--dtype", choices=("float32", "float64"), default="float64")
+    m.add_argument("--shadowing", choices=sorted(SHADOWING), default="paper")
+    m.add_argument("--device", help="OpenCL device (P:D or a name substring)")
+    m.add_argument("--out", default="map.png", help="PNG to write (default map.png)")
+    m.add_argument("--npz", metavar="NPZ", help="also save the arrays (coordinates, values, derivative)")
+    m.set_defaults(func=cmd_map)
     b = sub.add_parser("bench", help="benchmark every evaluation path (options: pbrdf-cl bench -- --help)",
                        add_help=False)
     b.add_argument("rest", nargs=argparse.REMAINDER)

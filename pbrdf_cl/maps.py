@@ -1,0 +1,217 @@
+"""Two-axis maps of the model from the dense-grid engine: values, derivatives, figures, data.
+
+A map is the model (DOP or F00) over the Cartesian product of two axes ``x`` and ``y`` with
+every other input fixed, computed on the OpenCL device by :func:`pbrdf_cl.grid`.  A derivative
+along one of the map's axes is a finite difference on that same device grid (second order,
+``numpy.gradient`` with the axis' coordinates); a derivative along a fixed input is a central
+difference of two device grids at ``p +- h``.
+"""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from . import api, dense
+from .plots import _pyplot
+
+#: Axis labels with units for figures.
+LABELS = {"theta_i": "incidence zenith angle theta_i (deg)", "theta_r": "reflection zenith angle theta_r (deg)",
+          "phi": "relative azimuth phi (deg, 180 = in plane)", "n": "refractive index n",
+          "k": "extinction coefficient k", "sigma": "slope std per axis sigma", "ks": "specular weight ks",
+          "kd": "diffuse weight kd", "c": "Minnaert exponent c"}
+QUANTITY_LABELS = {"dop": "DOP", "f00": "F00 (1/sr)"}
+#: Relative step of the central difference along a fixed input.
+FD_STEP = 1e-4
+
+
+def parse_axis(option, text):
+    """``"theta_r=0:85:256"`` (start:stop:count, both ends included) or ``"sigma=0.35,0.5,0.65"``
+    -> (name, float64 values).  ``ValueError`` names the option and the text."""
+    name, sep, spec = text.partition("=")
+    name = name.strip()
+    form = "name=start:stop:count (count >= 2) or name=v1,v2,..."
+    if not sep or not name or not spec:
+        raise ValueError(f"{option}: {text!r} is not of the form {form}")
+    if name not in dense.AXES:
+        raise ValueError(f"{option}: unknown axis {name!r}; valid names are {', '.join(dense.AXES)}")
+    try:
+        if ":" in spec:
+            parts = spec.split(":")
+            if len(parts) != 3:
+                raise ValueError
+            start, stop = float(parts[0]), float(parts[1])
+            count = int(parts[2])
+            if count < 2 or not (np.isfinite(start) and np.isfinite(stop)) or start == stop:
+                raise ValueError
+            values = np.linspace(start, stop, count)
+        else:
+            values = np.array([float(p) for p in spec.split(",")])
+    except ValueError:
+        raise ValueError(f"{option}: {text!r} is not of the form {form} with distinct finite ends") from None
+    try:
+        api.check_values(name, values)
+    except ValueError as exc:
+        raise ValueError(f"{option}: {exc}") from None
+    return name, values
+
+
+def parse_fixed(option, items):
+    """``["theta_i=40", "n=1.6"]`` -> {"theta_i": 40.0, "n": 1.6}, checked against the model's rules."""
+    out = {}
+    for item in items or []:
+        name, sep, value = item.partition("=")
+        name = name.strip()
+        if not sep or not name:
+            raise ValueError(f"{option}: {item!r} is not of the form name=value")
+        if name not in dense.AXES:
+            raise ValueError(f"{option}: unknown input {name!r}; valid names are {', '.join(dense.AXES)}")
+        if name in out:
+            raise ValueError(f"{option}: {name} is given twice")
+        try:
+            out[name] = float(api.check_values(name, float(value)))
+        except ValueError as exc:
+            raise ValueError(f"{option}: {item!r}: {exc}") from None
+    return out
+
+
+def _axis(option, value):
+    if isinstance(value, str):
+        return parse_axis(option, value)
+    name, values = value
+    return name, np.asarray(values, dtype=np.float64)
+
+
+def make_map(x, y, fixed=None, quantity="dop", derivative=None, *, dtype="float64", shadowing="paper",
+             engine=None):
+    """The model over (y, x) with ``fixed`` inputs; optionally its derivative along ``derivative``.
+
+    Parameters
+    ----------
+    x, y : ``"name=start:stop:count"`` strings or (name, values) pairs (degrees for angles)
+    fixed : dict name -> value for the other inputs (phi, ks, kd, c default to 180, 1, 0, 0)
+    quantity : "dop" or "f00"
+    derivative : None, the name of x or y (a finite difference on the device grid) or of a fixed
+        input (a central difference of two device grids)
+
+    Returns
+    -------
+    xarray.Dataset with dims (y, x): the quantity and, with ``derivative``, ``d<quantity>_d<name>``;
+    the fixed inputs, quantity, shadowing and dtype in ``attrs``.
+    """
+    xname, xv = _axis("x", x)
+    yname, yv = _axis("y", y)
+    if xname == yname:
+        raise ValueError(f"x and y are both {xname!r}; choose two different axes")
+    fixed = dict(fixed or {})
+    for name in (xname, yname):
+        if name in fixed:
+            raise ValueError(f"{name} is both a map axis and a fixed value")
+    axes = {xname: xv, yname: yv}
+    kw = dict(quantity=quantity, dtype=dtype, shadowing=shadowing, engine=engine)
+    da = dense.grid(axes, fixed, **kw).transpose(yname, xname)
+    ds = da.to_dataset(name=quantity)
+    ds.attrs = dict(da.attrs)
+    ds.attrs.update(x=xname, y=yname)
+    if derivative is not None:
+        dname = f"d{quantity}_d{derivative}"
+        values = da.values.astype(np.float64)
+        if derivative in (xname, yname):
+            axis = 0 if derivative == yname else 1
+            coord = yv if axis == 0 else xv
+            if coord.size < 3:
+                raise ValueError(f"derivative along {derivative} needs at least 3 points on that axis")
+            d = np.gradient(values, coord, axis=axis, edge_order=2)
+            method = "second-order finite difference on the map's own grid (numpy.gradient, edge_order=2)"
+        elif derivative in dense.AXES:
+            plan = dense.GridPlan(axes, fixed)  # the value every input takes, defaults included
+            p = float(plan.values[derivative][0])
+            h = FD_STEP * max(1.0, abs(p))
+            lo, hi = p - h, p + h
+            try:
+                api.check_values(derivative, lo)
+            except ValueError:
+                lo = p  # one-sided at the edge of the valid range (k = 0, kd = 0)
+            pair = dense.grid({**axes, derivative: np.array([lo, hi])},
+                              {n: v for n, v in fixed.items() if n != derivative}, **kw)
+            pair = pair.transpose(derivative, yname, xname).values.astype(np.float64)
+            d = (pair[1] - pair[0]) / (hi - lo)
+            method = f"difference of two device grids at {derivative} = {lo:.8g} and {hi:.8g}"
+        else:
+            raise ValueError(f"derivative: unknown input {derivative!r}; valid names are {', '.join(dense.AXES)}")
+        ds[dname] = ((yname, xname), d, {"long_name": f"d {quantity} / d {derivative}", "method": method})
+        ds.attrs["derivative"] = derivative
+    return ds
+
+
+def _fixed_text(attrs, skip=()):
+    items = [(k[6:], v) for k, v in attrs.items() if k.startswith("fixed_") and k[6:] not in skip]
+    return ", ".join(f"{k}={v:g}" for k, v in items)
+
+
+def _norm_for(values, quantity):
+    from matplotlib import colors
+    finite = values[np.isfinite(values)]
+    if quantity == "f00" and finite.size and finite.min() > 0 and finite.max() / finite.min() > 100:
+        return colors.LogNorm(finite.min(), finite.max())
+    return None
+
+
+def plot_map(ds, path, title=None, dpi=120):
+    """Write ``ds`` (from :func:`make_map`) as a PNG: the quantity with contour lines and a colour
+    bar, and the derivative (diverging colours, zero-centred) in a second panel when present."""
+    from matplotlib import colors
+    plt = _pyplot()
+    xname, yname = ds.attrs["x"], ds.attrs["y"]
+    quantity = ds.attrs["quantity"]
+    deriv = ds.attrs.get("derivative")
+    panels = [quantity] + ([f"d{quantity}_d{deriv}"] if deriv else [])
+    fig, axs = plt.subplots(1, len(panels), figsize=(6.2 * len(panels), 5.0), squeeze=False)
+    x, y = ds[xname].values, ds[yname].values
+    for ax, var in zip(axs[0], panels):
+        z = ds[var].values
+        if var == quantity:
+            norm = _norm_for(z, quantity)
+            mesh = ax.pcolormesh(x, y, z, shading="auto", cmap="viridis", norm=norm)
+            if np.ptp(z[np.isfinite(z)]) > 0:
+                cs = ax.contour(x, y, z, levels=8, colors="white", linewidths=0.7, norm=norm)
+                ax.clabel(cs, fontsize=7, fmt="%.3g")
+            label = QUANTITY_LABELS[quantity]
+        else:
+            # derivatives often span decades (steep where sigma -> 0): a symmetric-log scale, linear
+            # within the median |derivative|, keeps the rest of the map readable
+            mag = np.abs(z[np.isfinite(z)])
+            lim = float(mag.max()) or 1.0
+            thresh = float(np.median(mag))
+            if thresh > 0 and lim / thresh > 30:
+                norm = colors.SymLogNorm(linthresh=thresh, vmin=-lim, vmax=lim)
+            else:
+                norm = colors.Normalize(-lim, lim)
+            mesh = ax.pcolormesh(x, y, z, shading="auto", cmap="RdBu_r", norm=norm)
+            label = f"d{QUANTITY_LABELS[quantity].split()[0]} / d{deriv}"
+            if isinstance(norm, colors.SymLogNorm):
+                label += ", symmetric log scale"
+            if (z > 0).any() and (z < 0).any():
+                ax.contour(x, y, z, levels=[0.0], colors="k", linewidths=0.8)
+                label += " (black line: 0)"
+        cb = fig.colorbar(mesh, ax=ax)
+        cb.set_label(label)
+        ax.set_xlabel(LABELS[xname])
+        ax.set_ylabel(LABELS[yname])
+        ax.set_title(label, fontsize=10)
+    fig.suptitle(title or f"{QUANTITY_LABELS[quantity]} over ({xname}, {yname}); "
+                 f"{_fixed_text(ds.attrs)}; shadowing {ds.attrs['shadowing']}", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
+
+
+def save_npz(ds, path):
+    """The map's arrays beside the picture: x, y (coordinates), the quantity, the derivative if
+    any, their names, and the attrs as JSON."""
+    xname, yname = ds.attrs["x"], ds.attrs["y"]
+    arrays = {"x": ds[xname].values, "y": ds[yname].values, "x_name": np.array(xname), "y_name": np.array(yname),
+              "attrs": np.array(json.dumps(ds.attrs, default=str))}
+    for var in ds.data_vars:
+        arrays[var] = ds[var].values
+    np.savez_compressed(path, **arrays)

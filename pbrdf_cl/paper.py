@@ -1,0 +1,273 @@
+"""Reproduce the figures and Table 1 of Zhu et al. (2020) and add dense roughness maps.
+
+:func:`reproduce` writes into one folder:
+
+- ``fig2_aluminum.png``, ``fig2_black_paint.png``: the paper's Fig. 2.  Its measured points (from
+  Thilak et al.) are not published, so the data are generated from the six-parameter model at
+  the true n, k of Table 1 with the roughness, diffuse weight, Minnaert exponent and noise of
+  :data:`FIG2_SAMPLES` (stated on the figure and in ``summary.md``), in the specular geometry
+  theta_r = theta_i, phi = 180.  Both models are fitted with :func:`pbrdf_cl.compare_models`.
+- ``table1.md``, ``table1.csv``: true / ref. [7] / six-parameter estimates (ours, with 95%
+  intervals) next to the paper's own numbers.
+- ``fig4_steel.png``: DOP vs theta_r at theta_i = 30, 40, 50 deg with the paper's steel fit.
+- ``fig5_sigma.png``: DOP vs theta_r at theta_i = 40 deg for sigma = 0.35, 0.5, 0.65.
+- ``map_sigma_theta_r.png``: DOP over (theta_r, sigma) at theta_i = 40 deg with contours, and
+  dDOP/dsigma from finite differences on the device grid.
+- ``map_theta_i_theta_r.png``: DOP over (theta_i, theta_r) for sigma = 0.35, 0.5, 0.65.
+- one ``.npz`` per figure with the arrays drawn, and ``summary.md`` listing every file.
+"""
+from __future__ import annotations
+
+import csv
+import time
+from pathlib import Path
+
+import numpy as np
+
+from . import api, dense, maps
+from .data import from_arrays
+from .plots import _pyplot
+
+#: The paper's fit to 45# steel at 435 nm, theta_i = 40 deg (SPEC).
+STEEL = dict(n=1.6, k=2.139, sigma=0.5, ks=0.9, kd=0.15, c=-0.3)
+STEEL_THETA_I = (30.0, 40.0, 50.0)
+STEEL_THETA_R = np.arange(20.0, 65.0 + 1e-9, 5.0)
+SIGMAS = (0.35, 0.5, 0.65)
+#: Table 1 of the paper: true and estimated (n, k).
+TABLE1 = {"aluminum": {"true": (1.24, 6.6), "ref7": (1.37, 3.97), "six": (1.255, 6.582)},
+          "black paint": {"true": (1.405, 0.2289), "ref7": (1.46, 1.32), "six": (1.413, 0.232)}}
+#: The synthetic Fig. 2 samples: the true n, k of Table 1; the other parameters are our choice
+#: (the paper does not give them), stated wherever the data are shown.
+FIG2_SAMPLES = {"aluminum": dict(n=1.24, k=6.6, sigma=0.25, ks=1.0, kd=0.2, c=-0.3),
+                "black paint": dict(n=1.405, k=0.2289, sigma=0.3, ks=1.0, kd=0.05, c=-0.5)}
+FIG2_ANGLES = np.arange(10.0, 80.0 + 1e-9, 2.5)
+FIG2_NOISE = 0.001
+SEED = 2020
+
+
+def _params_text(p):
+    return ", ".join(f"{k}={v:g}" for k, v in p.items())
+
+
+def _finish(fig, ax, path, legend=True):
+    ax.grid(alpha=0.3)
+    if legend:
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    _pyplot().close(fig)
+
+
+def fig2_data(sample, seed=SEED):
+    """The synthetic measurements of one Fig. 2 sample: (Measurements, noise-free DOP)."""
+    p = FIG2_SAMPLES[sample]
+    ti = FIG2_ANGLES
+    clean = api.dop(ti, ti, 180.0, backend="numpy", **p)
+    rng = np.random.default_rng([seed, sorted(FIG2_SAMPLES).index(sample)])
+    noisy = np.clip(clean + rng.normal(0.0, FIG2_NOISE, ti.size), 0.0, 1.0)
+    meas = from_arrays(ti, ti, noisy, dop_std=np.full(ti.size, FIG2_NOISE), source=f"synthetic {sample}")
+    return meas, clean
+
+
+def fig2(sample, out, engine=None, seed=SEED):
+    """Fit both models to one synthetic Fig. 2 sample, plot and save; returns the fits."""
+    from .inversion import compare_models
+    meas, clean = fig2_data(sample, seed)
+    both = compare_models(meas, engine=engine)
+    six, spec = both["six-param"], both["specular"]
+    angle = np.linspace(0.0, 85.0, 171)
+    curve_six = api.dop(angle, angle, 180.0, backend="numpy", shadowing=six.shadowing, **six.x)
+    curve_spec = api.dop(angle, angle, 180.0, backend="numpy", model="specular", **spec.x)
+    curve_true = api.dop(angle, angle, 180.0, backend="numpy", **FIG2_SAMPLES[sample])
+    slug = sample.replace(" ", "_")
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(7.5, 5.2))
+    ax.errorbar(meas.theta_i, meas.dop, yerr=meas.dop_std, fmt="o", ms=4, color="k",
+                label=f"synthetic data (noise sd {FIG2_NOISE:g})")
+    ax.plot(angle, curve_true, ":", color="0.5", lw=1, label="true model")
+    ax.plot(angle, curve_six, "-", color="C0",
+            label=f"six-param fit: n={six.x['n']:.3f}, k={six.x['k']:.3f} (BIC {six.bic:.1f})")
+    ax.plot(angle, curve_spec, "--", color="C3",
+            label=f"ref. [7] fit: n={spec.x['n']:.3f}, k={spec.x['k']:.3f} (BIC {spec.bic:.1f})")
+    ax.set_xlabel("incidence angle theta_i = theta_r (deg), in plane")
+    ax.set_ylabel("degree of polarization")
+    ax.set_xlim(0, 85)
+    ax.set_title(f"Fig. 2 ({sample}): DOP vs incidence angle, both models\n"
+                 f"data from the six-param model at {_params_text(FIG2_SAMPLES[sample])}", fontsize=9)
+    _finish(fig, ax, out / f"fig2_{slug}.png")
+    np.savez_compressed(out / f"fig2_{slug}.npz", theta_i=meas.theta_i, theta_r=meas.theta_r, dop=meas.dop,
+                        dop_clean=clean, angle=angle, six_param=curve_six, specular=curve_spec, true=curve_true,
+                        six_param_x=np.array([six.x[k] for k in ("n", "k", "sigma", "ks", "kd", "c")]),
+                        specular_x=np.array([spec.x["n"], spec.x["k"]]))
+    return both
+
+
+def _interval(r, name):
+    lo, hi = r.ci95[name]
+    return f"{r.x[name]:.4g} [{lo:.3g}, {hi:.3g}]"
+
+
+def table1(fits, out):
+    """``table1.md`` and ``table1.csv``: true values, the paper's estimates and ours."""
+    rows = []
+    for sample, both in fits.items():
+        true, paper = TABLE1[sample]["true"], TABLE1[sample]
+        six, spec = both["six-param"], both["specular"]
+        rows.append(dict(sample=sample, true_n=true[0], true_k=true[1],
+                         paper_ref7_n=paper["ref7"][0], paper_ref7_k=paper["ref7"][1],
+                         paper_six_n=paper["six"][0], paper_six_k=paper["six"][1],
+                         ours_ref7_n=spec.x["n"], ours_ref7_k=spec.x["k"],
+                         ours_six_n=six.x["n"], ours_six_k=six.x["k"],
+                         ours_six_n_lo=six.ci95["n"][0], ours_six_n_hi=six.ci95["n"][1],
+                         ours_six_k_lo=six.ci95["k"][0], ours_six_k_hi=six.ci95["k"][1],
+                         ours_ref7_sse=spec.sse, ours_six_sse=six.sse, ours_ref7_bic=spec.bic, ours_six_bic=six.bic))
+    with open(out / "table1.csv", "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    lines = ["# Table 1: n, k inverted from DOP data", "",
+             "Paper columns: Zhu et al. 2020, Table 1 (their data: Thilak et al.). Our columns: fits of both "
+             "models to synthetic data generated from the six-parameter model at the true n, k "
+             "(other parameters and noise in `summary.md`); six-parameter values with their 95% intervals.", "",
+             "| sample | true n | true k | paper ref.[7] n | paper ref.[7] k | paper six-param n | "
+             "paper six-param k | our ref.[7] n | our ref.[7] k | our six-param n [95%] | "
+             "our six-param k [95%] | BIC ref.[7] / six |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for (sample, both), r in zip(fits.items(), rows):
+        six, spec = both["six-param"], both["specular"]
+        lines.append(f"| {sample} | {r['true_n']:g} | {r['true_k']:g} | {r['paper_ref7_n']:g} | "
+                     f"{r['paper_ref7_k']:g} | {r['paper_six_n']:g} | {r['paper_six_k']:g} | "
+                     f"{spec.x['n']:.4g} | {spec.x['k']:.4g} | {_interval(six, 'n')} | {_interval(six, 'k')} | "
+                     f"{spec.bic:.1f} / {six.bic:.1f} |")
+    (out / "table1.md").write_text("\n".join(lines) + "\n")
+    return rows
+
+
+def fig4(out):
+    """DOP vs theta_r at the three incidence angles with the paper's steel fit."""
+    tr = np.linspace(20.0, 65.0, 181)
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(7.5, 5.2))
+    curves = {}
+    for i, ti in enumerate(STEEL_THETA_I):
+        curves[ti] = api.dop(ti, tr, 180.0, backend="numpy", **STEEL)
+        ax.plot(tr, curves[ti], "-", color=f"C{i}", label=f"theta_i = {ti:g} deg")
+        ax.plot(STEEL_THETA_R, api.dop(ti, STEEL_THETA_R, 180.0, backend="numpy", **STEEL), "o", color=f"C{i}",
+                ms=4)
+    ax.set_xlabel("reflection zenith angle theta_r (deg), in plane")
+    ax.set_ylabel("degree of polarization")
+    ax.set_title(f"Fig. 4: 45# steel, 435 nm, the paper's fit ({_params_text(STEEL)})\n"
+                 "markers: the measured geometries (theta_r 20..65 step 5)", fontsize=9)
+    _finish(fig, ax, out / "fig4_steel.png")
+    np.savez_compressed(out / "fig4_steel.npz", theta_r=tr, theta_i=np.array(STEEL_THETA_I),
+                        dop=np.stack([curves[t] for t in STEEL_THETA_I]))
+
+
+def fig5(out):
+    """DOP vs theta_r at theta_i = 40 for three roughness values."""
+    tr = np.linspace(20.0, 65.0, 181)
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(7.5, 5.2))
+    rows = []
+    for i, s in enumerate(SIGMAS):
+        rows.append(api.dop(40.0, tr, 180.0, backend="numpy", **{**STEEL, "sigma": s}))
+        ax.plot(tr, rows[-1], "-", color=f"C{i}", label=f"sigma = {s:g}")
+    ax.set_xlabel("reflection zenith angle theta_r (deg), in plane")
+    ax.set_ylabel("degree of polarization")
+    others = {k: v for k, v in STEEL.items() if k != "sigma"}
+    ax.set_title(f"Fig. 5: effect of roughness at theta_i = 40 deg ({_params_text(others)})", fontsize=9)
+    _finish(fig, ax, out / "fig5_sigma.png")
+    np.savez_compressed(out / "fig5_sigma.npz", theta_r=tr, sigma=np.array(SIGMAS), dop=np.stack(rows))
+
+
+def map_sigma_theta_r(out, resolution=256, engine=None):
+    """DOP over (theta_r, sigma) at theta_i = 40 deg, with dDOP/dsigma on the device grid."""
+    fixed = {"theta_i": 40.0, **{k: v for k, v in STEEL.items() if k != "sigma"}}
+    ds = maps.make_map(("theta_r", np.linspace(0.0, 85.0, resolution)),
+                       ("sigma", np.linspace(0.05, 1.0, resolution)), fixed, derivative="sigma", engine=engine)
+    maps.plot_map(ds, out / "map_sigma_theta_r.png",
+                  title=f"DOP and dDOP/dsigma over (theta_r, sigma), in plane, {_params_text(fixed)}")
+    maps.save_npz(ds, out / "map_sigma_theta_r.npz")
+    return ds
+
+
+def map_theta_i_theta_r(out, resolution=256, engine=None):
+    """DOP over (theta_i, theta_r) for the three roughness values of Fig. 5 (one device grid)."""
+    from matplotlib import colors
+    angles = np.linspace(0.0, 85.0, resolution)
+    fixed = {k: v for k, v in STEEL.items() if k != "sigma"}
+    da = dense.grid({"theta_i": angles, "theta_r": angles, "sigma": np.array(SIGMAS)}, fixed,
+                    dtype="float64", engine=engine)
+    plt = _pyplot()
+    fig, axs = plt.subplots(1, len(SIGMAS), figsize=(5.0 * len(SIGMAS), 4.6), sharey=True, layout="constrained")
+    norm = colors.Normalize(0.0, float(da.max()))
+    for ax, s in zip(axs, SIGMAS):
+        z = da.sel(sigma=s).transpose("theta_r", "theta_i").values
+        mesh = ax.pcolormesh(angles, angles, z, shading="auto", cmap="viridis", norm=norm)
+        cs = ax.contour(angles, angles, z, levels=np.arange(0.1, 1.0, 0.1), colors="white", linewidths=0.7)
+        ax.clabel(cs, fontsize=7, fmt="%.1f")
+        ax.set_title(f"sigma = {s:g}", fontsize=10)
+        ax.set_xlabel(maps.LABELS["theta_i"])
+    axs[0].set_ylabel(maps.LABELS["theta_r"])
+    cb = fig.colorbar(mesh, ax=list(axs), shrink=0.9)
+    cb.set_label("DOP")
+    fig.suptitle(f"DOP over (theta_i, theta_r), in plane, {_params_text(fixed)}", fontsize=10)
+    fig.savefig(out / "map_theta_i_theta_r.png", dpi=110)
+    plt.close(fig)
+    np.savez_compressed(out / "map_theta_i_theta_r.npz", theta_i=angles, theta_r=angles, sigma=np.array(SIGMAS),
+                        dop=da.transpose("sigma", "theta_r", "theta_i").values)
+    return da
+
+
+DESCRIPTIONS = {
+    "fig2_aluminum.png": "Fig. 2, aluminum: synthetic DOP data vs incidence angle with the six-parameter and "
+                         "ref. [7] fits and the true curve.",
+    "fig2_black_paint.png": "Fig. 2, black paint: the same for the dielectric sample.",
+    "table1.md": "Table 1: true n, k, the paper's estimates and ours (six-parameter with 95% intervals), as a "
+                 "Markdown table.",
+    "table1.csv": "Table 1 as CSV, with our intervals and both models' BIC.",
+    "fig4_steel.png": "Fig. 4: DOP vs theta_r of 45# steel at theta_i = 30, 40, 50 deg with the paper's fit.",
+    "fig5_sigma.png": "Fig. 5: DOP vs theta_r at theta_i = 40 deg for sigma = 0.35, 0.5, 0.65.",
+    "map_sigma_theta_r.png": "Dense map of DOP over (theta_r, sigma) at theta_i = 40 deg with contours, and "
+                             "dDOP/dsigma by finite differences on the device grid.",
+    "map_theta_i_theta_r.png": "Dense maps of DOP over (theta_i, theta_r) for sigma = 0.35, 0.5, 0.65 on one "
+                               "colour scale.",
+}
+
+
+def reproduce(out="paper-figures", *, resolution=256, engine=None, seed=SEED, log=print):
+    """Write every figure, table and data file (see the module docstring) into ``out``.
+
+    Returns a dict file name -> one-sentence description (what ``summary.md`` lists)."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    if resolution < 8:
+        raise ValueError(f"resolution must be >= 8 points per map axis, got {resolution}")
+    t0 = time.perf_counter()
+    fits = {}
+    for sample in FIG2_SAMPLES:
+        fits[sample] = fig2(sample, out, engine=engine, seed=seed)
+        log(f"fig2 {sample}: fitted both models ({time.perf_counter() - t0:.1f} s)")
+    table1(fits, out)
+    fig4(out)
+    fig5(out)
+    map_sigma_theta_r(out, resolution, engine)
+    map_theta_i_theta_r(out, resolution, engine)
+    log(f"figures and maps done ({time.perf_counter() - t0:.1f} s)")
+    files = dict(DESCRIPTIONS)
+    for png in [f for f in DESCRIPTIONS if f.endswith(".png")]:
+        files[png[:-4] + ".npz"] = f"the arrays drawn in {png}."
+    files["summary.md"] = "this list."
+    lines = ["# Reproduction of Zhu et al. (2020) and roughness maps", "",
+             f"Written by `pbrdf-cl reproduce` (pbrdf_cl.paper.reproduce, seed {seed}, maps at {resolution} "
+             "points per axis, float64, shadowing `paper`).", "",
+             "Fig. 2 data are synthetic (the paper's measured points are not published): the six-parameter "
+             f"model in the specular geometry theta_r = theta_i = {FIG2_ANGLES[0]:g}..{FIG2_ANGLES[-1]:g} deg "
+             f"(step {FIG2_ANGLES[1] - FIG2_ANGLES[0]:g}), phi = 180, Gaussian DOP noise sd {FIG2_NOISE:g}, clipped to [0, 1], with"]
+    for sample, p in FIG2_SAMPLES.items():
+        lines.append(f"- {sample}: {_params_text(p)}")
+    lines += ["", f"Steel (Fig. 4, 5 and maps): the paper's fit {_params_text(STEEL)}.", "", "| file | content |",
+              "|---|---|"]
+    lines += [f"| `{name}` | {text} |" for name, text in files.items()]
+    (out / "summary.md").write_text("\n".join(lines) + "\n")
+    return files

@@ -1,0 +1,180 @@
+"""Issue 5: the paper's figures, Table 1 and the dense maps (`pbrdf-cl reproduce`, `pbrdf-cl map`)."""
+import csv
+import json
+
+import numpy as np
+import pytest
+
+from pbrdf_cl import cli, maps, paper, reference
+
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+def ref(quantity, ti, tr, phi=180.0, **p):
+    """The float64 reference, straight from reference.py (not through api), broadcasting."""
+    p = {"ks": 1.0, "kd": 0.0, "c": 0.0, **p}
+    args = np.broadcast_arrays(*(np.asarray(v, dtype=float) for v in
+                                 (ti, tr, phi, *(p[k] for k in ("n", "k", "sigma", "ks", "kd", "c")))))
+    return reference.evaluate(quantity, *args)
+
+
+def ref_dop(ti, tr, phi=180.0, **p):
+    return ref("dop", ti, tr, phi, **p)
+
+
+def assert_png(path, min_bytes=10_000):
+    data = path.read_bytes()
+    assert data[:8] == PNG_MAGIC, f"{path} is not a PNG"
+    assert len(data) > min_bytes, f"{path} is suspiciously small ({len(data)} bytes)"
+
+
+@pytest.fixture(scope="module")
+def reproduced(tmp_path_factory):
+    """One headless CLI run of the whole reproduction (coarse maps to keep it quick)."""
+    out = tmp_path_factory.mktemp("paper")
+    rc = cli.main(["reproduce", "--out", str(out), "--resolution", "48", "--quiet"])
+    assert rc == 0
+    return out
+
+
+def test_every_file_is_written_and_listed(reproduced):
+    listed = (reproduced / "summary.md").read_text()
+    for name in paper.DESCRIPTIONS:
+        assert (reproduced / name).stat().st_size > 0
+        assert f"`{name}`" in listed
+        if name.endswith(".png"):
+            assert_png(reproduced / name)
+            assert (reproduced / (name[:-4] + ".npz")).exists()
+    # the synthetic-data caveat and its parameters are stated
+    assert "not published" in listed
+    for p in paper.FIG2_SAMPLES.values():
+        assert f"sigma={p['sigma']:g}" in listed
+
+
+def test_fig4_fig5_arrays_match_reference(reproduced):
+    f4 = np.load(reproduced / "fig4_steel.npz")
+    for row, ti in zip(f4["dop"], f4["theta_i"]):
+        np.testing.assert_allclose(row, ref_dop(ti, f4["theta_r"], **paper.STEEL), rtol=0, atol=1e-12)
+    # Fig. 4 at the SPEC check value (40, 45): 0.167590
+    i = int(np.argmin(np.abs(f4["theta_r"] - 45.0)))
+    assert f4["theta_r"][i] == 45.0
+    assert abs(f4["dop"][1, i] - 0.167590) < 5e-7
+    f5 = np.load(reproduced / "fig5_sigma.npz")
+    for row, s in zip(f5["dop"], f5["sigma"]):
+        np.testing.assert_allclose(row, ref_dop(40.0, f5["theta_r"], **{**paper.STEEL, "sigma": s}), atol=1e-12)
+    # the paper's Fig. 5 statement: DOP falls as sigma grows (over the plotted theta_r range)
+    assert np.all(f5["dop"][0] > f5["dop"][1]) and np.all(f5["dop"][1] > f5["dop"][2])
+
+
+def test_maps_match_reference_at_sampled_points(reproduced):
+    rng = np.random.default_rng(5)
+    m = np.load(reproduced / "map_sigma_theta_r.npz")
+    assert str(m["x_name"]) == "theta_r" and str(m["y_name"]) == "sigma"
+    fixed = {k: v for k, v in paper.STEEL.items() if k != "sigma"}
+    iy, ix = rng.integers(0, m["dop"].shape[0], 40), rng.integers(0, m["dop"].shape[1], 40)
+    np.testing.assert_allclose(m["dop"][iy, ix], ref_dop(40.0, m["x"][ix], sigma=m["y"][iy], **fixed), atol=1e-12)
+    # dDOP/dsigma: second-order differences of the reference at the grid's own nodes (interior)
+    iy = rng.integers(1, m["y"].size - 1, 40)
+    y = m["y"]
+    fd = (ref_dop(40.0, m["x"][ix], sigma=y[iy + 1], **fixed) - ref_dop(40.0, m["x"][ix], sigma=y[iy - 1], **fixed)) \
+        / (y[iy + 1] - y[iy - 1])
+    np.testing.assert_allclose(m["ddop_dsigma"][iy, ix], fd, rtol=1e-9, atol=1e-9)
+    t = np.load(reproduced / "map_theta_i_theta_r.npz")
+    for si, s in enumerate(t["sigma"]):
+        a, b = rng.integers(0, t["theta_i"].size, 2)
+        assert abs(t["dop"][si, b, a] - ref_dop(t["theta_i"][a], t["theta_r"][b], sigma=s, **fixed)) < 1e-12
+
+
+def test_fig2_data_fits_and_table1(reproduced):
+    rows = {r["sample"]: r for r in csv.DictReader(open(reproduced / "table1.csv"))}
+    assert set(rows) == set(paper.TABLE1)
+    for sample, paper_row in paper.TABLE1.items():
+        slug = sample.replace(" ", "_")
+        f = np.load(reproduced / f"fig2_{slug}.npz")
+        truth = paper.FIG2_SAMPLES[sample]
+        # the data are the stated model plus noise of the stated size
+        np.testing.assert_allclose(f["dop_clean"], ref_dop(f["theta_i"], f["theta_r"], **truth), atol=1e-12)
+        resid = f["dop"] - f["dop_clean"]
+        assert 0.3 * paper.FIG2_NOISE < resid.std() < 3 * paper.FIG2_NOISE
+        # the drawn curves are the models at the fitted parameters written to table1.csv
+        r = rows[sample]
+        n6, k6, s6, ks6, kd6, c6 = f["six_param_x"]
+        assert float(r["ours_six_n"]) == pytest.approx(n6) and float(r["ours_six_k"]) == pytest.approx(k6)
+        np.testing.assert_allclose(f["six_param"], ref_dop(f["angle"], f["angle"], n=n6, k=k6, sigma=s6, ks=ks6,
+                                                           kd=kd6, c=c6), atol=1e-12)
+        n7, k7 = f["specular_x"]
+        spec = ref_dop(f["angle"], f["angle"], n=n7, k=k7, sigma=0.5)  # ref. [7] = kd 0
+        np.testing.assert_allclose(f["specular"], spec, atol=1e-12)
+        assert float(r["ours_ref7_n"]) == pytest.approx(n7)
+        # the paper's numbers are reported unchanged
+        assert (float(r["true_n"]), float(r["true_k"])) == paper_row["true"]
+        assert (float(r["paper_ref7_n"]), float(r["paper_ref7_k"])) == paper_row["ref7"]
+        assert (float(r["paper_six_n"]), float(r["paper_six_k"])) == paper_row["six"]
+        # the six-parameter fit's 95% intervals contain the true n and k
+        assert float(r["ours_six_n_lo"]) <= truth["n"] <= float(r["ours_six_n_hi"])
+        assert float(r["ours_six_k_lo"]) <= truth["k"] <= float(r["ours_six_k_hi"])
+        # ref. [7] is the six-parameter model with kd = 0: the six-parameter optimum fits at least as well
+        assert float(r["ours_six_sse"]) <= float(r["ours_ref7_sse"]) * (1 + 1e-9)
+    md = (reproduced / "table1.md").read_text()
+    assert "| aluminum | 1.24 | 6.6 | 1.37 | 3.97 | 1.255 | 6.582 |" in md
+
+
+def test_map_cli_roundtrip_and_derivative(tmp_path, capsys):
+    png, npz = tmp_path / "m.png", tmp_path / "m.npz"
+    rc = cli.main(["map", "--x", "theta_r=0:85:40", "--y", "n=1:3:30", "--fix", "theta_i=40", "k=2.139", "sigma=0.5",
+                   "ks=0.9", "kd=0.15", "c=-0.3", "--quantity", "f00", "--derivative", "k", "--out", str(png),
+                   "--npz", str(npz)])
+    assert rc == 0
+    assert "wrote" in capsys.readouterr().out
+    assert_png(png)
+    d = np.load(npz)
+    attrs = json.loads(str(d["attrs"]))
+    assert attrs["quantity"] == "f00" and attrs["fixed_theta_i"] == 40.0 and attrs["derivative"] == "k"
+    x, y = d["x"], d["y"]
+    np.testing.assert_allclose(x, np.linspace(0, 85, 40))
+    p = dict(n=None, k=2.139, sigma=0.5, ks=0.9, kd=0.15, c=-0.3)
+    X, Y = np.meshgrid(x, y)
+    p["n"] = Y
+    np.testing.assert_allclose(d["f00"], ref("brdf", 40.0, X, **p), rtol=1e-12)
+    # dF00/dk along a fixed input: central difference of two device grids vs the reference's
+    h = maps.FD_STEP * max(1.0, p["k"])
+    fd = (ref("brdf", 40.0, X, **{**p, "k": p["k"] + h}) - ref("brdf", 40.0, X, **{**p, "k": p["k"] - h})) / (2 * h)
+    np.testing.assert_allclose(d["df00_dk"], fd, rtol=1e-8, atol=1e-10)
+
+
+def test_map_derivative_along_map_axis_is_second_order():
+    ds = maps.make_map("theta_r=10:80:141", "sigma=0.2,0.3,0.4,0.5", {"theta_i": 40.0, "n": 1.6, "k": 2.139},
+                       derivative="theta_r")
+    h = 1e-5
+    tr = ds.theta_r.values[1:-1]
+    exact = (ref_dop(40.0, tr + h, n=1.6, k=2.139, sigma=0.3) - ref_dop(40.0, tr - h, n=1.6, k=2.139, sigma=0.3)) / (2 * h)
+    got = ds["ddop_dtheta_r"].sel(sigma=0.3).values[1:-1]
+    err = np.abs(got - exact).max()
+    # O(step^2) with a 0.5 deg step: close to the analytic slope, not equal to it ...
+    assert err < 2e-4 * np.abs(exact).max()
+    # ... and halving the step divides the error by about four (second order)
+    fine = maps.make_map("theta_r=10:80:281", "sigma=0.2,0.3,0.4,0.5", {"theta_i": 40.0, "n": 1.6, "k": 2.139},
+                         derivative="theta_r")
+    got_fine = fine["ddop_dtheta_r"].sel(sigma=0.3).values[2:-2:2]
+    assert np.abs(got_fine - exact).max() < 0.3 * err
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--x", "alpha=0:1:5", "--y", "n=1:3:4"], "--x: unknown axis 'alpha'"),
+    (["--x", "theta_r=0:85", "--y", "n=1:3:4"], "--x: 'theta_r=0:85' is not of the form"),
+    (["--x", "theta_r=0:85:1", "--y", "n=1:3:4"], "count >= 2"),
+    (["--x", "theta_r=0:95:10", "--y", "n=1:3:4"], "--x: theta_r must be in [0, 90) degrees, got 95.0"),
+    (["--x", "theta_r", "--y", "n=1:3:4"], "--x: 'theta_r' is not of the form"),
+    (["--x", "theta_r=0:85:10", "--y", "theta_r=1:3:4"], "x and y are both 'theta_r'"),
+    (["--x", "theta_r=0:85:10", "--y", "n=1:3:4", "--fix", "n=2"], "n is both a map axis and a fixed value"),
+    (["--x", "theta_r=0:85:10", "--y", "n=1:3:4", "--fix", "k"], "--fix: 'k' is not of the form name=value"),
+    (["--x", "theta_r=0:85:10", "--y", "n=1:3:4", "--fix", "k=-1"], "--fix: 'k=-1': k must be >= 0"),
+    (["--x", "theta_r=0:85:10", "--y", "n=1:3:4", "--fix", "theta_i=40", "k=2", "sigma=0.5", "--derivative", "zz"],
+     "derivative: unknown input 'zz'"),
+    (["--x", "theta_r=0:85:10", "--y", "n=1:3:4", "--fix", "k=2", "sigma=0.5"], "theta_i is required"),
+])
+def test_map_bad_specs(tmp_path, capsys, args, message):
+    rc = cli.main(["map", *args, "--out", str(tmp_path / "bad.png")])
+    assert rc == 1
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "bad.png").exists()
