@@ -1,6 +1,9 @@
 """Issue 5: the paper's figures, Table 1 and the dense maps (`pbrdf-cl reproduce`, `pbrdf-cl map`)."""
 import csv
 import json
+import re
+import shlex
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -28,11 +31,20 @@ def assert_png(path, min_bytes=10_000):
     assert len(data) > min_bytes, f"{path} is suspiciously small ({len(data)} bytes)"
 
 
+def readme_main_job():
+    """The pbrdf-cl arguments of the README's first command (the main job)."""
+    text = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    first = re.search(r"```bash\n(.*?)\n```", text, re.S).group(1)
+    return shlex.split(first.split("pbrdf-cl", 1)[1])
+
+
 @pytest.fixture(scope="module")
 def reproduced(tmp_path_factory):
-    """One headless CLI run of the whole reproduction (coarse maps to keep it quick)."""
+    """One headless run of the README's main job (coarse maps to keep it quick)."""
     out = tmp_path_factory.mktemp("paper")
-    rc = cli.main(["reproduce", "--out", str(out), "--resolution", "48", "--quiet"])
+    args = readme_main_job()
+    assert args[:3] == ["reproduce", "--out", "paper-figures"]
+    rc = cli.main(["reproduce", "--out", str(out), *args[3:], "--resolution", "48", "--quiet"])
     assert rc == 0
     return out
 
