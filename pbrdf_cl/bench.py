@@ -149,6 +149,61 @@ def bench_objective(eng, rows, rng, scale, repeats):
                          unit="pairs/s", seconds=sec, max_abs_err=err, n=res.n_pairs))
 
 
+SWEEP_AXES = dict(theta_i=np.linspace(10, 80, 8), theta_r=np.linspace(0, 85, 32), n=np.linspace(1, 3, 16),
+                  k=np.linspace(0, 5, 16), sigma=np.linspace(0.05, 1, 16), kd=np.linspace(0, 1, 8),
+                  c=np.linspace(-1, 0, 2))  # 16.8M points: 67 MB of float32, 16x a 4 MiB budget
+
+
+def bench_sweep(eng, device, rows, rng, scale, repeats, workers=2):
+    """pbrdf_cl.sweep into a Zarr store (Zarr writes and the done record included) of a sweep at
+    least 10x its memory budget: here, and on a ``workers``-process LocalCluster (0: skipped)."""
+    import shutil
+    import tempfile
+
+    import xarray as xr
+
+    from .sweep import SweepSpec, sweep
+    axes, budget = dict(SWEEP_AXES), 4 << 20
+    if scale < 1:
+        axes["theta_r"], axes["sigma"], budget = axes["theta_r"][::4], axes["sigma"][::4], 256 << 10
+    spec = SweepSpec(dict(axes={n: a.tolist() for n, a in axes.items()}, memory_budget=budget))
+    assert spec.points * spec.itemsize >= 10 * spec.memory_budget
+    folder = tempfile.mkdtemp(prefix="pbrdf-bench-sweep-")
+    runs = iter(range(1 << 30))
+
+    def run(**kw):
+        store = os.path.join(folder, f"s{next(runs)}.zarr")
+        res = sweep(spec, store, progress=False, **kw)
+        assert res.complete and res.chunks_computed == spec.n_chunks
+        return store
+
+    def measure(label, **kw):
+        store = run(**kw)  # warm-up: kernels built (on every worker), store layout checked
+        ds = xr.open_zarr(store)
+        idx = {n: xr.DataArray(rng.integers(0, ds.sizes[n], 2000), dims="sample") for n in ds[spec.quantity].dims}
+        got = ds[spec.quantity].isel(idx).values
+        kw_ref = {n: axes[n][idx[n].values] for n in idx}
+        want = api_dop(kw_ref.pop("theta_i"), kw_ref.pop("theta_r"), 180.0, backend="numpy", **kw_ref)
+        err = float(np.max(np.abs(got - want)))
+        shutil.rmtree(store)
+
+        def timed():
+            shutil.rmtree(run(**kw))
+        rate, sec = median_rate(timed, spec.points, max(1, repeats - 2))
+        rows.append(dict(path=f"sweep -> Zarr store, {label} (end-to-end)", dtype=spec.dtype, rate=rate,
+                         unit="grid points/s", seconds=sec, max_abs_err=err, n=spec.points,
+                         memory_budget=spec.memory_budget, chunks=spec.n_chunks))
+    try:
+        measure("here", engine=eng)
+        if workers:
+            from distributed import Client, LocalCluster
+            with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None) as cl, \
+                    Client(cl) as client:
+                measure(f"{workers}-worker LocalCluster", client=client, device=device)
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(prog="pbrdf-cl bench", description=__doc__.split("\n\n")[0])
     p.add_argument("--device", help="OpenCL device (P:D or a name substring); default as pbrdf_cl.Engine()")
@@ -156,6 +211,8 @@ def main(argv=None):
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--quick", action="store_true", help="small sizes, for a smoke test")
     p.add_argument("--json", default="bench.json", help="where to write the JSON (default bench.json)")
+    p.add_argument("--sweep-workers", type=int, default=2,
+                   help="LocalCluster processes for the sweep row (default 2; 0 skips it; --quick skips it)")
     args = p.parse_args(argv)
     size, repeats, scale = args.points, args.repeats, 1.0
     if args.quick:
@@ -167,6 +224,7 @@ def main(argv=None):
     bench_points(eng, rows, rng, size, repeats, min(size, 1 << 18))
     bench_grid(eng, rows, rng, scale, repeats)
     bench_objective(eng, rows, rng, scale, repeats)
+    bench_sweep(eng, args.device, rows, rng, scale, repeats, workers=0 if args.quick else args.sweep_workers)
     device = f"{eng.device.platform.name.strip()} / {eng.device.name.strip()}"
     print(f"device: {device}; host: {platform.processor() or platform.machine()}, {os.cpu_count()} cpus")
     print(f"{'path':58s} {'dtype':8s} {'rate':>12s} {'unit':14s} {'max |err|':>10s}")
