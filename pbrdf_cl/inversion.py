@@ -7,6 +7,7 @@ separately with the intensity residuals added.
 """
 from __future__ import annotations
 
+import threading
 import time
 
 import numpy as np
@@ -91,8 +92,107 @@ class _Model:
     def dop(self, p):
         return reference.dop(*self.parts(p))
 
+    def dop_rows(self, p):
+        """DOP for many parameter vectors at once: ``p`` maps names to (B, 1) arrays (or
+        scalars); returns (B, M).  Same reference functions, no cache."""
+        g = self.g
+        f = reference.fresnel(p["n"], p["k"], g.cb, g.sb)
+        logK = reference.log_specular_scale(g, p["sigma"], p["ks"],
+                                            reference.shadowing_factor(g, p["sigma"], self.variant))
+        return reference.dop(f, logK, reference.diffuse(g, p["kd"], p["c"]))
+
     def f00(self, p):
         return reference.brdf(*self.parts(p))
+
+
+class _Lockstep:
+    """Run several optimisers (nlopt, scipy) in threads, in lockstep: every round, each running
+    optimiser asks for residual vectors at one or more points and waits; when all have asked,
+    the round's points are evaluated by one batched numpy call (for a few dozen measurements
+    the reference model's cost is per call, not per point, so six optimisers cost little more
+    than one).  Each optimiser sees exactly the numbers it would see alone: results are
+    deterministic and independent of the batching."""
+
+    def __init__(self, resid_rows):
+        self.resid_rows = resid_rows  # (B, d) -> (B, M)
+        self.lock = threading.Lock()
+        self.ready = threading.Event()  # set when every running optimiser has asked
+        self.pending, self.results, self.events = {}, {}, {}
+        self.active = 0
+        self.rows = 0
+
+    def _ask(self, tid, X):
+        with self.lock:
+            self.pending[tid] = X
+            if len(self.pending) == self.active:
+                self.ready.set()
+        ev = self.events[tid]
+        ev.wait()
+        ev.clear()
+        return self.results.pop(tid)
+
+    def _done(self):
+        with self.lock:
+            self.active -= 1
+            if self.active == 0 or len(self.pending) == self.active:
+                self.ready.set()
+
+    def run(self, jobs):
+        """``jobs``: callables taking ``rows(X) -> residuals`` and returning a result; returns the
+        results in order.  An exception in a job is raised here after the others finish."""
+        if len(jobs) == 1:  # nothing to batch with
+            def rows(X):
+                X = np.atleast_2d(X)
+                self.rows += len(X)
+                return self.resid_rows(X)
+            return [jobs[0](rows)]
+        results, errors = [None] * len(jobs), []
+
+        def worker(i, job):
+            try:
+                results[i] = job(lambda X: self._ask(i, np.atleast_2d(X)))
+            except BaseException as exc:  # re-raised in the calling thread
+                errors.append(exc)
+            finally:
+                self._done()
+        self.active = len(jobs)
+        self.events = {i: threading.Event() for i in range(len(jobs))}
+        threads = [threading.Thread(target=worker, args=(i, job), daemon=True) for i, job in enumerate(jobs)]
+        for t in threads:
+            t.start()
+        while True:
+            self.ready.wait()
+            with self.lock:
+                self.ready.clear()
+                if self.active == 0:
+                    break
+                if len(self.pending) < self.active:
+                    continue
+                ids = sorted(self.pending)
+                blocks = [self.pending.pop(i) for i in ids]
+            out = self.resid_rows(np.concatenate(blocks))
+            self.rows += len(out)
+            start = 0
+            for i, b in zip(ids, blocks):
+                self.results[i] = out[start:start + len(b)]
+                start += len(b)
+                self.events[i].set()
+        for t in threads:
+            t.join()
+        if errors:
+            raise errors[0]
+        return results
+
+
+def _fd_jacobian(rows, x, lo, hi):
+    """scipy's '2-point' Jacobian (relative step sqrt(eps), stepping inwards at an upper bound),
+    with the base point and all steps in one batched call."""
+    h = np.sqrt(np.finfo(float).eps) * np.maximum(1.0, np.abs(x))
+    h = np.where(x + h > hi, -h, h)
+    h = (x + h) - x  # the step actually taken, exactly representable
+    X = np.vstack([x, x + np.diag(h)])
+    R = rows(X)
+    return ((R[1:] - R[0]) / h[:, None]).T
 
 
 def _check_bounds(model, bounds, fixed):
@@ -166,7 +266,17 @@ def fit(data, model="six-param", bounds=None, fixed=None, shadowing="paper", *, 
 
     def resid_dop(x):
         return _finite((mdl.dop(params(x)) - meas.dop) / std)
-    sse_of = _sum_of_squares(resid_dop)
+
+    def resid_rows(X):
+        p = dict(base)
+        p.update((n, X[:, j:j + 1]) for j, n in enumerate(free))
+        return _finite((mdl.dop_rows(p) - meas.dop) / std)
+
+    def sse_via(rows):
+        def sse(x):
+            r = rows(x)[0]
+            return float(min(r @ r, 1e300))
+        return sse
 
     # (a) the objective on a dense grid over the bounds, on the OpenCL device
     t0 = time.perf_counter()
@@ -191,35 +301,41 @@ def fit(data, model="six-param", bounds=None, fixed=None, shadowing="paper", *, 
 
     # (c) DIRECT-L inside a box of +-1.5 grid spacings around each basin, (d) BOBYQA polish with
     # the grid spacing as initial step, then Levenberg-Marquardt-type least squares (scipy's
-    # trust-region reflective), which converges along the long, flat valleys where BOBYQA stalls
+    # trust-region reflective), which converges along the long, flat valleys where BOBYQA stalls.
+    # The basins' optimisers of each stage run in lockstep, their evaluations batched.
     import nlopt
     from scipy.optimize import least_squares
-    cands = []
-    for stage in ("direct", "bobyqa", "least_squares"):
-        nfev[stage], seconds[stage] = 0, 0.0
-    for seed, step in zip(seeds, spacings):
+
+    def stage(name, jobs):
         t0 = time.perf_counter()
-        blo = np.maximum(lo, seed - 1.5 * step)
-        bhi = np.minimum(hi, seed + 1.5 * step)
-        x_d, f_d, ne = _nlopt_min(nlopt.GN_DIRECT_L, sse_of, blo, bhi, (blo + bhi) / 2, maxeval=20 * len(free),
-                                  start=seed)
-        nfev["direct"] += ne
-        seconds["direct"] += time.perf_counter() - t0
-        t0 = time.perf_counter()
-        x_b, f_b, ne = _nlopt_min(nlopt.LN_BOBYQA, sse_of, lo, hi, x_d, maxeval=40 * len(free), step=step)
-        nfev["bobyqa"] += ne
-        seconds["bobyqa"] += time.perf_counter() - t0
-        cands.append((f_b, x_b, seed))
-    cands.sort(key=lambda c: c[0])
-    for i in range(min(LS_POLISH, len(cands))):  # the best candidates, least squares to the end
-        t0 = time.perf_counter()
-        f_b, x_b, seed = cands[i]
-        ls = least_squares(resid_dop, x_b, bounds=(lo, hi), x_scale=span, ftol=1e-15, xtol=1e-15, gtol=1e-15,
-                           max_nfev=100 * len(free))
-        nfev["least_squares"] += int(ls.nfev) * (len(free) + 1)  # with the finite-difference Jacobians
-        seconds["least_squares"] += time.perf_counter() - t0
-        if 2 * ls.cost < f_b:
-            cands[i] = (float(2 * ls.cost), np.clip(ls.x, lo, hi), seed)
+        runner = _Lockstep(resid_rows)
+        out = runner.run(jobs)
+        nfev[name], seconds[name] = runner.rows, time.perf_counter() - t0
+        return out
+
+    def direct(seed, step):
+        blo, bhi = np.maximum(lo, seed - 1.5 * step), np.minimum(hi, seed + 1.5 * step)
+        return lambda rows: _nlopt_min(nlopt.GN_DIRECT_L, sse_via(rows), blo, bhi, (blo + bhi) / 2,
+                                       maxeval=20 * len(free), start=seed)[:2]
+
+    def bobyqa(x0, step):
+        return lambda rows: _nlopt_min(nlopt.LN_BOBYQA, sse_via(rows), lo, hi, x0, maxeval=40 * len(free),
+                                       step=step)[:2]
+
+    def polish(x0):
+        def job(rows):
+            return least_squares(lambda x: rows(x)[0], x0, jac=lambda x: _fd_jacobian(rows, x, lo, hi),
+                                 bounds=(lo, hi), x_scale=span, ftol=1e-15, xtol=1e-15, gtol=1e-15,
+                                 max_nfev=100 * len(free))
+        return job
+
+    found = stage("direct", [direct(seed, step) for seed, step in zip(seeds, spacings)])
+    found = stage("bobyqa", [bobyqa(x_d, step) for (x_d, _), step in zip(found, spacings)])
+    cands = sorted(((f_b, x_b, seed) for (x_b, f_b), seed in zip(found, seeds)), key=lambda c: c[0])
+    top = min(LS_POLISH, len(cands))  # the best candidates, least squares to the end
+    for i, ls in enumerate(stage("least_squares", [polish(cands[i][1]) for i in range(top)])):
+        if 2 * ls.cost < cands[i][0]:
+            cands[i] = (float(2 * ls.cost), np.clip(ls.x, lo, hi), cands[i][2])
     cands.sort(key=lambda c: c[0])
     best_sse, best_x, _ = cands[0]
 
@@ -354,25 +470,44 @@ def _local_spacing(values, i):
     return max(left, right)
 
 
-def _grid_basins(sse, n_basins):
-    """Grid indices of the best ``n_basins`` local minima, at least 3 cells apart in some axis."""
-    padded = np.pad(sse, 1, constant_values=np.inf)
-    core = tuple(slice(1, -1) for _ in range(sse.ndim))
-    is_min = np.ones(sse.shape, bool)
+def _grid_basins(sse, n_basins, pool=4096):
+    """Grid indices of the best ``n_basins`` local minima, at least 3 cells apart in some axis.
+
+    Only the ``pool`` lowest cells are examined first (a partition, not a sort, of the grid);
+    the greedy choice depends only on lower minima, so when the pool yields ``n_basins`` the
+    answer is the same as from the whole grid, which is searched otherwise."""
+    flat = sse.ravel()
+    if flat.size > 4 * pool:
+        cells = np.flatnonzero(flat <= np.partition(flat, pool)[pool])
+    else:
+        cells = np.arange(flat.size)
+    chosen = _grid_minima(sse, cells, n_basins)
+    if len(chosen) < n_basins and cells.size < flat.size:
+        chosen = _grid_minima(sse, np.arange(flat.size), n_basins)
+    return [tuple(int(v) for v in c) for c in chosen]
+
+
+def _grid_minima(sse, cells, n_basins):
+    idx = np.array(np.unravel_index(cells, sse.shape)).T
+    vals = sse.ravel()[cells]
+    is_min = np.ones(cells.size, bool)
     for ax in range(sse.ndim):
         for shift in (-1, 1):
-            sl = list(core)
-            sl[ax] = slice(1 + shift, sse.shape[ax] + 1 + shift)
-            is_min &= sse <= padded[tuple(sl)]
-    cand = np.argwhere(is_min)
-    order = np.argsort(sse[tuple(cand.T)], kind="stable")
+            nb = idx.copy()
+            nb[:, ax] += shift
+            inside = (nb[:, ax] >= 0) & (nb[:, ax] < sse.shape[ax])
+            nbv = np.full(cells.size, np.inf)
+            nbv[inside] = sse[tuple(nb[inside].T)]
+            is_min &= vals <= nbv
+    cand = idx[is_min]
+    order = np.argsort(vals[is_min], kind="stable")
     chosen = []
     for c in cand[order]:
         if all(np.max(np.abs(c - o)) >= 3 for o in chosen):
             chosen.append(c)
         if len(chosen) == n_basins:
             break
-    return [tuple(int(v) for v in c) for c in chosen]
+    return chosen
 
 
 def _nlopt_min(algorithm, func, lo, hi, x0, maxeval, step=None, start=None):

@@ -176,3 +176,63 @@ def test_cli_fit_round_trip(tmp_path):
     bad = subprocess.run([sys.executable, "-m", "pbrdf_cl", "fit", str(ROOT / "examples" / "steel_435nm.csv"),
                           "--bounds", "n=1-3"], capture_output=True, text=True, timeout=120, env=env)
     assert bad.returncode != 0 and "--bounds: 'n=1-3' is not of the form name=low:high" in bad.stderr
+
+
+def test_lockstep_batching_gives_each_optimiser_its_own_numbers():
+    """Optimisers run in lockstep with batched evaluations see exactly what they see alone."""
+    def rosen_rows(X):  # residual form of Rosenbrock, shifted per column, with a ragged call pattern
+        return np.stack([10 * (X[:, 1] - X[:, 0] ** 2), 1 - X[:, 0], 0.1 * X[:, 2]], axis=1)
+    lo, hi = np.array([-2.0, -1.0, -1.0]), np.array([2.0, 3.0, 1.0])
+
+    def job(x0, algorithm):
+        def run(rows):
+            sse = lambda x: float(np.sum(rows(x)[0] ** 2))  # noqa: E731
+            return F._nlopt_min(algorithm, sse, lo, hi, x0, maxeval=300, step=np.full(3, 0.3))
+        return run
+    jobs = [job(np.array([a, b, 0.5]), alg) for a, b in ((-1.5, 2.0), (0.5, -0.5), (1.8, 2.9), (0.0, 0.0))
+            for alg in (nlopt.LN_BOBYQA, nlopt.GN_DIRECT_L)]
+    alone = [F._Lockstep(rosen_rows).run([j])[0] for j in jobs]
+    runner = F._Lockstep(rosen_rows)
+    together = runner.run(jobs)
+    for (xa, fa, na), (xt, ft, nt) in zip(alone, together):
+        assert na == nt and fa == ft and np.array_equal(xa, xt)
+    assert runner.rows == sum(n for _, _, n in alone)
+
+
+def test_lockstep_reraises_a_job_error():
+    def bad(rows):
+        rows(np.zeros(2))
+        raise ZeroDivisionError("inside the job")
+
+    def good(rows):
+        return [rows(np.full(2, i)) for i in range(5)]
+    with pytest.raises(ZeroDivisionError, match="inside the job"):
+        F._Lockstep(lambda X: X * 2).run([good, bad, good])
+
+
+def test_batched_jacobian_equals_scipy_two_point():
+    from scipy.optimize._numdiff import approx_derivative
+    rng = np.random.default_rng(3)
+    A = rng.normal(size=(7, 4))
+    fun = lambda x: np.sin(A @ x) + x.sum()  # noqa: E731
+    lo, hi = np.zeros(4), np.ones(4)
+    for x in (rng.random(4), np.array([0.0, 1.0, 0.5, 1.0 - 1e-12])):
+        J = F._fd_jacobian(lambda X: np.array([fun(r) for r in X]), x, lo, hi)
+        np.testing.assert_array_equal(J, approx_derivative(fun, x, method="2-point", bounds=(lo, hi)))
+
+
+def test_grid_basins_from_a_pool_equal_the_whole_grid_search():
+    rng = np.random.default_rng(0)
+    axes = np.meshgrid(*[np.linspace(0, 1, n) for n in (24, 32, 16, 16, 8)], indexing="ij")
+    for trial in range(3):
+        sse = sum(np.sin(3 * (i + 1) * a + trial) ** 2 for i, a in enumerate(axes)) + 0.01 * rng.random(axes[0].shape)
+        pooled = F._grid_basins(sse, 6)
+        whole = [tuple(int(v) for v in c) for c in F._grid_minima(sse, np.arange(sse.size), 6)]
+        assert pooled == whole and len(pooled) == 6
+        for idx in pooled:  # each is a local minimum of the grid
+            for ax in range(sse.ndim):
+                for s in (-1, 1):
+                    nb = list(idx)
+                    nb[ax] += s
+                    if 0 <= nb[ax] < sse.shape[ax]:
+                        assert sse[idx] <= sse[tuple(nb)]
