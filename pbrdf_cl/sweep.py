@@ -32,7 +32,9 @@ Layout of the store (Zarr format 2, consolidated metadata; ``xarray.open_zarr`` 
 - ``_sweep/done``: one uint8 per chunk, written (1) only after that chunk's values are in the
   store (write-then-mark); a resumed sweep computes the chunks not marked;
 - root attrs: the canonical spec as JSON (``sweep_spec``), its SHA-256 (``sweep_spec_sha256``),
-  the TOML it came from, the fixed values, and ``sweep_complete``.
+  the TOML it came from, the SHA-256 of the OpenCL sources (``sweep_kernels_sha256``: a store is
+  resumed, or written by a cluster worker, only with the kernels that started it), the fixed
+  values, and ``sweep_complete``.
 
 Testing aid: ``PBRDF_SWEEP_CHUNK_DELAY=<seconds>`` sleeps that long per chunk (half before the
 values are written, half between writing them and marking the chunk done), so that an
@@ -57,7 +59,7 @@ from pathlib import Path
 import numpy as np
 
 from . import api, dense
-from .engine import DTYPES
+from .engine import DTYPES, kernel_dir
 from .reference import SHADOWING
 
 try:
@@ -445,11 +447,16 @@ def _zarr3():
 
 
 def _is_local(store):
-    return isinstance(store, os.PathLike) or (isinstance(store, str) and "://" not in store)
+    return isinstance(store, os.PathLike) or (isinstance(store, str) and ("://" not in store
+                                                                         or store.startswith("file://")))
 
 
 def _store_name(store):
-    return os.path.abspath(os.fspath(store)) if _is_local(store) else store
+    """A local store as an absolute path (``file://`` dropped), any other URL unchanged."""
+    if not _is_local(store):
+        return store
+    path = os.fspath(store)
+    return os.path.abspath(path[len("file://"):] if path.startswith("file://") else path)
 
 
 def _open_group(store, mode):
@@ -475,6 +482,30 @@ def _compressor():
     return Blosc(cname="lz4", clevel=5, shuffle=Blosc.SHUFFLE)
 
 
+_KERNELS_SHA256 = None
+
+
+def kernels_sha256():
+    """SHA-256 of this installation's OpenCL sources (read once per process): a store is only
+    resumed, or written by a cluster worker, with the kernels that started it."""
+    global _KERNELS_SHA256
+    if _KERNELS_SHA256 is None:
+        h = hashlib.sha256()
+        for f in sorted(kernel_dir().iterdir()):
+            if f.suffix in (".cl", ".h"):
+                h.update(f.name.encode() + b"\0" + f.read_bytes() + b"\0")
+        _KERNELS_SHA256 = h.hexdigest()
+    return _KERNELS_SHA256
+
+
+def _check_kernels(name, attrs):
+    stored = attrs.get("sweep_kernels_sha256")
+    if stored != kernels_sha256():
+        raise SpecError(f"{name} was started with other OpenCL kernel sources (sha256 {str(stored)[:12]} in the "
+                        f"store, {kernels_sha256()[:12]} here: another pbrdf-cl version?); its values would not "
+                        f"match; choose another --out, or delete {name} to start over")
+
+
 def _root_attrs(spec, complete=False):
     from . import __version__
     attrs = dict(title=spec.title or f"pbrdf-cl sweep of {spec.quantity}", quantity=spec.quantity,
@@ -483,7 +514,8 @@ def _root_attrs(spec, complete=False):
     if spec.over:
         attrs["reduced_over"] = list(spec.over)
     attrs.update(pbrdf_cl_version=__version__, sweep_spec=spec.canonical_json, sweep_spec_sha256=spec.sha256,
-                 sweep_spec_toml=spec.text or "", sweep_chunks=spec.n_chunks, sweep_complete=complete)
+                 sweep_spec_toml=spec.text or "", sweep_kernels_sha256=kernels_sha256(), sweep_chunks=spec.n_chunks,
+                 sweep_complete=complete)
     return attrs
 
 
@@ -523,7 +555,7 @@ def _local_is_empty(path):
 
 def open_store(spec, store):
     """Create the store for ``spec``, or check that an existing one was started with the same
-    spec; returns the absolute store name."""
+    spec (and kernels); returns (absolute store name, whether it existed before)."""
     name = _store_name(store)
     if _is_local(store):
         path = Path(name)
@@ -535,15 +567,15 @@ def open_store(spec, store):
                 if path.exists():
                     path.rmdir()
                 os.rename(tmp, path)
+                return name, False
             except OSError:
-                if not (path / ".zattrs").exists():
-                    raise
+                if not (path / ".zgroup").exists():
+                    raise  # else another process created it just now: check it below
             finally:
                 if tmp.exists():
                     import shutil
                     shutil.rmtree(tmp, ignore_errors=True)
-            return name
-        if not (path / ".zgroup").exists():
+        elif not (path / ".zgroup").exists():
             raise SpecError(f"{name} exists and is not a pbrdf-cl sweep store; choose another --out or delete it")
     attrs = None
     try:
@@ -551,7 +583,7 @@ def open_store(spec, store):
     except Exception:  # noqa: BLE001 - zarr raises various errors for a missing group
         if not _is_local(store):
             _write_skeleton(spec, name)
-            return name
+            return name, False
     if not attrs or "sweep_spec_sha256" not in attrs:
         raise SpecError(f"{name} exists and is not a pbrdf-cl sweep store (or its creation was interrupted); "
                         "choose another --out or delete it")
@@ -562,7 +594,8 @@ def open_store(spec, store):
             diffs = []
         raise SpecError(f"{name} was started with a different spec ({'; '.join(diffs) or 'sha256 differs'}); "
                         f"choose another --out, or delete {name} to start over")
-    return name
+    _check_kernels(name, attrs)
+    return name, True
 
 
 def _clean_partials(name):
@@ -639,6 +672,7 @@ class _Runner:
 
     def __init__(self, spec, name):
         g = _open_group(name, "r+")
+        _check_kernels(name, g.attrs)  # a worker with another pbrdf-cl would mix values
         self.spec = spec
         self.arrays = {v: g[v] for v in spec.variables}
         self.done = g[DONE]
@@ -726,8 +760,8 @@ def sweep(spec, store, *, engine=None, device=None, workers=None, scheduler=None
         raise ValueError("give at most one of workers=, scheduler= and client=")
     if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 1):
         raise ValueError(f"workers must be a positive integer, got {workers!r}")
-    name = open_store(spec, store)
-    if _is_local(store):
+    name, existed = open_store(spec, store)
+    if existed and _is_local(store):
         _clean_partials(name)
     done = read_done(spec, name)
     todo = np.flatnonzero(~done)

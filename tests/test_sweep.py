@@ -129,6 +129,19 @@ def test_small_sweep_equals_grid(tmp_path, quantity, dtype, chunks):
     assert "_sweep" not in ds.variables
 
 
+def test_url_store(tmp_path):
+    """A store given by URL goes through zarr's fsspec stores (an object store on a cluster)."""
+    spec = SweepSpec(dict(axes=dict(theta_r="0:85:5", sigma=[0.1, 0.3, 0.5]), fixed=dict(theta_i=40, **STEEL),
+                          chunks=dict(theta_r=4)))
+    url = f"memory://sweep-{os.getpid()}-{time.monotonic_ns()}.zarr"
+    res = pbrdf_cl.sweep(spec, url, progress=False)
+    assert res.store == url and res.complete and read_done(spec, url).all()
+    assert pbrdf_cl.sweep(spec, url, progress=False).chunks_skipped == spec.n_chunks
+    np.testing.assert_array_equal(xr.open_zarr(url).dop.values, pbrdf_cl.grid(spec.axes, spec.fixed).values)
+    local = pbrdf_cl.sweep(spec, f"file://{tmp_path}/f.zarr", progress=False)  # file:// is a local path
+    assert local.store == str(tmp_path / "f.zarr") and (tmp_path / "f.zarr" / "_sweep" / "done").is_dir()
+
+
 def test_reduction_sweep_equals_reduce_grid(tmp_path):
     spec = SweepSpec(dict(axes=dict(theta_i="10:80:10", theta_r={"start": 0, "stop": 85, "num": 33},
                                     sigma={"start": 0.05, "stop": 1, "num": 20}, kd=[0.0, 0.2, 0.5]),
@@ -260,8 +273,9 @@ def test_local_cluster_gives_the_same_store(spec_file, reference, tmp_path, monk
         if cluster is not None:
             cluster.close()
     assert res.chunks_skipped == 10 and res.chunks_computed == 30 and res.complete
-    assert len(engines) == 2 and set(engines.values()) <= {0, 1}  # one engine per worker, reused
-    assert sum(engines.values()) >= 1 and sum(runners.values()) >= 1
+    # every worker that computed chunks built one engine (and opened the store once), then reused them
+    assert len(engines) == 2 and set(engines.values()) <= {0, 1} and sum(engines.values()) >= 1
+    assert engines == runners
     assert files(store) == files(reference)
 
 
@@ -315,7 +329,8 @@ def test_bad_specs_are_refused_with_the_field_named(change, message):
     assert message in str(err.value)
 
 
-def test_store_of_another_spec_or_foreign_folder_is_refused(spec_file, reference, tmp_path, capsys):
+def test_store_of_another_spec_or_kernels_or_a_foreign_folder_is_refused(spec_file, reference, tmp_path, capsys,
+                                                                          monkeypatch):
     other = tmp_path / "other.toml"
     other.write_text(SPEC_TOML.replace('num = 24', 'num = 25').replace('dtype = "float32"', 'dtype = "float64"'))
     before = files(reference)
@@ -325,6 +340,12 @@ def test_store_of_another_spec_or_foreign_folder_is_refused(spec_file, reference
     assert "was started with a different spec" in msg and "choose another --out, or delete" in msg
     assert 'dtype: "float32" in the store, "float64" now' in msg and "axes.sigma: 24 values" in msg
     assert files(reference) == before  # untouched
+    monkeypatch.setattr(S, "_KERNELS_SHA256", "0" * 64)  # as if another pbrdf-cl ran it
+    with pytest.raises(SpecError, match="was started with other OpenCL kernel sources"):
+        pbrdf_cl.sweep(spec_file, reference, progress=False)
+    with pytest.raises(SpecError, match="other OpenCL kernel sources"):  # what a cluster worker checks
+        S._Runner(load_spec(spec_file), str(reference))
+    monkeypatch.undo()
     (tmp_path / "foreign").mkdir()
     (tmp_path / "foreign" / "notes.txt").write_text("mine")
     assert cli.main(["sweep", str(spec_file), "--out", str(tmp_path / "foreign"), "--quiet"]) == 1
