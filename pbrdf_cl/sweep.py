@@ -42,11 +42,11 @@ interruption reliably lands in the middle of a sweep.
 """
 from __future__ import annotations
 
+import hashlib
 import itertools
 import json
-import hashlib
 import logging
-import math
+import numbers
 import os
 import re
 import tempfile
@@ -91,7 +91,7 @@ def _fmt(v):
 
 
 def _number(field, v):
-    if isinstance(v, bool) or not isinstance(v, (int, float)):
+    if isinstance(v, (bool, np.bool_)) or not isinstance(v, numbers.Real):
         raise SpecError(f"{field}: {v!r} is not a number")
     return float(v)
 
@@ -119,8 +119,10 @@ def _range_string(field, text):
 def _axis_values(field, value):
     if isinstance(value, str):
         return _range_string(field, value)
-    if isinstance(value, list):
-        if not value:
+    if isinstance(value, (list, tuple, np.ndarray)):  # a TOML list, or arrays from Python
+        if np.ndim(value) != 1:
+            raise SpecError(f"{field}: a list of values must be 1-d, got shape {np.shape(value)}")
+        if not len(value):
             raise SpecError(f"{field}: empty list")
         return np.array([_number(f"{field}[{i}]", v) for i, v in enumerate(value)])
     if isinstance(value, dict):
@@ -142,7 +144,7 @@ def _axis_values(field, value):
         if stop < start:
             raise SpecError(f"{field}: empty range {text}")
         return start + step * np.arange(int(np.floor((stop - start) / step + 1e-9)) + 1)
-    if isinstance(value, (int, float)) and not isinstance(value, bool):
+    if isinstance(value, numbers.Real) and not isinstance(value, bool):
         raise SpecError(f"{field}: a single value; give it under [fixed], or as a one-element list [{_fmt(value)}]")
     raise SpecError(f"{field}: {value!r} is not a list, a \"start:stop:step\" string or a "
                     "{start, stop, num} table")
@@ -157,7 +159,7 @@ def parse_bytes(field, value):
     if isinstance(value, int) and not isinstance(value, bool):
         n = value
     elif isinstance(value, str):
-        m = re.fullmatch(r"\s*([0-9]*\.?[0-9]+(?:[eE][0-9]+)?)\s*([KMGT]i?B|B)?\s*", value, re.I)
+        m = re.fullmatch(r"\s*([0-9]*\.?[0-9]+(?:[eE][0-9]+)?)\s*([KMGT]i?B|B)?\s*", value, re.IGNORECASE)
         if not m:
             raise SpecError(f"{field}: {value!r} is not a size such as 268435456, \"256 MiB\" or \"1 GB\"")
         n = int(float(m.group(1)) * _UNITS[(m.group(2) or "").lower()])
@@ -456,7 +458,7 @@ def _store_name(store):
     if not _is_local(store):
         return store
     path = os.fspath(store)
-    return os.path.abspath(path[len("file://"):] if path.startswith("file://") else path)
+    return os.path.abspath(path.removeprefix("file://"))
 
 
 def _open_group(store, mode):
