@@ -23,6 +23,12 @@
 #define PB_CAT_(a, b) a##b
 #define PB_CAT(a, b) PB_CAT_(a, b)
 
+/* Inline every function of this file and pb_math.h: PoCL 3.0 otherwise leaves some out of line,
+ * and a call spills every live vector register. */
+#ifdef __clang__
+#pragma clang attribute push (__attribute__((always_inline)), apply_to = function)
+#endif
+
 #ifdef PBRDF_DOUBLE
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
 #define PB_SCALAR double
@@ -34,16 +40,15 @@
 
 /* Every function below is branch-free in its real arguments (?: selects), so with
  * -DPB_VECTOR_REAL=N the same source computes N points at once: real is then floatN/doubleN
- * and ireal the integer vector of the same element width. */
+ * (and pb_bits, of pb_math.h, the integer vector of the same element width). */
 #ifdef PB_VECTOR_REAL
 typedef PB_CAT(PB_SCALAR, PB_VECTOR_REAL) real;
-typedef PB_CAT(PB_ISCALAR, PB_VECTOR_REAL) ireal;
-#define PB_TO_IREAL(x) PB_CAT(convert_, PB_CAT(PB_ISCALAR, PB_VECTOR_REAL))(x)
 #else
 typedef PB_SCALAR real;
-typedef int ireal;
-#define PB_TO_IREAL(x) ((int)(x))
 #endif
+
+/* exp, log, erfc, hypot, sincos: float32 builds use branch-free inline versions (see there) */
+#include "pb_math.h"
 
 #define PB_SHADOW_NONE 0
 #define PB_SHADOW_PAPER 1
@@ -67,11 +72,13 @@ typedef struct {
  * near multiples of 90 degrees (cos 89.9 in float32 would otherwise lose four digits). */
 inline real pb_sincosd(real x, real *c)
 {
-    real r = x - (real)360 * rint(x * (real)(1.0 / 360));  /* a tie either way reduces exactly */
-    real q = rint(r * (real)(1.0 / 90));
+    real r = x - (real)360 * pb_rint(x * (real)(1.0 / 360));  /* a tie either way reduces exactly */
+    /* q = rint(r / 90) by the round-to-integer constant (|r / 90| <= 2), q mod 4 in its low bits */
+    const real t = r * (real)(1.0 / 90) + PB_ROUND_MAGIC;
+    real q = t - PB_ROUND_MAGIC;
     real cy;
-    real sy = sincos((r - (real)90 * q) * PB_DEG, &cy);
-    ireal iq = PB_TO_IREAL(q) & 3;
+    real sy = pb_sincos_pi4((r - (real)90 * q) * PB_DEG, &cy);
+    pb_bits iq = PB_AS_BITS(t) & 3;
     *c = iq == 0 ? cy : iq == 1 ? -sy : iq == 2 ? -cy : sy;
     return iq == 0 ? sy : iq == 1 ? cy : iq == 2 ? -sy : -cy;
 }
@@ -88,8 +95,8 @@ inline pb_geom pb_geometry(real ti, real tr, real phi)
     real cp = pb_sincosd((real)0.5 * (((real)90 - ti) + ((real)90 - tr)), &c);  /* cos((ti+tr)/2) */
     real sm = pb_sincosd((real)0.5 * (ti - tr), &c);
     real q = g.sti * g.str;
-    g.cb = sqrt(cp * cp + q * ch * ch);
-    g.sb = sqrt(sm * sm + q * sh * sh);
+    g.cb = pb_sqrt(cp * cp + q * ch * ch);
+    g.sb = pb_sqrt(sm * sm + q * sh * sh);
     real ds = g.sti - g.str;
     real cs = g.cti + g.ctr;
     g.tan2a = (ds * ds + (real)4 * q * ch * ch) / (cs * cs);
@@ -109,11 +116,11 @@ inline pb_fresnel_t pb_fresnel(real n, real k, real cb, real sb)
     real nk = n * k;
     real E = (n - k) * (n + k) - (real)1;   /* D - cos^2 b: exact for n = 1, k = 0 */
     real D = E + cb * cb;
-    real sC = hypot((real)2 * nk, D);
+    real sC = pb_hypot((real)2 * nk, D);
     /* the root that does not cancel: A for D >= 0, B for D < 0; the other from A B = n k */
-    real A_pos = sqrt((real)0.5 * (sC + D));
+    real A_pos = pb_sqrt((real)0.5 * (sC + D));
     real B_pos = A_pos > (real)0 ? nk / A_pos : (real)0;
-    real B_neg = sqrt((real)0.5 * (sC - D));
+    real B_neg = pb_sqrt((real)0.5 * (sC - D));
     real A_neg = nk / B_neg;
     real A = D >= (real)0 ? A_pos : A_neg;
     real B = D >= (real)0 ? B_pos : B_neg;
@@ -136,16 +143,17 @@ inline real pb_shadow_S(real ct, real st, real sigma, int variant)
 {
     if (variant == PB_SHADOW_NONE)
         return (real)0;
-    /* ifs, min and step rather than ?: here: Oclgrind miscomputes these selects on vectors */
+    /* ifs rather than ?: on the (scalar) variant: Oclgrind miscomputes such selects on vectors */
     real w = sigma;
     if (variant == PB_SHADOW_SMITH)
         w = PB_SQRT2 * sigma;
-    real a = min(ct / (w * st), PB_SHADOW_ARG_MAX);
+    real a = ct / (w * st);
+    a = a < PB_SHADOW_ARG_MAX ? a : PB_SHADOW_ARG_MAX;
     real den = a * a;
     if (variant == PB_SHADOW_SMITH)
         den = a;
-    real S = exp(-a * a) / ((real)2 * PB_SQRT_PI * den) - (real)0.5 * erfc(a);
-    return S * ((real)1 - step(PB_SHADOW_ARG_MAX, a));
+    real S = pb_exp(-a * a) / ((real)2 * PB_SQRT_PI * den) - (real)0.5 * pb_erfc(a);
+    return a < PB_SHADOW_ARG_MAX ? S : (real)0;
 }
 
 /* G = 1 / (1 + S(ti) + S(tr)). */
@@ -159,16 +167,16 @@ inline real pb_shadowing_factor(pb_geom g, real sigma, int variant)
  * K = ks exp(-tan^2 a / (2 sigma^2)) G / (8 pi sigma^2 cos^4 a cos ti cos tr). */
 inline real pb_log_specular_scale(pb_geom g, real sigma, real ks, real G)
 {
-    real u = sqrt(g.tan2a) / sigma;
+    real u = pb_sqrt(g.tan2a) / sigma;
     real inv_cos2a = (real)1 + g.tan2a;
-    return log(ks * G * inv_cos2a * inv_cos2a / ((real)8 * PB_PI * g.cti * g.ctr))
-           - (real)2 * log(sigma) - (real)0.5 * u * u;
+    return pb_log(ks * G * inv_cos2a * inv_cos2a / ((real)8 * PB_PI * g.cti * g.ctr))
+           - (real)2 * pb_log(sigma) - (real)0.5 * u * u;
 }
 
 /* Eq. 15: Minnaert diffuse term kd/pi (cos ti cos tr)^c. */
 inline real pb_diffuse(pb_geom g, real kd, real c)
 {
-    return kd == (real)0 ? (real)0 : kd / PB_PI * exp(c * log(g.cti * g.ctr));
+    return kd == (real)0 ? (real)0 : kd / PB_PI * pb_exp(c * pb_log(g.cti * g.ctr));
 }
 
 /* Eq. 17-18 from precomputed factors: DOP = (Rs - Rp) / (Rs + Rp + fd2 / K), where
@@ -203,13 +211,13 @@ inline real pb_brdf_combine(real sum, real K, real fd)
 /* Eq. 17-18: DOP for unpolarized incidence, = K (Rs - Rp) / (K (Rs + Rp) + 2 fd). */
 inline real pb_dop(pb_fresnel_t f, real logK, real fd)
 {
-    return pb_dop_combine(f.Rs + f.Rp, f.diff, (real)2 * fd, exp(-logK));
+    return pb_dop_combine(f.Rs + f.Rp, f.diff, (real)2 * fd, pb_exp(-logK));
 }
 
 /* F00 = K (Rs + Rp) / 2 + fd. */
 inline real pb_brdf(pb_fresnel_t f, real logK, real fd)
 {
-    return pb_brdf_combine(f.Rs + f.Rp, exp(logK), fd);
+    return pb_brdf_combine(f.Rs + f.Rp, pb_exp(logK), fd);
 }
 
 typedef struct {
@@ -228,7 +236,7 @@ inline pb_frames pb_frame_rotations(pb_geom g, real phi)
     real vx = -g.ctr * g.sti * sph;
     real vy = g.ctr * g.sti * cph - g.str * g.cti;
     real vz = g.str * g.sti * sph;
-    real nv = sqrt(vx * vx + vy * vy + vz * vz);
+    real nv = pb_sqrt(vx * vx + vy * vy + vz * vz);
     /* retro-reflection (nv = 0): any facet frame gives the same matrix; take s_in */
     vx = nv > (real)0 ? vx / nv : -sph;
     vy = nv > (real)0 ? vy / nv : cph;
@@ -246,7 +254,7 @@ inline pb_frames pb_frame_rotations(pb_geom g, real phi)
  * R(c, s) = [[1,0,0,0],[0,c2,s2,0],[0,-s2,c2,0],[0,0,0,1]], c2 = c^2 - s^2, s2 = 2 c s. */
 inline void pb_mueller(pb_fresnel_t f, pb_frames fr, real logK, real fd, real *m)
 {
-    real K = exp(logK);
+    real K = pb_exp(logK);
     real m00 = (real)0.5 * K * (f.Rs + f.Rp);
     real m01 = (real)0.5 * K * f.diff;
     real rx = K * f.re_x, ix = K * f.im_x;
@@ -262,5 +270,9 @@ inline void pb_mueller(pb_fresnel_t f, pb_frames fr, real logK, real fd, real *m
     }
     m[12] = (real)0; m[13] = ix * s; m[14] = -ix * c; m[15] = rx;
 }
+
+#ifdef __clang__
+#pragma clang attribute pop
+#endif
 
 #endif /* PBRDF_H */

@@ -81,14 +81,16 @@ __kernel void objective_points(__global real *sse, const int P,
 
 #else  /* PB_VECTOR_REAL */
 
-#define pb_vloadn PB_CAT(vload, PB_VECTOR_REAL)
-#define pb_vstoren PB_CAT(vstore, PB_VECTOR_REAL)
+/* N points as one vector at any element-aligned address (vloadN/vstoreN: PoCL 3.0 calls these
+ * out of line) */
+typedef real __attribute__((aligned(sizeof(PB_SCALAR)))) pb_real_unaligned;
+#define pb_vstoren(v, i, p) (((__global pb_real_unaligned *)(p))[i] = (v))
 /* input x of stride s (0 or 1) for the N points of work-item i (an if: PoCL 3.0's compiler
  * crashes on a ?: between a vload and a broadcast) */
 inline real pb_in(__global const PB_SCALAR *x, const int s, const int i)
 {
     if (s)
-        return pb_vloadn(i, x);
+        return ((__global const pb_real_unaligned *)x)[i];
     return (real)x[0];
 }
 #define PB_IN(x, s) pb_in(x, s, i)

@@ -92,10 +92,11 @@ def shadow_S(ct, st, sigma, variant):
         return np.zeros(np.broadcast_shapes(ct.shape, st.shape, sigma.shape))
     w = np.sqrt(2.0) * sigma if variant == SHADOW_SMITH else sigma
     with np.errstate(divide="ignore"):
-        a = np.minimum(ct / (w * st), SHADOW_ARG_MAX)
+        a = ct / (w * st)
+    a = np.where(a < SHADOW_ARG_MAX, a, SHADOW_ARG_MAX)
     den = a if variant == SHADOW_SMITH else a * a
     S = np.exp(-a * a) / (2.0 * np.sqrt(np.pi) * den) - 0.5 * erfc(a)
-    return S * (1.0 - (a >= SHADOW_ARG_MAX))  # step(ARG_MAX, a)
+    return np.where(a < SHADOW_ARG_MAX, S, 0.0)
 
 
 def shadowing_factor(g, sigma, variant):

@@ -1,0 +1,212 @@
+"""Accuracy of the elementary functions of kernels/pb_math.h (the float32 build's inline exp, log,
+erfc, hypot, sincos) against numpy/scipy in float64 at the same float32 arguments, in scalar and
+vector builds, plus pb_rint and pb_sincosd in both precisions.  The bounds are those stated in
+pb_math.h's header comment."""
+import warnings
+
+import numpy as np
+import pyopencl as cl
+import pytest
+from scipy.special import erfc
+
+from pbrdf_cl import engine as engine_mod
+from pbrdf_cl import reference
+
+FUNCS = {"exp": 0, "log": 1, "erfc": 2, "hypot": 3, "sincos_pi4": 4, "sincosd": 5, "rint": 6, "sqrt": 7}
+
+SOURCE = """
+#include "pbrdf.h"
+#ifdef PB_VECTOR_REAL
+#define LD(p) PB_CAT(vload, PB_VECTOR_REAL)(i, p)
+#define ST(v, p) PB_CAT(vstore, PB_VECTOR_REAL)(v, i, p)
+#else
+#define LD(p) (p)[i]
+#define ST(v, p) ((p)[i] = (v))
+#endif
+__kernel void fm(__global const PB_SCALAR *x, __global const PB_SCALAR *y,
+                 __global PB_SCALAR *o0, __global PB_SCALAR *o1, const int n)
+{
+    const int i = get_global_id(0);
+    if (i >= n) return;
+    const real a = LD(x), b = LD(y);
+    real r, c = (real)0;
+#if FN == 0
+    r = pb_exp(a);
+#elif FN == 1
+    r = pb_log(a);
+#elif FN == 2
+    r = pb_erfc(a);
+#elif FN == 3
+    r = pb_hypot(a, b);
+#elif FN == 4
+    r = pb_sincos_pi4(a, &c);
+#elif FN == 5
+    r = pb_sincosd(a, &c);
+#elif FN == 6
+    r = pb_rint(a);
+#else
+    r = pb_sqrt(a);
+#endif
+    ST(r, o0);
+    ST(c, o1);
+}
+"""
+
+
+def make_runner(engine):
+    """run(func, x, y=None, dtype, width, builtin) -> (result, second result) as float64 arrays."""
+    built = {}
+
+    def run(func, x, y=None, dtype="float32", width=None, builtin=False):
+        npdt = np.dtype(engine_mod.DTYPES[dtype])
+        key = (func, dtype, width, builtin)
+        if key not in built:
+            opts = ["-I", str(engine_mod.kernel_dir()), "-w", f"-DFN={FUNCS[func]}"]
+            opts += ["-DPBRDF_DOUBLE"] if dtype == "float64" else []
+            opts += [f"-DPB_VECTOR_REAL={width}"] if width else []
+            opts += ["-DPB_BUILTIN_MATH"] if builtin else []
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", cl.CompilerWarning)
+                built[key] = cl.Program(engine.context, SOURCE).build(options=opts).fm
+        lanes = width or 1
+        x = np.asarray(x, dtype=npdt).ravel()
+        y = np.zeros_like(x) if y is None else np.asarray(y, dtype=npdt).ravel()
+        n = x.size
+        pad = -(-n // lanes) * lanes
+        xs = np.concatenate([x, np.ones(pad - n, npdt)])
+        ys = np.concatenate([y, np.ones(pad - n, npdt)])
+        mf = cl.mem_flags
+        bx = cl.Buffer(engine.context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=xs)
+        by = cl.Buffer(engine.context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=ys)
+        o0 = cl.Buffer(engine.context, mf.READ_WRITE, xs.nbytes)
+        o1 = cl.Buffer(engine.context, mf.READ_WRITE, xs.nbytes)
+        built[key](engine.queue, (pad // lanes,), None, bx, by, o0, o1, np.int32(pad // lanes))
+        r0, r1 = np.empty_like(xs), np.empty_like(xs)
+        cl.enqueue_copy(engine.queue, r0, o0)
+        cl.enqueue_copy(engine.queue, r1, o1)
+        return r0[:n].astype(np.float64), r1[:n].astype(np.float64)
+    return run
+
+
+@pytest.fixture(scope="module")
+def run(engine):
+    return make_runner(engine)
+
+
+WIDTHS = [None, 16]
+F32 = np.float32
+TINY = float(np.finfo(F32).tiny)  # 2^-126
+
+
+def f32(x):
+    """Values as float32, and back to float64 (the arguments the kernel sees)."""
+    return np.asarray(x, dtype=F32).astype(np.float64)
+
+
+def rel_err(got, want):
+    return np.abs(got - want) / np.abs(want)
+
+
+@pytest.mark.parametrize("width", WIDTHS)
+def test_exp(run, rng, width):
+    x = f32(np.concatenate([np.linspace(-104, 89, 400001), rng.uniform(-20, 20, 100000),
+                            rng.uniform(-1e-3, 1e-3, 10000)]))
+    got, _ = run("exp", x, width=width)
+    want = np.exp(x)
+    normal = (want >= TINY) & (want <= np.finfo(F32).max)
+    assert rel_err(got[normal], want[normal]).max() <= 1.2e-7
+    # gradual underflow: within one denormal step and a relative 2e-7; overflow: inf
+    low = want < TINY
+    assert np.all(np.abs(got[low] - want[low]) <= 1.2e-7 * want[low] + 2.0 ** -149)
+    assert np.all(np.isinf(got[want > np.finfo(F32).max]))
+    special, _ = run("exp", [-np.inf, np.inf, np.nan, -1e30, 1e30, 0.0, -0.0, -104.0, 89.0], width=width)
+    assert special[0] == 0 and special[1] == np.inf and np.isnan(special[2])
+    assert special[3] == 0 and special[4] == np.inf and special[5] == 1 and special[6] == 1
+    assert special[7] == 0 and special[8] == np.inf
+
+
+@pytest.mark.parametrize("width", WIDTHS)
+def test_log(run, rng, width):
+    every = np.arange(1, 0x7F800000, 97, dtype=np.uint32).view(F32).astype(np.float64)  # denormals too
+    x = np.concatenate([every, f32(rng.uniform(0.5, 2, 200000)), f32(1 + rng.uniform(-1e-4, 1e-4, 10000))])
+    got, _ = run("log", x, width=width)
+    want = np.log(x)
+    nz = want != 0
+    assert rel_err(got[nz], want[nz]).max() <= 1.0e-7 and np.all(got[~nz] == 0)
+    special, _ = run("log", [0.0, -0.0, -1.0, -np.inf, np.inf, np.nan, 1.0, 2.0 ** -149], width=width)
+    assert special[0] == -np.inf and special[1] == -np.inf
+    assert np.all(np.isnan(special[2:4])) and special[4] == np.inf and np.isnan(special[5])
+    assert special[6] == 0 and special[7] == pytest.approx(-149 * np.log(2), rel=1e-7)
+
+
+@pytest.mark.parametrize("width", WIDTHS)
+def test_erfc(run, rng, width):
+    x = f32(np.concatenate([np.linspace(-10, 10.5, 400001), rng.uniform(0, 9, 200000),
+                            rng.uniform(-1e-3, 1e-3, 1000)]))
+    got, _ = run("erfc", x, width=width)
+    want = erfc(x)
+    normal = want >= TINY
+    assert rel_err(got[normal], want[normal]).max() <= 4.0e-7
+    assert np.all(np.abs(got[~normal] - want[~normal]) <= 4.0e-7 * want[~normal] + 2.0 ** -149)
+    special, _ = run("erfc", [np.inf, -np.inf, np.nan, 0.0, 11.0, 1e30, -1e30], width=width)
+    assert special[0] == 0 and special[1] == 2 and np.isnan(special[2]) and special[3] == 1
+    assert special[4] == 0 and special[5] == 0 and special[6] == 2
+
+
+@pytest.mark.parametrize("width", WIDTHS)
+def test_hypot_and_sqrt(run, rng, width):
+    x = f32(10.0 ** rng.uniform(-18, 18, 200000) * rng.choice([-1, 1], 200000))
+    y = f32(10.0 ** rng.uniform(-18, 18, 200000))
+    got, _ = run("hypot", x, y, width=width)
+    assert rel_err(got, np.hypot(x, y)).max() <= 1.2e-7
+    s, _ = run("sqrt", np.abs(x), width=width)
+    np.testing.assert_array_equal(s, f32(np.sqrt(np.abs(x))))  # correctly rounded
+
+
+@pytest.mark.parametrize("width", WIDTHS)
+def test_sincos_pi4(run, rng, width):
+    y = f32(np.concatenate([np.linspace(-np.pi / 4, np.pi / 4, 200001), rng.uniform(-1e-3, 1e-3, 1000)]))
+    y = y[np.abs(y) <= np.pi / 4]
+    s, c = run("sincos_pi4", y, width=width)
+    nz = y != 0
+    assert rel_err(s[nz], np.sin(y[nz])).max() <= 1.2e-7 and np.all(s[~nz] == 0)
+    assert rel_err(c, np.cos(y)).max() <= 1.2e-7
+
+
+@pytest.mark.parametrize("dtype", ["float32", "float64"])
+@pytest.mark.parametrize("width", WIDTHS)
+def test_sincosd(run, rng, width, dtype):
+    """sin and cos of degrees with the exact reduction: relative accuracy near multiples of 90."""
+    conv = f32 if dtype == "float32" else np.asarray
+    k = np.arange(-8, 9) * 90.0
+    x = conv(np.concatenate([rng.uniform(-720, 720, 100000), (k[:, None] + np.array([-0.1, -1e-3, 0, 1e-3, 0.1, 45])).ravel(),
+                             rng.uniform(0, 89.9, 10000), [1e7 + 0.5, -3e6 + 45, 123456.75]]))
+    s, c = run("sincosd", x, dtype=dtype, width=width)
+    ws, wc = reference.sincosd(x)
+    bound = 2.0e-7 if dtype == "float32" else 4e-16
+    for got, want in ((s, ws), (c, wc)):
+        exact = want == 0
+        assert np.all(got[exact] == 0)
+        assert rel_err(got[~exact], want[~exact]).max() <= bound
+
+
+@pytest.mark.parametrize("dtype", ["float32", "float64"])
+@pytest.mark.parametrize("width", WIDTHS)
+def test_rint_is_exact(run, rng, width, dtype):
+    npdt = engine_mod.DTYPES[dtype]
+    p = 23 if dtype == "float32" else 52
+    big = 2.0 ** p
+    x = np.concatenate([np.arange(-10, 10.5, 0.25), rng.uniform(-1e3, 1e3, 10000),
+                        [big - 1.5, big - 0.5, big, big + 2, -big + 0.5, big / 2 + 0.5, -big / 2 - 0.5,
+                         2 * big + 4, 1e30, -1e30, 0.49999997, -0.49999997, np.inf, -np.inf]]).astype(npdt)
+    got, _ = run("rint", x, dtype=dtype, width=width)
+    np.testing.assert_array_equal(got, np.rint(x).astype(np.float64))
+    assert np.isnan(run("rint", [np.nan], dtype=dtype, width=width)[0][0])
+
+
+@pytest.mark.parametrize("width", WIDTHS)
+def test_builtin_math_build(run, width):
+    """-DPB_BUILTIN_MATH switches the float32 build back to the OpenCL builtins."""
+    x = f32(np.linspace(-20, 20, 1001))
+    got, _ = run("exp", x, width=width, builtin=True)
+    assert rel_err(got, np.exp(x)).max() <= 4e-7
