@@ -23,6 +23,7 @@ def test_bench_quick_reports_every_path(tmp_path):
     for path in ("per-point kernel", "factorised grid", "pbrdf_cl.grid -> host DataArray", "objective, grid x 30 measurements"):
         assert (path, "float32") in paths and (path, "float64") in paths, path
     assert ("numpy reference", "float64") in paths
+    assert any(p.startswith("sweep -> Zarr store") for p, _ in paths), paths
     for r in report["rows"]:
         assert r["rate"] > 0
         if r["path"].startswith("objective"):
