@@ -57,6 +57,7 @@ typedef PB_SCALAR real;
 /* Beyond this argument the shadowing function S is below 1e-36 and is taken as 0. */
 #define PB_SHADOW_ARG_MAX ((real)9)
 #define PB_PI ((real)3.14159265358979323846)
+#define PB_1_PI ((real)0.318309886183790671538)
 #define PB_SQRT_PI ((real)1.77245385090551602730)
 #define PB_SQRT2 ((real)1.41421356237309504880)
 
@@ -117,24 +118,23 @@ inline pb_fresnel_t pb_fresnel(real n, real k, real cb, real sb)
     real E = (n - k) * (n + k) - (real)1;   /* D - cos^2 b: exact for n = 1, k = 0 */
     real D = E + cb * cb;
     real sC = pb_hypot((real)2 * nk, D);
-    /* the root that does not cancel: A for D >= 0, B for D < 0; the other from A B = n k */
-    real A_pos = pb_sqrt((real)0.5 * (sC + D));
-    real B_pos = A_pos > (real)0 ? nk / A_pos : (real)0;
-    real B_neg = pb_sqrt((real)0.5 * (sC - D));
-    real A_neg = nk / B_neg;
-    real A = D >= (real)0 ? A_pos : A_neg;
-    real B = D >= (real)0 ? B_pos : B_neg;
+    /* the root that does not cancel, sqrt((sC + |D|)/2): A for D >= 0, B for D < 0; the other
+     * from A B = n k */
+    real root = pb_sqrt((real)0.5 * (sC + (D >= (real)0 ? D : -D)));
+    real other = root > (real)0 ? nk / root : (real)0;
+    real A = D >= (real)0 ? root : other;
+    real B = D >= (real)0 ? other : root;
     real B2 = B * B;
     real ap = A + cb;
     real am = E >= (real)0 ? (E + B2) / ap : A - cb;  /* A - cb = (A^2 - cb^2)/(A + cb) */
     f.Rs = (am * am + B2) / (ap * ap + B2);
     real t = sb * sb / cb;
     real tm = A - t, tp = A + t;
-    real den = tp * tp + B2;
-    f.Rp = f.Rs * (tm * tm + B2) / den;
-    f.diff = f.Rs * (real)4 * A * t / den;
-    f.re_x = -f.Rs * ((A - t) * (A + t) + B2) / den;
-    f.im_x = f.Rs * (real)2 * B * t / den;
+    real Rs_den = f.Rs / (tp * tp + B2);
+    f.Rp = Rs_den * (tm * tm + B2);
+    f.diff = Rs_den * (real)4 * A * t;
+    f.re_x = -Rs_den * ((A - t) * (A + t) + B2);
+    f.im_x = Rs_den * (real)2 * B * t;
     return f;
 }
 
@@ -167,16 +167,17 @@ inline real pb_shadowing_factor(pb_geom g, real sigma, int variant)
  * K = ks exp(-tan^2 a / (2 sigma^2)) G / (8 pi sigma^2 cos^4 a cos ti cos tr). */
 inline real pb_log_specular_scale(pb_geom g, real sigma, real ks, real G)
 {
-    real u = pb_sqrt(g.tan2a) / sigma;
+    real inv_s = (real)1 / sigma;
+    real u2 = g.tan2a > (real)0 ? g.tan2a * inv_s * inv_s : (real)0;  /* tan^2 a / sigma^2 */
     real inv_cos2a = (real)1 + g.tan2a;
     return pb_log(ks * G * inv_cos2a * inv_cos2a / ((real)8 * PB_PI * g.cti * g.ctr))
-           - (real)2 * pb_log(sigma) - (real)0.5 * u * u;
+           - (real)2 * pb_log(sigma) - (real)0.5 * u2;
 }
 
 /* Eq. 15: Minnaert diffuse term kd/pi (cos ti cos tr)^c. */
 inline real pb_diffuse(pb_geom g, real kd, real c)
 {
-    return kd == (real)0 ? (real)0 : kd / PB_PI * pb_exp(c * pb_log(g.cti * g.ctr));
+    return kd == (real)0 ? (real)0 : kd * PB_1_PI * pb_exp(c * pb_log(g.cti * g.ctr));
 }
 
 /* Eq. 17-18 from precomputed factors: DOP = (Rs - Rp) / (Rs + Rp + fd2 / K), where

@@ -63,25 +63,24 @@ def fresnel(n, k, cb, sb):
     E = (n - k) * (n + k) - 1.0  # D - cos^2 b: exact for n = 1, k = 0
     D = E + cb * cb
     sC = np.hypot(2.0 * nk, D)
-    # the root that does not cancel: A for D >= 0, B for D < 0; the other from A B = n k
+    # the root that does not cancel, sqrt((sC + |D|)/2): A for D >= 0, B for D < 0; the other
+    # from A B = n k
+    root = np.sqrt(0.5 * (sC + np.where(D >= 0.0, D, -D)))
     with np.errstate(divide="ignore", invalid="ignore"):
-        A_pos = np.sqrt(0.5 * (sC + D))
-        B_pos = np.where(A_pos > 0.0, nk / A_pos, 0.0)
-        B_neg = np.sqrt(0.5 * (sC - D))
-        A_neg = nk / B_neg
-    A = np.where(D >= 0.0, A_pos, A_neg)
-    B = np.where(D >= 0.0, B_pos, B_neg)
+        other = np.where(root > 0.0, nk / root, 0.0)
+    A = np.where(D >= 0.0, root, other)
+    B = np.where(D >= 0.0, other, root)
     B2 = B * B
     ap = A + cb
     am = np.where(E >= 0.0, (E + B2) / ap, A - cb)  # A - cb = (A^2 - cb^2)/(A + cb)
     f.Rs = (am * am + B2) / (ap * ap + B2)
     t = sb * sb / cb
     tm, tp = A - t, A + t
-    den = tp * tp + B2
-    f.Rp = f.Rs * (tm * tm + B2) / den
-    f.diff = f.Rs * 4.0 * A * t / den
-    f.re_x = -f.Rs * ((A - t) * (A + t) + B2) / den
-    f.im_x = f.Rs * 2.0 * B * t / den
+    Rs_den = f.Rs / (tp * tp + B2)
+    f.Rp = Rs_den * (tm * tm + B2)
+    f.diff = Rs_den * 4.0 * A * t
+    f.re_x = -Rs_den * ((A - t) * (A + t) + B2)
+    f.im_x = Rs_den * 2.0 * B * t
     return f
 
 
@@ -106,16 +105,18 @@ def shadowing_factor(g, sigma, variant):
 
 def log_specular_scale(g, sigma, ks, G):
     """log K, K = ks exp(-tan^2 a/(2 sigma^2)) G / (8 pi sigma^2 cos^4 a cos ti cos tr) (eq. 6)."""
-    u = np.sqrt(g.tan2a) / sigma
+    inv_s = 1.0 / sigma
+    with np.errstate(invalid="ignore"):
+        u2 = np.where(g.tan2a > 0.0, g.tan2a * inv_s * inv_s, 0.0)  # tan^2 a / sigma^2
     inv_cos2a = 1.0 + g.tan2a
     return (np.log(ks * G * inv_cos2a * inv_cos2a / (8.0 * np.pi * g.cti * g.ctr))
-            - 2.0 * np.log(sigma) - 0.5 * u * u)
+            - 2.0 * np.log(sigma) - 0.5 * u2)
 
 
 def diffuse(g, kd, c):
     """Eq. 15: Minnaert diffuse term kd/pi (cos ti cos tr)^c (``pb_diffuse``)."""
     kd = np.asarray(kd, dtype=np.float64)
-    return np.where(kd == 0.0, 0.0, kd / np.pi * np.exp(c * np.log(g.cti * g.ctr)))
+    return np.where(kd == 0.0, 0.0, kd * (1.0 / np.pi) * np.exp(c * np.log(g.cti * g.ctr)))
 
 
 def dop_combine(sum_, diff, fd2, inv_K):
