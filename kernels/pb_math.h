@@ -1,6 +1,6 @@
 /*
- * pb_math.h -- elementary functions of pbrdf.h: pb_rint, pb_sqrt, pb_exp, pb_log, pb_erfc,
- * pb_hypot and pb_sincos_pi4 (sin and cos for |y| <= pi/4, after pb_sincosd's exact degree
+ * pb_math.h -- elementary functions of pbrdf.h: pb_sqrt, pb_exp, pb_log, pb_erfc, pb_hypot and
+ * pb_sincos_pi4 (sin and cos for |y| <= pi/4, after pb_sincosd's exact degree
  * reduction).
  *
  * Included by pbrdf.h after it has defined real (scalar, or a vector with -DPB_VECTOR_REAL=N).
@@ -14,10 +14,11 @@
  *   pb_exp         8.2e-8 [1.2e-7]  x in [-104, 89]; 0 below, +inf above; denormal results
  *                                   within one denormal step
  *   pb_log         8.2e-8 [1.0e-7]  every x > 0, denormals included; log(0) = -inf, NaN below 0
- *   pb_erfc        3.5e-7 [4.0e-7]  x in [-10, 10.5] where erfc(x) >= FLT_MIN; 0 beyond 10.5
+ *   pb_erfc        3.5e-7 [4.0e-7]  x in [0, 10.5] where erfc(x) >= FLT_MIN; 0 beyond 10.5;
+ *                                   x >= 0 only
  *   pb_sincos_pi4  1.0e-7 [1.2e-7]  |y| <= pi/4 (pb_sincosd: 1.4e-7 [2e-7] for any degrees)
  *   pb_hypot       1.1e-7 [1.2e-7]  |x|, |y| in [1e-18, 1e18] (sqrt(x^2 + y^2): no rescaling)
- *   pb_rint, pb_sqrt: exact (pb_sqrt correctly rounded), both precisions
+ *   pb_sqrt: correctly rounded, both precisions
  * The polynomial coefficients are weighted minimax fits (Lawson) in float64, rounded to float32.
  * These rely on IEEE arithmetic as written: do not build with -cl-fast-relaxed-math or
  * -cl-unsafe-math-optimizations ((x + 2^23) - 2^23 is not x).
@@ -41,25 +42,10 @@ typedef PB_ISCALAR pb_bits;
 #endif
 
 #ifdef PBRDF_DOUBLE
-#define PB_SIGN_MASK ((pb_bits)0x8000000000000000L)
-#define PB_ABS_MASK ((pb_bits)0x7fffffffffffffffL)
-#define PB_TWO_P ((real)0x1p52)            /* 2^(mantissa bits) */
 #define PB_ROUND_MAGIC ((real)0x1.8p52)    /* (x + 1.5 2^52) - 1.5 2^52 = rint(x) for |x| < 2^51 */
 #else
-#define PB_SIGN_MASK ((pb_bits)0x80000000)
-#define PB_ABS_MASK ((pb_bits)0x7fffffff)
-#define PB_TWO_P ((real)0x1p23f)
-#define PB_ROUND_MAGIC ((real)0x1.8p23f)
+#define PB_ROUND_MAGIC ((real)0x1.8p23f)   /* (x + 1.5 2^23) - 1.5 2^23 = rint(x) for |x| < 2^22 */
 #endif
-
-/* rint(x), exactly, for every x (round half to even): adding and subtracting 2^p with x's sign
- * rounds to an integer; |x| >= 2^p is an integer already. */
-inline real pb_rint(real x)
-{
-    const real m = PB_AS_REAL((PB_AS_BITS(x) & PB_SIGN_MASK) | PB_AS_BITS(PB_TWO_P));
-    const real r = (x + m) - m;
-    return (PB_AS_BITS(x) & PB_ABS_MASK) < PB_AS_BITS(PB_TWO_P) ? r : x;
-}
 
 /* sqrt, correctly rounded (as the builtin), inline: PoCL 3.0 calls its builtins out of line, and
  * such a call spills every live vector register; clang's __builtin_sqrt element by element
@@ -125,29 +111,27 @@ inline real pb_log(real x)
     return x > (real)0 ? r : x == (real)0 ? (real)-INFINITY : (real)NAN;
 }
 
-/* erfc(x) = exp(-x^2) erfcx(|x|) (2 - that for x < 0), with
- * (1 + 2a) erfcx(a) = 1 + P(q), q = (a - 2) / (a + 2), a = |x| (the form of N. Juffa's erfcf;
- * coefficients refitted), and the rounding error t of x^2 corrected: exp(-x^2) = exp(-fl(x^2)) (1 - t).
+/* erfc(x) for x >= 0 (the shadowing function's argument) = exp(-x^2) erfcx(x), with
+ * (1 + 2x) erfcx(x) = 1 + P(q), q = (x - 2) / (x + 2) (the form of N. Juffa's erfcf, coefficients
+ * refitted), and the rounding error t of x^2 corrected: exp(-x^2) = exp(-fl(x^2)) (1 - t).
  * exp(-x * x) is written as the callers write it, so that the compiler shares it with them. */
 inline real pb_erfc(real x)
 {
-    const real a = PB_AS_REAL(PB_AS_BITS(x) & PB_ABS_MASK);
-    const real d = (real)1 + (real)2 * a;
-    const real rcp = (real)1 / ((a + (real)2) * d);
-    const real q = (a - (real)2) * d * rcp;
+    const real d = (real)1 + (real)2 * x;
+    const real rcp = (real)1 / ((x + (real)2) * d);
+    const real q = (x - (real)2) * d * rcp;
     const real p = 0.2769784f + q * (-0.092764f + q * (-0.16603157f + q * (0.16405566f
                    + q * (-0.05420262f + q * (-0.008060887f + q * (0.008625355f + q * (0.0013125681f
                    + q * (-0.0012223385f + q * -0.0003961044f))))))));
-    const real ex = ((real)1 + p) * ((a + (real)2) * rcp);  /* erfcx(a) */
+    const real ex = ((real)1 + p) * ((x + (real)2) * rcp);  /* erfcx(x) */
     /* t = x^2 - fl(x^2), exactly, by splitting x into 12-bit halves (Dekker) */
     const real s = x * x;
     const real xh = PB_AS_REAL(PB_AS_BITS(x) & (pb_bits)0xfffff000);
     const real xl = x - xh;
     const real t = ((xh * xh - s) + (real)2 * xh * xl) + xl * xl;
     const real e = pb_exp(-x * x) * ex;
-    real r = e - e * t;
-    r = a > 10.5f ? (real)0 : r;  /* erfc(10.5) < 1e-49; also no inf - inf */
-    return x < (real)0 ? (real)2 - r : r;
+    const real r = e - e * t;
+    return x > 10.5f ? (real)0 : r;  /* erfc(10.5) < 1e-49; also no inf - inf, no inf / inf */
 }
 
 /* sqrt(x^2 + y^2) (no rescaling: |x|, |y| must stay within about 1e-19 .. 1e19). */

@@ -70,15 +70,15 @@ typedef struct {
 #define PB_DEG ((real)0.0174532925199432957692)
 
 /* sin and cos of x degrees with exact argument reduction to [-45, 45]: relative accuracy
- * near multiples of 90 degrees (cos 89.9 in float32 would otherwise lose four digits). */
+ * near multiples of 90 degrees (cos 89.9 in float32 would otherwise lose four digits).
+ * q = rint(x / 90) by the round-to-integer constant, q mod 4 in its low bits; x - 90 q is exact
+ * (a tie either way reduces exactly) for |x| < 2^25 degrees in float32, 2^52 in float64. */
 inline real pb_sincosd(real x, real *c)
 {
-    real r = x - (real)360 * pb_rint(x * (real)(1.0 / 360));  /* a tie either way reduces exactly */
-    /* q = rint(r / 90) by the round-to-integer constant (|r / 90| <= 2), q mod 4 in its low bits */
-    const real t = r * (real)(1.0 / 90) + PB_ROUND_MAGIC;
+    const real t = x * (real)(1.0 / 90) + PB_ROUND_MAGIC;
     real q = t - PB_ROUND_MAGIC;
     real cy;
-    real sy = pb_sincos_pi4((r - (real)90 * q) * PB_DEG, &cy);
+    real sy = pb_sincos_pi4((x - (real)90 * q) * PB_DEG, &cy);
     pb_bits iq = PB_AS_BITS(t) & 3;
     *c = iq == 0 ? cy : iq == 1 ? -sy : iq == 2 ? -cy : sy;
     return iq == 0 ? sy : iq == 1 ? cy : iq == 2 ? -sy : -cy;

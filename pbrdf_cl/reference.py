@@ -26,9 +26,8 @@ DEG = np.pi / 180.0
 def sincosd(x):
     """(sin, cos) of x degrees with exact argument reduction to [-45, 45] (``pb_sincosd``)."""
     x = np.asarray(x, dtype=np.float64)
-    r = x - 360.0 * np.rint(x * (1.0 / 360))  # a tie either way reduces exactly
-    q = np.rint(r * (1.0 / 90))
-    y = (r - 90.0 * q) * DEG
+    q = np.rint(x * (1.0 / 90))
+    y = (x - 90.0 * q) * DEG  # exact (a tie either way reduces exactly)
     sy, cy = np.sin(y), np.cos(y)
     iq = q.astype(np.int64) & 3
     c = np.choose(iq, [cy, -sy, -cy, sy])
