@@ -79,9 +79,14 @@ inline real pb_sincosd(real x, real *c)
     real q = t - PB_ROUND_MAGIC;
     real cy;
     real sy = pb_sincos_pi4((x - (real)90 * q) * PB_DEG, &cy);
-    pb_bits iq = PB_AS_BITS(t) & 3;
-    *c = iq == 0 ? cy : iq == 1 ? -sy : iq == 2 ? -cy : sy;
-    return iq == 0 ? sy : iq == 1 ? cy : iq == 2 ? -sy : -cy;
+    /* quadrant q mod 4 from bit tests (Oclgrind misevaluates the chain iq == 0 ? : iq == 1 ? ...
+     * on (bits & 3) for q >= 4): odd swaps sin and cos, bit 1 of q (of q + 1) is the sign of
+     * sin (of cos), moved to the sign bit */
+    const pb_bits iq = PB_AS_BITS(t);
+    const pb_bits odd = (iq & 1) != 0;
+    const pb_bits top = 8 * sizeof(PB_SCALAR) - 2;
+    *c = PB_AS_REAL(PB_AS_BITS(odd ? sy : cy) ^ (((iq + 1) & 2) << top));
+    return PB_AS_REAL(PB_AS_BITS(odd ? cy : sy) ^ ((iq & 2) << top));
 }
 
 /* Eq. 2-3 in stable form; angles in degrees. */
