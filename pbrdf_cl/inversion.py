@@ -25,6 +25,10 @@ SPECULAR_GRID = {"n": 160, "k": 200}
 MODEL_FIXED = {"six-param": {"ks": 1.0}, "specular": {"ks": 1.0, "kd": 0.0, "c": 0.0, "sigma": 0.5}}
 #: How many of the best BOBYQA candidates get the final least-squares polish.
 LS_POLISH = 2
+#: Residual evaluations per free parameter the least-squares polish may use.
+LS_MAX_NFEV = 100
+#: Evaluations per free parameter of the last BOBYQA run, when least squares ran out of them.
+FINAL_BOBYQA = 80
 #: Resolution of the located optimum, as a fraction of each parameter's bound range: the
 #: smallest half-width a 95% interval is given.
 X_RESOLUTION = 1e-8
@@ -326,17 +330,30 @@ def fit(data, model="six-param", bounds=None, fixed=None, shadowing="paper", *, 
         def job(rows):
             return least_squares(lambda x: rows(x)[0], x0, jac=lambda x: _fd_jacobian(rows, x, lo, hi),
                                  bounds=(lo, hi), x_scale=span, ftol=1e-15, xtol=1e-15, gtol=1e-15,
-                                 max_nfev=100 * len(free))
+                                 max_nfev=LS_MAX_NFEV * len(free))
         return job
 
     found = stage("direct", [direct(seed, step) for seed, step in zip(seeds, spacings)])
     found = stage("bobyqa", [bobyqa(x_d, step) for (x_d, _), step in zip(found, spacings)])
     cands = sorted(((f_b, x_b, seed) for (x_b, f_b), seed in zip(found, seeds)), key=lambda c: c[0])
     top = min(LS_POLISH, len(cands))  # the best candidates, least squares to the end
+    unfinished = set()
     for i, ls in enumerate(stage("least_squares", [polish(cands[i][1]) for i in range(top)])):
         if 2 * ls.cost < cands[i][0]:
             cands[i] = (float(2 * ls.cost), np.clip(ls.x, lo, hi), cands[i][2])
+        if ls.status == 0:  # out of evaluations: still creeping along a flat valley
+            unfinished.add(id(cands[i]))
     cands.sort(key=lambda c: c[0])
+    # a flat valley running into a bound is where trust-region least squares crawls (it keeps
+    # strictly inside the bounds); BOBYQA, which steps onto them, finishes the job
+    nfev["final_bobyqa"], seconds["final_bobyqa"] = 0, 0.0
+    if id(cands[0]) in unfinished:
+        f_0, x_0, seed_0 = cands[0]
+        (x_f, f_f), = stage("final_bobyqa", [lambda rows: _nlopt_min(
+            nlopt.LN_BOBYQA, sse_via(rows), lo, hi, x_0, maxeval=FINAL_BOBYQA * len(free), step=0.01 * span,
+            start=x_0)[:2]])
+        if f_f < f_0:
+            cands[0] = (f_f, x_f, seed_0)
     best_sse, best_x, _ = cands[0]
 
     # intensities: fit ks and kd separately (DOP alone cannot)
