@@ -473,7 +473,11 @@ def _sum_of_squares(resid):
 def _grid_axis(name, bounds, count):
     """Grid values of one parameter.  n, k and kd are spaced quadratically from their lower
     bound: near n = 1, k = 0 (an almost index-matched surface) and near kd = 0 (a small diffuse
-    share) the DOP changes fastest and its minima are narrowest."""
+    share) the DOP changes fastest and its minima are narrowest.  sigma is spaced
+    geometrically: the specular lobe's shape depends on tan(a) / sigma, so equal ratios of sigma
+    matter equally (on a linear grid, smooth surfaces with sigma < 0.1 fell between nodes)."""
+    if name == "sigma" and bounds[0] > 0:
+        return np.geomspace(bounds[0], bounds[1], count)
     u = np.linspace(0.0, 1.0, count)
     if name in ("n", "k", "kd"):
         u = u * u
