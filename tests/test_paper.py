@@ -190,3 +190,24 @@ def test_map_bad_specs(tmp_path, capsys, args, message):
     assert rc == 1
     assert message in capsys.readouterr().err
     assert not (tmp_path / "bad.png").exists()
+
+
+def test_script_runs_headless_in_a_temp_dir(tmp_path):
+    """scripts/reproduce_paper.py in a subprocess with no display, writing into a temp dir."""
+    import os
+    import subprocess
+    import sys
+    root = Path(__file__).resolve().parents[1]
+    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "MPLBACKEND")}
+    env["PYTHONPATH"] = str(Path(paper.__file__).resolve().parents[1])
+    proc = subprocess.run([sys.executable, str(root / "scripts" / "reproduce_paper.py"), "--out", "figs",
+                           "--resolution", "24", "--quiet"], cwd=tmp_path, env=env, capture_output=True, text=True,
+                          timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    assert "figs/summary.md" in proc.stdout
+    for name in paper.DESCRIPTIONS:
+        if name.endswith(".png"):
+            assert_png(tmp_path / "figs" / name, min_bytes=5_000)
+    m = np.load(tmp_path / "figs" / "map_sigma_theta_r.npz")
+    fixed = {k: v for k, v in paper.STEEL.items() if k != "sigma"}
+    np.testing.assert_allclose(m["dop"][5, 7], ref_dop(40.0, m["x"][7], sigma=m["y"][5], **fixed), atol=1e-12)
