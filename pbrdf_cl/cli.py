@@ -33,6 +33,12 @@ def parse_values(option: str, text: str) -> np.ndarray:
                          "or an inclusive start:stop:step range with step > 0") from None
 
 
+def _error(exc) -> int:
+    """Report an input or device error the way every subcommand does; exit status 1."""
+    print(f"pbrdf-cl: error: {exc}", file=sys.stderr)
+    return 1
+
+
 def _device_type(bits: int) -> str:
     dt = _engine.cl.device_type
     names = [name for name in ("CPU", "GPU", "ACCELERATOR") if bits & getattr(dt, name)]
@@ -44,8 +50,7 @@ def cmd_devices(args) -> int:
         found = _engine.list_devices()
         default = _engine.select_device(args.device)
     except (_engine.OpenCLUnavailableError, ValueError) as exc:
-        print(f"pbrdf-cl: error: {exc}", file=sys.stderr)
-        return 1
+        return _error(exc)
     rows = []
     for ip, idev, plat, dev in found:
         rows.append(dict(id=f"{ip}:{idev}", platform=plat.name.strip(), device=dev.name.strip(),
@@ -81,16 +86,14 @@ def cmd_eval(args) -> int:
         try:
             kw["engine"] = _engine.Engine(args.device) if args.device else None
         except (_engine.OpenCLUnavailableError, ValueError) as exc:
-            print(f"pbrdf-cl: error: {exc}", file=sys.stderr)
-            return 1
+            return _error(exc)
     pos = {n: cols[n] for n in ("theta_i", "theta_r", "phi")}
     par = {n: cols[n] for n in ("n", "k", "sigma", "ks", "kd", "c") if n in cols}
     try:
         func = {"dop": api.dop, "brdf": api.brdf, "mueller": api.mueller}[args.quantity]
         result = func(pos["theta_i"], pos["theta_r"], pos["phi"], **par, **kw)
     except (ValueError, FloatingPointError, _engine.OpenCLUnavailableError) as exc:
-        print(f"pbrdf-cl: error: {exc}", file=sys.stderr)
-        return 1
+        return _error(exc)
     out_name = {"dop": "dop", "brdf": "f00", "mueller": "mueller"}[args.quantity]
     if args.json:
         records = [{**{n: float(cols[n][i]) for n in names},
@@ -150,8 +153,7 @@ def cmd_fit(args) -> int:
         both = _fit.compare_models(meas, shadowing=args.shadowing, bounds=bounds, fixed=fixed, engine=engine,
                                    progress=not args.quiet)
     except (OSError, ValueError, _engine.OpenCLUnavailableError) as exc:
-        print(f"pbrdf-cl: error: {exc}", file=sys.stderr)
-        return 1
+        return _error(exc)
     other_model = "specular" if args.model == "six-param" else "six-param"
     fits = {args.model: both[args.model], other_model: both[other_model]}
     print(f"data: {meas.source} ({len(meas)} points)")
@@ -191,8 +193,7 @@ def cmd_sweep(args) -> int:
         print(f"pbrdf-cl: interrupted; {where}; run the same command again to resume", file=sys.stderr)
         return 130
     except (OSError, ValueError, RuntimeError, _engine.OpenCLUnavailableError) as exc:
-        print(f"pbrdf-cl: error: {exc}", file=sys.stderr)
-        return 1
+        return _error(exc)
     print(res.summary())
     return 0
 
@@ -200,11 +201,6 @@ def cmd_sweep(args) -> int:
 def cmd_bench(args) -> int:
     from . import bench
     return bench.main(args.rest)
-
-
-def _error(exc) -> int:
-    print(f"pbrdf-cl: error: {exc}", file=sys.stderr)
-    return 1
 
 
 def cmd_reproduce(args) -> int:

@@ -85,25 +85,29 @@ class _Model:
             self._cache[name] = hit
         return hit[1]
 
-    def parts(self, p):
+    def _fresnel(self, p):
+        return reference.fresnel(p["n"], p["k"], self.g.cb, self.g.sb)
+
+    def _log_scale(self, p):
         g = self.g
-        f = self._factor("fresnel", (p["n"], p["k"]), lambda: reference.fresnel(p["n"], p["k"], g.cb, g.sb))
-        logK = self._factor("scale", (p["sigma"], p["ks"]), lambda: reference.log_specular_scale(
-            g, p["sigma"], p["ks"], reference.shadowing_factor(g, p["sigma"], self.variant)))
-        fd = self._factor("diffuse", (p["kd"], p["c"]), lambda: reference.diffuse(g, p["kd"], p["c"]))
-        return f, logK, fd
+        return reference.log_specular_scale(g, p["sigma"], p["ks"],
+                                            reference.shadowing_factor(g, p["sigma"], self.variant))
+
+    def _diffuse(self, p):
+        return reference.diffuse(self.g, p["kd"], p["c"])
+
+    def parts(self, p):
+        return (self._factor("fresnel", (p["n"], p["k"]), lambda: self._fresnel(p)),
+                self._factor("scale", (p["sigma"], p["ks"]), lambda: self._log_scale(p)),
+                self._factor("diffuse", (p["kd"], p["c"]), lambda: self._diffuse(p)))
 
     def dop(self, p):
         return reference.dop(*self.parts(p))
 
     def dop_rows(self, p):
         """DOP for many parameter vectors at once: ``p`` maps names to (B, 1) arrays (or
-        scalars); returns (B, M).  Same reference functions, no cache."""
-        g = self.g
-        f = reference.fresnel(p["n"], p["k"], g.cb, g.sb)
-        logK = reference.log_specular_scale(g, p["sigma"], p["ks"],
-                                            reference.shadowing_factor(g, p["sigma"], self.variant))
-        return reference.dop(f, logK, reference.diffuse(g, p["kd"], p["c"]))
+        scalars); returns (B, M).  The same factors, without the cache."""
+        return reference.dop(self._fresnel(p), self._log_scale(p), self._diffuse(p))
 
     def f00(self, p):
         return reference.brdf(*self.parts(p))

@@ -124,8 +124,7 @@ def make_map(x, y, fixed=None, quantity="dop", derivative=None, *, dtype="float6
             d = np.gradient(values, coord, axis=axis, edge_order=2)
             method = "second-order finite difference on the map's own grid (numpy.gradient, edge_order=2)"
         elif derivative in dense.AXES:
-            plan = dense.GridPlan(axes, fixed)  # the value every input takes, defaults included
-            p = float(plan.values[derivative][0])
+            p = float(da.attrs[f"fixed_{derivative}"])  # the grid's value of it, defaults included
             h = FD_STEP * max(1.0, abs(p))
             lo, hi = p - h, p + h
             try:

@@ -144,9 +144,8 @@ def test_map_cli_roundtrip_and_derivative(tmp_path, capsys):
     assert attrs["quantity"] == "f00" and attrs["fixed_theta_i"] == 40.0 and attrs["derivative"] == "k"
     x, y = d["x"], d["y"]
     np.testing.assert_allclose(x, np.linspace(0, 85, 40))
-    p = dict(n=None, k=2.139, sigma=0.5, ks=0.9, kd=0.15, c=-0.3)
     X, Y = np.meshgrid(x, y)
-    p["n"] = Y
+    p = dict(n=Y, k=2.139, sigma=0.5, ks=0.9, kd=0.15, c=-0.3)
     np.testing.assert_allclose(d["f00"], ref("brdf", 40.0, X, **p), rtol=1e-12)
     # dF00/dk along a fixed input: central difference of two device grids vs the reference's
     h = maps.FD_STEP * max(1.0, p["k"])
