@@ -23,6 +23,8 @@ DEFAULT_GRID = {"n": 24, "k": 32, "sigma": 16, "kd": 16, "c": 8}
 SPECULAR_GRID = {"n": 160, "k": 200}
 #: The value a fixed-by-the-model parameter takes (specular: no diffuse term; sigma cancels).
 MODEL_FIXED = {"six-param": {"ks": 1.0}, "specular": {"ks": 1.0, "kd": 0.0, "c": 0.0, "sigma": 0.5}}
+#: Extra seeds from valleys of the grid's profiles that none of the grid's best local minima lies in.
+PROFILE_SEEDS = 2
 #: How many of the best BOBYQA candidates get the final least-squares polish.
 LS_POLISH = 2
 #: Residual evaluations per free parameter the least-squares polish may use.
@@ -40,9 +42,26 @@ class FitResult(dense.Result):
     """Result of :func:`fit`; keys are also attributes (like scipy's ``OptimizeResult``).
 
     x (dict: every model parameter, fitted and fixed), free (names fitted), sse, chi2,
-    reduced_chi2, rmse, residuals, stderr, ci95 (dict name -> (lo, hi)), ci95_jacobian,
-    ci95_profile, corr (matrix over ``free``), condition_number, aic, bic, dof, nfev and
-    seconds per stage, basins (candidates with their SSE), ambiguous, notes (list of sentences).
+    reduced_chi2, rmse, residuals, stderr, corr (matrix over ``free``), condition_number, aic,
+    bic, dof, nfev and seconds per stage, basins (candidates with their SSE), ambiguous, notes
+    (list of sentences), and three kinds of 95% interval (dicts name -> (lo, hi)):
+
+    ci95
+        the central 95% of the parameter's posterior under a uniform prior over the bounds,
+        approximated twice and the wider taken at each end: the local (Laplace) approximation,
+        x +- stderr * (Gaussian, or Student's t without given uncertainties) truncated to the
+        bounds, and the device grid's profile likelihood normalised over the bounds.  Where the
+        data determine a parameter this is about x +- 1.96 stderr; where they do not, it is the
+        middle 95% of its bounds (not all of them), so it covers the truth about 95% of the time
+        in both cases (``scripts/bench_fit.py`` measures it).
+    ci95_jacobian
+        x +- 1.96 stderr (Student's t without given uncertainties), clipped to the bounds.
+    ci95_profile
+        likelihood ratio: the grid nodes whose profile is within 3.84 units of chi^2 of the
+        optimum, widened to the next node (None where no node is).
+
+    profiles maps each free parameter to the grid's profile: ``values`` (nodes) and ``sse``
+    (minimum of the objective over the other parameters at each node).
     """
 
     def summary(self):
@@ -294,13 +313,18 @@ def fit(data, model="six-param", bounds=None, fixed=None, shadowing="paper", *, 
     grid_params = {**{n: v for n, v in base.items()}, **axes}
     res = dense.objective(meas.as_dict(), grid=grid_params, k_best=1, dtype="float32", shadowing=shadowing,
                           engine=engine, progress=progress)
-    sse_grid = res.sse.transpose(*free).values.astype(np.float64)
+    sse_grid = res.sse.transpose(*free).values
     nfev["grid"] = int(sse_grid.size)
+    profiles = _grid_profiles(sse_grid, free)
     seconds["grid"] = time.perf_counter() - t0
 
     # (b) distinct basins: local minima of the grid objective, best first, one per neighbourhood
     t0 = time.perf_counter()
     basins = _grid_basins(sse_grid, n_basins)
+    # ... and valleys of the grid's profiles that none of them lies in (a ridge of at least one
+    # unit of chi^2 between; without given uncertainties the unit is estimated from the grid)
+    rise = 1.0 if meas.dop_std is not None else float(sse_grid.min()) / (len(meas) - len(free))
+    basins += _profile_seeds(sse_grid, profiles, free, basins, PROFILE_SEEDS, rise)
     seeds = [np.array([axes[n][i] for n, i in zip(free, idx)]) for idx in basins]
     spacings = [np.array([_local_spacing(axes[n], i) for n, i in zip(free, idx)]) for idx in basins]
     spacing = np.array([np.median(np.diff(axes[n])) for n in free])
@@ -405,20 +429,28 @@ def fit(data, model="six-param", bounds=None, fixed=None, shadowing="paper", *, 
     J = _jacobian(resid, x_final, lo_f, hi_f)
     cov, cond, eig = _covariance(J, s2, hi_f - lo_f)
     se = np.sqrt(np.clip(np.diag(cov), 0, None))
-    from scipy.stats import t as student_t
-    tq = float(student_t.ppf(0.975, dof))
+    from scipy.stats import norm, t as student_t
+    # with known uncertainties the Gaussian quantile, else Student's t on the residual dof
+    dist = norm if sigma_known else student_t(dof)
+    q = float(dist.ppf(0.975))
     # never narrower than the optimizer's resolution (noise-free data would give a zero width)
-    half = np.maximum(tq * se, X_RESOLUTION * (hi_f - lo_f))
+    res = X_RESOLUTION * (hi_f - lo_f)
+    half = np.maximum(q * se, res)
     ci_jac = {n: (max(lo_f[i], x_final[i] - half[i]), min(hi_f[i], x_final[i] + half[i]))
               for i, n in enumerate(free_all)}
-    # profile intervals from the grid objective (banana-shaped valleys are not ellipses)
-    ci_prof = _profile_intervals(sse_grid, axes, free, best_sse + 3.84 * unit)
+    # likelihood-ratio intervals from the profile of the grid objective (banana-shaped valleys
+    # are not ellipses)
+    ci_prof = _profile_intervals(profiles, axes, best_sse + 3.84 * unit)
+    # 95% intervals: posterior under a uniform prior over the bounds, from the local (Laplace)
+    # approximation and from the grid's profile, whichever is wider at each end
     ci = {}
-    for n in free_all:
-        a, b = ci_jac[n]
-        if n in ci_prof and ci_prof[n] is not None:
-            a, b = min(a, ci_prof[n][0]), max(b, ci_prof[n][1])
-        ci[n] = (float(a), float(b))
+    for i, n in enumerate(free_all):
+        a, b = _truncated_central(dist, x_final[i], se[i], lo_f[i], hi_f[i])
+        a, b = min(a, x_final[i] - res[i]), max(b, x_final[i] + res[i])
+        if n in axes:
+            g_a, g_b = _grid_credible(profiles[n], axes[n], len(meas), sigma_known)
+            a, b = min(a, g_a), max(b, g_b)
+        ci[n] = (float(max(a, lo_f[i])), float(min(b, hi_f[i])))
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = cov / np.outer(se, se)
     dop_resid = mdl.dop(p_final) - meas.dop
@@ -455,8 +487,8 @@ def fit(data, model="six-param", bounds=None, fixed=None, shadowing="paper", *, 
         model=model, shadowing=shadowing, x=x_out, free=free_all, sse=float(dop_resid @ dop_resid), chi2=chi2,
         reduced_chi2=chi2 / dof, rmse=float(np.sqrt(np.mean(dop_resid ** 2))), residuals=dop_resid, dof=dof,
         n_points=len(meas), stderr=dict(zip(free_all, map(float, se))), ci95=ci, ci95_jacobian=ci_jac,
-        ci95_profile=ci_prof, corr=corr, condition_number=float(cond), aic=float(aic), bic=float(bic),
-        nfev=nfev, seconds=seconds,
+        ci95_profile=ci_prof, profiles={n: dict(values=axes[n], sse=profiles[n]) for n in free}, corr=corr,
+        condition_number=float(cond), aic=float(aic), bic=float(bic), nfev=nfev, seconds=seconds,
         basins=[dict(zip(free, map(float, x)), sse=float(f), seed=dict(zip(free, map(float, s)))) for f, x, s in cands],
         ambiguous=ambiguous, notes=notes, sigma_known=sigma_known)
 
@@ -510,6 +542,37 @@ def _grid_basins(sse, n_basins, pool=4096):
     if len(chosen) < n_basins and cells.size < flat.size:
         chosen = _grid_minima(sse, np.arange(flat.size), n_basins)
     return [tuple(int(v) for v in c) for c in chosen]
+
+
+def _profile_seeds(sse, profiles, free, basins, count, rise):
+    """Grid indices of up to ``count`` more seeds: for each parameter, the valleys of its grid
+    profile that none of ``basins`` lies in (separated from them by a ridge at least ``rise``
+    higher than the valley floor), each seeded at the best grid point of its slice; the best
+    valleys first."""
+    found = []
+    if count <= 0:
+        return []
+    for j, n in enumerate(free):
+        prof = profiles[n]
+        taken = sorted({b[j] for b in basins})
+        for i in range(prof.size):
+            if not ((i == 0 or prof[i] <= prof[i - 1]) and (i == prof.size - 1 or prof[i] < prof[i + 1])):
+                continue
+            # the lowest ridge between this valley floor and any basin's slice
+            ridge = min(prof[min(i, t):max(i, t) + 1].max() for t in taken)
+            if ridge - prof[i] >= rise:
+                found.append((prof[i], j, i))
+    found.sort()
+    out = []
+    for _, j, i in found:
+        sl = np.take(sse, i, axis=j)
+        rest = list(np.unravel_index(int(np.argmin(sl)), sl.shape))
+        idx = tuple(rest[:j] + [i] + rest[j:])
+        if all(max(abs(a - b) for a, b in zip(idx, o)) >= 3 for o in list(basins) + out):
+            out.append(tuple(int(v) for v in idx))
+        if len(out) == count:
+            break
+    return out
 
 
 def _grid_minima(sse, cells, n_basins):
@@ -596,13 +659,27 @@ def _covariance(J, s2, scale):
     return cov, cond, (w, v)
 
 
-def _profile_intervals(sse, axes, free, threshold):
+def _grid_profiles(sse, free):
+    """Profile of the grid objective along each free parameter: the minimum over the others
+    (float64, one value per grid node).  Two passes over the grid: the minimum over the
+    trailing axes gives the leading axes' profiles and vice versa."""
+    k = (sse.ndim + 1) // 2
+    lead = sse.reshape(int(np.prod(sse.shape[:k])), -1)
+    head = lead.min(axis=1).reshape(sse.shape[:k])  # over the trailing axes
+    tail = lead.min(axis=0).reshape(sse.shape[k:])  # over the leading axes
+    out = {}
+    for i, n in enumerate(free):
+        part, j = (head, i) if i < k else (tail, i - k)
+        others = tuple(a for a in range(part.ndim) if a != j)
+        out[n] = (part.min(axis=others) if others else part).astype(np.float64)
+    return out
+
+
+def _profile_intervals(profiles, axes, threshold):
     """For each free parameter, the range of grid values whose profile (min SSE over the other
     parameters) is below ``threshold``, widened to the neighbouring nodes; None where no node is."""
     out = {}
-    for i, n in enumerate(free):
-        others = tuple(j for j in range(sse.ndim) if j != i)
-        prof = sse.min(axis=others) if others else sse
+    for n, prof in profiles.items():
         ok = np.nonzero(prof <= threshold)[0]
         if ok.size == 0:
             out[n] = None
@@ -610,6 +687,41 @@ def _profile_intervals(sse, axes, free, threshold):
         vals = axes[n]
         out[n] = (float(vals[max(ok[0] - 1, 0)]), float(vals[min(ok[-1] + 1, vals.size - 1)]))
     return out
+
+
+def _truncated_central(dist, x, se, lo, hi, level=0.95):
+    """Central ``level`` interval of ``x + se * dist`` truncated to [lo, hi]: the Laplace
+    approximation of the posterior under a uniform prior over the bounds.  Where the data
+    determine x (se small) this is x +- q se; where they do not, the middle of the bounds."""
+    if not (np.isfinite(se) and se > 0):
+        return (x, x)
+    a, b = dist.cdf((lo - x) / se), dist.cdf((hi - x) / se)
+    if not b > a:  # x far outside the bounds in standard errors: cannot happen for a fit's x
+        return (x, x)
+    tail = (1 - level) / 2
+    return (float(x + se * dist.ppf(a + tail * (b - a))), float(x + se * dist.ppf(b - tail * (b - a))))
+
+
+def _grid_credible(prof, vals, n_obs, sigma_known, level=0.95):
+    """Central ``level`` interval of one parameter's grid profile likelihood (``prof`` at the
+    nodes ``vals``), normalised over its bounds (a uniform prior), linear between nodes.  With
+    known uncertainties the likelihood is exp(-chi2 / 2); else the noise is integrated out
+    (Jeffreys prior): SSE^(-N/2).  The grid's profile overstates chi2 where the data are sharp
+    (nodes miss the valley floor), so this interval is narrow there; where the data are weak it
+    follows the valley wherever it goes (banana-shaped and multimodal profiles)."""
+    prof = np.where(np.isfinite(prof), prof, np.inf)
+    ref = prof.min()
+    if sigma_known:
+        w = np.exp(-0.5 * (prof - ref))
+    else:
+        w = np.exp(-0.5 * n_obs * np.log(np.maximum(prof, 1e-300) / max(ref, 1e-300)))
+    cdf = np.concatenate([[0.0], np.cumsum(0.5 * (w[1:] + w[:-1]) * np.diff(vals))])
+    if not cdf[-1] > 0:
+        k = int(np.argmin(prof))
+        return (float(vals[k]), float(vals[k]))
+    cdf /= cdf[-1]
+    tail = (1 - level) / 2
+    return (float(np.interp(tail, cdf, vals)), float(np.interp(1 - tail, cdf, vals)))
 
 
 def _identifiability_notes(names, J, cond, eig, x, se, corr, scale):
