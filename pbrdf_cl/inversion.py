@@ -54,12 +54,13 @@ class FitResult(dense.Result):
 
     ci95
         the central 95% of the parameter's posterior under a uniform prior over the bounds,
-        approximated twice and the wider taken at each end: the local (Laplace) approximation,
+        approximated as the equal mixture of two approximations: the local (Laplace) one,
         x +- stderr * (Gaussian, or Student's t without given uncertainties) truncated to the
         bounds, and the device grid's profile likelihood normalised over the bounds.  Where the
         data determine a parameter this is about x +- 1.96 stderr; where they do not, it is the
         middle 95% of its bounds (not all of them), so it covers the truth about 95% of the time
-        in both cases (``scripts/bench_fit.py`` measures it).
+        in both cases (``scripts/bench_fit.py`` measures it).  It need not contain x: the best
+        fit of a parameter the data do not determine is arbitrary and often sits on a bound.
     ci95_jacobian
         x +- 1.96 stderr (Student's t without given uncertainties), clipped to the bounds.
     ci95_profile
@@ -259,7 +260,12 @@ def _lm_batch(resid_rows, X0, lo, hi, iterations):
         Jf = np.where(held[:, :, None], 0.0, J)
         g = np.where(held, 0.0, g)
         A = np.einsum("pim,pjm->pij", Jf, Jf) + (lam[:, None] + held)[:, :, None] * eye[None]
-        du = -np.linalg.solve(A, g[:, :, None])[:, :, 0]
+        with np.errstate(all="ignore"):
+            try:
+                du = -np.linalg.solve(A, g[:, :, None])[:, :, 0]
+            except np.linalg.LinAlgError:  # an overflowing Jacobian: no step, more damping
+                du = np.zeros_like(X)
+        du = np.where(np.isfinite(du), du, 0.0)
         Xt = np.clip(X + du * span, lo, hi)
         rt, Jt, sset = evaluate(Xt)
         ok = sset < sse
@@ -499,16 +505,17 @@ def fit(data, model="six-param", bounds=None, fixed=None, shadowing="paper", *, 
     # likelihood-ratio intervals from the profile of the grid objective (banana-shaped valleys
     # are not ellipses)
     ci_prof = _profile_intervals(profiles, axes, best_sse + 3.84 * unit)
-    # 95% intervals: posterior under a uniform prior over the bounds, from the local (Laplace)
-    # approximation and from the grid's profile, whichever is wider at each end
+    # 95% intervals: posterior under a uniform prior over the bounds, the equal mixture of the
+    # local (Laplace) approximation and the grid's profile
     ci = {}
+    col = np.linalg.norm(J, axis=0)
     for i, n in enumerate(free_all):
-        a, b = _truncated_central(dist, x_final[i], se[i], lo_f[i], hi_f[i])
-        a, b = min(a, x_final[i] - res[i]), max(b, x_final[i] + res[i])
+        # a direction the DOP does not depend on at all has no finite standard error
+        se_i = np.inf if col[i] <= 1e-12 * max(col.max(), 1e-300) else max(se[i], res[i] / q)
+        cdfs = [_truncated_cdf(dist, x_final[i], se_i, lo_f[i], hi_f[i])]
         if n in axes:
-            g_a, g_b = _grid_credible(profiles[n], axes[n], len(meas), sigma_known)
-            a, b = min(a, g_a), max(b, g_b)
-        ci[n] = (float(max(a, lo_f[i])), float(min(b, hi_f[i])))
+            cdfs.append(_grid_cdf(profiles[n], axes[n], len(meas), sigma_known))
+        ci[n] = _central_interval(cdfs, x_final[i], se_i, lo_f[i], hi_f[i], axes.get(n, ()))
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = cov / np.outer(se, se)
     dop_resid = mdl.dop(p_final) - meas.dop
@@ -762,26 +769,25 @@ def _profile_intervals(profiles, axes, threshold):
     return out
 
 
-def _truncated_central(dist, x, se, lo, hi, level=0.95):
-    """Central ``level`` interval of ``x + se * dist`` truncated to [lo, hi]: the Laplace
-    approximation of the posterior under a uniform prior over the bounds.  Where the data
-    determine x (se small) this is x +- q se; where they do not, the middle of the bounds."""
-    if not (np.isfinite(se) and se > 0):
-        return (x, x)
+def _truncated_cdf(dist, x, se, lo, hi):
+    """CDF of ``x + se * dist`` truncated to [lo, hi] (the Laplace approximation of the posterior
+    under a uniform prior over the bounds), as a function of the parameter value; an infinite
+    ``se`` (a direction the data do not constrain at all) gives the uniform prior itself."""
+    if not np.isfinite(se):
+        return lambda t: np.clip((t - lo) / (hi - lo), 0.0, 1.0)
     a, b = dist.cdf((lo - x) / se), dist.cdf((hi - x) / se)
-    if not b > a:  # x far outside the bounds in standard errors: cannot happen for a fit's x
-        return (x, x)
-    tail = (1 - level) / 2
-    return (float(x + se * dist.ppf(a + tail * (b - a))), float(x + se * dist.ppf(b - tail * (b - a))))
+    if not b - a > 1e-300:  # x many standard errors outside the bounds: cannot happen for a fit's x
+        return lambda t: (np.asarray(t) >= x).astype(float)
+    return lambda t: np.clip((dist.cdf((np.asarray(t) - x) / se) - a) / (b - a), 0.0, 1.0)
 
 
-def _grid_credible(prof, vals, n_obs, sigma_known, level=0.95):
-    """Central ``level`` interval of one parameter's grid profile likelihood (``prof`` at the
-    nodes ``vals``), normalised over its bounds (a uniform prior), linear between nodes.  With
-    known uncertainties the likelihood is exp(-chi2 / 2); else the noise is integrated out
-    (Jeffreys prior): SSE^(-N/2).  The grid's profile overstates chi2 where the data are sharp
-    (nodes miss the valley floor), so this interval is narrow there; where the data are weak it
-    follows the valley wherever it goes (banana-shaped and multimodal profiles)."""
+def _grid_cdf(prof, vals, n_obs, sigma_known):
+    """CDF of one parameter's grid profile likelihood (``prof`` at the nodes ``vals``) normalised
+    over its bounds (a uniform prior), the likelihood linear between nodes.  With known
+    uncertainties the likelihood is exp(-chi2 / 2); else the noise is integrated out (Jeffreys
+    prior): SSE^(-N/2).  Where the data are weak this follows the valley wherever it goes
+    (banana-shaped and multimodal profiles); where they are sharp the grid's nodes miss the
+    valley floor and it is only as fine as the grid."""
     prof = np.where(np.isfinite(prof), prof, np.inf)
     ref = prof.min()
     if sigma_known:
@@ -789,12 +795,29 @@ def _grid_credible(prof, vals, n_obs, sigma_known, level=0.95):
     else:
         w = np.exp(-0.5 * n_obs * np.log(np.maximum(prof, 1e-300) / max(ref, 1e-300)))
     cdf = np.concatenate([[0.0], np.cumsum(0.5 * (w[1:] + w[:-1]) * np.diff(vals))])
-    if not cdf[-1] > 0:
-        k = int(np.argmin(prof))
-        return (float(vals[k]), float(vals[k]))
+    if not cdf[-1] > 0:  # one node: all the mass there
+        k = float(vals[int(np.argmin(prof))])
+        return lambda t: (np.asarray(t) >= k).astype(float)
     cdf /= cdf[-1]
+    return lambda t: np.interp(t, vals, cdf)
+
+
+def _central_interval(cdfs, x, se, lo, hi, nodes=(), level=0.95):
+    """Central ``level`` interval of the equal-weight mixture of the distributions ``cdfs``
+    (callables), found on a mesh over [lo, hi] refined around x (+-8 se) and at ``nodes``."""
+    mesh = [np.linspace(lo, hi, 2001), np.asarray(nodes, float)]
+    if np.isfinite(se) and se > 0:
+        mesh.append(x + se * np.linspace(-8, 8, 321))
+    mesh = np.unique(np.clip(np.concatenate(mesh + [[x]]), lo, hi))
+    cdf = np.mean([c(mesh) for c in cdfs], axis=0)
+    cdf = np.maximum.accumulate(cdf)
     tail = (1 - level) / 2
-    return (float(np.interp(tail, cdf, vals)), float(np.interp(1 - tail, cdf, vals)))
+
+    def inverse(p):  # linear inside the mesh cell that brackets p
+        j = int(np.clip(np.searchsorted(cdf, p, side="left"), 1, mesh.size - 1))
+        c0, c1 = cdf[j - 1], cdf[j]
+        return float(mesh[j] if c1 <= c0 else mesh[j - 1] + (p - c0) / (c1 - c0) * (mesh[j] - mesh[j - 1]))
+    return inverse(tail), inverse(1 - tail)
 
 
 def _identifiability_notes(names, J, cond, eig, x, se, corr, scale):

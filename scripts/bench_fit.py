@@ -104,6 +104,7 @@ def main(argv=None):
             sec = time.perf_counter() - t
             row = dict(truth=truth, x={n: r.x[n] for n in NAMES}, sse=r.chi2, seconds=sec,
                        covered={n: bool(r.ci95[n][0] <= truth[n] <= r.ci95[n][1]) for n in NAMES},
+                       width={n: (r.ci95[n][1] - r.ci95[n][0]) / (HI[j] - LO[j]) for j, n in enumerate(NAMES)},
                        methods={"pbrdf_cl.fit": (r.chi2, sec)})
             row["methods"][ORACLE] = oracle(meas, truth)
             if i < args.baseline_problems:
@@ -123,9 +124,11 @@ def main(argv=None):
         fit = summary["pbrdf_cl.fit"]  # it ran on every problem: its misses index rows
         fit["optimum_found_where_baselines_ran"] = (1 - sum(i < nb for i in fit["missed"]) / nb) if nb else float("nan")
         coverage = {n: float(np.mean([r["covered"][n] for r in rows])) for n in NAMES}
+        width = {n: float(np.mean([r["width"][n] for r in rows])) for n in NAMES}
         rel_err = {n: float(np.median([abs(r["x"][n] - r["truth"][n]) / max(abs(r["truth"][n]), 1e-12) for r in rows]))
                    for n in ("n", "k")}
-        report[gname] = dict(summary=summary, coverage_95=coverage, median_rel_err=rel_err, problems=len(rows))
+        report[gname] = dict(summary=summary, coverage_95=coverage, mean_width_over_bounds=width,
+                             median_rel_err=rel_err, problems=len(rows))
         print(f"\n{gname}")
         print(f"  {'method':44s} {'problems':>8s} {'optimum found':>14s} {'median s':>9s}")
         for m, s in summary.items():
@@ -134,6 +137,7 @@ def main(argv=None):
               f"{summary['pbrdf_cl.fit']['optimum_found_where_baselines_ran']:.1%} optimum found")
         print(f"  pbrdf_cl.fit over {len(rows)} problems: median {summary['pbrdf_cl.fit']['median_seconds']:.3f} s; "
               "95% interval coverage " + ", ".join(f"{n} {c:.0%}" for n, c in coverage.items()))
+        print("  mean 95% interval width / bound range: " + ", ".join(f"{n} {w:.2f}" for n, w in width.items()))
         print("  median relative error at the optimum: " + ", ".join(f"{n} {v:.0%}" for n, v in rel_err.items()))
     with open(args.json, "w") as fh:
         json.dump(report, fh, indent=2)
