@@ -37,6 +37,9 @@ LS_POLISH = 2
 LS_MAX_NFEV = 100
 #: Evaluations per free parameter of the last BOBYQA run, when least squares ran out of them.
 FINAL_BOBYQA = 80
+#: The grid's profile enters a 95% interval where its own 95% interval spans at least this many
+#: grid cells (where it is narrower, the grid does not resolve the parameter).
+GRID_RESOLVED_CELLS = 3
 #: Resolution of the located optimum, as a fraction of each parameter's bound range: the
 #: smallest half-width a 95% interval is given.
 X_RESOLUTION = 1e-8
@@ -56,7 +59,8 @@ class FitResult(dense.Result):
         the central 95% of the parameter's posterior under a uniform prior over the bounds,
         approximated as the equal mixture of two approximations: the local (Laplace) one,
         x +- stderr * (Gaussian, or Student's t without given uncertainties) truncated to the
-        bounds, and the device grid's profile likelihood normalised over the bounds.  Where the
+        bounds, and the device grid's profile likelihood normalised over the bounds (where the
+        grid resolves it: its own interval spans at least ``GRID_RESOLVED_CELLS`` cells).  Where the
         data determine a parameter this is about x +- 1.96 stderr; where they do not, it is the
         middle 95% of its bounds (not all of them), so it covers the truth about 95% of the time
         in both cases (``scripts/bench_fit.py`` measures it).  It need not contain x: the best
@@ -514,7 +518,13 @@ def fit(data, model="six-param", bounds=None, fixed=None, shadowing="paper", *, 
         se_i = np.inf if col[i] <= 1e-12 * max(col.max(), 1e-300) else max(se[i], res[i] / q)
         cdfs = [_truncated_cdf(dist, x_final[i], se_i, lo_f[i], hi_f[i])]
         if n in axes:
-            cdfs.append(_grid_cdf(profiles[n], axes[n], len(meas), sigma_known))
+            # the grid's profile counts where the grid resolves it: its own 95% interval spans
+            # several cells (a valley, a banana, a flat stretch); else it only says "near the
+            # best node", which the local approximation says better
+            g = _grid_cdf(profiles[n], axes[n], len(meas), sigma_known)
+            g_a, g_b = _central_interval([g], x_final[i], se_i, lo_f[i], hi_f[i], axes[n])
+            if g_b - g_a >= GRID_RESOLVED_CELLS * _local_spacing(axes[n], int(np.argmin(profiles[n]))):
+                cdfs.append(g)
         ci[n] = _central_interval(cdfs, x_final[i], se_i, lo_f[i], hi_f[i], axes.get(n, ()))
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = cov / np.outer(se, se)

@@ -61,7 +61,7 @@ def oracle(meas, truth):
     return 2 * r.cost, time.perf_counter() - t
 
 
-def baselines(meas, rng):
+def baselines(meas, rng, starts=64, de_maxiter=1000):
     from scipy.optimize import differential_evolution, least_squares
     resid = residual(meas)
 
@@ -73,13 +73,14 @@ def baselines(meas, rng):
     r = least_squares(resid, (LO + HI) / 2, bounds=(LO, HI))
     out["scipy least_squares from the centre"] = (2 * r.cost, time.perf_counter() - t)
     t = time.perf_counter()
-    r = differential_evolution(sse, list(zip(LO, HI)), seed=int(rng.integers(1 << 30)), polish=True)
+    r = differential_evolution(sse, list(zip(LO, HI)), seed=int(rng.integers(1 << 30)), polish=True,
+                               maxiter=de_maxiter)
     out["scipy differential_evolution"] = (r.fun, time.perf_counter() - t)
     t = time.perf_counter()
     best = np.inf
-    for x0 in LO + rng.random((64, 5)) * (HI - LO):
+    for x0 in LO + rng.random((starts, 5)) * (HI - LO):
         best = min(best, 2 * least_squares(resid, x0, bounds=(LO, HI)).cost)
-    out["scipy 64-start least_squares"] = (best, time.perf_counter() - t)
+    out[f"scipy {starts}-start least_squares"] = (best, time.perf_counter() - t)
     return out
 
 
@@ -90,6 +91,8 @@ def main(argv=None):
     p.add_argument("--json", default="bench_fit.json")
     p.add_argument("--seed", type=int, default=7)
     p.add_argument("--progress", action="store_true", help="a line per problem")
+    p.add_argument("--quick", action="store_true",
+                   help="smoke run: 4-start least squares and 3 differential_evolution generations as baselines")
     args = p.parse_args(argv)
     engine = pbrdf_cl.get_default_engine()
     report = {}
@@ -108,7 +111,7 @@ def main(argv=None):
                        methods={"pbrdf_cl.fit": (r.chi2, sec)})
             row["methods"][ORACLE] = oracle(meas, truth)
             if i < args.baseline_problems:
-                row["methods"].update(baselines(meas, rng))
+                row["methods"].update(baselines(meas, rng, *((4, 3) if args.quick else ())))
             rows.append(row)
             if args.progress:
                 print(f"  problem {i + 1}/{args.problems}: fit {sec:.2f} s", flush=True)
