@@ -239,6 +239,16 @@ def test_interval_pieces_interpolate_between_sharp_and_flat():
     assert a == pytest.approx(1.2, abs=1e-6) and b == pytest.approx(4.8, abs=1e-6)
 
 
+def test_sharp_parameter_is_not_blurred_to_the_grid_cell():
+    # kd alone, well determined: its grid axis (16 nodes over [0, 5]) is far coarser than its
+    # uncertainty, so the interval is the local one, +-1.96 standard errors
+    r = pbrdf_cl.fit(synthetic(noise=0.002, seed=7), fixed=dict(n=TRUTH["n"], k=TRUTH["k"], sigma=TRUTH["sigma"],
+                                                                 c=TRUTH["c"]))
+    a, b = r.ci95["kd"]
+    se = r.stderr["kd"]
+    assert se < 0.01 and a == pytest.approx(r.x["kd"] - 1.96 * se, rel=1e-3) and b == pytest.approx(r.x["kd"] + 1.96 * se, rel=1e-3)
+
+
 def test_unconstrained_parameters_get_the_middle_of_their_bounds():
     # with kd = 0 the DOP depends on neither sigma nor c: their 95% intervals are the middle 95% of
     # the bounds (a uniform prior over them), not the whole range
