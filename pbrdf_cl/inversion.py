@@ -222,12 +222,18 @@ class _Lockstep:
         return results
 
 
-def _fd_jacobian(rows, x, lo, hi):
-    """scipy's '2-point' Jacobian (relative step sqrt(eps), stepping inwards at an upper bound),
-    with the base point and all steps in one batched call."""
+def _fd_steps(x, hi):
+    """scipy's '2-point' steps for ``x`` (any shape): relative step sqrt(eps), inwards at an
+    upper bound, as actually taken (exactly representable)."""
     h = np.sqrt(np.finfo(float).eps) * np.maximum(1.0, np.abs(x))
     h = np.where(x + h > hi, -h, h)
-    h = (x + h) - x  # the step actually taken, exactly representable
+    return (x + h) - x
+
+
+def _fd_jacobian(rows, x, lo, hi):
+    """scipy's '2-point' Jacobian (see :func:`_fd_steps`), with the base point and all steps in
+    one batched call."""
+    h = _fd_steps(x, hi)
     X = np.vstack([x, x + np.diag(h)])
     R = rows(X)
     return ((R[1:] - R[0]) / h[:, None]).T
@@ -247,9 +253,7 @@ def _lm_batch(resid_rows, X0, lo, hi, iterations):
     tol = 1e-12 * span
 
     def evaluate(X):
-        h = np.sqrt(np.finfo(float).eps) * np.maximum(1.0, np.abs(X))
-        h = np.where(X + h > hi, -h, h)
-        h = (X + h) - X
+        h = _fd_steps(X, hi)
         pts = np.concatenate([X[:, None, :], X[:, None, :] + h[:, :, None] * eye[None]], axis=1)
         R = resid_rows(pts.reshape(-1, d)).reshape(P, d + 1, -1)
         r = R[:, 0]
@@ -624,9 +628,9 @@ def _profile_seeds(sse, profiles, free, basins, count, rise):
     profile that none of ``basins`` lies in (separated from them by a ridge at least ``rise``
     higher than the valley floor), each seeded at the best grid point of its slice; the best
     valleys first."""
-    found = []
     if count <= 0:
         return []
+    found = []
     for j, n in enumerate(free):
         prof = profiles[n]
         taken = sorted({b[j] for b in basins})
@@ -640,11 +644,9 @@ def _profile_seeds(sse, profiles, free, basins, count, rise):
     found.sort()
     out = []
     for _, j, i in found:
-        sl = np.take(sse, i, axis=j)
-        rest = list(np.unravel_index(int(np.argmin(sl)), sl.shape))
-        idx = tuple(rest[:j] + [i] + rest[j:])
-        if all(max(abs(a - b) for a, b in zip(idx, o)) >= 3 for o in list(basins) + out):
-            out.append(tuple(int(v) for v in idx))
+        idx = _slice_argmin(sse, j, i)
+        if _apart(idx, list(basins) + out):
+            out.append(idx)
         if len(out) == count:
             break
     return out
@@ -657,12 +659,22 @@ def _bound_seeds(sse, basins):
     out = []
     for j in range(sse.ndim):
         for i in (0, sse.shape[j] - 1):
-            sl = np.take(sse, i, axis=j)
-            rest = list(np.unravel_index(int(np.argmin(sl)), sl.shape))
-            idx = tuple(int(v) for v in rest[:j] + [i] + rest[j:])
-            if all(max(abs(a - b) for a, b in zip(idx, o)) >= 3 for o in list(basins) + out):
+            idx = _slice_argmin(sse, j, i)
+            if _apart(idx, list(basins) + out):
                 out.append(idx)
     return out
+
+
+def _slice_argmin(sse, j, i):
+    """Grid index of the best point of the slice ``sse[..., i, ...]`` (index i along axis j)."""
+    sl = np.take(sse, i, axis=j)
+    rest = [int(v) for v in np.unravel_index(int(np.argmin(sl)), sl.shape)]
+    return tuple(rest[:j] + [int(i)] + rest[j:])
+
+
+def _apart(idx, others, cells=3):
+    """True when grid index ``idx`` is at least ``cells`` cells from each of ``others`` in some axis."""
+    return all(max(abs(int(a) - int(b)) for a, b in zip(idx, o)) >= cells for o in others)
 
 
 def _grid_minima(sse, cells, n_basins):
@@ -681,7 +693,7 @@ def _grid_minima(sse, cells, n_basins):
     order = np.argsort(vals[is_min], kind="stable")
     chosen = []
     for c in cand[order]:
-        if all(np.max(np.abs(c - o)) >= 3 for o in chosen):
+        if _apart(c, chosen):
             chosen.append(c)
         if len(chosen) == n_basins:
             break
