@@ -5,19 +5,22 @@ Quick start::
     import pbrdf_cl
     pbrdf_cl.dop(40, [20, 45, 65], n=1.6, k=2.139, sigma=0.5, ks=0.9, kd=0.15, c=-0.3)
 
-Angles are in degrees; phi = 180 (the default) is the in-plane geometry.
+Angles are in degrees; phi = 180 (the default) is the in-plane geometry.  Computation runs on
+the first usable OpenCL device, or on the float64 numpy reference where none is usable
+(``backend="auto"``, the default; see :mod:`pbrdf_cl.engine`).
 """
 from .api import MODELS, brdf, dop, mueller, validate
 from .data import Measurements, read_csv
 from .dense import ObjectiveResult, grid, objective, reduce_grid
 from .sweep import SpecError, SweepResult, SweepSpec, load_spec, sweep
 from .inversion import FitResult, compare_models, fit
-from .engine import (Engine, OpenCLUnavailableError, get_default_engine, list_devices, select_device,
-                     set_default_engine)
+from .engine import (DeviceUnusableError, DeviceWarning, Engine, NumpyEngine, OpenCLUnavailableError,
+                     get_default_engine, list_devices, probe, select_device, set_default_engine)
 
 __version__ = "0.1.0"
 
 __all__ = ["dop", "brdf", "mueller", "validate", "MODELS", "grid", "reduce_grid", "objective", "ObjectiveResult",
            "sweep", "load_spec", "SweepSpec", "SweepResult", "SpecError",
-           "fit", "compare_models", "FitResult", "read_csv", "Measurements", "Engine", "OpenCLUnavailableError",
+           "fit", "compare_models", "FitResult", "read_csv", "Measurements", "Engine", "NumpyEngine", "probe",
+           "OpenCLUnavailableError", "DeviceUnusableError", "DeviceWarning",
            "get_default_engine", "set_default_engine", "list_devices", "select_device", "__version__"]

@@ -1,25 +1,50 @@
-"""OpenCL engine: one object owning the context, queue, built programs and kernels.
+"""OpenCL engine: one object owning the context, queue, built programs and kernels; the device
+probe; the choice of device; and the numpy engine every function falls back to.
 
-Device choice, in order: an explicit ``device`` argument, then the ``PYOPENCL_CTX``
-environment variable, then the first CPU device of a PoCL platform, then any other
-device that is not the Oclgrind simulator.  A device is named by a ``cl.Device``,
-by ``"P"`` or ``"P:D"`` (platform and device indices, as ``pbrdf-cl devices`` lists
-them), or by a case-insensitive substring of "platform name / device name"
-(``"pocl"``, ``"nvidia"``, ``"oclgrind"``).
+**Probe.**  A device is *usable* only when it builds ``kernels/pbrdf_probe.cl`` (which includes
+``pbrdf.h``) in float32, and in float64 where the device claims it, and returns SPEC's check
+values (DOP of the paper's steel at three geometries).  Results are cached per process and on
+disk (``~/.cache/pbrdf-cl/probe-v1.json``, see :func:`pbrdf_cl.drivers.cache_dir`), keyed by the
+platform, the device, its driver version and the SHA-256 of the kernel sources.
 
-Programs are built once per (precision, shadowing variant) with ``-D`` options and
-kept, with their ``cl.Kernel`` objects, for the life of the engine.
+**Choice**, in order: an explicit ``device`` argument, then the ``PYOPENCL_CTX`` environment
+variable (an explicit choice that is unusable is an error), then the first usable device among
+GPUs, PoCL CPU devices (newest PoCL first), other CPU drivers, anything else; never the Oclgrind
+simulator unless named.  An unusable device is skipped with one :class:`DeviceWarning` line.  A
+device is named by a ``cl.Device``, by ``"P"`` or ``"P:D"`` (platform and device indices, as
+``pbrdf-cl devices`` lists them), or by a case-insensitive substring of "platform name / device
+name" (``"pocl"``, ``"nvidia"``, ``"intel"``, ``"oclgrind"``).
+
+**Backends.**  ``backend="auto"`` (the default everywhere) computes on the chosen OpenCL device,
+or, when no device is usable, on :class:`NumpyEngine` (the float64 reference of
+``reference.py``), saying so once with the reason and the remedies; ``"opencl"`` makes that an
+error; ``"numpy"`` always uses the reference.  :func:`resolve_engine` implements this.
+
+Programs are built once per (precision, shadowing variant) with ``-D`` options and kept, with
+their ``cl.Kernel`` objects, for the life of the engine.
+
+Testing aid: ``PBRDF_CL_FAKE_BUILD_FAILURE=<substring>`` makes the probe program of every device
+whose "platform / device" name contains the substring (case-insensitive) fail to build, as the
+PyPI PoCL 3.0 does on CPUs its LLVM does not know.
 """
 from __future__ import annotations
 
+import dataclasses
+import hashlib
+import json
 import os
+import re
+import threading
+import time
 import warnings
 from importlib import resources
 from pathlib import Path
 
 import numpy as np
 
-from . import reference
+from . import drivers, reference
+
+drivers.register_pip_drivers()  # before the first OpenCL call of this process
 
 try:
     import pyopencl as cl
@@ -31,19 +56,32 @@ else:
 
 POINT_INPUTS = ("theta_i", "theta_r", "phi", "n", "k", "sigma", "ks", "kd", "c")
 DTYPES = {"float32": np.float32, "float64": np.float64}
+BACKENDS = ("auto", "opencl", "numpy")
 #: Vector width of the explicitly vectorised kernels (float16 / double8 were fastest on PoCL 3.0).
 VECTOR_WIDTH = {"float32": 16, "float64": 8}
 #: Work-group size of the vector per-point kernels.
 VECTOR_LOCAL_SIZE = 8
 #: Points per kernel launch; bounds the temporary device memory of one call.
 LAUNCH_POINTS = 1 << 22
+FAKE_FAILURE_ENV = "PBRDF_CL_FAKE_BUILD_FAILURE"
 
-_HOW_TO_GET_ONE = ("install a CPU OpenCL driver with `pip install pocl-binary-distribution`, "
-                   "or evaluate with backend=\"numpy\" (the float64 reference)")
+_HOW_TO_GET_ONE = "remedies: " + drivers.REMEDIES
 
 
 class OpenCLUnavailableError(RuntimeError):
     """No usable OpenCL platform or device."""
+
+
+class DeviceUnusableError(OpenCLUnavailableError):
+    """An explicitly chosen OpenCL device cannot build or run pbrdf-cl's kernels."""
+
+
+class KernelBuildError(OpenCLUnavailableError):
+    """A driver failed to build one of pbrdf-cl's programs (the first line of its log says why)."""
+
+
+class DeviceWarning(UserWarning):
+    """An OpenCL device was skipped, or the computation fell back to the numpy backend."""
 
 
 def kernel_dir() -> Path:
@@ -62,15 +100,91 @@ def kernel_dir() -> Path:
                             "from this installation; reinstall the package")
 
 
+_KERNELS_SHA256 = None
+
+
+def kernels_sha256():
+    """SHA-256 of this installation's OpenCL sources (read once per process)."""
+    global _KERNELS_SHA256
+    if _KERNELS_SHA256 is None:
+        h = hashlib.sha256()
+        for f in sorted(kernel_dir().iterdir()):
+            if f.suffix in (".cl", ".h"):
+                h.update(f.name.encode() + b"\0" + f.read_bytes() + b"\0")
+        _KERNELS_SHA256 = h.hexdigest()
+    return _KERNELS_SHA256
+
+
+def build_options(dtype, defines=None):
+    """The compiler options of every pbrdf-cl program for ``dtype`` and ``-D`` ``defines``."""
+    # -w: PoCL's clang otherwise prints ABI notes about wide vectors to stderr
+    opts = ["-I", str(kernel_dir()), "-w", f"-DPB_VW={VECTOR_WIDTH[dtype]}"]
+    if dtype == "float64":
+        opts.append("-DPBRDF_DOUBLE")
+    opts += [f"-D{name}" if value is None else f"-D{name}={value}" for name, value in (defines or {}).items()]
+    return opts
+
+
+def first_error_line(text) -> str:
+    """The line of a build log or driver message that says what went wrong (one line)."""
+    # source locations ("/.../kcache/tempfile_x.cl:1:2: " from PoCL, "77:1:2: " from Intel's compiler)
+    lines = [re.sub(r"(?:\S+\.cl|(?<!\S)\d+):\d+:\d+:\s*", "", ln.strip()) for ln in str(text).splitlines()
+             if ln.strip()]
+    noise = re.compile(r"clBuildProgram failed|^Build on <|^\(options:|^\(source saved|^=+$", re.I)
+    useful = [ln for ln in lines if not noise.search(ln)]
+    for ln in useful:
+        if re.search(r"\berror\b", ln, re.I):
+            return ln[:300]
+    return (useful or lines or ["unknown error"])[0][:300]
+
+
+def _build(context, source, options):
+    """``cl.Program(context, source).build(options)``, compiler warnings silenced."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", cl.CompilerWarning)
+        return cl.Program(context, source).build(options=options)
+
+
+class _CapturedStderr:
+    """Redirect the process's C-level stderr (file descriptor 2) into a temporary file, so that
+    what a driver prints while it is probed ("1 error generated.", LLVM's complaints) does not
+    reach the user's terminal; ``text`` holds it afterwards."""
+
+    def __enter__(self):
+        import sys
+        import tempfile
+        self.text = ""
+        try:
+            sys.stderr.flush()
+            self._file = tempfile.TemporaryFile(mode="w+b")
+            self._saved = os.dup(2)
+            os.dup2(self._file.fileno(), 2)
+        except (OSError, ValueError):
+            self._saved = None
+        return self
+
+    def __exit__(self, *exc):
+        if self._saved is not None:
+            os.dup2(self._saved, 2)
+            os.close(self._saved)
+            self._file.seek(0)
+            self.text = self._file.read().decode(errors="replace")
+            self._file.close()
+        return False
+
+
 def _platforms():
+    bundled = "`pip install pocl-binary-distribution` (PoCL from PyPI, for CPUs its LLVM knows), "
     if cl is None:
-        raise OpenCLUnavailableError(f"pyopencl cannot be imported ({_IMPORT_ERROR}); {_HOW_TO_GET_ONE}")
+        raise OpenCLUnavailableError(f"pyopencl cannot be imported ({_IMPORT_ERROR}); remedies: `pip install "
+                                     f"pyopencl`, {bundled}{drivers.REMEDIES}")
     try:
         platforms = cl.get_platforms()
     except cl.Error as exc:
-        raise OpenCLUnavailableError(f"no OpenCL platform found ({exc}); {_HOW_TO_GET_ONE}") from None
+        raise OpenCLUnavailableError(f"no OpenCL platform found ({first_error_line(exc)}); remedies: {bundled}"
+                                     f"{drivers.REMEDIES}") from None
     if not platforms:
-        raise OpenCLUnavailableError(f"no OpenCL platform found; {_HOW_TO_GET_ONE}")
+        raise OpenCLUnavailableError(f"no OpenCL platform found; remedies: {bundled}{drivers.REMEDIES}")
     return platforms
 
 
@@ -91,44 +205,313 @@ def _is_simulator(plat) -> bool:
     return "oclgrind" in plat.name.lower()
 
 
-def select_device(device=None):
-    """Pick a ``cl.Device`` (see the module docstring for the order)."""
-    if cl is not None and isinstance(device, cl.Device):
-        return device
-    spec = device if device is not None else os.environ.get("PYOPENCL_CTX") or None
-    found = list_devices()
-    if not found:
-        raise OpenCLUnavailableError(f"OpenCL platforms exist but have no devices; {_HOW_TO_GET_ONE}")
-    if spec is not None:
-        spec = str(spec).strip()
-        where = "device" if device is not None else "PYOPENCL_CTX"
-        parts = spec.split(":")
-        if all(p.isdigit() for p in parts) and 1 <= len(parts) <= 2:
-            ip, idev = int(parts[0]), int(parts[1]) if len(parts) == 2 else 0
-            for p_, d_, _, dev in found:
-                if (p_, d_) == (ip, idev):
-                    return dev
-            raise ValueError(f"{where}={spec!r}: no OpenCL device {ip}:{idev}; "
-                             f"`pbrdf-cl devices` lists the ones present")
-        for _, _, plat, dev in found:
-            if spec.lower() in f"{plat.name} / {dev.name}".lower():
-                return dev
-        raise ValueError(f"{where}={spec!r} matches no OpenCL platform or device name; "
-                         f"`pbrdf-cl devices` lists the ones present")
-    real = [(plat, dev) for _, _, plat, dev in found if not _is_simulator(plat)]
-    for plat, dev in real:
-        if dev.type & cl.device_type.CPU and "portable computing language" in plat.name.lower():
-            return dev
-    for plat, dev in real:
-        if dev.type & cl.device_type.CPU:
-            return dev
-    if real:
-        return real[0][1]
-    return found[0][3]
+def _is_pocl(plat) -> bool:
+    return "portable computing language" in plat.name.lower()
+
+
+def describe(dev) -> str:
+    """``"platform / device"`` of a ``cl.Device``."""
+    return f"{dev.platform.name.strip()} / {dev.name.strip()}"
+
+
+def _pocl_version(plat):
+    m = re.search(r"PoCL (\d+)\.(\d+)", plat.version)
+    return (int(m.group(1)), int(m.group(2))) if m else (0, 0)
+
+
+def _rank(plat, dev):
+    """Sort key of the default order: GPUs, PoCL CPU devices (newest PoCL first), other CPU
+    drivers, anything else."""
+    dt = cl.device_type
+    if dev.type & dt.GPU:
+        return (0, (0, 0))
+    if dev.type & dt.CPU and _is_pocl(plat):
+        v = _pocl_version(plat)
+        return (1, (-v[0], -v[1]))
+    if dev.type & dt.CPU:
+        return (2, (0, 0))
+    return (3, (0, 0))
 
 
 def has_fp64(device) -> bool:
     return bool(device.double_fp_config) or "cl_khr_fp64" in device.extensions
+
+
+# ---------------------------------------------------------------------------------------------
+# the probe
+
+#: SPEC's check points: the paper's steel at (30, 20), (40, 45), (50, 65) degrees, phi = 180.
+PROBE_POINTS = np.array([[30.0, 20.0, 180.0, 1.6, 2.139, 0.5, 0.9, 0.15, -0.3],
+                         [40.0, 45.0, 180.0, 1.6, 2.139, 0.5, 0.9, 0.15, -0.3],
+                         [50.0, 65.0, 180.0, 1.6, 2.139, 0.5, 0.9, 0.15, -0.3]])
+#: SPEC's check values (paper shadowing), rounded to 6 decimals there.
+PROBE_SPEC = np.array([0.051841, 0.167590, 0.337599])
+#: Largest |probe - float64 reference| accepted.
+PROBE_TOLERANCE = {"float32": 2e-5, "float64": 1e-10}
+PROBE_CACHE_VERSION = 1
+
+
+@dataclasses.dataclass
+class ProbeResult:
+    """Whether a device can run pbrdf-cl.  ``reason``: one line (why not, or what was checked);
+    ``values``: the probe's DOP per precision; ``seconds``: the time the probe took when it ran;
+    ``cached``: this answer came from the disk cache."""
+
+    usable: bool
+    reason: str
+    fp64: bool = False
+    values: dict = dataclasses.field(default_factory=dict)
+    seconds: float = 0.0
+    cached: bool = False
+
+
+def _fake_failure(dev) -> bool:
+    fake = os.environ.get(FAKE_FAILURE_ENV, "").strip().lower()
+    return bool(fake) and fake in describe(dev).lower()
+
+
+def _probe_key(dev):
+    plat = dev.platform
+    parts = dict(platform=plat.name.strip(), platform_version=plat.version.strip(), device=dev.name.strip(),
+                 vendor=dev.vendor.strip(), driver=dev.driver_version.strip(), version=dev.version.strip(),
+                 kernels=kernels_sha256(), fake=_fake_failure(dev), v=PROBE_CACHE_VERSION)
+    return hashlib.sha256(json.dumps(parts, sort_keys=True).encode()).hexdigest()
+
+
+_PROBES = {}
+_PROBE_LOCK = threading.Lock()
+
+
+def _probe_file():
+    return drivers.cache_dir() / f"probe-v{PROBE_CACHE_VERSION}.json"
+
+
+def _disk_cache_read():
+    try:
+        return json.loads(_probe_file().read_text())
+    except (OSError, ValueError):
+        return {}
+
+
+def _disk_cache_write(key, result):
+    path = _probe_file()
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        entries = _disk_cache_read()
+        entries[key] = dataclasses.asdict(result)
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}")
+        tmp.write_text(json.dumps(entries, indent=1))
+        os.replace(tmp, path)
+    except OSError:
+        pass  # the disk cache is an optimisation only
+
+
+def _run_probe(dev) -> ProbeResult:
+    with _CapturedStderr() as captured:
+        result = _run_probe_quietly(dev)
+    if not result.usable and captured.text.strip() and "error" not in result.reason.lower():
+        result.reason += f" ({first_error_line(captured.text)})"
+    return result
+
+
+def _run_probe_quietly(dev) -> ProbeResult:
+    t0 = time.perf_counter()
+    want = reference.evaluate("dop", *PROBE_POINTS.T)
+    values = {}
+    try:
+        context = cl.Context([dev])
+        queue = cl.CommandQueue(context)
+        dtypes = ("float32", "float64") if has_fp64(dev) else ("float32",)
+        source = (kernel_dir() / "pbrdf_probe.cl").read_text()
+        for dtype in dtypes:
+            src = source
+            if _fake_failure(dev):
+                src = f"#error unknown target CPU 'generic' (simulated by {FAKE_FAILURE_ENV})\n" + source
+            try:
+                program = _build(context, src, build_options(dtype))
+            except cl.Error as exc:
+                return ProbeResult(False, f"{dtype} build failed: {first_error_line(exc)}",
+                                   seconds=time.perf_counter() - t0)
+            npdt = DTYPES[dtype]
+            pts = np.ascontiguousarray(PROBE_POINTS, dtype=npdt)
+            buf_in = cl.Buffer(context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=pts)
+            out = np.full(len(pts), np.nan, dtype=npdt)
+            buf_out = cl.Buffer(context, cl.mem_flags.WRITE_ONLY, out.nbytes)
+            program.pbrdf_probe(queue, (len(pts),), None, buf_out, buf_in, np.int32(len(pts)))
+            cl.enqueue_copy(queue, out, buf_out)
+            queue.finish()
+            values[dtype] = out.astype(float).tolist()
+            err = float(np.max(np.abs(out.astype(np.float64) - want)))
+            if not np.isfinite(err) or err > PROBE_TOLERANCE[dtype]:
+                return ProbeResult(False, f"{dtype} probe returned DOP {np.array2string(out, precision=6)}, "
+                                   f"SPEC's check values are {PROBE_SPEC.tolist()} (error {err:.2g})",
+                                   values=values, seconds=time.perf_counter() - t0)
+    except cl.Error as exc:
+        return ProbeResult(False, f"probe failed: {first_error_line(exc)}", values=values,
+                           seconds=time.perf_counter() - t0)
+    checked = " and ".join(values)
+    return ProbeResult(True, f"{checked} give SPEC's check values", fp64="float64" in values, values=values,
+                       seconds=time.perf_counter() - t0)
+
+
+def probe(dev, *, use_cache=True) -> ProbeResult:
+    """Whether ``dev`` (a ``cl.Device``) can build and run pbrdf-cl's kernels (see the module
+    docstring); cached per process and on disk unless ``use_cache`` is false."""
+    key = _probe_key(dev)
+    with _PROBE_LOCK:
+        if use_cache and key in _PROBES:
+            return _PROBES[key]
+        hit = _disk_cache_read().get(key) if use_cache else None
+        if hit is not None:
+            try:
+                result = ProbeResult(**{**hit, "cached": True})
+            except TypeError:
+                result = None
+            if result is not None:
+                _PROBES[key] = result
+                return result
+        result = _run_probe(dev)
+        _PROBES[key] = result
+        _disk_cache_write(key, result)
+        return result
+
+
+def clear_probe_cache(disk=False):
+    """Forget the probe results of this process (and, with ``disk``, the disk cache)."""
+    with _PROBE_LOCK:
+        _PROBES.clear()
+        if disk:
+            try:
+                _probe_file().unlink()
+            except OSError:
+                pass
+
+
+# ---------------------------------------------------------------------------------------------
+# choosing a device
+
+_WARNED = set()
+
+
+def _warn_once(key, message):
+    if key not in _WARNED:
+        _WARNED.add(key)
+        warnings.warn(message, DeviceWarning, stacklevel=4)
+
+
+def _device_id(found, dev):
+    for ip, idev, _, d in found:
+        if d.int_ptr == dev.int_ptr:
+            return f"{ip}:{idev}"
+    return "?"
+
+
+def _unusable_error(where, found, dev, result):
+    return DeviceUnusableError(
+        f"{where}: OpenCL device {_device_id(found, dev)} ({describe(dev)}) cannot run pbrdf-cl: {result.reason}; "
+        f"choose another (`pbrdf-cl devices` lists them with their probe results) or: {drivers.REMEDIES}")
+
+
+def _find(spec, where, found):
+    parts = spec.split(":")
+    if all(p.isdigit() for p in parts) and 1 <= len(parts) <= 2:
+        ip, idev = int(parts[0]), int(parts[1]) if len(parts) == 2 else 0
+        for p_, d_, _, dev in found:
+            if (p_, d_) == (ip, idev):
+                return [dev]
+        raise ValueError(f"{where}={spec!r}: no OpenCL device {ip}:{idev}; "
+                         f"`pbrdf-cl devices` lists the ones present")
+    matches = [(plat, dev) for _, _, plat, dev in found if spec.lower() in f"{plat.name} / {dev.name}".lower()]
+    if not matches:
+        raise ValueError(f"{where}={spec!r} matches no OpenCL platform or device name; "
+                         f"`pbrdf-cl devices` lists the ones present")
+    return [dev for _, dev in sorted(matches, key=lambda pd: _rank(*pd))]
+
+
+def candidates(found=None):
+    """The devices the default choice considers, in its order (never the simulator)."""
+    found = list_devices() if found is None else found
+    real = [(plat, dev) for _, _, plat, dev in found if not _is_simulator(plat)]
+    return [dev for plat, dev in sorted(real, key=lambda pd: _rank(*pd))]
+
+
+def _no_device_message(found, skipped):
+    parts = [f"{describe(d)}: {r.reason}" for d, r in skipped]
+    if not found:
+        parts.append("the OpenCL platforms present have no devices")
+    elif not skipped:
+        parts.append("only the Oclgrind simulator is present")
+    problem = drivers.pocl_cache_problem()
+    if problem:
+        parts.append(problem)
+    return f"no usable OpenCL device ({'; '.join(parts)}); {_HOW_TO_GET_ONE}"
+
+
+def select_device(device=None):
+    """Pick a usable ``cl.Device`` (see the module docstring for the order); raises
+    :class:`OpenCLUnavailableError` when none is usable, :class:`DeviceUnusableError` when
+    the explicit choice is not, ``ValueError`` when it names no device."""
+    explicit = device if device is not None else (os.environ.get("PYOPENCL_CTX") or None)
+    where = "device" if device is not None else "PYOPENCL_CTX"
+    if cl is not None and isinstance(explicit, cl.Device):
+        result = probe(explicit)
+        if not result.usable:
+            raise _unusable_error(where, list_devices(), explicit, result)
+        return explicit
+    found = list_devices()
+    if explicit is not None:  # a name may match several devices: the first usable one, in the default order
+        matches = _find(str(explicit).strip(), where, found)
+        results = []
+        for dev in matches:
+            results.append(probe(dev))
+            if results[-1].usable:
+                return dev
+        raise _unusable_error(f"{where}={str(explicit).strip()!r}", found, matches[0], results[0])
+    skipped = []
+    for dev in candidates(found):
+        result = probe(dev)
+        if result.usable:
+            return dev
+        skipped.append((dev, result))
+        _warn_once(("skip", _probe_key(dev)),
+                   f"skipping OpenCL device {_device_id(found, dev)} ({describe(dev)}): {result.reason}")
+    exc = OpenCLUnavailableError(_no_device_message(found, skipped))
+    exc.skipped = len(skipped)
+    raise exc
+
+
+class NumpyEngine:
+    """The numpy backend: the float64 reference of :mod:`pbrdf_cl.reference`, as an engine.
+
+    Every function that takes ``engine=`` accepts one; the dense grids, reductions and the
+    objective build the same factor tables with ``reference.py`` and combine them in chunks
+    within the same memory budget.  It computes in float64 whatever ``dtype`` is asked for, and
+    returns that dtype.  ``reason``: why it is in use (empty when asked for by name)."""
+
+    is_numpy = True
+    fp64 = True
+    profiling = False
+    last_event_seconds = None
+
+    def __init__(self, reason=""):
+        self.reason = reason
+
+    def __repr__(self):
+        return "NumpyEngine(float64 reference" + (f"; {self.reason}" if self.reason else "") + ")"
+
+    @property
+    def description(self):
+        return "numpy backend (float64 reference)"
+
+    def evaluate(self, quantity, inputs, shape, dtype="float64", shadowing="paper"):
+        """As :meth:`Engine.evaluate`, with the reference."""
+        extra = (4, 4) if quantity == "mueller" else ()
+        out = np.asarray(reference.evaluate(quantity, *(np.asarray(inputs[n], dtype=np.float64)
+                                                         for n in POINT_INPUTS), shadowing=shadowing))
+        lead = out.shape[:out.ndim - len(extra)]
+        if lead != tuple(shape):  # every input a single value: one point, broadcast to the shape
+            out = np.broadcast_to(out.reshape((-1,) + extra)[0], tuple(shape) + extra)
+        return np.array(out, dtype=DTYPES[dtype])
 
 
 class Engine:
@@ -143,9 +526,15 @@ class Engine:
         device time of the last launch).
     """
 
+    is_numpy = False
+
     def __init__(self, device=None, *, profiling=False):
         self.device = select_device(device)
-        self.context = cl.Context([self.device])
+        try:
+            self.context = cl.Context([self.device])
+        except cl.Error as exc:
+            raise DeviceUnusableError(f"cannot create an OpenCL context on {describe(self.device)}: "
+                                      f"{first_error_line(exc)}") from None
         props = cl.command_queue_properties.PROFILING_ENABLE if profiling else 0
         self.queue = cl.CommandQueue(self.context, properties=props)
         self.profiling = profiling
@@ -159,6 +548,11 @@ class Engine:
         return (f"Engine(device={self.device.name.strip()!r}, "
                 f"platform={self.device.platform.name.strip()!r}, fp64={self.fp64})")
 
+    @property
+    def description(self):
+        """``"platform / device"``."""
+        return describe(self.device)
+
     def program(self, filename: str, dtype: str, defines=None, prefix: str = ""):
         """The kernels of ``kernels/<filename>`` built for ``dtype`` with ``-D`` ``defines`` (and
         ``prefix`` source text prepended), as a dict name -> ``cl.Kernel``; built once per key."""
@@ -168,15 +562,12 @@ class Engine:
             if dtype == "float64" and not self.fp64:
                 raise ValueError(f"dtype='float64': device {self.device.name.strip()!r} has no float64 "
                                  "support; use dtype='float32' or another device")
-            # -w: PoCL's clang otherwise prints ABI notes about wide vectors to stderr
-            opts = ["-I", str(kernel_dir()), "-w", f"-DPB_VW={VECTOR_WIDTH[dtype]}"]
-            if dtype == "float64":
-                opts.append("-DPBRDF_DOUBLE")
-            opts += [f"-D{name}" if value is None else f"-D{name}={value}" for name, value in defines.items()]
             src = prefix + (kernel_dir() / filename).read_text()
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", cl.CompilerWarning)
-                program = cl.Program(self.context, src).build(options=opts)
+            try:
+                program = _build(self.context, src, build_options(dtype, defines))
+            except cl.Error as exc:
+                raise KernelBuildError(f"{describe(self.device)} failed to build {filename} ({dtype}): "
+                                       f"{first_error_line(exc)}") from None
             self._kernels[key] = {k.function_name: k for k in program.all_kernels()}
         return self._kernels[key]
 
@@ -258,17 +649,65 @@ class Engine:
 
 
 _default_engine = None
+_default_lock = threading.Lock()
 
 
-def get_default_engine() -> Engine:
-    """The engine used by the module-level functions (created on first use)."""
+def _fallback(exc):
+    skipped = getattr(exc, "skipped", 0)
+    if skipped:  # each was named in a warning line already
+        why = (f"no usable OpenCL device (the {skipped} above cannot run pbrdf-cl); {_HOW_TO_GET_ONE}"
+               if skipped > 1 else f"no usable OpenCL device (the one above cannot run pbrdf-cl); {_HOW_TO_GET_ONE}")
+    else:
+        why = str(exc)
+    _warn_once(("fallback",), f"computing on the numpy backend (the float64 reference, slower): {why}")
+    return NumpyEngine(str(exc))
+
+
+def get_default_engine(backend="auto"):
+    """The engine used by the module-level functions (created on first use).
+
+    ``backend="auto"``: the first usable OpenCL device, else :class:`NumpyEngine` (with one
+    :class:`DeviceWarning` naming the reason and the remedies); ``"opencl"``: that device or
+    :class:`OpenCLUnavailableError`; ``"numpy"``: a :class:`NumpyEngine`.
+    """
     global _default_engine
-    if _default_engine is None:
-        _default_engine = Engine()
-    return _default_engine
+    check_backend(backend)
+    if backend == "numpy":
+        return NumpyEngine()
+    with _default_lock:
+        if _default_engine is None:
+            try:
+                _default_engine = Engine()
+            except DeviceUnusableError:
+                raise  # an explicit choice (PYOPENCL_CTX) is never replaced silently
+            except OpenCLUnavailableError as exc:
+                _default_engine = _fallback(exc)
+        eng = _default_engine
+    if backend == "opencl" and eng.is_numpy:
+        raise OpenCLUnavailableError(f"backend='opencl': {eng.reason or 'the default engine is the numpy backend'}")
+    return eng
 
 
 def set_default_engine(engine) -> None:
-    """Replace the default engine (``None`` to create a fresh one on next use)."""
+    """Replace the default engine (``None`` to choose afresh on next use)."""
     global _default_engine
     _default_engine = engine
+
+
+def check_backend(backend):
+    if backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+
+
+def resolve_engine(engine=None, backend="auto"):
+    """The engine a call computes with: ``engine`` if given (an :class:`Engine` or a
+    :class:`NumpyEngine`), else the default for ``backend`` (see :func:`get_default_engine`).
+    ``backend="numpy"`` always gives the numpy engine; ``backend="opencl"`` refuses a numpy one."""
+    check_backend(backend)
+    if backend == "numpy":
+        return engine if engine is not None and engine.is_numpy else NumpyEngine()
+    if engine is None:
+        return get_default_engine(backend)
+    if backend == "opencl" and engine.is_numpy:
+        raise ValueError("backend='opencl' with a NumpyEngine: pass an OpenCL Engine, or backend='auto'")
+    return engine
