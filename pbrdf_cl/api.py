@@ -9,10 +9,9 @@ from __future__ import annotations
 import numpy as np
 
 from . import reference
-from .engine import DTYPES, POINT_INPUTS, get_default_engine
+from .engine import BACKENDS, DTYPES, POINT_INPUTS, check_backend, resolve_engine
 
 MODELS = ("six-param", "specular")
-BACKENDS = ("opencl", "numpy")
 QUANTITIES = ("dop", "brdf", "mueller")
 
 
@@ -67,14 +66,13 @@ def check_options(shadowing, dtype):
 
 
 def validate(theta_i, theta_r, phi, n, k, sigma, ks, kd, c, *, shadowing="paper", dtype="float64",
-             backend="opencl", model="six-param"):
+             backend="auto", model="six-param"):
     """Check and broadcast the inputs; returns ``(arrays dict, shape, dtype name)``.
 
     Raises ``ValueError`` naming the offending argument and value.
     """
     dtype_name = check_options(shadowing, dtype)
-    if backend not in BACKENDS:
-        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+    check_backend(backend)
     if model not in MODELS:
         raise ValueError(f"model must be one of {MODELS}, got {model!r}")
     if sigma is None:
@@ -95,12 +93,11 @@ def _evaluate(quantity, theta_i, theta_r, phi, n, k, sigma, ks, kd, c, shadowing
               model, engine):
     arrays, shape, dtype_name = validate(theta_i, theta_r, phi, n, k, sigma, ks, kd, c,
                                          shadowing=shadowing, dtype=dtype, backend=backend, model=model)
-    if backend == "numpy":
-        out = reference.evaluate(quantity, *(arrays[name] for name in POINT_INPUTS), shadowing=shadowing)
-        out = np.asarray(out, dtype=DTYPES[dtype_name])
+    eng = resolve_engine(engine, backend)
+    if eng.is_numpy:  # the reference broadcasts by itself
+        out = eng.evaluate(quantity, arrays, shape, dtype=dtype_name, shadowing=shadowing)
     else:
         inputs = {name: (a if a.size == 1 else np.broadcast_to(a, shape)) for name, a in arrays.items()}
-        eng = engine if engine is not None else get_default_engine()
         out = eng.evaluate(quantity, inputs, shape, dtype=dtype_name, shadowing=shadowing)
     if not np.all(np.isfinite(out)):
         raise FloatingPointError(
@@ -110,12 +107,15 @@ def _evaluate(quantity, theta_i, theta_r, phi, n, k, sigma, ks, kd, c, shadowing
 
 
 def dop(theta_i, theta_r, phi=180.0, *, n, k, sigma=None, ks=1.0, kd=0.0, c=0.0, shadowing="paper",
-        dtype="float64", backend="opencl", model="six-param", engine=None):
+        dtype="float64", backend="auto", model="six-param", engine=None):
     """Degree of polarization for unpolarized incidence (eq. 17-18).
 
     ``model="specular"`` is the paper's ref. [7] (Thilak et al. 2007): kd = 0, and the DOP
     depends only on n, k and the geometry, so ``sigma`` may be omitted.
     Returns an array of the broadcast shape, in ``dtype``.
+
+    ``backend``: "auto" (the OpenCL device, or the numpy reference when no device is usable),
+    "opencl" (the device or an error) or "numpy" (the float64 reference).
     """
     if sigma is None and model == "specular":
         sigma = 1.0  # cancels: DOP of the specular term does not depend on sigma, ks or G
@@ -124,14 +124,14 @@ def dop(theta_i, theta_r, phi=180.0, *, n, k, sigma=None, ks=1.0, kd=0.0, c=0.0,
 
 
 def brdf(theta_i, theta_r, phi=180.0, *, n, k, sigma, ks=1.0, kd=0.0, c=0.0, shadowing="paper",
-         dtype="float64", backend="opencl", model="six-param", engine=None):
+         dtype="float64", backend="auto", model="six-param", engine=None):
     """The BRDF for unpolarized light, F00 = F^s_00 + F^d_00, in 1/sr."""
     return _evaluate("brdf", theta_i, theta_r, phi, n, k, sigma, ks, kd, c, shadowing, dtype, backend,
                      model, engine)
 
 
 def mueller(theta_i, theta_r, phi=180.0, *, n, k, sigma, ks=1.0, kd=0.0, c=0.0, shadowing="paper",
-            dtype="float64", backend="opencl", model="six-param", engine=None):
+            dtype="float64", backend="auto", model="six-param", engine=None):
     """The 4x4 Mueller-matrix BRDF in the psps frames (NIST SCATMECH's convention), shape (..., 4, 4)."""
     return _evaluate("mueller", theta_i, theta_r, phi, n, k, sigma, ks, kd, c, shadowing, dtype, backend,
                      model, engine)

@@ -57,6 +57,8 @@ def bench_points(eng, rows, rng, size, repeats, sample):
     rate, sec = median_rate(lambda: reference_dop(pts), size, max(1, repeats - 2))
     rows.append(dict(path="numpy reference (32K chunks, 2 threads)", dtype="float64", rate=rate, unit="evals/s",
                      seconds=sec, max_abs_err=0.0, n=size))
+    if eng.is_numpy:
+        return  # no kernel to time
     for dtype in ("float32", "float64"):
         npdt = _engine.DTYPES[dtype]
         lanes = _engine.VECTOR_WIDTH[dtype]
@@ -99,6 +101,14 @@ def bench_grid(eng, rows, rng, scale, repeats):
         axes["sigma"] = axes["sigma"][::4]
     plan = dense.GridPlan(axes, {})
     ng, nnk, nm, ni = dense._family_sizes(plan)
+    if eng.is_numpy:  # the reference computes in float64 whatever the dtype
+        da = dense.grid(axes, {}, dtype="float64", engine=eng)
+        err = _grid_sample_error(da, axes, rng)
+        rate, sec = median_rate(lambda: dense.grid(axes, {}, dtype="float64", engine=eng), plan.size,
+                                max(1, repeats - 2))
+        rows.append(dict(path="pbrdf_cl.grid -> host DataArray (end-to-end, numpy backend)", dtype="float64",
+                         rate=rate, unit="grid points/s", seconds=sec, max_abs_err=err, n=plan.size))
+        return
     for dtype in ("float32", "float64"):
         npdt = _engine.DTYPES[dtype]
         level, row_len = dense._row_level(nnk, nm, ni, ng, 1 << 30)
@@ -134,7 +144,7 @@ def bench_objective(eng, rows, rng, scale, repeats):
                 kd=np.linspace(0, 5, 32), c=np.linspace(-1, 0, 16))
     if scale < 1:
         grid["n"], grid["k"] = grid["n"][::4], grid["k"][::4]
-    for dtype in ("float32", "float64"):
+    for dtype in ("float64",) if eng.is_numpy else ("float32", "float64"):
         res = dense.objective(data, grid=grid, dtype=dtype, engine=eng)
         # error: the objective of a sample of parameter vectors against numpy
         idx = rng.integers(0, res.sse.size, 500)
@@ -145,7 +155,8 @@ def bench_objective(eng, rows, rng, scale, repeats):
         err = float(np.max(np.abs(res.sse.values.ravel()[idx] - want)))
         rate, sec = median_rate(lambda: dense.objective(data, grid=grid, dtype=dtype, engine=eng, return_sse=False),
                                 res.n_pairs, repeats)
-        rows.append(dict(path="objective, grid x 30 measurements (end-to-end, top-10)", dtype=dtype, rate=rate,
+        label = ", numpy backend" if eng.is_numpy else ""
+        rows.append(dict(path=f"objective, grid x 30 measurements (end-to-end, top-10{label})", dtype=dtype, rate=rate,
                          unit="pairs/s", seconds=sec, max_abs_err=err, n=res.n_pairs))
 
 
@@ -154,7 +165,7 @@ SWEEP_AXES = dict(theta_i=np.linspace(10, 80, 8), theta_r=np.linspace(0, 85, 32)
                   c=np.linspace(-1, 0, 2))  # 16.8M points: 67 MB of float32, 16x a 4 MiB budget
 
 
-def bench_sweep(eng, device, rows, rng, scale, repeats, workers=2):
+def bench_sweep(eng, device, rows, rng, scale, repeats, workers=2, backend="auto"):
     """pbrdf_cl.sweep into a Zarr store (Zarr writes and the done record included) of a sweep at
     least 10x its memory budget: here, and on a ``workers``-process LocalCluster (0: skipped)."""
     import shutil
@@ -190,6 +201,7 @@ def bench_sweep(eng, device, rows, rng, scale, repeats, workers=2):
         def timed():
             shutil.rmtree(run(**kw))
         rate, sec = median_rate(timed, spec.points, max(1, repeats - 2))
+        label += ", numpy backend" if eng.is_numpy else ""
         rows.append(dict(path=f"sweep -> Zarr store, {label} (end-to-end)", dtype=spec.dtype, rate=rate,
                          unit="grid points/s", seconds=sec, max_abs_err=err, n=spec.points,
                          memory_budget=spec.memory_budget, chunks=spec.n_chunks))
@@ -199,7 +211,7 @@ def bench_sweep(eng, device, rows, rng, scale, repeats, workers=2):
             from distributed import Client, LocalCluster
             with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None) as cl, \
                     Client(cl) as client:
-                measure(f"{workers}-worker LocalCluster", client=client, device=device)
+                measure(f"{workers}-worker LocalCluster", client=client, device=device, backend=backend)
     finally:
         shutil.rmtree(folder, ignore_errors=True)
 
@@ -207,6 +219,9 @@ def bench_sweep(eng, device, rows, rng, scale, repeats, workers=2):
 def main(argv=None):
     p = argparse.ArgumentParser(prog="pbrdf-cl bench", description=__doc__.split("\n\n")[0])
     p.add_argument("--device", help="OpenCL device (P:D or a name substring); default as pbrdf_cl.Engine()")
+    p.add_argument("--backend", choices=_engine.BACKENDS, default="auto",
+                   help="auto (default: the OpenCL device, or numpy without one), opencl, or numpy (the "
+                        "reference; kernel rows are skipped and the grid sizes reduced)")
     p.add_argument("--points", type=int, default=1 << 23, help="points for the per-point rows (default 8.4M)")
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--quick", action="store_true", help="small sizes, for a smoke test")
@@ -217,15 +232,20 @@ def main(argv=None):
     size, repeats, scale = args.points, args.repeats, 1.0
     if args.quick:
         size, repeats, scale = 1 << 16, 2, 0.25
-    eng = _engine.Engine(args.device)
+    eng = _engine.resolve_engine(_engine.Engine(args.device) if args.device and args.backend != "numpy" else None,
+                                 args.backend)
+    sweep_scale = scale
+    if eng.is_numpy:
+        scale = min(scale, 0.25)  # the per-point reference is ~100x slower than a device: smaller grids
     rng = np.random.default_rng(2020)
     rows = []
     t0 = time.perf_counter()
     bench_points(eng, rows, rng, size, repeats, min(size, 1 << 18))
     bench_grid(eng, rows, rng, scale, repeats)
     bench_objective(eng, rows, rng, scale, repeats)
-    bench_sweep(eng, args.device, rows, rng, scale, repeats, workers=0 if args.quick else args.sweep_workers)
-    device = f"{eng.device.platform.name.strip()} / {eng.device.name.strip()}"
+    bench_sweep(eng, args.device, rows, rng, sweep_scale, repeats, workers=0 if args.quick else args.sweep_workers,
+                backend=args.backend)
+    device = eng.description
     print(f"device: {device}; host: {platform.processor() or platform.machine()}, {os.cpu_count()} cpus")
     print(f"{'path':58s} {'dtype':8s} {'rate':>12s} {'unit':14s} {'max |err|':>10s}")
     for r in rows:

@@ -11,6 +11,11 @@ device functions of ``pbrdf.h``) and combined per grid point by ``kernels/pbrdf_
 which decodes the flat grid index itself.  Grids whose device memory would exceed
 ``memory_budget`` bytes run in chunks.
 
+On the numpy backend (:class:`pbrdf_cl.engine.NumpyEngine`) the same tables are built with the
+functions of ``reference.py`` (:class:`_NumpyTables`, the mirror of ``pbrdf_tables.cl``) and
+combined with ``reference.dop_combine`` / ``brdf_combine`` over boxes of the grid, each within
+the same ``memory_budget``; values are float64 whatever ``dtype`` asks for, then cast to it.
+
 Axes are ordered canonically: theta_i, theta_r, phi, n, k, sigma, ks, kd, c.
 """
 from __future__ import annotations
@@ -19,8 +24,8 @@ import time
 
 import numpy as np
 
-from . import api
-from .engine import DTYPES, get_default_engine
+from . import api, reference
+from .engine import DTYPES, resolve_engine
 
 AXES = ("theta_i", "theta_r", "phi", "n", "k", "sigma", "ks", "kd", "c")
 PARAMETERS = AXES[3:]
@@ -126,6 +131,116 @@ class _Tables:
         return self.sum, self.diff, self.scale, self.dif
 
 
+class _NumpyTables:
+    """The tables of :class:`_Tables` computed with ``reference.py`` in float64 (the mirror of
+    ``kernels/pbrdf_tables.cl``): ``sum``, ``diff`` (ng, n_n * n_k), ``scale`` (ng, n_sigma * n_ks),
+    ``dif`` (ng, n_kd * n_c), and :meth:`combine`, the per-point step of ``pbrdf_grid.cl``."""
+
+    #: float64 bytes per table entry and per grid point of a box (the values and ~3 temporaries)
+    BYTES_PER_POINT = 32
+
+    def __init__(self, shadowing, quantity, ti, tr, ph, v):
+        variant = reference.SHADOWING[shadowing]
+        g = reference.geometry(np.asarray(ti, float)[:, None], np.asarray(tr, float)[:, None],
+                               np.asarray(ph, float)[:, None])
+        ng = len(ti)
+
+        def pairs(first, second):  # the parameter pairs i_first * n_second + i_second
+            return np.repeat(first, second.size)[None, :], np.tile(second, first.size)[None, :]
+
+        def full(a, n2):
+            return np.ascontiguousarray(np.broadcast_to(a, (ng, n2)))
+        nn, kk = pairs(v["n"], v["k"])
+        f = reference.fresnel(nn, kk, g.cb, g.sb)
+        self.sum, self.diff = full(f.Rs + f.Rp, nn.size), full(f.diff, nn.size)
+        sigma, ks = pairs(v["sigma"], v["ks"])
+        log_k = reference.log_specular_scale(g, sigma, ks, reference.shadowing_factor(g, sigma, variant))
+        self.dop = quantity == "dop"
+        with np.errstate(over="ignore"):
+            self.scale = full(np.exp(-log_k if self.dop else log_k), sigma.size)
+        kd, c = pairs(v["kd"], v["c"])
+        self.dif = full((2.0 if self.dop else 1.0) * reference.diffuse(g, kd, c), kd.size)
+
+    def combine(self, sum_, diff, dif, scale):
+        if self.dop:
+            return reference.dop_combine(sum_, diff, dif, scale)
+        return reference.brdf_combine(sum_, scale, dif)
+
+    def box(self, geo_shape, sizes, box):
+        """Values over ``box`` (slices over the geometry dims ``geo_shape`` then n, k, sigma, ks,
+        kd, c, of ``sizes``): an array of the box's shape, float64."""
+        n_n, n_k, n_s, n_ks, n_kd, n_c = sizes
+        ng = len(geo_shape)
+        gsl, psl = tuple(box[:ng]), box[ng:]
+
+        def part(table, a, b, first):  # the table over the box, its two axes at first, first + 1
+            t = table.reshape(tuple(geo_shape) + (a, b))[gsl + (psl[first], psl[first + 1])]
+            dims = [1] * 6
+            dims[first:first + 2] = t.shape[ng:]
+            return t.reshape(t.shape[:ng] + tuple(dims))
+        sum_ = part(self.sum, n_n, n_k, 0)
+        diff = part(self.diff, n_n, n_k, 0)
+        scale = part(self.scale, n_s, n_ks, 2)
+        dif = part(self.dif, n_kd, n_c, 4)
+        return self.combine(sum_, diff, dif, scale)
+
+
+def _boxes(shape, max_elems):
+    """Boxes (tuples of slices) covering an array of ``shape`` in C order, each of at most
+    ``max_elems`` elements and contiguous in the flattened array: trailing axes whole, one axis
+    split into ranges, leading axes one index at a time.  Yields ``(flat start, box)``."""
+    shape = tuple(int(n) for n in shape)
+    max_elems = max(1, int(max_elems))
+    tail, split = 1, None
+    for i in range(len(shape) - 1, -1, -1):
+        if tail * shape[i] > max_elems:
+            split = i
+            break
+        tail *= shape[i]
+    if split is None:
+        yield 0, tuple(slice(0, n) for n in shape)
+        return
+    step = max(1, max_elems // tail)
+    whole = tuple(slice(0, n) for n in shape[split + 1:])
+    for lead in np.ndindex(*shape[:split]):
+        for a in range(0, shape[split], step):
+            start = int(np.ravel_multi_index(lead + (a,) + (0,) * len(whole), shape))
+            yield start, tuple(slice(i, i + 1) for i in lead) + (slice(a, min(a + step, shape[split])),) + whole
+
+
+def _param_sizes(plan):
+    return tuple(plan.sizes.get(n, 1) for n in PARAMETERS)
+
+
+def _numpy_grid_blocks(plan, quantity, dtype, shadowing, memory_budget, progress, out):
+    """:func:`_grid_blocks` on the numpy backend: geometry rows in blocks whose float64 tables
+    take at most half of ``memory_budget``, each block's grid in boxes within the other half."""
+    ng, nnk, nm, ni = _family_sizes(plan)
+    sizes = _param_sizes(plan)
+    per_g = nnk * nm * ni
+    table_row = (2 * nnk + nm + ni) * 8
+    if memory_budget < 2 * table_row + 64 * _NumpyTables.BYTES_PER_POINT:
+        raise ValueError(f"memory_budget={memory_budget} bytes is too small for one geometry row's tables "
+                         f"({table_row} bytes); raise it")
+    rows = int(max(1, min(ng, (memory_budget // 2) // table_row)))
+    bar = _progress(plan.size, progress, f"grid {quantity} (numpy)")
+    for g0 in range(0, ng, rows):
+        g1 = min(ng, g0 + rows)
+        tables = _NumpyTables(shadowing, quantity, *_geometry_list(plan, g0, g1), plan.values)
+        room = (memory_budget - (g1 - g0) * table_row) // _NumpyTables.BYTES_PER_POINT
+        for start, box in _boxes((g1 - g0,) + sizes, room):
+            values = tables.box((g1 - g0,), sizes, box)
+            count = values.size
+            start += g0 * per_g
+            host = out[start:start + count] if out is not None else np.empty(count, dtype=DTYPES[dtype])
+            host[...] = values.reshape(-1)
+            if bar is not None:
+                bar.update(count)
+            yield start, host
+    if bar is not None:
+        bar.close()
+
+
 def _geometry_list(plan, g0, g1):
     """The (theta_i, theta_r, phi) triples of geometry rows g0..g1 (row-major over the three axes)."""
     g = np.arange(g0, g1)
@@ -168,7 +283,7 @@ def _progress(total, enabled, desc):
     return tqdm(total=total, desc=desc, unit="pt", unit_scale=True, leave=False, delay=1.0)  # only if > 1 s
 
 
-def grid(axes, fixed=None, quantity="dop", dtype="float32", shadowing="paper", *, engine=None,
+def grid(axes, fixed=None, quantity="dop", dtype="float32", shadowing="paper", *, engine=None, backend="auto",
          memory_budget=DEFAULT_BUDGET, progress=False):
     """Evaluate ``quantity`` ("dop" or "f00") over the Cartesian product of ``axes``.
 
@@ -181,6 +296,7 @@ def grid(axes, fixed=None, quantity="dop", dtype="float32", shadowing="paper", *
         Name -> scalar for the remaining inputs; phi, ks, kd, c default to 180, 1, 0, 0.
     memory_budget : int
         Bytes of device memory a chunk may use (tables plus output); larger grids run in chunks.
+    engine, backend : the engine, or "auto" / "opencl" / "numpy" (see :func:`pbrdf_cl.engine.resolve_engine`)
 
     Returns
     -------
@@ -192,7 +308,7 @@ def grid(axes, fixed=None, quantity="dop", dtype="float32", shadowing="paper", *
     _check_quantity(quantity)
     dtype = api.check_options(shadowing, dtype)
     plan = GridPlan(axes, fixed)
-    eng = engine if engine is not None else get_default_engine()
+    eng = resolve_engine(engine, backend)
     out = np.empty(plan.size, dtype=DTYPES[dtype])
     for _ in _grid_blocks(eng, plan, quantity, dtype, shadowing, memory_budget, progress, out=out):
         pass  # each block is copied straight into its slice of out
@@ -222,6 +338,9 @@ def _row_level(nnk, nm, ni, ng, chunk, max_level=3):
 def _grid_blocks(eng, plan, quantity, dtype, shadowing, memory_budget, progress=False, out=None):
     """Yield (flat start, values) chunks of the grid in order, each within ``memory_budget``;
     with ``out`` (the whole flat grid) the values land in, and are views of, its slices."""
+    if eng.is_numpy:
+        yield from _numpy_grid_blocks(plan, quantity, dtype, shadowing, memory_budget, progress, out)
+        return
     itemsize = np.dtype(DTYPES[dtype]).itemsize
     ng, nnk, nm, ni = _family_sizes(plan)
     per_g = nnk * nm * ni  # grid points per geometry row
@@ -258,7 +377,7 @@ def _grid_blocks(eng, plan, quantity, dtype, shadowing, memory_budget, progress=
 
 
 def reduce_grid(axes, fixed=None, over=(), quantity="dop", dtype="float32", shadowing="paper", *,
-                engine=None, memory_budget=DEFAULT_BUDGET):
+                engine=None, backend="auto", memory_budget=DEFAULT_BUDGET):
     """Min, argmin and mean of ``quantity`` over the axes ``over``, computed on the device
     without materialising the grid.
 
@@ -276,9 +395,9 @@ def reduce_grid(axes, fixed=None, over=(), quantity="dop", dtype="float32", shad
     for name in over:
         if name not in plan.axis_names:
             raise ValueError(f"over: {name!r} is not one of the grid's axes {plan.axis_names}")
-    eng = engine if engine is not None else get_default_engine()
+    eng = resolve_engine(engine, backend)
     npdt = DTYPES[dtype]
-    itemsize = np.dtype(npdt).itemsize
+    itemsize = np.dtype(npdt).itemsize if not eng.is_numpy else 8
     ng, nnk, nm, ni = _family_sizes(plan)
     table_bytes = ng * (2 * nnk + nm + ni) * itemsize
     if table_bytes > memory_budget // 2:
@@ -291,6 +410,9 @@ def reduce_grid(axes, fixed=None, over=(), quantity="dop", dtype="float32", shad
     red = [n for n in AXES if n in over]
     red_total = int(np.prod([s[n] for n in red], dtype=np.int64))
     out_total = int(np.prod([s[n] for n in kept], dtype=np.int64))
+    if eng.is_numpy:
+        vmin, vmean, varg = _numpy_reduce(plan, red, quantity, shadowing, memory_budget - table_bytes)
+        return _reduce_result(plan, over, kept, red, vmin.astype(npdt), vmean, varg, quantity, shadowing, dtype)
     idx_name, idx_np = _index_type(max(plan.size, red_total))
 
     def arr(name, vals):
@@ -321,6 +443,45 @@ def reduce_grid(axes, fixed=None, over=(), quantity="dop", dtype="float32", shad
         vmin[o0:o0 + cnt] = hmin[rows, best]
         varg[o0:o0 + cnt] = harg[rows, best]
         vmean[o0:o0 + cnt] = hsum.astype(np.float64).sum(axis=1) / red_total
+    return _reduce_result(plan, over, kept, red, vmin, vmean, varg, quantity, shadowing, dtype)
+
+
+def _numpy_reduce(plan, red, quantity, shadowing, room):
+    """min, mean (float64) and flat argmin over the axes ``red`` on the numpy backend, as flat
+    arrays over the kept axes (canonical order): the grid in boxes of the 9-d canonical layout,
+    each reduced and merged."""
+    s = plan.sizes
+    shape = tuple(s[n] for n in AXES)
+    red_ax = tuple(AXES.index(n) for n in red)
+    kept_ax = tuple(i for i in range(len(AXES)) if i not in red_ax)
+    red_shape = tuple(shape[i] for i in red_ax)
+    tables = _NumpyTables(shadowing, quantity, *_geometry_list(plan, 0, _family_sizes(plan)[0]), plan.values)
+    kept_shape = tuple(shape[i] for i in kept_ax)
+    vmin = np.full(kept_shape, np.inf)
+    vsum = np.zeros(kept_shape)
+    varg = np.zeros(kept_shape, np.int64)
+    for _, box in _boxes(shape, max(64, room // _NumpyTables.BYTES_PER_POINT)):
+        v = tables.box(shape[:3], shape[3:], box)
+        moved = np.moveaxis(v, red_ax, tuple(range(len(kept_ax), len(shape))))
+        flat = moved.reshape(moved.shape[:len(kept_ax)] + (-1,))
+        local = np.argmin(flat, axis=-1)
+        bmin = np.take_along_axis(flat, local[..., None], axis=-1)[..., 0]
+        # the reduced coordinates of the box's minimum, moved to the whole grid's
+        coords = np.unravel_index(local, tuple(v.shape[i] for i in red_ax))
+        glob = np.ravel_multi_index(tuple(c + box[i].start for c, i in zip(coords, red_ax)), red_shape)
+        ksl = tuple(box[i] for i in kept_ax)
+        better = bmin < vmin[ksl]
+        vmin[ksl] = np.where(better, bmin, vmin[ksl])
+        varg[ksl] = np.where(better, glob, varg[ksl])
+        vsum[ksl] += flat.sum(axis=-1)
+    total = int(np.prod(red_shape, dtype=np.int64))
+    return vmin.reshape(-1), vsum.reshape(-1) / total, varg.reshape(-1)
+
+
+def _reduce_result(plan, over, kept, red, vmin, vmean, varg, quantity, shadowing, dtype):
+    import xarray as xr
+    npdt = DTYPES[dtype]
+    s = plan.sizes
     kept_axes = [n for n in kept if n in plan.axis_names]
     shape = tuple(s[n] for n in kept_axes)
     coords = {n: c for n, c in plan.coords().items() if n in kept_axes}
@@ -370,7 +531,7 @@ def _update_best(best_idx, best_sse, idx, sse, k):
 
 
 def objective(data, grid=None, points=None, *, k_best=10, dtype="float32", shadowing="paper", engine=None,
-              memory_budget=DEFAULT_BUDGET, return_sse=True, progress=False):
+              backend="auto", memory_budget=DEFAULT_BUDGET, return_sse=True, progress=False):
     """Weighted sum of squared DOP residuals, sum_m w_m (DOP(p, m) - dop_m)^2, for many parameter
     vectors p over the measurements m, on the device.
 
@@ -395,12 +556,13 @@ def objective(data, grid=None, points=None, *, k_best=10, dtype="float32", shado
     meas = as_measurements(data)
     ti, tr, ph, obs = meas.theta_i, meas.theta_r, meas.phi, meas.dop
     w = meas.weights if meas.dop_std is not None else np.ones(len(meas))
-    eng = engine if engine is not None else get_default_engine()
+    eng = resolve_engine(engine, backend)
     npdt = DTYPES[dtype]
-    itemsize = np.dtype(npdt).itemsize
+    itemsize = np.dtype(npdt).itemsize if not eng.is_numpy else 8
     M = ti.size
     if points is not None:
-        return _objective_points(eng, points, (ti, tr, ph, obs, w), k_best, dtype, shadowing, return_sse, t0)
+        return _objective_points(eng, points, (ti, tr, ph, obs, w), k_best, dtype, shadowing, return_sse, t0,
+                                 memory_budget)
     axes = {n: v for n, v in grid.items() if np.ndim(v) > 0}
     fixed = {n: v for n, v in grid.items() if np.ndim(v) == 0}
     plan = GridPlan(axes, fixed, names=PARAMETERS, defaults={"ks": 1.0, "kd": 0.0, "c": 0.0})
@@ -411,27 +573,17 @@ def objective(data, grid=None, points=None, *, k_best=10, dtype="float32", shado
         raise ValueError(f"the objective's tables need {table_bytes} bytes, more than half of "
                          f"memory_budget={memory_budget}; raise it or use fewer n, k values")
     P = plan.size
-    idx_name, idx_np = _index_type(P)
-    chunk = int(max(64, min((memory_budget - table_bytes) // itemsize, 2 ** 31 - 1)))
-    level, row_len = _row_level(nnk, nm, ni, 1, chunk, max_level=2)
-    prog = _grid_program(eng, dtype, (nnk, nm, ni), idx_name, "dop", PB_OBJECTIVE=None, PB_ROW_LEVEL=level,
-                         PB_ROW_LEN=row_len)
-    chunk = max(row_len, chunk // row_len * row_len)
-    tables = _Tables(eng, dtype, shadowing, "dop", ti, tr, ph, v)
-    bobs, bw = eng.to_device(obs, dtype), eng.to_device(w, dtype)
     sse = np.empty(P, npdt) if return_sse else None
     best_idx, best_sse = np.empty(0, np.int64), np.empty(0, npdt)
     bar = _progress(P, progress, "objective")
-    for start in range(0, P, chunk):
-        count = min(chunk, P - start)
-        buf = eng.empty(count * itemsize)
-        if level:
-            eng.launch(prog["objective_rows"], (count // row_len,), buf, idx_np(start // row_len),
-                       idx_np(count // row_len), *tables.args(), bobs, bw, np.int32(M))
-        else:
-            eng.launch(prog["objective_grid"], (count,), buf, idx_np(start), idx_np(count), *tables.args(),
-                       bobs, bw, np.int32(M))
-        host = eng.read(buf, sse[start:start + count] if sse is not None else np.empty(count, npdt))
+    if eng.is_numpy:
+        blocks = _numpy_objective_blocks(plan, (ti, tr, ph, obs, w), shadowing, memory_budget - table_bytes,
+                                         sse, npdt)
+    else:
+        blocks = _device_objective_blocks(eng, plan, (ti, tr, ph, obs, w), dtype, shadowing,
+                                          memory_budget - table_bytes, sse)
+    for start, host in blocks:  # host: the block's slice of sse (or a temporary without it)
+        count = host.size
         best_idx, best_sse = _update_best(best_idx, best_sse, np.arange(start, start + count), host, k_best)
         if bar is not None:
             bar.update(count)
@@ -452,7 +604,55 @@ def objective(data, grid=None, points=None, *, k_best=10, dtype="float32", shado
     return ObjectiveResult(sse=sse_da, best=best, n_pairs=P * M, seconds=time.perf_counter() - t0)
 
 
-def _objective_points(eng, points, meas, k_best, dtype, shadowing, return_sse, t0):
+def _numpy_objective_blocks(plan, meas, shadowing, room, out, npdt):
+    """(flat start, SSE) of the parameter grid in boxes, on the numpy backend, written into
+    ``out`` when given: the measurements are the tables' geometry list, and a box holds every
+    measurement of its parameter vectors."""
+    ti, tr, ph, obs, w = meas
+    M = ti.size
+    tables = _NumpyTables(shadowing, "dop", ti, tr, ph, plan.values)
+    sizes = _param_sizes(plan)
+    obs = obs.reshape((M,) + (1,) * 6)
+    w = w.reshape((M,) + (1,) * 6)
+    for start, box in _boxes(sizes, max(1, room // (M * _NumpyTables.BYTES_PER_POINT))):
+        r = tables.box((M,), sizes, (slice(None),) + box) - obs
+        values = np.sum(w * r * r, axis=0).reshape(-1)
+        host = out[start:start + values.size] if out is not None else np.empty(values.size, npdt)
+        host[...] = values
+        yield start, host
+
+
+def _device_objective_blocks(eng, plan, meas, dtype, shadowing, room, out):
+    """(flat start, SSE) of the parameter grid in chunks, on the device, read straight into
+    ``out`` when given."""
+    ti, tr, ph, obs, w = meas
+    M = ti.size
+    v = plan.values
+    npdt = DTYPES[dtype]
+    itemsize = np.dtype(npdt).itemsize
+    _, nnk, nm, ni = _family_sizes(plan)
+    P = plan.size
+    idx_name, idx_np = _index_type(P)
+    chunk = int(max(64, min(room // itemsize, 2 ** 31 - 1)))
+    level, row_len = _row_level(nnk, nm, ni, 1, chunk, max_level=2)
+    prog = _grid_program(eng, dtype, (nnk, nm, ni), idx_name, "dop", PB_OBJECTIVE=None, PB_ROW_LEVEL=level,
+                         PB_ROW_LEN=row_len)
+    chunk = max(row_len, chunk // row_len * row_len)
+    tables = _Tables(eng, dtype, shadowing, "dop", ti, tr, ph, v)
+    bobs, bw = eng.to_device(obs, dtype), eng.to_device(w, dtype)
+    for start in range(0, P, chunk):
+        count = min(chunk, P - start)
+        buf = eng.empty(count * itemsize)
+        if level:
+            eng.launch(prog["objective_rows"], (count // row_len,), buf, idx_np(start // row_len),
+                       idx_np(count // row_len), *tables.args(), bobs, bw, np.int32(M))
+        else:
+            eng.launch(prog["objective_grid"], (count,), buf, idx_np(start), idx_np(count), *tables.args(),
+                       bobs, bw, np.int32(M))
+        yield start, eng.read(buf, out[start:start + count] if out is not None else np.empty(count, npdt))
+
+
+def _objective_points(eng, points, meas, k_best, dtype, shadowing, return_sse, t0, memory_budget):
     ti, tr, ph, obs, w = meas
     unknown = set(points) - set(PARAMETERS)
     if unknown:
@@ -469,11 +669,19 @@ def _objective_points(eng, points, meas, k_best, dtype, shadowing, return_sse, t
         raise ValueError("points: parameter arrays differ in length") from None
     arrays = [a.reshape(-1) for a in arrays]
     P = arrays[0].size
-    kern = eng.kernel("objective_points", dtype, shadowing)
-    buf = eng.empty(P * np.dtype(DTYPES[dtype]).itemsize)
-    eng.launch(kern, (P,), buf, np.int32(P), *(eng.to_device(a, dtype) for a in arrays),
-               *(eng.to_device(a, dtype) for a in (ti, tr, ph, obs, w)), np.int32(ti.size))
-    sse = eng.read(buf, np.empty(P, DTYPES[dtype]))
+    if eng.is_numpy:  # the reference over (vectors, measurements), a bounded number of rows at a time
+        sse = np.empty(P, DTYPES[dtype])
+        step = max(1, memory_budget // (ti.size * 8 * 16))
+        for a in range(0, P, step):
+            par = [x[a:a + step, None] for x in arrays]
+            r = reference.evaluate("dop", ti, tr, ph, *par, shadowing=shadowing) - obs
+            sse[a:a + step] = np.sum(w * r * r, axis=1)
+    else:
+        kern = eng.kernel("objective_points", dtype, shadowing)
+        buf = eng.empty(P * np.dtype(DTYPES[dtype]).itemsize)
+        eng.launch(kern, (P,), buf, np.int32(P), *(eng.to_device(a, dtype) for a in arrays),
+                   *(eng.to_device(a, dtype) for a in (ti, tr, ph, obs, w)), np.int32(ti.size))
+        sse = eng.read(buf, np.empty(P, DTYPES[dtype]))
     order = np.argsort(sse, kind="stable")[:k_best]
     best = {n: a[order] for n, a in zip(PARAMETERS, arrays)}
     best["sse"] = sse[order]

@@ -314,7 +314,7 @@ def _check_bounds(model, bounds, fixed):
 
 
 def fit(data, model="six-param", bounds=None, fixed=None, shadowing="paper", *, grid_shape=None, n_basins=6,
-        engine=None, progress=False):
+        engine=None, backend="auto", progress=False):
     """Fit the model to measured DOP (see the module docstring for the pipeline).
 
     Parameters
@@ -324,6 +324,7 @@ def fit(data, model="six-param", bounds=None, fixed=None, shadowing="paper", *, 
     bounds : dict name -> (low, high); defaults n [1, 5], k [0, 10], sigma [0.05, 1], kd [0, 5], c [-1, 0]
     fixed : dict name -> value, parameters held fixed (e.g. ``{"sigma": 0.45}``)
     grid_shape : dict name -> points of the device grid stage
+    engine, backend : where the grid stage runs ("auto": the OpenCL device, or numpy without one)
     """
     if model not in MODEL_PARAMS:
         raise ValueError(f"model must be one of {sorted(MODEL_PARAMS)}, got {model!r}")
@@ -372,7 +373,7 @@ def fit(data, model="six-param", bounds=None, fixed=None, shadowing="paper", *, 
     axes = {n: _grid_axis(n, bnds[n], int(shape[n])) for n in free}
     grid_params = {**{n: v for n, v in base.items()}, **axes}
     res = dense.objective(meas.as_dict(), grid=grid_params, k_best=1, dtype="float32", shadowing=shadowing,
-                          engine=engine, progress=progress)
+                          engine=engine, backend=backend, progress=progress)
     sse_grid = res.sse.transpose(*free).values
     nfev["grid"] = int(sse_grid.size)
     profiles = _grid_profiles(sse_grid, free)
@@ -867,18 +868,19 @@ def _identifiability_notes(names, J, cond, eig, x, se, corr, scale):
     return notes
 
 
-def compare_models(data, shadowing="paper", bounds=None, fixed=None, engine=None, progress=False):
+def compare_models(data, shadowing="paper", bounds=None, fixed=None, engine=None, backend="auto", progress=False):
     """Fit the six-parameter model and the ref. [7] specular model to the same data (the
     specular fit takes the bounds and fixed values of n and k only).
 
     Returns a dict: "six-param" and "specular" FitResults, "preferred" (lower BIC) and "table"
     (a text table of both with SSE, AIC and BIC)."""
     meas = as_measurements(data)
-    six = fit(meas, "six-param", bounds=bounds, fixed=fixed, shadowing=shadowing, engine=engine, progress=progress)
+    six = fit(meas, "six-param", bounds=bounds, fixed=fixed, shadowing=shadowing, engine=engine, backend=backend,
+              progress=progress)
     spec_fixed = {k: v for k, v in (fixed or {}).items() if k in ("n", "k")}
     spec_bounds = {k: v for k, v in (bounds or {}).items() if k in ("n", "k")}
     spec = fit(meas, "specular", bounds=spec_bounds, fixed=spec_fixed, shadowing=shadowing, engine=engine,
-               progress=progress)
+               backend=backend, progress=progress)
     rows = ["| model | n | k | free params | SSE | AIC | BIC |", "|---|---|---|---|---|---|---|"]
     for name, r in (("six-param", six), ("specular (ref. [7])", spec)):
         rows.append(f"| {name} | {r.x['n']:.4g} | {r.x['k']:.4g} | {len(r.free)} | {r.sse:.4g} | {r.aic:.2f} | "

@@ -13,6 +13,7 @@ import json
 import numpy as np
 
 from . import api, dense
+from .engine import resolve_engine
 from .plots import _pyplot
 
 #: Axis labels with units for figures.
@@ -83,7 +84,7 @@ def _axis(option, value):
 
 
 def make_map(x, y, fixed=None, quantity="dop", derivative=None, *, dtype="float64", shadowing="paper",
-             engine=None):
+             engine=None, backend="auto"):
     """The model over (y, x) with ``fixed`` inputs; optionally its derivative along ``derivative``.
 
     Parameters
@@ -108,7 +109,7 @@ def make_map(x, y, fixed=None, quantity="dop", derivative=None, *, dtype="float6
         if name in fixed:
             raise ValueError(f"{name} is both a map axis and a fixed value")
     axes = {xname: xv, yname: yv}
-    kw = dict(quantity=quantity, dtype=dtype, shadowing=shadowing, engine=engine)
+    kw = dict(quantity=quantity, dtype=dtype, shadowing=shadowing, engine=resolve_engine(engine, backend))
     da = dense.grid(axes, fixed, **kw).transpose(yname, xname)
     ds = da.to_dataset(name=quantity)
     ds.attrs = dict(da.attrs)

@@ -26,6 +26,7 @@ import numpy as np
 
 from . import api, dense, maps
 from .data import from_arrays
+from .engine import resolve_engine
 from .plots import _pyplot
 
 #: The paper's fit to 45# steel at 435 nm, theta_i = 40 deg (SPEC).
@@ -235,15 +236,19 @@ DESCRIPTIONS = {
 }
 
 
-def reproduce(out="paper-figures", *, resolution=256, engine=None, seed=SEED, log=print):
+def reproduce(out="paper-figures", *, resolution=256, engine=None, backend="auto", seed=SEED, log=print):
     """Write every figure, table and data file (see the module docstring) into ``out``.
 
+    ``engine``, ``backend``: where the fits' grid stage and the maps run ("auto": the OpenCL
+    device, or the numpy reference without one).
     Returns a dict file name -> one-sentence description (what ``summary.md`` lists)."""
+    engine = resolve_engine(engine, backend)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     if resolution < 8:
         raise ValueError(f"resolution must be >= 8 points per map axis, got {resolution}")
     t0 = time.perf_counter()
+    log(f"computing on {engine.description}")
     fits = {}
     for sample in FIG2_SAMPLES:
         fits[sample] = fig2(sample, out, engine=engine, seed=seed)
@@ -260,7 +265,7 @@ def reproduce(out="paper-figures", *, resolution=256, engine=None, seed=SEED, lo
     files["summary.md"] = "this list."
     lines = ["# Reproduction of Zhu et al. (2020) and roughness maps", "",
              f"Written by `pbrdf-cl reproduce` (pbrdf_cl.paper.reproduce, seed {seed}, maps at {resolution} "
-             "points per axis, float64, shadowing `paper`).", "",
+             f"points per axis, float64, shadowing `paper`; computed on {engine.description}).", "",
              "Fig. 2 data are synthetic (the paper's measured points are not published): the six-parameter "
              f"model in the specular geometry theta_r = theta_i = {FIG2_ANGLES[0]:g}..{FIG2_ANGLES[-1]:g} deg "
              f"(step {FIG2_ANGLES[1] - FIG2_ANGLES[0]:g}), phi = 180, Gaussian DOP noise sd {FIG2_NOISE:g}, clipped to [0, 1], with"]

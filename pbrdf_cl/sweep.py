@@ -59,7 +59,7 @@ from pathlib import Path
 import numpy as np
 
 from . import api, dense
-from .engine import DTYPES, kernel_dir
+from .engine import DTYPES, kernels_sha256, resolve_engine
 from .reference import SHADOWING
 
 try:
@@ -484,22 +484,6 @@ def _compressor():
     return Blosc(cname="lz4", clevel=5, shuffle=Blosc.SHUFFLE)
 
 
-_KERNELS_SHA256 = None
-
-
-def kernels_sha256():
-    """SHA-256 of this installation's OpenCL sources (read once per process): a store is only
-    resumed, or written by a cluster worker, with the kernels that started it."""
-    global _KERNELS_SHA256
-    if _KERNELS_SHA256 is None:
-        h = hashlib.sha256()
-        for f in sorted(kernel_dir().iterdir()):
-            if f.suffix in (".cl", ".h"):
-                h.update(f.name.encode() + b"\0" + f.read_bytes() + b"\0")
-        _KERNELS_SHA256 = h.hexdigest()
-    return _KERNELS_SHA256
-
-
 def _check_kernels(name, attrs):
     stored = attrs.get("sweep_kernels_sha256")
     if stored != kernels_sha256():
@@ -633,18 +617,19 @@ _RUNNERS = {}
 _CACHE_LOCK = threading.Lock()
 
 
-def worker_engine(device=None):
-    """This process's engine for ``device`` (built once, then reused by every chunk)."""
+def worker_engine(device=None, backend="auto"):
+    """This process's engine for ``device`` and ``backend`` (built once, then reused by every
+    chunk; see :func:`pbrdf_cl.engine.resolve_engine`)."""
+    key = (device, backend)
     with _CACHE_LOCK:
-        if device not in _ENGINES:
+        if key not in _ENGINES:
             os.environ.setdefault("POCL_CACHE_DIR", os.path.join(tempfile.gettempdir(), "pbrdf-cl-pocl-cache"))
-            if device is None:
-                from .engine import get_default_engine
-                _ENGINES[device] = get_default_engine()
+            if device is None or backend == "numpy":
+                _ENGINES[key] = resolve_engine(None, backend)
             else:
                 from .engine import Engine
-                _ENGINES[device] = Engine(device)
-        return _ENGINES[device]
+                _ENGINES[key] = Engine(device)
+        return _ENGINES[key]
 
 
 def _engine_lock(eng):
@@ -702,10 +687,10 @@ def _runner(spec, name):
         return _RUNNERS[key]
 
 
-def run_chunk(spec, name, i, device=None):
+def run_chunk(spec, name, i, device=None, backend="auto"):
     """Dask task: compute chunk ``i`` of ``spec`` with this worker's engine and write it into the
     store ``name``; returns (i, points, seconds)."""
-    return _runner(spec, name).run(worker_engine(device), i)
+    return _runner(spec, name).run(worker_engine(device, backend), i)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -740,7 +725,8 @@ def _bar(spec, initial, enabled):
     return tqdm(total=spec.n_chunks, initial=initial, unit="chunk", desc="sweep", dynamic_ncols=True)
 
 
-def sweep(spec, store, *, engine=None, device=None, workers=None, scheduler=None, client=None, progress=True):
+def sweep(spec, store, *, engine=None, device=None, backend="auto", workers=None, scheduler=None, client=None,
+          progress=True):
     """Evaluate a sweep into a Zarr store, computing only the chunks not already there.
 
     Parameters
@@ -750,6 +736,8 @@ def sweep(spec, store, *, engine=None, device=None, workers=None, scheduler=None
         it holds the same spec, refused if it holds another.
     engine, device : the engine (or device, see :func:`pbrdf_cl.select_device`) for a local run;
         ``device`` is also what every cluster worker builds its own engine for.
+    backend : "auto" (the OpenCL device, or the numpy reference where none is usable), "opencl"
+        or "numpy", here and on every worker.
     workers : start a local ``dask.distributed`` cluster of this many processes (1 thread each).
     scheduler : address of a running scheduler (``tcp://host:8786``); or pass ``client``.
     progress : a tqdm bar (chunks, points/s, ETA).
@@ -781,13 +769,13 @@ def sweep(spec, store, *, engine=None, device=None, workers=None, scheduler=None
 
     try:
         if todo.size and given == 0:
-            eng = engine if engine is not None else worker_engine(device)
+            eng = resolve_engine(engine, backend) if engine is not None else worker_engine(device, backend)
             runner = _Runner(spec, name)
             for i in todo:
                 _, points, _ = runner.run(eng, i)
                 finished(i, points)
         elif todo.size:
-            _run_distributed(spec, name, todo, device, workers, scheduler, client, finished)
+            _run_distributed(spec, name, todo, device, backend, workers, scheduler, client, finished)
     finally:
         if bar is not None:
             bar.close()
@@ -811,7 +799,7 @@ def _mark_complete(spec, name):
     _zarr().consolidate_metadata(name)
 
 
-def _run_distributed(spec, name, todo, device, workers, scheduler, client, finished):
+def _run_distributed(spec, name, todo, device, backend, workers, scheduler, client, finished):
     try:
         from distributed import Client, LocalCluster, as_completed
     except ImportError:
@@ -832,7 +820,7 @@ def _run_distributed(spec, name, todo, device, workers, scheduler, client, finis
         pending = iter(todo)
 
         def submit(i):
-            return client.submit(run_chunk, spec_future, name, int(i), device, key=f"pbrdf-sweep-{token}-{i}",
+            return client.submit(run_chunk, spec_future, name, int(i), device, backend, key=f"pbrdf-sweep-{token}-{i}",
                                  pure=False, retries=1)
         first = [submit(i) for i in itertools.islice(pending, 2 * n_threads + 2)]
         queue = as_completed(first)
