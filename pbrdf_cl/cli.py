@@ -1,14 +1,22 @@
-"""Command line interface: ``pbrdf-cl devices|eval|fit|reproduce|map|bench``."""
+"""Command line interface: ``pbrdf-cl devices|eval|fit|reproduce|map|sweep|bench``.
+
+Every problem a user can meet, bad input or a broken environment (no OpenCL, an unusable
+device, an unwritable cache or output folder), ends in one line on stderr, ``pbrdf-cl: error:
+...`` saying what is wrong and what to do, and a non-zero exit status; never a traceback.
+"""
 from __future__ import annotations
 
 import argparse
 import itertools
 import json
+import os
 import sys
+import warnings
+from pathlib import Path
 
 import numpy as np
 
-from . import api, engine as _engine
+from . import api, drivers, engine as _engine
 from .reference import SHADOWING
 
 PARAMS = (("theta_i", None), ("theta_r", None), ("phi", "180"), ("n", None), ("k", None),
@@ -39,6 +47,43 @@ def _error(exc) -> int:
     return 1
 
 
+class _Refused(Exception):
+    """An environment problem found before any work: the message is the whole report."""
+
+
+def _engine_for(args):
+    """The engine of a subcommand from its ``--backend`` and ``--device``; an unusable explicit
+    device, ``--backend opencl`` without a usable device, or a fallback to numpy caused by an
+    unwritable PoCL cache raise :class:`_Refused`."""
+    backend = getattr(args, "backend", "auto")
+    device = getattr(args, "device", None)
+    try:
+        if backend == "numpy":
+            return _engine.NumpyEngine()
+        if device:
+            return _engine.Engine(device)
+        eng = _engine.get_default_engine(backend)
+    except (ValueError, _engine.OpenCLUnavailableError) as exc:
+        raise _Refused(str(exc)) from None
+    if eng.is_numpy:
+        problem = drivers.pocl_cache_problem()
+        if problem:
+            raise _Refused(f"{problem}; or pass --backend numpy")
+    return eng
+
+
+def _check_output(option, path, folder=False):
+    """Refuse an output that cannot be written before any work is done (:class:`_Refused`)."""
+    if path is None or "://" in str(path):
+        return
+    target = Path(path) if folder else (Path(path).parent if str(Path(path).parent) else Path("."))
+    if target.exists() and not target.is_dir():
+        raise _Refused(f"{option} {path}: {target} is a file, not a folder; choose another {option}")
+    why = drivers.writable_dir(target)
+    if why is not None:
+        raise _Refused(f"{option} {path}: cannot write into {target} ({why}); choose a writable {option}")
+
+
 def _device_type(bits: int) -> str:
     dt = _engine.cl.device_type
     names = [name for name in ("CPU", "GPU", "ACCELERATOR") if bits & getattr(dt, name)]
@@ -48,23 +93,46 @@ def _device_type(bits: int) -> str:
 def cmd_devices(args) -> int:
     try:
         found = _engine.list_devices()
-        default = _engine.select_device(args.device)
-    except (_engine.OpenCLUnavailableError, ValueError) as exc:
+    except _engine.OpenCLUnavailableError as exc:
         return _error(exc)
+    default, why_none = None, None
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", _engine.DeviceWarning)  # the list says it all
+        try:
+            default = _engine.select_device(args.device)
+        except (_engine.OpenCLUnavailableError, ValueError) as exc:
+            why_none = str(exc)
     rows = []
     for ip, idev, plat, dev in found:
+        result = _engine.probe(dev)
         rows.append(dict(id=f"{ip}:{idev}", platform=plat.name.strip(), device=dev.name.strip(),
                          type=_device_type(dev.type), fp64=_engine.has_fp64(dev),
                          compute_units=dev.max_compute_units, version=dev.version.strip(),
-                         default=dev.int_ptr == default.int_ptr))
+                         driver=dev.driver_version.strip(), usable=result.usable, probe=result.reason,
+                         probe_seconds=round(result.seconds, 4), probe_cached=result.cached,
+                         simulator=_engine._is_simulator(plat),
+                         default=default is not None and dev.int_ptr == default.int_ptr))
     if args.json:
         print(json.dumps(rows, indent=2))
         return 0
     for r in rows:
         mark = "*" if r["default"] else " "
         print(f"{mark} {r['id']:5s} {r['platform']} / {r['device']}  [{r['type']}, "
-              f"{r['compute_units']} CUs, fp64={'yes' if r['fp64'] else 'no'}, {r['version']}]")
-    print("* = the default device (choose another with --device P:D or PYOPENCL_CTX=P:D)")
+              f"{r['compute_units']} CUs, fp64={'yes' if r['fp64'] else 'no'}, {r['version']}, driver {r['driver']}]")
+        state = "usable" if r["usable"] else "UNUSABLE"
+        extra = "; a simulator, never the default" if r["simulator"] else ""
+        when = "probe cached" if r["probe_cached"] else f"probe {r['probe_seconds']:.2f} s"
+        print(f"        {state}: {r['probe']} ({when}{extra})")
+    if default is not None:
+        print("* = the default device (choose another with --device P:D or PYOPENCL_CTX=P:D)")
+    elif args.device or os.environ.get("PYOPENCL_CTX"):
+        print(f"the chosen device cannot be used: {why_none}")
+    else:
+        problem = drivers.pocl_cache_problem()
+        if problem:
+            print(f"PoCL's devices are hidden: {problem}")
+        print("no usable OpenCL device: every command computes on the numpy backend (the float64 reference, "
+              f"slower) until one is installed; remedies: {drivers.REMEDIES}")
     return 0
 
 
@@ -81,12 +149,7 @@ def cmd_eval(args) -> int:
     names = [n for n, _ in PARAMS if values[n] is not None]
     rows = list(itertools.product(*(values[n] for n in names)))
     cols = {n: np.array([r[i] for r in rows]) for i, n in enumerate(names)}
-    kw = dict(shadowing=args.shadowing, dtype=args.dtype, backend=args.backend, model=args.model)
-    if args.backend == "opencl":
-        try:
-            kw["engine"] = _engine.Engine(args.device) if args.device else None
-        except (_engine.OpenCLUnavailableError, ValueError) as exc:
-            return _error(exc)
+    kw = dict(shadowing=args.shadowing, dtype=args.dtype, model=args.model, engine=_engine_for(args))
     pos = {n: cols[n] for n in ("theta_i", "theta_r", "phi")}
     par = {n: cols[n] for n in ("n", "k", "sigma", "ks", "kd", "c") if n in cols}
     try:
@@ -100,7 +163,8 @@ def cmd_eval(args) -> int:
                     out_name: result[i].tolist() if args.quantity == "mueller" else float(result[i])}
                    for i in range(len(rows))]
         print(json.dumps(dict(quantity=out_name, shadowing=args.shadowing, dtype=args.dtype,
-                              backend=args.backend, model=args.model, rows=records), indent=2))
+                              backend="numpy" if kw["engine"].is_numpy else "opencl",
+                              device=kw["engine"].description, model=args.model, rows=records), indent=2))
         return 0
     header = [n for n in names]
     print("  ".join(f"{h:>8s}" for h in header) + "  " + (out_name if args.quantity != "mueller"
@@ -147,9 +211,11 @@ def cmd_fit(args) -> int:
     from .data import read_csv
     fixed = parse_assignments("--fix", args.fix)
     bounds = parse_assignments("--bounds", args.bounds, ranges=True)
+    _check_output("--json", args.json)
+    _check_output("--plot", args.plot)
     try:
         meas = read_csv(args.data)
-        engine = _engine.Engine(args.device) if args.device else None
+        engine = _engine_for(args)
         both = _fit.compare_models(meas, shadowing=args.shadowing, bounds=bounds, fixed=fixed, engine=engine,
                                    progress=not args.quiet)
     except (OSError, ValueError, _engine.OpenCLUnavailableError) as exc:
@@ -179,10 +245,11 @@ def cmd_fit(args) -> int:
 
 def cmd_sweep(args) -> int:
     from .sweep import load_spec, read_done, sweep  # the module pbrdf_cl.sweep (the package exports the function)
+    _check_output("--out", str(Path(args.out).parent), folder=True)
     try:
         spec = load_spec(args.spec)
-        engine = _engine.Engine(args.device) if args.device and not (args.workers or args.scheduler) else None
-        res = sweep(spec, args.out, engine=engine, device=args.device, workers=args.workers,
+        engine = _engine_for(args) if not (args.workers or args.scheduler) else None
+        res = sweep(spec, args.out, engine=engine, device=args.device, backend=args.backend, workers=args.workers,
                     scheduler=args.scheduler, progress=not args.quiet)
     except KeyboardInterrupt:
         try:
@@ -205,8 +272,9 @@ def cmd_bench(args) -> int:
 
 def cmd_reproduce(args) -> int:
     from . import paper
+    _check_output("--out", args.out, folder=True)
     try:
-        engine = _engine.Engine(args.device) if args.device else None
+        engine = _engine_for(args)
         files = paper.reproduce(args.out, resolution=args.resolution, engine=engine,
                                 log=(lambda *a: None) if args.quiet else print)
     except (OSError, ValueError, _engine.OpenCLUnavailableError) as exc:
@@ -223,7 +291,9 @@ def cmd_map(args) -> int:
         x = maps.parse_axis("--x", args.x)
         y = maps.parse_axis("--y", args.y)
         fixed = maps.parse_fixed("--fix", args.fix)
-        engine = _engine.Engine(args.device) if args.device else None
+        _check_output("--out", args.out)
+        _check_output("--npz", args.npz)
+        engine = _engine_for(args)
         ds = maps.make_map(x, y, fixed, quantity=args.quantity, derivative=args.derivative, dtype=args.dtype,
                            shadowing=args.shadowing, engine=engine)
         maps.plot_map(ds, args.out)
@@ -236,6 +306,14 @@ def cmd_map(args) -> int:
           f"min {np.nanmin(v):.6g}, max {np.nanmax(v):.6g}")
     print(f"wrote {args.out}" + (f" and {args.npz}" if args.npz else ""))
     return 0
+
+
+def _device_options(parser, where=""):
+    parser.add_argument("--device", help=f"OpenCL device{where}: P:D as `pbrdf-cl devices` lists them, or a name "
+                        "substring (default: PYOPENCL_CTX, else the first usable device)")
+    parser.add_argument("--backend", choices=_engine.BACKENDS, default="auto",
+                        help="auto (default): the OpenCL device, or the numpy reference when no device is usable; "
+                        "opencl: the device or an error; numpy: the float64 reference")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -257,8 +335,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--shadowing", choices=sorted(SHADOWING), default="paper")
     e.add_argument("--model", choices=api.MODELS, default="six-param")
     e.add_argument("--dtype", choices=("float32", "float64"), default="float64")
-    e.add_argument("--backend", choices=api.BACKENDS, default="opencl")
-    e.add_argument("--device", help="OpenCL device: P:D or a name substring (default: PYOPENCL_CTX, then PoCL)")
+    _device_options(e)
     e.add_argument("--json", action="store_true", help="JSON output")
     e.set_defaults(func=cmd_eval)
     s = sub.add_parser("sweep", help="a sweep of any size into a Zarr store (resumable; dask cluster)",
@@ -271,7 +348,7 @@ def build_parser() -> argparse.ArgumentParser:
     where = s.add_mutually_exclusive_group()
     where.add_argument("--workers", type=int, metavar="N", help="run on a local dask cluster of N processes")
     where.add_argument("--scheduler", metavar="ADDR", help="run on a dask.distributed cluster (tcp://host:8786)")
-    s.add_argument("--device", help="OpenCL device, here or on every worker (P:D or a name substring)")
+    _device_options(s, " here or on every worker")
     s.add_argument("--quiet", action="store_true", help="no progress bar; one summary line at the end")
     s.set_defaults(func=cmd_sweep)
     f = sub.add_parser("fit", help="invert n, k, sigma, kd/ks, c from measured DOP (CSV)",
@@ -283,7 +360,7 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--fix", nargs="*", metavar="NAME=VALUE", help="hold parameters fixed, e.g. sigma=0.45")
     f.add_argument("--bounds", nargs="*", metavar="NAME=LO:HI", help="search bounds, e.g. n=1:3 k=0:5")
     f.add_argument("--shadowing", choices=sorted(SHADOWING), default="paper")
-    f.add_argument("--device", help="OpenCL device for the grid stage (P:D or a name substring)")
+    _device_options(f, " for the grid stage")
     f.add_argument("--json", metavar="OUT", help="write both fits as JSON")
     f.add_argument("--plot", metavar="PNG", help="plot data, both models and residuals")
     f.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -294,7 +371,7 @@ def build_parser() -> argparse.ArgumentParser:
                        "summary.md into one folder.")
     r.add_argument("--out", default="paper-figures", help="output folder (default: paper-figures)")
     r.add_argument("--resolution", type=int, default=256, help="points per map axis (default 256)")
-    r.add_argument("--device", help="OpenCL device (P:D or a name substring)")
+    _device_options(r)
     r.add_argument("--quiet", action="store_true", help="no progress lines")
     r.set_defaults(func=cmd_reproduce)
     m = sub.add_parser("map", help="a dense map of DOP or F00 over any two axes (PNG + optional .npz)",
@@ -310,20 +387,60 @@ def build_parser() -> argparse.ArgumentParser:
                    help="add a panel with d(quantity)/d(NAME): finite differences on the device grid")
     m.add_argument("--dtype", choices=("float32", "float64"), default="float64")
     m.add_argument("--shadowing", choices=sorted(SHADOWING), default="paper")
-    m.add_argument("--device", help="OpenCL device (P:D or a name substring)")
+    _device_options(m)
     m.add_argument("--out", default="map.png", help="PNG to write (default map.png)")
     m.add_argument("--npz", metavar="NPZ", help="also save the arrays (coordinates, values, derivative)")
     m.set_defaults(func=cmd_map)
-    b = sub.add_parser("bench", help="benchmark every evaluation path (options: pbrdf-cl bench -- --help)",
+    b = sub.add_parser("bench", help="benchmark every evaluation path (options: pbrdf-cl bench --help)",
                        add_help=False)
     b.add_argument("rest", nargs=argparse.REMAINDER)
     b.set_defaults(func=cmd_bench)
     return p
 
 
+def _show_warning(message, category, filename, lineno, file=None, line=None):
+    """Warnings as one line each, ``pbrdf-cl: warning: ...``."""
+    print(f"pbrdf-cl: warning: {message}", file=sys.stderr if file is None else file)
+
+
+def _environment_error(exc):
+    """The one-line report of an environment problem met while working."""
+    cl = _engine.cl
+    if isinstance(exc, _engine.OpenCLUnavailableError):
+        return str(exc)
+    if cl is not None and isinstance(exc, cl.Error):
+        return (f"OpenCL: {_engine.first_error_line(exc)}; try another device (`pbrdf-cl devices`) or "
+                "--backend numpy")
+    if isinstance(exc, MemoryError):
+        return "out of memory; use smaller sizes (fewer points per axis, a smaller memory_budget)"
+    if isinstance(exc, OSError):
+        where = f" {exc.filename}" if getattr(exc, "filename", None) else ""
+        return f"cannot access{where}: {exc.strerror or exc}; check the path and its permissions"
+    return None
+
+
 def main(argv=None) -> int:
-    args = build_parser().parse_args(argv)
-    return args.func(args)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv[:1] == ["bench"]:  # its options are bench.main's own (argparse's REMAINDER drops "--x" ones)
+        args = argparse.Namespace(func=cmd_bench, rest=argv[1:])
+    else:
+        args = build_parser().parse_args(argv)
+    saved = warnings.showwarning
+    warnings.showwarning = _show_warning
+    try:
+        return args.func(args)
+    except _Refused as exc:
+        return _error(exc)
+    except KeyboardInterrupt:
+        print("pbrdf-cl: interrupted", file=sys.stderr)
+        return 130
+    except Exception as exc:  # noqa: BLE001 - environment faults get one line, anything else a traceback
+        text = _environment_error(exc)
+        if text is None:
+            raise
+        return _error(text)
+    finally:
+        warnings.showwarning = saved
 
 
 if __name__ == "__main__":
