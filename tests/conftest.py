@@ -1,5 +1,15 @@
+"""Shared fixtures.
+
+OpenCL devices: the kernel-versus-reference tests (those using the ``engine`` or ``each_device``
+fixture) run on every usable OpenCL device present except the Oclgrind simulator, each held to
+the same tolerances, in the style of pyopencl's ``PYOPENCL_TEST``: ``PBRDF_TEST_DEVICES`` (comma-
+separated substrings of "platform / device") restricts them.  Without a usable device those
+tests are skipped, saying why, unless ``PBRDF_REQUIRE_OPENCL=1`` (as ``.ci/run`` sets), which
+makes the session fail instead.  The header of the run names the devices.
+"""
 import os
 import tempfile
+import warnings
 
 import numpy as np
 import pytest
@@ -7,6 +17,49 @@ import pytest
 os.environ.setdefault("POCL_CACHE_DIR", os.path.join(tempfile.gettempdir(), "pbrdf-cl-pocl-cache"))
 
 import pbrdf_cl  # noqa: E402
+from pbrdf_cl import engine as engine_mod  # noqa: E402
+
+
+def _test_devices():
+    """(devices, why none): the usable non-simulator devices, in the default order."""
+    try:
+        found = engine_mod.list_devices()
+    except engine_mod.OpenCLUnavailableError as exc:
+        return [], str(exc)
+    usable = [d for d in engine_mod.candidates(found) if engine_mod.probe(d).usable]
+    wanted = [w.strip().lower() for w in os.environ.get("PBRDF_TEST_DEVICES", "").split(",") if w.strip()]
+    if wanted:
+        usable = [d for d in usable if any(w in engine_mod.describe(d).lower() for w in wanted)]
+    if usable:
+        return usable, ""
+    if wanted:
+        return [], f"no usable OpenCL device matches PBRDF_TEST_DEVICES={os.environ['PBRDF_TEST_DEVICES']!r}"
+    try:
+        engine_mod.select_device(None)
+    except (engine_mod.OpenCLUnavailableError, ValueError) as exc:
+        return [], str(exc)
+    return [], "no usable OpenCL device"
+
+with warnings.catch_warnings():
+    warnings.simplefilter("ignore", engine_mod.DeviceWarning)
+    DEVICES, NO_DEVICE = _test_devices()
+_ENGINES = {}
+
+
+def device_id(dev):
+    return engine_mod.describe(dev).replace(" ", "_")
+
+
+def pytest_report_header(config):
+    if DEVICES:
+        return [f"pbrdf-cl OpenCL test devices: {'; '.join(engine_mod.describe(d) for d in DEVICES)} "
+                f"(default: {engine_mod.describe(DEVICES[0])})"]
+    return [f"pbrdf-cl OpenCL test devices: none ({NO_DEVICE})"]
+
+
+def pytest_sessionstart(session):
+    if not DEVICES and os.environ.get("PBRDF_REQUIRE_OPENCL") == "1":
+        raise pytest.UsageError(f"PBRDF_REQUIRE_OPENCL=1 but {NO_DEVICE}")
 
 PARAMS = ("n", "k", "sigma", "ks", "kd", "c")
 
@@ -59,9 +112,29 @@ def call(func, inp, **kw):
     return func(inp["theta_i"], inp["theta_r"], inp["phi"], **{p: inp[p] for p in PARAMS}, **kw)
 
 
-@pytest.fixture(scope="session")
-def engine():
-    return pbrdf_cl.get_default_engine()
+#: for ``pytest.param("opencl", marks=requires_opencl)``: skip where no device is usable
+SKIP_REASON = "no usable OpenCL device (the run's header says why)"
+requires_opencl = pytest.mark.skipif(not DEVICES, reason=SKIP_REASON)
+
+
+@pytest.fixture(scope="session", params=DEVICES or [None], ids=[device_id(d) for d in DEVICES] or ["no-device"])
+def engine(request):
+    """An OpenCL engine on each usable device in turn (see the module docstring)."""
+    if request.param is None:
+        pytest.skip(SKIP_REASON)
+    key = request.param.int_ptr
+    if key not in _ENGINES:
+        _ENGINES[key] = pbrdf_cl.Engine(request.param)
+    return _ENGINES[key]
+
+
+@pytest.fixture
+def each_device(engine):
+    """Make ``engine`` (each usable device in turn) the default engine for one test."""
+    saved = engine_mod._default_engine
+    pbrdf_cl.set_default_engine(engine)
+    yield engine
+    pbrdf_cl.set_default_engine(saved)
 
 
 @pytest.fixture

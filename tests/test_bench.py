@@ -7,10 +7,12 @@ import sys
 from pathlib import Path
 
 import pbrdf_cl
+from conftest import requires_opencl
 
 ROOT = Path(__file__).resolve().parent.parent
 
 
+@requires_opencl
 def test_bench_quick_reports_every_path(tmp_path):
     out = tmp_path / "bench.json"
     env = dict(os.environ, PYTHONPATH=str(Path(pbrdf_cl.__file__).resolve().parent.parent), PYTHONWARNINGS="ignore")
@@ -18,7 +20,7 @@ def test_bench_quick_reports_every_path(tmp_path):
                           capture_output=True, text=True, timeout=600, env=env, cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr
     report = json.loads(out.read_text())
-    assert "Portable Computing Language" in report["device"]
+    assert report["device"] == pbrdf_cl.get_default_engine().description
     paths = {(r["path"].split(" (")[0], r["dtype"]) for r in report["rows"]}
     for path in ("per-point kernel", "factorised grid", "pbrdf_cl.grid -> host DataArray", "objective, grid x 30 measurements"):
         assert (path, "float32") in paths and (path, "float64") in paths, path

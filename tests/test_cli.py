@@ -10,6 +10,7 @@ import pytest
 
 import pbrdf_cl
 from pbrdf_cl import cli
+from conftest import requires_opencl
 
 PACKAGE_ROOT = str(Path(pbrdf_cl.__file__).resolve().parent.parent)  # run the pbrdf_cl under test
 STEEL = ["--n", "1.6", "--k", "2.139", "--sigma", "0.5", "--ks", "0.9", "--kd", "0.15", "--c", "-0.3"]
@@ -21,15 +22,19 @@ def run_cli(*args):
                           timeout=300, env=dict(os.environ, PYTHONWARNINGS="ignore", PYTHONPATH=PACKAGE_ROOT))
 
 
-def test_devices_lists_pocl_with_fp64_and_marks_default():
+@requires_opencl
+def test_devices_lists_every_device_with_its_probe_and_marks_the_default():
     proc = run_cli("devices", "--json")
     assert proc.returncode == 0, proc.stderr
     rows = json.loads(proc.stdout)
-    pocl = [r for r in rows if "portable computing language" in r["platform"].lower()]
-    assert pocl and pocl[0]["fp64"] is True and pocl[0]["type"] == "CPU"
-    assert sum(r["default"] for r in rows) == 1 and pocl[0]["default"]
+    default = pbrdf_cl.get_default_engine()
+    assert sum(r["default"] for r in rows) == 1
+    (mark,) = [r for r in rows if r["default"]]
+    assert f"{mark['platform']} / {mark['device']}" == default.description and mark["usable"]
+    assert mark["fp64"] is default.fp64 and "check values" in mark["probe"]
+    assert all(r["simulator"] == ("Oclgrind" in r["platform"]) for r in rows)
     text = run_cli("devices").stdout
-    assert "Portable Computing Language" in text and "fp64=yes" in text and text.count("*") >= 2
+    assert default.description in text and "usable: " in text and text.count("*") >= 2
 
 
 def test_eval_json_matches_api():

@@ -1,9 +1,12 @@
-"""Dense grids, reductions and the objective against the float64 reference."""
+"""Dense grids, reductions and the objective against the float64 reference, on every usable
+OpenCL device present (the ``each_device`` fixture of conftest.py)."""
 import numpy as np
 import pytest
 
 import pbrdf_cl
 from pbrdf_cl import dense as G
+
+pytestmark = pytest.mark.usefixtures("each_device")
 
 FIXED = dict(theta_i=40.0, theta_r=30.0, phi=180.0, n=1.6, k=2.1, sigma=0.4, ks=0.9, kd=0.2, c=-0.3)
 RANGES = dict(theta_i=(0, 89), theta_r=(0, 89), phi=(0, 360), n=(0.5, 4), k=(0, 8), sigma=(0.05, 1),

@@ -1,10 +1,13 @@
-"""OpenCL kernels (PoCL) against the float64 reference on thousands of random valid inputs."""
+"""OpenCL kernels against the float64 reference on thousands of random valid inputs, on every
+usable OpenCL device present (the ``each_device`` fixture of conftest.py)."""
 import numpy as np
 import pytest
 
 import pbrdf_cl
 from pbrdf_cl import reference
 from conftest import call, edge_inputs, random_inputs
+
+pytestmark = pytest.mark.usefixtures("each_device")
 
 SHADOWINGS = ["paper", "smith", "none"]
 
@@ -107,16 +110,19 @@ def test_launches_larger_than_one_chunk(monkeypatch, rng):
         assert np.max(np.abs(got - call(pbrdf_cl.dop, few, backend="numpy"))) <= tol
 
 
-def test_explicit_engine_and_device_choice(monkeypatch):
-    e = pbrdf_cl.Engine("portable computing")
-    assert "portable computing language" in e.device.platform.name.lower()
+def test_explicit_engine_and_device_choice(monkeypatch, each_device):
+    dev = each_device.device
+    found = pbrdf_cl.list_devices()
+    ip, idev = next((p, i) for p, i, _, d in found if d.int_ptr == dev.int_ptr)
+    e = pbrdf_cl.Engine(f"{ip}:{idev}")
+    assert e.device.int_ptr == dev.int_ptr
     assert e.kernel("dop_points", "float32", "paper") is e.kernel("dop_points", "float32", "paper")
     d = pbrdf_cl.dop(40, 45, n=1.6, k=2.1, sigma=0.5, engine=e)
     assert d == pytest.approx(pbrdf_cl.dop(40, 45, n=1.6, k=2.1, sigma=0.5, backend="numpy"), abs=1e-12)
-    found = pbrdf_cl.list_devices()
-    ip, idev = next((p, i) for p, i, plat, _ in found if "portable" in plat.name.lower())
+    by_name = pbrdf_cl.Engine(dev.name.strip())  # a name substring picks the first device of that name
+    assert dev.name.strip() in by_name.device.name
     monkeypatch.setenv("PYOPENCL_CTX", f"{ip}:{idev}")
-    assert pbrdf_cl.select_device().int_ptr == e.device.int_ptr
+    assert pbrdf_cl.select_device().int_ptr == dev.int_ptr
     monkeypatch.setenv("PYOPENCL_CTX", "no-such-device-xyz")
     with pytest.raises(ValueError, match="PYOPENCL_CTX"):
         pbrdf_cl.select_device()

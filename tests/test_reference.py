@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from pbrdf_cl import reference as ref
-from conftest import call, random_inputs
+from conftest import call, random_inputs, requires_opencl
 import pbrdf_cl
 
 STEEL = dict(n=1.6, k=2.139, sigma=0.5, ks=0.9, kd=0.15, c=-0.3)
@@ -15,7 +15,7 @@ CHECK = [  # theta_i, theta_r, paper, smith, none (SPEC)
 ]
 
 
-@pytest.mark.parametrize("backend", ["numpy", "opencl"])
+@pytest.mark.parametrize("backend", ["numpy", pytest.param("opencl", marks=requires_opencl)])
 @pytest.mark.parametrize("dtype", ["float64", "float32"])
 def test_spec_check_values(backend, dtype):
     # SPEC rounds to 6 decimals (+-5e-7); float32 adds its own rounding (eps 6e-8, times ~10 steps)
@@ -137,7 +137,7 @@ def test_mueller_matches_independent_jones_construction(rng):
         np.testing.assert_allclose(M, J, atol=1e-12)
 
 
-@pytest.mark.parametrize("backend", ["numpy", "opencl"])
+@pytest.mark.parametrize("backend", ["numpy", pytest.param("opencl", marks=requires_opencl)])
 def test_physics_properties(rng, backend):
     inp = random_inputs(rng, 3000)
     kw = dict(backend=backend)
@@ -157,7 +157,7 @@ def test_physics_properties(rng, backend):
     np.testing.assert_allclose(dm, d[ok], rtol=0, atol=1e-12)
 
 
-@pytest.mark.parametrize("backend", ["numpy", "opencl"])
+@pytest.mark.parametrize("backend", ["numpy", pytest.param("opencl", marks=requires_opencl)])
 def test_specular_model_is_ref7_and_independent_of_sigma(rng, backend):
     inp = random_inputs(rng, 2000, in_plane=True)
     inp["kd"] = np.zeros_like(inp["kd"])

@@ -7,12 +7,13 @@ import numpy as np
 import pytest
 
 import pbrdf_cl
+from conftest import requires_opencl
 from pbrdf_cl import reference
 
 import pySCATMECH.brdf as scatmech  # a test extra: pip install '.[test]'
 
 
-@pytest.mark.parametrize("backend", ["numpy", "opencl"])
+@pytest.mark.parametrize("backend", ["numpy", pytest.param("opencl", marks=requires_opencl)])
 def test_specular_mueller_matches_scatmech(backend, dtype="float64", tol=1e-12):
     """float64, every element within 1e-12 of F00 (float32 is checked against the reference)."""
     rng = np.random.default_rng(7)
