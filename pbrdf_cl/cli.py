@@ -123,6 +123,10 @@ def cmd_devices(args) -> int:
         extra = "; a simulator, never the default" if r["simulator"] else ""
         when = "probe cached" if r["probe_cached"] else f"probe {r['probe_seconds']:.2f} s"
         print(f"        {state}: {r['probe']} ({when}{extra})")
+    if _engine.DRIVER_MESSAGES:
+        print("the drivers printed, while listed and probed:")
+        for line in _engine.DRIVER_MESSAGES[:20]:
+            print(f"        {line}")
     if default is not None:
         print("* = the default device (choose another with --device P:D or PYOPENCL_CTX=P:D)")
     elif args.device or os.environ.get("PYOPENCL_CTX"):

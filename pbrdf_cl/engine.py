@@ -188,17 +188,31 @@ def _platforms():
     return platforms
 
 
+#: What the drivers printed to stderr while they were listed and probed (kept, not shown;
+#: ``pbrdf-cl devices`` prints it): LLVM's complaints about an unknown CPU, for instance.
+DRIVER_MESSAGES = []
+
+
 def list_devices():
     """All OpenCL devices as a list of ``(platform_index, device_index, platform, device)``."""
     out = []
-    for ip, plat in enumerate(_platforms()):
-        try:
-            devices = plat.get_devices()
-        except cl.Error:
-            continue
-        for idev, dev in enumerate(devices):
-            out.append((ip, idev, plat, dev))
+    with _CapturedStderr() as captured:  # the first call initialises every driver
+        platforms = _platforms()
+        for ip, plat in enumerate(platforms):
+            try:
+                devices = plat.get_devices()
+            except cl.Error:
+                continue
+            for idev, dev in enumerate(devices):
+                out.append((ip, idev, plat, dev))
+    _keep_messages(captured.text)
     return out
+
+
+def _keep_messages(text):
+    for line in text.splitlines():
+        if line.strip() and line.strip() not in DRIVER_MESSAGES:
+            DRIVER_MESSAGES.append(line.strip())
 
 
 def _is_simulator(plat) -> bool:
@@ -309,6 +323,7 @@ def _disk_cache_write(key, result):
 def _run_probe(dev) -> ProbeResult:
     with _CapturedStderr() as captured:
         result = _run_probe_quietly(dev)
+    _keep_messages(captured.text)
     if not result.usable and captured.text.strip() and "error" not in result.reason.lower():
         result.reason += f" ({first_error_line(captured.text)})"
     return result
