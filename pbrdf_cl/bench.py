@@ -207,8 +207,14 @@ def bench_sweep(eng, device, rows, rng, scale, repeats, workers=2, backend="auto
                          memory_budget=spec.memory_budget, chunks=spec.n_chunks))
     try:
         measure("here", engine=eng)
-        if workers:
+        try:
             from distributed import Client, LocalCluster
+        except ImportError:
+            if workers:
+                print("note: the LocalCluster sweep row is skipped: dask.distributed is not installed "
+                      "(pip install 'pbrdf-cl[cluster]')")
+            workers = 0
+        if workers:
             with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None) as cl, \
                     Client(cl) as client:
                 measure(f"{workers}-worker LocalCluster", client=client, device=device, backend=backend)

@@ -34,3 +34,13 @@ def test_bench_quick_reports_every_path(tmp_path):
             assert r["max_abs_err"] <= (1e-12 if r["dtype"] == "float64" else 2e-5), r
     for line in ("per-point kernel", "factorised grid", "objective"):
         assert line in proc.stdout
+
+
+def test_bench_skips_the_cluster_row_without_dask_distributed(monkeypatch, capsys):
+    import numpy as np
+    from pbrdf_cl import bench
+    monkeypatch.setitem(sys.modules, "distributed", None)  # as after a plain `pip install .`
+    rows = []
+    bench.bench_sweep(pbrdf_cl.NumpyEngine(), None, rows, np.random.default_rng(0), 0.25, 1, workers=2)
+    assert [r["path"] for r in rows] == ["sweep -> Zarr store, here, numpy backend (end-to-end)"]
+    assert "dask.distributed is not installed" in capsys.readouterr().out
