@@ -15,44 +15,85 @@ MODELS = ("six-param", "specular")
 QUANTITIES = ("dop", "brdf", "mueller")
 
 
-def _as_array(name, value):
-    try:
-        a = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a number or an array of numbers, got {value!r}") from None
-    bad = ~np.isfinite(a)
-    if bad.any():
+def _as_array(name, value, finite=True):
+    """``value`` as a float array: float32 and float64 arrays as they are (no copy), anything else
+    converted to float64; with ``finite``, non-finite values are refused, naming the first."""
+    a = value if isinstance(value, np.ndarray) and value.dtype in (np.float32, np.float64) else None
+    if a is None:
+        try:
+            a = np.asarray(value, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise ValueError(f"{name} must be a number or an array of numbers, got {value!r}") from None
+    if finite and not _all_finite(a):
+        bad = ~np.isfinite(a)
         raise ValueError(f"{name} must be finite, got {float(a[bad].flat[0])!r}"
                          + (f" at index {np.argwhere(bad)[0].tolist()}" if a.ndim else ""))
     return a
 
 
+def _all_finite(a):
+    """Whether every value is finite: two reads (min, max: NaN propagates) and no temporary."""
+    return a.size == 0 or bool(np.isfinite(np.min(a)) and np.isfinite(np.max(a)))
+
+
+class _Range:
+    """A valid range of values: as a mask (``rule(a)``) and as bounds, checked by :meth:`holds`
+    from the array's minimum and maximum (no temporary the size of the array)."""
+
+    def __init__(self, lo=None, hi=None, lo_included=True, hi_included=False):
+        self.lo, self.hi, self.lo_included, self.hi_included = lo, hi, lo_included, hi_included
+
+    def __call__(self, a):
+        ok = np.ones(np.shape(a), bool)
+        if self.lo is not None:
+            ok &= (a >= self.lo) if self.lo_included else (a > self.lo)
+        if self.hi is not None:
+            ok &= (a <= self.hi) if self.hi_included else (a < self.hi)
+        return ok
+
+    def holds(self, a):
+        if a.size == 0:
+            return True
+        lo, hi = np.min(a), np.max(a)
+        return bool(self(lo) and self(hi))
+
+
 def _check(name, a, ok, rule):
+    if isinstance(ok, _Range) and ok.holds(a):
+        return
     bad = ~ok(a)
     if bad.any():
         where = f" at index {np.argwhere(bad)[0].tolist()}" if a.ndim else ""
         raise ValueError(f"{name} must be {rule}, got {float(a[bad].flat[0])!r}{where}")
 
 
-#: The valid range of each input, as (test, words).
+#: The valid range of each input, as (test, words); every input must also be finite.  The vector
+#: kernels of ``kernels/pbrdf_points.cl`` check the same (``PB_IN_DOMAIN``).
 RULES = {
-    "theta_i": (lambda a: (a >= 0) & (a < 90), "in [0, 90) degrees"),
-    "theta_r": (lambda a: (a >= 0) & (a < 90), "in [0, 90) degrees"),
-    "phi": (lambda a: np.ones(a.shape, bool), "finite"),
-    "n": (lambda a: a > 0, "> 0"),
-    "k": (lambda a: a >= 0, ">= 0"),
-    "sigma": (lambda a: a > 0, "> 0"),
-    "ks": (lambda a: a > 0, "> 0"),
-    "kd": (lambda a: a >= 0, ">= 0"),
-    "c": (lambda a: np.ones(a.shape, bool), "finite"),
+    "theta_i": (_Range(0.0, 90.0), "in [0, 90) degrees"),
+    "theta_r": (_Range(0.0, 90.0), "in [0, 90) degrees"),
+    "phi": (_Range(), "finite"),
+    "n": (_Range(0.0, lo_included=False), "> 0"),
+    "k": (_Range(0.0), ">= 0"),
+    "sigma": (_Range(0.0, lo_included=False), "> 0"),
+    "ks": (_Range(0.0, lo_included=False), "> 0"),
+    "kd": (_Range(0.0), ">= 0"),
+    "c": (_Range(), "finite"),
 }
 
 
 def check_values(name, value):
     """``value`` as a float64 array, or a ``ValueError`` naming ``name`` and the first bad value."""
-    a = _as_array(name, value)
+    a = _as_array(name, value).astype(np.float64, copy=False)
     _check(name, a, *RULES[name])
     return a
+
+
+def _check_domain(name, a):
+    """The checks of :func:`check_values` on an array of either float dtype."""
+    if not _all_finite(a):
+        _as_array(name, a)  # raises, naming the first non-finite value
+    _check(name, a, *RULES[name])
 
 
 def check_options(shadowing, dtype):
@@ -66,10 +107,13 @@ def check_options(shadowing, dtype):
 
 
 def validate(theta_i, theta_r, phi, n, k, sigma, ks, kd, c, *, shadowing="paper", dtype="float64",
-             backend="auto", model="six-param"):
-    """Check and broadcast the inputs; returns ``(arrays dict, shape, dtype name)``.
+             backend="auto", model="six-param", values=True):
+    """Check and broadcast the inputs; returns ``(arrays dict, shape, dtype name)``; the arrays keep
+    a float32 or float64 dtype (no copy), anything else becomes float64.
 
-    Raises ``ValueError`` naming the offending argument and value.
+    Raises ``ValueError`` naming the offending argument, value and index.  ``values=False`` checks
+    only the options, types and shapes (the vector kernels check the values themselves and the
+    caller checks again, to name the offender, only when they flag one).
     """
     dtype_name = check_options(shadowing, dtype)
     check_backend(backend)
@@ -77,8 +121,11 @@ def validate(theta_i, theta_r, phi, n, k, sigma, ks, kd, c, *, shadowing="paper"
         raise ValueError(f"model must be one of {MODELS}, got {model!r}")
     if sigma is None:
         raise ValueError("sigma is required (the per-axis slope standard deviation, > 0)")
-    values = dict(theta_i=theta_i, theta_r=theta_r, phi=phi, n=n, k=k, sigma=sigma, ks=ks, kd=kd, c=c)
-    arrays = {name: check_values(name, values[name]) for name in POINT_INPUTS}
+    given = dict(theta_i=theta_i, theta_r=theta_r, phi=phi, n=n, k=k, sigma=sigma, ks=ks, kd=kd, c=c)
+    arrays = {name: _as_array(name, given[name], finite=False) for name in POINT_INPUTS}
+    if values:
+        for name in POINT_INPUTS:
+            _check_domain(name, arrays[name])
     if model == "specular":
         _check("kd", arrays["kd"], lambda a: a == 0, "0 in the specular (ref. [7]) model")
     try:
@@ -91,15 +138,20 @@ def validate(theta_i, theta_r, phi, n, k, sigma, ks, kd, c, *, shadowing="paper"
 
 def _evaluate(quantity, theta_i, theta_r, phi, n, k, sigma, ks, kd, c, shadowing, dtype, backend,
               model, engine):
-    arrays, shape, dtype_name = validate(theta_i, theta_r, phi, n, k, sigma, ks, kd, c,
-                                         shadowing=shadowing, dtype=dtype, backend=backend, model=model)
+    check_backend(backend)
     eng = resolve_engine(engine, backend)
+    fused = eng.checks_domain(quantity)  # the kernel checks the values as it reads them
+    kw = dict(shadowing=shadowing, dtype=dtype, backend=backend, model=model)
+    args = (theta_i, theta_r, phi, n, k, sigma, ks, kd, c)
+    arrays, shape, dtype_name = validate(*args, **kw, values=not fused)
     if eng.is_numpy:  # the reference broadcasts by itself
         out = eng.evaluate(quantity, arrays, shape, dtype=dtype_name, shadowing=shadowing)
     else:
-        inputs = {name: (a if a.size == 1 else np.broadcast_to(a, shape)) for name, a in arrays.items()}
-        out = eng.evaluate(quantity, inputs, shape, dtype=dtype_name, shadowing=shadowing)
-    if not np.all(np.isfinite(out)):
+        inputs = {name: (a if a.size == 1 or a.shape == shape else np.broadcast_to(a, shape))
+                  for name, a in arrays.items()}
+        out = eng.evaluate(quantity, inputs, shape, dtype=dtype_name, shadowing=shadowing,
+                           on_bad=lambda: validate(*args, **kw))
+    if not _all_finite(out):
         raise FloatingPointError(
             f"{quantity} overflowed {dtype_name} (sigma too small for the specular peak's height?); "
             "use dtype='float64' or a larger sigma")

@@ -25,7 +25,7 @@ import time
 import numpy as np
 
 from . import api, reference
-from .engine import DTYPES, resolve_engine
+from .engine import DTYPES, aligned_empty, resolve_engine
 
 AXES = ("theta_i", "theta_r", "phi", "n", "k", "sigma", "ks", "kd", "c")
 PARAMETERS = AXES[3:]
@@ -309,7 +309,7 @@ def grid(axes, fixed=None, quantity="dop", dtype="float32", shadowing="paper", *
     dtype = api.check_options(shadowing, dtype)
     plan = GridPlan(axes, fixed)
     eng = resolve_engine(engine, backend)
-    out = np.empty(plan.size, dtype=DTYPES[dtype])
+    out = aligned_empty(plan.size, DTYPES[dtype])  # page-aligned: written in place by any CPU driver
     for _ in _grid_blocks(eng, plan, quantity, dtype, shadowing, memory_budget, progress, out=out):
         pass  # each block is copied straight into its slice of out
     attrs = dict(quantity=quantity, long_name=QUANTITIES[quantity], units="1" if quantity == "dop" else "1/sr",
@@ -361,14 +361,14 @@ def _grid_blocks(eng, plan, quantity, dtype, shadowing, memory_budget, progress=
         tables = _Tables(eng, dtype, shadowing, quantity, *_geometry_list(plan, g0, g1), plan.values)
         for start in range(g0 * per_g, g1 * per_g, chunk):
             count = min(chunk, g1 * per_g - start)
-            buf = eng.empty(count * itemsize)
+            host = out[start:start + count] if out is not None else np.empty(count, dtype=DTYPES[dtype])
+            buf, done = eng.output(host)  # on a CPU device the kernel writes into host itself
             if level:
                 eng.launch(kern, (count // row_len,), buf, idx_np(start // row_len), idx_np(count // row_len),
                            idx_np(g0), *tables.args())
             else:
                 eng.launch(kern, (count,), buf, idx_np(start), idx_np(count), idx_np(g0), *tables.args())
-            host = out[start:start + count] if out is not None else np.empty(count, dtype=DTYPES[dtype])
-            eng.read(buf, host)
+            done()
             if bar is not None:
                 bar.update(count)
             yield start, host
@@ -642,14 +642,16 @@ def _device_objective_blocks(eng, plan, meas, dtype, shadowing, room, out):
     bobs, bw = eng.to_device(obs, dtype), eng.to_device(w, dtype)
     for start in range(0, P, chunk):
         count = min(chunk, P - start)
-        buf = eng.empty(count * itemsize)
+        host = out[start:start + count] if out is not None else np.empty(count, npdt)
+        buf, done = eng.output(host)
         if level:
             eng.launch(prog["objective_rows"], (count // row_len,), buf, idx_np(start // row_len),
                        idx_np(count // row_len), *tables.args(), bobs, bw, np.int32(M))
         else:
             eng.launch(prog["objective_grid"], (count,), buf, idx_np(start), idx_np(count), *tables.args(),
                        bobs, bw, np.int32(M))
-        yield start, eng.read(buf, out[start:start + count] if out is not None else np.empty(count, npdt))
+        done()
+        yield start, host
 
 
 def _objective_points(eng, points, meas, k_best, dtype, shadowing, return_sse, t0, memory_budget):

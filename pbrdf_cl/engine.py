@@ -63,6 +63,9 @@ VECTOR_WIDTH = {"float32": 16, "float64": 8}
 VECTOR_LOCAL_SIZE = 8
 #: Points per kernel launch; bounds the temporary device memory of one call.
 LAUNCH_POINTS = 1 << 22
+#: Points per launch when inputs must be converted or gathered first (another dtype, a broadcast
+#: view): bounds the host memory of the converted copies (9 inputs x 2^19 x 8 bytes = 38 MB).
+CONVERT_POINTS = 1 << 19
 FAKE_FAILURE_ENV = "PBRDF_CL_FAKE_BUILD_FAILURE"
 
 _HOW_TO_GET_ONE = "remedies: " + drivers.REMEDIES
@@ -518,6 +521,9 @@ class NumpyEngine:
     def description(self):
         return "numpy backend (float64 reference)"
 
+    def checks_domain(self, quantity):
+        return False
+
     def evaluate(self, quantity, inputs, shape, dtype="float64", shadowing="paper"):
         """As :meth:`Engine.evaluate`, with the reference."""
         extra = (4, 4) if quantity == "mueller" else ()
@@ -618,41 +624,139 @@ class Engine:
         cl.enqueue_copy(self.queue, out, buf)
         return out
 
-    def evaluate(self, quantity: str, inputs: dict, shape, dtype="float64", shadowing="paper"):
+    def checks_domain(self, quantity):
+        """Whether :meth:`evaluate`'s kernel for ``quantity`` checks the inputs' domain itself (the
+        vector kernels of DOP and F00), so that the caller need not read them beforehand."""
+        return quantity in ("dop", "brdf") and self.vectorise
+
+    def evaluate(self, quantity: str, inputs: dict, shape, dtype="float64", shadowing="paper", on_bad=None):
         """Evaluate ``quantity`` ("dop", "brdf", "mueller") element-wise.
 
-        ``inputs`` maps each name of :data:`POINT_INPUTS` to an array that is either of
-        ``shape`` (already broadcast) or of size 1.  Angles in degrees.  Returns an array of
-        ``shape`` (``shape + (4, 4)`` for "mueller") in ``dtype``.  No validation here.
+        ``inputs`` maps each name of :data:`POINT_INPUTS` to an array of ``shape`` (any float
+        dtype, any strides: a broadcast view is read launch by launch, never expanded whole) or of
+        size 1.  Angles in degrees.  Returns an array of ``shape`` (``shape + (4, 4)`` for
+        "mueller") in ``dtype``.  On a CPU device the kernels read contiguous inputs of ``dtype``
+        in place and write straight into the returned array (host-pointer buffers); other inputs
+        are converted one launch at a time, so memory beyond the inputs and the result stays
+        within a launch's worth.  Where :meth:`checks_domain`, a kernel flags inputs outside the
+        model's domain and ``on_bad()`` is called (to raise, naming the offender); no other
+        validation here.
         """
-        npdt = DTYPES[dtype]
-        vec = quantity in ("dop", "brdf") and self.vectorise
+        npdt = np.dtype(DTYPES[dtype])
+        vec = self.checks_domain(quantity)
         lanes = VECTOR_WIDTH[dtype] if vec else 1
         kern = self.kernel(f"{quantity}_points" + ("_vec" if vec else ""), dtype, shadowing)
         size = int(np.prod(shape, dtype=np.int64))
         width = 16 if quantity == "mueller" else 1
-        out = np.empty(size * width, dtype=npdt)
+        out = aligned_empty(size * width, npdt)  # page-aligned: every driver writes it in place
         if size == 0:
             return out.reshape(tuple(shape) + ((4, 4) if width == 16 else ()))
-        flat = {name: np.ascontiguousarray(inputs[name], dtype=npdt).reshape(-1) for name in POINT_INPUTS}
-        step = LAUNCH_POINTS // lanes * lanes
+        host = self.host_memory
+        flat = {}
+        for name in POINT_INPUTS:
+            a = inputs[name]
+            flat[name] = np.asarray(a, npdt).reshape(1) if a.size == 1 else (a.reshape(-1) if a.flags.c_contiguous else a)
+        bad = np.zeros(1, np.int32)
+        bad_buf = cl.Buffer(self.context, cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR, hostbuf=bad)
+        # inputs the device cannot read in place are converted launch by launch: smaller launches
+        staged = [n for n, a in flat.items() if a.size != 1 and not self.can_use_in_place(a, npdt)]
+        step = (CONVERT_POINTS if staged else LAUNCH_POINTS) // lanes * lanes
+        # page-aligned staging arrays, reused by every launch (each completes before the next is filled)
+        stage = {n: aligned_empty(min(step, size) + lanes, npdt) for n in staged}
+
+        def parts_of(s0, s1, padded):  # the inputs of points s0..s1, padded to ``padded`` points
+            parts = {}
+            for n, a in flat.items():
+                if a.size == 1:
+                    parts[n] = a
+                    continue
+                if n in stage:
+                    dst = stage[n][:padded]
+                    _gather(dst, a, s0, s1)
+                else:
+                    if padded == s1 - s0:
+                        parts[n] = a[s0:s1]
+                        continue
+                    dst = np.empty(padded, npdt)
+                    dst[:s1 - s0] = a[s0:s1]
+                dst[s1 - s0:] = dst[s1 - s0 - 1]  # padding: copies of the last point
+                parts[n] = dst
+            return parts
         for start in range(0, size, step):
             count = min(step, size - start)
-            padded = -(-count // lanes) * lanes  # the vector kernels take whole vectors
-            out_buf = self.empty(padded * width * out.itemsize)
-            args = [out_buf, np.int32(padded // lanes)]
-            for name in POINT_INPUTS:
-                a = flat[name]
-                part = a if a.size == 1 else a[start:start + count]
-                if a.size != 1 and padded != count:  # a full input, even when this chunk holds one point
-                    part = np.concatenate([part, np.repeat(part[-1:], padded - count)])
-                args += [self.to_device(part, npdt), np.int32(0 if a.size == 1 else 1)]
-            # a small work-group: PoCL keeps every work-item's private state of a group on one
-            # thread's stack, and the vector kernels' state overflows it in large groups
-            self.launch(kern, (padded // lanes,), *args, local_size=(VECTOR_LOCAL_SIZE,) if vec else None)
-            self.read(out_buf, out[start * width:(start + count) * width])
-        self.queue.finish()
+            whole = count // lanes * lanes
+            if whole:
+                self._launch_points(kern, parts_of(start, start + whole, whole), whole,
+                                    out[start * width:(start + whole) * width], npdt, lanes, vec, bad_buf, host)
+            if whole < count:  # the last few points, padded to a whole vector
+                tail = count - whole
+                padded = lanes if vec else tail
+                tmp = np.empty(padded * width, npdt)
+                self._launch_points(kern, parts_of(start + whole, start + count, padded), padded, tmp, npdt, lanes,
+                                    vec, bad_buf, host)
+                out[(start + whole) * width:(start + count) * width] = tmp[:tail * width]
+        if vec:
+            cl.enqueue_copy(self.queue, bad, bad_buf)
+            if bad[0] and on_bad is not None:
+                on_bad()  # raises, naming the offender (float32 rounding alone may flag a point)
         return out.reshape(tuple(shape) + ((4, 4) if width == 16 else ()))
+
+    def _input_buffer(self, a, npdt, host):
+        """A read-only buffer of the contiguous 1-d array ``a`` of ``npdt``: over ``a`` itself on a
+        CPU device, a device copy elsewhere."""
+        mf = cl.mem_flags
+        a = np.ascontiguousarray(a, npdt)  # as it is, where evaluate has staged it
+        return cl.Buffer(self.context, mf.READ_ONLY | (mf.USE_HOST_PTR if host else mf.COPY_HOST_PTR), hostbuf=a)
+
+    @property
+    def host_memory(self):
+        """Whether the device works in host memory (a CPU device): buffers over numpy arrays are
+        read and written in place."""
+        return bool(self.device.type & cl.device_type.CPU)
+
+    @property
+    def zero_copy_alignment(self):
+        """Bytes a host array's address must be a multiple of for the device to use it in place:
+        PoCL takes any address; Intel's CPU runtime (and, by assumption, any other driver) copies
+        unless it is page-aligned."""
+        return 1 if _is_pocl(self.device.platform) else 4096
+
+    def can_use_in_place(self, a, npdt):
+        """Whether the device reads the array ``a`` in place (buffer over its memory) as ``npdt``."""
+        return (self.host_memory and a.ndim == 1 and a.dtype == npdt and a.flags.c_contiguous
+                and a.ctypes.data % self.zero_copy_alignment == 0)
+
+    def output(self, view):
+        """A device buffer whose values end up in the contiguous host array ``view``: on a CPU
+        device a buffer over ``view`` itself (the kernel writes there), elsewhere a device
+        buffer copied into it.  Returns ``(buffer, done)``; call ``done()`` after the launch:
+        it blocks until the values are in ``view``."""
+        mf = cl.mem_flags
+        if self.host_memory:
+            buf = cl.Buffer(self.context, mf.WRITE_ONLY | mf.USE_HOST_PTR, hostbuf=view)
+
+            def done():  # mapping makes the kernel's writes visible to the host (a no-op on PoCL)
+                mapped, _ = cl.enqueue_map_buffer(self.queue, buf, cl.map_flags.READ, 0, view.shape, view.dtype)
+                mapped.base.release(self.queue)
+                self.queue.finish()
+            return buf, done
+        buf = self.empty(view.nbytes)
+        return buf, lambda: self.read(buf, view)
+
+    def _launch_points(self, kern, parts, n, out, npdt, lanes, vec, bad_buf, host):
+        """One launch of a per-point kernel over ``n`` points (``parts``: name -> n values or one),
+        its result in ``out`` (contiguous, n * width values) when this returns."""
+        out_buf, done = self.output(out)
+        args = [out_buf, np.int32(n // lanes)]
+        for name in POINT_INPUTS:
+            p = parts[name]
+            args += [self._input_buffer(p, npdt, host), np.int32(0 if p.size == 1 else 1)]
+        if vec:
+            args.append(bad_buf)
+        # a small work-group: PoCL keeps every work-item's private state of a group on one
+        # thread's stack, and the vector kernels' state overflows it in large groups
+        self.launch(kern, (n // lanes,), *args, local_size=(VECTOR_LOCAL_SIZE,) if vec else None)
+        done()
 
     @property
     def last_event_seconds(self):
@@ -661,6 +765,48 @@ class Engine:
             return None
         ev = self._last_event
         return (ev.profile.end - ev.profile.start) * 1e-9
+
+
+def aligned_empty(n, dtype, align=4096):
+    """``np.empty(n, dtype)`` whose data starts at a multiple of ``align`` bytes."""
+    dtype = np.dtype(dtype)
+    raw = np.empty(n * dtype.itemsize + align, np.uint8)
+    skip = -raw.ctypes.data % align
+    return raw[skip:skip + n * dtype.itemsize].view(dtype)
+
+
+def _gather(dst, a, start, stop):
+    """Copy points start..stop of the array ``a`` (in C order, any strides: a broadcast view too)
+    into the 1-d ``dst``, converting the dtype, without a temporary: the range is split into
+    boxes of ``a``, each copied by ``np.copyto``."""
+    for offset, box in _flat_boxes(a.shape, start, stop):
+        view = a[box]
+        np.copyto(dst[offset:offset + view.size].reshape(view.shape), view, casting="unsafe")
+
+
+def _flat_boxes(shape, start, stop, lead=(), offset=0):
+    """The flat range start..stop of an array of ``shape`` (C order) as boxes: yields
+    ``(offset into the range, tuple of slices)``, at most 2 * len(shape) of them."""
+    if start >= stop:
+        return
+    if not shape:
+        yield offset, lead
+        return
+    inner = int(np.prod(shape[1:], dtype=np.int64))
+    i0, r0 = divmod(start, inner)
+    i1, r1 = divmod(stop, inner)
+    if i0 == i1:
+        yield from _flat_boxes(shape[1:], r0, r1, lead + (slice(i0, i0 + 1),), offset)
+        return
+    if r0:
+        yield from _flat_boxes(shape[1:], r0, inner, lead + (slice(i0, i0 + 1),), offset)
+        offset += inner - r0
+        i0 += 1
+    if i1 > i0:
+        yield offset, lead + (slice(i0, i1),) + tuple(slice(0, n) for n in shape[1:])
+        offset += (i1 - i0) * inner
+    if r1:
+        yield from _flat_boxes(shape[1:], 0, r1, lead + (slice(i1, i1 + 1),), offset)
 
 
 _default_engine = None

@@ -1,0 +1,93 @@
+"""The host path of the per-point API on every usable OpenCL device: inputs read in place (no
+conversion of float32 inputs, no expansion of a broadcast axis), the result written straight into
+the returned array, memory bounded by the output plus a launch's worth, the values checked by the
+kernel itself and the offender still named exactly."""
+import tracemalloc
+
+import numpy as np
+import pytest
+
+import pbrdf_cl
+from pbrdf_cl import engine as E
+from conftest import PARAMS, call, random_inputs
+
+pytestmark = pytest.mark.usefixtures("each_device")
+
+
+def test_flat_ranges_of_any_array_are_gathered_without_temporaries():
+    rng = np.random.default_rng(0)
+    for shape in [(7,), (3, 4), (2, 3, 5), (1, 6, 1, 4), (5, 1, 3)]:
+        for a in (rng.random(shape), np.broadcast_to(rng.random(shape[-1:]), shape), rng.random(shape[::-1]).T):
+            flat = np.ascontiguousarray(a).reshape(-1)
+            for s in range(flat.size):
+                for e in range(s, flat.size + 1):
+                    d = np.empty(e - s, np.float32)
+                    E._gather(d, a, s, e)
+                    np.testing.assert_array_equal(d, flat[s:e].astype(np.float32))
+                    assert len(list(E._flat_boxes(a.shape, s, e))) <= 2 * len(shape)
+
+
+@pytest.mark.parametrize("src,dtype", [("float32", "float32"), ("float64", "float32"), ("float32", "float64"),
+                                       ("float64", "float64")])
+def test_any_input_dtype_and_layout_gives_the_reference(rng, monkeypatch, src, dtype):
+    monkeypatch.setattr(E, "LAUNCH_POINTS", 4096)  # several launches, and a padded tail
+    monkeypatch.setattr(E, "CONVERT_POINTS", 1024)
+    inp = {k: v.astype(src) for k, v in random_inputs(rng, 9000).items()}
+    want = call(pbrdf_cl.dop, inp, backend="numpy")
+    tol = 2e-5 if dtype == "float32" or src == "float32" else 1e-12
+    if src == "float32":  # the reference at the float32 inputs
+        want = call(pbrdf_cl.dop, {k: v.astype(np.float64) for k, v in inp.items()}, backend="numpy")
+    got = call(pbrdf_cl.dop, inp, dtype=dtype)
+    assert got.dtype == np.dtype(dtype) and np.max(np.abs(got - want)) <= tol
+    # strided (every other point) and broadcast (an axis against another) inputs
+    half = {k: v[::2] for k, v in inp.items()}
+    np.testing.assert_allclose(call(pbrdf_cl.dop, half, dtype=dtype), got[::2], rtol=0, atol=tol)
+    th = np.linspace(0, 89, 61).astype(src)
+    sg = np.linspace(0.05, 1, 37).astype(src)
+    grid = pbrdf_cl.dop(40, th[:, None], n=1.6, k=2.1, sigma=sg[None, :], kd=0.2, dtype=dtype)
+    ref = pbrdf_cl.dop(40, th.astype(float)[:, None], n=1.6, k=2.1, sigma=sg.astype(float)[None, :], kd=0.2,
+                       backend="numpy")
+    assert grid.shape == (61, 37) and np.max(np.abs(grid - ref)) <= tol
+
+
+def test_float32_inputs_are_read_in_place_and_memory_stays_near_the_output(rng):
+    size = 1 << 21
+    inp = {k: v.astype(np.float32) for k, v in random_inputs(rng, size).items()}
+    call(pbrdf_cl.dop, {k: v[:100] for k, v in inp.items()}, dtype="float32")  # kernels built
+    tracemalloc.start()
+    try:
+        out = call(pbrdf_cl.dop, inp, dtype="float32")
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert out.dtype == np.float32
+    assert peak <= out.nbytes + (1 << 20), peak  # the output, and less than 1 MiB besides (inputs: 9x its size)
+    # a broadcast axis is not expanded: memory is the output plus a launch's staging
+    th = np.linspace(0, 89, 2048)
+    sg = np.linspace(0.05, 1, 1024)
+    tracemalloc.start()
+    try:
+        out = pbrdf_cl.dop(40, th[:, None], n=1.6, k=2.1, sigma=sg[None, :], dtype="float32")
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    staging = len(E.POINT_INPUTS) * E.CONVERT_POINTS * 4
+    assert peak <= out.nbytes + staging + (1 << 20), (peak, out.nbytes, staging)
+
+
+@pytest.mark.parametrize("dtype", ["float32", "float64"])
+@pytest.mark.parametrize("func", [pbrdf_cl.dop, pbrdf_cl.brdf])
+def test_the_kernel_flags_bad_values_and_the_offender_is_named(rng, monkeypatch, func, dtype):
+    monkeypatch.setattr(E, "LAUNCH_POINTS", 2048)
+    base = {k: v.astype(np.float32) for k, v in random_inputs(rng, 5000).items()}
+    cases = [("theta_r", 4321, 90.0, r"theta_r must be in \[0, 90\) degrees, got 90\.0 at index \[4321\]"),
+             ("sigma", 4999, 0.0, r"sigma must be > 0, got 0\.0 at index \[4999\]"),
+             ("k", 17, -0.5, r"k must be >= 0, got -0\.5 at index \[17\]"),
+             ("phi", 2500, np.nan, r"phi must be finite, got nan at index \[2500\]"),
+             ("c", 3000, np.inf, r"c must be finite, got inf at index \[3000\]")]
+    for name, index, value, pattern in cases:
+        inp = {k: v.copy() for k, v in base.items()}
+        inp[name][index] = value
+        with pytest.raises(ValueError, match=pattern):
+            call(func, inp, dtype=dtype)
+    assert set(PARAMS) <= set(base)
