@@ -202,7 +202,7 @@ inline real pb_dop_combine(real sum, real diff, real fd2, real inv_K) PB_DOP_COM
 #endif
 #define pb_vload PB_CAT(vload, PB_VW)
 #define pb_vstore PB_CAT(vstore, PB_VW)
-#ifndef PB_VECTOR_REAL
+#if !defined(PB_VECTOR_REAL) && !defined(PB_HOST_C)  /* PB_HOST_C: compiled as C (the bench's C loop) */
 typedef PB_CAT(PB_SCALAR, PB_VW) realv;
 /* pb_dop_combine on PB_VW values at once (the same body). */
 inline realv pb_dop_combine_v(realv sum, realv diff, realv fd2, realv inv_K) PB_DOP_COMBINE_BODY(realv)

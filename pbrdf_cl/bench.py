@@ -4,15 +4,25 @@ run :func:`main`; it prints a table and writes the same rows as JSON.
 
 Rates are medians over ``--repeats`` runs.  "kernel" rows time the device work alone
 (queue finished, outputs left on the device, as in reductions and the objective);
-"end-to-end" rows include building tables and copying results to the host.
+"end-to-end" rows are what a user gets from the public API (validation, transfers, the numpy
+result; their peak extra memory is measured with tracemalloc).  Two limits are measured in the
+same run where a C compiler exists: "C loop" (``kernels/pbrdf_host.c``: pbrdf.h itself compiled
+by the host's C compiler, vectorised with OpenMP) and "memory roofline" (a loop moving the path's
+bytes, read its inputs and write its output, without arithmetic); each end-to-end row reports its
+fraction of both (``of_c_loop``, ``of_roofline``).
 """
 from __future__ import annotations
 
 import argparse
+import ctypes
 import json
 import os
 import platform
+import shutil
+import subprocess
+import tempfile
 import time
+import tracemalloc
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -21,6 +31,70 @@ from . import dense, engine as _engine, reference
 from .api import dop as api_dop
 
 INPUTS = _engine.POINT_INPUTS
+
+
+#: Flags of the C loop: vectorised, with pb_math.h's rounding (no reassociation) and infinities kept.
+HOST_CFLAGS = ["-O3", "-march=native", "-ffast-math", "-fno-associative-math", "-fno-finite-math-only",
+               "-fopenmp", "-shared", "-fPIC"]
+_HOST_LIBS = {}
+
+
+def host_library(dtype):
+    """``(library, command)`` of ``kernels/pbrdf_host.c`` compiled for ``dtype`` by the host's C
+    compiler (``$CC``, ``cc`` or ``gcc``), or ``(None, why not)``."""
+    if dtype in _HOST_LIBS:
+        return _HOST_LIBS[dtype]
+    cc = os.environ.get("CC") or shutil.which("cc") or shutil.which("gcc")
+    if not cc:
+        _HOST_LIBS[dtype] = (None, "no C compiler (cc, gcc or $CC) on PATH")
+        return _HOST_LIBS[dtype]
+    folder = tempfile.mkdtemp(prefix="pbrdf-bench-c-")
+    target = os.path.join(folder, f"pbrdf_host_{dtype}.so")
+    kdir = str(_engine.kernel_dir())
+    cmd = [cc, *HOST_CFLAGS, *(["-DPBRDF_DOUBLE"] if dtype == "float64" else []), "-I", kdir,
+           os.path.join(kdir, "pbrdf_host.c"), "-o", target, "-lm"]
+    try:
+        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+        if proc.returncode:
+            raise OSError(_engine.first_error_line(proc.stderr or proc.stdout))
+        lib = ctypes.CDLL(target)
+    except (OSError, subprocess.SubprocessError) as exc:
+        _HOST_LIBS[dtype] = (None, f"the C loop did not build ({exc})")
+    else:
+        lib.pb_host_dop.restype = None
+        lib.pb_host_stream.restype = None
+        _HOST_LIBS[dtype] = (lib, " ".join(cmd[:-3] + ["pbrdf_host.c"]))
+    return _HOST_LIBS[dtype]
+
+
+def _ptr(a):
+    return a.ctypes.data_as(ctypes.c_void_p)
+
+
+def c_loop_rate(lib, arrays, out, repeats):
+    """Points per second of the C loop over ``arrays`` (the 9 inputs) into ``out``."""
+    args = [ctypes.c_long(out.size)] + [_ptr(arrays[n]) for n in INPUTS] + [_ptr(out)]
+    lib.pb_host_dop(*args)
+    return median_rate(lambda: lib.pb_host_dop(*args), out.size, repeats)
+
+
+def stream_bandwidth(lib, inputs, out, repeats):
+    """Bytes per second of reading ``inputs`` (a list of arrays like ``out``) and writing ``out``."""
+    ptrs = (ctypes.c_void_p * max(1, len(inputs)))(*[a.ctypes.data for a in inputs])
+    args = (ctypes.c_long(out.size), ctypes.c_int(len(inputs)), ptrs, _ptr(out))
+    lib.pb_host_stream(*args)
+    nbytes = (len(inputs) + 1) * out.nbytes
+    return median_rate(lambda: lib.pb_host_stream(*args), nbytes, repeats)
+
+
+def peak_memory(func):
+    """Peak of the memory numpy and Python allocate while ``func()`` runs, in bytes."""
+    tracemalloc.start()
+    try:
+        func()
+        return tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
 
 
 def random_points(rng, size):
@@ -79,6 +153,46 @@ def bench_points(eng, rows, rng, size, repeats, sample):
                       **{n: pts[n][:sample] for n in INPUTS[3:]}, dtype=dtype, engine=eng)
         rows.append(dict(path="per-point kernel (kernel)", dtype=dtype, rate=rate, unit="evals/s", seconds=sec,
                          max_abs_err=float(np.max(np.abs(got - ref_sample))), n=size))
+    for dtype in ("float32", "float64"):  # what users get, with inputs of that dtype
+        arrays = {n: np.ascontiguousarray(pts[n], _engine.DTYPES[dtype]) for n in INPUTS}
+
+        def call():
+            return api_dop(arrays["theta_i"], arrays["theta_r"], arrays["phi"], **{n: arrays[n] for n in INPUTS[3:]},
+                           dtype=dtype, engine=eng)
+        got = call()
+        rate, sec = median_rate(call, size, repeats)
+        want = reference_dop({n: arrays[n][:sample].astype(np.float64) for n in INPUTS})  # at these inputs
+        row = dict(path=f"pbrdf_cl.dop, {dtype} inputs (end-to-end)", dtype=dtype, rate=rate, unit="evals/s",
+                   seconds=sec, max_abs_err=float(np.max(np.abs(got[:sample] - want))), n=size,
+                   peak_extra_mb=peak_memory(call) / 1e6, output_mb=got.nbytes / 1e6)
+        rows.append(row)
+        _limits(rows, row, dtype, arrays, got, repeats, per_point=True)
+
+
+def _limits(rows, row, dtype, arrays, out, repeats, per_point):
+    """Rows of the C loop and the memory roofline for ``row``'s path, and its fractions of them."""
+    lib, how = host_library(dtype)
+    if lib is None:
+        print(f"note: the C-loop and roofline rows are skipped: {how}")
+        return
+    inputs = [arrays[n] for n in INPUTS] if per_point else []
+    bw, _ = stream_bandwidth(lib, inputs, out, repeats)
+    c_rate = c_loop_rate(lib, arrays, np.empty(arrays["theta_i"].size, out.dtype), repeats)[0] if per_point else None
+    itemsize = out.dtype.itemsize
+    what = "read 9 inputs, write 1 output" if per_point else "write the output"
+    rows.append(dict(path=f"memory roofline ({what}; limit)", dtype=dtype, rate=bw, unit="bytes/s", seconds=0.0,
+                     max_abs_err=0.0, n=out.size, compiled=how))
+    row["of_roofline"] = row["rate"] * itemsize * (len(inputs) + 1) / bw
+    if per_point:
+        rows.append(dict(path="C loop, pbrdf.h compiled by the host's cc (limit)", dtype=dtype, rate=c_rate,
+                         unit="evals/s", seconds=0.0, max_abs_err=0.0, n=out.size, compiled=how))
+    if _LAST_C_RATE.get(dtype) is None and c_rate is not None:
+        _LAST_C_RATE[dtype] = c_rate
+    if _LAST_C_RATE.get(dtype):
+        row["of_c_loop"] = row["rate"] / _LAST_C_RATE[dtype]
+
+
+_LAST_C_RATE = {}
 
 
 GRID_AXES = dict(theta_i=np.linspace(10, 80, 16), theta_r=np.linspace(0, 85, 64), n=np.linspace(1, 3, 16),
@@ -131,8 +245,13 @@ def bench_grid(eng, rows, rng, scale, repeats):
         rows.append(dict(path="factorised grid (kernel)", dtype=dtype, rate=rate, unit="grid points/s", seconds=sec,
                          max_abs_err=err, n=plan.size))
         rate, sec = median_rate(lambda: dense.grid(axes, {}, dtype=dtype, engine=eng), plan.size, max(1, repeats - 2))
-        rows.append(dict(path="pbrdf_cl.grid -> host DataArray (end-to-end)", dtype=dtype, rate=rate,
-                         unit="grid points/s", seconds=sec, max_abs_err=err, n=plan.size))
+        row = dict(path="pbrdf_cl.grid -> host DataArray (end-to-end)", dtype=dtype, rate=rate,
+                   unit="grid points/s", seconds=sec, max_abs_err=err, n=plan.size,
+                   peak_extra_mb=peak_memory(lambda: dense.grid(axes, {}, dtype=dtype, engine=eng)) / 1e6,
+                   output_mb=da.values.nbytes / 1e6)
+        rows.append(row)
+        _limits(rows, row, dtype, None, da.values.reshape(-1), max(1, repeats - 2), per_point=False)
+        del da
 
 
 def bench_objective(eng, rows, rng, scale, repeats):
@@ -246,6 +365,7 @@ def main(argv=None):
         scale = min(scale, 0.25)  # the per-point reference is ~100x slower than a device: smaller grids
     rng = np.random.default_rng(2020)
     rows = []
+    _LAST_C_RATE.clear()
     t0 = time.perf_counter()
     bench_points(eng, rows, rng, size, repeats, min(size, 1 << 18))
     bench_grid(eng, rows, rng, scale, repeats)
@@ -254,9 +374,14 @@ def main(argv=None):
                 backend=args.backend)
     device = eng.description
     print(f"device: {device}; host: {platform.processor() or platform.machine()}, {os.cpu_count()} cpus")
-    print(f"{'path':58s} {'dtype':8s} {'rate':>12s} {'unit':14s} {'max |err|':>10s}")
+    print(f"{'path':58s} {'dtype':8s} {'rate':>12s} {'unit':14s} {'max |err|':>10s}  of C loop / roofline, peak")
     for r in rows:
-        print(f"{r['path']:58s} {r['dtype']:8s} {r['rate'] / 1e6:10.1f} M {r['unit']:14s} {r['max_abs_err']:10.2e}")
+        extra = ""
+        if "of_c_loop" in r or "of_roofline" in r:
+            extra += f"  {r.get('of_c_loop', float('nan')):.2f} / {r.get('of_roofline', float('nan')):.2f}"
+        if "peak_extra_mb" in r:
+            extra += f", peak +{r['peak_extra_mb']:.0f} MB (output {r['output_mb']:.0f} MB)"
+        print(f"{r['path']:58s} {r['dtype']:8s} {r['rate'] / 1e6:10.1f} M {r['unit']:14s} {r['max_abs_err']:10.2e}{extra}")
     report = dict(device=device, cpus=os.cpu_count(), pyopencl=_engine.cl.VERSION_TEXT, seconds=time.perf_counter() - t0,
                   rows=rows)
     with open(args.json, "w") as fh:

@@ -2,9 +2,12 @@
 measured by running the script, never asserted in tests."""
 import json
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
+
+import pytest
 
 import pbrdf_cl
 from conftest import requires_opencl
@@ -34,6 +37,31 @@ def test_bench_quick_reports_every_path(tmp_path):
             assert r["max_abs_err"] <= (1e-12 if r["dtype"] == "float64" else 2e-5), r
     for line in ("per-point kernel", "factorised grid", "objective"):
         assert line in proc.stdout
+    # end-to-end rows beside the kernel rows, with their peak memory and, with a C compiler, their
+    # fractions of the C loop (pbrdf.h compiled as C) and of the memory roofline, both measured
+    rows = {(r["path"], r["dtype"]): r for r in report["rows"]}
+    for dtype in ("float32", "float64"):
+        e2e = rows[(f"pbrdf_cl.dop, {dtype} inputs (end-to-end)", dtype)]
+        assert e2e["peak_extra_mb"] <= 2 * e2e["output_mb"] + 64
+        grid = rows[("pbrdf_cl.grid -> host DataArray (end-to-end)", dtype)]
+        assert grid["peak_extra_mb"] <= 2 * grid["output_mb"] + 64
+        if shutil.which("cc") or shutil.which("gcc"):
+            c = rows[("C loop, pbrdf.h compiled by the host's cc (limit)", dtype)]
+            assert c["rate"] > 0 and "pbrdf_host.c" in c["compiled"]
+            assert 0 < e2e["of_c_loop"] and 0 < e2e["of_roofline"] and 0 < grid["of_roofline"]
+            assert e2e["of_c_loop"] == pytest.approx(e2e["rate"] / c["rate"])
+
+
+@pytest.mark.parametrize("args", [["--help"], ["--quick", "--json", "out.json", "--sweep-workers", "0"]])
+def test_cli_bench_takes_the_documented_options(tmp_path, args):
+    env = dict(os.environ, PYTHONPATH=str(Path(pbrdf_cl.__file__).resolve().parent.parent), PYTHONWARNINGS="ignore")
+    proc = subprocess.run([sys.executable, "-m", "pbrdf_cl", "bench", *args], capture_output=True, text=True,
+                          timeout=600, env=env, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    if args == ["--help"]:
+        assert "--quick" in proc.stdout and "--backend" in proc.stdout
+    else:
+        assert json.loads((tmp_path / "out.json").read_text())["rows"]
 
 
 def test_bench_skips_the_cluster_row_without_dask_distributed(monkeypatch, capsys):
