@@ -95,18 +95,19 @@ inline real pb_in(__global const PB_SCALAR *x, const int s, const int i)
 }
 #define PB_IN(x, s) pb_in(x, s, i)
 
-/* bad: one int, or-ed with 1 when any point is outside the model's domain (the host then finds
- * and names the offender), so the host reads no input before the launch. */
-#define PB_VEC_ARGS const int nvec, PB_INPUT_ARGS(PB_SCALAR), __global int *bad
+#define PB_VEC_ARGS const int nvec, PB_INPUT_ARGS(PB_SCALAR)
 
 /* The domain of the inputs, as pbrdf_cl.api.RULES states it: theta_i, theta_r in [0, 90); n, sigma,
- * ks > 0; k, kd >= 0; everything finite (NaN fails every comparison). */
+ * ks > 0; k, kd >= 0; everything finite (NaN fails every comparison).  A point outside it gets NaN,
+ * which the host's check of the result finds; only then does it look for (and name) the offender,
+ * so it reads no input before the launch. */
 #define PB_INF ((real)INFINITY)
-#define PB_IN_DOMAIN(v_ti, v_tr, v_ph, v_n, v_k, v_sg, v_ks, v_kd, v_c)                      \
-    ((v_ti >= (real)0) & (v_ti < (real)90) & (v_tr >= (real)0) & (v_tr < (real)90) &          \
-     (fabs(v_ph) < PB_INF) & (v_n > (real)0) & (v_n < PB_INF) & (v_k >= (real)0) &            \
-     (v_k < PB_INF) & (v_sg > (real)0) & (v_sg < PB_INF) & (v_ks > (real)0) & (v_ks < PB_INF) & \
-     (v_kd >= (real)0) & (v_kd < PB_INF) & (fabs(v_c) < PB_INF))
+#define PB_FINITE(x) (((x) > -PB_INF) & ((x) < PB_INF))
+#define PB_IN_DOMAIN                                                                              \
+    ((v_ti >= (real)0) & (v_ti < (real)90) & (v_tr >= (real)0) & (v_tr < (real)90) & PB_FINITE(v_ph) & \
+     (v_n > (real)0) & (v_n < PB_INF) & (v_k >= (real)0) & (v_k < PB_INF) & (sigma > (real)0) &     \
+     (sigma < PB_INF) & (v_ks > (real)0) & (v_ks < PB_INF) & (v_kd >= (real)0) & (v_kd < PB_INF) &   \
+     PB_FINITE(v_c))
 
 #define PB_VEC_BODY                                                          \
     const int i = get_global_id(0);                                          \
@@ -114,8 +115,6 @@ inline real pb_in(__global const PB_SCALAR *x, const int s, const int i)
     const real v_ti = PB_IN(ti, s_ti), v_tr = PB_IN(tr, s_tr), v_ph = PB_IN(ph, s_ph); \
     const real v_n = PB_IN(nn, s_n), v_k = PB_IN(kk, s_k), sigma = PB_IN(sg, s_sg);   \
     const real v_ks = PB_IN(ks, s_ks), v_kd = PB_IN(kd, s_kd), v_c = PB_IN(cc, s_c);  \
-    if (!all(PB_IN_DOMAIN(v_ti, v_tr, v_ph, v_n, v_k, sigma, v_ks, v_kd, v_c)))         \
-        atomic_or(bad, 1);                                                   \
     pb_geom g = pb_geometry(v_ti, v_tr, v_ph);                               \
     pb_fresnel_t f = pb_fresnel(v_n, v_k, g.cb, g.sb);                       \
     const real G = pb_shadowing_factor(g, sigma, PBRDF_SHADOWING);           \
@@ -126,13 +125,13 @@ inline real pb_in(__global const PB_SCALAR *x, const int s, const int i)
 __kernel void dop_points_vec(__global PB_SCALAR *out, PB_VEC_ARGS)
 {
     PB_VEC_BODY
-    pb_vstoren(pb_dop(f, logK, fd), i, out);
+    pb_vstoren(PB_IN_DOMAIN ? pb_dop(f, logK, fd) : (real)NAN, i, out);
 }
 
 __kernel void brdf_points_vec(__global PB_SCALAR *out, PB_VEC_ARGS)
 {
     PB_VEC_BODY
-    pb_vstoren(pb_brdf(f, logK, fd), i, out);
+    pb_vstoren(PB_IN_DOMAIN ? pb_brdf(f, logK, fd) : (real)NAN, i, out);
 }
 
 #endif  /* PB_VECTOR_REAL */

@@ -112,8 +112,9 @@ def validate(theta_i, theta_r, phi, n, k, sigma, ks, kd, c, *, shadowing="paper"
     a float32 or float64 dtype (no copy), anything else becomes float64.
 
     Raises ``ValueError`` naming the offending argument, value and index.  ``values=False`` checks
-    only the options, types and shapes (the vector kernels check the values themselves and the
-    caller checks again, to name the offender, only when they flag one).
+    only the options, types and shapes (the vector kernels check the values themselves, writing NaN
+    for a point outside the domain, and the caller checks again, to name the offender, only when
+    the result holds a NaN).
     """
     dtype_name = check_options(shadowing, dtype)
     check_backend(backend)
@@ -140,7 +141,7 @@ def _evaluate(quantity, theta_i, theta_r, phi, n, k, sigma, ks, kd, c, shadowing
               model, engine):
     check_backend(backend)
     eng = resolve_engine(engine, backend)
-    fused = eng.checks_domain(quantity)  # the kernel checks the values as it reads them
+    fused = eng.checks_domain(quantity)  # the kernel checks the values as it reads them (NaN)
     kw = dict(shadowing=shadowing, dtype=dtype, backend=backend, model=model)
     args = (theta_i, theta_r, phi, n, k, sigma, ks, kd, c)
     arrays, shape, dtype_name = validate(*args, **kw, values=not fused)
@@ -149,12 +150,14 @@ def _evaluate(quantity, theta_i, theta_r, phi, n, k, sigma, ks, kd, c, shadowing
     else:
         inputs = {name: (a if a.size == 1 or a.shape == shape else np.broadcast_to(a, shape))
                   for name, a in arrays.items()}
-        out = eng.evaluate(quantity, inputs, shape, dtype=dtype_name, shadowing=shadowing,
-                           on_bad=lambda: validate(*args, **kw))
+        out = eng.evaluate(quantity, inputs, shape, dtype=dtype_name, shadowing=shadowing)
     if not _all_finite(out):
+        if fused:  # the kernel marks points outside the domain with NaN: name the first
+            validate(*args, **kw)
         raise FloatingPointError(
-            f"{quantity} overflowed {dtype_name} (sigma too small for the specular peak's height?); "
-            "use dtype='float64' or a larger sigma")
+            f"{quantity} is not finite in {dtype_name} (sigma too small for the specular peak's height, or "
+            f"an input at the domain's edge that rounds outside it in {dtype_name}?); use dtype='float64' or "
+            "a larger sigma")
     return out
 
 

@@ -142,7 +142,6 @@ def bench_points(eng, rows, rng, size, repeats, sample):
         args = [out, np.int32(size // lanes)]
         for b in bufs:
             args += [b, np.int32(1)]
-        args.append(eng.to_device(np.zeros(1, np.int32), np.int32))  # the out-of-domain flag
 
         def run():
             eng.launch(kern, (size // lanes,), *args, local_size=(_engine.VECTOR_LOCAL_SIZE,))

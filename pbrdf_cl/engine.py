@@ -626,10 +626,11 @@ class Engine:
 
     def checks_domain(self, quantity):
         """Whether :meth:`evaluate`'s kernel for ``quantity`` checks the inputs' domain itself (the
-        vector kernels of DOP and F00), so that the caller need not read them beforehand."""
+        vector kernels of DOP and F00 write NaN for a point outside it), so that the caller need
+        not read the inputs beforehand, only check the result."""
         return quantity in ("dop", "brdf") and self.vectorise
 
-    def evaluate(self, quantity: str, inputs: dict, shape, dtype="float64", shadowing="paper", on_bad=None):
+    def evaluate(self, quantity: str, inputs: dict, shape, dtype="float64", shadowing="paper"):
         """Evaluate ``quantity`` ("dop", "brdf", "mueller") element-wise.
 
         ``inputs`` maps each name of :data:`POINT_INPUTS` to an array of ``shape`` (any float
@@ -638,9 +639,8 @@ class Engine:
         "mueller") in ``dtype``.  On a CPU device the kernels read contiguous inputs of ``dtype``
         in place and write straight into the returned array (host-pointer buffers); other inputs
         are converted one launch at a time, so memory beyond the inputs and the result stays
-        within a launch's worth.  Where :meth:`checks_domain`, a kernel flags inputs outside the
-        model's domain and ``on_bad()`` is called (to raise, naming the offender); no other
-        validation here.
+        within a launch's worth.  Where :meth:`checks_domain`, a point outside the model's domain
+        gets NaN; no other validation here.
         """
         npdt = np.dtype(DTYPES[dtype])
         vec = self.checks_domain(quantity)
@@ -656,8 +656,6 @@ class Engine:
         for name in POINT_INPUTS:
             a = inputs[name]
             flat[name] = np.asarray(a, npdt).reshape(1) if a.size == 1 else (a.reshape(-1) if a.flags.c_contiguous else a)
-        bad = np.zeros(1, np.int32)
-        bad_buf = cl.Buffer(self.context, cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR, hostbuf=bad)
         # inputs the device cannot read in place are converted launch by launch: smaller launches
         staged = [n for n, a in flat.items() if a.size != 1 and not self.can_use_in_place(a, npdt)]
         step = (CONVERT_POINTS if staged else LAUNCH_POINTS) // lanes * lanes
@@ -687,18 +685,14 @@ class Engine:
             whole = count // lanes * lanes
             if whole:
                 self._launch_points(kern, parts_of(start, start + whole, whole), whole,
-                                    out[start * width:(start + whole) * width], npdt, lanes, vec, bad_buf, host)
+                                    out[start * width:(start + whole) * width], npdt, lanes, vec, host)
             if whole < count:  # the last few points, padded to a whole vector
                 tail = count - whole
                 padded = lanes if vec else tail
                 tmp = np.empty(padded * width, npdt)
                 self._launch_points(kern, parts_of(start + whole, start + count, padded), padded, tmp, npdt, lanes,
-                                    vec, bad_buf, host)
+                                    vec, host)
                 out[(start + whole) * width:(start + count) * width] = tmp[:tail * width]
-        if vec:
-            cl.enqueue_copy(self.queue, bad, bad_buf)
-            if bad[0] and on_bad is not None:
-                on_bad()  # raises, naming the offender (float32 rounding alone may flag a point)
         return out.reshape(tuple(shape) + ((4, 4) if width == 16 else ()))
 
     def _input_buffer(self, a, npdt, host):
@@ -743,7 +737,7 @@ class Engine:
         buf = self.empty(view.nbytes)
         return buf, lambda: self.read(buf, view)
 
-    def _launch_points(self, kern, parts, n, out, npdt, lanes, vec, bad_buf, host):
+    def _launch_points(self, kern, parts, n, out, npdt, lanes, vec, host):
         """One launch of a per-point kernel over ``n`` points (``parts``: name -> n values or one),
         its result in ``out`` (contiguous, n * width values) when this returns."""
         out_buf, done = self.output(out)
@@ -751,8 +745,6 @@ class Engine:
         for name in POINT_INPUTS:
             p = parts[name]
             args += [self._input_buffer(p, npdt, host), np.int32(0 if p.size == 1 else 1)]
-        if vec:
-            args.append(bad_buf)
         # a small work-group: PoCL keeps every work-item's private state of a group on one
         # thread's stack, and the vector kernels' state overflows it in large groups
         self.launch(kern, (n // lanes,), *args, local_size=(VECTOR_LOCAL_SIZE,) if vec else None)

@@ -77,7 +77,7 @@ def test_float32_inputs_are_read_in_place_and_memory_stays_near_the_output(rng):
 
 @pytest.mark.parametrize("dtype", ["float32", "float64"])
 @pytest.mark.parametrize("func", [pbrdf_cl.dop, pbrdf_cl.brdf])
-def test_the_kernel_flags_bad_values_and_the_offender_is_named(rng, monkeypatch, func, dtype):
+def test_the_kernel_marks_bad_values_and_the_offender_is_named(rng, monkeypatch, func, dtype):
     monkeypatch.setattr(E, "LAUNCH_POINTS", 2048)
     base = {k: v.astype(np.float32) for k, v in random_inputs(rng, 5000).items()}
     cases = [("theta_r", 4321, 90.0, r"theta_r must be in \[0, 90\) degrees, got 90\.0 at index \[4321\]"),
