@@ -56,39 +56,31 @@ def _aligned(a):
     return out
 
 
+def _traced(func):
+    """(func(), the peak of what numpy and Python allocated meanwhile)."""
+    tracemalloc.start()
+    try:
+        result = func()
+        return result, tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+
+
 def test_float32_inputs_are_read_in_place_and_memory_stays_near_the_output(rng, each_device):
     size = 1 << 21
     inp = {k: _aligned(v.astype(np.float32)) for k, v in random_inputs(rng, size).items()}
     assert all(each_device.can_use_in_place(v, np.float32) for v in inp.values())  # page-aligned: any driver
     call(pbrdf_cl.dop, {k: v[:100] for k, v in inp.items()}, dtype="float32")  # kernels built
-    tracemalloc.start()
-    try:
-        out = call(pbrdf_cl.dop, inp, dtype="float32")
-        _, peak = tracemalloc.get_traced_memory()
-    finally:
-        tracemalloc.stop()
+    out, peak = _traced(lambda: call(pbrdf_cl.dop, inp, dtype="float32"))
     assert out.dtype == np.float32
     assert peak <= out.nbytes + (1 << 20), peak  # the output, and less than 1 MiB besides (inputs: 9x its size)
-    # inputs a driver cannot read in place (PoCL: any address; others: page-aligned ones) are staged
+    # inputs a driver cannot read in place (PoCL: any address; others: page-aligned ones) are staged,
+    # and so is a broadcast axis, never expanded: the output plus a launch's staging
     staging = len(E.POINT_INPUTS) * E.CONVERT_POINTS * 4
-    unaligned = {k: v[1:] for k, v in inp.items()}
-    tracemalloc.start()
-    try:
-        out = call(pbrdf_cl.dop, unaligned, dtype="float32")
-        _, peak = tracemalloc.get_traced_memory()
-    finally:
-        tracemalloc.stop()
+    out, peak = _traced(lambda: call(pbrdf_cl.dop, {k: v[1:] for k, v in inp.items()}, dtype="float32"))
     assert peak <= out.nbytes + staging + (1 << 20), (peak, out.nbytes, staging)
-    # a broadcast axis is not expanded: memory is the output plus a launch's staging
-    th = np.linspace(0, 89, 2048)
-    sg = np.linspace(0.05, 1, 1024)
-    tracemalloc.start()
-    try:
-        out = pbrdf_cl.dop(40, th[:, None], n=1.6, k=2.1, sigma=sg[None, :], dtype="float32")
-        _, peak = tracemalloc.get_traced_memory()
-    finally:
-        tracemalloc.stop()
-    staging = len(E.POINT_INPUTS) * E.CONVERT_POINTS * 4
+    th, sg = np.linspace(0, 89, 2048), np.linspace(0.05, 1, 1024)
+    out, peak = _traced(lambda: pbrdf_cl.dop(40, th[:, None], n=1.6, k=2.1, sigma=sg[None, :], dtype="float32"))
     assert peak <= out.nbytes + staging + (1 << 20), (peak, out.nbytes, staging)
 
 
