@@ -9,26 +9,21 @@ from __future__ import annotations
 import numpy as np
 
 from . import reference
-from .engine import BACKENDS, DTYPES, POINT_INPUTS, check_backend, resolve_engine
+from .engine import BACKENDS, DTYPES, POINT_INPUTS, check_backend, resolve_engine  # noqa: F401 (api.BACKENDS stays)
 
 MODELS = ("six-param", "specular")
 QUANTITIES = ("dop", "brdf", "mueller")
 
 
-def _as_array(name, value, finite=True):
+def _as_array(name, value):
     """``value`` as a float array: float32 and float64 arrays as they are (no copy), anything else
-    converted to float64; with ``finite``, non-finite values are refused, naming the first."""
-    a = value if isinstance(value, np.ndarray) and value.dtype in (np.float32, np.float64) else None
-    if a is None:
-        try:
-            a = np.asarray(value, dtype=np.float64)
-        except (TypeError, ValueError):
-            raise ValueError(f"{name} must be a number or an array of numbers, got {value!r}") from None
-    if finite and not _all_finite(a):
-        bad = ~np.isfinite(a)
-        raise ValueError(f"{name} must be finite, got {float(a[bad].flat[0])!r}"
-                         + (f" at index {np.argwhere(bad)[0].tolist()}" if a.ndim else ""))
-    return a
+    converted to float64."""
+    if isinstance(value, np.ndarray) and value.dtype in (np.float32, np.float64):
+        return value
+    try:
+        return np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a number or an array of numbers, got {value!r}") from None
 
 
 def _all_finite(a):
@@ -37,8 +32,8 @@ def _all_finite(a):
 
 
 class _Range:
-    """A valid range of values: as a mask (``rule(a)``) and as bounds, checked by :meth:`holds`
-    from the array's minimum and maximum (no temporary the size of the array)."""
+    """A valid range of values, as a mask: ``rule(a)``; its bounds make the minimum and the
+    maximum of an array enough to check all of it."""
 
     def __init__(self, lo=None, hi=None, lo_included=True, hi_included=False):
         self.lo, self.hi, self.lo_included, self.hi_included = lo, hi, lo_included, hi_included
@@ -51,20 +46,15 @@ class _Range:
             ok &= (a <= self.hi) if self.hi_included else (a < self.hi)
         return ok
 
-    def holds(self, a):
-        if a.size == 0:
-            return True
-        lo, hi = np.min(a), np.max(a)
-        return bool(self(lo) and self(hi))
+
+def _where(a, bad):
+    return f" at index {np.argwhere(bad)[0].tolist()}" if a.ndim else ""
 
 
 def _check(name, a, ok, rule):
-    if isinstance(ok, _Range) and ok.holds(a):
-        return
     bad = ~ok(a)
     if bad.any():
-        where = f" at index {np.argwhere(bad)[0].tolist()}" if a.ndim else ""
-        raise ValueError(f"{name} must be {rule}, got {float(a[bad].flat[0])!r}{where}")
+        raise ValueError(f"{name} must be {rule}, got {float(a[bad].flat[0])!r}{_where(a, bad)}")
 
 
 #: The valid range of each input, as (test, words); every input must also be finite.  The vector
@@ -85,15 +75,22 @@ RULES = {
 def check_values(name, value):
     """``value`` as a float64 array, or a ``ValueError`` naming ``name`` and the first bad value."""
     a = _as_array(name, value).astype(np.float64, copy=False)
-    _check(name, a, *RULES[name])
+    _check_domain(name, a)
     return a
 
 
 def _check_domain(name, a):
-    """The checks of :func:`check_values` on an array of either float dtype."""
-    if not _all_finite(a):
-        _as_array(name, a)  # raises, naming the first non-finite value
-    _check(name, a, *RULES[name])
+    """Every value of ``a`` (either float dtype) finite and in ``RULES[name]``, else a ``ValueError``
+    naming the first bad one; two reads (min, max) when all is well."""
+    ok, rule = RULES[name]
+    if a.size:
+        lo, hi = np.min(a), np.max(a)  # NaN propagates
+        if np.isfinite(lo) and np.isfinite(hi) and ok(lo) and ok(hi):
+            return
+        bad = ~np.isfinite(a)
+        if bad.any():
+            raise ValueError(f"{name} must be finite, got {float(a[bad].flat[0])!r}{_where(a, bad)}")
+        _check(name, a, ok, rule)
 
 
 def check_options(shadowing, dtype):
@@ -123,7 +120,7 @@ def validate(theta_i, theta_r, phi, n, k, sigma, ks, kd, c, *, shadowing="paper"
     if sigma is None:
         raise ValueError("sigma is required (the per-axis slope standard deviation, > 0)")
     given = dict(theta_i=theta_i, theta_r=theta_r, phi=phi, n=n, k=k, sigma=sigma, ks=ks, kd=kd, c=c)
-    arrays = {name: _as_array(name, given[name], finite=False) for name in POINT_INPUTS}
+    arrays = {name: _as_array(name, given[name]) for name in POINT_INPUTS}
     if values:
         for name in POINT_INPUTS:
             _check_domain(name, arrays[name])
@@ -139,7 +136,6 @@ def validate(theta_i, theta_r, phi, n, k, sigma, ks, kd, c, *, shadowing="paper"
 
 def _evaluate(quantity, theta_i, theta_r, phi, n, k, sigma, ks, kd, c, shadowing, dtype, backend,
               model, engine):
-    check_backend(backend)
     eng = resolve_engine(engine, backend)
     fused = eng.checks_domain(quantity)  # the kernel checks the values as it reads them (NaN)
     kw = dict(shadowing=shadowing, dtype=dtype, backend=backend, model=model)

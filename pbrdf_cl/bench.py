@@ -87,12 +87,12 @@ def stream_bandwidth(lib, inputs, out, repeats):
     return median_rate(lambda: lib.pb_host_stream(*args), nbytes, repeats)
 
 
-def peak_memory(func):
-    """Peak of the memory numpy and Python allocate while ``func()`` runs, in bytes."""
+def traced(func):
+    """``(func(), peak bytes numpy and Python allocated while it ran)``."""
     tracemalloc.start()
     try:
-        func()
-        return tracemalloc.get_traced_memory()[1]
+        result = func()
+        return result, tracemalloc.get_traced_memory()[1]
     finally:
         tracemalloc.stop()
 
@@ -163,7 +163,7 @@ def bench_points(eng, rows, rng, size, repeats, sample):
         want = reference_dop({n: arrays[n][:sample].astype(np.float64) for n in INPUTS})  # at these inputs
         row = dict(path=f"pbrdf_cl.dop, {dtype} inputs (end-to-end)", dtype=dtype, rate=rate, unit="evals/s",
                    seconds=sec, max_abs_err=float(np.max(np.abs(got[:sample] - want))), n=size,
-                   peak_extra_mb=peak_memory(call) / 1e6, output_mb=got.nbytes / 1e6)
+                   peak_extra_mb=traced(call)[1] / 1e6, output_mb=got.nbytes / 1e6)
         rows.append(row)
         _limits(rows, row, dtype, arrays, got, repeats, per_point=True)
 
@@ -185,13 +185,9 @@ def _limits(rows, row, dtype, arrays, out, repeats, per_point):
     if per_point:
         rows.append(dict(path="C loop, pbrdf.h compiled by the host's cc (limit)", dtype=dtype, rate=c_rate,
                          unit="evals/s", seconds=0.0, max_abs_err=0.0, n=out.size, compiled=how))
-    if _LAST_C_RATE.get(dtype) is None and c_rate is not None:
-        _LAST_C_RATE[dtype] = c_rate
-    if _LAST_C_RATE.get(dtype):
-        row["of_c_loop"] = row["rate"] / _LAST_C_RATE[dtype]
-
-
-_LAST_C_RATE = {}
+    c_rows = [r["rate"] for r in rows if r["path"].startswith("C loop") and r["dtype"] == dtype]
+    if c_rows:  # a grid is compared with the per-point C loop measured before it
+        row["of_c_loop"] = row["rate"] / c_rows[-1]
 
 
 GRID_AXES = dict(theta_i=np.linspace(10, 80, 16), theta_r=np.linspace(0, 85, 64), n=np.linspace(1, 3, 16),
@@ -246,7 +242,7 @@ def bench_grid(eng, rows, rng, scale, repeats):
         rate, sec = median_rate(lambda: dense.grid(axes, {}, dtype=dtype, engine=eng), plan.size, max(1, repeats - 2))
         row = dict(path="pbrdf_cl.grid -> host DataArray (end-to-end)", dtype=dtype, rate=rate,
                    unit="grid points/s", seconds=sec, max_abs_err=err, n=plan.size,
-                   peak_extra_mb=peak_memory(lambda: dense.grid(axes, {}, dtype=dtype, engine=eng)) / 1e6,
+                   peak_extra_mb=traced(lambda: dense.grid(axes, {}, dtype=dtype, engine=eng))[1] / 1e6,
                    output_mb=da.values.nbytes / 1e6)
         rows.append(row)
         _limits(rows, row, dtype, None, da.values.reshape(-1), max(1, repeats - 2), per_point=False)
@@ -364,7 +360,6 @@ def main(argv=None):
         scale = min(scale, 0.25)  # the per-point reference is ~100x slower than a device: smaller grids
     rng = np.random.default_rng(2020)
     rows = []
-    _LAST_C_RATE.clear()
     t0 = time.perf_counter()
     bench_points(eng, rows, rng, size, repeats, min(size, 1 << 18))
     bench_grid(eng, rows, rng, scale, repeats)

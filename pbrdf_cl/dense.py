@@ -218,11 +218,7 @@ def _numpy_grid_blocks(plan, quantity, dtype, shadowing, memory_budget, progress
     ng, nnk, nm, ni = _family_sizes(plan)
     sizes = _param_sizes(plan)
     per_g = nnk * nm * ni
-    table_row = (2 * nnk + nm + ni) * 8
-    if memory_budget < 2 * table_row + 64 * _NumpyTables.BYTES_PER_POINT:
-        raise ValueError(f"memory_budget={memory_budget} bytes is too small for one geometry row's tables "
-                         f"({table_row} bytes); raise it")
-    rows = int(max(1, min(ng, (memory_budget // 2) // table_row)))
+    table_row, rows = _geometry_rows(plan, memory_budget, 8, _NumpyTables.BYTES_PER_POINT)
     bar = _progress(plan.size, progress, f"grid {quantity} (numpy)")
     for g0 in range(0, ng, rows):
         g1 = min(ng, g0 + rows)
@@ -239,6 +235,22 @@ def _numpy_grid_blocks(plan, quantity, dtype, shadowing, memory_budget, progress
             yield start, host
     if bar is not None:
         bar.close()
+
+
+def _geometry_rows(plan, memory_budget, itemsize, point_bytes):
+    """(bytes of one geometry row's tables, geometry rows per block): the tables of a block take at
+    most half of ``memory_budget``, the other half holds at least 64 points of ``point_bytes``."""
+    ng, nnk, nm, ni = _family_sizes(plan)
+    table_row = (2 * nnk + nm + ni) * itemsize
+    if memory_budget < 2 * table_row + 64 * point_bytes:
+        raise ValueError(f"memory_budget={memory_budget} bytes is too small for one geometry row's tables "
+                         f"({table_row} bytes); raise it")
+    return table_row, int(max(1, min(ng, (memory_budget // 2) // table_row)))
+
+
+def _table_itemsize(eng, npdt):
+    """Bytes per table entry: the dtype's on a device, float64's on the numpy backend."""
+    return 8 if eng.is_numpy else np.dtype(npdt).itemsize
 
 
 def _geometry_list(plan, g0, g1):
@@ -344,11 +356,7 @@ def _grid_blocks(eng, plan, quantity, dtype, shadowing, memory_budget, progress=
     itemsize = np.dtype(DTYPES[dtype]).itemsize
     ng, nnk, nm, ni = _family_sizes(plan)
     per_g = nnk * nm * ni  # grid points per geometry row
-    table_row = (2 * nnk + nm + ni) * itemsize
-    if memory_budget < 2 * table_row + 64 * itemsize:
-        raise ValueError(f"memory_budget={memory_budget} bytes is too small for one geometry row's tables "
-                         f"({table_row} bytes); raise it")
-    rows = int(max(1, min(ng, (memory_budget // 2) // table_row)))
+    table_row, rows = _geometry_rows(plan, memory_budget, itemsize, itemsize)
     chunk = int(max(64, min((memory_budget - rows * table_row) // itemsize, 2 ** 31 - 1)))
     idx_name, idx_np = _index_type(plan.size)
     level, row_len = _row_level(nnk, nm, ni, ng, chunk)
@@ -384,8 +392,6 @@ def reduce_grid(axes, fixed=None, over=(), quantity="dop", dtype="float32", shad
     Returns an ``xarray.Dataset`` over the remaining axes with variables ``min``, ``mean`` and,
     for each reduced axis, ``argmin_<axis>`` (that axis' coordinate value at the minimum).
     """
-    import xarray as xr
-
     _check_quantity(quantity)
     dtype = api.check_options(shadowing, dtype)
     plan = GridPlan(axes, fixed)
@@ -397,7 +403,7 @@ def reduce_grid(axes, fixed=None, over=(), quantity="dop", dtype="float32", shad
             raise ValueError(f"over: {name!r} is not one of the grid's axes {plan.axis_names}")
     eng = resolve_engine(engine, backend)
     npdt = DTYPES[dtype]
-    itemsize = np.dtype(npdt).itemsize if not eng.is_numpy else 8
+    itemsize = _table_itemsize(eng, npdt)
     ng, nnk, nm, ni = _family_sizes(plan)
     table_bytes = ng * (2 * nnk + nm + ni) * itemsize
     if table_bytes > memory_budget // 2:
@@ -558,7 +564,7 @@ def objective(data, grid=None, points=None, *, k_best=10, dtype="float32", shado
     w = meas.weights if meas.dop_std is not None else np.ones(len(meas))
     eng = resolve_engine(engine, backend)
     npdt = DTYPES[dtype]
-    itemsize = np.dtype(npdt).itemsize if not eng.is_numpy else 8
+    itemsize = _table_itemsize(eng, npdt)
     M = ti.size
     if points is not None:
         return _objective_points(eng, points, (ti, tr, ph, obs, w), k_best, dtype, shadowing, return_sse, t0,

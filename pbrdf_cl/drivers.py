@@ -36,14 +36,18 @@ INTEL_DEPENDENCIES = ("libintlc.so.5", "libimf.so", "libsvml.so", "libirng.so", 
 _registered = None  # what register_pip_drivers did in this process (None: not run yet)
 
 
+def _cache_folder(env, name):
+    """``$env`` if set, else ``$XDG_CACHE_HOME/name``, else ``~/.cache/name``."""
+    if os.environ.get(env):
+        return Path(os.environ[env])
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / name
+
+
 def cache_dir() -> Path:
     """pbrdf-cl's own cache folder: ``PBRDF_CL_CACHE_DIR``, else ``$XDG_CACHE_HOME/pbrdf-cl``,
     else ``~/.cache/pbrdf-cl``."""
-    env = os.environ.get("PBRDF_CL_CACHE_DIR")
-    if env:
-        return Path(env)
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return Path(base) / "pbrdf-cl"
+    return _cache_folder("PBRDF_CL_CACHE_DIR", "pbrdf-cl")
 
 
 def writable_dir(path) -> str | None:
@@ -167,11 +171,7 @@ def register_pip_drivers():
 def pocl_cache_dir() -> Path:
     """The folder PoCL caches compiled kernels in: ``POCL_CACHE_DIR``, else
     ``$XDG_CACHE_HOME/pocl``, else ``~/.cache/pocl``."""
-    env = os.environ.get("POCL_CACHE_DIR")
-    if env:
-        return Path(env)
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return Path(base) / "pocl"
+    return _cache_folder("POCL_CACHE_DIR", "pocl")
 
 
 def pocl_cache_problem() -> str | None:

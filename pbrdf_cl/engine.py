@@ -532,7 +532,8 @@ class NumpyEngine:
         lead = out.shape[:out.ndim - len(extra)]
         if lead != tuple(shape):  # every input a single value: one point, broadcast to the shape
             out = np.broadcast_to(out.reshape((-1,) + extra)[0], tuple(shape) + extra)
-        return np.array(out, dtype=DTYPES[dtype])
+        out = np.asarray(out, dtype=DTYPES[dtype])
+        return out if out.flags.writeable else out.copy()  # a copy only of the broadcast single point
 
 
 class Engine:
@@ -698,9 +699,10 @@ class Engine:
     def _input_buffer(self, a, npdt, host):
         """A read-only buffer of the contiguous 1-d array ``a`` of ``npdt``: over ``a`` itself on a
         CPU device, a device copy elsewhere."""
-        mf = cl.mem_flags
+        if not host:
+            return self.to_device(a, npdt)
         a = np.ascontiguousarray(a, npdt)  # as it is, where evaluate has staged it
-        return cl.Buffer(self.context, mf.READ_ONLY | (mf.USE_HOST_PTR if host else mf.COPY_HOST_PTR), hostbuf=a)
+        return cl.Buffer(self.context, cl.mem_flags.READ_ONLY | cl.mem_flags.USE_HOST_PTR, hostbuf=a)
 
     @property
     def host_memory(self):
@@ -808,8 +810,8 @@ _default_lock = threading.Lock()
 def _fallback(exc):
     skipped = getattr(exc, "skipped", 0)
     if skipped:  # each was named in a warning line already
-        why = (f"no usable OpenCL device (the {skipped} above cannot run pbrdf-cl); {_HOW_TO_GET_ONE}"
-               if skipped > 1 else f"no usable OpenCL device (the one above cannot run pbrdf-cl); {_HOW_TO_GET_ONE}")
+        which = "one" if skipped == 1 else skipped
+        why = f"no usable OpenCL device (the {which} above cannot run pbrdf-cl); {_HOW_TO_GET_ONE}"
     else:
         why = str(exc)
     _warn_once(("fallback",), f"computing on the numpy backend (the float64 reference, slower): {why}")

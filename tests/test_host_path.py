@@ -2,13 +2,12 @@
 conversion of float32 inputs, no expansion of a broadcast axis), the result written straight into
 the returned array, memory bounded by the output plus a launch's worth, the values checked by the
 kernel itself and the offender still named exactly."""
-import tracemalloc
-
 import numpy as np
 import pytest
 
 import pbrdf_cl
 from pbrdf_cl import engine as E
+from pbrdf_cl.bench import traced
 from conftest import PARAMS, call, random_inputs
 
 pytestmark = pytest.mark.usefixtures("each_device")
@@ -56,31 +55,21 @@ def _aligned(a):
     return out
 
 
-def _traced(func):
-    """(func(), the peak of what numpy and Python allocated meanwhile)."""
-    tracemalloc.start()
-    try:
-        result = func()
-        return result, tracemalloc.get_traced_memory()[1]
-    finally:
-        tracemalloc.stop()
-
-
 def test_float32_inputs_are_read_in_place_and_memory_stays_near_the_output(rng, each_device):
     size = 1 << 21
     inp = {k: _aligned(v.astype(np.float32)) for k, v in random_inputs(rng, size).items()}
     assert all(each_device.can_use_in_place(v, np.float32) for v in inp.values())  # page-aligned: any driver
     call(pbrdf_cl.dop, {k: v[:100] for k, v in inp.items()}, dtype="float32")  # kernels built
-    out, peak = _traced(lambda: call(pbrdf_cl.dop, inp, dtype="float32"))
+    out, peak = traced(lambda: call(pbrdf_cl.dop, inp, dtype="float32"))
     assert out.dtype == np.float32
     assert peak <= out.nbytes + (1 << 20), peak  # the output, and less than 1 MiB besides (inputs: 9x its size)
     # inputs a driver cannot read in place (PoCL: any address; others: page-aligned ones) are staged,
     # and so is a broadcast axis, never expanded: the output plus a launch's staging
     staging = len(E.POINT_INPUTS) * E.CONVERT_POINTS * 4
-    out, peak = _traced(lambda: call(pbrdf_cl.dop, {k: v[1:] for k, v in inp.items()}, dtype="float32"))
+    out, peak = traced(lambda: call(pbrdf_cl.dop, {k: v[1:] for k, v in inp.items()}, dtype="float32"))
     assert peak <= out.nbytes + staging + (1 << 20), (peak, out.nbytes, staging)
     th, sg = np.linspace(0, 89, 2048), np.linspace(0.05, 1, 1024)
-    out, peak = _traced(lambda: pbrdf_cl.dop(40, th[:, None], n=1.6, k=2.1, sigma=sg[None, :], dtype="float32"))
+    out, peak = traced(lambda: pbrdf_cl.dop(40, th[:, None], n=1.6, k=2.1, sigma=sg[None, :], dtype="float32"))
     assert peak <= out.nbytes + staging + (1 << 20), (peak, out.nbytes, staging)
 
 
