@@ -256,6 +256,14 @@ inline pb_frames pb_frame_rotations(pb_geom g, real phi)
     return fr;
 }
 
+/* (c^2 - s^2, 2 c s): cos and sin of twice the rotation angle whose cos, sin are c, s; returns the
+ * first, the second in *s2. */
+inline real pb_rotation2(real c, real s, real *s2)
+{
+    *s2 = (real)2 * c * s;
+    return c * c - s * s;
+}
+
 /* The 4x4 Mueller matrix F = K R_out M^s R_in + fd e00 (eq. 10, 15, 16), row-major into m[16].
  * R(c, s) = [[1,0,0,0],[0,c2,s2,0],[0,-s2,c2,0],[0,0,0,1]], c2 = c^2 - s^2, s2 = 2 c s. */
 inline void pb_mueller(pb_fresnel_t f, pb_frames fr, real logK, real fd, real *m)
@@ -264,8 +272,8 @@ inline void pb_mueller(pb_fresnel_t f, pb_frames fr, real logK, real fd, real *m
     real m00 = (real)0.5 * K * (f.Rs + f.Rp);
     real m01 = (real)0.5 * K * f.diff;
     real rx = K * f.re_x, ix = K * f.im_x;
-    real c = fr.ci * fr.ci - fr.si * fr.si, s = (real)2 * fr.ci * fr.si;
-    real C = fr.co * fr.co - fr.so * fr.so, S = (real)2 * fr.co * fr.so;
+    real s, S;
+    real c = pb_rotation2(fr.ci, fr.si, &s), C = pb_rotation2(fr.co, fr.so, &S);
     /* A = M^s R_in */
     real a1[4] = {m01, m00 * c, m00 * s, (real)0};
     real a2[4] = {(real)0, -rx * s, rx * c, ix};
@@ -275,6 +283,99 @@ inline void pb_mueller(pb_fresnel_t f, pb_frames fr, real logK, real fd, real *m
         m[8 + j] = -S * a1[j] + C * a2[j];
     }
     m[12] = (real)0; m[13] = ix * s; m[14] = -ix * c; m[15] = rx;
+}
+
+/* The first column of F (pb_mueller): the Stokes vector (S0, S1, S2, S3) reflected for unpolarised
+ * incidence of unit radiance, from the factors of the grid tables: sum = Rs + Rp, diff = Rs - Rp,
+ * K, fd and the outgoing frame's rotation (C, S) = (cos 2 psi, sin 2 psi) of pb_rotation2.
+ * Component comp (0..3); S3 = 0: the model's first column has no circular part. */
+inline real pb_stokes_combine(real sum, real diff, real K, real fd, real C, real S, int comp)
+{
+    const real m01 = (real)0.5 * K * diff;
+    const real v = comp == 0 ? (real)0.5 * K * sum + fd : (comp == 1 ? C * m01 : -S * m01);
+    return comp < 3 ? v : (real)0;
+}
+
+/* Angle of linear polarisation, degrees in (-90, 90], of the Stokes vector's S1 = L1, S2 = L2:
+ * AoP = atan2(L2, L1) / 2 in the psps frame of the outgoing beam; NaN where L1 = L2 = 0 (DOP = 0,
+ * AoP undefined). */
+inline real pb_aop_of(real L1, real L2)
+{
+    const real a = (real)0.5 * atan2(L2, L1) / PB_DEG;
+    const real b = a <= (real)-90 ? a + (real)180 : a + (real)0;  /* -90 is +90; -0 is 0 */
+    return ((L1 != (real)0) | (L2 != (real)0)) ? b : (real)NAN;
+}
+
+/* AoP from the grid tables' factors (see pb_stokes_combine).  L = (S1, S2) = m01 (C, -S) with
+ * m01 = K diff / 2, so where the light is polarised (diff > 0, and K > 0 unless there is no diffuse
+ * term: where pb_dop_combine is > 0) L points along (C, -S): taken as that, so that an underflow
+ * of K diff cannot make it undefined. */
+inline real pb_aop_combine(real diff, real K, real fd, real C, real S)
+{
+    const real on = ((diff > (real)0) & ((K > (real)0) | (fd == (real)0))) ? (real)1 : (real)0;
+    return pb_aop_of(on * C, -on * S);
+}
+
+/* ---- The output quantities.  Each has two entry points of fixed signature, named after its
+ * registry name (pbrdf_cl/quantities.py: the kernels are built with -DPB_QUANTITY=<name>):
+ *   void pb_point_<name>(pb_geom g, pb_fresnel_t f, real phi, real logK, real fd, real *out)
+ *     writes the quantity's width values of one point (pbrdf_points.cl's quantity_points);
+ *   real pb_grid_<name>(real sum, real diff, real fdx, real scale, real C, real S, int comp)
+ *     component comp from the tables (pbrdf_grid.cl): scale = K or 1/K and fdx = fd or 2 fd as the
+ *     registry's table factors say; (C, S) the outgoing frame rotation where the registry asks
+ *     for the frame table, else (1, 0). */
+inline void pb_point_dop(pb_geom g, pb_fresnel_t f, real phi, real logK, real fd, real *out)
+{
+    out[0] = pb_dop(f, logK, fd);
+}
+inline real pb_grid_dop(real sum, real diff, real fd2, real inv_K, real C, real S, int comp)
+{
+    return pb_dop_combine(sum, diff, fd2, inv_K);
+}
+
+inline void pb_point_brdf(pb_geom g, pb_fresnel_t f, real phi, real logK, real fd, real *out)
+{
+    out[0] = pb_brdf(f, logK, fd);
+}
+inline real pb_grid_brdf(real sum, real diff, real fd, real K, real C, real S, int comp)
+{
+    return pb_brdf_combine(sum, K, fd);
+}
+
+inline void pb_point_mueller(pb_geom g, pb_fresnel_t f, real phi, real logK, real fd, real *out)
+{
+    pb_mueller(f, pb_frame_rotations(g, phi), logK, fd, out);
+}
+
+/* (cos 2 psi, sin 2 psi) of the outgoing frame rotation: the frame table of the grid path */
+inline real pb_out_rotation2(pb_geom g, real phi, real *S)
+{
+    const pb_frames fr = pb_frame_rotations(g, phi);
+    return pb_rotation2(fr.co, fr.so, S);
+}
+
+inline void pb_point_stokes(pb_geom g, pb_fresnel_t f, real phi, real logK, real fd, real *out)
+{
+    real S;
+    const real C = pb_out_rotation2(g, phi, &S);
+    const real K = pb_exp(logK);
+    for (int comp = 0; comp < 4; comp++)
+        out[comp] = pb_stokes_combine(f.Rs + f.Rp, f.diff, K, fd, C, S, comp);
+}
+inline real pb_grid_stokes(real sum, real diff, real fd, real K, real C, real S, int comp)
+{
+    return pb_stokes_combine(sum, diff, K, fd, C, S, comp);
+}
+
+inline void pb_point_aop(pb_geom g, pb_fresnel_t f, real phi, real logK, real fd, real *out)
+{
+    real S;
+    const real C = pb_out_rotation2(g, phi, &S);
+    out[0] = pb_aop_combine(f.diff, pb_exp(logK), fd, C, S);
+}
+inline real pb_grid_aop(real sum, real diff, real fd, real K, real C, real S, int comp)
+{
+    return pb_aop_combine(diff, K, fd, C, S);
 }
 
 #ifdef __clang__

@@ -6,10 +6,13 @@
  *   g  = (i_theta_i * N_theta_r + i_theta_r) * N_phi + i_phi     geometry
  *   nk = i_n * N_k + i_k,  s = i_sigma * N_ks + i_ks,  j = i_kd * N_c + i_c.
  * Build options: -DPBRDF_DOUBLE, -DPB_NNK, -DPB_NM, -DPB_NI (compile-time sizes let the index
- * arithmetic vectorise), -DPB_INDEX=uint|ulong, -DPB_DOP (else F00), -DPB_ROW_LEVEL and
- * -DPB_ROW_LEN for the row kernels, -DPB_OBJECTIVE for objective_rows.
+ * arithmetic vectorise), -DPB_INDEX=uint|ulong, the quantity's defines from its registry record
+ * (pbrdf_cl/quantities.py: -DPB_QUANTITY=<name> combines with pbrdf.h's pb_grid_<name>, -DPB_WIDTH
+ * values per grid point, -DPB_FRAME when it needs the frame table, -DPB_GRID_VECTOR for the DOP's
+ * vector row body), -DPB_ROW_LEVEL and -DPB_ROW_LEN for the row kernels, -DPB_OBJECTIVE for
+ * objective_rows.  A grid point's PB_WIDTH values are consecutive in the output.
  * Tables for geometry rows g0 ..: sum/diff[(g - g0) * PB_NNK + nk], scale[(g - g0) * PB_NM + s],
- * diffuse[(g - g0) * PB_NI + j].
+ * diffuse[(g - g0) * PB_NI + j], frame[2 (g - g0)] = (C, S) (a 1-value dummy without PB_FRAME).
  */
 #include "pbrdf.h"
 
@@ -18,15 +21,26 @@
 #endif
 typedef PB_INDEX pbidx;
 
-#ifdef PB_DOP
-#define PB_COMBINE(sum, diff, dif, scl) pb_dop_combine(sum, diff, dif, scl)
-#else
-#define PB_COMBINE(sum, diff, dif, scl) pb_brdf_combine(sum, scl, dif)
+#ifndef PB_QUANTITY
+#define PB_QUANTITY dop
 #endif
+#ifndef PB_WIDTH
+#define PB_WIDTH 1
+#endif
+#ifdef PB_FRAME
+#define PB_FRAME_C(g) frame[2 * (g)]
+#define PB_FRAME_S(g) frame[2 * (g) + 1]
+#else
+#define PB_FRAME_C(g) ((real)1)
+#define PB_FRAME_S(g) ((real)0)
+#endif
+/* component q of the quantity at geometry row g from the table values */
+#define PB_COMBINE(sum, diff, dif, scl, g, q) \
+    PB_CAT(pb_grid_, PB_QUANTITY)(sum, diff, dif, scl, PB_FRAME_C(g), PB_FRAME_S(g), q)
 
 #define PB_TABLES                                                            \
     __global const real *sum, __global const real *diff,                     \
-    __global const real *scale, __global const real *dif
+    __global const real *scale, __global const real *dif, __global const real *frame
 
 __kernel void grid_values(__global real *out, const pbidx start, const pbidx count, const pbidx g0,
                           PB_TABLES)
@@ -38,8 +52,9 @@ __kernel void grid_values(__global real *out, const pbidx start, const pbidx cou
     const pbidx s = i % PB_NM; i /= PB_NM;
     const pbidx nk = i % PB_NNK;
     const pbidx g = i / PB_NNK - g0;
-    out[gid] = PB_COMBINE(sum[g * PB_NNK + nk], diff[g * PB_NNK + nk], dif[g * PB_NI + j],
-                          scale[g * PB_NM + s]);
+    for (int q = 0; q < PB_WIDTH; q++)
+        out[gid * PB_WIDTH + q] = PB_COMBINE(sum[g * PB_NNK + nk], diff[g * PB_NNK + nk], dif[g * PB_NI + j],
+                                             scale[g * PB_NM + s], g, q);
 }
 
 #ifdef PB_REDUCE
@@ -69,7 +84,7 @@ __kernel void grid_reduce(__global real *vmin, __global pbidx *vargmin, __global
             q /= PB_RED_SIZE[a];
         }
         const real v = PB_COMBINE(sum[idx[0] * PB_NNK + idx[1]], diff[idx[0] * PB_NNK + idx[1]],
-                                  dif[idx[0] * PB_NI + idx[3]], scale[idx[0] * PB_NM + idx[2]]);
+                                  dif[idx[0] * PB_NI + idx[3]], scale[idx[0] * PB_NM + idx[2]], idx[0], 0);
         if (v < best) { best = v; best_r = r; }
         const real y = v - comp;  /* Kahan summation */
         const real t = acc + y;
@@ -119,32 +134,35 @@ __kernel void grid_rows(__global real *out, const pbidx row_start, const pbidx r
     const pbidx g = i / PB_NNK - g0;
     const real su = sum[g * PB_NNK + nk], di = diff[g * PB_NNK + nk], sc = scale[g * PB_NM + s];
     __global const real *fd = dif + g * PB_NI;
-    __global real *o = out + gid * PB_NI;
+    __global real *o = out + gid * (PB_NI * PB_WIDTH);
     int j = 0;
-#ifdef PB_DOP
+#ifdef PB_GRID_VECTOR
     for (; j + PB_VW <= PB_NI; j += PB_VW)
         pb_vstore(pb_dop_combine_v((realv)su, (realv)di, pb_vload(0, fd + j), (realv)sc), 0, o + j);
 #endif
     for (; j < PB_NI; j++)
-        o[j] = PB_COMBINE(su, di, fd[j], sc);
+        for (int q = 0; q < PB_WIDTH; q++)
+            o[j * PB_WIDTH + q] = PB_COMBINE(su, di, fd[j], sc, g, q);
 #elif PB_ROW_LEVEL == 2
     const pbidx nk = i % PB_NNK;
     const pbidx g = i / PB_NNK - g0;
     const real su = sum[g * PB_NNK + nk], di = diff[g * PB_NNK + nk];
     __global const real *fd = dif + g * PB_NI, *sc = scale + g * PB_NM;
-    __global real *o = out + gid * (PB_NM * PB_NI);
+    __global real *o = out + gid * (PB_NM * PB_NI * PB_WIDTH);
     for (int s = 0; s < PB_NM; s++)
         for (int j = 0; j < PB_NI; j++)
-            o[s * PB_NI + j] = PB_COMBINE(su, di, fd[j], sc[s]);
+            for (int q = 0; q < PB_WIDTH; q++)
+                o[(s * PB_NI + j) * PB_WIDTH + q] = PB_COMBINE(su, di, fd[j], sc[s], g, q);
 #else
     const pbidx g = i - g0;
     __global const real *fd = dif + g * PB_NI, *sc = scale + g * PB_NM;
     __global const real *su = sum + g * PB_NNK, *di = diff + g * PB_NNK;
-    __global real *o = out + gid * (PB_NNK * PB_NM * PB_NI);
+    __global real *o = out + gid * (PB_NNK * PB_NM * PB_NI * PB_WIDTH);
     for (int nk = 0; nk < PB_NNK; nk++)
         for (int s = 0; s < PB_NM; s++)
             for (int j = 0; j < PB_NI; j++)
-                o[(nk * PB_NM + s) * PB_NI + j] = PB_COMBINE(su[nk], di[nk], fd[j], sc[s]);
+                for (int q = 0; q < PB_WIDTH; q++)
+                    o[((nk * PB_NM + s) * PB_NI + j) * PB_WIDTH + q] = PB_COMBINE(su[nk], di[nk], fd[j], sc[s], g, q);
 #endif
 }
 

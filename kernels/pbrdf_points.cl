@@ -5,7 +5,9 @@
  * -I <this folder>; -DPB_VECTOR_REAL=N builds the *_vec kernels instead, which evaluate N
  * consecutive points per work-item with the same device functions on vector types.
  * Each of the nine inputs is a buffer with a stride: 1 for a full array of length n, 0 for one
- * value broadcast to every point.  Angles are in degrees.
+ * value broadcast to every point.  Angles are in degrees.  quantity_points evaluates any quantity
+ * of the registry (-DPB_QUANTITY); dop_points_vec and brdf_points_vec are the vector kernels of
+ * the two quantities the registry marks ``vector``.
  */
 #include "pbrdf.h"
 
@@ -36,26 +38,18 @@
     const real logK = pb_log_specular_scale(g, sigma, ks[i * s_ks], G);      \
     const real fd = pb_diffuse(g, kd[i * s_kd], cc[i * s_c]);
 
-__kernel void dop_points(__global real *out, PB_POINT_ARGS)
+/* Any quantity of the registry (pbrdf_cl/quantities.py), built with -DPB_QUANTITY=<name> and
+ * -DPB_WIDTH=<values per point>: pbrdf.h's pb_point_<name> for each point. */
+#ifdef PB_QUANTITY
+__kernel void quantity_points(__global real *out, PB_POINT_ARGS)
 {
     PB_POINT_BODY
-    out[i] = pb_dop(f, logK, fd);
+    real v[PB_WIDTH];
+    PB_CAT(pb_point_, PB_QUANTITY)(g, f, ph[i * s_ph], logK, fd, v);
+    for (int j = 0; j < PB_WIDTH; j++)
+        out[(size_t)PB_WIDTH * i + j] = v[j];
 }
-
-__kernel void brdf_points(__global real *out, PB_POINT_ARGS)
-{
-    PB_POINT_BODY
-    out[i] = pb_brdf(f, logK, fd);
-}
-
-__kernel void mueller_points(__global real *out, PB_POINT_ARGS)
-{
-    PB_POINT_BODY
-    real m[16];
-    pb_mueller(f, pb_frame_rotations(g, ph[i * s_ph]), logK, fd, m);
-    for (int j = 0; j < 16; j++)
-        out[(size_t)16 * i + j] = m[j];
-}
+#endif
 
 /* Weighted sum of squared DOP residuals for an explicit list of P parameter vectors (one
  * work-item each) over M measurements (theta_i, theta_r, phi in degrees, observed DOP, weight). */

@@ -49,3 +49,16 @@ __kernel void diffuse_table(__global real *out, PB_TABLE_ARGS, const real factor
     pb_geom g = pb_geometry(ti[ig], tr[ig], ph[ig]);
     out[ig * s_g + ip * s_p] = factor * pb_diffuse(g, p1[ip / n2], p2[ip % n2]);
 }
+
+/* The outgoing frame's rotation (C, S) = (cos 2 psi, sin 2 psi) per geometry (pb_out_rotation2):
+ * out[2 ig], out[2 ig + 1]; global size (ng). */
+__kernel void frame_table(__global real *out, const int ng, __global const real *ti, __global const real *tr,
+                          __global const real *ph)
+{
+    const int ig = get_global_id(0);
+    if (ig >= ng) return;
+    real S;
+    const real C = pb_out_rotation2(pb_geometry(ti[ig], tr[ig], ph[ig]), ph[ig], &S);
+    out[2 * ig] = C;
+    out[2 * ig + 1] = S;
+}

@@ -9,7 +9,8 @@ Angles are in degrees; phi = 180 (the default) is the in-plane geometry.  Comput
 the first usable OpenCL device, or on the float64 numpy reference where none is usable
 (``backend="auto"``, the default; see :mod:`pbrdf_cl.engine`).
 """
-from .api import MODELS, brdf, dop, mueller, validate
+from . import quantities
+from .api import MODELS, aop, brdf, dop, evaluate, mueller, stokes, validate
 from .data import Measurements, read_csv
 from .dense import ObjectiveResult, grid, objective, reduce_grid
 from .sweep import SpecError, SweepResult, SweepSpec, load_spec, sweep
@@ -19,7 +20,7 @@ from .engine import (DeviceUnusableError, DeviceWarning, Engine, NumpyEngine, Op
 
 __version__ = "0.1.0"
 
-__all__ = ["dop", "brdf", "mueller", "validate", "MODELS", "grid", "reduce_grid", "objective", "ObjectiveResult",
+__all__ = ["dop", "brdf", "aop", "stokes", "mueller", "evaluate", "quantities", "validate", "MODELS", "grid", "reduce_grid", "objective", "ObjectiveResult",
            "sweep", "load_spec", "SweepSpec", "SweepResult", "SpecError",
            "fit", "compare_models", "FitResult", "read_csv", "Measurements", "Engine", "NumpyEngine", "probe",
            "OpenCLUnavailableError", "DeviceUnusableError", "DeviceWarning",

@@ -1,4 +1,4 @@
-"""Public API: DOP, F00 and the Mueller matrix of the six-parameter pBRDF model.
+"""Public API: DOP, F00, AoP, the Stokes vector and the Mueller matrix of the six-parameter pBRDF model.
 
 Angles are in degrees: ``theta_i``, ``theta_r`` in [0, 90); ``phi`` is the relative
 azimuth phi_i - phi_r, 180 being the in-plane (specular) geometry.  ``sigma`` is the
@@ -8,11 +8,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import reference
+from . import quantities, reference
 from .engine import BACKENDS, DTYPES, POINT_INPUTS, check_backend, resolve_engine  # noqa: F401 (api.BACKENDS stays)
 
 MODELS = ("six-param", "specular")
-QUANTITIES = ("dop", "brdf", "mueller")
+#: The quantities with a per-point path (the registry, :mod:`pbrdf_cl.quantities`, says more).
+QUANTITIES = quantities.names("points")
 
 
 def _as_array(name, value):
@@ -136,6 +137,8 @@ def validate(theta_i, theta_r, phi, n, k, sigma, ks, kd, c, *, shadowing="paper"
 
 def _evaluate(quantity, theta_i, theta_r, phi, n, k, sigma, ks, kd, c, shadowing, dtype, backend,
               model, engine):
+    q = quantities.get(quantity, "points")
+    quantity = q.name
     eng = resolve_engine(engine, backend)
     fused = eng.checks_domain(quantity)  # the kernel checks the values as it reads them (NaN)
     kw = dict(shadowing=shadowing, dtype=dtype, backend=backend, model=model)
@@ -147,7 +150,7 @@ def _evaluate(quantity, theta_i, theta_r, phi, n, k, sigma, ks, kd, c, shadowing
         inputs = {name: (a if a.size == 1 or a.shape == shape else np.broadcast_to(a, shape))
                   for name, a in arrays.items()}
         out = eng.evaluate(quantity, inputs, shape, dtype=dtype_name, shadowing=shadowing)
-    if not _all_finite(out):
+    if not q.undefined_nan and not _all_finite(out):
         if fused:  # the kernel marks points outside the domain with NaN: name the first
             validate(*args, **kw)
         raise FloatingPointError(
@@ -185,4 +188,37 @@ def mueller(theta_i, theta_r, phi=180.0, *, n, k, sigma, ks=1.0, kd=0.0, c=0.0, 
             dtype="float64", backend="auto", model="six-param", engine=None):
     """The 4x4 Mueller-matrix BRDF in the psps frames (NIST SCATMECH's convention), shape (..., 4, 4)."""
     return _evaluate("mueller", theta_i, theta_r, phi, n, k, sigma, ks, kd, c, shadowing, dtype, backend,
+                     model, engine)
+
+
+def aop(theta_i, theta_r, phi=180.0, *, n, k, sigma, ks=1.0, kd=0.0, c=0.0, shadowing="paper",
+        dtype="float64", backend="auto", model="six-param", engine=None):
+    """Angle of linear polarization of the reflected light for unpolarized incidence, in degrees in
+    (-90, 90]: AoP = atan2(L2, L1) / 2 of the first column L of the Mueller matrix, in the psps frame
+    of the outgoing beam (SCATMECH's; 0 means polarised along s, which is the case in plane, where
+    Rs > Rp).  NaN where the DOP is 0 and the AoP is undefined (e.g. at the specular facet's normal
+    incidence, b = 0).  The diffuse term is unpolarised, so the AoP depends on kd, c only through
+    whether the DOP is 0."""
+    return _evaluate("aop", theta_i, theta_r, phi, n, k, sigma, ks, kd, c, shadowing, dtype, backend,
+                     model, engine)
+
+
+def stokes(theta_i, theta_r, phi=180.0, *, n, k, sigma, ks=1.0, kd=0.0, c=0.0, shadowing="paper",
+           dtype="float64", backend="auto", model="six-param", engine=None):
+    """The Stokes vector (S0, S1, S2, S3) reflected for unpolarized incidence of unit radiance (the
+    Mueller matrix's first column, 1/sr; psps frame of the outgoing beam), shape (..., 4): what a
+    polarization camera measures, up to its radiometric scale.  S0 is F00; S3 is 0 in this model;
+    DOP = sqrt(S1^2 + S2^2) / S0 and AoP = atan2(S2, S1) / 2."""
+    return _evaluate("stokes", theta_i, theta_r, phi, n, k, sigma, ks, kd, c, shadowing, dtype, backend,
+                     model, engine)
+
+
+def evaluate(quantity, theta_i, theta_r, phi=180.0, *, n, k, sigma=None, ks=1.0, kd=0.0, c=0.0,
+             shadowing="paper", dtype="float64", backend="auto", model="six-param", engine=None):
+    """Any quantity of the registry by name ("dop", "brdf" or its alias "f00", "aop", "stokes",
+    "mueller"): the same as calling :func:`dop`, :func:`brdf`, ... with the other arguments."""
+    name = quantities.canonical(quantity, "points")
+    if sigma is None and name == "dop" and model == "specular":
+        sigma = 1.0  # as dop() does
+    return _evaluate(name, theta_i, theta_r, phi, n, k, sigma, ks, kd, c, shadowing, dtype, backend,
                      model, engine)

@@ -210,7 +210,7 @@ def bench_grid(eng, rows, rng, scale, repeats):
         axes["theta_r"] = axes["theta_r"][::4]
         axes["sigma"] = axes["sigma"][::4]
     plan = dense.GridPlan(axes, {})
-    ng, nnk, nm, ni = dense._family_sizes(plan)
+    ng, nnk, nm, ni = dense.family_sizes(plan)
     if eng.is_numpy:  # the reference computes in float64 whatever the dtype
         da = dense.grid(axes, {}, dtype="float64", engine=eng)
         err = _grid_sample_error(da, axes, rng)
@@ -221,9 +221,9 @@ def bench_grid(eng, rows, rng, scale, repeats):
         return
     for dtype in ("float32", "float64"):
         npdt = _engine.DTYPES[dtype]
-        level, row_len = dense._row_level(nnk, nm, ni, ng, 1 << 30)
-        prog = dense._grid_program(eng, dtype, (nnk, nm, ni), "uint", "dop", PB_ROW_LEVEL=level, PB_ROW_LEN=row_len)
-        tables = dense._Tables(eng, dtype, "paper", "dop", *dense._geometry_list(plan, 0, ng), plan.values)
+        level, row_len = dense.row_level(nnk, nm, ni, ng, 1 << 30)
+        prog = dense.grid_program(eng, dtype, (nnk, nm, ni), "uint", "dop", PB_ROW_LEVEL=level, PB_ROW_LEN=row_len)
+        tables = dense.Tables(eng, dtype, "paper", "dop", *dense.geometry_list(plan, 0, ng), plan.values)
         chunk_rows = max(1, (1 << 24) // row_len)
         total_rows = plan.size // row_len
         out = eng.empty(chunk_rows * row_len * np.dtype(npdt).itemsize)

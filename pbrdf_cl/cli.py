@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import api, drivers, engine as _engine
+from . import api, drivers, engine as _engine, quantities
 from .reference import SHADOWING
 
 PARAMS = (("theta_i", None), ("theta_r", None), ("phi", "180"), ("n", None), ("k", None),
@@ -157,25 +157,25 @@ def cmd_eval(args) -> int:
     pos = {n: cols[n] for n in ("theta_i", "theta_r", "phi")}
     par = {n: cols[n] for n in ("n", "k", "sigma", "ks", "kd", "c") if n in cols}
     try:
-        func = {"dop": api.dop, "brdf": api.brdf, "mueller": api.mueller}[args.quantity]
-        result = func(pos["theta_i"], pos["theta_r"], pos["phi"], **par, **kw)
+        q = quantities.get(args.quantity, "points", "--quantity")
+        result = api.evaluate(q.name, pos["theta_i"], pos["theta_r"], pos["phi"], **par, **kw)
     except (ValueError, FloatingPointError, _engine.OpenCLUnavailableError) as exc:
         return _error(exc)
-    out_name = {"dop": "dop", "brdf": "f00", "mueller": "mueller"}[args.quantity]
+    out_name = q.name
     if args.json:
         records = [{**{n: float(cols[n][i]) for n in names},
-                    out_name: result[i].tolist() if args.quantity == "mueller" else float(result[i])}
+                    out_name: result[i].tolist() if q.trailing else float(result[i])}
                    for i in range(len(rows))]
         print(json.dumps(dict(quantity=out_name, shadowing=args.shadowing, dtype=args.dtype,
                               backend="numpy" if kw["engine"].is_numpy else "opencl",
                               device=kw["engine"].description, model=args.model, rows=records), indent=2))
         return 0
     header = [n for n in names]
-    print("  ".join(f"{h:>8s}" for h in header) + "  " + (out_name if args.quantity != "mueller"
-                                                          else "mueller (row-major, 16 values)"))
+    what = {"mueller": "mueller (row-major, 16 values)", "stokes": "stokes (S0 S1 S2 S3)"}.get(out_name, out_name)
+    print("  ".join(f"{h:>8s}" for h in header) + f"  {what} ({q.units})")
     for i in range(len(rows)):
         lead = "  ".join(f"{cols[n][i]:8.4g}" for n in names)
-        if args.quantity == "mueller":
+        if q.trailing:
             val = " ".join(f"{v: .6e}" for v in result[i].ravel())
         else:
             val = f"{result[i]:.8g}"
@@ -305,11 +305,17 @@ def cmd_map(args) -> int:
             maps.save_npz(ds, args.npz)
     except (OSError, ValueError, _engine.OpenCLUnavailableError) as exc:
         return _error(exc)
-    v = ds[args.quantity].values
-    print(f"{args.quantity} over {x[0]} ({x[1].size} points) x {y[0]} ({y[1].size} points): "
+    v = ds[ds.attrs["quantity"]].values
+    print(f"{ds.attrs['quantity']} over {x[0]} ({x[1].size} points) x {y[0]} ({y[1].size} points): "
           f"min {np.nanmin(v):.6g}, max {np.nanmax(v):.6g}")
     print(f"wrote {args.out}" + (f" and {args.npz}" if args.npz else ""))
     return 0
+
+
+def _quantity_choices(path):
+    """The quantity names for ``path``, canonical and aliases (the registry, pbrdf_cl.quantities)."""
+    names = quantities.names(path)
+    return names + tuple(a for a, c in quantities.ALIASES.items() if c in names)
 
 
 def _device_options(parser, where=""):
@@ -328,14 +334,15 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--device", help="mark this device as the one chosen (P:D or a name substring)")
     d.add_argument("--json", action="store_true", help="JSON output")
     d.set_defaults(func=cmd_devices)
-    e = sub.add_parser("eval", help="evaluate DOP, F00 or the Mueller matrix",
+    e = sub.add_parser("eval", help="evaluate DOP, F00, AoP, the Stokes vector or the Mueller matrix",
                        description="Each value option takes a number, a comma list or an inclusive "
                        "start:stop:step range; the output has one row per combination.")
     for name, default in PARAMS:
         unit = " (degrees)" if name in ("theta_i", "theta_r", "phi") else ""
         e.add_argument(f"--{name.replace('_', '-')}", dest=name, metavar="V",
                        help=f"{name}{unit}" + (f", default {default}" if default else ", required"))
-    e.add_argument("--quantity", choices=api.QUANTITIES, default="dop")
+    e.add_argument("--quantity", choices=_quantity_choices("points"), default="dop",
+                   help="AoP in degrees (NaN where undefined), F00 and Stokes in 1/sr")
     e.add_argument("--shadowing", choices=sorted(SHADOWING), default="paper")
     e.add_argument("--model", choices=api.MODELS, default="six-param")
     e.add_argument("--dtype", choices=("float32", "float64"), default="float64")
@@ -386,7 +393,7 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--x", required=True, metavar="NAME=START:STOP:COUNT", help="horizontal axis")
     m.add_argument("--y", required=True, metavar="NAME=START:STOP:COUNT", help="vertical axis")
     m.add_argument("--fix", nargs="*", metavar="NAME=VALUE", help="the other inputs, e.g. theta_i=40 n=1.6")
-    m.add_argument("--quantity", choices=("dop", "f00"), default="dop")
+    m.add_argument("--quantity", choices=_quantity_choices("map"), default="dop")
     m.add_argument("--derivative", metavar="NAME",
                    help="add a panel with d(quantity)/d(NAME): finite differences on the device grid")
     m.add_argument("--dtype", choices=("float32", "float64"), default="float64")

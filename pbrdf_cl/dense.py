@@ -6,14 +6,17 @@ The Cartesian product is never materialised on the host.  The model factorises a
     DOP = (Rs - Rp) / (Rs + Rp + 2 fd / K),    F00 = K (Rs + Rp) / 2 + fd,
 
 with Rs +- Rp depending on (geometry, n, k), K on (geometry, sigma, ks) and fd on
-(geometry, kd, c).  These tables are computed once by ``kernels/pbrdf_tables.cl`` (with the
-device functions of ``pbrdf.h``) and combined per grid point by ``kernels/pbrdf_grid.cl``,
-which decodes the flat grid index itself.  Grids whose device memory would exceed
+(geometry, kd, c); AoP and the Stokes vector also need the outgoing frame's rotation, which
+depends on the geometry alone.  These tables are computed once by ``kernels/pbrdf_tables.cl``
+(with the device functions of ``pbrdf.h``) and combined per grid point by
+``kernels/pbrdf_grid.cl`` (``pb_grid_<quantity>``), which decodes the flat grid index itself.
+What each quantity needs (which tables, its width, units) is its record in
+:mod:`pbrdf_cl.quantities`.  Grids whose device memory would exceed
 ``memory_budget`` bytes run in chunks.
 
 On the numpy backend (:class:`pbrdf_cl.engine.NumpyEngine`) the same tables are built with the
 functions of ``reference.py`` (:class:`_NumpyTables`, the mirror of ``pbrdf_tables.cl``) and
-combined with ``reference.dop_combine`` / ``brdf_combine`` over boxes of the grid, each within
+combined with ``reference.grid_<quantity>`` over boxes of the grid, each within
 the same ``memory_budget``; values are float64 whatever ``dtype`` asks for, then cast to it.
 
 Axes are ordered canonically: theta_i, theta_r, phi, n, k, sigma, ks, kd, c.
@@ -24,7 +27,7 @@ import time
 
 import numpy as np
 
-from . import api, reference
+from . import api, quantities, reference
 from .engine import DTYPES, aligned_empty, resolve_engine
 
 AXES = ("theta_i", "theta_r", "phi", "n", "k", "sigma", "ks", "kd", "c")
@@ -36,7 +39,8 @@ LONG_NAMES = {"theta_i": "incidence zenith angle", "theta_r": "reflection zenith
               "sigma": "slope standard deviation per axis", "ks": "specular weight", "kd": "diffuse weight",
               "c": "Minnaert exponent"}
 DEFAULTS = {"phi": 180.0, "ks": 1.0, "kd": 0.0, "c": 0.0}
-QUANTITIES = {"dop": "degree of polarization", "f00": "BRDF F00 (1/sr)"}
+#: The quantities with a grid path: name -> long name (the registry, :mod:`pbrdf_cl.quantities`, says more).
+QUANTITIES = {n: quantities.REGISTRY[n].long_name for n in quantities.names("grid")}
 DEFAULT_BUDGET = 1 << 30
 #: Family (0 geometry, 1 n-k, 2 sigma-ks, 3 kd-c) of each canonical axis.
 FAMILY = {"theta_i": 0, "theta_r": 0, "phi": 0, "n": 1, "k": 1, "sigma": 2, "ks": 2, "kd": 3, "c": 3}
@@ -105,11 +109,13 @@ class GridPlan:
                 for n in self.axis_names}
 
 
-class _Tables:
+class Tables:
     """Device tables of the factorised model for a geometry list and parameter axes."""
 
     def __init__(self, engine, dtype, shadowing, quantity, ti, tr, ph, v):
-        """Tables laid out geometry by geometry: table[g * n_params + param]."""
+        """Tables laid out geometry by geometry: table[g * n_params + param]; the factors and
+        the frame table as the registry's record of ``quantity`` says."""
+        q = quantities.get(quantity)
         kern = engine.program("pbrdf_tables.cl", dtype, {"PBRDF_SHADOWING": api.reference.SHADOWING[shadowing]})
         npdt = DTYPES[dtype]
         ng = ti.size
@@ -123,16 +129,18 @@ class _Tables:
             return bufs
 
         self.sum, self.diff = table("fresnel_table", 2, v["n"], v["k"])
-        dop = quantity == "dop"
-        self.scale, = table("scale_table", 1, v["sigma"], v["ks"], npdt(-1.0 if dop else 1.0))
-        self.dif, = table("diffuse_table", 1, v["kd"], v["c"], npdt(2.0 if dop else 1.0))
+        self.scale, = table("scale_table", 1, v["sigma"], v["ks"], npdt(q.scale_sign))
+        self.dif, = table("diffuse_table", 1, v["kd"], v["c"], npdt(q.diffuse_factor))
+        self.frame = engine.empty(2 * ng * np.dtype(npdt).itemsize if q.frame else 1)
+        if q.frame:
+            engine.launch(kern["frame_table"], (ng,), self.frame, np.int32(ng), *geo)
 
     def args(self):
-        return self.sum, self.diff, self.scale, self.dif
+        return self.sum, self.diff, self.scale, self.dif, self.frame
 
 
 class _NumpyTables:
-    """The tables of :class:`_Tables` computed with ``reference.py`` in float64 (the mirror of
+    """The tables of :class:`Tables` computed with ``reference.py`` in float64 (the mirror of
     ``kernels/pbrdf_tables.cl``): ``sum``, ``diff`` (ng, n_n * n_k), ``scale`` (ng, n_sigma * n_ks),
     ``dif`` (ng, n_kd * n_c), and :meth:`combine`, the per-point step of ``pbrdf_grid.cl``."""
 
@@ -140,6 +148,9 @@ class _NumpyTables:
     BYTES_PER_POINT = 32
 
     def __init__(self, shadowing, quantity, ti, tr, ph, v):
+        q = quantities.get(quantity)
+        self.combine_fn = getattr(reference, f"grid_{q.name}")
+        self.width = q.width
         variant = reference.SHADOWING[shadowing]
         g = reference.geometry(np.asarray(ti, float)[:, None], np.asarray(tr, float)[:, None],
                                np.asarray(ph, float)[:, None])
@@ -155,16 +166,14 @@ class _NumpyTables:
         self.sum, self.diff = full(f.Rs + f.Rp, nn.size), full(f.diff, nn.size)
         sigma, ks = pairs(v["sigma"], v["ks"])
         log_k = reference.log_specular_scale(g, sigma, ks, reference.shadowing_factor(g, sigma, variant))
-        self.dop = quantity == "dop"
         with np.errstate(over="ignore"):
-            self.scale = full(np.exp(-log_k if self.dop else log_k), sigma.size)
+            self.scale = full(np.exp(q.scale_sign * log_k), sigma.size)
         kd, c = pairs(v["kd"], v["c"])
-        self.dif = full((2.0 if self.dop else 1.0) * reference.diffuse(g, kd, c), kd.size)
+        self.dif = full(q.diffuse_factor * reference.diffuse(g, kd, c), kd.size)
+        self.C, self.S = reference.out_rotation2(g, np.asarray(ph, float)[:, None]) if q.frame else (1.0, 0.0)
 
-    def combine(self, sum_, diff, dif, scale):
-        if self.dop:
-            return reference.dop_combine(sum_, diff, dif, scale)
-        return reference.brdf_combine(sum_, scale, dif)
+    def combine(self, sum_, diff, dif, scale, C=1.0, S=0.0):
+        return self.combine_fn(sum_, diff, dif, scale, C, S)
 
     def box(self, geo_shape, sizes, box):
         """Values over ``box`` (slices over the geometry dims ``geo_shape`` then n, k, sigma, ks,
@@ -182,7 +191,10 @@ class _NumpyTables:
         diff = part(self.diff, n_n, n_k, 0)
         scale = part(self.scale, n_s, n_ks, 2)
         dif = part(self.dif, n_kd, n_c, 4)
-        return self.combine(sum_, diff, dif, scale)
+        C, S = self.C, self.S
+        if not np.isscalar(C):  # (ng, 1) over the geometry dims of the box
+            C, S = (t.reshape(tuple(geo_shape) + (1,) * 6)[gsl] for t in (C, S))
+        return self.combine(sum_, diff, dif, scale, C, S)
 
 
 def _boxes(shape, max_elems):
@@ -213,22 +225,24 @@ def _param_sizes(plan):
 
 
 def _numpy_grid_blocks(plan, quantity, dtype, shadowing, memory_budget, progress, out):
-    """:func:`_grid_blocks` on the numpy backend: geometry rows in blocks whose float64 tables
+    """:func:`grid_blocks` on the numpy backend: geometry rows in blocks whose float64 tables
     take at most half of ``memory_budget``, each block's grid in boxes within the other half."""
-    ng, nnk, nm, ni = _family_sizes(plan)
+    ng, nnk, nm, ni = family_sizes(plan)
     sizes = _param_sizes(plan)
     per_g = nnk * nm * ni
     table_row, rows = _geometry_rows(plan, memory_budget, 8, _NumpyTables.BYTES_PER_POINT)
     bar = _progress(plan.size, progress, f"grid {quantity} (numpy)")
+    width = quantities.get(quantity).width
     for g0 in range(0, ng, rows):
         g1 = min(ng, g0 + rows)
-        tables = _NumpyTables(shadowing, quantity, *_geometry_list(plan, g0, g1), plan.values)
-        room = (memory_budget - (g1 - g0) * table_row) // _NumpyTables.BYTES_PER_POINT
+        tables = _NumpyTables(shadowing, quantity, *geometry_list(plan, g0, g1), plan.values)
+        room = (memory_budget - (g1 - g0) * table_row) // (_NumpyTables.BYTES_PER_POINT * width)
         for start, box in _boxes((g1 - g0,) + sizes, room):
             values = tables.box((g1 - g0,), sizes, box)
-            count = values.size
+            count = values.size // width
             start += g0 * per_g
-            host = out[start:start + count] if out is not None else np.empty(count, dtype=DTYPES[dtype])
+            host = (out[start * width:(start + count) * width] if out is not None
+                    else np.empty(count * width, dtype=DTYPES[dtype]))
             host[...] = values.reshape(-1)
             if bar is not None:
                 bar.update(count)
@@ -240,12 +254,19 @@ def _numpy_grid_blocks(plan, quantity, dtype, shadowing, memory_budget, progress
 def _geometry_rows(plan, memory_budget, itemsize, point_bytes):
     """(bytes of one geometry row's tables, geometry rows per block): the tables of a block take at
     most half of ``memory_budget``, the other half holds at least 64 points of ``point_bytes``."""
-    ng, nnk, nm, ni = _family_sizes(plan)
-    table_row = (2 * nnk + nm + ni) * itemsize
+    ng, nnk, nm, ni = family_sizes(plan)
+    table_row = table_bytes(1, nnk, nm, ni, itemsize)
     if memory_budget < 2 * table_row + 64 * point_bytes:
         raise ValueError(f"memory_budget={memory_budget} bytes is too small for one geometry row's tables "
                          f"({table_row} bytes); raise it")
     return table_row, int(max(1, min(ng, (memory_budget // 2) // table_row)))
+
+
+def table_bytes(n_geometries, nnk, nm, ni, itemsize):
+    """Bytes of the factor tables for ``n_geometries`` geometries (or measurements) and family sizes
+    nnk (n x k), nm (sigma x ks), ni (kd x c): the Fresnel sum and difference, the scale, the diffuse
+    term and the frame rotation (C, S) per geometry."""
+    return int(n_geometries) * (2 * nnk + nm + ni + 2) * int(itemsize)
 
 
 def _table_itemsize(eng, npdt):
@@ -253,7 +274,7 @@ def _table_itemsize(eng, npdt):
     return 8 if eng.is_numpy else np.dtype(npdt).itemsize
 
 
-def _geometry_list(plan, g0, g1):
+def geometry_list(plan, g0, g1):
     """The (theta_i, theta_r, phi) triples of geometry rows g0..g1 (row-major over the three axes)."""
     g = np.arange(g0, g1)
     n_tr, n_ph = plan.sizes["theta_r"], plan.sizes["phi"]
@@ -261,18 +282,18 @@ def _geometry_list(plan, g0, g1):
             plan.values["phi"][g % n_ph])
 
 
-def _family_sizes(plan):
+def family_sizes(plan):
     """Sizes of the families (geometry, n-k, sigma-ks, kd-c); an axis the plan lacks counts 1."""
     s = {n: plan.sizes.get(n, 1) for n in AXES}
     return (s["theta_i"] * s["theta_r"] * s["phi"], s["n"] * s["k"], s["sigma"] * s["ks"], s["kd"] * s["c"])
 
 
-def _grid_program(eng, dtype, sizes, idx_name, quantity, prefix="", **extra):
-    """The kernels of pbrdf_grid.cl for family sizes (nnk, nm, ni), index type and quantity;
-    ``extra`` are further -D defines (None: defined without a value)."""
+def grid_program(eng, dtype, sizes, idx_name, quantity, prefix="", **extra):
+    """The kernels of pbrdf_grid.cl for family sizes (nnk, nm, ni), index type and quantity (its
+    registry record's defines); ``extra`` are further -D defines (None: defined without a value)."""
     nnk, nm, ni = sizes
     defines = {"PB_NNK": nnk, "PB_NM": nm, "PB_NI": ni, "PB_INDEX": idx_name,
-               "PB_DOP" if quantity == "dop" else "PB_F00": None, **extra}
+               **quantities.get(quantity).defines(), **extra}
     return eng.program("pbrdf_grid.cl", dtype, defines, prefix)
 
 
@@ -280,9 +301,9 @@ def _index_type(total):
     return ("uint", np.uint32) if total < 2 ** 32 - 2 else ("ulong", np.uint64)
 
 
-def _check_quantity(quantity):
-    if quantity not in QUANTITIES:
-        raise ValueError(f"quantity must be one of {sorted(QUANTITIES)}, got {quantity!r}")
+def _check_quantity(quantity, path="grid"):
+    """The registry's record of ``quantity`` (name or alias), or a ``ValueError`` unless it has ``path``."""
+    return quantities.get(quantity, path)
 
 
 def _progress(total, enabled, desc):
@@ -297,7 +318,8 @@ def _progress(total, enabled, desc):
 
 def grid(axes, fixed=None, quantity="dop", dtype="float32", shadowing="paper", *, engine=None, backend="auto",
          memory_budget=DEFAULT_BUDGET, progress=False):
-    """Evaluate ``quantity`` ("dop" or "f00") over the Cartesian product of ``axes``.
+    """Evaluate ``quantity`` ("dop", "brdf" (alias "f00"), "aop" or "stokes") over the Cartesian
+    product of ``axes``.
 
     Parameters
     ----------
@@ -312,22 +334,26 @@ def grid(axes, fixed=None, quantity="dop", dtype="float32", shadowing="paper", *
 
     Returns
     -------
-    xarray.DataArray with the axes as dimensions in canonical order, labelled coordinates with
-    units, and the fixed values, quantity, shadowing and dtype in ``attrs``.
+    xarray.DataArray with the axes as dimensions in canonical order (then "stokes", S0..S3, for
+    the Stokes vector), labelled coordinates with units, and the fixed values, quantity,
+    shadowing and dtype in ``attrs``.  The AoP is NaN where it is undefined (DOP = 0).
     """
     import xarray as xr
 
-    _check_quantity(quantity)
+    q = _check_quantity(quantity)
     dtype = api.check_options(shadowing, dtype)
     plan = GridPlan(axes, fixed)
     eng = resolve_engine(engine, backend)
-    out = aligned_empty(plan.size, DTYPES[dtype])  # page-aligned: written in place by any CPU driver
-    for _ in _grid_blocks(eng, plan, quantity, dtype, shadowing, memory_budget, progress, out=out):
+    out = aligned_empty(plan.size * q.width, DTYPES[dtype])  # page-aligned: written in place by any CPU driver
+    for _ in grid_blocks(eng, plan, q.name, dtype, shadowing, memory_budget, progress, out=out):
         pass  # each block is copied straight into its slice of out
-    attrs = dict(quantity=quantity, long_name=QUANTITIES[quantity], units="1" if quantity == "dop" else "1/sr",
-                 shadowing=shadowing, dtype=dtype, **plan.fixed_attrs())
-    return xr.DataArray(out.reshape(plan.shape), coords=plan.coords(), dims=plan.axis_names, name=quantity,
-                        attrs=attrs)
+    attrs = dict(quantity=q.name, long_name=q.long_name, units=q.units, shadowing=shadowing, dtype=dtype,
+                 **plan.fixed_attrs())
+    coords, dims = plan.coords(), plan.axis_names
+    if q.components:
+        coords[q.name] = list(q.components)
+        dims = dims + (q.name,)
+    return xr.DataArray(out.reshape(plan.shape + q.trailing), coords=coords, dims=dims, name=q.name, attrs=attrs)
 
 
 #: Rows shorter than this leave the vector units idle; longer ones than ROW_MAX use too much
@@ -335,7 +361,7 @@ def grid(axes, fixed=None, quantity="dop", dtype="float32", shadowing="paper", *
 ROW_MIN, ROW_MAX = 16, 4096
 
 
-def _row_level(nnk, nm, ni, ng, chunk, max_level=3):
+def row_level(nnk, nm, ni, ng, chunk, max_level=3):
     """(level, row length) for the row kernels, or (0, 1) for the one-point-per-work-item kernels."""
     for level, length, n_rows in ((1, ni, ng * nnk * nm), (2, nm * ni, ng * nnk), (3, nnk * nm * ni, ng)):
         if level > max_level:
@@ -347,29 +373,31 @@ def _row_level(nnk, nm, ni, ng, chunk, max_level=3):
     return 0, 1
 
 
-def _grid_blocks(eng, plan, quantity, dtype, shadowing, memory_budget, progress=False, out=None):
+def grid_blocks(eng, plan, quantity, dtype, shadowing, memory_budget, progress=False, out=None):
     """Yield (flat start, values) chunks of the grid in order, each within ``memory_budget``;
     with ``out`` (the whole flat grid) the values land in, and are views of, its slices."""
     if eng.is_numpy:
         yield from _numpy_grid_blocks(plan, quantity, dtype, shadowing, memory_budget, progress, out)
         return
+    width = quantities.get(quantity).width
     itemsize = np.dtype(DTYPES[dtype]).itemsize
-    ng, nnk, nm, ni = _family_sizes(plan)
+    ng, nnk, nm, ni = family_sizes(plan)
     per_g = nnk * nm * ni  # grid points per geometry row
-    table_row, rows = _geometry_rows(plan, memory_budget, itemsize, itemsize)
-    chunk = int(max(64, min((memory_budget - rows * table_row) // itemsize, 2 ** 31 - 1)))
+    table_row, rows = _geometry_rows(plan, memory_budget, itemsize, itemsize * width)
+    chunk = int(max(64, min((memory_budget - rows * table_row) // (itemsize * width), 2 ** 31 // width - 1)))
     idx_name, idx_np = _index_type(plan.size)
-    level, row_len = _row_level(nnk, nm, ni, ng, chunk)
-    prog = _grid_program(eng, dtype, (nnk, nm, ni), idx_name, quantity, PB_ROW_LEVEL=level, PB_ROW_LEN=row_len)
+    level, row_len = row_level(nnk, nm, ni, ng, chunk)
+    prog = grid_program(eng, dtype, (nnk, nm, ni), idx_name, quantity, PB_ROW_LEVEL=level, PB_ROW_LEN=row_len)
     kern = prog["grid_rows" if level else "grid_values"]
     chunk = chunk // row_len * row_len
     bar = _progress(plan.size, progress, f"grid {quantity}")
     for g0 in range(0, ng, rows):
         g1 = min(ng, g0 + rows)
-        tables = _Tables(eng, dtype, shadowing, quantity, *_geometry_list(plan, g0, g1), plan.values)
+        tables = Tables(eng, dtype, shadowing, quantity, *geometry_list(plan, g0, g1), plan.values)
         for start in range(g0 * per_g, g1 * per_g, chunk):
             count = min(chunk, g1 * per_g - start)
-            host = out[start:start + count] if out is not None else np.empty(count, dtype=DTYPES[dtype])
+            host = (out[start * width:(start + count) * width] if out is not None
+                    else np.empty(count * width, dtype=DTYPES[dtype]))
             buf, done = eng.output(host)  # on a CPU device the kernel writes into host itself
             if level:
                 eng.launch(kern, (count // row_len,), buf, idx_np(start // row_len), idx_np(count // row_len),
@@ -391,8 +419,10 @@ def reduce_grid(axes, fixed=None, over=(), quantity="dop", dtype="float32", shad
 
     Returns an ``xarray.Dataset`` over the remaining axes with variables ``min``, ``mean`` and,
     for each reduced axis, ``argmin_<axis>`` (that axis' coordinate value at the minimum).
+    Quantities whose registry record refuses reductions (the AoP: an angle; the Stokes vector)
+    raise a ``ValueError`` saying why.
     """
-    _check_quantity(quantity)
+    quantity = _check_quantity(quantity, "reduce").name
     dtype = api.check_options(shadowing, dtype)
     plan = GridPlan(axes, fixed)
     over = (over,) if isinstance(over, str) else tuple(over)
@@ -404,10 +434,10 @@ def reduce_grid(axes, fixed=None, over=(), quantity="dop", dtype="float32", shad
     eng = resolve_engine(engine, backend)
     npdt = DTYPES[dtype]
     itemsize = _table_itemsize(eng, npdt)
-    ng, nnk, nm, ni = _family_sizes(plan)
-    table_bytes = ng * (2 * nnk + nm + ni) * itemsize
-    if table_bytes > memory_budget // 2:
-        raise ValueError(f"the model's tables for this grid need {table_bytes} bytes, more than half of "
+    ng, nnk, nm, ni = family_sizes(plan)
+    tables_size = table_bytes(ng, nnk, nm, ni, itemsize)
+    if tables_size > memory_budget // 2:
+        raise ValueError(f"the model's tables for this grid need {tables_size} bytes, more than half of "
                          f"memory_budget={memory_budget}; raise the budget or split the geometry axes")
     s = plan.sizes
     coef = {"theta_i": s["theta_r"] * s["phi"], "theta_r": s["phi"], "phi": 1, "n": s["k"], "k": 1,
@@ -417,7 +447,7 @@ def reduce_grid(axes, fixed=None, over=(), quantity="dop", dtype="float32", shad
     red_total = int(np.prod([s[n] for n in red], dtype=np.int64))
     out_total = int(np.prod([s[n] for n in kept], dtype=np.int64))
     if eng.is_numpy:
-        vmin, vmean, varg = _numpy_reduce(plan, red, quantity, shadowing, memory_budget - table_bytes)
+        vmin, vmean, varg = _numpy_reduce(plan, red, quantity, shadowing, memory_budget - tables_size)
         return _reduce_result(plan, over, kept, red, vmin.astype(npdt), vmean, varg, quantity, shadowing, dtype)
     idx_name, idx_np = _index_type(max(plan.size, red_total))
 
@@ -428,8 +458,8 @@ def reduce_grid(axes, fixed=None, over=(), quantity="dop", dtype="float32", shad
               + arr("PB_KEPT_SIZE", [s[n] for n in kept]) + arr("PB_KEPT_FAM", [FAMILY[n] for n in kept])
               + arr("PB_KEPT_COEF", [coef[n] for n in kept]) + arr("PB_RED_SIZE", [s[n] for n in red])
               + arr("PB_RED_FAM", [FAMILY[n] for n in red]) + arr("PB_RED_COEF", [coef[n] for n in red]))
-    prog = _grid_program(eng, dtype, (nnk, nm, ni), idx_name, quantity, prefix)
-    tables = _Tables(eng, dtype, shadowing, quantity, *_geometry_list(plan, 0, ng), plan.values)
+    prog = grid_program(eng, dtype, (nnk, nm, ni), idx_name, quantity, prefix)
+    tables = Tables(eng, dtype, shadowing, quantity, *geometry_list(plan, 0, ng), plan.values)
     n_part = int(min(red_total, max(1, 16384 // max(out_total, 1))))
     per_out = n_part * (2 * itemsize + np.dtype(idx_np).itemsize)
     o_chunk = int(max(1, min(out_total, (memory_budget // 2) // per_out, 2 ** 31 // n_part)))
@@ -461,7 +491,7 @@ def _numpy_reduce(plan, red, quantity, shadowing, room):
     red_ax = tuple(AXES.index(n) for n in red)
     kept_ax = tuple(i for i in range(len(AXES)) if i not in red_ax)
     red_shape = tuple(shape[i] for i in red_ax)
-    tables = _NumpyTables(shadowing, quantity, *_geometry_list(plan, 0, _family_sizes(plan)[0]), plan.values)
+    tables = _NumpyTables(shadowing, quantity, *geometry_list(plan, 0, family_sizes(plan)[0]), plan.values)
     kept_shape = tuple(shape[i] for i in kept_ax)
     vmin = np.full(kept_shape, np.inf)
     vsum = np.zeros(kept_shape)
@@ -573,21 +603,21 @@ def objective(data, grid=None, points=None, *, k_best=10, dtype="float32", shado
     fixed = {n: v for n, v in grid.items() if np.ndim(v) == 0}
     plan = GridPlan(axes, fixed, names=PARAMETERS, defaults={"ks": 1.0, "kd": 0.0, "c": 0.0})
     v = plan.values
-    _, nnk, nm, ni = _family_sizes(plan)
-    table_bytes = M * (2 * nnk + nm + ni) * itemsize
-    if table_bytes > memory_budget // 2:
-        raise ValueError(f"the objective's tables need {table_bytes} bytes, more than half of "
+    _, nnk, nm, ni = family_sizes(plan)
+    tables_size = table_bytes(M, nnk, nm, ni, itemsize)
+    if tables_size > memory_budget // 2:
+        raise ValueError(f"the objective's tables need {tables_size} bytes, more than half of "
                          f"memory_budget={memory_budget}; raise it or use fewer n, k values")
     P = plan.size
     sse = np.empty(P, npdt) if return_sse else None
     best_idx, best_sse = np.empty(0, np.int64), np.empty(0, npdt)
     bar = _progress(P, progress, "objective")
     if eng.is_numpy:
-        blocks = _numpy_objective_blocks(plan, (ti, tr, ph, obs, w), shadowing, memory_budget - table_bytes,
+        blocks = _numpy_objective_blocks(plan, (ti, tr, ph, obs, w), shadowing, memory_budget - tables_size,
                                          sse, npdt)
     else:
         blocks = _device_objective_blocks(eng, plan, (ti, tr, ph, obs, w), dtype, shadowing,
-                                          memory_budget - table_bytes, sse)
+                                          memory_budget - tables_size, sse)
     for start, host in blocks:  # host: the block's slice of sse (or a temporary without it)
         count = host.size
         best_idx, best_sse = _update_best(best_idx, best_sse, np.arange(start, start + count), host, k_best)
@@ -636,15 +666,15 @@ def _device_objective_blocks(eng, plan, meas, dtype, shadowing, room, out):
     v = plan.values
     npdt = DTYPES[dtype]
     itemsize = np.dtype(npdt).itemsize
-    _, nnk, nm, ni = _family_sizes(plan)
+    _, nnk, nm, ni = family_sizes(plan)
     P = plan.size
     idx_name, idx_np = _index_type(P)
     chunk = int(max(64, min(room // itemsize, 2 ** 31 - 1)))
-    level, row_len = _row_level(nnk, nm, ni, 1, chunk, max_level=2)
-    prog = _grid_program(eng, dtype, (nnk, nm, ni), idx_name, "dop", PB_OBJECTIVE=None, PB_ROW_LEVEL=level,
+    level, row_len = row_level(nnk, nm, ni, 1, chunk, max_level=2)
+    prog = grid_program(eng, dtype, (nnk, nm, ni), idx_name, "dop", PB_OBJECTIVE=None, PB_ROW_LEVEL=level,
                          PB_ROW_LEN=row_len)
     chunk = max(row_len, chunk // row_len * row_len)
-    tables = _Tables(eng, dtype, shadowing, "dop", ti, tr, ph, v)
+    tables = Tables(eng, dtype, shadowing, "dop", ti, tr, ph, v)
     bobs, bw = eng.to_device(obs, dtype), eng.to_device(w, dtype)
     for start in range(0, P, chunk):
         count = min(chunk, P - start)

@@ -42,7 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import drivers, reference
+from . import drivers, quantities, reference
 
 drivers.register_pip_drivers()  # before the first OpenCL call of this process
 
@@ -513,6 +513,8 @@ class NumpyEngine:
 
     def __init__(self, reason=""):
         self.reason = reason
+        #: held by callers that want one computation at a time on this engine (e.g. a sweep's chunk)
+        self.lock = threading.RLock()
 
     def __repr__(self):
         return "NumpyEngine(float64 reference" + (f"; {self.reason}" if self.reason else "") + ")"
@@ -526,8 +528,9 @@ class NumpyEngine:
 
     def evaluate(self, quantity, inputs, shape, dtype="float64", shadowing="paper"):
         """As :meth:`Engine.evaluate`, with the reference."""
-        extra = (4, 4) if quantity == "mueller" else ()
-        out = np.asarray(reference.evaluate(quantity, *(np.asarray(inputs[n], dtype=np.float64)
+        q = quantities.get(quantity, "points")
+        extra = q.trailing
+        out = np.asarray(reference.evaluate(q.name, *(np.asarray(inputs[n], dtype=np.float64)
                                                          for n in POINT_INPUTS), shadowing=shadowing))
         lead = out.shape[:out.ndim - len(extra)]
         if lead != tuple(shape):  # every input a single value: one point, broadcast to the shape
@@ -565,6 +568,10 @@ class Engine:
         self.vectorise = True
         self._kernels = {}
         self._last_event = None
+        #: held around building programs and around setting a kernel's arguments and enqueueing it
+        #: (a cl.Kernel holds its arguments, and the kernels are shared); re-entrant, so a caller may
+        #: hold it across a whole computation
+        self.lock = threading.RLock()
 
     def __repr__(self):
         return (f"Engine(device={self.device.name.strip()!r}, "
@@ -580,6 +587,10 @@ class Engine:
         ``prefix`` source text prepended), as a dict name -> ``cl.Kernel``; built once per key."""
         defines = dict(defines or {})
         key = (filename, dtype, tuple(sorted(defines.items())), prefix)
+        with self.lock:
+            return self._program(key, filename, dtype, defines, prefix)
+
+    def _program(self, key, filename, dtype, defines, prefix):
         if key not in self._kernels:
             if dtype == "float64" and not self.fp64:
                 raise ValueError(f"dtype='float64': device {self.device.name.strip()!r} has no float64 "
@@ -593,23 +604,27 @@ class Engine:
             self._kernels[key] = {k.function_name: k for k in program.all_kernels()}
         return self._kernels[key]
 
-    def kernel(self, name: str, dtype: str, shadowing: str):
+    def kernel(self, name: str, dtype: str, shadowing: str, quantity=None):
         """The ``cl.Kernel`` ``name`` of ``pbrdf_points.cl`` for this precision and variant (built once);
-        names ending in ``_vec`` come from the vector build (``VECTOR_WIDTH`` points per work-item)."""
+        names ending in ``_vec`` come from the vector build (``VECTOR_WIDTH`` points per work-item);
+        ``quantity_points`` is built for the registry's ``quantity`` (its name)."""
         defines = {"PBRDF_SHADOWING": reference.SHADOWING[shadowing]}
         if name.endswith("_vec"):
             defines["PB_VECTOR_REAL"] = VECTOR_WIDTH[dtype]
+        if quantity is not None:
+            defines.update(quantities.get(quantity, "points").defines())
         return self.program("pbrdf_points.cl", dtype, defines)[name]
 
     def launch(self, kernel, global_size, *args, local_size=None):
         """Set ``args`` and enqueue ``kernel`` over ``global_size`` (padded up to a multiple of
         ``local_size`` when one is given: kernels check their bounds); returns the event."""
-        kernel.set_args(*args)
         global_size = tuple(int(g) for g in global_size)
         if local_size is not None:
             local_size = tuple(int(v) for v in local_size)
             global_size = tuple(-(-g // v) * v for g, v in zip(global_size, local_size))
-        self._last_event = cl.enqueue_nd_range_kernel(self.queue, kernel, global_size, local_size)
+        with self.lock:  # the arguments are the kernel object's until the enqueue has taken them
+            kernel.set_args(*args)
+            self._last_event = cl.enqueue_nd_range_kernel(self.queue, kernel, global_size, local_size)
         return self._last_event
 
     def to_device(self, array, dtype):
@@ -627,12 +642,12 @@ class Engine:
 
     def checks_domain(self, quantity):
         """Whether :meth:`evaluate`'s kernel for ``quantity`` checks the inputs' domain itself (the
-        vector kernels of DOP and F00 write NaN for a point outside it), so that the caller need
-        not read the inputs beforehand, only check the result."""
-        return quantity in ("dop", "brdf") and self.vectorise
+        vector kernels, of the quantities the registry marks ``vector``, write NaN for a point
+        outside it), so that the caller need not read the inputs beforehand, only check the result."""
+        return quantities.get(quantity, "points").vector and self.vectorise
 
     def evaluate(self, quantity: str, inputs: dict, shape, dtype="float64", shadowing="paper"):
-        """Evaluate ``quantity`` ("dop", "brdf", "mueller") element-wise.
+        """Evaluate ``quantity`` (a name of the registry, :mod:`pbrdf_cl.quantities`) element-wise.
 
         ``inputs`` maps each name of :data:`POINT_INPUTS` to an array of ``shape`` (any float
         dtype, any strides: a broadcast view is read launch by launch, never expanded whole) or of
@@ -641,17 +656,20 @@ class Engine:
         in place and write straight into the returned array (host-pointer buffers); other inputs
         are converted one launch at a time, so memory beyond the inputs and the result stays
         within a launch's worth.  Where :meth:`checks_domain`, a point outside the model's domain
-        gets NaN; no other validation here.
+        gets NaN; no other validation here.  The result has the quantity's trailing axes
+        (``shape + (4, 4)`` for "mueller", ``shape + (4,)`` for "stokes").
         """
         npdt = np.dtype(DTYPES[dtype])
-        vec = self.checks_domain(quantity)
+        q = quantities.get(quantity, "points")
+        vec = self.checks_domain(q.name)
         lanes = VECTOR_WIDTH[dtype] if vec else 1
-        kern = self.kernel(f"{quantity}_points" + ("_vec" if vec else ""), dtype, shadowing)
+        kern = (self.kernel(f"{q.name}_points_vec", dtype, shadowing) if vec
+                else self.kernel("quantity_points", dtype, shadowing, q.name))
         size = int(np.prod(shape, dtype=np.int64))
-        width = 16 if quantity == "mueller" else 1
+        width = q.width
         out = aligned_empty(size * width, npdt)  # page-aligned: every driver writes it in place
         if size == 0:
-            return out.reshape(tuple(shape) + ((4, 4) if width == 16 else ()))
+            return out.reshape(tuple(shape) + q.trailing)
         host = self.host_memory
         flat = {}
         for name in POINT_INPUTS:
@@ -694,7 +712,7 @@ class Engine:
                 self._launch_points(kern, parts_of(start + whole, start + count, padded), padded, tmp, npdt, lanes,
                                     vec, host)
                 out[(start + whole) * width:(start + count) * width] = tmp[:tail * width]
-        return out.reshape(tuple(shape) + ((4, 4) if width == 16 else ()))
+        return out.reshape(tuple(shape) + q.trailing)
 
     def _input_buffer(self, a, npdt, host):
         """A read-only buffer of the contiguous 1-d array ``a`` of ``npdt``: over ``a`` itself on a

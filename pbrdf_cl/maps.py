@@ -1,6 +1,6 @@
 """Two-axis maps of the model from the dense-grid engine: values, derivatives, figures, data.
 
-A map is the model (DOP or F00) over the Cartesian product of two axes ``x`` and ``y`` with
+A map is the model (any quantity of the registry with a map path: DOP, F00, AoP) over the Cartesian product of two axes ``x`` and ``y`` with
 every other input fixed, computed on the OpenCL device by :func:`pbrdf_cl.grid`.  A derivative
 along one of the map's axes is a finite difference on that same device grid (second order,
 ``numpy.gradient`` with the axis' coordinates); a derivative along a fixed input is a central
@@ -12,7 +12,7 @@ import json
 
 import numpy as np
 
-from . import api, dense
+from . import api, dense, quantities
 from .engine import resolve_engine
 from .plots import _pyplot
 
@@ -21,7 +21,8 @@ LABELS = {"theta_i": "incidence zenith angle theta_i (deg)", "theta_r": "reflect
           "phi": "relative azimuth phi (deg, 180 = in plane)", "n": "refractive index n",
           "k": "extinction coefficient k", "sigma": "slope std per axis sigma", "ks": "specular weight ks",
           "kd": "diffuse weight kd", "c": "Minnaert exponent c"}
-QUANTITY_LABELS = {"dop": "DOP", "f00": "F00 (1/sr)"}
+#: Colour-bar labels of the quantities that have maps (from the registry).
+QUANTITY_LABELS = {n: quantities.REGISTRY[n].label for n in quantities.names("map")}
 #: Relative step of the central difference along a fixed input.
 FD_STEP = 1e-4
 
@@ -91,15 +92,18 @@ def make_map(x, y, fixed=None, quantity="dop", derivative=None, *, dtype="float6
     ----------
     x, y : ``"name=start:stop:count"`` strings or (name, values) pairs (degrees for angles)
     fixed : dict name -> value for the other inputs (phi, ks, kd, c default to 180, 1, 0, 0)
-    quantity : "dop" or "f00"
+    quantity : "dop", "brdf" (alias "f00") or "aop": :func:`pbrdf_cl.quantities.names` ("map")
     derivative : None, the name of x or y (a finite difference on the device grid) or of a fixed
         input (a central difference of two device grids)
 
     Returns
     -------
     xarray.Dataset with dims (y, x): the quantity and, with ``derivative``, ``d<quantity>_d<name>``;
-    the fixed inputs, quantity, shadowing and dtype in ``attrs``.
+    the fixed inputs, quantity, shadowing and dtype in ``attrs``.  Derivatives of an angle (the
+    AoP) are taken of its differences wrapped into one period.
     """
+    q = quantities.get(quantity, "map")
+    quantity = q.name
     xname, xv = _axis("x", x)
     yname, yv = _axis("y", y)
     if xname == yname:
@@ -122,6 +126,9 @@ def make_map(x, y, fixed=None, quantity="dop", derivative=None, *, dtype="float6
             coord = yv if axis == 0 else xv
             if coord.size < 3:
                 raise ValueError(f"derivative along {derivative} needs at least 3 points on that axis")
+            if q.period is not None:  # an angle: unwrapped along the axis first
+                scale = 2 * np.pi / q.period
+                values = np.unwrap(values * scale, axis=axis) / scale
             d = np.gradient(values, coord, axis=axis, edge_order=2)
             method = "second-order finite difference on the map's own grid (numpy.gradient, edge_order=2)"
         elif derivative in dense.AXES:
@@ -135,7 +142,7 @@ def make_map(x, y, fixed=None, quantity="dop", derivative=None, *, dtype="float6
             pair = dense.grid({**axes, derivative: np.array([lo, hi])},
                               {n: v for n, v in fixed.items() if n != derivative}, **kw)
             pair = pair.transpose(derivative, yname, xname).values.astype(np.float64)
-            d = (pair[1] - pair[0]) / (hi - lo)
+            d = quantities.wrap(pair[1] - pair[0], q.period) / (hi - lo)
             method = f"difference of two device grids at {derivative} = {lo:.8g} and {hi:.8g}"
         else:
             raise ValueError(f"derivative: unknown input {derivative!r}; valid names are {', '.join(dense.AXES)}")
@@ -152,7 +159,7 @@ def _fixed_text(attrs, skip=()):
 def _norm_for(values, quantity):
     from matplotlib import colors
     finite = values[np.isfinite(values)]
-    if quantity == "f00" and finite.size and finite.min() > 0 and finite.max() / finite.min() > 100:
+    if quantity == "brdf" and finite.size and finite.min() > 0 and finite.max() / finite.min() > 100:
         return colors.LogNorm(finite.min(), finite.max())
     return None
 
@@ -171,9 +178,11 @@ def plot_map(ds, path, title=None, dpi=120):
     for ax, var in zip(axs[0], panels):
         z = ds[var].values
         if var == quantity:
+            q = quantities.get(quantity)
             norm = _norm_for(z, quantity)
-            mesh = ax.pcolormesh(x, y, z, shading="auto", cmap="viridis", norm=norm)
-            if np.ptp(z[np.isfinite(z)]) > 0:
+            mesh = ax.pcolormesh(x, y, z, shading="auto", cmap=q.cmap, norm=norm,
+                                 **({} if norm is not None else dict(vmin=q.vmin, vmax=q.vmax)))
+            if q.period is None and np.isfinite(z).any() and np.ptp(z[np.isfinite(z)]) > 0:
                 cs = ax.contour(x, y, z, levels=8, colors="white", linewidths=0.7, norm=norm)
                 ax.clabel(cs, fontsize=7, fmt="%.3g")
             label = QUANTITY_LABELS[quantity]

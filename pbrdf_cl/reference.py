@@ -172,6 +172,11 @@ def frame_rotations(g, phi):
     return fr
 
 
+def rotation2(c, s):
+    """(c^2 - s^2, 2 c s): cos and sin of twice the rotation angle of cos c, sin s (``pb_rotation2``)."""
+    return c * c - s * s, 2.0 * c * s
+
+
 def mueller(f, fr, logK, fd):
     """F = K R_out M^s R_in + fd e00, shape (..., 4, 4) (``pb_mueller``).
 
@@ -182,8 +187,8 @@ def mueller(f, fr, logK, fd):
         m00 = 0.5 * K * (f.Rs + f.Rp)
         m01 = 0.5 * K * f.diff
         rx, ix = K * f.re_x, K * f.im_x
-        c, s = fr.ci * fr.ci - fr.si * fr.si, 2.0 * fr.ci * fr.si
-        C, S = fr.co * fr.co - fr.so * fr.so, 2.0 * fr.co * fr.so
+        c, s = rotation2(fr.ci, fr.si)
+        C, S = rotation2(fr.co, fr.so)
         m00, m01, rx, ix, c, s, C, S, fd = np.broadcast_arrays(m00, m01, rx, ix, c, s, C, S, fd)
         zero = np.zeros(m00.shape)
         # A = M^s R_in
@@ -198,22 +203,98 @@ def mueller(f, fr, logK, fd):
     return m.reshape(m00.shape + (4, 4))
 
 
+def stokes_combine(sum_, diff, K, fd, C, S):
+    """The Stokes vector reflected for unpolarised incidence, the first column of F, from the grid
+    tables' factors (``pb_stokes_combine``, all four components at once): shape (..., 4)."""
+    with np.errstate(invalid="ignore"):
+        m01 = 0.5 * K * diff
+        s0 = 0.5 * K * sum_ + fd
+        s1, s2 = C * m01, -S * m01
+        s0, s1, s2 = np.broadcast_arrays(s0, s1, s2)
+        return np.stack([s0, s1, s2, np.zeros(s0.shape)], axis=-1)
+
+
+def aop_of(L1, L2):
+    """Angle of linear polarisation in degrees in (-90, 90] of S1 = L1, S2 = L2; NaN where both are 0
+    (``pb_aop_of``)."""
+    a = 0.5 * np.arctan2(L2, L1) / DEG
+    b = np.where(a <= -90.0, a + 180.0, a + 0.0)  # -90 is +90; -0 is 0
+    return np.where((L1 != 0.0) | (L2 != 0.0), b, np.nan)
+
+
+def aop_combine(diff, K, fd, C, S):
+    """AoP from the grid tables' factors (``pb_aop_combine``): L = m01 (C, -S), m01 = K diff / 2,
+    taken along (C, -S) where the light is polarised (diff > 0, and K > 0 unless fd = 0)."""
+    with np.errstate(invalid="ignore"):
+        on = np.where((diff > 0.0) & ((K > 0.0) | (fd == 0.0)), 1.0, 0.0)
+    return aop_of(on * C, -on * S)
+
+
+# ---- The output quantities: for each registry name (pbrdf_cl/quantities.py) ``point_<name>(g, f,
+# phi, logK, fd)`` (the values of points, a trailing axis for a width above 1) and, where the grid
+# supports it, ``grid_<name>(sum, diff, fdx, scale, C, S)`` (from the tables; every component).
+# They mirror ``pb_point_<name>`` and ``pb_grid_<name>`` of pbrdf.h.
+
+def point_dop(g, f, phi, logK, fd):
+    return dop(f, logK, fd)
+
+
+def grid_dop(sum_, diff, fd2, inv_K, C, S):
+    return dop_combine(sum_, diff, fd2, inv_K)
+
+
+def point_brdf(g, f, phi, logK, fd):
+    return brdf(f, logK, fd)
+
+
+def grid_brdf(sum_, diff, fd, K, C, S):
+    return brdf_combine(sum_, K, fd)
+
+
+def point_mueller(g, f, phi, logK, fd):
+    return mueller(f, frame_rotations(g, phi), logK, fd)
+
+
+def out_rotation2(g, phi):
+    """(cos 2 psi, sin 2 psi) of the outgoing frame rotation (``pb_out_rotation2``)."""
+    fr = frame_rotations(g, phi)
+    return rotation2(fr.co, fr.so)
+
+
+def point_stokes(g, f, phi, logK, fd):
+    C, S = out_rotation2(g, phi)
+    with np.errstate(over="ignore"):
+        return stokes_combine(f.Rs + f.Rp, f.diff, np.exp(logK), fd, C, S)
+
+
+def grid_stokes(sum_, diff, fd, K, C, S):
+    return stokes_combine(sum_, diff, K, fd, C, S)
+
+
+def point_aop(g, f, phi, logK, fd):
+    C, S = out_rotation2(g, phi)
+    with np.errstate(over="ignore"):
+        return aop_combine(f.diff, np.exp(logK), fd, C, S)
+
+
+def grid_aop(sum_, diff, fd, K, C, S):
+    return aop_combine(diff, K, fd, C, S)
+
+
 def evaluate(quantity, theta_i, theta_r, phi, n, k, sigma, ks, kd, c, shadowing="paper"):
-    """Evaluate ``quantity`` ("dop", "brdf" or "mueller") in float64; angles in degrees.
+    """Evaluate ``quantity`` (a name of :data:`pbrdf_cl.quantities.REGISTRY` with a points path:
+    "dop", "brdf", "mueller", "aop", "stokes") in float64; angles in degrees.
 
     Mirrors the body shared by the kernels of ``kernels/pbrdf_points.cl``.  No input validation:
     the public API (:mod:`pbrdf_cl.api`) validates before calling this.
     """
+    point = globals().get(f"point_{quantity}")
+    if point is None:
+        raise ValueError(f"quantity: no point function point_{quantity} in reference.py")
     variant = SHADOWING[shadowing]
     g = geometry(theta_i, theta_r, phi)
     f = fresnel(n, k, g.cb, g.sb)
     G = shadowing_factor(g, sigma, variant)
     logK = log_specular_scale(g, sigma, ks, G)
     fd = diffuse(g, kd, c)
-    if quantity == "dop":
-        return dop(f, logK, fd)
-    if quantity == "brdf":
-        return brdf(f, logK, fd)
-    if quantity == "mueller":
-        return mueller(f, frame_rotations(g, phi), logK, fd)
-    raise ValueError(f"quantity must be 'dop', 'brdf' or 'mueller', got {quantity!r}")
+    return point(g, f, np.asarray(phi, dtype=np.float64), logK, fd)

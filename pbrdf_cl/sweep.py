@@ -3,7 +3,7 @@ chunk by chunk into a Zarr store, resumable, optionally over a ``dask.distribute
 
 A sweep is described by a spec (TOML, see ``examples/sweep_sigma_theta.toml``)::
 
-    quantity = "dop"                 # dop | f00
+    quantity = "dop"                 # dop | brdf (alias f00) | aop: pbrdf_cl.quantities.names("sweep")
     dtype = "float32"                # float32 | float64
     shadowing = "paper"              # paper | smith | none
     memory_budget = "256 MiB"        # one chunk in flight: its values + the device's working memory
@@ -53,12 +53,11 @@ import tempfile
 import threading
 import time
 import uuid
-import weakref
 from pathlib import Path
 
 import numpy as np
 
-from . import api, dense
+from . import api, dense, quantities
 from .engine import DTYPES, kernels_sha256, resolve_engine
 from .reference import SHADOWING
 
@@ -194,9 +193,10 @@ class SweepSpec:
             if key not in KEYS:
                 raise SpecError(f"unknown key {key!r}; valid keys are {', '.join(KEYS)}")
         self.title = str(data.get("title", ""))
-        self.quantity = data.get("quantity", "dop")
-        if self.quantity not in dense.QUANTITIES:
-            raise SpecError(f"quantity: must be one of {', '.join(sorted(dense.QUANTITIES))}, got {self.quantity!r}")
+        try:
+            self.quantity = quantities.canonical(data.get("quantity", "dop"), "sweep")
+        except ValueError as exc:
+            raise SpecError(str(exc)) from None
         self.dtype = data.get("dtype", "float32")
         if self.dtype not in DTYPES:
             raise SpecError(f"dtype: must be float32 or float64, got {self.dtype!r}")
@@ -345,7 +345,7 @@ class SweepSpec:
         budget, isz = self.memory_budget, self.itemsize
         shape = " x ".join(str(c) for c in self.chunks) or "1"
         if self.over:
-            tables = ng * (2 * nnk + nm + ni) * isz
+            tables = dense.table_bytes(ng, nnk, nm, ni, isz)
             if tables > budget // 2:
                 raise SpecError(
                     f"chunks: the model's tables for a chunk of {shape} (times the reduced axes "
@@ -361,7 +361,7 @@ class SweepSpec:
         if values > MAX_CHUNK_BYTES:
             raise SpecError(f"chunks: a chunk of {_human(values)} is over the 2 GiB a Zarr/Blosc chunk can hold; "
                             "use smaller chunks")
-        row = (2 * nnk + nm + ni) * isz
+        row = dense.table_bytes(1, nnk, nm, ni, isz)
         if budget // 2 < 2 * row + 64 * isz:
             raise SpecError(f"memory_budget: {_human(budget)} is too small for one geometry row's tables "
                             f"({_human(row)}) of a chunk; raise it")
@@ -494,8 +494,9 @@ def _check_kernels(name, attrs):
 
 def _root_attrs(spec, complete=False):
     from . import __version__
+    q = quantities.get(spec.quantity)
     attrs = dict(title=spec.title or f"pbrdf-cl sweep of {spec.quantity}", quantity=spec.quantity,
-                 long_name=dense.QUANTITIES[spec.quantity], units="1" if spec.quantity == "dop" else "1/sr",
+                 long_name=q.long_name, units=q.units,
                  shadowing=spec.shadowing, dtype=spec.dtype, **spec.plan.fixed_attrs())
     if spec.over:
         attrs["reduced_over"] = list(spec.over)
@@ -514,7 +515,8 @@ def _write_skeleton(spec, store):
         c[...] = a
     npdt = np.dtype(DTYPES[spec.dtype])
     dims = list(spec.dims)
-    units = "1" if spec.quantity == "dop" else "1/sr"
+    q = quantities.get(spec.quantity)
+    units = q.units
     if spec.over:
         over = ", ".join(spec.over)
         var_attrs = {"min": dict(long_name=f"minimum of {spec.quantity} over {over}", units=units),
@@ -522,7 +524,7 @@ def _write_skeleton(spec, store):
         var_attrs.update({f"argmin_{n}": dict(long_name=f"{n} at the minimum of {spec.quantity}", units=dense.UNITS[n])
                           for n in spec.over})
     else:
-        var_attrs = {spec.quantity: dict(long_name=dense.QUANTITIES[spec.quantity], units=units)}
+        var_attrs = {spec.quantity: dict(long_name=q.long_name, units=units)}
     for name, attrs in var_attrs.items():
         dt = "f8" if name.startswith("argmin_") else npdt
         _create_array(g, name, spec.shape, spec.chunks, dt, np.nan, _compressor(),
@@ -612,7 +614,6 @@ def read_done(spec, store):
 # one chunk: compute, write, then mark
 
 _ENGINES = {}
-_ENGINE_LOCKS = weakref.WeakKeyDictionary()
 _RUNNERS = {}
 _CACHE_LOCK = threading.Lock()
 
@@ -632,20 +633,14 @@ def worker_engine(device=None, backend="auto"):
         return _ENGINES[key]
 
 
-def _engine_lock(eng):
-    # kernels hold their arguments, so one engine computes one chunk at a time
-    with _CACHE_LOCK:
-        return _ENGINE_LOCKS.setdefault(eng, threading.Lock())
-
-
 def compute_chunk(spec, eng, i):
     """The values of chunk ``i``: variable name -> array of the chunk's region shape."""
     box = spec.box(i)
-    with _engine_lock(eng):
+    with eng.lock:  # one chunk in flight per engine: the memory budget is per chunk
         if not spec.over:
             plan = dense.GridPlan(box, spec.fixed)
             out = np.empty(plan.size, DTYPES[spec.dtype])
-            for _ in dense._grid_blocks(eng, plan, spec.quantity, spec.dtype, spec.shadowing,
+            for _ in dense.grid_blocks(eng, plan, spec.quantity, spec.dtype, spec.shadowing,
                                         spec.memory_budget // 2, out=out):
                 pass
             return {spec.quantity: out.reshape(plan.shape)}

@@ -60,7 +60,7 @@ def test_eval_table_mueller_and_f00(capsys):
     assert cli.main(["eval", "--theta-i", "40", "--theta-r", "45", *STEEL, "--quantity", "brdf",
                      "--backend", "numpy", "--shadowing", "smith", "--dtype", "float32"]) == 0
     out = capsys.readouterr().out
-    assert "f00" in out.splitlines()[0]
+    assert "brdf (1/sr)" in out.splitlines()[0]
     assert float(out.splitlines()[-1].split()[-1]) == pytest.approx(
         pbrdf_cl.brdf(40, 45, n=1.6, k=2.139, sigma=0.5, ks=0.9, kd=0.15, c=-0.3, shadowing="smith"), rel=1e-6)
 

@@ -118,7 +118,7 @@ def test_small_sweep_equals_grid(tmp_path, quantity, dtype, chunks):
     assert res.complete and res.chunks_computed == spec.n_chunks and res.points_computed == spec.points
     ds = xr.open_zarr(tmp_path / "s.zarr")
     want = pbrdf_cl.grid(spec.axes, spec.fixed, quantity=quantity, dtype=dtype)
-    got = ds[quantity]
+    got = ds[spec.quantity]  # the canonical name ("f00" is the alias of "brdf")
     assert got.dims == want.dims and got.dtype == want.dtype
     np.testing.assert_array_equal(got.values, want.values)  # the same kernels on sub-boxes: bit-identical
     assert got.encoding["chunks"] == spec.chunks  # one Zarr chunk per compute chunk
@@ -126,7 +126,7 @@ def test_small_sweep_equals_grid(tmp_path, quantity, dtype, chunks):
         np.testing.assert_array_equal(ds[n].values, want[n].values)
         assert ds[n].attrs["units"] == want[n].attrs["units"]
     assert ds.attrs["sweep_spec_sha256"] == spec.sha256 and json.loads(ds.attrs["sweep_spec"]) == spec.canonical()
-    assert ds.attrs["sweep_complete"] is True and ds.attrs["fixed_k"] == 2.1 and ds.attrs["quantity"] == quantity
+    assert ds.attrs["sweep_complete"] is True and ds.attrs["fixed_k"] == 2.1 and ds.attrs["quantity"] == spec.quantity == pbrdf_cl.quantities.canonical(quantity)
     assert "_sweep" not in ds.variables
 
 
@@ -302,7 +302,8 @@ BAD = [
     ({"axes": {"sigma": 0.5}}, "axes.sigma: a single value; give it under [fixed]"),
     ({"fixed": {"n": "high"}}, "fixed.n: 'high' is not a number"),
     ({"fixed": {"sigma": 0.5}}, "fixed.sigma: sigma is also an axis"),
-    ({"quantity": "brdf"}, "quantity: must be one of dop, f00, got 'brdf'"),
+    ({"quantity": "stokes"}, "quantity: 'stokes' is not available for sweep: a vector per point"),
+    ({"quantity": "s1"}, "quantity: unknown quantity 's1'; valid names are dop, brdf, aop"),
     ({"dtype": "float16"}, "dtype: must be float32 or float64"),
     ({"axes_": {}}, "unknown key 'axes_'; valid keys are"),
     ({"memory_budget": "lots"}, "memory_budget: 'lots' is not a size"),
