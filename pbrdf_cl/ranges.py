@@ -22,7 +22,7 @@ import numpy as np
 
 #: The grammar in a few words, for ``--help`` texts (the README's section has the whole of it).
 GRAMMAR = ("a number (40), a list (20,30,45), start:stop:step (20:65:5, ends included) or "
-           "start:stop@count (0:85@256 evenly spaced values)")
+           "start:stop@count (0:85@256: 256 values, ends included)")
 #: The relative slack with which the steps of start:stop:step must land on the stop.
 STOP_TOLERANCE = 1e-9
 _HINT = "write a number (40), a list (20,30,45), start:stop:step (20:65:5) or start:stop@count (0:85@256)"
@@ -114,7 +114,7 @@ def _values(text):
         if len(parts) == 3:
             raise _Bad(f"give a step ({head}) or a count ({parts[0]}:{parts[1]}@{c}), not both")
         if len(parts) != 2 or "@" in c:
-            raise _Bad(f"a count range is start:stop@count, e.g. 0:85@256")
+            raise _Bad("a count range is start:stop@count, e.g. 0:85@256")
         start, stop = _number(parts[0], "start"), _number(parts[1], "stop")
         c = c.strip()
         if not c:
@@ -128,7 +128,7 @@ def _values(text):
             raise _Bad(f"a range needs a step or a count; write {s0}:{s1}:STEP (ends included) "
                        f"or {s0}:{s1}@N for N values")
         if len(parts) != 3:
-            raise _Bad(f"too many ':'; write start:stop:step (20:65:5) or start:stop@count (0:85@256)")
+            raise _Bad("too many ':'; write start:stop:step (20:65:5) or start:stop@count (0:85@256)")
         start, stop, step = (_number(p, w) for p, w in zip(parts, ("start", "stop", "step")))
         return _step_values(start, stop, step, parts[0].strip(), parts[1].strip())
     items = text.split(",")
