@@ -95,7 +95,7 @@ def _count_values(start, stop, count, s0, s1, c):
     """start:stop@count (``s0``, ``s1``, ``c``: as the user wrote them)."""
     if not isinstance(count, int) or count < 2:
         single = f"; for one value write {s0}" if isinstance(count, int) and count == 1 else ""
-        raise _Bad(f"count {c} is not a whole number >= 2; write {s0}:{s1}@N with N >= 2{single}")
+        raise _Bad(f"count {c} is not an integer >= 2; write {s0}:{s1}@N with N >= 2{single}")
     if start == stop:
         raise _Bad(f"start and stop are both {s0}; for the single value write {s0}")
     return np.linspace(start, stop, count)

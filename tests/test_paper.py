@@ -173,7 +173,7 @@ def test_map_derivative_along_map_axis_is_second_order():
 @pytest.mark.parametrize("args, message", [
     (["--x", "alpha=0:1@5", "--y", "n=1:3@4"], "--x alpha=0:1@5: unknown name 'alpha'; names are theta_i, "),
     (["--x", "theta_r=0:85", "--y", "n=1:3@4"], "--x theta_r=0:85: a range needs a step or a count; write 0:85:STEP"),
-    (["--x", "theta_r=0:85@1", "--y", "n=1:3@4"], "--x theta_r=0:85@1: count 1 is not a whole number >= 2"),
+    (["--x", "theta_r=0:85@1", "--y", "n=1:3@4"], "--x theta_r=0:85@1: count 1 is not an integer >= 2"),
     (["--x", "theta_r=0:95@10", "--y", "n=1:3@4"], "--x theta_r=0:95@10: theta_r must be in [0, 90) degrees, got 95.0"),
     (["--x", "theta_r", "--y", "n=1:3@4"], "--x theta_r: not of the form name=values; write theta_r=VALUES"),
     (["--x", "theta_r=0:85@10", "--y", "theta_r=1:3@4"], "x and y are both 'theta_r'"),

@@ -75,9 +75,9 @@ REFUSED = [
     ("40:40:5", "40:40:5: start and stop are both 40; for the single value write 40"),
     ("40:40@3", "40:40@3: start and stop are both 40; for the single value write 40"),
     # counts
-    ("0:85@1", "0:85@1: count 1 is not a whole number >= 2; write 0:85@N with N >= 2; for one value write 0"),
-    ("0:85@0", "0:85@0: count 0 is not a whole number >= 2; write 0:85@N with N >= 2"),
-    ("0:85@2.5", "0:85@2.5: count 2.5 is not a whole number >= 2; write 0:85@N with N >= 2"),
+    ("0:85@1", "0:85@1: count 1 is not an integer >= 2; write 0:85@N with N >= 2; for one value write 0"),
+    ("0:85@0", "0:85@0: count 0 is not an integer >= 2; write 0:85@N with N >= 2"),
+    ("0:85@2.5", "0:85@2.5: count 2.5 is not an integer >= 2; write 0:85@N with N >= 2"),
     ("0:85@", "0:85@: no count after '@'; write 0:85@N with N >= 2"),
     ("0:85:5@3", "0:85:5@3: give a step (0:85:5) or a count (0:85@3), not both"),
     ("0@3", "0@3: a count range is start:stop@count, e.g. 0:85@256"),

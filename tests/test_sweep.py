@@ -296,7 +296,7 @@ BAD = [
     ({"axes": {"sigma": "1:0:0.1"}}, 'axes.sigma = "1:0:0.1": the step 0.1 goes up from 1 but the stop 0 is below it; '
                                      "write 1:0:-0.1 to count down, or 0:1:0.1"),
     ({"axes": {"sigma": {"start": 0.1, "stop": 1, "num": 0}}},
-     "axes.sigma = {start = 0.1, stop = 1, num = 0}: count 0 is not a whole number >= 2; write 0.1:1@N with N >= 2"),
+     "axes.sigma = {start = 0.1, stop = 1, num = 0}: count 0 is not an integer >= 2; write 0.1:1@N with N >= 2"),
     ({"axes": {"sigma": {"start": 0.1, "stop": 1, "step": 0.2}}},
      "axes.sigma = {start = 0.1, stop = 1, step = 0.2}: steps of 0.2 from 0.1 miss the stop 1 (the last is 0.9); "
      "write 0.1:0.9:0.2, or 0.1:1@5 for 5 values from 0.1 to 1"),
