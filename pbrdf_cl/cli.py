@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import api, drivers, engine as _engine, quantities
+from . import api, drivers, engine as _engine, quantities, ranges
 from .reference import SHADOWING
 
 PARAMS = (("theta_i", None), ("theta_r", None), ("phi", "180"), ("n", None), ("k", None),
@@ -24,21 +24,8 @@ PARAMS = (("theta_i", None), ("theta_r", None), ("phi", "180"), ("n", None), ("k
 
 
 def parse_values(option: str, text: str) -> np.ndarray:
-    """``"40"``, ``"20,30,45"`` or an inclusive range ``"20:65:5"`` -> 1-d float array."""
-    try:
-        if ":" in text:
-            parts = [float(p) for p in text.split(":")]
-            if len(parts) != 3:
-                raise ValueError
-            start, stop, step = parts
-            if step <= 0 or stop < start:
-                raise ValueError
-            count = int(np.floor((stop - start) / step + 1e-9)) + 1
-            return start + step * np.arange(count)
-        return np.array([float(p) for p in text.split(",")])
-    except ValueError:
-        raise SystemExit(f"pbrdf-cl: error: {option}: {text!r} is not a number, a comma list "
-                         "or an inclusive start:stop:step range with step > 0") from None
+    """``"40"``, ``"20,30,45"``, ``"20:65:5"`` or ``"0:85@256"`` -> 1-d float array (:mod:`pbrdf_cl.ranges`)."""
+    return ranges.parse_values(text, option)
 
 
 def _error(exc) -> int:
@@ -183,25 +170,6 @@ def cmd_eval(args) -> int:
     return 0
 
 
-def parse_assignments(option, items, ranges=False):
-    """``["sigma=0.45"]`` -> {"sigma": 0.45}; with ranges, ``["n=1:3"]`` -> {"n": (1.0, 3.0)}."""
-    out = {}
-    for item in items or []:
-        name, sep, value = item.partition("=")
-        try:
-            if not sep or not name:
-                raise ValueError
-            if ranges:
-                lo, hi = value.split(":")
-                out[name.strip()] = (float(lo), float(hi))
-            else:
-                out[name.strip()] = float(value)
-        except ValueError:
-            form = "name=low:high" if ranges else "name=value"
-            raise SystemExit(f"pbrdf-cl: error: {option}: {item!r} is not of the form {form}") from None
-    return out
-
-
 def _fit_json(r):
     return dict(model=r.model, shadowing=r.shadowing, x=r.x, free=r.free, stderr=r.stderr,
                 ci95={k: list(v) for k, v in r.ci95.items()}, sse=r.sse, rmse=r.rmse, chi2=r.chi2,
@@ -213,8 +181,8 @@ def _fit_json(r):
 def cmd_fit(args) -> int:
     from . import inversion as _fit
     from .data import read_csv
-    fixed = parse_assignments("--fix", args.fix)
-    bounds = parse_assignments("--bounds", args.bounds, ranges=True)
+    fixed = ranges.parse_assignments(args.fix, tuple(_fit.DEFAULT_BOUNDS), "value", "--fix", check=True)
+    bounds = ranges.parse_assignments(args.bounds, tuple(_fit.DEFAULT_BOUNDS), "bounds", "--bounds")
     _check_output("--json", args.json)
     _check_output("--plot", args.plot)
     try:
@@ -335,8 +303,8 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--json", action="store_true", help="JSON output")
     d.set_defaults(func=cmd_devices)
     e = sub.add_parser("eval", help="evaluate DOP, F00, AoP, the Stokes vector or the Mueller matrix",
-                       description="Each value option takes a number, a comma list or an inclusive "
-                       "start:stop:step range; the output has one row per combination.")
+                       description=f"Each value option takes {ranges.GRAMMAR}; see the README, Ranges "
+                       "and name=value. The output has one row per combination.")
     for name, default in PARAMS:
         unit = " (degrees)" if name in ("theta_i", "theta_r", "phi") else ""
         e.add_argument(f"--{name.replace('_', '-')}", dest=name, metavar="V",
@@ -386,12 +354,12 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--quiet", action="store_true", help="no progress lines")
     r.set_defaults(func=cmd_reproduce)
     m = sub.add_parser("map", help="a dense map of DOP or F00 over any two axes (PNG + optional .npz)",
-                       description="Axes: name=start:stop:count (ends included) or name=v1,v2,...; angles in "
-                       "degrees. Inputs not on an axis are fixed with --fix (phi, ks, kd, c default to "
-                       "180, 1, 0, 0). Example: pbrdf-cl map --x theta_r=0:85:256 --y sigma=0.05:1:256 "
+                       description=f"Axes: NAME=VALUES, VALUES being {ranges.GRAMMAR}; see the README, "
+                       "Ranges and name=value. Angles in degrees. Inputs not on an axis are fixed with --fix (phi, ks, kd, "
+                       "c default to 180, 1, 0, 0). Example: pbrdf-cl map --x theta_r=0:85@256 --y sigma=0.05:1@256 "
                        "--fix theta_i=40 n=1.6 k=2.139 ks=0.9 kd=0.15 c=-0.3 --derivative sigma --out map.png")
-    m.add_argument("--x", required=True, metavar="NAME=START:STOP:COUNT", help="horizontal axis")
-    m.add_argument("--y", required=True, metavar="NAME=START:STOP:COUNT", help="vertical axis")
+    m.add_argument("--x", required=True, metavar="NAME=VALUES", help="horizontal axis, e.g. theta_r=0:85@256")
+    m.add_argument("--y", required=True, metavar="NAME=VALUES", help="vertical axis, e.g. sigma=0.05:1:0.05")
     m.add_argument("--fix", nargs="*", metavar="NAME=VALUE", help="the other inputs, e.g. theta_i=40 n=1.6")
     m.add_argument("--quantity", choices=_quantity_choices("map"), default="dop")
     m.add_argument("--derivative", metavar="NAME",
@@ -440,7 +408,7 @@ def main(argv=None) -> int:
     warnings.showwarning = _show_warning
     try:
         return args.func(args)
-    except _Refused as exc:
+    except (_Refused, ranges.RangeError) as exc:
         return _error(exc)
     except KeyboardInterrupt:
         print("pbrdf-cl: interrupted", file=sys.stderr)

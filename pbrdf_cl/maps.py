@@ -12,7 +12,7 @@ import json
 
 import numpy as np
 
-from . import api, dense, quantities
+from . import api, dense, quantities, ranges
 from .engine import resolve_engine
 from .plots import _pyplot
 
@@ -28,53 +28,15 @@ FD_STEP = 1e-4
 
 
 def parse_axis(option, text):
-    """``"theta_r=0:85:256"`` (start:stop:count, both ends included) or ``"sigma=0.35,0.5,0.65"``
-    -> (name, float64 values).  ``ValueError`` names the option and the text."""
-    name, sep, spec = text.partition("=")
-    name = name.strip()
-    form = "name=start:stop:count (count >= 2) or name=v1,v2,..."
-    if not sep or not name or not spec:
-        raise ValueError(f"{option}: {text!r} is not of the form {form}")
-    if name not in dense.AXES:
-        raise ValueError(f"{option}: unknown axis {name!r}; valid names are {', '.join(dense.AXES)}")
-    try:
-        if ":" in spec:
-            parts = spec.split(":")
-            if len(parts) != 3:
-                raise ValueError
-            start, stop = float(parts[0]), float(parts[1])
-            count = int(parts[2])
-            if count < 2 or not (np.isfinite(start) and np.isfinite(stop)) or start == stop:
-                raise ValueError
-            values = np.linspace(start, stop, count)
-        else:
-            values = np.array([float(p) for p in spec.split(",")])
-    except ValueError:
-        raise ValueError(f"{option}: {text!r} is not of the form {form} with distinct finite ends") from None
-    try:
-        api.check_values(name, values)
-    except ValueError as exc:
-        raise ValueError(f"{option}: {exc}") from None
-    return name, values
+    """``"theta_r=0:85@256"``, ``"theta_r=0:85:5"`` or ``"sigma=0.35,0.5,0.65"`` (the grammar of
+    :mod:`pbrdf_cl.ranges`) -> (name, float64 values), checked against the model's rules.
+    :class:`pbrdf_cl.ranges.RangeError` (a ``ValueError``) names the option and the text."""
+    return ranges.parse_assignment(text, dense.AXES, "values", option, check=True)
 
 
 def parse_fixed(option, items):
     """``["theta_i=40", "n=1.6"]`` -> {"theta_i": 40.0, "n": 1.6}, checked against the model's rules."""
-    out = {}
-    for item in items or []:
-        name, sep, value = item.partition("=")
-        name = name.strip()
-        if not sep or not name:
-            raise ValueError(f"{option}: {item!r} is not of the form name=value")
-        if name not in dense.AXES:
-            raise ValueError(f"{option}: unknown input {name!r}; valid names are {', '.join(dense.AXES)}")
-        if name in out:
-            raise ValueError(f"{option}: {name} is given twice")
-        try:
-            out[name] = float(api.check_values(name, float(value)))
-        except ValueError as exc:
-            raise ValueError(f"{option}: {item!r}: {exc}") from None
-    return out
+    return ranges.parse_assignments(items, dense.AXES, "value", option, check=True)
 
 
 def _axis(option, value):
@@ -90,7 +52,8 @@ def make_map(x, y, fixed=None, quantity="dop", derivative=None, *, dtype="float6
 
     Parameters
     ----------
-    x, y : ``"name=start:stop:count"`` strings or (name, values) pairs (degrees for angles)
+    x, y : ``"name=values"`` strings (``"theta_r=0:85@256"``: README, "Ranges and name=value") or
+        (name, values) pairs (degrees for angles)
     fixed : dict name -> value for the other inputs (phi, ks, kd, c default to 180, 1, 0, 0)
     quantity : "dop", "brdf" (alias "f00") or "aop": :func:`pbrdf_cl.quantities.names` ("map")
     derivative : None, the name of x or y (a finite difference on the device grid) or of a fixed

@@ -9,8 +9,8 @@ A sweep is described by a spec (TOML, see ``examples/sweep_sigma_theta.toml``)::
     memory_budget = "256 MiB"        # one chunk in flight: its values + the device's working memory
 
     [axes]                           # canonical names of pbrdf_cl.dense.AXES; angles in degrees
-    theta_i = "10:80:10"             # inclusive start:stop:step, as on the command line
-    theta_r = {start = 0, stop = 85, num = 256}
+    theta_i = "10:80:10"             # start:stop:step, ends included (README: Ranges and name=value)
+    theta_r = "0:85@256"             # start:stop@count; = {start = 0, stop = 85, num = 256}
     sigma = [0.1, 0.2, 0.5]
 
     [fixed]                          # the other inputs; phi, ks, kd, c default to 180, 1, 0, 0
@@ -57,7 +57,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import api, dense, quantities
+from . import api, dense, quantities, ranges
 from .engine import DTYPES, kernels_sha256, resolve_engine
 from .reference import SHADOWING
 
@@ -96,23 +96,11 @@ def _number(field, v):
 
 
 def _range_string(field, text):
-    """``"40"``, ``"20,30,45"`` or an inclusive ``"start:stop:step"`` (step > 0), as on the command line."""
+    """``"40"``, ``"20,30,45"``, ``"20:65:5"`` or ``"0:85@256"``: the grammar of :mod:`pbrdf_cl.ranges`."""
     try:
-        if ":" in text:
-            parts = [float(p) for p in text.split(":")]
-            if len(parts) != 3:
-                raise ValueError
-        else:
-            return np.array([float(p) for p in text.split(",")])
-    except ValueError:
-        raise SpecError(f"{field}: {text!r} is not a number, a comma list or an inclusive "
-                        f"start:stop:step range") from None
-    start, stop, step = parts
-    if not step > 0:
-        raise SpecError(f"{field}: step must be > 0 in {text!r}")
-    if stop < start:
-        raise SpecError(f"{field}: empty range {text}")
-    return start + step * np.arange(int(np.floor((stop - start) / step + 1e-9)) + 1)
+        return ranges.parse_values(text, label=f'{field} = "{text}"')
+    except ranges.RangeError as exc:
+        raise SpecError(str(exc)) from None
 
 
 def _axis_values(field, value):
@@ -130,22 +118,15 @@ def _axis_values(field, value):
         if keys not in ({"start", "stop", "num"}, {"start", "stop", "step"}):
             raise SpecError(f"{field}: a range table takes start, stop and num (or step), got {text}")
         start, stop = _number(f"{field}.start", value["start"]), _number(f"{field}.stop", value["stop"])
-        if "num" in keys:
-            num = value["num"]
-            if isinstance(num, bool) or not isinstance(num, int) or num < 0:
-                raise SpecError(f"{field}.num: {num!r} is not a non-negative integer")
-            if num == 0:
-                raise SpecError(f"{field}: empty range {text}")
-            return np.linspace(start, stop, num)
-        step = _number(f"{field}.step", value["step"])
-        if not step > 0:
-            raise SpecError(f"{field}.step: must be > 0, got {_fmt(step)}")
-        if stop < start:
-            raise SpecError(f"{field}: empty range {text}")
-        return start + step * np.arange(int(np.floor((stop - start) / step + 1e-9)) + 1)
+        try:
+            if "num" in keys:
+                return ranges.count_values(start, stop, value["num"], f"{field} = {text}")
+            return ranges.step_values(start, stop, _number(f"{field}.step", value["step"]), f"{field} = {text}")
+        except ranges.RangeError as exc:
+            raise SpecError(str(exc)) from None
     if isinstance(value, numbers.Real) and not isinstance(value, bool):
         raise SpecError(f"{field}: a single value; give it under [fixed], or as a one-element list [{_fmt(value)}]")
-    raise SpecError(f"{field}: {value!r} is not a list, a \"start:stop:step\" string or a "
+    raise SpecError(f"{field}: {value!r} is not a list, a range string (\"10:80:10\", \"0:85@256\") or a "
                     "{start, stop, num} table")
 
 

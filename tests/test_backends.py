@@ -270,7 +270,7 @@ def test_fit_and_map_run_on_the_numpy_backend():
     res = pbrdf_cl.fit(ROOT / "examples" / "steel_435nm.csv", backend="numpy")
     ref = pbrdf_cl.fit(ROOT / "examples" / "steel_435nm.csv") if DEVICES else res
     assert res.chi2 == pytest.approx(ref.chi2, rel=1e-3, abs=1e-6)
-    ds = maps.make_map("theta_r=0:85:16", "sigma=0.05:1:8", dict(theta_i=40, **{k: v for k, v in STEEL.items()
+    ds = maps.make_map("theta_r=0:85@16", "sigma=0.05:1@8", dict(theta_i=40, **{k: v for k, v in STEEL.items()
                                                                                 if k != "sigma"}),
                        derivative="sigma", backend="numpy")
     want = reference.evaluate("dop", 40.0, ds.theta_r.values[None, :], 180.0, 1.6, 2.139, ds.sigma.values[:, None],
@@ -365,7 +365,7 @@ def test_every_command_runs_on_the_numpy_backend_when_no_device_is_usable(tmp_pa
         "devices": ["devices"],
         "eval": EVAL,
         "fit": ["fit", str(ROOT / "examples" / "steel_435nm.csv"), "--quiet", "--json", str(tmp_path / "fit.json")],
-        "map": ["map", "--x", "theta_r=0:85:32", "--y", "sigma=0.05:1:16", "--fix", "theta_i=40", "n=1.6", "k=2.1",
+        "map": ["map", "--x", "theta_r=0:85@32", "--y", "sigma=0.05:1@16", "--fix", "theta_i=40", "n=1.6", "k=2.1",
                 "kd=0.2", "--derivative", "sigma", "--out", str(tmp_path / "map.png")],
         "sweep": ["sweep", str(spec), "--out", str(tmp_path / "s.zarr"), "--quiet"],
         "bench": ["bench", "--quick", "--json", str(tmp_path / "bench.json")],
@@ -407,7 +407,7 @@ def test_cli_reports_environment_problems_in_one_line(tmp_path):
     one_line_error(run_cli("reproduce", "--out", blocked, env=env), "--out", "cannot write into", "choose a writable")
     one_line_error(run_cli("fit", str(ROOT / "examples" / "steel_435nm.csv"), "--json", blocked + "/f.json",
                            env=env), "--json", "cannot write")
-    one_line_error(run_cli("map", "--x", "theta_r=0:85:8", "--y", "sigma=0.1:1:8", "--fix", "theta_i=40", "n=1.6",
+    one_line_error(run_cli("map", "--x", "theta_r=0:85@8", "--y", "sigma=0.1:1@8", "--fix", "theta_i=40", "n=1.6",
                            "k=2", "--out", blocked + "/m.png", env=env), "--out", "cannot write")
     one_line_error(run_cli("sweep", str(ROOT / "examples" / "sweep_sigma_theta.toml"), "--out", blocked + "/s.zarr",
                            env=env), "--out", "cannot write")

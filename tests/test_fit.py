@@ -318,7 +318,7 @@ def test_cli_fit_round_trip(tmp_path):
     assert png.stat().st_size > 10000 and png.read_bytes()[:4] == b"\x89PNG"
     bad = subprocess.run([sys.executable, "-m", "pbrdf_cl", "fit", str(ROOT / "examples" / "steel_435nm.csv"),
                           "--bounds", "n=1-3"], capture_output=True, text=True, timeout=120, env=env)
-    assert bad.returncode != 0 and "--bounds: 'n=1-3' is not of the form name=low:high" in bad.stderr
+    assert bad.returncode != 0 and "--bounds n=1-3: bounds are low:high, two numbers; write n=1:3" in bad.stderr
 
 
 def test_lockstep_batching_gives_each_optimiser_its_own_numbers():

@@ -133,7 +133,7 @@ def test_fig2_data_fits_and_table1(reproduced):
 
 def test_map_cli_roundtrip_and_derivative(tmp_path, capsys):
     png, npz = tmp_path / "m.png", tmp_path / "m.npz"
-    rc = cli.main(["map", "--x", "theta_r=0:85:40", "--y", "n=1:3:30", "--fix", "theta_i=40", "k=2.139", "sigma=0.5",
+    rc = cli.main(["map", "--x", "theta_r=0:85@40", "--y", "n=1:3@30", "--fix", "theta_i=40", "k=2.139", "sigma=0.5",
                    "ks=0.9", "kd=0.15", "c=-0.3", "--quantity", "f00", "--derivative", "k", "--out", str(png),
                    "--npz", str(npz)])
     assert rc == 0
@@ -154,7 +154,7 @@ def test_map_cli_roundtrip_and_derivative(tmp_path, capsys):
 
 
 def test_map_derivative_along_map_axis_is_second_order():
-    ds = maps.make_map("theta_r=10:80:141", "sigma=0.2,0.3,0.4,0.5", {"theta_i": 40.0, "n": 1.6, "k": 2.139},
+    ds = maps.make_map("theta_r=10:80@141", "sigma=0.2,0.3,0.4,0.5", {"theta_i": 40.0, "n": 1.6, "k": 2.139},
                        derivative="theta_r")
     h = 1e-5
     tr = ds.theta_r.values[1:-1]
@@ -164,25 +164,25 @@ def test_map_derivative_along_map_axis_is_second_order():
     # O(step^2) with a 0.5 deg step: close to the analytic slope, not equal to it ...
     assert err < 2e-4 * np.abs(exact).max()
     # ... and halving the step divides the error by about four (second order)
-    fine = maps.make_map("theta_r=10:80:281", "sigma=0.2,0.3,0.4,0.5", {"theta_i": 40.0, "n": 1.6, "k": 2.139},
+    fine = maps.make_map("theta_r=10:80@281", "sigma=0.2,0.3,0.4,0.5", {"theta_i": 40.0, "n": 1.6, "k": 2.139},
                          derivative="theta_r")
     got_fine = fine["ddop_dtheta_r"].sel(sigma=0.3).values[2:-2:2]
     assert np.abs(got_fine - exact).max() < 0.3 * err
 
 
 @pytest.mark.parametrize("args, message", [
-    (["--x", "alpha=0:1:5", "--y", "n=1:3:4"], "--x: unknown axis 'alpha'"),
-    (["--x", "theta_r=0:85", "--y", "n=1:3:4"], "--x: 'theta_r=0:85' is not of the form"),
-    (["--x", "theta_r=0:85:1", "--y", "n=1:3:4"], "count >= 2"),
-    (["--x", "theta_r=0:95:10", "--y", "n=1:3:4"], "--x: theta_r must be in [0, 90) degrees, got 95.0"),
-    (["--x", "theta_r", "--y", "n=1:3:4"], "--x: 'theta_r' is not of the form"),
-    (["--x", "theta_r=0:85:10", "--y", "theta_r=1:3:4"], "x and y are both 'theta_r'"),
-    (["--x", "theta_r=0:85:10", "--y", "n=1:3:4", "--fix", "n=2"], "n is both a map axis and a fixed value"),
-    (["--x", "theta_r=0:85:10", "--y", "n=1:3:4", "--fix", "k"], "--fix: 'k' is not of the form name=value"),
-    (["--x", "theta_r=0:85:10", "--y", "n=1:3:4", "--fix", "k=-1"], "--fix: 'k=-1': k must be >= 0"),
-    (["--x", "theta_r=0:85:10", "--y", "n=1:3:4", "--fix", "theta_i=40", "k=2", "sigma=0.5", "--derivative", "zz"],
+    (["--x", "alpha=0:1@5", "--y", "n=1:3@4"], "--x alpha=0:1@5: unknown name 'alpha'; names are theta_i, "),
+    (["--x", "theta_r=0:85", "--y", "n=1:3@4"], "--x theta_r=0:85: a range needs a step or a count; write 0:85:STEP"),
+    (["--x", "theta_r=0:85@1", "--y", "n=1:3@4"], "--x theta_r=0:85@1: count 1 is not an integer >= 2"),
+    (["--x", "theta_r=0:95@10", "--y", "n=1:3@4"], "--x theta_r=0:95@10: theta_r must be in [0, 90) degrees, got 95.0"),
+    (["--x", "theta_r", "--y", "n=1:3@4"], "--x theta_r: not of the form name=values; write theta_r=VALUES"),
+    (["--x", "theta_r=0:85@10", "--y", "theta_r=1:3@4"], "x and y are both 'theta_r'"),
+    (["--x", "theta_r=0:85@10", "--y", "n=1:3@4", "--fix", "n=2"], "n is both a map axis and a fixed value"),
+    (["--x", "theta_r=0:85@10", "--y", "n=1:3@4", "--fix", "k"], "--fix k: not of the form name=value; write k=VALUE"),
+    (["--x", "theta_r=0:85@10", "--y", "n=1:3@4", "--fix", "k=-1"], "--fix k=-1: k must be >= 0"),
+    (["--x", "theta_r=0:85@10", "--y", "n=1:3@4", "--fix", "theta_i=40", "k=2", "sigma=0.5", "--derivative", "zz"],
      "derivative: unknown input 'zz'"),
-    (["--x", "theta_r=0:85:10", "--y", "n=1:3:4", "--fix", "k=2", "sigma=0.5"], "theta_i is required"),
+    (["--x", "theta_r=0:85@10", "--y", "n=1:3@4", "--fix", "k=2", "sigma=0.5"], "theta_i is required"),
 ])
 def test_map_bad_specs(tmp_path, capsys, args, message):
     rc = cli.main(["map", *args, "--out", str(tmp_path / "bad.png")])

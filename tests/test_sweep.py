@@ -293,12 +293,19 @@ def test_example_spec_runs(tmp_path):
 
 BAD = [
     ({"axes": {"sigmaa": [0.1]}}, "axes.sigmaa: unknown axis; valid names are theta_i"),
-    ({"axes": {"sigma": "1:0:0.1"}}, "axes.sigma: empty range 1:0:0.1"),
-    ({"axes": {"sigma": {"start": 0.1, "stop": 1, "num": 0}}}, "axes.sigma: empty range {start = 0.1, stop = 1, num = 0}"),
+    ({"axes": {"sigma": "1:0:0.1"}}, 'axes.sigma = "1:0:0.1": the step 0.1 goes up from 1 but the stop 0 is below it; '
+                                     "write 1:0:-0.1 to count down, or 0:1:0.1"),
+    ({"axes": {"sigma": {"start": 0.1, "stop": 1, "num": 0}}},
+     "axes.sigma = {start = 0.1, stop = 1, num = 0}: count 0 is not an integer >= 2; write 0.1:1@N with N >= 2"),
+    ({"axes": {"sigma": {"start": 0.1, "stop": 1, "step": 0.2}}},
+     "axes.sigma = {start = 0.1, stop = 1, step = 0.2}: steps of 0.2 from 0.1 miss the stop 1 (the last is 0.9); "
+     "write 0.1:0.9:0.2, or 0.1:1@5 for 5 values from 0.1 to 1"),
     ({"axes": {"sigma": []}}, "axes.sigma: empty list"),
-    ({"axes": {"sigma": "0.1:1:0"}}, "axes.sigma: step must be > 0"),
+    ({"axes": {"sigma": "0.1:1:0"}}, 'axes.sigma = "0.1:1:0": the step must not be 0; write 0.1:1:STEP, or 0.1:1@N'),
     ({"axes": {"sigma": [0.1, 0.3, 0.2]}}, "axes.sigma: values must be strictly increasing or decreasing"),
     ({"axes": {"theta_r": "0:95:5"}}, "axes.theta_r: theta_r must be in [0, 90) degrees, got 90.0"),
+    ({"axes": {"theta_r": "0:85:256"}}, 'axes.theta_r = "0:85:256": step 256 is larger than the range 0..85; '
+                                        "for 256 values write 0:85@256"),
     ({"axes": {"sigma": 0.5}}, "axes.sigma: a single value; give it under [fixed]"),
     ({"fixed": {"n": "high"}}, "fixed.n: 'high' is not a number"),
     ({"fixed": {"sigma": 0.5}}, "fixed.sigma: sigma is also an axis"),
@@ -355,7 +362,8 @@ def test_store_of_another_spec_or_kernels_or_a_foreign_folder_is_refused(spec_fi
     bad = tmp_path / "bad.toml"
     bad.write_text('[axes]\nsigma = "1:0:0.1"\n')
     assert cli.main(["sweep", str(bad), "--out", str(tmp_path / "x.zarr")]) == 1
-    assert capsys.readouterr().err.strip() == "pbrdf-cl: error: axes.sigma: empty range 1:0:0.1"
+    assert capsys.readouterr().err.strip() == ('pbrdf-cl: error: axes.sigma = "1:0:0.1": the step 0.1 goes up from 1 '
+                                               "but the stop 0 is below it; write 1:0:-0.1 to count down, or 0:1:0.1")
     assert not (tmp_path / "x.zarr").exists()
     assert cli.main(["sweep", str(tmp_path / "missing.toml"), "--out", str(tmp_path / "y.zarr")]) == 1
     assert "cannot read the spec" in capsys.readouterr().err
