@@ -232,3 +232,52 @@ def test_bad_reduction_and_objective_inputs(rng):
         G.objective(data, points=dict(theta_i=[1.0], n=[1.0], k=[0.0], sigma=[0.3]))
     with pytest.raises(ValueError, match="unknown axis 'q'"):
         G.objective(data, grid=dict(q=[1, 2], n=[1, 2], k=[0, 1], sigma=0.3))
+
+
+def test_grid_engine_interface_used_by_sweep_and_bench(each_device):
+    """The package-internal interface of the grid engine (dense.grid_blocks, Tables, table_bytes, ...):
+    blocks land in their slices of ``out``; the tables take exactly table_bytes; the frame table
+    only for the quantities that need it."""
+    eng = each_device
+    axes = dict(theta_r=np.linspace(0, 85, 40), phi=[30.0, 180.0], sigma=np.linspace(0.1, 1, 7))
+    plan = G.GridPlan(axes, dict(theta_i=40.0, n=1.6, k=2.1, kd=0.2, c=-0.3))
+    ng, nnk, nm, ni = G.family_sizes(plan)
+    assert (ng, nnk, nm, ni) == (80, 1, 7, 1)
+    for quantity, width in (("dop", 1), ("stokes", 4)):
+        out = np.full(plan.size * width, np.nan, np.float32)
+        blocks = list(G.grid_blocks(eng, plan, quantity, "float32", "paper", 1500, out=out))
+        assert len(blocks) > 1 and blocks[0][0] == 0
+        for start, host in blocks:
+            assert np.shares_memory(host, out) and host.size % width == 0
+        np.testing.assert_array_equal(out.reshape(plan.shape + ((width,) if width > 1 else ())),
+                                      G.grid(axes, plan.fixed_values(), quantity=quantity, engine=eng).values)
+        tables = G.Tables(eng, "float32", "paper", quantity, *G.geometry_list(plan, 0, ng), plan.values)
+        sizes = [b.size for b in tables.args()]
+        assert sum(sizes[:4]) + 2 * ng * 4 == G.table_bytes(ng, nnk, nm, ni, 4)
+        assert sizes[4] == (2 * ng * 4 if quantity == "stokes" else 1)  # the frame table, or a dummy
+
+
+def test_one_engine_shared_by_threads(each_device):
+    """The engine holds its lock while it sets a shared kernel's arguments and enqueues it: threads
+    evaluating different inputs on one engine each get their own values."""
+    import threading
+    eng = each_device
+    rng = np.random.default_rng(5)
+    jobs = [dict(theta_r=rng.uniform(0, 85, 20000), sigma=rng.uniform(0.1, 1, 20000)) for _ in range(4)]
+    got, errors = [None] * len(jobs), []
+
+    def work(i):
+        try:
+            for _ in range(5):
+                got[i] = pbrdf_cl.dop(40.0, jobs[i]["theta_r"], n=1.6, k=2.1, sigma=jobs[i]["sigma"], engine=eng)
+        except Exception as exc:  # pragma: no cover - reported below
+            errors.append(exc)
+    threads = [threading.Thread(target=work, args=(i,)) for i in range(len(jobs))]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors
+    for i, job in enumerate(jobs):
+        np.testing.assert_allclose(got[i], pbrdf_cl.dop(40.0, job["theta_r"], n=1.6, k=2.1, sigma=job["sigma"],
+                                                        backend="numpy"), rtol=1e-12, atol=1e-15)
