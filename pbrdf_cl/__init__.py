@@ -13,7 +13,7 @@ from . import quantities
 from .api import MODELS, aop, brdf, dop, evaluate, mueller, stokes, validate
 from .data import Measurements, read_csv
 from .dense import ObjectiveResult, grid, objective, reduce_grid
-from .sweep import SpecError, SweepResult, SweepSpec, load_spec, sweep
+from .sweeps import SpecError, SweepResult, SweepSpec, load_spec, sweep
 from .inversion import FitResult, compare_models, fit
 from .engine import (DeviceUnusableError, DeviceWarning, Engine, NumpyEngine, OpenCLUnavailableError,
                      get_default_engine, list_devices, probe, select_device, set_default_engine)

@@ -216,7 +216,7 @@ def cmd_fit(args) -> int:
 
 
 def cmd_sweep(args) -> int:
-    from .sweep import load_spec, read_done, sweep  # the module pbrdf_cl.sweep (the package exports the function)
+    from .sweeps import load_spec, read_done, sweep
     _check_output("--out", str(Path(args.out).parent), folder=True)
     try:
         spec = load_spec(args.spec)

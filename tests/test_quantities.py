@@ -10,7 +10,7 @@ import pbrdf_cl
 from conftest import call, random_inputs, requires_opencl
 from pbrdf_cl import cli, dense, maps, quantities, reference
 from pbrdf_cl.engine import kernel_dir
-from pbrdf_cl.sweep import SpecError, SweepSpec
+from pbrdf_cl.sweeps import SpecError, SweepSpec
 
 STEEL = dict(n=1.6, k=2.139, sigma=0.5, ks=0.9, kd=0.15, c=-0.3)
 BACKENDS = ["numpy", pytest.param("opencl", marks=requires_opencl)]

@@ -13,7 +13,7 @@ import pytest
 import pbrdf_cl
 from pbrdf_cl import cli, dense, maps, ranges
 from pbrdf_cl.ranges import RangeError
-from pbrdf_cl.sweep import SpecError, SweepSpec
+from pbrdf_cl.sweeps import SpecError, SweepSpec
 
 PACKAGE_ROOT = str(Path(pbrdf_cl.__file__).resolve().parent.parent)
 ROOT = Path(__file__).resolve().parent.parent
