@@ -24,7 +24,7 @@ class Quantity:
     """One output quantity.
 
     name : canonical name (the kernels' ``PB_QUANTITY``; ``pb_point_<name>``, ``pb_grid_<name>``)
-    long_name, units, label : for DataArray attrs and figure axes
+    long_name, units, symbol : for DataArray attrs and figure axes (``label``: symbol and units)
     components : names along the trailing axis (empty: one value per point); ``trailing`` is its shape
     scale_sign : the grid tables' scale is exp(scale_sign * log K): -1 gives 1/K, +1 gives K
     diffuse_factor : the grid tables' diffuse term is diffuse_factor * fd
@@ -41,7 +41,7 @@ class Quantity:
     name: str
     long_name: str
     units: str
-    label: str
+    symbol: str
     components: tuple = ()
     trailing: tuple = ()
     scale_sign: float = 1.0
@@ -57,6 +57,11 @@ class Quantity:
     vmin: float | None = None
     vmax: float | None = None
     aliases: tuple = ()
+
+    @property
+    def label(self):
+        """The symbol with its units, for colour bars: "F00 (1/sr)", "DOP"."""
+        return self.symbol if self.units == "1" else f"{self.symbol} ({self.units})"
 
     @property
     def width(self):
@@ -82,14 +87,14 @@ _VECTOR = "a vector per point: reduce or map one component yourself from pbrdf_c
 REGISTRY = {q.name: q for q in (
     Quantity("dop", "degree of polarization", "1", "DOP", scale_sign=-1.0, diffuse_factor=2.0, vector=True, grid_vector=True,
              paths=("points", "grid", "reduce", "objective", "sweep", "map"), vmin=0.0, vmax=1.0),
-    Quantity("brdf", "BRDF F00", "1/sr", "F00 (1/sr)", vector=True, aliases=("f00",)),
-    Quantity("aop", "angle of linear polarization (psps frame of the reflected beam)", "deg", "AoP (deg)",
+    Quantity("brdf", "BRDF F00", "1/sr", "F00", vector=True, aliases=("f00",)),
+    Quantity("aop", "angle of linear polarization (psps frame of the reflected beam)", "deg", "AoP",
              frame=True, undefined_nan=True, paths=("points", "grid", "sweep", "map"),
              refused={"reduce": _ANGLE}, period=180.0, cmap="twilight", vmin=-90.0, vmax=90.0),
     Quantity("stokes", "Stokes vector of the reflected light for unpolarised incidence", "1/sr",
-             "Stokes (1/sr)", components=("S0", "S1", "S2", "S3"), trailing=(4,), frame=True,
+             "S", components=("S0", "S1", "S2", "S3"), trailing=(4,), frame=True,
              paths=("points", "grid"), refused={"reduce": _VECTOR, "map": _VECTOR, "sweep": _VECTOR}),
-    Quantity("mueller", "Mueller-matrix BRDF (psps frames)", "1/sr", "Mueller (1/sr)", trailing=(4, 4),
+    Quantity("mueller", "Mueller-matrix BRDF (psps frames)", "1/sr", "F", trailing=(4, 4),
              paths=("points",),
              refused={p: "a 4x4 matrix per point: on grids use quantity='stokes' (its first column) or "
                       "evaluate pbrdf_cl.mueller over broadcast arrays" for p in ("grid", "reduce", "sweep", "map")}),
