@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import quantities, reference
+from . import quantities, reference, sizes
 from .engine import BACKENDS, DTYPES, POINT_INPUTS, check_backend, resolve_engine  # noqa: F401 (api.BACKENDS stays)
 
 MODELS = ("six-param", "specular")
@@ -94,6 +94,26 @@ def _check_domain(name, a):
         _check(name, a, ok, rule)
 
 
+class UnitsWarning(UserWarning):
+    """Inputs that look like a unit or convention mistake (angles in radians, DOP in percent, ...)."""
+
+
+#: Zenith angles that all lie below this many degrees (and are not all 0) look like radians.
+RADIANS_HINT = 1.6
+
+
+def check_degrees(theta_i, theta_r, where=""):
+    """Warn (:class:`UnitsWarning`) when every zenith angle lies below 1.6 and not all are 0: such
+    angles are almost always radians (pbrdf-cl takes degrees).  Two reads of each array."""
+    hi = max(float(np.max(a)) if np.size(a) else 0.0 for a in (theta_i, theta_r))
+    lo = min(float(np.min(a)) if np.size(a) else 0.0 for a in (theta_i, theta_r))
+    if 0.0 < hi < RADIANS_HINT and lo >= 0.0:
+        import warnings
+        warnings.warn(f"{where}theta_i and theta_r all lie below {RADIANS_HINT} degrees (the largest is {hi:.4g}): "
+                      "are they in radians? pbrdf-cl takes degrees (np.degrees(...) converts)", UnitsWarning,
+                      stacklevel=5)
+
+
 def check_options(shadowing, dtype):
     """Check the shadowing name and the dtype; returns the dtype's name."""
     if shadowing not in reference.SHADOWING:
@@ -125,6 +145,7 @@ def validate(theta_i, theta_r, phi, n, k, sigma, ks, kd, c, *, shadowing="paper"
     if values:
         for name in POINT_INPUTS:
             _check_domain(name, arrays[name])
+    check_degrees(arrays["theta_i"], arrays["theta_r"])
     if model == "specular":
         _check("kd", arrays["kd"], lambda a: a == 0, "0 in the specular (ref. [7]) model")
     try:
@@ -144,6 +165,10 @@ def _evaluate(quantity, theta_i, theta_r, phi, n, k, sigma, ks, kd, c, shadowing
     kw = dict(shadowing=shadowing, dtype=dtype, backend=backend, model=model)
     args = (theta_i, theta_r, phi, n, k, sigma, ks, kd, c)
     arrays, shape, dtype_name = validate(*args, **kw, values=not fused)
+    points = int(np.prod(shape, dtype=np.int64))
+    sizes.check_memory(points * q.width * np.dtype(DTYPES[dtype_name]).itemsize, f"the {quantity} of {points} points",
+                       "evaluate fewer points per call; for a Cartesian product of axes use pbrdf_cl.grid, or "
+                       "pbrdf-cl sweep (chunked into a Zarr store)")
     if eng.is_numpy:  # the reference broadcasts by itself
         out = eng.evaluate(quantity, arrays, shape, dtype=dtype_name, shadowing=shadowing)
     else:

@@ -7,7 +7,6 @@ device, an unwritable cache or output folder), ends in one line on stderr, ``pbr
 from __future__ import annotations
 
 import argparse
-import itertools
 import json
 import os
 import sys
@@ -138,8 +137,18 @@ def cmd_eval(args) -> int:
             return 2
         values[name] = parse_values(f"--{name.replace('_', '-')}", text) if text is not None else None
     names = [n for n, _ in PARAMS if values[n] is not None]
-    rows = list(itertools.product(*(values[n] for n in names)))
-    cols = {n: np.array([r[i] for r in rows]) for i, n in enumerate(names)}
+    shape = tuple(values[n].size for n in names)
+    total = int(np.prod(shape, dtype=np.int64))
+    width = quantities.get(args.quantity, "points", "--quantity").width
+    from . import sizes
+    sizes.check_memory(total * (16 * len(names) + 16 * width + (400 if args.json else 0)),
+                       f"pbrdf-cl eval of {' x '.join(map(str, shape))} = {total} rows",
+                       "give fewer values per option; for large Cartesian products use pbrdf-cl map or "
+                       "pbrdf-cl sweep (a Zarr store)")
+    # the rows of the Cartesian product (the last option varies fastest), as columns: no Python list
+    idx = np.unravel_index(np.arange(total), shape) if total else [np.zeros(0, int)] * len(names)
+    cols = {n: values[n][i] for n, i in zip(names, idx)}
+    rows = range(total)
     kw = dict(shadowing=args.shadowing, dtype=args.dtype, model=args.model, engine=_engine_for(args))
     pos = {n: cols[n] for n in ("theta_i", "theta_r", "phi")}
     par = {n: cols[n] for n in ("n", "k", "sigma", "ks", "kd", "c") if n in cols}
@@ -159,7 +168,7 @@ def cmd_eval(args) -> int:
         return 0
     header = [n for n in names]
     what = {"mueller": "mueller (row-major, 16 values)", "stokes": "stokes (S0 S1 S2 S3)"}.get(out_name, out_name)
-    print("  ".join(f"{h:>8s}" for h in header) + f"  {what} ({q.units})")
+    print("  ".join(f"{h:>8s}" for h in header) + f"  {what}" + (f" ({q.units})" if q.units != "1" else ""))
     for i in range(len(rows)):
         lead = "  ".join(f"{cols[n][i]:8.4g}" for n in names)
         if q.trailing:
@@ -222,7 +231,7 @@ def cmd_sweep(args) -> int:
         spec = load_spec(args.spec)
         engine = _engine_for(args) if not (args.workers or args.scheduler) else None
         res = sweep(spec, args.out, engine=engine, device=args.device, backend=args.backend, workers=args.workers,
-                    scheduler=args.scheduler, progress=not args.quiet)
+                    scheduler=args.scheduler, progress=not args.quiet, allow_large=args.allow_large)
     except KeyboardInterrupt:
         try:
             done = int(read_done(spec, args.out).sum())
@@ -244,6 +253,10 @@ def cmd_bench(args) -> int:
 
 def cmd_reproduce(args) -> int:
     from . import paper
+    try:
+        paper.check_resolution(args.resolution)
+    except ValueError as exc:
+        return _error(exc)
     _check_output("--out", args.out, folder=True)
     try:
         engine = _engine_for(args)
@@ -273,11 +286,16 @@ def cmd_map(args) -> int:
             maps.save_npz(ds, args.npz)
     except (OSError, ValueError, _engine.OpenCLUnavailableError) as exc:
         return _error(exc)
+    for note in ds.attrs.get("notes", []):
+        print(f"pbrdf-cl: note: {note}", file=sys.stderr)
     v = ds[ds.attrs["quantity"]].values
     print(f"{ds.attrs['quantity']} over {x[0]} ({x[1].size} points) x {y[0]} ({y[1].size} points): "
           f"min {np.nanmin(v):.6g}, max {np.nanmax(v):.6g}")
     print(f"wrote {args.out}" + (f" and {args.npz}" if args.npz else ""))
     return 0
+
+
+_SHADOWING_HELP = "shadowing function: paper (the paper's eq. 7-9), smith (Smith's), or none"
 
 
 def _quantity_choices(path):
@@ -294,10 +312,75 @@ def _device_options(parser, where=""):
                         "opencl: the device or an error; numpy: the float64 reference")
 
 
+class _HelpFormatter(argparse.HelpFormatter):
+    """Shows each option's default after its help (not for None/False defaults, nor where the help
+    says it already)."""
+
+    def _get_help_string(self, action):
+        text = action.help or ""
+        if (action.option_strings and action.default not in (None, False, argparse.SUPPRESS)
+                and "default" not in text):
+            text += " (default: %(default)s)"
+        return text
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with a suggestion for a misspelt option: ``unrecognized arguments: --sigmaa; did you
+    mean --sigma?``."""
+
+    def __init__(self, *args, **kw):
+        kw.setdefault("formatter_class", _HelpFormatter)
+        super().__init__(*args, **kw)
+
+    def error(self, message):
+        import difflib
+        if "unrecognized arguments" in message:
+            known = sorted({o for parser in _all_parsers(self) for a in parser._actions for o in a.option_strings})
+            for token in message.split(":", 1)[1].split():
+                if token.startswith("--"):
+                    close = difflib.get_close_matches(token.split("=")[0], known, n=1, cutoff=0.6)
+                    if close:
+                        message += f"; did you mean {close[0]}?"
+                        break
+        super().error(message)
+
+
+def _all_parsers(parser):
+    """``parser`` and the parser of the sub-command given on this command line, if any."""
+    found = [parser]
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            chosen = getattr(parser, "_chosen", None)
+            found += [action.choices[chosen]] if chosen in action.choices else list(action.choices.values())
+    return found
+
+
+#: Options that take a list of NAME=VALUE items: a token without "=" after them is not theirs.
+_ITEM_OPTIONS = ("--fix", "--bounds")
+
+
+def _positionals_first(argv):
+    """Move file names that follow a NAME=VALUE list option (``fit --fix sigma=0.45 data.csv``) in front
+    of it, so that the list does not swallow the positional argument."""
+    out, moved, in_items = [], [], False
+    for token in argv:
+        if token in _ITEM_OPTIONS:
+            in_items = True
+        elif token.startswith("-"):
+            in_items = False
+        elif in_items and "=" not in token and (os.path.exists(token) or "/" in token or "." in token.lstrip(".")):
+            moved.append(token)  # a file name, not a malformed item (those get their own message)
+            continue
+        out.append(token)
+    return out[:1] + moved + out[1:] if moved else out
+
+
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="pbrdf-cl", description="The six-parameter pBRDF model on OpenCL. "
-                                "Angles in degrees; phi = 180 is the in-plane geometry.")
-    sub = p.add_subparsers(dest="command", required=True)
+    from . import __version__
+    p = _Parser(prog="pbrdf-cl", description="The six-parameter pBRDF model on OpenCL. "
+                "Angles in degrees; phi = 180 is the in-plane geometry. `pbrdf-cl COMMAND --help` for each.")
+    p.add_argument("--version", action="version", version=f"pbrdf-cl {__version__}")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
     d = sub.add_parser("devices", help="list OpenCL platforms and devices")
     d.add_argument("--device", help="mark this device as the one chosen (P:D or a name substring)")
     d.add_argument("--json", action="store_true", help="JSON output")
@@ -311,9 +394,10 @@ def build_parser() -> argparse.ArgumentParser:
                        help=f"{name}{unit}" + (f", default {default}" if default else ", required"))
     e.add_argument("--quantity", choices=_quantity_choices("points"), default="dop",
                    help="AoP in degrees (NaN where undefined), F00 and Stokes in 1/sr")
-    e.add_argument("--shadowing", choices=sorted(SHADOWING), default="paper")
-    e.add_argument("--model", choices=api.MODELS, default="six-param")
-    e.add_argument("--dtype", choices=("float32", "float64"), default="float64")
+    e.add_argument("--shadowing", choices=sorted(SHADOWING), default="paper", help=_SHADOWING_HELP)
+    e.add_argument("--model", choices=api.MODELS, default="six-param",
+                   help="six-param, or specular: the ref. [7] model (kd = 0; the DOP then needs no --sigma)")
+    e.add_argument("--dtype", choices=("float32", "float64"), default="float64", help="precision")
     _device_options(e)
     e.add_argument("--json", action="store_true", help="JSON output")
     e.set_defaults(func=cmd_eval)
@@ -329,6 +413,8 @@ def build_parser() -> argparse.ArgumentParser:
     where.add_argument("--scheduler", metavar="ADDR", help="run on a dask.distributed cluster (tcp://host:8786)")
     _device_options(s, " here or on every worker")
     s.add_argument("--quiet", action="store_true", help="no progress bar; one summary line at the end")
+    s.add_argument("--allow-large", action="store_true",
+                   help="start even when the store (uncompressed) would not fit on the free disk")
     s.set_defaults(func=cmd_sweep)
     f = sub.add_parser("fit", help="invert n, k, sigma, kd/ks, c from measured DOP (CSV)",
                        description="Fit the six-parameter model and the ref. [7] specular model to a CSV of "
@@ -338,7 +424,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="which fit is listed first (both are fitted and compared)")
     f.add_argument("--fix", nargs="*", metavar="NAME=VALUE", help="hold parameters fixed, e.g. sigma=0.45")
     f.add_argument("--bounds", nargs="*", metavar="NAME=LO:HI", help="search bounds, e.g. n=1:3 k=0:5")
-    f.add_argument("--shadowing", choices=sorted(SHADOWING), default="paper")
+    f.add_argument("--shadowing", choices=sorted(SHADOWING), default="paper", help=_SHADOWING_HELP)
     _device_options(f, " for the grid stage")
     f.add_argument("--json", metavar="OUT", help="write both fits as JSON")
     f.add_argument("--plot", metavar="PNG", help="plot data, both models and residuals")
@@ -361,11 +447,12 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--x", required=True, metavar="NAME=VALUES", help="horizontal axis, e.g. theta_r=0:85@256")
     m.add_argument("--y", required=True, metavar="NAME=VALUES", help="vertical axis, e.g. sigma=0.05:1:0.05")
     m.add_argument("--fix", nargs="*", metavar="NAME=VALUE", help="the other inputs, e.g. theta_i=40 n=1.6")
-    m.add_argument("--quantity", choices=_quantity_choices("map"), default="dop")
+    m.add_argument("--quantity", choices=_quantity_choices("map"), default="dop",
+                   help="what to map: dop, brdf (alias f00; 1/sr, log colours when it spans decades), aop (deg)")
     m.add_argument("--derivative", metavar="NAME",
                    help="add a panel with d(quantity)/d(NAME): finite differences on the device grid")
-    m.add_argument("--dtype", choices=("float32", "float64"), default="float64")
-    m.add_argument("--shadowing", choices=sorted(SHADOWING), default="paper")
+    m.add_argument("--dtype", choices=("float32", "float64"), default="float64", help="precision")
+    m.add_argument("--shadowing", choices=sorted(SHADOWING), default="paper", help=_SHADOWING_HELP)
     _device_options(m)
     m.add_argument("--out", default="map.png", help="PNG to write (default map.png)")
     m.add_argument("--npz", metavar="NPZ", help="also save the arrays (coordinates, values, derivative)")
@@ -390,6 +477,8 @@ def _environment_error(exc):
     if cl is not None and isinstance(exc, cl.Error):
         return (f"OpenCL: {_engine.first_error_line(exc)}; try another device (`pbrdf-cl devices`) or "
                 "--backend numpy")
+    if isinstance(exc, MemoryError) and exc.args and "memory is available" in str(exc):
+        return str(exc)  # sizes.TooLargeError: the estimate, found before any work
     if isinstance(exc, MemoryError):
         return "out of memory; use smaller sizes (fewer points per axis, a smaller memory_budget)"
     if isinstance(exc, OSError):
@@ -403,7 +492,12 @@ def main(argv=None) -> int:
     if argv[:1] == ["bench"]:  # its options are bench.main's own (argparse's REMAINDER drops "--x" ones)
         args = argparse.Namespace(func=cmd_bench, rest=argv[1:])
     else:
-        args = build_parser().parse_args(argv)
+        parser = build_parser()
+        if not argv:
+            parser.print_help()
+            return 0
+        parser._chosen = argv[0]
+        args = parser.parse_args(_positionals_first(argv))
     saved = warnings.showwarning
     warnings.showwarning = _show_warning
     try:

@@ -27,7 +27,7 @@ import time
 
 import numpy as np
 
-from . import api, quantities, reference
+from . import api, quantities, reference, sizes
 from .engine import DTYPES, aligned_empty, resolve_engine
 
 AXES = ("theta_i", "theta_r", "phi", "n", "k", "sigma", "ks", "kd", "c")
@@ -343,6 +343,10 @@ def grid(axes, fixed=None, quantity="dop", dtype="float32", shadowing="paper", *
     q = _check_quantity(quantity)
     dtype = api.check_options(shadowing, dtype)
     plan = GridPlan(axes, fixed)
+    sizes.check_memory(plan.size * q.width * np.dtype(DTYPES[dtype]).itemsize,
+                       f"the grid of {' x '.join(map(str, plan.shape + q.trailing))} = {plan.size} points",
+                       "use fewer values per axis, pbrdf_cl.reduce_grid (reductions on the device), or pbrdf-cl "
+                       "sweep (chunk by chunk into a Zarr store)")
     eng = resolve_engine(engine, backend)
     out = aligned_empty(plan.size * q.width, DTYPES[dtype])  # page-aligned: written in place by any CPU driver
     for _ in grid_blocks(eng, plan, q.name, dtype, shadowing, memory_budget, progress, out=out):

@@ -12,7 +12,7 @@ import json
 
 import numpy as np
 
-from . import api, dense, quantities, ranges
+from . import api, dense, quantities, ranges, sizes
 from .engine import resolve_engine
 from .plots import _pyplot
 
@@ -71,6 +71,11 @@ def make_map(x, y, fixed=None, quantity="dop", derivative=None, *, dtype="float6
     yname, yv = _axis("y", y)
     if xname == yname:
         raise ValueError(f"x and y are both {xname!r}; choose two different axes")
+    for option, name, v in (("x", xname, xv), ("y", yname, yv)):
+        if v.size < 2:
+            raise ValueError(f"{option}: {name} has one value ({float(v[0]):g}); a map axis needs at least 2 "
+                             f"(e.g. {name}=<start>:<stop>@256), or fix it with --fix {name}={float(v[0]):g}")
+    check_map_size(xv.size, yv.size, derivative is not None)
     fixed = dict(fixed or {})
     for name in (xname, yname):
         if name in fixed:
@@ -81,6 +86,9 @@ def make_map(x, y, fixed=None, quantity="dop", derivative=None, *, dtype="float6
     ds = da.to_dataset(name=quantity)
     ds.attrs = dict(da.attrs)
     ds.attrs.update(x=xname, y=yname)
+    notes = flat_axis_notes(da, q, (yname, xname))
+    if notes:
+        ds.attrs["notes"] = notes
     if derivative is not None:
         dname = f"d{quantity}_d{derivative}"
         values = da.values.astype(np.float64)
@@ -112,6 +120,53 @@ def make_map(x, y, fixed=None, quantity="dop", derivative=None, *, dtype="float6
         ds[dname] = ((yname, xname), d, {"long_name": f"d {quantity} / d {derivative}", "method": method})
         ds.attrs["derivative"] = derivative
     return ds
+
+
+def map_bytes(nx, ny, derivative):
+    """An estimate of the memory a map of nx x ny points takes: its float64 arrays (values, and with
+    a derivative its pair grid, the difference and the panel) and the figure's meshes (~128 bytes a
+    cell per panel)."""
+    panels = 2 if derivative else 1
+    return int(nx) * int(ny) * (8 * (2 + 4 * (panels - 1)) + 128 * panels)
+
+
+def check_map_size(nx, ny, derivative, what="the map"):
+    """Refuse (:class:`pbrdf_cl.sizes.TooLargeError`) a map that cannot fit in memory, before any work."""
+    sizes.check_memory(map_bytes(nx, ny, derivative), f"{what} of {nx} x {ny} points",
+                       "use fewer points per axis (a PNG shows a few thousand at most); pbrdf-cl sweep writes "
+                       "larger grids chunk by chunk into a Zarr store")
+
+
+#: Why a quantity may not depend on an input: (quantity, input, condition on the fixed inputs, reason).
+_FLAT_REASONS = (
+    ("dop", ("sigma", "ks"), lambda f: f.get("kd", 0.0) == 0.0,
+     "with kd = 0 the DOP is the specular term's alone, whose scale (sigma, ks, the shadowing) cancels"),
+    ("dop", ("c",), lambda f: f.get("kd", 0.0) == 0.0, "with kd = 0 there is no diffuse term"),
+    ("brdf", ("c",), lambda f: f.get("kd", 0.0) == 0.0, "with kd = 0 there is no diffuse term"),
+    ("aop", ("n", "k", "sigma", "ks", "kd", "c"), lambda f: True,
+     "the AoP depends on the geometry alone wherever it is defined"),
+)
+
+
+def flat_axis_notes(da, q, dims):
+    """Notes for the axes of ``da`` (dims) along which the quantity does not change at all (up to
+    1e-12 of its scale), with the reason where one is known."""
+    values = np.asarray(da.transpose(*dims).values, dtype=np.float64)
+    finite = values[np.isfinite(values)]
+    if finite.size == 0:
+        return []
+    scale = max(float(np.abs(finite).max()), 1e-300)
+    fixed = {k[6:]: v for k, v in da.attrs.items() if k.startswith("fixed_")}
+    notes = []
+    for axis, name in enumerate(dims):
+        with np.errstate(invalid="ignore"):
+            spread = np.nanmax(values, axis=axis) - np.nanmin(values, axis=axis)
+        spread = spread[np.isfinite(spread)]
+        if spread.size and float(spread.max()) <= 1e-12 * scale:
+            why = next((r for qn, names, cond, r in _FLAT_REASONS if qn == q.name and name in names and cond(fixed)),
+                       None)
+            notes.append(f"{q.name} does not depend on {name} over this map" + (f": {why}" if why else ""))
+    return notes
 
 
 def _fixed_text(attrs, skip=()):

@@ -236,17 +236,25 @@ DESCRIPTIONS = {
 }
 
 
+def check_resolution(resolution):
+    """Refuse a map resolution that is too small, or whose maps cannot fit in memory, before any work
+    (the fits run first and take seconds)."""
+    if resolution < 8:
+        raise ValueError(f"resolution must be >= 8 points per map axis, got {resolution}")
+    # the larger of the two maps: theta_i x theta_r for each of Fig. 5's roughness values
+    maps.check_map_size(resolution, resolution * max(2, len(SIGMAS)), True, what=f"--resolution {resolution}: a map")
+
+
 def reproduce(out="paper-figures", *, resolution=256, engine=None, backend="auto", seed=SEED, log=print):
     """Write every figure, table and data file (see the module docstring) into ``out``.
 
     ``engine``, ``backend``: where the fits' grid stage and the maps run ("auto": the OpenCL
     device, or the numpy reference without one).
     Returns a dict file name -> one-sentence description (what ``summary.md`` lists)."""
+    check_resolution(resolution)
     engine = resolve_engine(engine, backend)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    if resolution < 8:
-        raise ValueError(f"resolution must be >= 8 points per map axis, got {resolution}")
     t0 = time.perf_counter()
     log(f"computing on {engine.description}")
     fits = {}

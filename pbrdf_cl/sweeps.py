@@ -49,6 +49,7 @@ import logging
 import numbers
 import os
 import re
+import sys
 import tempfile
 import threading
 import time
@@ -57,7 +58,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import api, dense, quantities, ranges
+from . import api, dense, quantities, ranges, sizes
 from .engine import DTYPES, kernels_sha256, resolve_engine
 from .reference import SHADOWING
 
@@ -150,11 +151,7 @@ def parse_bytes(field, value):
     return n
 
 
-def _human(nbytes):
-    for unit, size in (("GiB", 1 << 30), ("MiB", 1 << 20), ("KiB", 1 << 10)):
-        if nbytes >= size:
-            return f"{nbytes / size:.4g} {unit}"
-    return f"{nbytes} B"
+_human = sizes.human
 
 
 class SweepSpec:
@@ -701,8 +698,32 @@ def _bar(spec, initial, enabled):
     return tqdm(total=spec.n_chunks, initial=initial, unit="chunk", desc="sweep", dynamic_ncols=True)
 
 
+def store_bytes(spec):
+    """The uncompressed size of a spec's stored values (an upper bound of the store: Blosc compresses)."""
+    cells = int(np.prod(spec.shape, dtype=np.int64))
+    if spec.over:
+        return cells * (2 * spec.itemsize + 8 * len(spec.over))
+    return cells * spec.itemsize
+
+
+def _check_before_work(spec, store, distributed, allow_large):
+    """What can be refused before a store is created: a cluster without dask.distributed, a store
+    that would not fit on its disk (unless ``allow_large``)."""
+    if distributed:
+        import importlib.util
+        if importlib.util.find_spec("distributed") is None:
+            raise RuntimeError("a cluster sweep needs dask.distributed: pip install 'pbrdf-cl[cluster]' "
+                               "(or run without --workers/--scheduler)")
+    need, free = store_bytes(spec), sizes.free_disk(store)
+    if free is not None and need > free and not allow_large:
+        raise sizes.TooLargeError(
+            f"the store would hold up to {_human(need)} ({spec.points} points, uncompressed; Blosc usually saves "
+            f"a factor 1.5-3) but {_human(free)} is free where it goes; free space, choose another store, reduce "
+            f"axes with [reduce], or pass allow_large=True (pbrdf-cl sweep --allow-large) to start anyway")
+
+
 def sweep(spec, store, *, engine=None, device=None, backend="auto", workers=None, scheduler=None, client=None,
-          progress=True):
+          progress=True, allow_large=False):
     """Evaluate a sweep into a Zarr store, computing only the chunks not already there.
 
     Parameters
@@ -716,7 +737,9 @@ def sweep(spec, store, *, engine=None, device=None, backend="auto", workers=None
         or "numpy", here and on every worker.
     workers : start a local ``dask.distributed`` cluster of this many processes (1 thread each).
     scheduler : address of a running scheduler (``tcp://host:8786``); or pass ``client``.
-    progress : a tqdm bar (chunks, points/s, ETA).
+    progress : a tqdm bar (chunks, points/s, ETA), after a line with the sweep's size and, once the
+        first chunk is done, its estimated time.
+    allow_large : start even if the store (uncompressed) would not fit on the free disk.
 
     Returns a :class:`SweepResult`; ``.open()`` gives the ``xarray.Dataset``.
     """
@@ -726,6 +749,7 @@ def sweep(spec, store, *, engine=None, device=None, backend="auto", workers=None
         raise ValueError("give at most one of workers=, scheduler= and client=")
     if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 1):
         raise ValueError(f"workers must be a positive integer, got {workers!r}")
+    _check_before_work(spec, store, given > 0, allow_large)
     name, existed = open_store(spec, store)
     if existed and _is_local(store):
         _clean_partials(name)
@@ -733,12 +757,22 @@ def sweep(spec, store, *, engine=None, device=None, backend="auto", workers=None
     todo = np.flatnonzero(~done)
     skipped = spec.n_chunks - todo.size
     stats = dict(chunks=0, points=0)
+    if progress and todo.size:
+        print(f"sweep: {spec.points} points in {spec.n_chunks} chunks ({todo.size} to compute), up to "
+              f"{_human(store_bytes(spec))} stored uncompressed", file=sys.stderr)
     bar = _bar(spec, skipped, progress and todo.size > 0)
     t0 = time.perf_counter()
 
     def finished(i, points):
         stats["chunks"] += 1
         stats["points"] += points
+        if stats["chunks"] == 1:
+            stats["first"] = time.perf_counter()
+        if stats["chunks"] == 2 and progress and todo.size > 2:  # the first chunk also built the kernels
+            took = time.perf_counter() - stats["first"]
+            eta = took * (todo.size - 2)
+            msg = f"sweep: a chunk takes about {took:.3g} s here; about {_eta(eta)} for the rest"
+            (bar.write(msg, file=sys.stderr) if bar is not None else print(msg, file=sys.stderr))
         if bar is not None:
             bar.update(1)
             bar.set_postfix_str(f"{stats['points'] / max(time.perf_counter() - t0, 1e-9):.3g} points/s", refresh=False)
@@ -764,6 +798,14 @@ def sweep(spec, store, *, engine=None, device=None, backend="auto", workers=None
                       points_per_s=stats["points"] / seconds if stats["points"] else 0.0, complete=complete)
     log.info(res.summary())
     return res
+
+
+def _eta(seconds):
+    """``5400`` -> ``"1.5 h"``."""
+    for unit, size in (("d", 86400), ("h", 3600), ("min", 60)):
+        if seconds >= size:
+            return f"{seconds / size:.3g} {unit}"
+    return f"{seconds:.3g} s"
 
 
 def _mark_complete(spec, name):

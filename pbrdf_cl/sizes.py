@@ -1,0 +1,65 @@
+"""Sizes checked before any work: what an output needs against what the machine has.
+
+Every public call that allocates its result (:func:`pbrdf_cl.dop` and the other per-point
+functions, :func:`pbrdf_cl.grid`, maps, ``pbrdf-cl eval``, ``pbrdf-cl reproduce``) estimates it
+first and refuses, with a one-line ``MemoryError`` subclass naming the size, what is available and
+what to do, a result that cannot fit in memory; a sweep compares its store with the free disk.
+"""
+from __future__ import annotations
+
+import os
+import shutil
+
+
+class TooLargeError(MemoryError, ValueError):
+    """An output that cannot fit, found before any work (a ``MemoryError`` and a ``ValueError``,
+    so that both ``except`` clauses a caller may have catch it)."""
+
+
+def human(nbytes) -> str:
+    """``1536`` -> ``"1.5 KiB"``; ``"512 B"`` below a KiB."""
+    for unit, size in (("PiB", 1 << 50), ("TiB", 1 << 40), ("GiB", 1 << 30), ("MiB", 1 << 20), ("KiB", 1 << 10)):
+        if nbytes >= size:
+            return f"{nbytes / size:.4g} {unit}"
+    return f"{int(nbytes)} B"
+
+
+def available_memory():
+    """Bytes of memory available to a new allocation (Linux ``MemAvailable``; elsewhere the free
+    physical pages), or None where it cannot be told."""
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    try:
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):  # pragma: no cover - not POSIX
+        return None
+
+
+def check_memory(nbytes, what, advice):
+    """Raise :class:`TooLargeError` if ``nbytes`` (an estimate of ``what``) exceeds the available
+    memory: ``"<what> needs 74.5 GiB, but 12.1 GiB of memory is available; <advice>"``."""
+    avail = available_memory()
+    if avail is not None and nbytes > avail:
+        raise TooLargeError(f"{what} needs {human(nbytes)}, but {human(avail)} of memory is available; {advice}")
+
+
+def free_disk(path):
+    """Free bytes on the file system that holds ``path`` (or its nearest existing parent); None for
+    remote stores."""
+    if "://" in str(path) and not str(path).startswith("file://"):
+        return None
+    p = os.path.abspath(str(path).replace("file://", "", 1))
+    while p and not os.path.exists(p):
+        parent = os.path.dirname(p)
+        if parent == p:
+            break
+        p = parent
+    try:
+        return shutil.disk_usage(p).free
+    except OSError:
+        return None

@@ -1,0 +1,146 @@
+"""The mistakes users make (issue: catch the user's mistakes): units, sizes, the command line.
+Each gets a correct answer or one line saying what to do, before any work; never a traceback."""
+import subprocess
+import sys
+import warnings
+
+import numpy as np
+import pytest
+
+import pbrdf_cl
+from pbrdf_cl import api, cli, maps, sizes, sweeps
+
+STEEL = dict(n=1.6, k=2.139, sigma=0.5, ks=0.9, kd=0.15, c=-0.3)
+
+
+def run_cli(*args):
+    return subprocess.run([sys.executable, "-m", "pbrdf_cl", *args], capture_output=True, text=True, timeout=300)
+
+
+# ---- units and conventions
+
+def test_angles_in_radians_are_flagged():
+    with pytest.warns(api.UnitsWarning, match=r"all lie below 1.6 degrees .*are they in radians\?"):
+        pbrdf_cl.dop(np.radians(40), np.radians([20.0, 45.0, 65.0]), backend="numpy", **STEEL)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", api.UnitsWarning)
+        pbrdf_cl.dop(40, [20.0, 45.0, 65.0], backend="numpy", **STEEL)  # degrees
+        pbrdf_cl.dop(0.0, 0.0, backend="numpy", **STEEL)  # normal incidence and viewing: not radians
+        pbrdf_cl.dop(0.0, [0.5, 30.0], backend="numpy", **STEEL)  # one angle above 1.6
+    proc = run_cli("eval", "--theta-i", "0.698", "--theta-r", "0.5", "--n", "1.6", "--k", "2", "--sigma", "0.3",
+                   "--backend", "numpy")
+    assert proc.returncode == 0
+    assert proc.stderr.strip().splitlines() == [
+        "pbrdf-cl: warning: theta_i and theta_r all lie below 1.6 degrees (the largest is 0.698): are they in "
+        "radians? pbrdf-cl takes degrees (np.degrees(...) converts)"]
+
+
+def test_a_map_axis_the_quantity_does_not_depend_on_is_noted(tmp_path):
+    x, y = ("theta_r", np.linspace(0, 85, 20)), ("sigma", np.linspace(0.05, 1, 12))
+    ds = maps.make_map(x, y, dict(theta_i=40, n=1.6, k=2.1), backend="numpy")  # kd = 0
+    assert ds.attrs["notes"] == ["dop does not depend on sigma over this map: with kd = 0 the DOP is the "
+                                 "specular term's alone, whose scale (sigma, ks, the shadowing) cancels"]
+    ds = maps.make_map(x, y, dict(theta_i=40, n=1.6, k=2.1, kd=0.2), backend="numpy")
+    assert "notes" not in ds.attrs
+    ds = maps.make_map(("n", np.linspace(1.2, 3, 10)), ("theta_r", np.linspace(5, 85, 9)),
+                       dict(theta_i=40, phi=120, k=2.1, sigma=0.3), quantity="aop", backend="numpy")
+    assert ds.attrs["notes"] == ["aop does not depend on n over this map: the AoP depends on the geometry alone "
+                                 "wherever it is defined"]
+    proc = run_cli("map", "--x", "theta_r=0:85@20", "--y", "sigma=0.05:1@12", "--fix", "theta_i=40", "n=1.6", "k=2",
+                   "--backend", "numpy", "--out", str(tmp_path / "m.png"))
+    assert proc.returncode == 0 and "pbrdf-cl: note: dop does not depend on sigma over this map" in proc.stderr
+
+
+# ---- sizes, checked before any work
+
+def test_outputs_that_cannot_fit_are_refused_first(monkeypatch):
+    monkeypatch.setattr(sizes, "available_memory", lambda: 1 << 30)  # 1 GiB
+    big = np.broadcast_to(1.6, (20000, 20000))
+    with pytest.raises(sizes.TooLargeError, match=r"^the dop of 400000000 points needs 2.98 GiB, but 1 GiB of memory "
+                       r"is available; evaluate fewer points per call"):
+        pbrdf_cl.dop(40, 30, n=big, k=2, sigma=0.3)
+    axes = dict(theta_r=np.linspace(0, 85, 2000), sigma=np.linspace(0.05, 1, 2000), kd=np.linspace(0, 1, 100))
+    with pytest.raises(MemoryError, match=r"^the grid of 2000 x 2000 x 100 = 400000000 points needs 1.49 GiB"):
+        pbrdf_cl.grid(axes, dict(theta_i=40, n=1.6, k=2.1))
+    with pytest.raises(ValueError, match=r"^the map of 20000 x 20000 points needs"):  # also a ValueError
+        maps.make_map(("theta_r", np.linspace(0, 85, 20000)), ("sigma", np.linspace(0.05, 1, 20000)),
+                      dict(theta_i=40, n=1.6, k=2.1), derivative="sigma")
+
+
+@pytest.mark.parametrize("args,start", [
+    (["eval", "--theta-i", "40", "--theta-r", "0:85:0.0001", "--sigma", "0.01:1:0.0001", "--n", "1.6", "--k", "2"],
+     "pbrdf-cl: error: pbrdf-cl eval of 1 x 850001 x 1 x 1 x 1 x 9901 x 1 x 1 x 1 = 8415859901 rows needs"),
+    (["map", "--x", "theta_r=0:85@100000", "--y", "sigma=0.05:1@100000", "--fix", "theta_i=40", "n=1.6", "k=2"],
+     "pbrdf-cl: error: the map of 100000 x 100000 points needs"),
+    (["reproduce", "--resolution", "100000"], "pbrdf-cl: error: --resolution 100000: a map of 100000 x 300000 points"),
+])
+def test_cli_sizes_refused_in_one_line_before_any_work(tmp_path, args, start):
+    proc = run_cli(*args, *(["--out", str(tmp_path / "o")] if args[0] != "eval" else []))
+    assert proc.returncode == 1 and proc.stdout == ""
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(start) and "memory is available" in lines[0]
+    assert not (tmp_path / "o").exists()
+
+
+def test_sweep_checks_disk_and_extras_before_creating_the_store(tmp_path, monkeypatch, capsys):
+    spec = dict(axes=dict(theta_r="0:85@64", sigma="0.05:1@64"), fixed=dict(theta_i=40, n=1.6, k=2.0),
+                chunks=dict(points=1024), dtype="float64")
+    monkeypatch.setattr(sizes, "free_disk", lambda path: 10000)
+    with pytest.raises(sizes.TooLargeError, match=r"^the store would hold up to 32 KiB \(4096 points, uncompressed"):
+        pbrdf_cl.sweep(spec, tmp_path / "a.zarr", progress=False)
+    assert not (tmp_path / "a.zarr").exists()
+    res = pbrdf_cl.sweep(spec, tmp_path / "a.zarr", progress=True, allow_large=True, backend="numpy")
+    assert res.complete
+    err = capsys.readouterr().err
+    assert "sweep: 4096 points in 4 chunks (4 to compute), up to 32 KiB stored uncompressed" in err
+    assert "sweep: a chunk takes about" in err and "for the rest" in err
+    monkeypatch.undo()
+    import importlib.util
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "distributed" else real(name, *a))
+    with pytest.raises(RuntimeError, match=r"needs dask.distributed: pip install 'pbrdf-cl\[cluster\]'"):
+        sweeps.sweep(spec, tmp_path / "b.zarr", workers=2, progress=False)
+    assert not (tmp_path / "b.zarr").exists()
+
+
+# ---- the command line
+
+def test_cli_basics(capsys):
+    assert cli.main([]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("usage: pbrdf-cl") and "COMMAND" in out
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["--version"])
+    assert exc.value.code == 0 and capsys.readouterr().out.strip() == f"pbrdf-cl {pbrdf_cl.__version__}"
+    with pytest.raises(SystemExit):
+        cli.main(["eval", "--theta-i", "40", "--theta-r", "30", "--n", "1.6", "--k", "2", "--sigmaa", "0.3"])
+    assert "unrecognized arguments: --sigmaa 0.3; did you mean --sigma?" in capsys.readouterr().err
+    for command in ("eval", "map", "fit"):
+        with pytest.raises(SystemExit):
+            cli.main([command, "--help"])
+        text = " ".join(capsys.readouterr().out.split())
+        assert "shadowing function: paper" in text and "(default: paper)" in text, command
+        if command != "fit":
+            assert "precision (default: float64)" in text and "(default: dop)" in text, command
+
+
+def test_a_list_option_does_not_swallow_the_data_file():
+    parser = cli.build_parser()
+    args = parser.parse_args(cli._positionals_first(["fit", "--fix", "sigma=0.45", "examples/steel_435nm.csv",
+                                                     "--bounds", "n=1:3", "k=0:5"]))
+    assert args.data == "examples/steel_435nm.csv" and args.fix == ["sigma=0.45"] and args.bounds == ["n=1:3", "k=0:5"]
+    # a malformed item is not taken for the file: it gets its own message
+    assert cli._positionals_first(["map", "--fix", "k"]) == ["map", "--fix", "k"]
+
+
+def test_eval_rows_are_the_product_in_order(capsys):
+    assert cli.main(["eval", "--theta-i", "30,40", "--theta-r", "20:30:5", "--n", "1.6", "--k", "2", "--sigma",
+                     "0.3,0.5", "--backend", "numpy", "--json"]) == 0
+    import json
+    rows = json.loads(capsys.readouterr().out)["rows"]
+    import itertools
+    want = list(itertools.product([30.0, 40.0], [20.0, 25.0, 30.0], [0.3, 0.5]))
+    assert [(r["theta_i"], r["theta_r"], r["sigma"]) for r in rows] == want
+    np.testing.assert_allclose([r["dop"] for r in rows],
+                               [float(pbrdf_cl.dop(a, b, n=1.6, k=2, sigma=s, backend="numpy")) for a, b, s in want],
+                               rtol=1e-12)
