@@ -201,3 +201,23 @@ def test_cli_eval_aop_and_stokes(capsys):
     assert "stokes (S0 S1 S2 S3) (1/sr)" in out[0]
     np.testing.assert_allclose([float(v) for v in out[-1].split()[-4:]], pbrdf_cl.stokes(40, 45, 130, **STEEL),
                                rtol=1e-6, atol=1e-12)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_the_diffuse_term_enters_m00_alone_out_of_plane(rng, backend):
+    """F(kd) - F(0) = fd e00 with fd = kd / pi (cos ti cos tr)^c computed here from its definition
+    (eq. 15), out of plane; the Stokes vector and the AoP change accordingly (S0 only; AoP not at all)."""
+    inp = random_inputs(rng, 500)
+    inp["kd"] = rng.uniform(0.05, 3, inp["n"].size)
+    ti, tr = np.radians(inp["theta_i"]), np.radians(inp["theta_r"])
+    fd = inp["kd"] / np.pi * (np.cos(ti) * np.cos(tr)) ** inp["c"]
+    m1 = call(pbrdf_cl.mueller, inp, backend=backend)
+    m0 = call(pbrdf_cl.mueller, {**inp, "kd": np.zeros_like(inp["kd"])}, backend=backend)
+    diff = m1 - m0
+    np.testing.assert_allclose(diff[:, 0, 0], fd, rtol=1e-9)
+    diff[:, 0, 0] = 0
+    assert np.all(np.abs(diff) <= 1e-12 * np.abs(m1[:, :1, :1]))
+    s1, s0 = call(pbrdf_cl.stokes, inp, backend=backend), call(pbrdf_cl.stokes, {**inp, "kd": 0 * inp["kd"]},
+                                                                backend=backend)
+    np.testing.assert_allclose(s1[:, 0] - s0[:, 0], fd, rtol=1e-9)
+    np.testing.assert_array_equal(s1[:, 1:], s0[:, 1:])
