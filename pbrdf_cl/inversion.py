@@ -50,6 +50,15 @@ GRID_RESOLVED_CELLS = 3
 X_RESOLUTION = 1e-8
 #: Default relative uncertainty of intensities when no f00_std column is given.
 F00_REL_STD = 0.05
+#: Without given uncertainties (no dop_std) the DOP noise is estimated from the residuals, and an
+#: exact fit (noise-free synthetic data; as many distinct geometries as free parameters) would make
+#: it zero and every interval a point.  The estimate is never taken below a floor: the standard
+#: deviation of the rounding error of the data's DOP resolution (step / sqrt(12), the step read
+#: from the decimals of the values, e.g. 0.01 for "0.25, 0.31, ..."), and at least this value, a
+#: conservative precision of DOP measurement (polarimeters resolve DOP to about 1e-3 to 1e-2).
+DOP_NOISE_FLOOR = 1e-3
+#: The most decimals :func:`dop_resolution` looks for (more: no resolution is read from the values).
+DOP_MAX_DECIMALS = 8
 
 
 
@@ -60,9 +69,14 @@ class FitResult(Result):
 
     success, status, message
         like scipy's: ``status`` is one of :data:`FIT_STATUS` (1: the local stages converged; 2:
-        least squares ran out of evaluations and BOBYQA finished; 0: an evaluation budget ran
-        out first, the result is the best point found; -1: the residuals are not finite at any
-        candidate), ``success`` is ``status > 0`` and ``message`` says which.
+        least squares ran out of evaluations along a flat valley and the final BOBYQA finished;
+        0: an evaluation budget ran out while the objective was still falling (see
+        :func:`_settled`), the result is the best point found; -1: the residuals are not finite at
+        any candidate), ``success`` is ``status > 0`` and ``message`` says which.
+
+    Without given uncertainties (no dop_std) the noise is estimated from the residuals, never
+    below :func:`dop_noise_floor` (an exact fit would make every interval a point); a note says
+    when the floor was used.  Fewer distinct geometries than free parameters are refused.
 
     x (dict: every model parameter, fitted and fixed), free (names fitted), sse, chi2,
     reduced_chi2, rmse, residuals, stderr, corr (matrix over ``free``), condition_number, aic,
@@ -80,7 +94,8 @@ class FitResult(Result):
         in both cases (``scripts/bench_fit.py`` measures it).  It need not contain x: the best
         fit of a parameter the data do not determine is arbitrary and often sits on a bound.
     ci95_jacobian
-        x +- 1.96 stderr (Student's t without given uncertainties), clipped to the bounds.
+        x +- 1.96 stderr (Student's t without given uncertainties, unless the noise floor was
+        used), clipped to the bounds.
     ci95_profile
         likelihood ratio: the grid nodes whose profile is within 3.84 units of chi^2 of the
         optimum, widened to the next node (None where no node is).
@@ -301,6 +316,7 @@ class Uncertainties:
     ci95: dict
     ci95_jacobian: dict
     ci95_profile: dict
+    noise_floor: float | None = None  # the noise standard deviation assumed where the fit is exact
 
 
 def _ranked(cands):
@@ -425,6 +441,34 @@ def _sse_of_rows(rows):
     return sse
 
 
+#: A BOBYQA run that used its whole budget still counts as converged (:func:`_settled`) when its
+#: best objective fell by at most this fraction of itself (plus ``SETTLED_ABS``, far below one
+#: unit of chi^2 or a squared DOP resolution) over the second half of its evaluations after its
+#: initial model (2d + 1 points): its tolerances (ftol_rel 1e-15, xtol_rel 1e-12) are far below
+#: what matters, and at an exact fit (objective near 0) a relative tolerance is never met.
+SETTLED_REL = 1e-9
+SETTLED_ABS = 1e-12
+
+
+def _recording(func, seen):
+    """``func``, appending each value it returns to the list ``seen``."""
+    def recorded(x):
+        v = func(x)
+        seen.append(v)
+        return v
+    return recorded
+
+
+def _settled(seen, skip=0):
+    """Whether the best of the objective values ``seen`` (in evaluation order) stopped falling:
+    by at most SETTLED_REL of itself plus SETTLED_ABS over the second half of those after the
+    first ``skip`` (False where fewer than two are left)."""
+    best = np.minimum.accumulate(np.asarray(seen, float))
+    if best.size - skip < 2:
+        return False
+    return bool(best[skip + (best.size - skip) // 2] - best[-1] <= SETTLED_REL * best[-1] + SETTLED_ABS)
+
+
 def run_stage(resid_rows, jobs):
     """Run the jobs (callables ``job(rows) -> output``) in lockstep (:class:`_Lockstep`, their
     evaluations batched); a :class:`StageResult` of the outputs in order."""
@@ -482,7 +526,35 @@ def _check_fit_args(data, model, bounds, fixed, shadowing):
     if len(meas) <= len(free):
         raise ValueError(f"{meas.source}: {len(meas)} measurements for {len(free)} free parameters "
                          f"({', '.join(free)}); at least {len(free) + 1} are needed")
+    geometries = distinct_geometries(meas)
+    if geometries < len(free):
+        raise ValueError(f"{meas.source}: {geometries} distinct geometr{'y' if geometries == 1 else 'ies'} "
+                         f"(theta_i, theta_r, phi) for {len(free)} free parameters ({', '.join(free)}): the data "
+                         f"cannot determine them; measure more geometries or fix parameters (e.g. fixed="
+                         f"{{'{free[-1]}': ...}}, --fix {free[-1]}=...)")
     return meas, bnds, fx, free
+
+
+def distinct_geometries(meas):
+    """How many distinct (theta_i, theta_r, phi) the measurements have (repeats add no geometry)."""
+    return len(np.unique(np.column_stack([meas.theta_i, meas.theta_r, meas.phi]), axis=0))
+
+
+def dop_resolution(dop, max_decimals=DOP_MAX_DECIMALS):
+    """The DOP resolution of the values: 10 ** -d for the fewest decimals d (at most
+    ``max_decimals``) that write every value exactly, or 0.0 where none does."""
+    dop = np.asarray(dop, float)
+    for d in range(max_decimals + 1):
+        step = 10.0 ** -d
+        if np.all(np.abs(np.round(dop / step) * step - dop) <= 1e-9 * step):
+            return step
+    return 0.0
+
+
+def dop_noise_floor(dop):
+    """The smallest DOP noise standard deviation assumed without given uncertainties
+    (:data:`DOP_NOISE_FLOOR`): the rounding error of the data's resolution, at least the default."""
+    return max(DOP_NOISE_FLOOR, dop_resolution(dop) / np.sqrt(12.0))
 
 
 def grid_stage(meas, free, axes, base, shadowing="paper", *, engine=None, backend="auto", progress=False):
@@ -578,9 +650,11 @@ def final_bobyqa_stage(resid_rows, lo, hi, cand, evals=FINAL_BOBYQA):
     maxeval = evals * lo.size
 
     def run(rows):
-        x, f, n = _nlopt_min(nlopt.LN_BOBYQA, _sse_of_rows(rows), lo, hi, cand.x, maxeval=maxeval,
+        seen = []
+        x, f, n = _nlopt_min(nlopt.LN_BOBYQA, _recording(_sse_of_rows(rows), seen), lo, hi, cand.x, maxeval=maxeval,
                              step=0.01 * (hi - lo), start=cand.x)
-        return replace(cand.better(f, x), converged=n <= maxeval)  # n counts the start too
+        # (n and seen count the start too)
+        return replace(cand.better(f, x), converged=n <= maxeval or _settled(seen, 2 * lo.size + 2))
     out = run_stage(resid_rows, [run])
     return StageResult(out.value[0], out.nfev, out.seconds)
 
@@ -600,17 +674,23 @@ def intensity_stage(residuals, lo, hi, x0, step, maxeval=INTENSITY_MAXEVAL):
     import nlopt
 
     def run(rows):
-        x, f, n = _nlopt_min(nlopt.LN_BOBYQA, _sse_of_rows(rows), lo, hi, x0, maxeval=maxeval, step=step)
-        return Candidate(f, x, x0, converged=n < maxeval)
+        seen = []
+        x, f, n = _nlopt_min(nlopt.LN_BOBYQA, _recording(_sse_of_rows(rows), seen), lo, hi, x0, maxeval=maxeval,
+                             step=step)
+        return Candidate(f, x, x0, converged=n < maxeval or _settled(seen, 2 * lo.size + 1))
     out = run_stage(residuals.rows, [run])
     return StageResult(out.value[0], out.nfev, out.seconds)
 
 
-def uncertainty_stage(residuals, x, lo, hi, grid, dop_sse, n_points, sigma_known):
+def uncertainty_stage(residuals, x, lo, hi, grid, dop_sse, n_points, sigma_known, noise_floor=None):
     """(e) Statistics and uncertainties at the optimum ``x`` of ``residuals`` (names
     ``residuals.free``): the central-difference Jacobian, covariance, and the three kinds of
     95% interval of :class:`FitResult`; ``grid`` is the :class:`GridStage`, ``dop_sse`` the
-    DOP-only objective at the optimum (the grid's scale), ``n_points`` the measurements."""
+    DOP-only objective at the optimum (the grid's scale), ``n_points`` the measurements.
+
+    Without known uncertainties the noise variance is estimated as chi2 / dof; where that is
+    below ``noise_floor ** 2`` (see :data:`DOP_NOISE_FLOOR`) the noise is taken as known, of
+    standard deviation ``noise_floor`` (``Uncertainties.noise_floor`` says so)."""
     from scipy.stats import norm, t as student_t
     t0 = time.perf_counter()
     names = residuals.free
@@ -620,10 +700,14 @@ def uncertainty_stage(residuals, x, lo, hi, grid, dop_sse, n_points, sigma_known
     chi2 = float(r @ r)
     s2 = 1.0 if sigma_known else chi2 / dof
     unit = 1.0 if sigma_known else dop_sse / dof  # one unit of chi^2 on the DOP-only SSE scale
+    floored = not sigma_known and noise_floor is not None and not s2 >= noise_floor ** 2
+    if floored:  # an (almost) exact fit: the noise is taken as known, at the floor
+        s2 = unit = float(noise_floor) ** 2
+    known = sigma_known or floored
     cov, cond, eig = _covariance(J, s2, hi - lo)
     se = np.sqrt(np.clip(np.diag(cov), 0, None))
     # with known uncertainties the Gaussian quantile, else Student's t on the residual dof
-    dist = norm if sigma_known else student_t(dof)
+    dist = norm if known else student_t(dof)
     q = float(dist.ppf(0.975))
     # never narrower than the optimizer's resolution (noise-free data would give a zero width)
     resolution = X_RESOLUTION * (hi - lo)
@@ -632,16 +716,19 @@ def uncertainty_stage(residuals, x, lo, hi, grid, dop_sse, n_points, sigma_known
     # likelihood-ratio intervals from the profile of the grid objective (banana-shaped valleys
     # are not ellipses)
     ci_prof = _profile_intervals(grid.profiles, grid.axes, dop_sse + 3.84 * unit)
-    ci = _posterior_intervals(names, J, x, se, lo, hi, grid, dist, resolution / q, n_points, sigma_known)
+    ci = _posterior_intervals(names, J, x, se, lo, hi, grid, dist, resolution / q, n_points, known,
+                              s2 if floored else 1.0)
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = cov / np.outer(se, se)
-    out = Uncertainties(r, J, chi2, dof, se, cov, corr, float(cond), eig, unit, ci, ci_jac, ci_prof)
+    out = Uncertainties(r, J, chi2, dof, se, cov, corr, float(cond), eig, unit, ci, ci_jac, ci_prof,
+                        noise_floor if floored else None)
     return StageResult(out, 2 * len(names) + 1, time.perf_counter() - t0)
 
 
-def _posterior_intervals(names, J, x, se, lo, hi, grid, dist, min_se, n_points, sigma_known):
+def _posterior_intervals(names, J, x, se, lo, hi, grid, dist, min_se, n_points, sigma_known, chi2_unit=1.0):
     """95% intervals: the posterior under a uniform prior over the bounds, the equal mixture of
-    the local (Laplace) approximation and the grid's profile (where the grid resolves it)."""
+    the local (Laplace) approximation and the grid's profile (where the grid resolves it; its
+    SSE divided by ``chi2_unit`` is chi^2 when ``sigma_known``)."""
     ci = {}
     col = np.linalg.norm(J, axis=0)
     for i, n in enumerate(names):
@@ -653,7 +740,7 @@ def _posterior_intervals(names, J, x, se, lo, hi, grid, dist, min_se, n_points, 
             # several cells (a valley, a banana, a flat stretch); else it only says "near the
             # best node", which the local approximation says better
             prof, vals = grid.profiles[n], grid.axes[n]
-            g = _grid_cdf(prof, vals, n_points, sigma_known)
+            g = _grid_cdf(prof / chi2_unit, vals, n_points, sigma_known)
             g_a, g_b = _central_interval([g], x[i], se_i, lo[i], hi[i], vals)
             if g_b - g_a >= GRID_RESOLVED_CELLS * _local_spacing(vals, int(np.argmin(prof))):
                 cdfs.append(g)
@@ -692,8 +779,9 @@ def _ambiguous_basins(cands, free, unit, se):
 #: FitResult.status -> message (scipy's convention: success is status > 0).
 FIT_STATUS = {
     1: "converged: the local stages met their tolerances",
-    2: "converged: least squares ran out of evaluations along a flat valley and BOBYQA finished",
-    0: "stopped: an evaluation budget ran out before the local stages converged; the result is the best "
+    2: "converged: least squares ran out of evaluations along a flat valley and BOBYQA finished (it stopped "
+       "improving)",
+    0: "stopped: an evaluation budget ran out while the objective was still falling; the result is the best "
        "point found",
     -1: "failed: the model's residuals are not finite at any candidate",
 }
@@ -768,7 +856,9 @@ def fit(data, model="six-param", bounds=None, fixed=None, shadowing="paper", *, 
         st["intensity"] = intensity_stage(resid, lo_f, hi_f, np.append(best.x, ks0), np.append(spacing, ks0 * 0.1),
                                           INTENSITY_MAXEVAL)
         x_final = st["intensity"].value.x
-    unc = uncertainty_stage(resid, x_final, lo_f, hi_f, grid, best.sse, len(meas), meas.dop_std is not None).value
+    floor = dop_noise_floor(meas.dop) if meas.dop_std is None else None
+    unc = uncertainty_stage(resid, x_final, lo_f, hi_f, grid, best.sse, len(meas), meas.dop_std is not None,
+                            floor).value
     status = _fit_status(best, final_ran, st["intensity"].value if use_f00 else None)
     return _fit_result(meas, model, shadowing, resid, x_final, lo_f, hi_f, unc, cands, grid, st, status,
                        _model_notes(model, fx, use_f00, meas))
@@ -786,6 +876,12 @@ def _fit_result(meas, model, shadowing, resid, x, lo, hi, unc, cands, grid, stag
     aic, bic = neg2ll + 2 * n_free, neg2ll + n_free * np.log(m_obs)
     notes = notes + _identifiability_notes(names, unc.jacobian, unc.condition_number, unc.eig, x, unc.stderr,
                                            unc.corr, hi - lo)
+    if unc.noise_floor is not None:
+        notes.append(f"the fit is (nearly) exact: the noise estimated from the residuals (std "
+                     f"{np.sqrt(unc.chi2 / unc.dof):.2g}) is below the noise floor, so the uncertainties assume "
+                     f"DOP noise of std {unc.noise_floor:.2g} (the larger of the data's DOP resolution "
+                     f"{dop_resolution(meas.dop):g} / sqrt(12) and {DOP_NOISE_FLOOR:g}); give a dop_std column "
+                     "to set it")
     ambiguous = _ambiguous_basins(cands, free, unc.unit, unc.stderr)
     if ambiguous:
         alt = ", ".join(f"{n}={ambiguous[0][n]:.4g}" for n in free)
