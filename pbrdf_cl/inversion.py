@@ -262,7 +262,8 @@ class Candidate:
     """A point of the local stages: its objective ``sse`` (sum of squared weighted residuals),
     its free parameters ``x`` (in the order of the stage's bounds) and the ``seed`` (grid point)
     it descends from.  ``converged`` is what the last local method that ran on it said: True,
-    False (it ran out of evaluations) or None (no method with a convergence test)."""
+    False (it ran out of evaluations) or None (no method with a convergence test).  Frozen;
+    equality is identity (``x`` and ``seed`` are arrays)."""
     sse: float
     x: np.ndarray
     seed: np.ndarray
