@@ -534,17 +534,7 @@ def _reduce_result(plan, over, kept, red, vmin, vmean, varg, quantity, shadowing
     return xr.Dataset(data, coords=coords, attrs=attrs)
 
 
-class Result(dict):
-    """A dict with attribute access, like scipy's ``OptimizeResult``."""
-
-    def __getattr__(self, name):
-        try:
-            return self[name]
-        except KeyError:
-            raise AttributeError(name) from None
-
-    def __dir__(self):
-        return list(self.keys())
+from .results import Result  # noqa: E402 (moved; dense.Result stays importable)
 
 
 class ObjectiveResult(Result):

@@ -10,11 +10,14 @@ from __future__ import annotations
 
 import threading
 import time
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from . import dense, reference
+from .api import RULES
 from .data import as_measurements
+from .results import Result
 
 MODEL_PARAMS = {"six-param": ("n", "k", "sigma", "kd", "c"), "specular": ("n", "k")}
 DEFAULT_BOUNDS = {"n": (1.0, 5.0), "k": (0.0, 10.0), "sigma": (0.05, 1.0), "kd": (0.0, 5.0), "c": (-1.0, 0.0),
@@ -37,6 +40,8 @@ LS_POLISH = 2
 LS_MAX_NFEV = 100
 #: Evaluations per free parameter of the last BOBYQA run, when least squares ran out of them.
 FINAL_BOBYQA = 80
+#: Evaluations (in all, not per parameter) of the intensity stage's BOBYQA run.
+INTENSITY_MAXEVAL = 6000
 #: The grid's profile enters a 95% interval where its own 95% interval spans at least this many
 #: grid cells (where it is narrower, the grid does not resolve the parameter).
 GRID_RESOLVED_CELLS = 3
@@ -45,10 +50,33 @@ GRID_RESOLVED_CELLS = 3
 X_RESOLUTION = 1e-8
 #: Default relative uncertainty of intensities when no f00_std column is given.
 F00_REL_STD = 0.05
+#: Without given uncertainties (no dop_std) the DOP noise is estimated from the residuals, and an
+#: exact fit (noise-free synthetic data; as many distinct geometries as free parameters) would make
+#: it zero and every interval a point.  The estimate is never taken below a floor: the standard
+#: deviation of the rounding error of the data's DOP resolution (step / sqrt(12), the step read
+#: from the decimals of the values, e.g. 0.01 for "0.25, 0.31, ..."), and at least this value, a
+#: conservative precision of DOP measurement (polarimeters resolve DOP to about 1e-3 to 1e-2).
+DOP_NOISE_FLOOR = 1e-3
+#: The most decimals :func:`dop_resolution` looks for (more: no resolution is read from the values).
+DOP_MAX_DECIMALS = 8
 
 
-class FitResult(dense.Result):
-    """Result of :func:`fit`; keys are also attributes (like scipy's ``OptimizeResult``).
+
+
+class FitResult(Result):
+    """Result of :func:`fit`; keys are also attributes, which may be assigned (like scipy's
+    ``OptimizeResult``).
+
+    success, status, message
+        like scipy's: ``status`` is one of :data:`FIT_STATUS` (1: the local stages converged; 2:
+        least squares ran out of evaluations along a flat valley and the final BOBYQA finished;
+        0: an evaluation budget ran out while the objective was still falling (see
+        :func:`_settled`), the result is the best point found; -1: the residuals are not finite at
+        any candidate), ``success`` is ``status > 0`` and ``message`` says which.
+
+    Without given uncertainties (no dop_std) the noise is estimated from the residuals, never
+    below :func:`dop_noise_floor` (an exact fit would make every interval a point); a note says
+    when the floor was used.  Fewer distinct geometries than free parameters are refused.
 
     x (dict: every model parameter, fitted and fixed), free (names fitted), sse, chi2,
     reduced_chi2, rmse, residuals, stderr, corr (matrix over ``free``), condition_number, aic,
@@ -66,7 +94,8 @@ class FitResult(dense.Result):
         in both cases (``scripts/bench_fit.py`` measures it).  It need not contain x: the best
         fit of a parameter the data do not determine is arbitrary and often sits on a bound.
     ci95_jacobian
-        x +- 1.96 stderr (Student's t without given uncertainties), clipped to the bounds.
+        x +- 1.96 stderr (Student's t without given uncertainties, unless the noise floor was
+        used), clipped to the bounds.
     ci95_profile
         likelihood ratio: the grid nodes whose profile is within 3.84 units of chi^2 of the
         optimum, widened to the next node (None where no node is).
@@ -89,6 +118,8 @@ class FitResult(dense.Result):
                      f"AIC {self['aic']:.2f}, BIC {self['bic']:.2f}")
         lines.append("  stages: " + ", ".join(f"{k} {self['nfev'][k]} evals / {self['seconds'][k]:.3f} s"
                                                for k in self["nfev"]))
+        if not self.get("success", True):
+            lines.append(f"  status {self['status']}: {self['message']}")
         for note in self["notes"]:
             lines.append(f"  note: {note}")
         return "\n".join(lines)
@@ -141,6 +172,10 @@ class _Model:
 
     def f00(self, p):
         return reference.brdf(*self.parts(p))
+
+    def f00_rows(self, p):
+        """F00 for many parameter vectors at once, like :meth:`dop_rows`."""
+        return reference.brdf(self._fresnel(p), self._log_scale(p), self._diffuse(p))
 
 
 class _Lockstep:
@@ -222,6 +257,74 @@ class _Lockstep:
         return results
 
 
+@dataclass(frozen=True, eq=False)
+class Candidate:
+    """A point of the local stages: its objective ``sse`` (sum of squared weighted residuals),
+    its free parameters ``x`` (in the order of the stage's bounds) and the ``seed`` (grid point)
+    it descends from.  ``converged`` is what the last local method that ran on it said: True,
+    False (it ran out of evaluations) or None (no method with a convergence test).  Frozen;
+    equality is identity (``x`` and ``seed`` are arrays)."""
+    sse: float
+    x: np.ndarray
+    seed: np.ndarray
+    converged: bool | None = None
+
+    def better(self, sse, x):
+        """This candidate moved to ``x`` when ``sse`` is lower than its own, else itself."""
+        return Candidate(float(sse), x, self.seed) if sse < self.sse else self
+
+
+@dataclass(frozen=True)
+class StageResult:
+    """What one stage of :func:`fit` returns: its output ``value``, the residual rows it
+    evaluated (``nfev``) and its wall time (``seconds``)."""
+    value: object
+    nfev: int
+    seconds: float
+
+
+@dataclass(frozen=True)
+class GridStage:
+    """Output of :func:`grid_stage`: the objective ``sse`` on the grid (axes in the order of the
+    free parameters), the grid ``axes`` (name -> nodes) and each parameter's ``profiles``."""
+    sse: np.ndarray
+    axes: dict
+    profiles: dict
+
+
+@dataclass(frozen=True)
+class Basins:
+    """Output of :func:`basin_stage`: grid ``indices`` of the seeds, the ``seeds`` (parameter
+    vectors) and ``steps`` (the larger grid step around each seed, per parameter)."""
+    indices: list
+    seeds: list
+    steps: list
+
+
+@dataclass(frozen=True)
+class Uncertainties:
+    """Output of :func:`uncertainty_stage` (see :class:`FitResult` for the intervals)."""
+    residuals: np.ndarray
+    jacobian: np.ndarray
+    chi2: float
+    dof: int
+    stderr: np.ndarray
+    cov: np.ndarray
+    corr: np.ndarray
+    condition_number: float
+    eig: tuple
+    unit: float
+    ci95: dict
+    ci95_jacobian: dict
+    ci95_profile: dict
+    noise_floor: float | None = None  # the noise standard deviation assumed where the fit is exact
+
+
+def _ranked(cands):
+    """Candidates best first (a stable sort: ties keep their order)."""
+    return sorted(cands, key=lambda c: c.sse)
+
+
 def _fd_steps(x, hi):
     """scipy's '2-point' steps for ``x`` (any shape): relative step sqrt(eps), inwards at an
     upper bound, as actually taken (exactly representable)."""
@@ -230,19 +333,40 @@ def _fd_steps(x, hi):
     return (x + h) - x
 
 
-def _fd_jacobian(rows, x, lo, hi):
-    """scipy's '2-point' Jacobian (see :func:`_fd_steps`), with the base point and all steps in
-    one batched call."""
-    h = _fd_steps(x, hi)
-    X = np.vstack([x, x + np.diag(h)])
-    R = rows(X)
-    return ((R[1:] - R[0]) / h[:, None]).T
+#: Step of the central differences of :func:`fd_jacobian`, as a fraction of each bound range.
+CENTRAL_STEP = 1e-6
+
+
+def fd_jacobian(rows, X, lo, hi, scheme="2-point"):
+    """Finite-difference Jacobians of a batched residual function at P points at once, the points
+    and all their steps in one call of ``rows`` ((B, d) parameter vectors -> (B, M) residuals).
+
+    ``scheme`` "2-point": scipy's forward differences (:func:`_fd_steps`: relative step sqrt(eps),
+    inwards at an upper bound); "central": steps of ``CENTRAL_STEP`` of each bound range either
+    side, cut (one-sided) at a bound.  Returns (R, J): the residuals at ``X`` (P, M) and the
+    Jacobians (P, d, M), ``J[p, j]`` the derivative along parameter j."""
+    X = np.asarray(X, float)
+    P, d = X.shape
+    base = X[:, None, :]
+    if scheme == "2-point":
+        h = _fd_steps(X, hi)
+        pts = np.concatenate([base, base + h[:, :, None] * np.eye(d)[None]], axis=1)
+        R = rows(pts.reshape(-1, d)).reshape(P, d + 1, -1)
+        return R[:, 0], (R[:, 1:] - R[:, :1]) / h[:, :, None]
+    if scheme != "central":
+        raise ValueError(f"scheme must be '2-point' or 'central', got {scheme!r}")
+    h = CENTRAL_STEP * (hi - lo)
+    up, dn = np.minimum(X + h, hi), np.maximum(X - h, lo)
+    eye = np.eye(d, dtype=bool)[None]
+    pts = np.concatenate([base, np.where(eye, up[:, None, :], base), np.where(eye, dn[:, None, :], base)], axis=1)
+    R = rows(pts.reshape(-1, d)).reshape(P, 2 * d + 1, -1)
+    return R[:, 0], (R[:, 1:d + 1] - R[:, d + 1:]) / (up - dn)[:, :, None]
 
 
 def _lm_batch(resid_rows, X0, lo, hi, iterations):
     """Bounded Levenberg-Marquardt from P starts at once, every problem's trial point and its
-    forward-difference Jacobian (scipy's step, inwards at the upper bound) in one batched call
-    per iteration.  Levenberg damping in coordinates scaled to the bounds (a coordinate whose
+    forward-difference Jacobian (:func:`fd_jacobian`, "2-point") in one batched call per
+    iteration.  Levenberg damping in coordinates scaled to the bounds (a coordinate whose
     column vanishes, as k does at k = 0, gets no runaway step); a coordinate on a bound whose
     descent direction points outwards is held there, the others' steps are projected onto the
     bounds.  Returns (X, sse, row evaluations)."""
@@ -253,11 +377,8 @@ def _lm_batch(resid_rows, X0, lo, hi, iterations):
     tol = 1e-12 * span
 
     def evaluate(X):
-        h = _fd_steps(X, hi)
-        pts = np.concatenate([X[:, None, :], X[:, None, :] + h[:, :, None] * eye[None]], axis=1)
-        R = resid_rows(pts.reshape(-1, d)).reshape(P, d + 1, -1)
-        r = R[:, 0]
-        J = (R[:, 1:] - r[:, None]) / h[:, :, None] * span[None, :, None]  # (P, d, M), scaled
+        r, J = fd_jacobian(resid_rows, X, lo, hi)
+        J = J * span[None, :, None]  # in coordinates scaled to the bounds
         return r, J, np.einsum("pm,pm->p", r, r)
 
     r, J, sse = evaluate(X)
@@ -282,7 +403,85 @@ def _lm_batch(resid_rows, X0, lo, hi, iterations):
     return X, sse, P * (d + 1) * (iterations + 1)
 
 
+class Residuals:
+    """Weighted residuals of the reference model at one data set's geometry as a function of the
+    free parameters: ``rows(X)`` maps a (B, d) array of parameter vectors (over ``free``) to the
+    (B, M) residuals, (DOP - dop) / dop_std, then (F00 - f00) / f00_std when ``f00`` is given
+    (then the ``kd`` of a vector is the ratio kd/ks).  Non-finite residuals become 1e150.
+
+    ``model`` is a :class:`_Model` (the geometry), ``base`` the values of the other parameters."""
+
+    def __init__(self, model, free, base, dop, dop_std, f00=None, f00_std=None):
+        self.model, self.free, self.base = model, tuple(free), dict(base)
+        self.dop, self.dop_std, self.f00, self.f00_std = dop, dop_std, f00, f00_std
+
+    def _with(self, values):
+        p = dict(self.base)
+        p.update(values)
+        if self.f00 is not None:
+            p["kd"] = p["kd"] * p["ks"]  # fitted as the ratio kd/ks, reported as both
+        return p
+
+    def params(self, x):
+        """Every model parameter at the free parameters ``x`` (a dict of scalars)."""
+        return self._with(zip(self.free, x))
+
+    def rows(self, X):
+        p = self._with((n, X[:, j:j + 1]) for j, n in enumerate(self.free))
+        r = (self.model.dop_rows(p) - self.dop) / self.dop_std
+        if self.f00 is not None:
+            r = np.concatenate([r, (self.model.f00_rows(p) - self.f00) / self.f00_std], axis=1)
+        return _finite(r)
+
+
+def _sse_of_rows(rows):
+    """The objective sum(r^2) of the first residual row at x, as a Python float (for nlopt)."""
+    def sse(x):
+        r = rows(x)[0]
+        return float(min(r @ r, 1e300))
+    return sse
+
+
+#: A BOBYQA run that used its whole budget still counts as converged (:func:`_settled`) when its
+#: best objective fell by at most this fraction of itself (plus ``SETTLED_ABS``, far below one
+#: unit of chi^2 or a squared DOP resolution) over the second half of its evaluations after its
+#: initial model (2d + 1 points): its tolerances (ftol_rel 1e-15, xtol_rel 1e-12) are far below
+#: what matters, and at an exact fit (objective near 0) a relative tolerance is never met.
+SETTLED_REL = 1e-9
+SETTLED_ABS = 1e-12
+
+
+def _recording(func, seen):
+    """``func``, appending each value it returns to the list ``seen``."""
+    def recorded(x):
+        v = func(x)
+        seen.append(v)
+        return v
+    return recorded
+
+
+def _settled(seen, skip=0):
+    """Whether the best of the objective values ``seen`` (in evaluation order) stopped falling:
+    by at most SETTLED_REL of itself plus SETTLED_ABS over the second half of those after the
+    first ``skip`` (False where fewer than two are left)."""
+    best = np.minimum.accumulate(np.asarray(seen, float))
+    if best.size - skip < 2:
+        return False
+    return bool(best[skip + (best.size - skip) // 2] - best[-1] <= SETTLED_REL * best[-1] + SETTLED_ABS)
+
+
+def run_stage(resid_rows, jobs):
+    """Run the jobs (callables ``job(rows) -> output``) in lockstep (:class:`_Lockstep`, their
+    evaluations batched); a :class:`StageResult` of the outputs in order."""
+    t0 = time.perf_counter()
+    runner = _Lockstep(resid_rows)
+    out = runner.run(jobs)
+    return StageResult(out, runner.rows, time.perf_counter() - t0)
+
+
 def _check_bounds(model, bounds, fixed):
+    """Bounds (name -> (lo, hi)) of the model's parameters and the fixed values, checked against
+    the domain rules of :data:`pbrdf_cl.api.RULES`."""
     names = MODEL_PARAMS[model]
     b = {n: DEFAULT_BOUNDS[n] for n in names}
     for name, v in (bounds or {}).items():
@@ -295,22 +494,309 @@ def _check_bounds(model, bounds, fixed):
         if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
             raise ValueError(f"bounds: {name} = ({lo}, {hi}) must be finite with low < high")
         b[name] = (lo, hi)
-    phys = {"n": lambda v: v > 0, "k": lambda v: v >= 0, "sigma": lambda v: v > 0, "kd": lambda v: v >= 0,
-            "ks": lambda v: v > 0, "c": lambda v: np.isfinite(v)}
     for name, (lo, hi) in b.items():
-        if not phys[name](lo):
-            raise ValueError(f"bounds: {name} low = {lo} is outside the model's domain")
+        ok, rule = RULES[name]
+        for end, v in (("low", lo), ("high", hi)):
+            if not ok(v):
+                raise ValueError(f"bounds: {name} {end} = {v} is outside the model's domain ({name} must be {rule})")
     fx = {}
     for name, v in (fixed or {}).items():
         if name not in DEFAULT_BOUNDS:
             raise ValueError(f"fixed: unknown parameter {name!r}; parameters are {', '.join(DEFAULT_BOUNDS)}")
         v = float(v)
-        if not (np.isfinite(v) and phys[name](v)):
-            raise ValueError(f"fixed: {name} = {v} is outside the model's domain")
+        ok, rule = RULES[name]
+        if not (np.isfinite(v) and ok(v)):
+            raise ValueError(f"fixed: {name} = {v} is outside the model's domain ({name} must be {rule})")
         if name not in names and not (model == "six-param" and name == "ks"):
             raise ValueError(f"fixed: {name} is not a parameter of the {model} model")
         fx[name] = v
     return b, fx
+
+
+def _check_fit_args(data, model, bounds, fixed, shadowing):
+    """The checked inputs of :func:`fit`: (measurements, bounds, fixed values, free names)."""
+    if model not in MODEL_PARAMS:
+        raise ValueError(f"model must be one of {sorted(MODEL_PARAMS)}, got {model!r}")
+    if shadowing not in reference.SHADOWING:
+        raise ValueError(f"shadowing must be one of {sorted(reference.SHADOWING)}, got {shadowing!r}")
+    meas = as_measurements(data)
+    bnds, fx = _check_bounds(model, bounds, fixed)
+    free = [n for n in MODEL_PARAMS[model] if n not in fx]
+    if not free:
+        raise ValueError("every parameter is fixed: nothing to fit")
+    if len(meas) <= len(free):
+        raise ValueError(f"{meas.source}: {len(meas)} measurements for {len(free)} free parameters "
+                         f"({', '.join(free)}); at least {len(free) + 1} are needed")
+    geometries = distinct_geometries(meas)
+    if geometries < len(free):
+        raise ValueError(f"{meas.source}: {geometries} distinct geometr{'y' if geometries == 1 else 'ies'} "
+                         f"(theta_i, theta_r, phi) for {len(free)} free parameters ({', '.join(free)}): the data "
+                         f"cannot determine them; measure more geometries or fix parameters (e.g. fixed="
+                         f"{{'{free[-1]}': ...}}, --fix {free[-1]}=...)")
+    return meas, bnds, fx, free
+
+
+def distinct_geometries(meas):
+    """How many distinct (theta_i, theta_r, phi) the measurements have (repeats add no geometry)."""
+    return len(np.unique(np.column_stack([meas.theta_i, meas.theta_r, meas.phi]), axis=0))
+
+
+def dop_resolution(dop, max_decimals=DOP_MAX_DECIMALS):
+    """The DOP resolution of the values: 10 ** -d for the fewest decimals d (at most
+    ``max_decimals``) that write every value exactly, or 0.0 where none does."""
+    dop = np.asarray(dop, float)
+    for d in range(max_decimals + 1):
+        step = 10.0 ** -d
+        if np.all(np.abs(np.round(dop / step) * step - dop) <= 1e-9 * step):
+            return step
+    return 0.0
+
+
+def dop_noise_floor(dop):
+    """The smallest DOP noise standard deviation assumed without given uncertainties
+    (:data:`DOP_NOISE_FLOOR`): the rounding error of the data's resolution, at least the default."""
+    return max(DOP_NOISE_FLOOR, dop_resolution(dop) / np.sqrt(12.0))
+
+
+def grid_stage(meas, free, axes, base, shadowing="paper", *, engine=None, backend="auto", progress=False):
+    """(a) The objective on the grid ``axes`` (name -> nodes, one per free parameter) with the
+    other parameters at ``base``, on the OpenCL device (float32), and its profiles."""
+    t0 = time.perf_counter()
+    obj = dense.objective(meas.as_dict(), grid={**base, **axes}, k_best=1, dtype="float32", shadowing=shadowing,
+                          engine=engine, backend=backend, progress=progress)
+    sse = obj.sse.transpose(*free).values
+    profiles = _grid_profiles(sse, free)
+    return StageResult(GridStage(sse, axes, profiles), int(sse.size), time.perf_counter() - t0)
+
+
+def _grid_point(axes, free, idx):
+    return np.array([axes[n][i] for n, i in zip(free, idx)])
+
+
+def basin_stage(grid, free, n_basins, rise, profile_seeds=PROFILE_SEEDS):
+    """(b) Seeds: the grid's best ``n_basins`` local minima, one per neighbourhood, then up to
+    ``profile_seeds`` valleys of its profiles that none of them lies in (behind a ridge at least
+    ``rise`` high); ``grid`` is a :class:`GridStage`."""
+    t0 = time.perf_counter()
+    indices = _grid_basins(grid.sse, n_basins)
+    indices += _profile_seeds(grid.sse, grid.profiles, free, indices, profile_seeds, rise)
+    seeds = [_grid_point(grid.axes, free, idx) for idx in indices]
+    steps = [np.array([_local_spacing(grid.axes[n], i) for n, i in zip(free, idx)]) for idx in indices]
+    return StageResult(Basins(indices, seeds, steps), 0, time.perf_counter() - t0)
+
+
+def direct_stage(resid_rows, lo, hi, seeds, steps, evals=DIRECT_EVALS):
+    """(c) DIRECT-L inside a box of +-1.5 ``steps`` around each seed (``evals`` evaluations per
+    free parameter each, the seed counted as seen); one :class:`Candidate` per seed."""
+    import nlopt
+
+    def job(seed, step):
+        blo, bhi = np.maximum(lo, seed - 1.5 * step), np.minimum(hi, seed + 1.5 * step)
+
+        def run(rows):
+            x, f, _ = _nlopt_min(nlopt.GN_DIRECT_L, _sse_of_rows(rows), blo, bhi, (blo + bhi) / 2,
+                                 maxeval=evals * lo.size, start=seed)
+            return Candidate(f, x, seed)
+        return run
+    return run_stage(resid_rows, [job(seed, step) for seed, step in zip(seeds, steps)])
+
+
+def bobyqa_stage(resid_rows, lo, hi, cands, steps, evals=BOBYQA_EVALS):
+    """(d) BOBYQA from each candidate over the whole bounds, ``steps`` as initial steps and
+    ``evals`` evaluations per free parameter; the candidates in the same order."""
+    import nlopt
+
+    def job(cand, step):
+        def run(rows):
+            x, f, _ = _nlopt_min(nlopt.LN_BOBYQA, _sse_of_rows(rows), lo, hi, cand.x, maxeval=evals * lo.size,
+                                 step=step)
+            return Candidate(f, x, cand.seed)
+        return run
+    return run_stage(resid_rows, [job(c, step) for c, step in zip(cands, steps)])
+
+
+def screen_stage(resid_rows, lo, hi, cands, iterations=SCREEN_ITERATIONS):
+    """Batched Levenberg-Marquardt descent (:func:`_lm_batch`) of every candidate (BOBYQA's
+    ranking in a long flat valley says little about its floor); each candidate moves where the
+    descent improved it, in the same order."""
+    t0 = time.perf_counter()
+    X, sse, rows = _lm_batch(resid_rows, np.array([c.x for c in cands]), lo, hi, iterations)
+    out = [c.better(sse[i], X[i]) for i, c in enumerate(cands)]
+    return StageResult(out, rows, time.perf_counter() - t0)
+
+
+def least_squares_stage(resid_rows, lo, hi, cands, max_nfev=LS_MAX_NFEV):
+    """scipy's trust-region least squares to the end from each candidate (2-point Jacobians of
+    :func:`fd_jacobian`, at most ``max_nfev`` evaluations per free parameter), which converges
+    along the long, flat valleys where BOBYQA stalls; ``converged`` is False where it ran out of
+    evaluations."""
+    from scipy.optimize import least_squares
+
+    def job(cand):
+        def run(rows):
+            ls = least_squares(lambda x: rows(x)[0], cand.x, jac=lambda x: fd_jacobian(rows, x[None], lo, hi)[1][0].T,
+                               bounds=(lo, hi), x_scale=hi - lo, ftol=1e-15, xtol=1e-15, gtol=1e-15,
+                               max_nfev=max_nfev * lo.size)
+            moved = cand.better(2 * ls.cost, np.clip(ls.x, lo, hi))
+            return replace(moved, converged=ls.status != 0)
+        return run
+    return run_stage(resid_rows, [job(c) for c in cands])
+
+
+def final_bobyqa_stage(resid_rows, lo, hi, cand, evals=FINAL_BOBYQA):
+    """BOBYQA from ``cand`` with steps of 1% of the bounds (``evals`` evaluations per free
+    parameter): a flat valley running into a bound is where trust-region least squares crawls
+    (it keeps strictly inside the bounds); BOBYQA, which steps onto them, finishes the job."""
+    import nlopt
+    maxeval = evals * lo.size
+
+    def run(rows):
+        seen = []
+        x, f, n = _nlopt_min(nlopt.LN_BOBYQA, _recording(_sse_of_rows(rows), seen), lo, hi, cand.x, maxeval=maxeval,
+                             step=0.01 * (hi - lo), start=cand.x)
+        # (n and seen count the start too)
+        return replace(cand.better(f, x), converged=n <= maxeval or _settled(seen, 2 * lo.size + 2))
+    out = run_stage(resid_rows, [run])
+    return StageResult(out.value[0], out.nfev, out.seconds)
+
+
+def intensity_start(model, p, f00, f00_std, ks_bounds):
+    """The ks that best scales the model's F00 at ``p`` (with ks = 1) to the intensities
+    ``f00`` (weighted least squares), clipped to ``ks_bounds``."""
+    m1 = model.f00(p)
+    w = 1 / f00_std ** 2
+    return float(np.clip((w * f00 * m1).sum() / max((w * m1 * m1).sum(), 1e-300), *ks_bounds))
+
+
+def intensity_stage(residuals, lo, hi, x0, step, maxeval=INTENSITY_MAXEVAL):
+    """BOBYQA over every free parameter of ``residuals`` (a :class:`Residuals` with intensities:
+    ks free, kd as kd/ks) from ``x0`` with initial ``step``, at most ``maxeval`` evaluations in
+    all: ks and kd separately (DOP alone cannot)."""
+    import nlopt
+
+    def run(rows):
+        seen = []
+        x, f, n = _nlopt_min(nlopt.LN_BOBYQA, _recording(_sse_of_rows(rows), seen), lo, hi, x0, maxeval=maxeval,
+                             step=step)
+        return Candidate(f, x, x0, converged=n < maxeval or _settled(seen, 2 * lo.size + 1))
+    out = run_stage(residuals.rows, [run])
+    return StageResult(out.value[0], out.nfev, out.seconds)
+
+
+def uncertainty_stage(residuals, x, lo, hi, grid, dop_sse, n_points, sigma_known, noise_floor=None):
+    """(e) Statistics and uncertainties at the optimum ``x`` of ``residuals`` (names
+    ``residuals.free``): the central-difference Jacobian, covariance, and the three kinds of
+    95% interval of :class:`FitResult`; ``grid`` is the :class:`GridStage`, ``dop_sse`` the
+    DOP-only objective at the optimum (the grid's scale), ``n_points`` the measurements.
+
+    Without known uncertainties the noise variance is estimated as chi2 / dof; where that is
+    below ``noise_floor ** 2`` (see :data:`DOP_NOISE_FLOOR`) the noise is taken as known, of
+    standard deviation ``noise_floor`` (``Uncertainties.noise_floor`` says so)."""
+    from scipy.stats import norm, t as student_t
+    t0 = time.perf_counter()
+    names = residuals.free
+    R, J = fd_jacobian(residuals.rows, x[None], lo, hi, "central")
+    r, J = R[0], J[0].T
+    dof = r.size - len(names)
+    chi2 = float(r @ r)
+    s2 = 1.0 if sigma_known else chi2 / dof
+    unit = 1.0 if sigma_known else dop_sse / dof  # one unit of chi^2 on the DOP-only SSE scale
+    floored = not sigma_known and noise_floor is not None and not s2 >= noise_floor ** 2
+    if floored:  # an (almost) exact fit: the noise is taken as known, at the floor
+        s2 = unit = float(noise_floor) ** 2
+    known = sigma_known or floored
+    cov, cond, eig = _covariance(J, s2, hi - lo)
+    se = np.sqrt(np.clip(np.diag(cov), 0, None))
+    # with known uncertainties the Gaussian quantile, else Student's t on the residual dof
+    dist = norm if known else student_t(dof)
+    q = float(dist.ppf(0.975))
+    # never narrower than the optimizer's resolution (noise-free data would give a zero width)
+    resolution = X_RESOLUTION * (hi - lo)
+    half = np.maximum(q * se, resolution)
+    ci_jac = {n: (max(lo[i], x[i] - half[i]), min(hi[i], x[i] + half[i])) for i, n in enumerate(names)}
+    # likelihood-ratio intervals from the profile of the grid objective (banana-shaped valleys
+    # are not ellipses)
+    ci_prof = _profile_intervals(grid.profiles, grid.axes, dop_sse + 3.84 * unit)
+    ci = _posterior_intervals(names, J, x, se, lo, hi, grid, dist, resolution / q, n_points, known,
+                              s2 if floored else 1.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        corr = cov / np.outer(se, se)
+    out = Uncertainties(r, J, chi2, dof, se, cov, corr, float(cond), eig, unit, ci, ci_jac, ci_prof,
+                        noise_floor if floored else None)
+    return StageResult(out, 2 * len(names) + 1, time.perf_counter() - t0)
+
+
+def _posterior_intervals(names, J, x, se, lo, hi, grid, dist, min_se, n_points, sigma_known, chi2_unit=1.0):
+    """95% intervals: the posterior under a uniform prior over the bounds, the equal mixture of
+    the local (Laplace) approximation and the grid's profile (where the grid resolves it; its
+    SSE divided by ``chi2_unit`` is chi^2 when ``sigma_known``)."""
+    ci = {}
+    col = np.linalg.norm(J, axis=0)
+    for i, n in enumerate(names):
+        # a direction the DOP does not depend on at all has no finite standard error
+        se_i = np.inf if col[i] <= 1e-12 * max(col.max(), 1e-300) else max(se[i], min_se[i])
+        cdfs = [_truncated_cdf(dist, x[i], se_i, lo[i], hi[i])]
+        if n in grid.axes:
+            # the grid's profile counts where the grid resolves it: its own 95% interval spans
+            # several cells (a valley, a banana, a flat stretch); else it only says "near the
+            # best node", which the local approximation says better
+            prof, vals = grid.profiles[n], grid.axes[n]
+            g = _grid_cdf(prof / chi2_unit, vals, n_points, sigma_known)
+            g_a, g_b = _central_interval([g], x[i], se_i, lo[i], hi[i], vals)
+            if g_b - g_a >= GRID_RESOLVED_CELLS * _local_spacing(vals, int(np.argmin(prof))):
+                cdfs.append(g)
+        ci[n] = _central_interval(cdfs, x[i], se_i, lo[i], hi[i], grid.axes.get(n, ()))
+    return ci
+
+
+def _model_notes(model, fx, use_f00, meas):
+    notes = []
+    if model == "six-param" and not use_f00:
+        if "ks" in fx:
+            notes.append(f"ks is fixed at {fx['ks']:g} by the caller; DOP depends on ks and kd only through "
+                         "kd/ks, so kd is determined only relative to that choice")
+        else:
+            notes.append("DOP depends on ks and kd only through kd/ks: ks is fixed at 1 and kd is the ratio "
+                         "kd/ks (add an f00 or s0 intensity column to separate them)")
+    if model == "specular" and meas.f00 is not None:
+        notes.append("the specular model is fitted to the DOP only; the intensity column was not used")
+    if use_f00 and meas.f00_std is None:
+        notes.append(f"intensities weighted with an assumed {F00_REL_STD:.0%} relative uncertainty "
+                     "(give an f00_std column to set it)")
+    return notes
+
+
+def _ambiguous_basins(cands, free, unit, se):
+    """The other candidates within one unit of chi^2 of the best and more than 2 standard errors
+    away from it in some parameter (dicts of their parameters and SSE)."""
+    best = cands[0]
+    out = []
+    for c in cands[1:]:
+        if c.sse - best.sse <= unit and np.any(np.abs(c.x - best.x) > 2 * np.maximum(se[:len(free)], 1e-12)):
+            out.append(dict(zip(free, map(float, c.x)), sse=float(c.sse)))
+    return out
+
+
+#: FitResult.status -> message (scipy's convention: success is status > 0).
+FIT_STATUS = {
+    1: "converged: the local stages met their tolerances",
+    2: "converged: least squares ran out of evaluations along a flat valley and BOBYQA finished (it stopped "
+       "improving)",
+    0: "stopped: an evaluation budget ran out while the objective was still falling; the result is the best "
+       "point found",
+    -1: "failed: the model's residuals are not finite at any candidate",
+}
+
+
+def _fit_status(best, final_ran, intensity):
+    """FitResult.status from the best candidate, whether the final BOBYQA ran, and the intensity
+    stage's candidate (or None)."""
+    last = intensity if intensity is not None else best
+    if not last.sse < 1e300:
+        return -1
+    if last.converged is False:
+        return 0
+    return 2 if final_ran else 1
 
 
 def fit(data, model="six-param", bounds=None, fixed=None, shadowing="paper", *, grid_shape=None, n_basins=6,
@@ -326,251 +812,97 @@ def fit(data, model="six-param", bounds=None, fixed=None, shadowing="paper", *, 
     grid_shape : dict name -> points of the device grid stage
     engine, backend : where the grid stage runs ("auto": the OpenCL device, or numpy without one)
     """
-    if model not in MODEL_PARAMS:
-        raise ValueError(f"model must be one of {sorted(MODEL_PARAMS)}, got {model!r}")
-    if shadowing not in reference.SHADOWING:
-        raise ValueError(f"shadowing must be one of {sorted(reference.SHADOWING)}, got {shadowing!r}")
-    meas = as_measurements(data)
-    bnds, fx = _check_bounds(model, bounds, fixed)
-    free = [n for n in MODEL_PARAMS[model] if n not in fx]
-    if not free:
-        raise ValueError("every parameter is fixed: nothing to fit")
-    if len(meas) <= len(free):
-        raise ValueError(f"{meas.source}: {len(meas)} measurements for {len(free)} free parameters "
-                         f"({', '.join(free)}); at least {len(free) + 1} are needed")
-    base = dict(MODEL_FIXED[model])
-    base.update({n: v for n, v in fx.items()})
-    lo = np.array([bnds[n][0] for n in free])
-    hi = np.array([bnds[n][1] for n in free])
-    span = hi - lo
+    meas, bnds, fx, free = _check_fit_args(data, model, bounds, fixed, shadowing)
+    base = {**MODEL_FIXED[model], **fx}
+    lo, hi = np.array([bnds[n][0] for n in free]), np.array([bnds[n][1] for n in free])
     std = meas.dop_std if meas.dop_std is not None else np.ones(len(meas))
     mdl = _Model(meas, shadowing)
-    nfev, seconds = {}, {}
-
-    def params(x):
-        p = dict(base)
-        p.update(zip(free, x))
-        return p
-
-    def resid_dop(x):
-        return _finite((mdl.dop(params(x)) - meas.dop) / std)
-
-    def resid_rows(X):
-        p = dict(base)
-        p.update((n, X[:, j:j + 1]) for j, n in enumerate(free))
-        return _finite((mdl.dop_rows(p) - meas.dop) / std)
-
-    def sse_via(rows):
-        def sse(x):
-            r = rows(x)[0]
-            return float(min(r @ r, 1e300))
-        return sse
-
-    # (a) the objective on a dense grid over the bounds, on the OpenCL device
-    t0 = time.perf_counter()
-    shape = dict(SPECULAR_GRID if model == "specular" else DEFAULT_GRID)
-    shape.update(grid_shape or {})
+    dop_resid = Residuals(mdl, free, base, meas.dop, std)
+    rows = dop_resid.rows
+    shape = {**(SPECULAR_GRID if model == "specular" else DEFAULT_GRID), **(grid_shape or {})}
     axes = {n: _grid_axis(n, bnds[n], int(shape[n])) for n in free}
-    grid_params = {**{n: v for n, v in base.items()}, **axes}
-    res = dense.objective(meas.as_dict(), grid=grid_params, k_best=1, dtype="float32", shadowing=shadowing,
-                          engine=engine, backend=backend, progress=progress)
-    sse_grid = res.sse.transpose(*free).values
-    nfev["grid"] = int(sse_grid.size)
-    profiles = _grid_profiles(sse_grid, free)
-    seconds["grid"] = time.perf_counter() - t0
-
-    # (b) distinct basins: local minima of the grid objective, best first, one per neighbourhood
-    t0 = time.perf_counter()
-    basins = _grid_basins(sse_grid, n_basins)
-    # ... and valleys of the grid's profiles that none of them lies in (a ridge of at least one
-    # unit of chi^2 between; without given uncertainties the unit is estimated from the grid)
-    rise = 1.0 if meas.dop_std is not None else float(sse_grid.min()) / (len(meas) - len(free))
-    basins += _profile_seeds(sse_grid, profiles, free, basins, PROFILE_SEEDS, rise)
-    seeds = [np.array([axes[n][i] for n, i in zip(free, idx)]) for idx in basins]
-    spacings = [np.array([_local_spacing(axes[n], i) for n, i in zip(free, idx)]) for idx in basins]
-    spacing = np.array([np.median(np.diff(axes[n])) for n in free])
-    seconds["basins"] = time.perf_counter() - t0
-    nfev["basins"] = 0
-
-    # (c) DIRECT-L inside a box of +-1.5 grid spacings around each basin, (d) BOBYQA polish with
-    # the grid spacing as initial step, a batched Levenberg-Marquardt descent of every candidate,
-    # then least squares to the end for the best (scipy's trust-region reflective), which
-    # converges along the long, flat valleys where BOBYQA stalls.  The basins' optimisers of
-    # each stage run in lockstep, their evaluations batched.
-    import nlopt
-    from scipy.optimize import least_squares
-
-    def stage(name, jobs):
-        t0 = time.perf_counter()
-        runner = _Lockstep(resid_rows)
-        out = runner.run(jobs)
-        nfev[name], seconds[name] = runner.rows, time.perf_counter() - t0
-        return out
-
-    def direct(seed, step):
-        blo, bhi = np.maximum(lo, seed - 1.5 * step), np.minimum(hi, seed + 1.5 * step)
-        return lambda rows: _nlopt_min(nlopt.GN_DIRECT_L, sse_via(rows), blo, bhi, (blo + bhi) / 2,
-                                       maxeval=DIRECT_EVALS * len(free), start=seed)[:2]
-
-    def bobyqa(x0, step):
-        return lambda rows: _nlopt_min(nlopt.LN_BOBYQA, sse_via(rows), lo, hi, x0, maxeval=BOBYQA_EVALS * len(free),
-                                       step=step)[:2]
-
-    def polish(x0):
-        def job(rows):
-            return least_squares(lambda x: rows(x)[0], x0, jac=lambda x: _fd_jacobian(rows, x, lo, hi),
-                                 bounds=(lo, hi), x_scale=span, ftol=1e-15, xtol=1e-15, gtol=1e-15,
-                                 max_nfev=LS_MAX_NFEV * len(free))
-        return job
-
-    found = stage("direct", [direct(seed, step) for seed, step in zip(seeds, spacings)])
-    found = stage("bobyqa", [bobyqa(x_d, step) for (x_d, _), step in zip(found, spacings)])
-    cands = sorted(((f_b, x_b, seed) for (x_b, f_b), seed in zip(found, seeds)), key=lambda c: c[0])
+    st = {"grid": grid_stage(meas, free, axes, base, shadowing, engine=engine, backend=backend, progress=progress)}
+    grid = st["grid"].value
+    # a ridge of at least one unit of chi^2 between valleys; without given uncertainties the
+    # unit is estimated from the grid
+    rise = 1.0 if meas.dop_std is not None else float(grid.sse.min()) / (len(meas) - len(free))
+    st["basins"] = basin_stage(grid, free, n_basins, rise, PROFILE_SEEDS)
+    basins = st["basins"].value
+    # the basins' optimisers of each stage run in lockstep, their evaluations batched
+    st["direct"] = direct_stage(rows, lo, hi, basins.seeds, basins.steps, DIRECT_EVALS)
+    st["bobyqa"] = bobyqa_stage(rows, lo, hi, st["direct"].value, basins.steps, BOBYQA_EVALS)
     # every candidate, and the best grid point of each bound slice (this model's optimum often
-    # sits on a bound: k = 0, n = 1, sigma = 1, kd = 0), descends its valley by batched
-    # Levenberg-Marquardt: BOBYQA's ranking in a long flat valley says little about its floor
-    t0 = time.perf_counter()
-    for idx in _bound_seeds(sse_grid, basins):
-        x_e = np.array([axes[n][i] for n, i in zip(free, idx)])
-        cands.append((np.inf, x_e, x_e))
-    X_s, f_s, nfev["screen"] = _lm_batch(resid_rows, np.array([c[1] for c in cands]), lo, hi, SCREEN_ITERATIONS)
-    cands = sorted(((float(f_s[i]), X_s[i], c[2]) if f_s[i] < c[0] else c for i, c in enumerate(cands)),
-                   key=lambda c: c[0])
-    seconds["screen"] = time.perf_counter() - t0
+    # sits on a bound: k = 0, n = 1, sigma = 1, kd = 0), descends its valley
+    edges = [_grid_point(axes, free, idx) for idx in _bound_seeds(grid.sse, basins.indices)]
+    st["screen"] = screen_stage(rows, lo, hi, _ranked(st["bobyqa"].value) + [Candidate(np.inf, x, x) for x in edges],
+                                SCREEN_ITERATIONS)
+    cands = _ranked(st["screen"].value)
     top = min(LS_POLISH, len(cands))  # the best candidates, least squares to the end
-    unfinished = set()
-    for i, ls in enumerate(stage("least_squares", [polish(cands[i][1]) for i in range(top)])):
-        if 2 * ls.cost < cands[i][0]:
-            cands[i] = (float(2 * ls.cost), np.clip(ls.x, lo, hi), cands[i][2])
-        if ls.status == 0:  # out of evaluations: still creeping along a flat valley
-            unfinished.add(id(cands[i]))
-    cands.sort(key=lambda c: c[0])
-    # a flat valley running into a bound is where trust-region least squares crawls (it keeps
-    # strictly inside the bounds); BOBYQA, which steps onto them, finishes the job
-    nfev["final_bobyqa"], seconds["final_bobyqa"] = 0, 0.0
-    if id(cands[0]) in unfinished:
-        f_0, x_0, seed_0 = cands[0]
-        (x_f, f_f), = stage("final_bobyqa", [lambda rows: _nlopt_min(
-            nlopt.LN_BOBYQA, sse_via(rows), lo, hi, x_0, maxeval=FINAL_BOBYQA * len(free), step=0.01 * span,
-            start=x_0)[:2]])
-        if f_f < f_0:
-            cands[0] = (f_f, x_f, seed_0)
-    best_sse, best_x, _ = cands[0]
+    st["least_squares"] = least_squares_stage(rows, lo, hi, cands[:top], LS_MAX_NFEV)
+    cands = _ranked(st["least_squares"].value + cands[top:])
+    final_ran = cands[0].converged is False
+    st["final_bobyqa"] = (final_bobyqa_stage(rows, lo, hi, cands[0], FINAL_BOBYQA) if final_ran
+                          else StageResult(cands[0], 0, 0.0))
+    cands[0] = best = st["final_bobyqa"].value
 
-    # intensities: fit ks and kd separately (DOP alone cannot)
     use_f00 = meas.f00 is not None and model == "six-param" and "ks" not in fx and "kd" not in fx
-    f00_std = None
-    free_all = list(free)
+    resid, x_final, lo_f, hi_f = dop_resid, best.x, lo, hi
     if use_f00:
-        t0 = time.perf_counter()
         f00_std = meas.f00_std if meas.f00_std is not None else F00_REL_STD * np.maximum(meas.f00, 1e-300)
-        p = params(best_x)
-        m1 = mdl.f00(p)  # ks = 1, kd = kd/ks
-        w = 1 / f00_std ** 2
-        ks_lo, ks_hi = bnds.get("ks", DEFAULT_BOUNDS["ks"])
-        ks0 = float(np.clip((w * meas.f00 * m1).sum() / max((w * m1 * m1).sum(), 1e-300), ks_lo, ks_hi))
-        free_all = free + ["ks"]
-        lo_all = np.append(lo, ks_lo)
-        hi_all = np.append(hi, ks_hi)
+        ks_bounds = bnds.get("ks", DEFAULT_BOUNDS["ks"])
+        ks0 = intensity_start(mdl, dop_resid.params(best.x), meas.f00, f00_std, ks_bounds)
+        resid = Residuals(mdl, free + ["ks"], base, meas.dop, std, meas.f00, f00_std)
+        lo_f, hi_f = np.append(lo, ks_bounds[0]), np.append(hi, ks_bounds[1])
+        spacing = np.array([np.median(np.diff(axes[n])) for n in free])
+        st["intensity"] = intensity_stage(resid, lo_f, hi_f, np.append(best.x, ks0), np.append(spacing, ks0 * 0.1),
+                                          INTENSITY_MAXEVAL)
+        x_final = st["intensity"].value.x
+    floor = dop_noise_floor(meas.dop) if meas.dop_std is None else None
+    unc = uncertainty_stage(resid, x_final, lo_f, hi_f, grid, best.sse, len(meas), meas.dop_std is not None,
+                            floor).value
+    status = _fit_status(best, final_ran, st["intensity"].value if use_f00 else None)
+    return _fit_result(meas, model, shadowing, resid, x_final, lo_f, hi_f, unc, cands, grid, st, status,
+                       _model_notes(model, fx, use_f00, meas))
 
-        def params_all(x):
-            p = dict(base)
-            p.update(zip(free_all, x))
-            p["kd"] = p["kd"] * p["ks"]  # fitted as the ratio kd/ks, reported as both
-            return p
 
-        def resid_all(x):
-            p = params_all(x)
-            return _finite(np.concatenate([(mdl.dop(p) - meas.dop) / std, (mdl.f00(p) - meas.f00) / f00_std]))
-        x_i, f_i, ne = _nlopt_min(nlopt.LN_BOBYQA, _sum_of_squares(resid_all), lo_all, hi_all, np.append(best_x, ks0), maxeval=6000,
-                                  step=np.append(spacing, ks0 * 0.1))
-        nfev["intensity"] = ne
-        seconds["intensity"] = time.perf_counter() - t0
-
-    # (e) the best wins; statistics and uncertainties
-    if use_f00:
-        x_final, lo_f, hi_f, p_final, resid = x_i, lo_all, hi_all, params_all(x_i), resid_all
-    else:
-        x_final, lo_f, hi_f, p_final, resid = best_x, lo, hi, params(best_x), resid_dop
-    r = resid(x_final)
-    m_obs, n_free = r.size, len(free_all)
-    dof = m_obs - n_free
-    chi2 = float(r @ r)
+def _fit_result(meas, model, shadowing, resid, x, lo, hi, unc, cands, grid, stages, status, notes):
+    """The :class:`FitResult` of :func:`fit` from its stages' outputs."""
+    names, free = list(resid.free), list(grid.axes)
     sigma_known = meas.dop_std is not None
-    s2 = 1.0 if sigma_known else chi2 / dof
-    unit = 1.0 if sigma_known else best_sse / dof  # one unit of chi^2 on the DOP-only SSE scale
-    J = _jacobian(resid, x_final, lo_f, hi_f)
-    cov, cond, eig = _covariance(J, s2, hi_f - lo_f)
-    se = np.sqrt(np.clip(np.diag(cov), 0, None))
-    from scipy.stats import norm, t as student_t
-    # with known uncertainties the Gaussian quantile, else Student's t on the residual dof
-    dist = norm if sigma_known else student_t(dof)
-    q = float(dist.ppf(0.975))
-    # never narrower than the optimizer's resolution (noise-free data would give a zero width)
-    res = X_RESOLUTION * (hi_f - lo_f)
-    half = np.maximum(q * se, res)
-    ci_jac = {n: (max(lo_f[i], x_final[i] - half[i]), min(hi_f[i], x_final[i] + half[i]))
-              for i, n in enumerate(free_all)}
-    # likelihood-ratio intervals from the profile of the grid objective (banana-shaped valleys
-    # are not ellipses)
-    ci_prof = _profile_intervals(profiles, axes, best_sse + 3.84 * unit)
-    # 95% intervals: posterior under a uniform prior over the bounds, the equal mixture of the
-    # local (Laplace) approximation and the grid's profile
-    ci = {}
-    col = np.linalg.norm(J, axis=0)
-    for i, n in enumerate(free_all):
-        # a direction the DOP does not depend on at all has no finite standard error
-        se_i = np.inf if col[i] <= 1e-12 * max(col.max(), 1e-300) else max(se[i], res[i] / q)
-        cdfs = [_truncated_cdf(dist, x_final[i], se_i, lo_f[i], hi_f[i])]
-        if n in axes:
-            # the grid's profile counts where the grid resolves it: its own 95% interval spans
-            # several cells (a valley, a banana, a flat stretch); else it only says "near the
-            # best node", which the local approximation says better
-            g = _grid_cdf(profiles[n], axes[n], len(meas), sigma_known)
-            g_a, g_b = _central_interval([g], x_final[i], se_i, lo_f[i], hi_f[i], axes[n])
-            if g_b - g_a >= GRID_RESOLVED_CELLS * _local_spacing(axes[n], int(np.argmin(profiles[n]))):
-                cdfs.append(g)
-        ci[n] = _central_interval(cdfs, x_final[i], se_i, lo_f[i], hi_f[i], axes.get(n, ()))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        corr = cov / np.outer(se, se)
-    dop_resid = mdl.dop(p_final) - meas.dop
+    p = resid.params(x)
+    dop_resid = resid.model.dop(p) - meas.dop
+    m_obs, n_free = unc.residuals.size, len(names)
     # -2 log-likelihood up to a constant: chi^2 with known sigmas, else m log(SSE / m)
-    neg2ll = chi2 if sigma_known else m_obs * np.log(max(chi2, 1e-300) / m_obs)
+    neg2ll = unc.chi2 if sigma_known else m_obs * np.log(max(unc.chi2, 1e-300) / m_obs)
     aic, bic = neg2ll + 2 * n_free, neg2ll + n_free * np.log(m_obs)
-
-    notes = []
-    if model == "six-param" and not use_f00:
-        if "ks" in fx:
-            notes.append(f"ks is fixed at {fx['ks']:g} by the caller; DOP depends on ks and kd only through "
-                         "kd/ks, so kd is determined only relative to that choice")
-        else:
-            notes.append("DOP depends on ks and kd only through kd/ks: ks is fixed at 1 and kd is the ratio "
-                         "kd/ks (add an f00 or s0 intensity column to separate them)")
-    if model == "specular" and meas.f00 is not None:
-        notes.append("the specular model is fitted to the DOP only; the intensity column was not used")
-    if use_f00 and meas.f00_std is None:
-        notes.append(f"intensities weighted with an assumed {F00_REL_STD:.0%} relative uncertainty "
-                     "(give an f00_std column to set it)")
-    notes += _identifiability_notes(free_all, J, cond, eig, x_final, se, corr, hi_f - lo_f)
-    ambiguous = []
-    for f_c, x_c, seed in cands[1:]:
-        if f_c - best_sse <= unit and np.any(np.abs(x_c - best_x) > 2 * np.maximum(se[:len(free)], 1e-12)):
-            ambiguous.append(dict(zip(free, map(float, x_c)), sse=float(f_c)))
+    notes = notes + _identifiability_notes(names, unc.jacobian, unc.condition_number, unc.eig, x, unc.stderr,
+                                           unc.corr, hi - lo)
+    if unc.noise_floor is not None:
+        notes.append(f"the fit is (nearly) exact: the noise estimated from the residuals (std "
+                     f"{np.sqrt(unc.chi2 / unc.dof):.2g}) is below the noise floor, so the uncertainties assume "
+                     f"DOP noise of std {unc.noise_floor:.2g} (the larger of the data's DOP resolution "
+                     f"{dop_resolution(meas.dop):g} / sqrt(12) and {DOP_NOISE_FLOOR:g}); give a dop_std column "
+                     "to set it")
+    ambiguous = _ambiguous_basins(cands, free, unc.unit, unc.stderr)
     if ambiguous:
         alt = ", ".join(f"{n}={ambiguous[0][n]:.4g}" for n in free)
         notes.append(f"ambiguous: another basin fits equally well ({alt}, SSE {ambiguous[0]['sse']:.4g} vs "
-                     f"{best_sse:.4g}); the data cannot decide between them")
-    x_out = {n: float(p_final[n]) for n in ("n", "k", "sigma", "ks", "kd", "c")}
+                     f"{cands[0].sse:.4g}); the data cannot decide between them")
+    x_out = {n: float(p[n]) for n in ("n", "k", "sigma", "ks", "kd", "c")}
     if model == "specular":
         x_out = {n: x_out[n] for n in ("n", "k")}
     return FitResult(
-        model=model, shadowing=shadowing, x=x_out, free=free_all, sse=float(dop_resid @ dop_resid), chi2=chi2,
-        reduced_chi2=chi2 / dof, rmse=float(np.sqrt(np.mean(dop_resid ** 2))), residuals=dop_resid, dof=dof,
-        n_points=len(meas), stderr=dict(zip(free_all, map(float, se))), ci95=ci, ci95_jacobian=ci_jac,
-        ci95_profile=ci_prof, profiles={n: dict(values=axes[n], sse=profiles[n]) for n in free}, corr=corr,
-        condition_number=float(cond), aic=float(aic), bic=float(bic), nfev=nfev, seconds=seconds,
-        basins=[dict(zip(free, map(float, x)), sse=float(f), seed=dict(zip(free, map(float, s)))) for f, x, s in cands],
-        ambiguous=ambiguous, notes=notes, sigma_known=sigma_known)
+        model=model, shadowing=shadowing, x=x_out, free=names, sse=float(dop_resid @ dop_resid), chi2=unc.chi2,
+        reduced_chi2=unc.chi2 / unc.dof, rmse=float(np.sqrt(np.mean(dop_resid ** 2))), residuals=dop_resid,
+        dof=unc.dof, n_points=len(meas), stderr=dict(zip(names, map(float, unc.stderr))), ci95=unc.ci95,
+        ci95_jacobian=unc.ci95_jacobian, ci95_profile=unc.ci95_profile,
+        profiles={n: dict(values=grid.axes[n], sse=grid.profiles[n]) for n in free}, corr=unc.corr,
+        condition_number=unc.condition_number, aic=float(aic), bic=float(bic),
+        nfev={k: s.nfev for k, s in stages.items()}, seconds={k: s.seconds for k, s in stages.items()},
+        basins=[dict(zip(free, map(float, c.x)), sse=float(c.sse), seed=dict(zip(free, map(float, c.seed))))
+                for c in cands],
+        ambiguous=ambiguous, notes=notes, sigma_known=sigma_known,
+        success=status > 0, status=status, message=FIT_STATUS[status])
 
 
 def _finite(r):
@@ -578,12 +910,6 @@ def _finite(r):
     return np.where(np.isfinite(r), r, 1e150)
 
 
-def _sum_of_squares(resid):
-    """The objective sum(resid(x)^2) as a Python float, for nlopt."""
-    def sse(x):
-        r = resid(x)
-        return float(min(r @ r, 1e300))
-    return sse
 
 
 def _grid_axis(name, bounds, count):
@@ -739,16 +1065,6 @@ def _nlopt_min(algorithm, func, lo, hi, x0, maxeval, step=None, start=None):
     return np.clip(best["x"], lo, hi), float(best["f"]), best["n"]
 
 
-def _jacobian(resid, x, lo, hi):
-    """Central-difference Jacobian of the residual vector (one-sided at a bound)."""
-    h = 1e-6 * (hi - lo)
-    cols = []
-    for j in range(x.size):
-        up, dn = min(x[j] + h[j], hi[j]), max(x[j] - h[j], lo[j])
-        xu, xd = x.copy(), x.copy()
-        xu[j], xd[j] = up, dn
-        cols.append((resid(xu) - resid(xd)) / (up - dn))
-    return np.array(cols).T
 
 
 def _covariance(J, s2, scale):

@@ -360,8 +360,9 @@ def test_batched_jacobian_equals_scipy_two_point():
     fun = lambda x: np.sin(A @ x) + x.sum()  # noqa: E731
     lo, hi = np.zeros(4), np.ones(4)
     for x in (rng.random(4), np.array([0.0, 1.0, 0.5, 1.0 - 1e-12])):
-        J = F._fd_jacobian(lambda X: np.array([fun(r) for r in X]), x, lo, hi)
-        np.testing.assert_array_equal(J, approx_derivative(fun, x, method="2-point", bounds=(lo, hi)))
+        r, J = F.fd_jacobian(lambda X: np.array([fun(r) for r in X]), x[None], lo, hi)
+        np.testing.assert_array_equal(J[0].T, approx_derivative(fun, x, method="2-point", bounds=(lo, hi)))
+        np.testing.assert_array_equal(r[0], fun(x))
 
 
 def test_grid_basins_from_a_pool_equal_the_whole_grid_search():
