@@ -180,11 +180,23 @@ def cmd_eval(args) -> int:
 
 
 def _fit_json(r):
-    return dict(model=r.model, shadowing=r.shadowing, x=r.x, free=r.free, stderr=r.stderr,
+    corr = np.asarray(r.corr, dtype=float)
+    return dict(model=r.model, shadowing=r.shadowing, success=bool(r.success), status=r.status, message=r.message,
+                fits_data=bool(r.fits_data), x=r.x, free=r.free, stderr=r.stderr,
                 ci95={k: list(v) for k, v in r.ci95.items()}, sse=r.sse, rmse=r.rmse, chi2=r.chi2,
-                reduced_chi2=r.reduced_chi2, aic=r.aic, bic=r.bic, dof=r.dof, residuals=r.residuals.tolist(),
-                corr=np.where(np.isfinite(r.corr), r.corr, None).tolist(), condition_number=r.condition_number,
+                reduced_chi2=r.reduced_chi2 if r.sigma_known else None, p_value=r.p_value, r2=r.r2, aic=r.aic,
+                bic=r.bic, dof=r.dof, residuals=r.residuals.tolist(),
+                corr=np.where(np.isfinite(corr), corr, None).tolist(), condition_number=r.condition_number,
                 nfev=r.nfev, seconds=r.seconds, ambiguous=r.ambiguous, notes=r.notes)
+
+
+def _fit_brief(r):
+    """One line per fitted parameter and a first line with the model, for --quiet."""
+    lines = [f"{r.model}: SSE {r.sse:.4g}" + ("" if r.fits_data else " (the model does not describe these data)")]
+    for name in r.free:
+        lo, hi = r.ci95[name]
+        lines.append(f"  {name} = {r.x[name]:.5g}  [{lo:.4g}, {hi:.4g}]")
+    return "\n".join(lines)
 
 
 def cmd_fit(args) -> int:
@@ -197,21 +209,26 @@ def cmd_fit(args) -> int:
     try:
         meas = read_csv(args.data)
         engine = _engine_for(args)
-        both = _fit.compare_models(meas, shadowing=args.shadowing, bounds=bounds, fixed=fixed, engine=engine,
-                                   progress=not args.quiet)
+        kw = dict(shadowing=args.shadowing, bounds=bounds, fixed=fixed, engine=engine, progress=not args.quiet)
+        if args.compare:
+            both = _fit.compare_models(meas, **kw)
+            other = "specular" if args.model == "six-param" else "six-param"
+            fits, best = {args.model: both[args.model], other: both[other]}, both["preferred"]
+        else:
+            if args.model == "specular":
+                kw["fixed"] = {k: v for k, v in fixed.items() if k in ("n", "k")}
+                kw["bounds"] = {k: v for k, v in bounds.items() if k in ("n", "k")}
+            fits, best = {args.model: _fit.fit(meas, args.model, **kw)}, None
     except (OSError, ValueError, _engine.OpenCLUnavailableError) as exc:
         return _error(exc)
-    other_model = "specular" if args.model == "six-param" else "six-param"
-    fits = {args.model: both[args.model], other_model: both[other_model]}
-    print(f"data: {meas.source} ({len(meas)} points)")
+    if not args.quiet:
+        print(f"data: {meas.source} ({len(meas)} points)")
     for r in fits.values():
-        print(r.summary())
-        print()
-    print("model comparison (lower AIC/BIC is better):")
-    for name, r in fits.items():
-        print(f"  {name:10s} SSE {r.sse:10.4g}  AIC {r.aic:9.2f}  BIC {r.bic:9.2f}  ({len(r.free)} free)")
-    best = both["preferred"]
-    print(f"  preferred by BIC: {best}")
+        print(_fit_brief(r) if args.quiet else r.summary())
+        if not args.quiet:
+            print()
+    if best is not None:
+        print(f"preferred by BIC: {best}" if args.quiet else both.summary())
     if args.json:
         with open(args.json, "w") as fh:
             json.dump(dict(data=meas.source, n_points=len(meas), fits={k: _fit_json(v) for k, v in fits.items()},
@@ -417,18 +434,22 @@ def build_parser() -> argparse.ArgumentParser:
                    help="start even when the store (uncompressed) would not fit on the free disk")
     s.set_defaults(func=cmd_sweep)
     f = sub.add_parser("fit", help="invert n, k, sigma, kd/ks, c from measured DOP (CSV)",
-                       description="Fit the six-parameter model and the ref. [7] specular model to a CSV of "
-                       "measurements (columns theta_i, theta_r, dop[, phi, dop_std, f00|s0, f00_std]).")
+                       description="Fit the six-parameter model (or, with --model specular, the ref. [7] "
+                       "specular model; --compare: both) to a CSV of measurements (columns theta_i, theta_r, "
+                       "dop[, phi, dop_std, f00|s0, f00_std]).")
     f.add_argument("data", help="measurement CSV")
     f.add_argument("--model", choices=("six-param", "specular"), default="six-param",
-                   help="which fit is listed first (both are fitted and compared)")
+                   help="the model to fit (specular: ref. [7], n and k only)")
+    f.add_argument("--compare", action="store_true",
+                   help="fit both models and compare them by AIC/BIC (--model's is listed first)")
     f.add_argument("--fix", nargs="*", metavar="NAME=VALUE", help="hold parameters fixed, e.g. sigma=0.45")
     f.add_argument("--bounds", nargs="*", metavar="NAME=LO:HI", help="search bounds, e.g. n=1:3 k=0:5")
     f.add_argument("--shadowing", choices=sorted(SHADOWING), default="paper", help=_SHADOWING_HELP)
     _device_options(f, " for the grid stage")
     f.add_argument("--json", metavar="OUT", help="write both fits as JSON")
     f.add_argument("--plot", metavar="PNG", help="plot data, both models and residuals")
-    f.add_argument("--quiet", action="store_true", help="no progress bar")
+    f.add_argument("--quiet", action="store_true",
+                   help="no progress bar; only each fitted value with its 95%% interval")
     f.set_defaults(func=cmd_fit)
     r = sub.add_parser("reproduce", help="reproduce the paper's figures and Table 1, plus roughness maps",
                        description="Writes Fig. 2 (aluminum, black paint: synthetic data, both models fitted), "

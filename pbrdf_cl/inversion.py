@@ -14,7 +14,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from . import dense, reference
+from . import api, dense, reference
 from .api import RULES
 from .data import as_measurements
 from .results import Result
@@ -107,6 +107,9 @@ class FitResult(Result):
     def summary(self):
         lines = [f"model: {self['model']}  (shadowing {self['shadowing']}, {self['n_points']} points, "
                  f"{len(self['free'])} free parameters)"]
+        if not self.get("fits_data", True):
+            lines.append("  WARNING: the model does not describe these data (see the first note); the "
+                         "values and intervals below are not to be trusted")
         for name in self["x"]:
             if name in self["free"]:
                 lo, hi = self["ci95"][name]
@@ -114,8 +117,11 @@ class FitResult(Result):
                              f"95% interval [{lo:.4g}, {hi:.4g}]")
             else:
                 lines.append(f"  {name:6s} = {self['x'][name]:10.5g}  (fixed)")
-        lines.append(f"  SSE {self['sse']:.4g}, RMSE {self['rmse']:.4g}, reduced chi2 {self['reduced_chi2']:.4g}, "
-                     f"AIC {self['aic']:.2f}, BIC {self['bic']:.2f}")
+        fit_line = f"  SSE {self['sse']:.4g} (DOP), RMSE {self['rmse']:.4g}"
+        if self.get("sigma_known"):  # chi2 means something only with given uncertainties
+            fit_line += (f", chi2 {self['chi2']:.4g} for {self['dof']} dof (reduced {self['reduced_chi2']:.3g}, "
+                         f"p = {self['p_value']:.3g})")
+        lines.append(fit_line + f", AIC {self['aic']:.2f}, BIC {self['bic']:.2f}")
         lines.append("  stages: " + ", ".join(f"{k} {self['nfev'][k]} evals / {self['seconds'][k]:.3f} s"
                                                for k in self["nfev"]))
         if not self.get("success", True):
@@ -125,7 +131,26 @@ class FitResult(Result):
         return "\n".join(lines)
 
     def __repr__(self):
-        return self.summary()
+        values = ", ".join(f"{n}={v:.4g}" for n, v in self["x"].items())
+        return (f"FitResult(model={self['model']!r}, success={self['success']}, {values}, "
+                f"sse={self['sse']:.4g}, notes={len(self['notes'])}; .summary() for the report)")
+
+
+class ComparisonResult(Result):
+    """Result of :func:`compare_models`: ``fits`` (model name -> :class:`FitResult`, also the keys
+    "six-param" and "specular"), ``preferred`` (the lower BIC), ``table`` (Markdown) and
+    :meth:`summary`."""
+
+    def summary(self):
+        lines = ["model comparison (lower AIC/BIC is better):"]
+        for name, r in self["fits"].items():
+            lines.append(f"  {name:10s} SSE {r.sse:10.4g}  AIC {r.aic:9.2f}  BIC {r.bic:9.2f}  ({len(r.free)} free)")
+        lines.append(f"  preferred by BIC: {self['preferred']}")
+        return "\n".join(lines)
+
+    def __repr__(self):
+        return (f"ComparisonResult(preferred={self['preferred']!r}, "
+                + ", ".join(f"{k}: BIC {r.bic:.2f}" for k, r in self["fits"].items()) + ")")
 
 
 class _Model:
@@ -520,6 +545,7 @@ def _check_fit_args(data, model, bounds, fixed, shadowing):
     if shadowing not in reference.SHADOWING:
         raise ValueError(f"shadowing must be one of {sorted(reference.SHADOWING)}, got {shadowing!r}")
     meas = as_measurements(data)
+    api.check_degrees(meas.theta_i, meas.theta_r, f"{meas.source}: ")
     bnds, fx = _check_bounds(model, bounds, fixed)
     free = [n for n in MODEL_PARAMS[model] if n not in fx]
     if not free:
@@ -875,8 +901,10 @@ def _fit_result(meas, model, shadowing, resid, x, lo, hi, unc, cands, grid, stag
     # -2 log-likelihood up to a constant: chi^2 with known sigmas, else m log(SSE / m)
     neg2ll = unc.chi2 if sigma_known else m_obs * np.log(max(unc.chi2, 1e-300) / m_obs)
     aic, bic = neg2ll + 2 * n_free, neg2ll + n_free * np.log(m_obs)
-    notes = notes + _identifiability_notes(names, unc.jacobian, unc.condition_number, unc.eig, x, unc.stderr,
-                                           unc.corr, hi - lo)
+    fits_data, p_value, r2, first = _goodness(meas, dop_resid, unc, sigma_known)
+    notes = first + _convention_notes(meas) + notes + _bound_notes(names, x, lo, hi, unc.ci95)
+    notes += _identifiability_notes(names, unc.jacobian, unc.condition_number, unc.eig, x, unc.stderr, unc.corr,
+                                    hi - lo)
     if unc.noise_floor is not None:
         notes.append(f"the fit is (nearly) exact: the noise estimated from the residuals (std "
                      f"{np.sqrt(unc.chi2 / unc.dof):.2g}) is below the noise floor, so the uncertainties assume "
@@ -886,8 +914,10 @@ def _fit_result(meas, model, shadowing, resid, x, lo, hi, unc, cands, grid, stag
     ambiguous = _ambiguous_basins(cands, free, unc.unit, unc.stderr)
     if ambiguous:
         alt = ", ".join(f"{n}={ambiguous[0][n]:.4g}" for n in free)
-        notes.append(f"ambiguous: another basin fits equally well ({alt}, SSE {ambiguous[0]['sse']:.4g} vs "
-                     f"{cands[0].sse:.4g}); the data cannot decide between them")
+        notes.append(f"ambiguous: another basin fits equally well ({alt}: its objective, the weighted sum of "
+                     f"squares the local stages minimise, is {ambiguous[0]['sse']:.4g} against the best's "
+                     f"{cands[0].sse:.4g}, within one unit of chi2, {unc.unit:.3g}); the data cannot decide "
+                     "between them")
     x_out = {n: float(p[n]) for n in ("n", "k", "sigma", "ks", "kd", "c")}
     if model == "specular":
         x_out = {n: x_out[n] for n in ("n", "k")}
@@ -896,7 +926,9 @@ def _fit_result(meas, model, shadowing, resid, x, lo, hi, unc, cands, grid, stag
         reduced_chi2=unc.chi2 / unc.dof, rmse=float(np.sqrt(np.mean(dop_resid ** 2))), residuals=dop_resid,
         dof=unc.dof, n_points=len(meas), stderr=dict(zip(names, map(float, unc.stderr))), ci95=unc.ci95,
         ci95_jacobian=unc.ci95_jacobian, ci95_profile=unc.ci95_profile,
-        profiles={n: dict(values=grid.axes[n], sse=grid.profiles[n]) for n in free}, corr=unc.corr,
+        profiles={n: dict(values=grid.axes[n], sse=grid.profiles[n]) for n in free},
+        corr=_labelled(unc.corr, names, "correlation"), cov=_labelled(unc.cov, names, "covariance"),
+        fits_data=fits_data, p_value=p_value, r2=r2,
         condition_number=unc.condition_number, aic=float(aic), bic=float(bic),
         nfev={k: s.nfev for k, s in stages.items()}, seconds={k: s.seconds for k, s in stages.items()},
         basins=[dict(zip(free, map(float, c.x)), sse=float(c.sse), seed=dict(zip(free, map(float, c.seed))))
@@ -1177,19 +1209,87 @@ def _identifiability_notes(names, J, cond, eig, x, se, corr, scale):
                          + ")")
         elif abs(x[i]) > 0 and se[i] > 0.5 * abs(x[i]):
             notes.append(f"{n} is poorly determined: standard error {se[i]:.3g} on {x[i]:.4g}")
-    for i in range(len(names)):
-        for j in range(i + 1, len(names)):
-            if np.isfinite(corr[i, j]) and abs(corr[i, j]) > 0.95:
-                notes.append(f"{names[i]} and {names[j]} are strongly correlated (r = {corr[i, j]:+.3f})")
+    pairs = sorted(((abs(corr[i, j]), i, j) for i in range(len(names)) for j in range(i + 1, len(names))
+                    if np.isfinite(corr[i, j]) and abs(corr[i, j]) > 0.95), key=lambda t: -t[0])
+    if pairs:
+        shown = ", ".join(f"{names[i]}-{names[j]} (r = {corr[i, j]:+.3f})" for _, i, j in pairs[:MAX_CORR_NOTES])
+        more = f", and {len(pairs) - MAX_CORR_NOTES} more (see .corr)" if len(pairs) > MAX_CORR_NOTES else ""
+        notes.append(f"strongly correlated: {shown}{more}")
     return notes
+
+
+#: How many of the strongest correlations the notes name.
+MAX_CORR_NOTES = 3
+#: With given uncertainties, a chi2 whose p-value is below this says the model does not fit.
+GOODNESS_P = 1e-3
+#: Without them, a fit that explains less than this fraction of the DOP's variance does not fit.
+GOODNESS_R2 = 0.9
+_CAUSES = ("angles in radians (pbrdf-cl takes degrees), the phi convention (180 is in plane, the specular side; "
+           "SCATMECH's 0), another shadowing variant (shadowing=), DOP in percent or dop_std too small")
+
+
+def _goodness(meas, dop_resid, unc, sigma_known):
+    """(fits, p-value or None, R^2 or None, notes): whether the model describes the data, by chi2
+    against its degrees of freedom with given uncertainties, else by the residuals against the
+    data's spread."""
+    from scipy.stats import chi2 as chi2_dist
+    sst = float(np.sum((meas.dop - meas.dop.mean()) ** 2))
+    r2 = 1.0 - float(dop_resid @ dop_resid) / sst if sst > 0 else None
+    p = float(chi2_dist.sf(unc.chi2, unc.dof)) if sigma_known and unc.dof > 0 else None
+    if p is not None and p < GOODNESS_P:
+        return False, p, r2, [f"the model does not describe these data: chi2 = {unc.chi2:.4g} for {unc.dof} degrees "
+                              f"of freedom (p = {p:.2g}); usual causes: {_CAUSES}"]
+    if p is None and r2 is not None and r2 < GOODNESS_R2:
+        return False, p, r2, [f"the model does not describe these data: it explains {max(r2, 0):.0%} of the DOP's "
+                              f"variance (RMSE {np.sqrt(np.mean(dop_resid ** 2)):.3g} against the data's spread "
+                              f"{np.sqrt(sst / len(meas)):.3g}); usual causes: {_CAUSES}"]
+    return True, p, r2, []
+
+
+def _convention_notes(meas):
+    """The unit and convention mistakes the data show by themselves."""
+    notes = []
+    hi = max(float(meas.theta_i.max()), float(meas.theta_r.max()))
+    if 0.0 < hi < api.RADIANS_HINT:
+        notes.append(f"every theta_i and theta_r lies below {api.RADIANS_HINT} degrees (the largest is {hi:.4g}): "
+                     "radians? pbrdf-cl takes degrees")
+    if np.all(meas.phi == 0.0):
+        notes.append("phi = 0 for every point: that is the plane of incidence on the source's side (back-"
+                     "scattering); in-plane specular data have phi = 180 here (SCATMECH's phi = 0 is our 180)")
+    return notes
+
+
+def _bound_notes(names, x, lo, hi, ci95):
+    """A note for each parameter on a bound, and for a best value outside its own 95% interval."""
+    notes = []
+    for i, n in enumerate(names):
+        tol = 1e-6 * (hi[i] - lo[i])
+        side = "lower" if x[i] <= lo[i] + tol else ("upper" if x[i] >= hi[i] - tol else None)
+        a, b = ci95[n]
+        if side:
+            notes.append(f"{n} = {x[i]:.4g} is on its {side} bound: the data push it there (the optimum may lie "
+                         "beyond; widen the bounds if that is physical)")
+        if not a <= x[i] <= b:
+            notes.append(f"{n}'s best value {x[i]:.4g} lies outside its 95% interval [{a:.4g}, {b:.4g}]: the "
+                         "interval is the central 95% of the posterior over the bounds, and where the data barely "
+                         "determine a parameter its best fit is arbitrary and often at an edge; quote the interval")
+    return notes
+
+
+def _labelled(matrix, names, what):
+    """``matrix`` over the free parameters as an ``xarray.DataArray`` with their names on both axes."""
+    import xarray as xr
+    return xr.DataArray(np.asarray(matrix), dims=("param", "param_2"), coords={"param": list(names),
+                        "param_2": list(names)}, name=what)
 
 
 def compare_models(data, shadowing="paper", bounds=None, fixed=None, engine=None, backend="auto", progress=False):
     """Fit the six-parameter model and the ref. [7] specular model to the same data (the
     specular fit takes the bounds and fixed values of n and k only).
 
-    Returns a dict: "six-param" and "specular" FitResults, "preferred" (lower BIC) and "table"
-    (a text table of both with SSE, AIC and BIC)."""
+    Returns a :class:`ComparisonResult`: "six-param" and "specular" FitResults (also in ``fits``),
+    "preferred" (lower BIC), "table" (a Markdown table of both with SSE, AIC and BIC) and
+    ``summary()``."""
     meas = as_measurements(data)
     six = fit(meas, "six-param", bounds=bounds, fixed=fixed, shadowing=shadowing, engine=engine, backend=backend,
               progress=progress)
@@ -1202,4 +1302,5 @@ def compare_models(data, shadowing="paper", bounds=None, fixed=None, engine=None
         rows.append(f"| {name} | {r.x['n']:.4g} | {r.x['k']:.4g} | {len(r.free)} | {r.sse:.4g} | {r.aic:.2f} | "
                     f"{r.bic:.2f} |")
     preferred = "six-param" if six.bic <= spec.bic else "specular"
-    return {"six-param": six, "specular": spec, "preferred": preferred, "table": "\n".join(rows)}
+    return ComparisonResult({"six-param": six, "specular": spec, "preferred": preferred, "table": "\n".join(rows),
+                             "fits": {"six-param": six, "specular": spec}})

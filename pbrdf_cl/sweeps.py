@@ -60,6 +60,7 @@ import numpy as np
 
 from . import api, dense, quantities, ranges, sizes
 from .engine import DTYPES, kernels_sha256, resolve_engine
+from .results import Result
 from .reference import SHADOWING
 
 try:
@@ -669,7 +670,7 @@ def run_chunk(spec, name, i, device=None, backend="auto"):
 # ---------------------------------------------------------------------------------------------
 # the driver
 
-class SweepResult(dense.Result):
+class SweepResult(Result):
     """Result of :func:`sweep` (attribute access).
 
     store : the store's path or URL;  spec : the :class:`SweepSpec`

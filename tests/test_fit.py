@@ -304,7 +304,7 @@ def test_cli_fit_round_trip(tmp_path):
     env = dict(os.environ, PYTHONPATH=str(Path(pbrdf_cl.__file__).resolve().parent.parent), PYTHONWARNINGS="ignore")
     proc = subprocess.run([sys.executable, "-m", "pbrdf_cl", "fit", str(ROOT / "examples" / "steel_435nm.csv"),
                            "--fix", "sigma=0.5", "--bounds", "n=1:3", "--json", str(out), "--plot", str(png),
-                           "--quiet"], capture_output=True, text=True, timeout=600, env=env)
+                           "--compare"], capture_output=True, text=True, timeout=600, env=env)
     assert proc.returncode == 0, proc.stderr
     assert "model: six-param" in proc.stdout and "model: specular" in proc.stdout
     assert "preferred by BIC" in proc.stdout
@@ -319,6 +319,23 @@ def test_cli_fit_round_trip(tmp_path):
     bad = subprocess.run([sys.executable, "-m", "pbrdf_cl", "fit", str(ROOT / "examples" / "steel_435nm.csv"),
                           "--bounds", "n=1-3"], capture_output=True, text=True, timeout=120, env=env)
     assert bad.returncode != 0 and "--bounds n=1-3: bounds are low:high, two numbers; write n=1:3" in bad.stderr
+
+
+def test_cli_fit_one_model_and_quiet(tmp_path):
+    """--model fits that model only (a specular fit of 3 points is possible); --quiet prints the values alone."""
+    csv = tmp_path / "three.csv"
+    truth = dict(n=1.6, k=2.139)
+    tr = np.array([20.0, 45.0, 65.0])
+    dop = pbrdf_cl.dop(40, tr, model="specular", backend="numpy", **truth)
+    csv.write_text("theta_i,theta_r,dop\n" + "".join(f"40,{a:g},{float(d)!r}\n" for a, d in zip(tr, dop)))
+    env = dict(os.environ, PYTHONPATH=str(Path(pbrdf_cl.__file__).resolve().parent.parent), PYTHONWARNINGS="ignore")
+    proc = subprocess.run([sys.executable, "-m", "pbrdf_cl", "fit", str(csv), "--model", "specular", "--quiet"],
+                          capture_output=True, text=True, timeout=600, env=env)
+    assert proc.returncode == 0, proc.stderr
+    lines = proc.stdout.strip().splitlines()
+    assert lines[0].startswith("specular: SSE") and [ln.split()[0] for ln in lines[1:]] == ["n", "k"]
+    assert float(lines[1].split()[2]) == pytest.approx(1.6, rel=1e-4)
+    assert "six-param" not in proc.stdout and "preferred" not in proc.stdout
 
 
 def test_lockstep_batching_gives_each_optimiser_its_own_numbers():
