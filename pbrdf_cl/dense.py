@@ -393,8 +393,13 @@ def grid_blocks(eng, plan, quantity, dtype, shadowing, memory_budget, progress=F
     level, row_len = row_level(nnk, nm, ni, ng, chunk)
     prog = grid_program(eng, dtype, (nnk, nm, ni), idx_name, quantity, PB_ROW_LEVEL=level, PB_ROW_LEN=row_len)
     kern = prog["grid_rows" if level else "grid_values"]
+    overlap = eng.overlaps_transfers  # a GPU: two output buffers, one read back while the other is computed
+    if overlap:
+        chunk = max(row_len, chunk // 2)
     chunk = chunk // row_len * row_len
+    bufs = [eng.empty(chunk * width * itemsize) for _ in range(2)] if overlap else None
     bar = _progress(plan.size, progress, f"grid {quantity}")
+    pending, k = None, 0
     for g0 in range(0, ng, rows):
         g1 = min(ng, g0 + rows)
         tables = Tables(eng, dtype, shadowing, quantity, *geometry_list(plan, g0, g1), plan.values)
@@ -402,16 +407,30 @@ def grid_blocks(eng, plan, quantity, dtype, shadowing, memory_budget, progress=F
             count = min(chunk, g1 * per_g - start)
             host = (out[start * width:(start + count) * width] if out is not None
                     else np.empty(count * width, dtype=DTYPES[dtype]))
-            buf, done = eng.output(host)  # on a CPU device the kernel writes into host itself
-            if level:
-                eng.launch(kern, (count // row_len,), buf, idx_np(start // row_len), idx_np(count // row_len),
-                           idx_np(g0), *tables.args())
+            if overlap:
+                buf = bufs[k % 2]  # free: its read was waited for before the previous chunk was yielded
             else:
-                eng.launch(kern, (count,), buf, idx_np(start), idx_np(count), idx_np(g0), *tables.args())
-            done()
+                buf, done = eng.output(host)  # on a CPU device the kernel writes into host itself
+            if level:
+                ran = eng.launch(kern, (count // row_len,), buf, idx_np(start // row_len), idx_np(count // row_len),
+                                 idx_np(g0), *tables.args())
+            else:
+                ran = eng.launch(kern, (count,), buf, idx_np(start), idx_np(count), idx_np(g0), *tables.args())
+            k += 1
             if bar is not None:
                 bar.update(count)
-            yield start, host
+            if not overlap:
+                done()
+                yield start, host
+                continue
+            read = eng.read_later(buf, host, [ran])
+            if pending is not None:
+                pending[2].wait()
+                yield pending[:2]
+            pending = (start, host, read)
+    if pending is not None:
+        pending[2].wait()
+        yield pending[:2]
     if bar is not None:
         bar.close()
 

@@ -566,6 +566,10 @@ class Engine:
         self.fp64 = has_fp64(self.device)
         #: DOP and F00 use the vector build of the per-point kernels (False: one point per work-item)
         self.vectorise = True
+        #: evaluate through the transfer pipeline of GPUs (pinned staging, copies overlapped with
+        #: compute) even on a CPU device; for tests of that path where no GPU is present
+        self.force_transfers = False
+        self._copy_queue = None
         self._kernels = {}
         self._last_event = None
         #: held around building programs and around setting a kernel's arguments and enqueueing it
@@ -615,16 +619,18 @@ class Engine:
             defines.update(quantities.get(quantity, "points").defines())
         return self.program("pbrdf_points.cl", dtype, defines)[name]
 
-    def launch(self, kernel, global_size, *args, local_size=None):
+    def launch(self, kernel, global_size, *args, local_size=None, wait_for=None):
         """Set ``args`` and enqueue ``kernel`` over ``global_size`` (padded up to a multiple of
-        ``local_size`` when one is given: kernels check their bounds); returns the event."""
+        ``local_size`` when one is given: kernels check their bounds) after the events ``wait_for``;
+        returns the event."""
         global_size = tuple(int(g) for g in global_size)
         if local_size is not None:
             local_size = tuple(int(v) for v in local_size)
             global_size = tuple(-(-g // v) * v for g, v in zip(global_size, local_size))
         with self.lock:  # the arguments are the kernel object's until the enqueue has taken them
             kernel.set_args(*args)
-            self._last_event = cl.enqueue_nd_range_kernel(self.queue, kernel, global_size, local_size)
+            self._last_event = cl.enqueue_nd_range_kernel(self.queue, kernel, global_size, local_size,
+                                                          wait_for=wait_for)
         return self._last_event
 
     def to_device(self, array, dtype):
@@ -634,6 +640,26 @@ class Engine:
 
     def empty(self, nbytes):
         return cl.Buffer(self.context, cl.mem_flags.READ_WRITE, max(int(nbytes), 1))
+
+    @property
+    def overlaps_transfers(self):
+        """Whether results come back through the transfer pipeline (a device with its own memory, or
+        :attr:`force_transfers`): reads on :attr:`copy_queue` while the next launch computes."""
+        return not self.host_memory or self.force_transfers
+
+    @property
+    def copy_queue(self):
+        """A second command queue on the device, for transfers that overlap the kernels of :attr:`queue`."""
+        if self._copy_queue is None:
+            with self.lock:
+                if self._copy_queue is None:
+                    self._copy_queue = cl.CommandQueue(self.context)
+        return self._copy_queue
+
+    def read_later(self, buf, out, after):
+        """Enqueue the copy of ``buf`` into the contiguous host array ``out`` on :attr:`copy_queue`
+        once the events ``after`` are done; returns its event (``.wait()`` before using ``out``)."""
+        return cl.enqueue_copy(self.copy_queue, out, buf, is_blocking=False, wait_for=list(after))
 
     def read(self, buf, out):
         """Copy the device buffer ``buf`` into the contiguous host array ``out`` (blocking); returns ``out``."""
@@ -675,6 +701,9 @@ class Engine:
         for name in POINT_INPUTS:
             a = inputs[name]
             flat[name] = np.asarray(a, npdt).reshape(1) if a.size == 1 else (a.reshape(-1) if a.flags.c_contiguous else a)
+        if self.overlaps_transfers:
+            _TransferPipeline(self, kern, flat, npdt, lanes, vec, width).run(size, out)
+            return out.reshape(tuple(shape) + q.trailing)
         # inputs the device cannot read in place are converted launch by launch: smaller launches
         staged = [n for n, a in flat.items() if a.size != 1 and not self.can_use_in_place(a, npdt)]
         step = (CONVERT_POINTS if staged else LAUNCH_POINTS) // lanes * lanes
@@ -777,6 +806,74 @@ class Engine:
             return None
         ev = self._last_event
         return (ev.profile.end - ev.profile.start) * 1e-9
+
+
+class _TransferPipeline:
+    """Per-point evaluation on a device with its own memory (a GPU): two slots, each a set of
+    pinned (``ALLOC_HOST_PTR``, mapped) host staging arrays and device buffers; while the kernel of
+    launch k runs on the engine's queue, a second queue uploads the inputs of launch k + 1 and
+    reads back the result of launch k - 1, straight into its slice of the result.  A broadcast
+    single value is uploaded once.  Memory beyond the inputs and the result: two launches' worth."""
+
+    SLOTS = 2
+
+    def __init__(self, eng, kern, flat, npdt, lanes, vec, width):
+        self.eng, self.kern, self.flat, self.npdt = eng, kern, flat, npdt
+        self.lanes, self.vec, self.width = lanes, vec, width
+        self.names = [n for n in POINT_INPUTS if flat[n].size != 1]
+        self.single = {n: eng.to_device(flat[n], npdt) for n in POINT_INPUTS if flat[n].size == 1}
+        self.copies = eng.copy_queue
+
+    def _slot(self, cap):
+        mf, ctx, isz = cl.mem_flags, self.eng.context, self.npdt.itemsize
+        pinned, host = {}, {}
+        for n in self.names:
+            pinned[n] = cl.Buffer(ctx, mf.READ_WRITE | mf.ALLOC_HOST_PTR, cap * isz)
+            host[n], _ = cl.enqueue_map_buffer(self.copies, pinned[n], cl.map_flags.WRITE | cl.map_flags.READ, 0,
+                                               (cap,), self.npdt)
+        return dict(pinned=pinned, host=host, done=None,
+                    dev={n: cl.Buffer(ctx, mf.READ_ONLY, cap * isz) for n in self.names},
+                    out=cl.Buffer(ctx, mf.WRITE_ONLY, cap * self.width * isz))
+
+    def run(self, size, out):
+        step = LAUNCH_POINTS // self.lanes * self.lanes
+        cap = min(step, size) + self.lanes
+        slots = [self._slot(cap) for _ in range(self.SLOTS)]
+        tails = []
+        try:
+            for k, start in enumerate(range(0, size, step)):
+                slot = slots[k % self.SLOTS]
+                if slot["done"] is not None:
+                    slot["done"].wait()  # its last read is in: its staging and buffers are free
+                count = min(step, size - start)
+                padded = -(-count // self.lanes) * self.lanes
+                uploads = []
+                for n in self.names:
+                    dst = slot["host"][n][:padded]
+                    _gather(dst, self.flat[n], start, start + count)
+                    dst[count:] = dst[count - 1]  # padding: copies of the last point
+                    uploads.append(cl.enqueue_copy(self.copies, slot["dev"][n], dst, is_blocking=False))
+                args = [slot["out"], np.int32(padded // self.lanes)]
+                for n in POINT_INPUTS:
+                    args += [slot["dev"][n], np.int32(1)] if n in slot["dev"] else [self.single[n], np.int32(0)]
+                ran = self.eng.launch(self.kern, (padded // self.lanes,), *args,
+                                      local_size=(VECTOR_LOCAL_SIZE,) if self.vec else None, wait_for=uploads)
+                w = self.width
+                if padded == count:
+                    dst = out[start * w:(start + count) * w]
+                else:  # the last few points: read whole vectors, keep the real ones
+                    dst = np.empty(padded * w, self.npdt)
+                    tails.append((dst, start, count))
+                slot["done"] = cl.enqueue_copy(self.copies, dst, slot["out"], is_blocking=False, wait_for=[ran])
+            self.copies.finish()
+            for dst, start, count in tails:
+                out[start * self.width:(start + count) * self.width] = dst[:count * self.width]
+        finally:
+            self.copies.finish()
+            for slot in slots:
+                for n in self.names:
+                    slot["host"][n].base.release(self.copies)
+            self.copies.finish()
 
 
 def aligned_empty(n, dtype, align=4096):

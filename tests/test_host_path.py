@@ -89,3 +89,31 @@ def test_the_kernel_marks_bad_values_and_the_offender_is_named(rng, monkeypatch,
         with pytest.raises(ValueError, match=pattern):
             call(func, inp, dtype=dtype)
     assert set(PARAMS) <= set(base)
+
+
+def test_the_transfer_pipeline_of_gpus_gives_the_same_values(engine, monkeypatch):
+    """The path of devices with their own memory (pinned staging, uploads and reads on a second
+    queue overlapping the kernels, two slots; grids read back chunk k while chunk k + 1 computes),
+    forced on this device: bit-identical to the in-place path, over many launches and chunks."""
+    import pbrdf_cl
+    from pbrdf_cl import engine as E
+    rng = np.random.default_rng(9)
+    n = 20011  # with LAUNCH_POINTS = 4096: five launches, slots reused, a padded tail
+    inp = dict(theta_i=rng.uniform(0, 89, n), theta_r=rng.uniform(0, 89, n).astype(np.float32),
+               phi=np.broadcast_to(rng.uniform(0, 360, (n, 1)), (n, 3))[:, 1], sigma=rng.uniform(0.05, 1, n))
+    pipe = E.Engine(engine.device)
+    pipe.force_transfers = True
+    assert pipe.overlaps_transfers
+    monkeypatch.setattr(E, "LAUNCH_POINTS", 4096)
+    for dtype in ("float32", "float64"):
+        for q in ("dop", "brdf", "aop", "stokes", "mueller"):
+            kw = dict(n=1.6, k=2.1, kd=0.2, c=-0.3, dtype=dtype, **inp)
+            np.testing.assert_array_equal(pbrdf_cl.evaluate(q, engine=pipe, **kw),
+                                          pbrdf_cl.evaluate(q, engine=engine, **kw), err_msg=f"{q} {dtype}")
+    with pytest.raises(ValueError, match=r"theta_r must be in \[0, 90\) degrees, got 95.0 at index \[7\]"):
+        pbrdf_cl.dop(40, np.where(np.arange(50) == 7, 95.0, 30.0), n=1.6, k=2, sigma=0.3, engine=pipe)
+    axes = dict(theta_r=np.linspace(0, 85, 40), phi=[60.0, 180.0], sigma=np.linspace(0.1, 1, 9), kd=[0.0, 0.5])
+    for q in ("dop", "stokes"):
+        got = pbrdf_cl.grid(axes, dict(theta_i=40, n=1.6, k=2.1), quantity=q, engine=pipe, memory_budget=8000)
+        want = pbrdf_cl.grid(axes, dict(theta_i=40, n=1.6, k=2.1), quantity=q, engine=engine, memory_budget=8000)
+        np.testing.assert_array_equal(got.values, want.values, err_msg=q)
