@@ -185,16 +185,71 @@ def _evaluate(quantity, theta_i, theta_r, phi, n, k, sigma, ks, kd, c, shadowing
     return out
 
 
+#: The Parameters section shared by the per-point functions (numpydoc).
+_POINT_PARAMETERS = """
+    theta_i, theta_r : float or array_like
+        Zenith angles of incidence and reflection in degrees, in [0, 90).
+    phi : float or array_like, default 180
+        Relative azimuth phi_i - phi_r in degrees; 180 is the plane of incidence on the specular side.
+    n, k : float or array_like
+        Complex refractive index n + ik of the surface (n > 0, k >= 0).
+    sigma : float or array_like
+        Slope standard deviation per axis (> 0; SCATMECH's total rms slope is sqrt(2) sigma).
+    ks, kd : float or array_like, default 1 and 0
+        Weights of the specular (> 0) and diffuse (>= 0) terms.
+    c : float or array_like, default 0
+        Minnaert exponent of the diffuse term.
+    shadowing : {"paper", "smith", "none"}, default "paper"
+        The shadowing function: the paper's eq. 7-9, Smith's, or none.
+    dtype : {"float64", "float32"}, default "float64"
+        Precision of the computation and of the result.
+    backend : {"auto", "opencl", "numpy"}, default "auto"
+        "auto": the OpenCL device, or the float64 numpy reference when no device is usable (a
+        ``DeviceWarning`` says so); "opencl": the device or an error; "numpy": the reference.
+    model : {"six-param", "specular"}, default "six-param"
+        "specular" is the paper's ref. [7] (Thilak et al. 2007): kd must be 0.
+    engine : pbrdf_cl.Engine, optional
+        The engine (device) to use instead of the default one.
+
+    All array arguments broadcast together.
+
+    Raises
+    ------
+    ValueError
+        Naming the argument, the first bad value and its index.
+    pbrdf_cl.sizes.TooLargeError
+        When the result cannot fit in memory (found before any work)."""
+
+
+def _documented(func):
+    """Put the shared Parameters section where the docstring says ``{parameters}``."""
+    func.__doc__ = func.__doc__.replace("    {parameters}", _POINT_PARAMETERS.strip("\n"))
+    return func
+
+
+@_documented
 def dop(theta_i, theta_r, phi=180.0, *, n, k, sigma=None, ks=1.0, kd=0.0, c=0.0, shadowing="paper",
         dtype="float64", backend="auto", model="six-param", engine=None):
     """Degree of polarization for unpolarized incidence (eq. 17-18).
 
-    ``model="specular"`` is the paper's ref. [7] (Thilak et al. 2007): kd = 0, and the DOP
-    depends only on n, k and the geometry, so ``sigma`` may be omitted.
-    Returns an array of the broadcast shape, in ``dtype``.
+    With ``model="specular"`` the DOP depends only on n, k and the geometry, so ``sigma`` may be
+    omitted.
 
-    ``backend``: "auto" (the OpenCL device, or the numpy reference when no device is usable),
-    "opencl" (the device or an error) or "numpy" (the float64 reference).
+    Parameters
+    ----------
+    {parameters}
+
+    Returns
+    -------
+    numpy.ndarray
+        The DOP in [0, 1], of the broadcast shape, in ``dtype``.
+
+    Examples
+    --------
+    >>> import pbrdf_cl
+    >>> d = pbrdf_cl.dop(40, [20, 45, 65], n=1.6, k=2.139, sigma=0.5, ks=0.9, kd=0.15, c=-0.3)
+    >>> d.shape
+    (3,)
     """
     if sigma is None and model == "specular":
         sigma = 1.0  # cancels: DOP of the specular term does not depend on sigma, ks or G
@@ -202,46 +257,137 @@ def dop(theta_i, theta_r, phi=180.0, *, n, k, sigma=None, ks=1.0, kd=0.0, c=0.0,
                      model, engine)
 
 
+@_documented
 def brdf(theta_i, theta_r, phi=180.0, *, n, k, sigma, ks=1.0, kd=0.0, c=0.0, shadowing="paper",
          dtype="float64", backend="auto", model="six-param", engine=None):
-    """The BRDF for unpolarized light, F00 = F^s_00 + F^d_00, in 1/sr."""
+    """The BRDF for unpolarized light, F00 = F^s_00 + F^d_00.
+
+    Parameters
+    ----------
+    {parameters}
+
+    Returns
+    -------
+    numpy.ndarray
+        F00 in 1/sr, of the broadcast shape, in ``dtype``.
+
+    Examples
+    --------
+    >>> import pbrdf_cl
+    >>> float(pbrdf_cl.brdf(40, 45, n=1.6, k=2.139, sigma=0.5, ks=0.9, kd=0.15, c=-0.3)) > 0
+    True
+    """
     return _evaluate("brdf", theta_i, theta_r, phi, n, k, sigma, ks, kd, c, shadowing, dtype, backend,
                      model, engine)
 
 
+@_documented
 def mueller(theta_i, theta_r, phi=180.0, *, n, k, sigma, ks=1.0, kd=0.0, c=0.0, shadowing="paper",
             dtype="float64", backend="auto", model="six-param", engine=None):
-    """The 4x4 Mueller-matrix BRDF in the psps frames (NIST SCATMECH's convention), shape (..., 4, 4)."""
+    """The 4x4 Mueller-matrix BRDF in the psps frames (NIST SCATMECH's convention).
+
+    Parameters
+    ----------
+    {parameters}
+
+    Returns
+    -------
+    numpy.ndarray
+        Shape ``broadcast shape + (4, 4)``, in 1/sr; element [0, 0] is F00.
+
+    Examples
+    --------
+    >>> import pbrdf_cl
+    >>> pbrdf_cl.mueller(40, [20, 45], phi=150, n=1.6, k=2.139, sigma=0.5).shape
+    (2, 4, 4)
+    """
     return _evaluate("mueller", theta_i, theta_r, phi, n, k, sigma, ks, kd, c, shadowing, dtype, backend,
                      model, engine)
 
 
+@_documented
 def aop(theta_i, theta_r, phi=180.0, *, n, k, sigma, ks=1.0, kd=0.0, c=0.0, shadowing="paper",
         dtype="float64", backend="auto", model="six-param", engine=None):
-    """Angle of linear polarization of the reflected light for unpolarized incidence, in degrees in
-    (-90, 90]: AoP = atan2(L2, L1) / 2 of the first column L of the Mueller matrix, in the psps frame
-    of the outgoing beam (SCATMECH's; 0 means polarised along s, which is the case in plane, where
-    Rs > Rp).  NaN where the DOP is 0 and the AoP is undefined (e.g. at the specular facet's normal
-    incidence, b = 0).  The diffuse term is unpolarised, so the AoP depends on kd, c only through
-    whether the DOP is 0."""
+    """Angle of linear polarization of the reflected light for unpolarized incidence.
+
+    AoP = atan2(L2, L1) / 2 of the first column L of the Mueller matrix, in the psps frame of the
+    outgoing beam (SCATMECH's): 0 means polarised along s, which is the case in plane, where
+    Rs > Rp.  The diffuse term is unpolarised and the Fresnel factor only scales the linear part,
+    so wherever it is defined the AoP depends on the geometry alone.
+
+    Parameters
+    ----------
+    {parameters}
+
+    Returns
+    -------
+    numpy.ndarray
+        Degrees in (-90, 90], of the broadcast shape; NaN where the DOP is 0 and the AoP is
+        undefined (e.g. the specular facet at normal incidence, b = 0).
+
+    Examples
+    --------
+    >>> import pbrdf_cl
+    >>> float(pbrdf_cl.aop(40, 45, phi=180, n=1.6, k=2.139, sigma=0.5))
+    0.0
+    """
     return _evaluate("aop", theta_i, theta_r, phi, n, k, sigma, ks, kd, c, shadowing, dtype, backend,
                      model, engine)
 
 
+@_documented
 def stokes(theta_i, theta_r, phi=180.0, *, n, k, sigma, ks=1.0, kd=0.0, c=0.0, shadowing="paper",
            dtype="float64", backend="auto", model="six-param", engine=None):
-    """The Stokes vector (S0, S1, S2, S3) reflected for unpolarized incidence of unit radiance (the
-    Mueller matrix's first column, 1/sr; psps frame of the outgoing beam), shape (..., 4): what a
-    polarization camera measures, up to its radiometric scale.  S0 is F00; S3 is 0 in this model;
-    DOP = sqrt(S1^2 + S2^2) / S0 and AoP = atan2(S2, S1) / 2."""
+    """The Stokes vector reflected for unpolarized incidence of unit radiance.
+
+    The Mueller matrix's first column, in the psps frame of the outgoing beam: what a
+    polarization camera measures, up to its radiometric scale.  S0 is F00, S3 is 0 in this model,
+    DOP = sqrt(S1^2 + S2^2) / S0 and AoP = atan2(S2, S1) / 2.
+
+    Parameters
+    ----------
+    {parameters}
+
+    Returns
+    -------
+    numpy.ndarray
+        Shape ``broadcast shape + (4,)``: (S0, S1, S2, S3) in 1/sr.
+
+    Examples
+    --------
+    >>> import pbrdf_cl
+    >>> pbrdf_cl.stokes(40, [20, 45], phi=150, n=1.6, k=2.139, sigma=0.5).shape
+    (2, 4)
+    """
     return _evaluate("stokes", theta_i, theta_r, phi, n, k, sigma, ks, kd, c, shadowing, dtype, backend,
                      model, engine)
 
 
+@_documented
 def evaluate(quantity, theta_i, theta_r, phi=180.0, *, n, k, sigma=None, ks=1.0, kd=0.0, c=0.0,
              shadowing="paper", dtype="float64", backend="auto", model="six-param", engine=None):
-    """Any quantity of the registry by name ("dop", "brdf" or its alias "f00", "aop", "stokes",
-    "mueller"): the same as calling :func:`dop`, :func:`brdf`, ... with the other arguments."""
+    """Any quantity of the registry (:mod:`pbrdf_cl.quantities`) by name.
+
+    The same as calling :func:`dop`, :func:`brdf`, :func:`aop`, :func:`stokes` or :func:`mueller`.
+
+    Parameters
+    ----------
+    quantity : str
+        "dop", "brdf" (or its alias "f00"), "aop", "stokes" or "mueller".
+    {parameters}
+
+    Returns
+    -------
+    numpy.ndarray
+        As the function of that quantity returns.
+
+    Examples
+    --------
+    >>> import pbrdf_cl
+    >>> f00 = pbrdf_cl.evaluate("f00", 40, 45, n=1.6, k=2.139, sigma=0.5)
+    >>> float(f00) == float(pbrdf_cl.brdf(40, 45, n=1.6, k=2.139, sigma=0.5))
+    True
+    """
     name = quantities.canonical(quantity, "points")
     if sigma is None and name == "dop" and model == "specular":
         sigma = 1.0  # as dop() does
