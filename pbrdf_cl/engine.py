@@ -197,7 +197,22 @@ DRIVER_MESSAGES = []
 
 
 def list_devices():
-    """All OpenCL devices as a list of ``(platform_index, device_index, platform, device)``."""
+    """All OpenCL devices, usable or not (see :func:`probe`).
+
+    Returns
+    -------
+    list of (int, int, pyopencl.Platform, pyopencl.Device)
+        ``(platform_index, device_index, platform, device)``, the indices as ``P:D`` names them.
+
+    Raises
+    ------
+    OpenCLUnavailableError
+        Where pyopencl cannot load or no OpenCL platform exists (the message names the remedies).
+
+    Examples
+    --------
+    >>> [d.name for _, _, _, d in pbrdf_cl.list_devices()]  # doctest: +SKIP
+    """
     out = []
     with _CapturedStderr() as captured:  # the first call initialises every driver
         platforms = _platforms()
@@ -373,8 +388,25 @@ def _run_probe_quietly(dev) -> ProbeResult:
 
 
 def probe(dev, *, use_cache=True) -> ProbeResult:
-    """Whether ``dev`` (a ``cl.Device``) can build and run pbrdf-cl's kernels (see the module
-    docstring); cached per process and on disk unless ``use_cache`` is false."""
+    """Whether a device can build and run pbrdf-cl's kernels (see the module docstring).
+
+    Parameters
+    ----------
+    dev : pyopencl.Device
+    use_cache : bool, default True
+        Use the per-process and on-disk caches (keyed by platform, device, driver and the kernel
+        sources' SHA-256); False probes afresh.
+
+    Returns
+    -------
+    ProbeResult
+        ``usable``, ``reason`` (the first line of a build log where it is not), ``seconds``, ``cached``.
+
+    Examples
+    --------
+    >>> pbrdf_cl.probe(pbrdf_cl.Engine().device).usable  # doctest: +SKIP
+    True
+    """
     key = _probe_key(dev)
     with _PROBE_LOCK:
         if use_cache and key in _PROBES:
@@ -466,9 +498,28 @@ def _no_device_message(found, skipped):
 
 
 def select_device(device=None):
-    """Pick a usable ``cl.Device`` (see the module docstring for the order); raises
-    :class:`OpenCLUnavailableError` when none is usable, :class:`DeviceUnusableError` when
-    the explicit choice is not, ``ValueError`` when it names no device."""
+    """Pick a usable OpenCL device (see the module docstring for the default order).
+
+    Parameters
+    ----------
+    device : pyopencl.Device or str, optional
+        A device, ``"P:D"`` as ``pbrdf-cl devices`` lists them, or a substring of its
+        "platform / device" name; None: ``PYOPENCL_CTX``, else the first usable device.
+
+    Returns
+    -------
+    pyopencl.Device
+
+    Raises
+    ------
+    OpenCLUnavailableError
+        When no device is usable; :class:`DeviceUnusableError` when an explicit choice is not;
+        ``ValueError`` when it names no device.
+
+    Examples
+    --------
+    >>> pbrdf_cl.select_device("pthread")  # doctest: +SKIP
+    """
     explicit = device if device is not None else (os.environ.get("PYOPENCL_CTX") or None)
     where = "device" if device is not None else "PYOPENCL_CTX"
     if cl is not None and isinstance(explicit, cl.Device):
@@ -936,9 +987,21 @@ def _fallback(exc):
 def get_default_engine(backend="auto"):
     """The engine used by the module-level functions (created on first use).
 
-    ``backend="auto"``: the first usable OpenCL device, else :class:`NumpyEngine` (with one
-    :class:`DeviceWarning` naming the reason and the remedies); ``"opencl"``: that device or
-    :class:`OpenCLUnavailableError`; ``"numpy"``: a :class:`NumpyEngine`.
+    Parameters
+    ----------
+    backend : {"auto", "opencl", "numpy"}, default "auto"
+        "auto": the first usable OpenCL device, else a :class:`NumpyEngine` (with one
+        :class:`DeviceWarning` naming the reason and the remedies); "opencl": that device or
+        :class:`OpenCLUnavailableError`; "numpy": a :class:`NumpyEngine`.
+
+    Returns
+    -------
+    Engine or NumpyEngine
+
+    Examples
+    --------
+    >>> pbrdf_cl.get_default_engine().description  # doctest: +SKIP
+    'Portable Computing Language / pthread-haswell-AMD EPYC ...'
     """
     global _default_engine
     check_backend(backend)
@@ -959,7 +1022,21 @@ def get_default_engine(backend="auto"):
 
 
 def set_default_engine(engine) -> None:
-    """Replace the default engine (``None`` to choose afresh on next use)."""
+    """Replace the default engine of the module-level functions.
+
+    Parameters
+    ----------
+    engine : Engine, NumpyEngine or None
+        The new default; None chooses afresh on next use.
+
+    Returns
+    -------
+    None
+
+    Examples
+    --------
+    >>> pbrdf_cl.set_default_engine(pbrdf_cl.Engine("1:0"))  # doctest: +SKIP
+    """
     global _default_engine
     _default_engine = engine
 

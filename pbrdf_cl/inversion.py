@@ -827,16 +827,49 @@ def _fit_status(best, final_ran, intensity):
 
 def fit(data, model="six-param", bounds=None, fixed=None, shadowing="paper", *, grid_shape=None, n_basins=6,
         engine=None, backend="auto", progress=False):
-    """Fit the model to measured DOP (see the module docstring for the pipeline).
+    """Fit the model to measured DOP (and F00 where given): the pipeline of stages of this module.
 
     Parameters
     ----------
-    data : CSV path, dict of arrays (theta_i, theta_r, dop[, phi, dop_std, f00|s0, f00_std]) or Measurements
-    model : "six-param" (n, k, sigma, kd/ks, c; ks = 1) or "specular" (the paper's ref. [7]: n, k)
-    bounds : dict name -> (low, high); defaults n [1, 5], k [0, 10], sigma [0.05, 1], kd [0, 5], c [-1, 0]
-    fixed : dict name -> value, parameters held fixed (e.g. ``{"sigma": 0.45}``)
-    grid_shape : dict name -> points of the device grid stage
-    engine, backend : where the grid stage runs ("auto": the OpenCL device, or numpy without one)
+    data : str or path, dict, DataFrame, xarray.Dataset or Measurements
+        The measurements: theta_i, theta_r (degrees), dop, and optionally phi (default 180),
+        dop_std (weights 1/dop_std^2), f00 (or s0) and f00_std; a CSV path with those columns.
+    model : {"six-param", "specular"}, default "six-param"
+        "six-param": n, k, sigma, kd/ks, c (ks = 1 unless an intensity column separates it);
+        "specular": the paper's ref. [7], n and k only.
+    bounds : dict, optional
+        Name -> (low, high); defaults n [1, 5], k [0, 10], sigma [0.05, 1], kd [0, 5], c [-1, 0], ks [1e-3, 1e3].
+    fixed : dict, optional
+        Name -> value of parameters held fixed (e.g. ``{"sigma": 0.45}``).
+    shadowing : {"paper", "smith", "none"}, default "paper"
+        The shadowing function of the model fitted.
+    grid_shape : dict, optional
+        Name -> nodes of the device grid stage (defaults :data:`DEFAULT_GRID`, :data:`SPECULAR_GRID`).
+    n_basins : int, default 6
+        How many distinct basins of the grid the local stages start from.
+    engine : pbrdf_cl.Engine, optional
+        Where the grid stage runs; ``backend`` ("auto", "opencl", "numpy") as for :func:`pbrdf_cl.dop`.
+    progress : bool, default False
+        A progress bar for the grid stage.
+
+    Returns
+    -------
+    FitResult
+        ``x``, ``stderr``, ``ci95`` (and two other kinds of interval), ``corr``/``cov`` (labelled),
+        ``sse``, ``chi2``, ``p_value``, ``r2``, ``fits_data``, ``aic``, ``bic``, ``notes``,
+        ``success``/``status``/``message``, per-stage ``nfev`` and ``seconds``; ``summary()``.
+
+    Raises
+    ------
+    ValueError
+        For bad arguments, and for data that cannot determine the free parameters (fewer distinct
+        geometries than free parameters), naming the counts.
+
+    Examples
+    --------
+    >>> import pbrdf_cl
+    >>> res = pbrdf_cl.fit("examples/steel_435nm.csv")  # doctest: +SKIP
+    >>> res.x["n"], res.ci95["n"], res.fits_data  # doctest: +SKIP
     """
     meas, bnds, fx, free = _check_fit_args(data, model, bounds, fixed, shadowing)
     base = {**MODEL_FIXED[model], **fx}
@@ -1284,12 +1317,25 @@ def _labelled(matrix, names, what):
 
 
 def compare_models(data, shadowing="paper", bounds=None, fixed=None, engine=None, backend="auto", progress=False):
-    """Fit the six-parameter model and the ref. [7] specular model to the same data (the
-    specular fit takes the bounds and fixed values of n and k only).
+    """Fit the six-parameter model and the ref. [7] specular model to the same data and compare them.
 
-    Returns a :class:`ComparisonResult`: "six-param" and "specular" FitResults (also in ``fits``),
-    "preferred" (lower BIC), "table" (a Markdown table of both with SSE, AIC and BIC) and
-    ``summary()``."""
+    Parameters
+    ----------
+    data, shadowing, bounds, fixed, engine, backend, progress
+        As for :func:`fit`; the specular fit takes the bounds and fixed values of n and k only.
+
+    Returns
+    -------
+    ComparisonResult
+        "six-param" and "specular" FitResults (also in ``fits``), "preferred" (the lower BIC),
+        "table" (Markdown: n, k, free parameters, SSE, AIC, BIC) and ``summary()``.
+
+    Examples
+    --------
+    >>> both = pbrdf_cl.compare_models("examples/steel_435nm.csv")  # doctest: +SKIP
+    >>> both.preferred  # doctest: +SKIP
+    'six-param'
+    """
     meas = as_measurements(data)
     six = fit(meas, "six-param", bounds=bounds, fixed=fixed, shadowing=shadowing, engine=engine, backend=backend,
               progress=progress)

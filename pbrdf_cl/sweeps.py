@@ -381,7 +381,30 @@ class SweepSpec:
 
 
 def load_spec(spec):
-    """A :class:`SweepSpec` from a TOML file path, a dict, or a SweepSpec (returned as is)."""
+    """The validated sweep of a spec.
+
+    Parameters
+    ----------
+    spec : str or path, dict or SweepSpec
+        A TOML file (see ``examples/sweep_sigma_theta.toml``), the same keys as a dict, or a
+        SweepSpec (returned as is).
+
+    Returns
+    -------
+    SweepSpec
+        Its axes, chunks (within the memory budget), points and store layout.
+
+    Raises
+    ------
+    SpecError
+        A ``ValueError`` naming the field, the value and the right spelling.
+
+    Examples
+    --------
+    >>> spec = load_spec("examples/sweep_sigma_theta.toml")  # doctest: +SKIP
+    >>> spec.points, spec.n_chunks  # doctest: +SKIP
+    (176128, 32)
+    """
     if isinstance(spec, SweepSpec):
         return spec
     if isinstance(spec, dict):
@@ -729,7 +752,8 @@ def sweep(spec, store, *, engine=None, device=None, backend="auto", workers=None
 
     Parameters
     ----------
-    spec : path of a TOML spec, dict or :class:`SweepSpec`
+    spec : str or path, dict or SweepSpec
+        See :func:`load_spec`.
     store : path (or URL of an fsspec store) of the Zarr store; created if absent, resumed if
         it holds the same spec, refused if it holds another.
     engine, device : the engine (or device, see :func:`pbrdf_cl.select_device`) for a local run;
@@ -742,7 +766,16 @@ def sweep(spec, store, *, engine=None, device=None, backend="auto", workers=None
         first chunk is done, its estimated time.
     allow_large : start even if the store (uncompressed) would not fit on the free disk.
 
-    Returns a :class:`SweepResult`; ``.open()`` gives the ``xarray.Dataset``.
+    Returns
+    -------
+    SweepResult
+        Chunks computed and skipped, points, seconds, ``complete``; ``.open()`` gives the
+        ``xarray.Dataset``.
+
+    Examples
+    --------
+    >>> res = pbrdf_cl.sweep("examples/sweep_sigma_theta.toml", "sigma_theta.zarr")  # doctest: +SKIP
+    >>> res.open().dop.sel(theta_i=40, phi=180).plot()  # doctest: +SKIP
     """
     spec = load_spec(spec)
     given = sum(x is not None for x in (workers, scheduler, client))
