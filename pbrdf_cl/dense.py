@@ -33,10 +33,10 @@ from .engine import DTYPES, aligned_empty, resolve_engine
 AXES = ("theta_i", "theta_r", "phi", "n", "k", "sigma", "ks", "kd", "c")
 PARAMETERS = AXES[3:]
 UNITS = {"theta_i": "deg", "theta_r": "deg", "phi": "deg", "n": "1", "k": "1",
-         "sigma": "1 (per-axis rms slope)", "ks": "1", "kd": "1", "c": "1"}
+         "sigma": "1", "ks": "1", "kd": "1", "c": "1"}
 LONG_NAMES = {"theta_i": "incidence zenith angle", "theta_r": "reflection zenith angle",
               "phi": "relative azimuth (180 = in plane)", "n": "refractive index", "k": "extinction coefficient",
-              "sigma": "slope standard deviation per axis", "ks": "specular weight", "kd": "diffuse weight",
+              "sigma": "per-axis rms slope", "ks": "specular weight", "kd": "diffuse weight",
               "c": "Minnaert exponent"}
 DEFAULTS = {"phi": 180.0, "ks": 1.0, "kd": 0.0, "c": 0.0}
 #: The quantities with a grid path: name -> long name (the registry, :mod:`pbrdf_cl.quantities`, says more).
