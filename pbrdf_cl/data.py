@@ -11,7 +11,8 @@ What spreadsheets and instruments write is read as well:
 - UTF-8 with or without a byte-order mark, UTF-16 with one (Excel's "Unicode text"); other
   bytes are read as Latin-1 (they can only be in comments or ignored columns);
 - the separator is taken from the header line: commas, else semicolons, else tabs, else runs of
-  spaces; with semicolons, tabs or spaces a decimal comma (``0,052``) is a decimal point;
+  spaces (or from Excel's ``sep=;`` line before it); with semicolons, tabs or spaces a decimal
+  comma (``0,052``) is a decimal point;
 - names and values in quotes (``"theta_i"``); names in any case (``DOP``, ``Theta_I``);
 - other columns (``wavelength``, ``sample``, ...) are ignored: a :class:`DataWarning` names them
   (with the nearest column name where one is close: ``dop_sd`` -> ``dop_std``), and
@@ -44,6 +45,7 @@ OPTIONAL = ("phi", "dop_std", "f00", "s0", "f00_std")
 COLUMNS = REQUIRED + OPTIONAL
 _COLUMNS_TEXT = "theta_i, theta_r, dop and optionally phi, dop_std, f00 (or s0), f00_std"
 _SEPARATORS = {",": "commas", ";": "semicolons", "\t": "tabs", None: "spaces"}
+_SEP_LINE = re.compile(r"sep=([,;\t])")
 _DECIMAL_COMMA = re.compile(r"[+-]?[0-9]*,[0-9]+(?:[eE][+-]?[0-9]+)?")
 
 
@@ -210,6 +212,14 @@ def _split(text, sep):
     return [_unquote(f) for f in (text.split(sep) if sep else text.split())]
 
 
+def _is_number(text):
+    try:
+        float(text.replace(",", "."))
+    except ValueError:
+        return False
+    return True
+
+
 def _sniff(header):
     for sep in (",", ";", "\t"):
         if sep in header:
@@ -229,8 +239,15 @@ def read_csv(path) -> Measurements:
         if not body:
             continue
         if header is None:
-            sep = _sniff(body)
+            declared = _SEP_LINE.fullmatch(body)
+            if declared and sep is None:  # Excel's "sep=;" line before the header
+                sep = declared.group(1)
+                continue
+            sep = sep or _sniff(body)
             header = _split(body, sep)
+            if all(_is_number(f) for f in header):
+                raise ValueError(f"{path}, line {lineno}: the first line holds numbers, not column names; start "
+                                 f"the file with a header line such as theta_i,theta_r,dop")
             used, ignored = _resolve(header, f"{path}, line {lineno}")
             header_line = lineno
             continue

@@ -47,6 +47,7 @@ def no_warning():
     ("trailing separators", "theta_i,theta_r,dop,\n40,30,0.1,\n40,35,0.2\n"),
     ("CRLF, comments", "# from the goniometer\r\ntheta_i,theta_r,dop # header\r\n40,30,0.1\r\n\r\n40,35,0.2 # ok\r\n"),
     ("old Mac line ends", "theta_i,theta_r,dop\r40,30,0.1\r40,35,0.2\r"),
+    ("Excel's sep= line", "sep=;\ntheta_i;theta_r;dop\n40;30;0,1\n40;35;0,2\n"),
 ])
 def test_csv_forms_read_the_same_values(tmp_path, name, text):
     with no_warning():
@@ -105,6 +106,8 @@ def test_s0_is_f00_in_any_case(tmp_path):
     ('"theta_i";"theta_r";"Dop"\n40;30;abc\n', r"line 2: Dop = 'abc' is not a number$"),
     ("theta_i,theta_r,dop\n40,30,0,1\n", r"line 2: 4 values for 3 columns$"),  # a decimal comma with commas
     ("theta_i\ttheta_r\tdop\n40\t30\t0.1\n40\t95\t0.1\n", r"line 3: theta_r = 95\.0 is not in \[0, 90\) degrees$"),
+    ("# no header\n40,30,0.1\n", r"line 2: the first line holds numbers, not column names; start the file with a "
+                                  r"header line such as theta_i,theta_r,dop$"),
 ])
 def test_csv_errors_are_one_line_naming_file_line_and_column(tmp_path, text, pattern):
     p = write(tmp_path, text)
