@@ -11,7 +11,7 @@ the first usable OpenCL device, or on the float64 numpy reference where none is 
 """
 from . import quantities
 from .api import MODELS, aop, brdf, dop, evaluate, mueller, stokes, validate
-from .data import Measurements, read_csv
+from .data import DataWarning, Measurements, as_measurements, read_csv
 from .dense import ObjectiveResult, grid, objective, reduce_grid
 from .sweeps import SpecError, SweepResult, SweepSpec, load_spec, sweep
 from .inversion import FitResult, compare_models, fit
@@ -22,6 +22,6 @@ __version__ = "0.1.0"
 
 __all__ = ["dop", "brdf", "aop", "stokes", "mueller", "evaluate", "quantities", "validate", "MODELS", "grid", "reduce_grid", "objective", "ObjectiveResult",
            "sweep", "load_spec", "SweepSpec", "SweepResult", "SpecError",
-           "fit", "compare_models", "FitResult", "read_csv", "Measurements", "Engine", "NumpyEngine", "probe",
+           "fit", "compare_models", "FitResult", "read_csv", "as_measurements", "Measurements", "DataWarning", "Engine", "NumpyEngine", "probe",
            "OpenCLUnavailableError", "DeviceUnusableError", "DeviceWarning",
            "get_default_engine", "set_default_engine", "list_devices", "select_device", "__version__"]

@@ -5,9 +5,35 @@ CSV format: a header line naming the columns, then one measurement per line.  Re
 ``dop_std`` (per-point standard deviation, used as weights), ``f00`` (measured BRDF, 1/sr, or
 ``s0``, any intensity proportional to it) with optional ``f00_std``.  Blank lines and ``#``
 comments (whole-line or trailing) are ignored.
+
+What spreadsheets and instruments write is read as well:
+
+- UTF-8 with or without a byte-order mark, UTF-16 with one (Excel's "Unicode text"); other
+  bytes are read as Latin-1 (they can only be in comments or ignored columns);
+- the separator is taken from the header line: commas, else semicolons, else tabs, else runs of
+  spaces (or from Excel's ``sep=;`` line before it); with semicolons, tabs or spaces a decimal
+  comma (``0,052``) is a decimal point;
+- names and values in quotes (``"theta_i"``); names in any case (``DOP``, ``Theta_I``);
+- other columns (``wavelength``, ``sample``, ...) are ignored: a :class:`DataWarning` names them
+  (with the nearest column name where one is close: ``dop_sd`` -> ``dop_std``), and
+  :attr:`Measurements.ignored` lists them; empty trailing fields (``40,30,0.1,``) are dropped.
+
+Errors are one line naming the file, the line and the column.
+
+The same column names, in any case and with other columns ignored the same way, are taken from a
+dict of arrays, a pandas (or any) DataFrame with ``.columns`` (index levels count as columns),
+an xarray Dataset (data variables and coordinates, broadcast against each other: a gridded
+Dataset is flattened) or a numpy structured array: :func:`as_measurements`, which
+:func:`pbrdf_cl.fit`, :func:`pbrdf_cl.compare_models` and :func:`pbrdf_cl.objective` call.
 """
 from __future__ import annotations
 
+import codecs
+import difflib
+import os
+import re
+import warnings
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -16,11 +42,24 @@ from .api import RULES
 
 REQUIRED = ("theta_i", "theta_r", "dop")
 OPTIONAL = ("phi", "dop_std", "f00", "s0", "f00_std")
+COLUMNS = REQUIRED + OPTIONAL
+_COLUMNS_TEXT = "theta_i, theta_r, dop and optionally phi, dop_std, f00 (or s0), f00_std"
+_SEPARATORS = {",": "commas", ";": "semicolons", "\t": "tabs", None: "spaces"}
+_SEP_LINE = re.compile(r"sep=([,;\t])")
+_DECIMAL_COMMA = re.compile(r"[+-]?[0-9]*,[0-9]+(?:[eE][+-]?[0-9]+)?")
+
+
+class DataWarning(UserWarning):
+    """Part of the measurements was ignored (columns that are not inputs of the model); the
+    message names what and where."""
 
 
 @dataclass
 class Measurements:
-    """Validated measurements (1-d float64 arrays of equal length)."""
+    """Validated measurements (1-d float64 arrays of equal length).
+
+    ``ignored``: the names of the columns of the input that were not read (each reported once,
+    when read, by a :class:`DataWarning`)."""
     theta_i: np.ndarray
     theta_r: np.ndarray
     dop: np.ndarray
@@ -30,6 +69,7 @@ class Measurements:
     f00_std: np.ndarray | None = None
     source: str = "arrays"
     lines: np.ndarray | None = field(default=None, repr=False)
+    ignored: tuple = ()
 
     def __len__(self):
         return self.dop.size
@@ -45,18 +85,20 @@ class Measurements:
         return d
 
 
-def _where(source, lines, i):
-    return f"{source}, line {lines[i]}" if lines is not None else f"{source}, row {i}"
+def _locator(source, lines):
+    if lines is not None:
+        return lambda i: f"{source}, line {lines[i]}"
+    return lambda i: f"{source}, row {i}"
 
 
-def _validate(cols, source, lines):
+def _validate(cols, source, locate):
     n = len(cols["dop"])
     for name, values in cols.items():
         a = values
         bad = ~np.isfinite(a)
         if bad.any():
             i = int(np.argmax(bad))
-            raise ValueError(f"{_where(source, lines, i)}: {name} is {float(a[i])!r}; every value must be a finite number")
+            raise ValueError(f"{locate(i)}: {name} is {float(a[i])!r}; every value must be a finite number")
     checks = {"theta_i": RULES["theta_i"], "theta_r": RULES["theta_r"],
               "dop": (lambda a: (a >= 0) & (a <= 1), "in [0, 1]"),
               "dop_std": (lambda a: a > 0, "> 0"),
@@ -67,13 +109,13 @@ def _validate(cols, source, lines):
             good = ok(cols[name])
             if not good.all():
                 i = int(np.argmax(~good))
-                raise ValueError(f"{_where(source, lines, i)}: {name} = {float(cols[name][i])!r} is not {rule}")
+                raise ValueError(f"{locate(i)}: {name} = {float(cols[name][i])!r} is not {rule}")
     if n == 0:
         raise ValueError(f"{source}: no measurements")
 
 
 def from_arrays(theta_i, theta_r, dop, phi=180.0, dop_std=None, f00=None, f00_std=None, source="arrays",
-                _lines=None):
+                _lines=None, _locate=None):
     """Validated :class:`Measurements` from arrays (broadcast to a common length)."""
     named = dict(theta_i=theta_i, theta_r=theta_r, dop=dop, phi=phi, dop_std=dop_std, f00=f00, f00_std=f00_std)
     cols = {}
@@ -83,7 +125,7 @@ def from_arrays(theta_i, theta_r, dop, phi=180.0, dop_std=None, f00=None, f00_st
         try:
             cols[name] = np.atleast_1d(np.asarray(v, dtype=np.float64))
         except (TypeError, ValueError):
-            raise ValueError(f"{source}: {name} must be numbers, got {v!r}") from None
+            raise ValueError(f"{source}: {name} must be numbers, got {_short(v)}") from None
         if cols[name].ndim != 1:
             raise ValueError(f"{source}: {name} must be 1-d, got shape {cols[name].shape}")
     try:
@@ -92,7 +134,7 @@ def from_arrays(theta_i, theta_r, dop, phi=180.0, dop_std=None, f00=None, f00_st
         lengths = ", ".join(f"{k}: {v.size}" for k, v in cols.items())
         raise ValueError(f"{source}: columns differ in length ({lengths})") from None
     cols = {k: np.array(a, dtype=np.float64) for k, a in zip(cols, arrays)}
-    _validate(cols, source, _lines)
+    _validate(cols, source, _locate or _locator(source, _lines))
     if "f00_std" in cols and "f00" not in cols:
         raise ValueError(f"{source}: f00_std is given without f00")
     return Measurements(theta_i=cols["theta_i"], theta_r=cols["theta_r"], dop=cols["dop"], phi=cols["phi"],
@@ -100,51 +142,157 @@ def from_arrays(theta_i, theta_r, dop, phi=180.0, dop_std=None, f00=None, f00_st
                         source=source, lines=_lines)
 
 
+def _short(v):
+    text = repr(v).replace("\n", " ")
+    return text if len(text) <= 80 else text[:77] + "..."
+
+
+def _resolve(names, where):
+    """The model's columns among ``names`` (any case, surrounding blanks dropped): (canonical name
+    -> position, the positions of the other columns).  Refuses a column named twice, f00 with s0,
+    and a missing required column (naming an ignored column that looks like it)."""
+    used, ignored = {}, []
+    for i, raw in enumerate(names):
+        key = str(raw).strip().lower()
+        if key in COLUMNS:
+            if key in used:
+                raise ValueError(f"{where}: {str(names[used[key]]).strip()!r} and {str(raw).strip()!r} name the "
+                                 "same column; give it once")
+            used[key] = i
+        else:
+            ignored.append(i)
+    if "f00" in used and "s0" in used:
+        raise ValueError(f"{where}: give f00 or s0, not both")
+    for need in REQUIRED:
+        if need not in used:
+            near = _nearest(need, [str(names[i]).strip().lower() for i in ignored])
+            hint = f"; the column {near!r} is not one of these names" if near else ""
+            raise ValueError(f"{where}: missing column {need!r} (the columns are {_COLUMNS_TEXT}){hint}")
+    return used, ignored
+
+
+def _nearest(name, candidates):
+    near = difflib.get_close_matches(name, candidates, n=1, cutoff=0.6)
+    return near[0] if near else None
+
+
+def _warn_ignored(where, names, used):
+    """One :class:`DataWarning` naming the ignored columns (and the nearest column name of each)."""
+    if not names:
+        return
+    absent = [c for c in COLUMNS if c not in used and not (c in ("f00", "s0") and ("f00" in used or "s0" in used))]
+    items = []
+    for name in names:
+        near = _nearest(name.lower(), absent)
+        items.append(f"{name!r} (did you mean {near!r}?)" if near else repr(name))
+    s = "s" if len(names) > 1 else ""
+    warnings.warn(f"{where}: ignored column{s} {', '.join(items)}: not an input of the model (the columns read "
+                  f"are {_COLUMNS_TEXT})", DataWarning, stacklevel=3)
+
+
+def _decode(path):
+    with open(path, "rb") as fh:
+        raw = fh.read()
+    if raw.startswith((codecs.BOM_UTF16_LE, codecs.BOM_UTF16_BE)):
+        return raw.decode("utf-16")
+    try:
+        return raw.decode("utf-8-sig")
+    except UnicodeDecodeError:
+        return raw.decode("latin-1")
+
+
+def _unquote(text):
+    text = text.strip()
+    if len(text) >= 2 and text[0] == text[-1] and text[0] in "\"'":
+        return text[1:-1].strip()
+    return text
+
+
+def _split(text, sep):
+    return [_unquote(f) for f in (text.split(sep) if sep else text.split())]
+
+
+def _is_number(text):
+    try:
+        float(text.replace(",", "."))
+    except ValueError:
+        return False
+    return True
+
+
+def _sniff(header):
+    for sep in (",", ";", "\t"):
+        if sep in header:
+            return sep
+    return None
+
+
 def read_csv(path) -> Measurements:
     """Read and validate a measurement CSV (see the module docstring); errors name the line."""
-    path = str(path)
-    header, rows, lines = None, [], []
-    with open(path, encoding="utf-8") as fh:
-        for lineno, raw in enumerate(fh, start=1):
-            text = raw.split("#", 1)[0].strip()
-            if not text:
+    path = os.fsdecode(path)
+    header = sep = used = None
+    ignored, rows, lines = [], [], []
+    unnamed_filled = set()
+    text = _decode(path).replace("\r\n", "\n").replace("\r", "\n")
+    for lineno, raw in enumerate(text.split("\n"), start=1):
+        body = raw.split("#", 1)[0].strip()
+        if not body:
+            continue
+        if header is None:
+            declared = _SEP_LINE.fullmatch(body)
+            if declared and sep is None:  # Excel's "sep=;" line before the header
+                sep = declared.group(1)
                 continue
-            fields = [f.strip() for f in text.split(",")]
-            if header is None:
-                header = [f.lower() for f in fields]
-                for name in header:
-                    if name not in REQUIRED + OPTIONAL:
-                        raise ValueError(f"{path}, line {lineno}: unknown column {name!r}; columns are "
-                                         f"{', '.join(REQUIRED)} and optionally {', '.join(OPTIONAL)}")
-                if len(set(header)) != len(header):
-                    raise ValueError(f"{path}, line {lineno}: a column is named twice")
-                missing = [c for c in REQUIRED if c not in header]
-                if missing:
-                    raise ValueError(f"{path}, line {lineno}: missing column {missing[0]!r} "
-                                     f"(the header must name {', '.join(REQUIRED)})")
-                if "f00" in header and "s0" in header:
-                    raise ValueError(f"{path}, line {lineno}: give f00 or s0, not both")
-                continue
-            if len(fields) != len(header):
-                raise ValueError(f"{path}, line {lineno}: {len(fields)} values for {len(header)} columns")
-            row = []
-            for name, f in zip(header, fields):
-                try:
-                    row.append(float(f))
-                except ValueError:
-                    raise ValueError(f"{path}, line {lineno}: {name} = {f!r} is not a number") from None
-            rows.append(row)
-            lines.append(lineno)
+            sep = sep or _sniff(body)
+            header = _split(body, sep)
+            if all(_is_number(f) for f in header):
+                raise ValueError(f"{path}, line {lineno}: the first line holds numbers, not column names; start "
+                                 f"the file with a header line such as theta_i,theta_r,dop")
+            used, ignored = _resolve(header, f"{path}, line {lineno}")
+            header_line = lineno
+            continue
+        fields = _split(body, sep)
+        while len(fields) > len(header) and not fields[-1]:
+            fields.pop()  # trailing separators
+        if len(fields) < len(header) and not any(header[len(fields):]):
+            fields += [""] * (len(header) - len(fields))  # the header's trailing separators
+        if len(fields) != len(header):
+            hint = ""
+            others = [s for s in (",", ";", "\t") if s != sep and s in body]
+            if others and len(_split(body, others[0])) == len(header):
+                hint = (f" (the header is separated by {_SEPARATORS[sep]}, this line by "
+                        f"{_SEPARATORS[others[0]]})")
+            n = len(fields)
+            raise ValueError(f"{path}, line {lineno}: {n} value{'s' if n != 1 else ''} for {len(header)} "
+                             f"columns{hint}")
+        row = []
+        for name, i in used.items():
+            f = fields[i]
+            if sep != "," and _DECIMAL_COMMA.fullmatch(f):
+                f = f.replace(",", ".")
+            try:
+                row.append(float(f))
+            except ValueError:
+                what = f"{header[i]} is empty" if not f else f"{header[i]} = {fields[i]!r} is not a number"
+                raise ValueError(f"{path}, line {lineno}: {what}") from None
+        unnamed_filled.update(i for i in ignored if not header[i] and fields[i])
+        rows.append(row)
+        lines.append(lineno)
     if header is None:
         raise ValueError(f"{path}: empty file (no header line)")
     if not rows:
         raise ValueError(f"{path}: no measurements after the header")
+    names = [header[i] if header[i] else f"column {i + 1} (unnamed)" for i in ignored
+             if header[i] or i in unnamed_filled]
+    _warn_ignored(f"{path}, line {header_line}", names, used)
     table = np.array(rows, dtype=np.float64)
-    cols = {name: table[:, i] for i, name in enumerate(header)}
+    cols = {name: table[:, j] for j, name in enumerate(used)}
     if "s0" in cols:
         cols["f00"] = cols.pop("s0")
-    return from_arrays(cols["theta_i"], cols["theta_r"], cols["dop"], cols.get("phi", 180.0), cols.get("dop_std"),
+    meas = from_arrays(cols["theta_i"], cols["theta_r"], cols["dop"], cols.get("phi", 180.0), cols.get("dop_std"),
                        cols.get("f00"), cols.get("f00_std"), source=path, _lines=np.array(lines))
+    meas.ignored = tuple(names)
+    return meas
 
 
 def write_csv(path, meas: Measurements, header_comment: str = ""):
@@ -164,19 +312,93 @@ def write_csv(path, meas: Measurements, header_comment: str = ""):
             fh.write(",".join(f"{v[i]:.10g}" for _, v in cols) + "\n")
 
 
+def _column_values(col):
+    """A DataFrame column (pandas Series, polars Series, anything with ``to_numpy`` or
+    ``__array__``) as an array; missing values (pandas' NA) as NaN."""
+    to_numpy = getattr(col, "to_numpy", None)
+    if to_numpy is not None:
+        try:
+            return to_numpy(dtype=np.float64, na_value=np.nan)
+        except (TypeError, ValueError):
+            return to_numpy()
+    return col
+
+
+def _dataset_columns(ds):
+    """(names, get, locate) of an xarray Dataset: data variables and coordinates, broadcast
+    against each other and flattened; ``locate(i)`` names the i-th point by its coordinates."""
+    import xarray as xr
+    names = list(ds.data_vars) + [c for c in ds.coords if c not in ds.data_vars]
+    state = {}
+
+    def get(chosen):
+        arrays = xr.broadcast(*[ds[n] for n in chosen])
+        state["dims"], state["shape"] = arrays[0].dims, arrays[0].shape
+        return [np.asarray(a.values).reshape(-1) for a in arrays]
+
+    def locate(i):
+        dims, shape = state.get("dims", ()), state.get("shape", ())
+        if not dims:
+            return "data"
+        parts = []
+        for d, j in zip(dims, np.unravel_index(i, shape)):
+            if d in ds.coords and ds[d].ndim == 1:
+                v = ds[d].values[j]
+                parts.append(f"{d}={v:g}" if np.issubdtype(np.asarray(v).dtype, np.number) else f"{d}={v}")
+            else:
+                parts.append(f"{d}[{j}]")
+        return "data, at " + ", ".join(parts)
+    return names, get, locate
+
+
+def _table_columns(data):
+    """(names, get, locate) of a dict of arrays, a DataFrame-like table or a structured array, or
+    None for anything else."""
+    if isinstance(data, Mapping):
+        names = list(data.keys())
+        return names, lambda chosen: [_column_values(data[n]) for n in chosen], None
+    columns = getattr(data, "columns", None)
+    if columns is not None and hasattr(data, "__getitem__"):
+        names = list(columns)
+        index = getattr(data, "index", None)
+        levels = [n for n in (getattr(index, "names", None) or []) if n is not None and n not in names]
+
+        def get(chosen):
+            return [np.asarray(index.get_level_values(n)) if n in levels else _column_values(data[n]) for n in chosen]
+        return names + levels, get, None
+    dtype = getattr(data, "dtype", None)
+    if dtype is not None and getattr(dtype, "names", None):
+        names = list(dtype.names)
+        return names, lambda chosen: [np.asarray(data[n]).reshape(-1) for n in chosen], None
+    return None
+
+
 def as_measurements(data) -> "Measurements":
-    """Measurements from a CSV path, a dict of arrays or a Measurements object (validated)."""
+    """Measurements from a CSV path, a dict of arrays, a DataFrame, an xarray Dataset, a numpy
+    structured array or a Measurements object (validated).
+
+    Column names in any case; ``s0`` is ``f00``; other columns are ignored with a
+    :class:`DataWarning` naming them (module docstring)."""
     if isinstance(data, Measurements):
         return data
     if isinstance(data, (str, bytes)) or hasattr(data, "__fspath__"):
         return read_csv(data)
-    if isinstance(data, dict):
-        unknown = set(data) - {"theta_i", "theta_r", "dop", "phi", "dop_std", "f00", "s0", "f00_std"}
-        if unknown:
-            raise ValueError(f"data: unknown column {sorted(unknown)[0]!r}")
-        for need in ("theta_i", "theta_r", "dop"):
-            if need not in data:
-                raise ValueError(f"data: missing column {need!r}")
-        return from_arrays(data["theta_i"], data["theta_r"], data["dop"], data.get("phi", 180.0),
-                           data.get("dop_std"), data.get("f00", data.get("s0")), data.get("f00_std"), source="data")
-    raise ValueError("data must be a CSV path, a dict of arrays or a Measurements object")
+    if hasattr(data, "data_vars") and hasattr(data, "coords"):
+        names, get, locate = _dataset_columns(data)
+    else:
+        found = _table_columns(data)
+        if found is None:
+            raise ValueError("data must be a CSV path, a dict of arrays, a DataFrame, an xarray Dataset or a "
+                             f"Measurements object, got {type(data).__name__}")
+        names, get, locate = found
+    used, ignored = _resolve(names, "data")
+    chosen = list(used)
+    values = dict(zip(chosen, get([names[used[c]] for c in chosen])))
+    if "s0" in values:
+        values["f00"] = values.pop("s0")
+    shown = [str(names[i]) for i in ignored]
+    _warn_ignored("data", shown, used)
+    meas = from_arrays(values["theta_i"], values["theta_r"], values["dop"], values.get("phi", 180.0),
+                       values.get("dop_std"), values.get("f00"), values.get("f00_std"), source="data", _locate=locate)
+    meas.ignored = tuple(shown)
+    return meas

@@ -33,10 +33,10 @@ from .engine import DTYPES, aligned_empty, resolve_engine
 AXES = ("theta_i", "theta_r", "phi", "n", "k", "sigma", "ks", "kd", "c")
 PARAMETERS = AXES[3:]
 UNITS = {"theta_i": "deg", "theta_r": "deg", "phi": "deg", "n": "1", "k": "1",
-         "sigma": "1 (per-axis rms slope)", "ks": "1", "kd": "1", "c": "1"}
+         "sigma": "1", "ks": "1", "kd": "1", "c": "1"}
 LONG_NAMES = {"theta_i": "incidence zenith angle", "theta_r": "reflection zenith angle",
               "phi": "relative azimuth (180 = in plane)", "n": "refractive index", "k": "extinction coefficient",
-              "sigma": "slope standard deviation per axis", "ks": "specular weight", "kd": "diffuse weight",
+              "sigma": "per-axis rms slope", "ks": "specular weight", "kd": "diffuse weight",
               "c": "Minnaert exponent"}
 DEFAULTS = {"phi": 180.0, "ks": 1.0, "kd": 0.0, "c": 0.0}
 #: The quantities with a grid path: name -> long name (the registry, :mod:`pbrdf_cl.quantities`, says more).
@@ -328,8 +328,9 @@ def grid(axes, fixed=None, quantity="dop", dtype="float32", shadowing="paper", *
         sigma, ks, kd, c.
     fixed : dict
         Name -> scalar for the remaining inputs; phi, ks, kd, c default to 180, 1, 0, 0.
-    memory_budget : int
-        Bytes of device memory a chunk may use (tables plus output); larger grids run in chunks.
+    memory_budget : int or str
+        Bytes of device memory a chunk may use (tables plus output), or a size such as "64 MiB"
+        or "1 GB" (:func:`pbrdf_cl.ranges.parse_bytes`); larger grids run in chunks.
     engine, backend : the engine, or "auto" / "opencl" / "numpy" (see :func:`pbrdf_cl.engine.resolve_engine`)
 
     Returns
@@ -340,6 +341,8 @@ def grid(axes, fixed=None, quantity="dop", dtype="float32", shadowing="paper", *
     """
     import xarray as xr
 
+    from .ranges import parse_bytes
+    memory_budget = parse_bytes("memory_budget", memory_budget)
     q = _check_quantity(quantity)
     dtype = api.check_options(shadowing, dtype)
     plan = GridPlan(axes, fixed)
@@ -445,6 +448,8 @@ def reduce_grid(axes, fixed=None, over=(), quantity="dop", dtype="float32", shad
     Quantities whose registry record refuses reductions (the AoP: an angle; the Stokes vector)
     raise a ``ValueError`` saying why.
     """
+    from .ranges import parse_bytes
+    memory_budget = parse_bytes("memory_budget", memory_budget)
     quantity = _check_quantity(quantity, "reduce").name
     dtype = api.check_options(shadowing, dtype)
     plan = GridPlan(axes, fixed)
@@ -598,6 +603,8 @@ def objective(data, grid=None, points=None, *, k_best=10, dtype="float32", shado
         How many of the best parameter vectors to return.
     """
     t0 = time.perf_counter()
+    from .ranges import parse_bytes
+    memory_budget = parse_bytes("memory_budget", memory_budget)
     if (grid is None) == (points is None):
         raise ValueError("give exactly one of grid= (parameter axes) or points= (explicit parameter vectors)")
     dtype = api.check_options(shadowing, dtype)

@@ -54,9 +54,9 @@ def _finish(fig, ax, path, legend=True):
     ax.grid(alpha=0.3)
     if legend:
         ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    fig.savefig(path, dpi=120)  # the figures are made with layout="constrained": nothing clipped
     _pyplot().close(fig)
+    return fig
 
 
 def fig2_data(sample, seed=SEED):
@@ -82,9 +82,9 @@ def fig2(sample, out, engine=None, seed=SEED):
     curve_true = api.dop(angle, angle, 180.0, backend="numpy", **FIG2_SAMPLES[sample])
     slug = sample.replace(" ", "_")
     plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(7.5, 5.2))
-    ax.errorbar(meas.theta_i, meas.dop, yerr=meas.dop_std, fmt="o", ms=4, color="k",
-                label=f"synthetic data (noise sd {FIG2_NOISE:g})")
+    fig, ax = plt.subplots(figsize=(7.5, 5.2), layout="constrained")
+    ax.errorbar(meas.theta_i, meas.dop, yerr=meas.dop_std, fmt="o", ms=4, color="k", capsize=2,
+                label=f"synthetic data ± 1 sd (noise sd {FIG2_NOISE:g}: bars within the markers)")
     ax.plot(angle, curve_true, ":", color="0.5", lw=1, label="true model")
     ax.plot(angle, curve_six, "-", color="C0",
             label=f"six-param fit: n={six.x['n']:.3f}, k={six.x['k']:.3f} (BIC {six.bic:.1f})")
@@ -145,40 +145,53 @@ def table1(fits, out):
 
 
 def fig4(out):
-    """DOP vs theta_r at the three incidence angles with the paper's steel fit."""
+    """DOP vs theta_r at the three incidence angles with the paper's steel fit: model values only
+    (curves, and markers at the measured geometries); no measured data are drawn.  Returns the
+    (closed) Figure."""
+    from matplotlib.lines import Line2D
     tr = np.linspace(20.0, 65.0, 181)
     plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(7.5, 5.2))
+    fig, ax = plt.subplots(figsize=(7.5, 5.2), layout="constrained")
     curves = {}
     for i, ti in enumerate(STEEL_THETA_I):
         curves[ti] = api.dop(ti, tr, 180.0, backend="numpy", **STEEL)
-        ax.plot(tr, curves[ti], "-", color=f"C{i}", label=f"theta_i = {ti:g} deg")
+        ax.plot(tr, curves[ti], "-", color=f"C{i}", label=f"model, theta_i = {ti:g} deg")
         ax.plot(STEEL_THETA_R, api.dop(ti, STEEL_THETA_R, 180.0, backend="numpy", **STEEL), "o", color=f"C{i}",
                 ms=4)
+    step = STEEL_THETA_R[1] - STEEL_THETA_R[0]
+    handles, _ = ax.get_legend_handles_labels()
+    handles.append(Line2D([], [], ls="none", marker="o", ms=4, color="0.3",
+                          label=f"model at the measured geometries (theta_r {STEEL_THETA_R[0]:g}..{STEEL_THETA_R[-1]:g} "
+                                f"step {step:g}; not data)"))
     ax.set_xlabel("reflection zenith angle theta_r (deg), in plane")
     ax.set_ylabel("degree of polarization")
-    ax.set_title(f"Fig. 4: 45# steel, 435 nm, the paper's fit ({_params_text(STEEL)})\n"
-                 "markers: the measured geometries (theta_r 20..65 step 5)", fontsize=9)
-    _finish(fig, ax, out / "fig4_steel.png")
+    ax.set_title(f"Fig. 4: 45# steel, 435 nm: the six-parameter model at the paper's fit\n({_params_text(STEEL)})",
+                 fontsize=9)
+    ax.grid(alpha=0.3)
+    ax.legend(handles=handles, fontsize=8)
+    _finish(fig, ax, out / "fig4_steel.png", legend=False)
     np.savez_compressed(out / "fig4_steel.npz", theta_r=tr, theta_i=np.array(STEEL_THETA_I),
                         dop=np.stack([curves[t] for t in STEEL_THETA_I]))
+    return fig
 
 
 def fig5(out):
-    """DOP vs theta_r at theta_i = 40 for three roughness values."""
+    """DOP vs theta_r at theta_i = 40 for three roughness values (model curves).  Returns the
+    (closed) Figure."""
     tr = np.linspace(20.0, 65.0, 181)
     plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(7.5, 5.2))
+    fig, ax = plt.subplots(figsize=(7.5, 5.2), layout="constrained")
     rows = []
     for i, s in enumerate(SIGMAS):
         rows.append(api.dop(40.0, tr, 180.0, backend="numpy", **{**STEEL, "sigma": s}))
-        ax.plot(tr, rows[-1], "-", color=f"C{i}", label=f"sigma = {s:g}")
+        ax.plot(tr, rows[-1], "-", color=f"C{i}", label=f"model, sigma = {s:g}")
     ax.set_xlabel("reflection zenith angle theta_r (deg), in plane")
     ax.set_ylabel("degree of polarization")
     others = {k: v for k, v in STEEL.items() if k != "sigma"}
     ax.set_title(f"Fig. 5: effect of roughness at theta_i = 40 deg ({_params_text(others)})", fontsize=9)
     _finish(fig, ax, out / "fig5_sigma.png")
     np.savez_compressed(out / "fig5_sigma.npz", theta_r=tr, sigma=np.array(SIGMAS), dop=np.stack(rows))
+    return fig
 
 
 def map_sigma_theta_r(out, resolution=256, engine=None):
@@ -202,17 +215,21 @@ def map_theta_i_theta_r(out, resolution=256, engine=None):
     plt = _pyplot()
     fig, axs = plt.subplots(1, len(SIGMAS), figsize=(5.0 * len(SIGMAS), 4.6), sharey=True, layout="constrained")
     norm = colors.Normalize(0.0, float(da.max()))
+    contours = []
     for ax, s in zip(axs, SIGMAS):
         z = da.sel(sigma=s).transpose("theta_r", "theta_i").values
         mesh = ax.pcolormesh(angles, angles, z, shading="auto", cmap="viridis", norm=norm)
         cs = ax.contour(angles, angles, z, levels=np.arange(0.1, 1.0, 0.1), colors="white", linewidths=0.7)
-        ax.clabel(cs, fontsize=7, fmt="%.1f")
+        contours.append((ax, cs))
         ax.set_title(f"sigma = {s:g}", fontsize=10)
         ax.set_xlabel(maps.LABELS["theta_i"])
     axs[0].set_ylabel(maps.LABELS["theta_r"])
     cb = fig.colorbar(mesh, ax=list(axs), shrink=0.9)
     cb.set_label("DOP")
     fig.suptitle(f"DOP over (theta_i, theta_r), in plane, {_params_text(fixed)}", fontsize=10)
+    fig.draw_without_rendering()  # the layout first: labels are placed in the axes' final shape
+    for ax, cs in contours:
+        maps.label_contours(ax, cs, fmt="%.1f")
     fig.savefig(out / "map_theta_i_theta_r.png", dpi=110)
     plt.close(fig)
     np.savez_compressed(out / "map_theta_i_theta_r.npz", theta_i=angles, theta_r=angles, sigma=np.array(SIGMAS),

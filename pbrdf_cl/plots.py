@@ -11,20 +11,31 @@ def _pyplot():
     return plt
 
 
+#: The fitted models' line styles and residual markers, in the order of ``fits``.
+FIT_STYLES = ("-", "--", ":")
+FIT_MARKERS = ("o", "x", "^")
+
+
 def plot_fit(meas, fits, path):
-    """Measured DOP with error bars, each fitted model's curve, and residuals, per incidence angle."""
+    """Measured DOP (error bars: +-1 ``dop_std``) and each fitted model's curve per incidence
+    angle (one colour per theta_i), and the residuals model - data with the same colours, one
+    marker per model and the data's error bars.  Returns the (closed) matplotlib Figure."""
+    from matplotlib.lines import Line2D
+
     from . import api
     plt = _pyplot()
-    fig, (ax, axr) = plt.subplots(2, 1, figsize=(8, 7), sharex=True, gridspec_kw=dict(height_ratios=[3, 1.3]))
+    fig, (ax, axr) = plt.subplots(2, 1, figsize=(8, 7.5), sharex=True, layout="constrained",
+                                  gridspec_kw=dict(height_ratios=[3, 1.5]))
     incid = np.unique(np.round(meas.theta_i, 6))
     colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
-    styles = ["-", "--", ":"]
+    has_std = meas.dop_std is not None
+    shift = 0.6 * np.min(np.diff(np.unique(meas.theta_r)), initial=5.0) / max(1, len(fits))
     for ci, ti in enumerate(incid):
         sel = np.isclose(meas.theta_i, ti)
         col = colors[ci % len(colors)]
-        yerr = meas.dop_std[sel] if meas.dop_std is not None else None
-        ax.errorbar(meas.theta_r[sel], meas.dop[sel], yerr=yerr, fmt="o", color=col, ms=4,
-                    label=f"data, theta_i = {ti:g} deg")
+        yerr = meas.dop_std[sel] if has_std else None
+        ax.errorbar(meas.theta_r[sel], meas.dop[sel], yerr=yerr, fmt="o", color=col, ms=3.5, capsize=3,
+                    elinewidth=1.0, label=f"data{' ± 1 sd' if has_std else ''}, theta_i = {ti:g} deg")
         phi = float(np.median(meas.phi[sel]))
         tr = np.linspace(max(0.0, meas.theta_r[sel].min() - 5), min(89.0, meas.theta_r[sel].max() + 5), 200)
         for si, (name, r) in enumerate(fits.items()):
@@ -38,20 +49,29 @@ def plot_fit(meas, fits, path):
                 curve = api.dop(ti, tr, phi, shadowing=r.shadowing, backend="numpy", **x)
                 res = api.dop(meas.theta_i[sel], meas.theta_r[sel], meas.phi[sel], shadowing=r.shadowing,
                               backend="numpy", **x) - meas.dop[sel]
-            ax.plot(tr, curve, styles[si % 3], color=col, lw=1.2,
-                    label=f"{name} fit" if ci == 0 else None)
-            axr.plot(meas.theta_r[sel], res, "o" if si == 0 else "x", color=col, ms=4,
-                     label=f"{name}" if ci == 0 else None)
+            ax.plot(tr, curve, FIT_STYLES[si % 3], color=col, lw=1.2)
+            offset = (si - (len(fits) - 1) / 2) * shift  # side by side, not on top of each other
+            marker = FIT_MARKERS[si % 3]
+            axr.errorbar(meas.theta_r[sel] + offset, res, yerr=yerr, fmt=marker, color=col, ms=4, capsize=2,
+                         elinewidth=0.8, mfc="none" if marker == "o" else col)
+    # the models' legend entries in a neutral colour: each style stands for every theta_i's colour
+    model_handles = [Line2D([], [], ls=FIT_STYLES[si % 3], color="k", lw=1.2, label=f"{name} fit")
+                     for si, name in enumerate(fits)]
+    handles, _ = ax.get_legend_handles_labels()
+    ax.legend(handles=handles + model_handles, fontsize=7, ncol=2, loc="best")
+    res_handles = [Line2D([], [], ls="none", marker=FIT_MARKERS[si % 3], color="k", mfc="none" if si == 0 else "k",
+                          label=name) for si, name in enumerate(fits)]
+    bars = "bars: ± 1 dop_std" if has_std else "no dop_std: no error bars"
+    axr.legend(handles=res_handles, fontsize=7, ncol=len(fits), loc="best",
+               title=f"colour: theta_i as above; {bars}", title_fontsize=7)
     axr.axhline(0, color="0.5", lw=0.8)
     ax.set_ylabel("degree of polarization")
-    axr.set_ylabel("model - data")
+    axr.set_ylabel("model - data (DOP)")
     axr.set_xlabel("reflection zenith angle theta_r (deg)")
     title = "; ".join(f"{n}: n={r.x['n']:.3g}, k={r.x['k']:.3g}, BIC {r.bic:.1f}" for n, r in fits.items())
     ax.set_title(f"DOP fit ({meas.source.split('/')[-1]})\n{title}", fontsize=9)
-    ax.legend(fontsize=7, ncol=2)
-    axr.legend(fontsize=7)
     ax.grid(alpha=0.3)
     axr.grid(alpha=0.3)
-    fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
+    return fig

@@ -16,6 +16,8 @@ one of a known list.  Every refusal is a :class:`RangeError` (a ``ValueError``) 
 from __future__ import annotations
 
 import difflib
+import math
+import numbers
 import re
 
 import numpy as np
@@ -194,6 +196,38 @@ def parse_bounds(text, where=None, name=None):
         return _bounds(text.strip(), name)
     except _Bad as bad:
         _raise(where, text, bad)
+
+
+#: Size units of :func:`parse_bytes` (case-insensitive): decimal kB..TB and binary KiB..TiB.
+SIZE_UNITS = {"": 1, "b": 1, "kb": 10 ** 3, "mb": 10 ** 6, "gb": 10 ** 9, "tb": 10 ** 12,
+              "kib": 1 << 10, "mib": 1 << 20, "gib": 1 << 30, "tib": 1 << 40}
+_SIZE = re.compile(r"\s*([0-9]*\.?[0-9]+(?:[eE][+]?[0-9]+)?)\s*([KMGT]i?B|B)?\s*", re.IGNORECASE)
+_SIZE_HINT = 'is not a size such as 268435456, "256 MiB" or "1 GB"'
+
+
+def parse_bytes(field, value):
+    """A size in bytes: ``268435456`` (an integer, or a whole float such as ``1e9``), ``"256 MiB"``,
+    ``"1.5GB"``, ``"64kib"`` -> int > 0.  The one parser of sizes (``memory_budget`` of
+    :func:`pbrdf_cl.grid`, :func:`pbrdf_cl.reduce_grid`, :func:`pbrdf_cl.objective` and of sweep
+    specs); a :class:`RangeError` of one line names ``field`` and the value."""
+    if isinstance(value, (bool, np.bool_)):
+        raise RangeError(f"{field}: {value!r} {_SIZE_HINT}")
+    if isinstance(value, numbers.Integral):
+        n = int(value)
+    elif isinstance(value, numbers.Real):
+        if not math.isfinite(value) or value != int(value):
+            raise RangeError(f"{field}: {value!r} {_SIZE_HINT} (a whole number of bytes)")
+        n = int(value)
+    elif isinstance(value, str):
+        m = _SIZE.fullmatch(value)
+        if not m:
+            raise RangeError(f"{field}: {value!r} {_SIZE_HINT}")
+        n = int(float(m.group(1)) * SIZE_UNITS[(m.group(2) or "").lower()])
+    else:
+        raise RangeError(f"{field}: {value!r} {_SIZE_HINT}")
+    if n <= 0:
+        raise RangeError(f"{field}: must be > 0 bytes, got {value!r}")
+    return n
 
 
 def _did_you_mean(name, names):

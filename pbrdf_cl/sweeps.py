@@ -48,7 +48,6 @@ import json
 import logging
 import numbers
 import os
-import re
 import sys
 import tempfile
 import threading
@@ -132,24 +131,13 @@ def _axis_values(field, value):
                     "{start, stop, num} table")
 
 
-_UNITS = {"": 1, "b": 1, "kb": 10 ** 3, "mb": 10 ** 6, "gb": 10 ** 9, "tb": 10 ** 12,
-          "kib": 1 << 10, "mib": 1 << 20, "gib": 1 << 30, "tib": 1 << 40}
-
-
 def parse_bytes(field, value):
-    """``268435456``, ``"256 MiB"``, ``"1.5GB"`` -> bytes (int)."""
-    if isinstance(value, int) and not isinstance(value, bool):
-        n = value
-    elif isinstance(value, str):
-        m = re.fullmatch(r"\s*([0-9]*\.?[0-9]+(?:[eE][0-9]+)?)\s*([KMGT]i?B|B)?\s*", value, re.IGNORECASE)
-        if not m:
-            raise SpecError(f"{field}: {value!r} is not a size such as 268435456, \"256 MiB\" or \"1 GB\"")
-        n = int(float(m.group(1)) * _UNITS[(m.group(2) or "").lower()])
-    else:
-        raise SpecError(f"{field}: {value!r} is not a size such as 268435456, \"256 MiB\" or \"1 GB\"")
-    if n <= 0:
-        raise SpecError(f"{field}: must be > 0 bytes, got {value!r}")
-    return n
+    """``268435456``, ``"256 MiB"``, ``"1.5GB"`` -> bytes (int): :func:`pbrdf_cl.ranges.parse_bytes`,
+    refusals as :class:`SpecError`."""
+    try:
+        return ranges.parse_bytes(field, value)
+    except ranges.RangeError as exc:
+        raise SpecError(str(exc)) from None
 
 
 _human = sizes.human

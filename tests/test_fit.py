@@ -267,7 +267,7 @@ def write(tmp_path, text, name="d.csv"):
 
 @pytest.mark.parametrize("text,pattern", [
     ("theta_i,dop\n40,0.1\n", r"line 1: missing column 'theta_r'"),
-    ("theta_i,theta_r,dop,foo\n40,30,0.1,1\n", r"line 1: unknown column 'foo'"),
+    ("theta_i,theta_r,dop,Dop\n40,30,0.1,1\n", r"line 1: 'dop' and 'Dop' name the same column"),
     ("# comment\ntheta_i,theta_r,dop\n40,30,0.1\n40,abc,0.2\n", r"line 4: theta_r = 'abc' is not a number"),
     ("theta_i,theta_r,dop\n40,30,0.1\n40,30,nan\n", r"line 3: dop is nan"),
     ("theta_i,theta_r,dop\n40,30,0.1\n95,30,0.2\n", r"line 3: theta_i = 95.0 is not in \[0, 90\) degrees"),
