@@ -126,13 +126,33 @@ def check_options(shadowing, dtype):
 
 def validate(theta_i, theta_r, phi, n, k, sigma, ks, kd, c, *, shadowing="paper", dtype="float64",
              backend="auto", model="six-param", values=True):
-    """Check and broadcast the inputs; returns ``(arrays dict, shape, dtype name)``; the arrays keep
-    a float32 or float64 dtype (no copy), anything else becomes float64.
+    """Check and broadcast the inputs of the per-point functions.
 
-    Raises ``ValueError`` naming the offending argument, value and index.  ``values=False`` checks
-    only the options, types and shapes (the vector kernels check the values themselves, writing NaN
-    for a point outside the domain, and the caller checks again, to name the offender, only when
-    the result holds a NaN).
+    Parameters
+    ----------
+    theta_i, theta_r, phi, n, k, sigma, ks, kd, c, shadowing, dtype, backend, model
+        As for :func:`dop`.
+    values : bool, default True
+        False checks only the options, types and shapes (the vector kernels check the values
+        themselves, writing NaN for a point outside the domain, and the caller checks again, to
+        name the offender, only when the result holds a NaN).
+
+    Returns
+    -------
+    (dict, tuple, str)
+        The arrays by name (float32 and float64 arrays as they are, anything else as float64),
+        the broadcast shape and the dtype's name.
+
+    Raises
+    ------
+    ValueError
+        Naming the offending argument, value and index.
+
+    Examples
+    --------
+    >>> arrays, shape, dtype = validate(40, [20, 45], 180, 1.6, 2.1, 0.5, 1, 0, 0)
+    >>> shape, dtype
+    ((2,), 'float64')
     """
     dtype_name = check_options(shadowing, dtype)
     check_backend(backend)

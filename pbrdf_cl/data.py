@@ -228,7 +228,30 @@ def _sniff(header):
 
 
 def read_csv(path) -> Measurements:
-    """Read and validate a measurement CSV (see the module docstring); errors name the line."""
+    """Read and validate a measurement CSV (see the module docstring for the forms it takes).
+
+    Parameters
+    ----------
+    path : str or path
+        A CSV with a header naming theta_i, theta_r, dop and optionally phi, dop_std, f00 (or s0),
+        f00_std (any case; ``,`` ``;`` tab or spaces; ``#`` comments; other columns ignored with a
+        :class:`DataWarning`).
+
+    Returns
+    -------
+    Measurements
+
+    Raises
+    ------
+    ValueError
+        One line naming the file, the line and the column.
+
+    Examples
+    --------
+    >>> meas = read_csv("examples/steel_435nm.csv")  # doctest: +SKIP
+    >>> len(meas), meas.dop_std is not None  # doctest: +SKIP
+    (30, True)
+    """
     path = os.fsdecode(path)
     header = sep = used = None
     ignored, rows, lines = [], [], []
@@ -374,11 +397,24 @@ def _table_columns(data):
 
 
 def as_measurements(data) -> "Measurements":
-    """Measurements from a CSV path, a dict of arrays, a DataFrame, an xarray Dataset, a numpy
-    structured array or a Measurements object (validated).
+    """Validated measurements from what users have.
 
-    Column names in any case; ``s0`` is ``f00``; other columns are ignored with a
-    :class:`DataWarning` naming them (module docstring)."""
+    Parameters
+    ----------
+    data : str or path, dict, DataFrame, xarray.Dataset, numpy structured array or Measurements
+        Columns theta_i, theta_r, dop[, phi, dop_std, f00 (or s0), f00_std], names in any case;
+        other columns are ignored with a :class:`DataWarning` naming them (module docstring).
+
+    Returns
+    -------
+    Measurements
+        ``data`` itself when it is one.
+
+    Examples
+    --------
+    >>> len(as_measurements(dict(theta_i=[40, 40], theta_r=[20, 45], DOP=[0.1, 0.2])))
+    2
+    """
     if isinstance(data, Measurements):
         return data
     if isinstance(data, (str, bytes)) or hasattr(data, "__fspath__"):

@@ -332,12 +332,32 @@ def grid(axes, fixed=None, quantity="dop", dtype="float32", shadowing="paper", *
         Bytes of device memory a chunk may use (tables plus output), or a size such as "64 MiB"
         or "1 GB" (:func:`pbrdf_cl.ranges.parse_bytes`); larger grids run in chunks.
     engine, backend : the engine, or "auto" / "opencl" / "numpy" (see :func:`pbrdf_cl.engine.resolve_engine`)
+    quantity : {"dop", "brdf", "aop", "stokes"}, default "dop"
+        See :mod:`pbrdf_cl.quantities` ("f00" is "brdf").
+    dtype : {"float32", "float64"}, default "float32"
+    shadowing : {"paper", "smith", "none"}, default "paper"
+    progress : bool, default False
+        A progress bar (tqdm) when the grid takes more than a second.
 
     Returns
     -------
     xarray.DataArray with the axes as dimensions in canonical order (then "stokes", S0..S3, for
     the Stokes vector), labelled coordinates with units, and the fixed values, quantity,
     shadowing and dtype in ``attrs``.  The AoP is NaN where it is undefined (DOP = 0).
+
+    Raises
+    ------
+    ValueError
+        Naming the axis and the bad value; :class:`pbrdf_cl.sizes.TooLargeError` when the result
+        cannot fit in memory (found before any work).
+
+    Examples
+    --------
+    >>> import numpy as np, pbrdf_cl
+    >>> da = pbrdf_cl.grid(dict(theta_r=np.linspace(0, 85, 86), sigma=[0.1, 0.3, 0.5]),
+    ...                    dict(theta_i=40, n=1.6, k=2.139, ks=0.9, kd=0.15, c=-0.3))
+    >>> da.dims, da.shape
+    (('theta_r', 'sigma'), (86, 3))
     """
     import xarray as xr
 
@@ -443,10 +463,34 @@ def reduce_grid(axes, fixed=None, over=(), quantity="dop", dtype="float32", shad
     """Min, argmin and mean of ``quantity`` over the axes ``over``, computed on the device
     without materialising the grid.
 
-    Returns an ``xarray.Dataset`` over the remaining axes with variables ``min``, ``mean`` and,
-    for each reduced axis, ``argmin_<axis>`` (that axis' coordinate value at the minimum).
-    Quantities whose registry record refuses reductions (the AoP: an angle; the Stokes vector)
-    raise a ``ValueError`` saying why.
+    Parameters
+    ----------
+    axes, fixed, dtype, shadowing, engine, backend, memory_budget
+        As for :func:`grid`.
+    over : str or sequence of str
+        The axes to reduce (at least one of ``axes``).
+    quantity : {"dop", "brdf"}, default "dop"
+        The quantities whose registry record allows reductions ("f00" is "brdf").
+
+    Returns
+    -------
+    xarray.Dataset
+        Over the remaining axes: ``min``, ``mean`` and, for each reduced axis, ``argmin_<axis>``
+        (that axis' coordinate value at the minimum).
+
+    Raises
+    ------
+    ValueError
+        For the AoP (an angle: its mean and minimum mean nothing) and the Stokes vector, saying
+        why, and for bad axes.
+
+    Examples
+    --------
+    >>> import numpy as np, pbrdf_cl
+    >>> ds = pbrdf_cl.reduce_grid(dict(theta_i=[30, 40, 50], theta_r=np.linspace(0, 85, 86)),
+    ...                           dict(n=1.6, k=2.1, sigma=0.3), over="theta_r")
+    >>> sorted(ds.data_vars)
+    ['argmin_theta_r', 'mean', 'min']
     """
     from .ranges import parse_bytes
     memory_budget = parse_bytes("memory_budget", memory_budget)
@@ -601,6 +645,24 @@ def objective(data, grid=None, points=None, *, k_best=10, dtype="float32", shado
         evaluation per pair).
     k_best : int
         How many of the best parameter vectors to return.
+    dtype, shadowing, engine, backend, memory_budget, progress
+        As for :func:`grid`.
+    return_sse : bool, default True
+        Keep the SSE of every parameter vector (False: only the best).
+
+    Returns
+    -------
+    ObjectiveResult
+        ``sse`` (a DataArray over the grid's axes, or an array for ``points``), ``best`` (the
+        ``k_best`` best vectors and their SSE, best first), ``n_pairs``, ``seconds``.
+
+    Examples
+    --------
+    >>> import numpy as np, pbrdf_cl
+    >>> data = dict(theta_i=[30, 40, 50], theta_r=[20, 45, 65], dop=[0.052, 0.168, 0.338])
+    >>> res = pbrdf_cl.objective(data, grid=dict(n=np.linspace(1, 5, 16), k=np.linspace(0, 10, 16), sigma=0.5))
+    >>> len(res.best["sse"])
+    10
     """
     t0 = time.perf_counter()
     from .ranges import parse_bytes

@@ -58,12 +58,21 @@ def make_map(x, y, fixed=None, quantity="dop", derivative=None, *, dtype="float6
     quantity : "dop", "brdf" (alias "f00") or "aop": :func:`pbrdf_cl.quantities.names` ("map")
     derivative : None, the name of x or y (a finite difference on the device grid) or of a fixed
         input (a central difference of two device grids)
+    dtype, shadowing, engine, backend : as for :func:`pbrdf_cl.grid` (dtype defaults to float64 here)
 
     Returns
     -------
     xarray.Dataset with dims (y, x): the quantity and, with ``derivative``, ``d<quantity>_d<name>``;
     the fixed inputs, quantity, shadowing and dtype in ``attrs``.  Derivatives of an angle (the
-    AoP) are taken of its differences wrapped into one period.
+    AoP) are taken of its differences wrapped into one period.  ``attrs["notes"]`` names an axis
+    the quantity does not depend on over the map.
+
+    Examples
+    --------
+    >>> ds = make_map("theta_r=0:85@64", "sigma=0.05:1@32", dict(theta_i=40, n=1.6, k=2.139, kd=0.15),
+    ...               derivative="sigma")
+    >>> sorted(ds.data_vars)
+    ['ddop_dsigma', 'dop']
     """
     q = quantities.get(quantity, "map")
     quantity = q.name
@@ -278,11 +287,31 @@ def _symlog_ticks(norm, lim, min_gap=0.07):
 
 
 def plot_map(ds, path, title=None, dpi=120):
-    """Write ``ds`` (from :func:`make_map`) as a PNG: the quantity with labelled contour lines and a
-    colour bar, and the derivative (diverging colours, zero-centred) in a second panel when
-    present.  A BRDF over more than two decades is on a log scale of at most
-    :data:`LOG_DECADES` decades (the colour bar says where it is clipped).  Returns the
-    (closed) matplotlib Figure."""
+    """Write a map as a PNG: the quantity with labelled contour lines and a colour bar, and the
+    derivative (diverging colours, zero-centred) in a second panel when present.
+
+    A BRDF over more than two decades is on a log scale of at most :data:`LOG_DECADES` decades
+    (the colour bar says where it is clipped).
+
+    Parameters
+    ----------
+    ds : xarray.Dataset
+        From :func:`make_map`.
+    path : str or path
+        The PNG to write.
+    title : str, optional
+        Instead of the quantity, axes and fixed inputs.
+    dpi : int, default 120
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        The figure (closed).
+
+    Examples
+    --------
+    >>> plot_map(make_map("theta_r=0:85@64", "sigma=0.05:1@32", dict(theta_i=40, n=1.6, k=2.1)), "map.png")  # doctest: +SKIP
+    """
     from matplotlib import colors
     plt = _pyplot()
     xname, yname = ds.attrs["x"], ds.attrs["y"]

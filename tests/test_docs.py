@@ -1,0 +1,30 @@
+"""Every public function documents its parameters, what it returns and an example (numpydoc), and
+the examples that need no data file run (doctest)."""
+import doctest
+import inspect
+
+import pytest
+
+import pbrdf_cl
+from pbrdf_cl import api, data, dense, maps
+
+PUBLIC = [getattr(pbrdf_cl, n) for n in pbrdf_cl.__all__ if inspect.isfunction(getattr(pbrdf_cl, n))]
+PUBLIC += [maps.make_map, maps.plot_map, data.as_measurements]
+
+
+@pytest.mark.parametrize("func", PUBLIC, ids=lambda f: f.__name__)
+def test_numpydoc_sections(func):
+    doc = inspect.getdoc(func) or ""
+    needed = ("Parameters\n----------",) if inspect.signature(func).parameters else ()
+    for section in needed + ("Returns\n-------", "Examples\n--------"):
+        assert section in doc, f"{func.__module__}.{func.__name__} has no {section.splitlines()[0]} section"
+    params = doc.split("Parameters\n----------", 1)[-1].split("Returns\n-------", 1)[0]
+    for name in inspect.signature(func).parameters:
+        assert name in params, f"{func.__name__}: parameter {name!r} is not in its Parameters section"
+
+
+@pytest.mark.parametrize("module", [api, dense, data, maps], ids=lambda m: m.__name__)
+def test_docstring_examples_run(module):
+    result = doctest.testmod(module, optionflags=doctest.ELLIPSIS | doctest.NORMALIZE_WHITESPACE,
+                             extraglobs={"pbrdf_cl": pbrdf_cl})
+    assert result.attempted > 0 and result.failed == 0
