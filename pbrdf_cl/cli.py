@@ -409,7 +409,7 @@ def build_parser() -> argparse.ArgumentParser:
         unit = " (degrees)" if name in ("theta_i", "theta_r", "phi") else ""
         e.add_argument(f"--{name.replace('_', '-')}", dest=name, metavar="V",
                        help=f"{name}{unit}" + (f", default {default}" if default else ", required"))
-    e.add_argument("--quantity", choices=_quantity_choices("points"), default="dop",
+    e.add_argument("--quantity", choices=_quantity_choices("points"), default="dop", type=str.lower,
                    help="AoP in degrees (NaN where undefined), F00 and Stokes in 1/sr")
     e.add_argument("--shadowing", choices=sorted(SHADOWING), default="paper", help=_SHADOWING_HELP)
     e.add_argument("--model", choices=api.MODELS, default="six-param",
@@ -468,7 +468,7 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--x", required=True, metavar="NAME=VALUES", help="horizontal axis, e.g. theta_r=0:85@256")
     m.add_argument("--y", required=True, metavar="NAME=VALUES", help="vertical axis, e.g. sigma=0.05:1:0.05")
     m.add_argument("--fix", nargs="*", metavar="NAME=VALUE", help="the other inputs, e.g. theta_i=40 n=1.6")
-    m.add_argument("--quantity", choices=_quantity_choices("map"), default="dop",
+    m.add_argument("--quantity", choices=_quantity_choices("map"), default="dop", type=str.lower,
                    help="what to map: dop, brdf (alias f00; 1/sr, log colours when it spans decades), aop (deg)")
     m.add_argument("--derivative", metavar="NAME",
                    help="add a panel with d(quantity)/d(NAME): finite differences on the device grid")

@@ -9,8 +9,9 @@ its units and labels, and which paths support it (points, grid, reduce, objectiv
 with the reason where one does not.  Adding a quantity = those two physics functions, one record
 here, and tests.
 
-Names are canonical; :func:`get` also takes the aliases (``"f00"`` is ``"brdf"``) and raises a
-one-line ``ValueError`` for an unknown name or an unsupported path.
+Names are canonical; :func:`get` also takes the aliases (``"f00"`` is ``"brdf"``) and any case,
+and raises a one-line ``ValueError`` for an unknown name (with the nearest name) or an
+unsupported path.
 """
 from __future__ import annotations
 
@@ -111,11 +112,15 @@ def names(path=None):
 def get(name, path=None, where="quantity"):
     """The :class:`Quantity` of ``name`` (canonical or alias); with ``path``, a ``ValueError`` unless it
     is available there.  ``where`` names the argument in messages."""
-    key = ALIASES.get(name, name) if isinstance(name, str) else name
+    low = name.strip().lower() if isinstance(name, str) else name
+    key = ALIASES.get(low, low) if isinstance(low, str) else low
     q = REGISTRY.get(key) if isinstance(key, str) else None
     if q is None:
+        import difflib
         avail = names(path)
-        raise ValueError(f"{where}: unknown quantity {name!r}; valid names are {', '.join(avail)}"
+        close = difflib.get_close_matches(str(low), list(REGISTRY) + list(ALIASES), n=1, cutoff=0.6)
+        raise ValueError(f"{where}: unknown quantity {name!r}" + (f" (did you mean {close[0]!r}?)" if close else "")
+                         + f"; valid names are {', '.join(avail)}"
                          + (f" (aliases: {', '.join(f'{a}={c}' for a, c in ALIASES.items())})" if ALIASES else ""))
     if path is not None and path not in q.paths:
         why = q.refused.get(path, "not implemented")

@@ -30,10 +30,10 @@ def test_every_registered_quantity_has_its_physics_in_both_files():
 
 
 def test_names_aliases_and_refusals():
-    assert quantities.canonical("f00") == "brdf"
+    assert quantities.canonical("f00") == "brdf" and quantities.canonical("DOP") == quantities.canonical(" Dop") == "dop"
     assert quantities.names("objective") == ("dop",)
     assert set(quantities.names("grid")) == {"dop", "brdf", "aop", "stokes"}
-    with pytest.raises(ValueError, match=r"^quantity: unknown quantity 'dolp'; valid names are dop, brdf"):
+    with pytest.raises(ValueError, match=r"^quantity: unknown quantity 'dolp' \(did you mean 'dop'\?\); valid names are dop, brdf"):
         quantities.get("dolp")
     with pytest.raises(ValueError, match=r"'aop' is not available for reduce: an angle.*available there: dop, brdf$"):
         quantities.get("aop", "reduce")
