@@ -9,6 +9,7 @@ import pbrdf_cl
 from pbrdf_cl import dense as G
 from conftest import call, random_inputs
 from test_kernels import f32_tolerance
+from test_variants import OBJECTIVE_GRIDS, axis_sets
 
 
 def test_index_limit_is_the_documented_threshold():
@@ -30,21 +31,14 @@ def index_types(monkeypatch):
     return seen
 
 
-ROWS = dict(theta_r=np.linspace(0, 88, 9), sigma=np.array([0.3, 0.6, 1.0]), kd=np.linspace(0.05, 3, 4),
-            c=np.linspace(-0.9, 0, 5))  # kd x c = 20: the row kernels
-POINTS = dict(theta_i=np.array([25.0, 60.0]), theta_r=np.linspace(5, 85, 7), phi=np.array([35.0, 180.0]),
-              sigma=np.array([0.25, 0.5, 1.0]), kd=np.array([0.1, 2.0]))  # one point per work-item
-FIXED = dict(theta_i=52.0, phi=125.0, n=1.7, k=2.3, ks=0.8, c=-0.4)
-OBJ_GRIDS = [dict(n=np.linspace(1, 3, 4), k=np.linspace(0, 3, 3), sigma=np.array([0.3, 0.9]), kd=np.linspace(0, 1, 10),
-                  c=np.array([-0.6, -0.2])),
-             dict(n=np.linspace(1, 3, 5), k=np.linspace(0, 3, 4), sigma=np.array([0.4, 0.8]), kd=0.3, c=-0.4)]
+# the shapes of test_variants.py (the same programs, in 32 bits): the row kernels and one point per work-item
+SHAPES = axis_sets("out-of-plane")
 
 
 def _results(eng):
     """Grids (rows and points kernels, DOP / F00 / Stokes, in chunks), reductions and objectives."""
     out = []
-    for axes in (ROWS, POINTS):
-        fixed = {n: v for n, v in FIXED.items() if n not in axes}
+    for axes, fixed in SHAPES:
         for quantity, dtype in (("dop", "float32"), ("f00", "float64"), ("stokes", "float32")):
             out.append(G.grid(axes, fixed, quantity, dtype, "smith", engine=eng, memory_budget=6000).values)
         for dtype in ("float32", "float64"):
@@ -53,7 +47,7 @@ def _results(eng):
     rng = np.random.default_rng(3)
     data = dict(theta_i=rng.uniform(10, 70, 9), theta_r=rng.uniform(5, 80, 9), phi=rng.choice([180.0, 120.0], 9))
     data["dop"] = pbrdf_cl.dop(**data, n=1.8, k=1.2, sigma=0.6, kd=0.3, c=-0.4, backend="numpy")
-    for grid in OBJ_GRIDS:
+    for grid in OBJECTIVE_GRIDS:
         for dtype in ("float32", "float64"):
             res = G.objective(data, grid=grid, dtype=dtype, engine=eng, k_best=4, memory_budget=20000)
             out += [res.sse.values, res.best["index"], res.best["sse"]]
