@@ -11,7 +11,6 @@ import json
 
 import numpy as np
 import pytest
-import xarray as xr
 
 import pbrdf_cl
 from pbrdf_cl import cli, quantities
@@ -26,7 +25,7 @@ OTHER = {"paper": "smith", "smith": "none", "none": "paper"}  # a variant that d
 PLANES = {"in-plane": [180.0], "out-of-plane": [35.0, 125.0, 290.0]}
 BASE = dict(n=1.7, k=2.3, ks=0.8)
 # kd > 0 throughout (with kd = 0 the DOP does not depend on the shadowing) and sigma where the
-# variants differ; RECORD_ROWS has kd x c = 16 (pbrdf_grid.cl's row kernels), POINTS one point per
+# variants differ; ROWS has kd x c = 16 (pbrdf_grid.cl's row kernels), POINTS one point per
 # work-item
 ROWS = dict(theta_r=np.linspace(0, 88, 9), sigma=np.array([0.3, 0.6, 1.0]), kd=np.array([0.05, 0.3, 1.0, 3.0]),
             c=np.array([-0.9, -0.6, -0.3, 0.0]))
