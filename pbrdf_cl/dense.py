@@ -297,8 +297,12 @@ def grid_program(eng, dtype, sizes, idx_name, quantity, prefix="", **extra):
     return eng.program("pbrdf_grid.cl", dtype, defines, prefix)
 
 
+#: Grids (and reductions, objectives) of this many points or more use 64-bit indices in the kernels.
+INDEX32_LIMIT = 2 ** 32 - 2
+
+
 def _index_type(total):
-    return ("uint", np.uint32) if total < 2 ** 32 - 2 else ("ulong", np.uint64)
+    return ("uint", np.uint32) if total < INDEX32_LIMIT else ("ulong", np.uint64)
 
 
 def _check_quantity(quantity, path="grid"):

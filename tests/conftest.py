@@ -2,8 +2,10 @@
 
 OpenCL devices: the kernel-versus-reference tests (those using the ``engine`` or ``each_device``
 fixture) run on every usable OpenCL device present except the Oclgrind simulator, each held to
-the same tolerances, in the style of pyopencl's ``PYOPENCL_TEST``: ``PBRDF_TEST_DEVICES`` (comma-
-separated substrings of "platform / device") restricts them.  Without a usable device those
+the same tolerances.  ``PYOPENCL_TEST``, if set, picks the devices as pyopencl's ``ctx_factory`` does
+(``"0:0,1;intel:i5"``: platforms and their devices, by number or name substring), and
+``PBRDF_TEST_DEVICES`` (comma-separated substrings of "platform / device") restricts them further,
+so that the same suite runs unchanged on whichever device the environment names (a GPU, a CPU).  Without a usable device those
 tests are skipped, saying why, unless ``PBRDF_REQUIRE_OPENCL=1`` (as ``.ci/run`` sets), which
 makes the session fail instead.  The header of the run names the devices.
 """
@@ -27,6 +29,15 @@ def _test_devices():
     except engine_mod.OpenCLUnavailableError as exc:
         return [], str(exc)
     usable = [d for d in engine_mod.candidates(found) if engine_mod.probe(d).usable]
+    if os.environ.get("PYOPENCL_TEST"):
+        from pyopencl.tools import get_test_platforms_and_devices
+        try:
+            named = {d.int_ptr for _, devs in get_test_platforms_and_devices() for d in devs}
+        except RuntimeError as exc:  # a name that matches nothing, or bad syntax
+            return [], f"PYOPENCL_TEST={os.environ['PYOPENCL_TEST']!r}: {exc}"
+        usable = [d for d in usable if d.int_ptr in named]
+        if not usable:
+            return [], f"no usable OpenCL device matches PYOPENCL_TEST={os.environ['PYOPENCL_TEST']!r}"
     wanted = [w.strip().lower() for w in os.environ.get("PBRDF_TEST_DEVICES", "").split(",") if w.strip()]
     if wanted:
         usable = [d for d in usable if any(w in engine_mod.describe(d).lower() for w in wanted)]
