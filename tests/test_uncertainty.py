@@ -110,14 +110,21 @@ def test_ambiguous_on_constructed_candidates():
 
 
 def test_out_of_plane_data_recover_the_truth():
+    """Six noisy out-of-plane data sets: every estimate within 4 standard errors of the truth, and
+    ci95 covering it in at least 15 of the 18 (parameter, set) pairs (expected 17.1; 15 is 2 sigma
+    of the binomial below)."""
     rng = np.random.default_rng(4)
-    parts = [data(rng, phi=p, noise=5e-4) for p in (120.0, 150.0, 210.0)]
-    d = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
-    r = pbrdf_cl.fit(d, fixed=FIXED)
-    assert r.fits_data and r.success
-    for n in r.free:
-        assert r.ci95[n][0] <= TRUTH[n] <= r.ci95[n][1], (n, r.x[n], r.ci95[n])
-        assert abs(r.x[n] - TRUTH[n]) < 0.03 * TRUTH[n]
+    covered, z = 0, []
+    for _ in range(6):
+        parts = [data(rng, phi=p, noise=5e-4) for p in (120.0, 150.0, 210.0)]
+        d = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+        r = pbrdf_cl.fit(d, fixed=FIXED)
+        assert r.fits_data and r.success
+        for n in r.free:
+            covered += r.ci95[n][0] <= TRUTH[n] <= r.ci95[n][1]
+            z.append((r.x[n] - TRUTH[n]) / r.stderr[n])
+            assert abs(r.x[n] - TRUTH[n]) < 0.03 * TRUTH[n]
+    assert covered >= 15 and np.max(np.abs(z)) < 4, (covered, np.round(z, 2))
 
 
 def test_the_s0_column_is_the_intensity(tmp_path):
