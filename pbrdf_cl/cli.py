@@ -392,16 +392,8 @@ def _positionals_first(argv):
     return out[:1] + moved + out[1:] if moved else out
 
 
-def build_parser() -> argparse.ArgumentParser:
-    from . import __version__
-    p = _Parser(prog="pbrdf-cl", description="The six-parameter pBRDF model on OpenCL. "
-                "Angles in degrees; phi = 180 is the in-plane geometry. `pbrdf-cl COMMAND --help` for each.")
-    p.add_argument("--version", action="version", version=f"pbrdf-cl {__version__}")
-    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    d = sub.add_parser("devices", help="list OpenCL platforms and devices")
-    d.add_argument("--device", help="mark this device as the one chosen (P:D or a name substring)")
-    d.add_argument("--json", action="store_true", help="JSON output")
-    d.set_defaults(func=cmd_devices)
+def _eval_parser(sub):
+    """The `pbrdf-cl eval` sub-command."""
     e = sub.add_parser("eval", help="evaluate DOP, F00, AoP, the Stokes vector or the Mueller matrix",
                        description=f"Each value option takes {ranges.GRAMMAR}; see the README, Ranges "
                        "and name=value. The output has one row per combination.")
@@ -418,6 +410,10 @@ def build_parser() -> argparse.ArgumentParser:
     _device_options(e)
     e.add_argument("--json", action="store_true", help="JSON output")
     e.set_defaults(func=cmd_eval)
+
+
+def _sweep_parser(sub):
+    """The `pbrdf-cl sweep` sub-command."""
     s = sub.add_parser("sweep", help="a sweep of any size into a Zarr store (resumable; dask cluster)",
                        description="Evaluate the sweep described by a TOML spec (axes, fixed values, quantity, "
                        "dtype, chunks, optional reductions; see examples/sweep_sigma_theta.toml) chunk by chunk "
@@ -433,6 +429,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--allow-large", action="store_true",
                    help="start even when the store (uncompressed) would not fit on the free disk")
     s.set_defaults(func=cmd_sweep)
+
+
+def _fit_parser(sub):
+    """The `pbrdf-cl fit` sub-command."""
     f = sub.add_parser("fit", help="invert n, k, sigma, kd/ks, c from measured DOP (CSV)",
                        description="Fit the six-parameter model (or, with --model specular, the ref. [7] "
                        "specular model; --compare: both) to a CSV of measurements (columns theta_i, theta_r, "
@@ -451,6 +451,10 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--quiet", action="store_true",
                    help="no progress bar; only each fitted value with its 95%% interval")
     f.set_defaults(func=cmd_fit)
+
+
+def _reproduce_parser(sub):
+    """The `pbrdf-cl reproduce` sub-command."""
     r = sub.add_parser("reproduce", help="reproduce the paper's figures and Table 1, plus roughness maps",
                        description="Writes Fig. 2 (aluminum, black paint: synthetic data, both models fitted), "
                        "Table 1, Fig. 4, Fig. 5, two dense DOP maps, the arrays of each figure (.npz) and "
@@ -460,7 +464,11 @@ def build_parser() -> argparse.ArgumentParser:
     _device_options(r)
     r.add_argument("--quiet", action="store_true", help="no progress lines")
     r.set_defaults(func=cmd_reproduce)
-    m = sub.add_parser("map", help="a dense map of DOP or F00 over any two axes (PNG + optional .npz)",
+
+
+def _map_parser(sub):
+    """The `pbrdf-cl map` sub-command."""
+    m = sub.add_parser("map", help="a dense map of DOP, F00 or AoP over any two axes (PNG + optional .npz)",
                        description=f"Axes: NAME=VALUES, VALUES being {ranges.GRAMMAR}; see the README, "
                        "Ranges and name=value. Angles in degrees. Inputs not on an axis are fixed with --fix (phi, ks, kd, "
                        "c default to 180, 1, 0, 0). Example: pbrdf-cl map --x theta_r=0:85@256 --y sigma=0.05:1@256 "
@@ -478,6 +486,24 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--out", default="map.png", help="PNG to write (default map.png)")
     m.add_argument("--npz", metavar="NPZ", help="also save the arrays (coordinates, values, derivative)")
     m.set_defaults(func=cmd_map)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from . import __version__
+    p = _Parser(prog="pbrdf-cl", description="The six-parameter pBRDF model on OpenCL. "
+                "Angles in degrees; phi = 180 is the in-plane geometry. `pbrdf-cl COMMAND --help` for each.")
+    p.add_argument("--version", action="version", version=f"pbrdf-cl {__version__}")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    d = sub.add_parser("devices", help="list OpenCL platforms and devices")
+    d.add_argument("--device", help="mark this device as the one chosen (P:D or a name substring)")
+    d.add_argument("--json", action="store_true", help="JSON output")
+    d.set_defaults(func=cmd_devices)
+    _eval_parser(sub)
+    _sweep_parser(sub)
+    _fit_parser(sub)
+    _reproduce_parser(sub)
+    _map_parser(sub)
     b = sub.add_parser("bench", help="benchmark every evaluation path (options: pbrdf-cl bench --help)",
                        add_help=False)
     b.add_argument("rest", nargs=argparse.REMAINDER)
