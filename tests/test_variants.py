@@ -332,7 +332,7 @@ def test_cli_fit_with_none_gives_the_api_numbers(each_device, tmp_path, capsys):
     csv = Path(__file__).resolve().parent.parent / "examples" / "steel_435nm.csv"
     out = tmp_path / "fit.json"
     assert cli.main(["fit", str(csv), "--shadowing", "none", "--fix", "sigma=0.5", "c=-0.3", "--json", str(out),
-                     "--quiet"]) == 0
+                     "--quiet", "--compare"]) == 0
     fits = json.loads(out.read_text())["fits"]
     api = F.compare_models(read_csv(csv), shadowing="none", fixed=dict(sigma=0.5, c=-0.3), engine=each_device)
     paper = F.fit(read_csv(csv), shadowing="paper", fixed=dict(sigma=0.5, c=-0.3), engine=each_device)
