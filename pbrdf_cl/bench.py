@@ -9,7 +9,9 @@ result; their peak extra memory is measured with tracemalloc).  Two limits are m
 same run where a C compiler exists: "C loop" (``kernels/pbrdf_host.c``: pbrdf.h itself compiled
 by the host's C compiler, vectorised with OpenMP) and "memory roofline" (a loop moving the path's
 bytes, read its inputs and write its output, without arithmetic); each end-to-end row reports its
-fraction of both (``of_c_loop``, ``of_roofline``).
+fraction of both (``of_c_loop``, ``of_roofline``); the objective and sweep rows report theirs of
+the limits measured for the per-point and grid rows of the same dtype (a pair is one DOP; the
+roofline of writing their output).
 """
 from __future__ import annotations
 
@@ -190,6 +192,17 @@ def _limits(rows, row, dtype, arrays, out, repeats, per_point):
         row["of_c_loop"] = row["rate"] / c_rows[-1]
 
 
+def _fractions_of_earlier_limits(rows, row, dtype, bytes_per_unit):
+    """``row``'s fractions of the C loop (one DOP per unit of its rate) and of the write roofline
+    (``bytes_per_unit`` bytes written per unit) measured by earlier rows of ``dtype``, where there are any."""
+    c_rows = [r["rate"] for r in rows if r["path"].startswith("C loop") and r["dtype"] == dtype]
+    write = [r["rate"] for r in rows if r["path"].startswith("memory roofline (write") and r["dtype"] == dtype]
+    if c_rows:
+        row["of_c_loop"] = row["rate"] / c_rows[-1]
+    if write:
+        row["of_roofline"] = row["rate"] * bytes_per_unit / write[-1]
+
+
 GRID_AXES = dict(theta_i=np.linspace(10, 80, 16), theta_r=np.linspace(0, 85, 64), n=np.linspace(1, 3, 16),
                  k=np.linspace(0, 5, 16), sigma=np.linspace(0.05, 1, 32), kd=np.linspace(0, 1, 16),
                  c=np.linspace(-1, 0, 2))  # 268M points
@@ -271,8 +284,11 @@ def bench_objective(eng, rows, rng, scale, repeats):
         rate, sec = median_rate(lambda: dense.objective(data, grid=grid, dtype=dtype, engine=eng, return_sse=False),
                                 res.n_pairs, repeats)
         label = ", numpy backend" if eng.is_numpy else ""
-        rows.append(dict(path=f"objective, grid x 30 measurements (end-to-end, top-10{label})", dtype=dtype, rate=rate,
-                         unit="pairs/s", seconds=sec, max_abs_err=err, n=res.n_pairs))
+        row = dict(path=f"objective, grid x 30 measurements (end-to-end, top-10{label})", dtype=dtype, rate=rate,
+                   unit="pairs/s", seconds=sec, max_abs_err=err, n=res.n_pairs)
+        rows.append(row)
+        # a pair is one DOP (the C loop's unit); with the whole SSE kept it writes one value per 30 pairs
+        _fractions_of_earlier_limits(rows, row, dtype, np.dtype(_engine.DTYPES[dtype]).itemsize / ti.size)
 
 
 SWEEP_AXES = dict(theta_i=np.linspace(10, 80, 8), theta_r=np.linspace(0, 85, 32), n=np.linspace(1, 3, 16),
@@ -317,9 +333,11 @@ def bench_sweep(eng, device, rows, rng, scale, repeats, workers=2, backend="auto
             shutil.rmtree(run(**kw))
         rate, sec = median_rate(timed, spec.points, max(1, repeats - 2))
         label += ", numpy backend" if eng.is_numpy else ""
-        rows.append(dict(path=f"sweep -> Zarr store, {label} (end-to-end)", dtype=spec.dtype, rate=rate,
-                         unit="grid points/s", seconds=sec, max_abs_err=err, n=spec.points,
-                         memory_budget=spec.memory_budget, chunks=spec.n_chunks))
+        row = dict(path=f"sweep -> Zarr store, {label} (end-to-end)", dtype=spec.dtype, rate=rate,
+                   unit="grid points/s", seconds=sec, max_abs_err=err, n=spec.points,
+                   memory_budget=spec.memory_budget, chunks=spec.n_chunks)
+        rows.append(row)
+        _fractions_of_earlier_limits(rows, row, spec.dtype, spec.itemsize)
     try:
         measure("here", engine=eng)
         try:
