@@ -117,19 +117,19 @@ def test_the_transfer_pipeline_of_gpus_gives_the_same_values(engine, monkeypatch
     n = 20011  # with LAUNCH_POINTS = 4096: five launches, slots reused, a padded tail
     inp = dict(theta_i=rng.uniform(0, 89, n), theta_r=rng.uniform(0, 89, n).astype(np.float32),
                phi=np.broadcast_to(rng.uniform(0, 360, (n, 1)), (n, 3))[:, 1], sigma=rng.uniform(0.05, 1, n))
-    pipe = E.Engine(engine.device)
-    pipe.force_transfers = True
-    assert pipe.overlaps_transfers
     monkeypatch.setattr(E, "LAUNCH_POINTS", 4096)
-    for dtype in ("float32", "float64"):
-        for q in ("dop", "brdf", "aop", "stokes", "mueller"):
-            kw = dict(n=1.6, k=2.1, kd=0.2, c=-0.3, dtype=dtype, **inp)
-            np.testing.assert_array_equal(pbrdf_cl.evaluate(q, engine=pipe, **kw),
-                                          pbrdf_cl.evaluate(q, engine=engine, **kw), err_msg=f"{q} {dtype}")
-    with pytest.raises(ValueError, match=r"theta_r must be in \[0, 90\) degrees, got 95.0 at index \[7\]"):
-        pbrdf_cl.dop(40, np.where(np.arange(50) == 7, 95.0, 30.0), n=1.6, k=2, sigma=0.3, engine=pipe)
+    cases = [(q, d) for d in ("float32", "float64") for q in ("dop", "brdf", "aop", "stokes", "mueller")]
     axes = dict(theta_r=np.linspace(0, 85, 40), phi=[60.0, 180.0], sigma=np.linspace(0.1, 1, 9), kd=[0.0, 0.5])
-    for q in ("dop", "stokes"):
-        got = pbrdf_cl.grid(axes, dict(theta_i=40, n=1.6, k=2.1), quantity=q, engine=pipe, memory_budget=8000)
-        want = pbrdf_cl.grid(axes, dict(theta_i=40, n=1.6, k=2.1), quantity=q, engine=engine, memory_budget=8000)
-        np.testing.assert_array_equal(got.values, want.values, err_msg=q)
+    fixed = dict(theta_i=40, n=1.6, k=2.1)
+
+    def results():
+        points = [pbrdf_cl.evaluate(q, n=1.6, k=2.1, kd=0.2, c=-0.3, dtype=d, engine=engine, **inp) for q, d in cases]
+        return points + [pbrdf_cl.grid(axes, fixed, quantity=q, engine=engine, memory_budget=8000).values
+                         for q in ("dop", "stokes")]
+    in_place = results()  # the same engine (its programs built once), then through the pipeline
+    monkeypatch.setattr(engine, "force_transfers", True)
+    assert engine.overlaps_transfers
+    for i, (a, b) in enumerate(zip(results(), in_place)):
+        np.testing.assert_array_equal(a, b, err_msg=str(cases[i] if i < len(cases) else ("grid", i)))
+    with pytest.raises(ValueError, match=r"theta_r must be in \[0, 90\) degrees, got 95.0 at index \[7\]"):
+        pbrdf_cl.dop(40, np.where(np.arange(50) == 7, 95.0, 30.0), n=1.6, k=2, sigma=0.3, engine=engine)
