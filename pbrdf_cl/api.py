@@ -82,12 +82,13 @@ def check_values(name, value):
 
 def _check_domain(name, a):
     """Every value of ``a`` (either float dtype) finite and in ``RULES[name]``, else a ``ValueError``
-    naming the first bad one; two reads (min, max) when all is well."""
+    naming the first bad one; two reads (min, max) when all is well.  Returns ``(min, max)`` (None
+    for an empty array)."""
     ok, rule = RULES[name]
     if a.size:
         lo, hi = np.min(a), np.max(a)  # NaN propagates
         if np.isfinite(lo) and np.isfinite(hi) and ok(lo) and ok(hi):
-            return
+            return float(lo), float(hi)
         bad = ~np.isfinite(a)
         if bad.any():
             raise ValueError(f"{name} must be finite, got {float(a[bad].flat[0])!r}{_where(a, bad)}")
@@ -102,12 +103,23 @@ class UnitsWarning(UserWarning):
 RADIANS_HINT = 1.6
 
 
-def check_degrees(theta_i, theta_r, where=""):
-    """Warn (:class:`UnitsWarning`) when every zenith angle lies below 1.6 and not all are 0: such
-    angles are almost always radians (pbrdf-cl takes degrees).  Two reads of each array."""
-    hi = max(float(np.max(a)) if np.size(a) else 0.0 for a in (theta_i, theta_r))
-    lo = min(float(np.min(a)) if np.size(a) else 0.0 for a in (theta_i, theta_r))
-    if 0.0 < hi < RADIANS_HINT and lo >= 0.0:
+def radians_suspect(theta_i, theta_r, bounds=None):
+    """The largest zenith angle when every one lies in [0, 1.6) and not all are 0 (such angles are
+    almost always radians: pbrdf-cl takes degrees), else None.  ``bounds``: name -> (min, max)
+    already read (by :func:`_check_domain`); the other arrays are read twice (min, max)."""
+    ranges = []
+    for name, a in (("theta_i", theta_i), ("theta_r", theta_r)):
+        known = (bounds or {}).get(name)
+        ranges.append(known if known is not None else
+                      ((float(np.min(a)), float(np.max(a))) if np.size(a) else (0.0, 0.0)))
+    lo, hi = min(r[0] for r in ranges), max(r[1] for r in ranges)
+    return hi if 0.0 < hi < RADIANS_HINT and lo >= 0.0 else None
+
+
+def check_degrees(theta_i, theta_r, where="", bounds=None):
+    """Warn (:class:`UnitsWarning`) when the zenith angles look like radians (:func:`radians_suspect`)."""
+    hi = radians_suspect(theta_i, theta_r, bounds)
+    if hi is not None:
         import warnings
         warnings.warn(f"{where}theta_i and theta_r all lie below {RADIANS_HINT} degrees (the largest is {hi:.4g}): "
                       "are they in radians? pbrdf-cl takes degrees (np.degrees(...) converts)", UnitsWarning,
@@ -162,10 +174,8 @@ def validate(theta_i, theta_r, phi, n, k, sigma, ks, kd, c, *, shadowing="paper"
         raise ValueError("sigma is required (the per-axis slope standard deviation, > 0)")
     given = dict(theta_i=theta_i, theta_r=theta_r, phi=phi, n=n, k=k, sigma=sigma, ks=ks, kd=kd, c=c)
     arrays = {name: _as_array(name, given[name]) for name in POINT_INPUTS}
-    if values:
-        for name in POINT_INPUTS:
-            _check_domain(name, arrays[name])
-    check_degrees(arrays["theta_i"], arrays["theta_r"])
+    bounds = {name: _check_domain(name, arrays[name]) for name in POINT_INPUTS} if values else None
+    check_degrees(arrays["theta_i"], arrays["theta_r"], bounds=bounds)  # the bounds read above, if any
     if model == "specular":
         _check("kd", arrays["kd"], lambda a: a == 0, "0 in the specular (ref. [7]) model")
     try:

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import api, drivers, engine as _engine, quantities, ranges
+from . import api, drivers, engine as _engine, quantities, ranges, sizes
 from .reference import SHADOWING
 
 PARAMS = (("theta_i", None), ("theta_r", None), ("phi", "180"), ("n", None), ("k", None),
@@ -140,7 +140,6 @@ def cmd_eval(args) -> int:
     shape = tuple(values[n].size for n in names)
     total = int(np.prod(shape, dtype=np.int64))
     width = quantities.get(args.quantity, "points", "--quantity").width
-    from . import sizes
     sizes.check_memory(total * (16 * len(names) + 16 * width + (400 if args.json else 0)),
                        f"pbrdf-cl eval of {' x '.join(map(str, shape))} = {total} rows",
                        "give fewer values per option; for large Cartesian products use pbrdf-cl map or "
@@ -524,8 +523,8 @@ def _environment_error(exc):
     if cl is not None and isinstance(exc, cl.Error):
         return (f"OpenCL: {_engine.first_error_line(exc)}; try another device (`pbrdf-cl devices`) or "
                 "--backend numpy")
-    if isinstance(exc, MemoryError) and exc.args and "memory is available" in str(exc):
-        return str(exc)  # sizes.TooLargeError: the estimate, found before any work
+    if isinstance(exc, sizes.TooLargeError):
+        return str(exc)  # the estimate, found before any work
     if isinstance(exc, MemoryError):
         return "out of memory; use smaller sizes (fewer points per axis, a smaller memory_budget)"
     if isinstance(exc, OSError):

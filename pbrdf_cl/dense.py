@@ -150,7 +150,6 @@ class _NumpyTables:
     def __init__(self, shadowing, quantity, ti, tr, ph, v):
         q = quantities.get(quantity)
         self.combine_fn = getattr(reference, f"grid_{q.name}")
-        self.width = q.width
         variant = reference.SHADOWING[shadowing]
         g = reference.geometry(np.asarray(ti, float)[:, None], np.asarray(tr, float)[:, None],
                                np.asarray(ph, float)[:, None])

@@ -1282,8 +1282,8 @@ def _goodness(meas, dop_resid, unc, sigma_known):
 def _convention_notes(meas):
     """The unit and convention mistakes the data show by themselves."""
     notes = []
-    hi = max(float(meas.theta_i.max()), float(meas.theta_r.max()))
-    if 0.0 < hi < api.RADIANS_HINT:
+    hi = api.radians_suspect(meas.theta_i, meas.theta_r)
+    if hi is not None:
         notes.append(f"every theta_i and theta_r lies below {api.RADIANS_HINT} degrees (the largest is {hi:.4g}): "
                      "radians? pbrdf-cl takes degrees")
     if np.all(meas.phi == 0.0):

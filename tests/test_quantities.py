@@ -8,7 +8,7 @@ import xarray as xr
 
 import pbrdf_cl
 from conftest import call, random_inputs, requires_opencl
-from pbrdf_cl import cli, dense, maps, quantities, reference
+from pbrdf_cl import cli, maps, quantities, reference
 from pbrdf_cl.engine import kernel_dir
 from pbrdf_cl.sweeps import SpecError, SweepSpec
 

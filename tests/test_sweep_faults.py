@@ -11,23 +11,10 @@ import pytest
 
 import pbrdf_cl
 from pbrdf_cl import sweeps as S
-from test_sweep import PACKAGE_ROOT, SPEC_TOML, files, n_done
+from test_sweep import PACKAGE_ROOT, files, n_done
+from test_sweep import reference, spec_file  # noqa: F401 - the fixtures: SPEC_TOML and its uninterrupted store
 
 ENV = dict(os.environ, PYTHONPATH=PACKAGE_ROOT, PYTHONWARNINGS="ignore")
-
-
-@pytest.fixture(scope="module")
-def spec_file(tmp_path_factory):
-    path = tmp_path_factory.mktemp("spec") / "spec.toml"
-    path.write_text(SPEC_TOML)
-    return path
-
-
-@pytest.fixture(scope="module")
-def reference(spec_file, tmp_path_factory):
-    store = tmp_path_factory.mktemp("ref") / "ref.zarr"
-    assert pbrdf_cl.sweep(spec_file, store, progress=False).complete
-    return store
 
 
 def sweep_cmd(spec_file, store, *extra):
