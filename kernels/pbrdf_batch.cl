@@ -1,0 +1,378 @@
+/*
+ * pbrdf_batch.cl -- per-pixel inversion of image stacks (pbrdf_cl/batch.py): the coarse grid
+ * stage and the bounded Levenberg-Marquardt stage, for many pixels at once.
+ *
+ * Pixels are the fastest index of every per-pixel array, padded to a multiple of the vector
+ * width: x[m * P + p] for measurement m of pixel p (P the padded count).  Padding pixels have
+ * weight 0.  No physics here: everything model-related calls kernels/pbrdf.h.
+ *
+ * Grid stage (built without PB_VECTOR_REAL; PB_VW pixels per work-item as realv lanes): the
+ * weighted SSE of every pixel at every grid point, reduced on the device to the minimum (and
+ * its grid point) of each region of the grid; a region is a contiguous range [rstart[r],
+ * rstart[r+1]) of the region-ordered grid points.
+ *   batch_grid_table   shared geometry: the DOP table T[q * M + m] of grid point q at
+ *                      measurement m, computed once; SSE = c + sum_m (b_m T - 2 a_m) T with
+ *                      a = w dop, b = w, c = sum w dop^2 per pixel (a product of the table with
+ *                      the pixels' data: no model evaluation per pixel).
+ *   batch_grid_factors per-pixel geometry: the factor tables of pbrdf_tables.cl for the geometry
+ *                      list m * P + p, laid out table[param * (M P) + m * P + p], combined per
+ *                      pixel and grid point (pb_dop_combine); grid point q is order[q], decoded
+ *                      as (nk * PB_NM + s) * PB_NI + j.
+ *
+ * LM stage (built with -DPB_VECTOR_REAL=N: N problems per work-item as the lanes of real):
+ *   batch_lm           from a start per problem (problem = start slot * P + pixel), a bounded
+ *                      Levenberg-Marquardt descent mirroring pbrdf_cl.inversion._lm_batch: damping
+ *                      in coordinates scaled to the bounds, coordinates on a bound whose descent
+ *                      points outwards held, steps projected onto the bounds, forward-difference
+ *                      Jacobians (each column recomputes only the factor its parameter enters).
+ *   Build options: PB_D free parameters; PB_X_N, PB_X_K, PB_X_SIGMA, PB_X_KD, PB_X_C, PB_X_KS the
+ *   slot of each parameter in x (-1: fixed at base[]); PB_INTENSITY adds the F00 residuals
+ *   (then kd in x is kd/ks and ks enters x as log ks); PB_PIXEL_GEOMETRY reads the angles per
+ *   pixel ([m * P + p]) instead of shared ([m]); PBRDF_SHADOWING.
+ */
+#include "pbrdf.h"
+
+#ifndef PBRDF_SHADOWING
+#define PBRDF_SHADOWING PB_SHADOW_PAPER
+#endif
+
+#ifndef PB_VECTOR_REAL
+
+__kernel void batch_grid_table(__global real *best, __global real *arg, const int P, const int M,
+                               __global const real *T, __global const int *rstart, const int R,
+                               __global const real *a2, __global const real *b, __global const real *c)
+{
+    const int p0 = get_global_id(0) * PB_VW;
+    if (p0 >= P) return;
+    const realv cc = pb_vload(0, c + p0);
+    for (int r = 0; r < R; r++) {
+        realv bs = (realv)INFINITY, bq = (realv)0;
+        for (int q = rstart[r]; q < rstart[r + 1]; q++) {
+            __global const real *t = T + (size_t)q * M;
+            realv acc = cc;
+            for (int m = 0; m < M; m++) {
+                const realv tm = (realv)t[m];
+                /* a2 = -2 w dop: acc += (w T - 2 w dop) T */
+                acc = fma(fma(pb_vload(0, b + m * P + p0), tm, pb_vload(0, a2 + m * P + p0)), tm, acc);
+            }
+            const realv q_ = (realv)(real)q;
+            bq = acc < bs ? q_ : bq;
+            bs = acc < bs ? acc : bs;
+        }
+        pb_vstore(bs, 0, best + r * P + p0);
+        pb_vstore(bq, 0, arg + r * P + p0);
+    }
+}
+
+#ifdef PB_NI
+__kernel void batch_grid_factors(__global real *best, __global real *arg, const int P, const int M,
+                                 __global const real *sum, __global const real *diff,
+                                 __global const real *scale, __global const real *dif,
+                                 __global const int *order, __global const int *rstart, const int R,
+                                 __global const real *obs, __global const real *w)
+{
+    const int p0 = get_global_id(0) * PB_VW;
+    if (p0 >= P) return;
+    const int ng = M * P;
+    for (int r = 0; r < R; r++) {
+        realv bs = (realv)INFINITY, bq = (realv)0;
+        for (int q = rstart[r]; q < rstart[r + 1]; q++) {
+            const int gp = order[q];
+            const int j = gp % PB_NI, s = (gp / PB_NI) % PB_NM, nk = gp / (PB_NI * PB_NM);
+            __global const real *su = sum + (size_t)nk * ng + p0, *di = diff + (size_t)nk * ng + p0;
+            __global const real *sc = scale + (size_t)s * ng + p0, *fd = dif + (size_t)j * ng + p0;
+            realv acc = (realv)0;
+            for (int m = 0; m < M; m++) {
+                const int o = m * P;
+                const realv res = pb_dop_combine_v(pb_vload(0, su + o), pb_vload(0, di + o), pb_vload(0, fd + o),
+                                                   pb_vload(0, sc + o)) - pb_vload(0, obs + o + p0);
+                acc = fma(pb_vload(0, w + o + p0) * res, res, acc);
+            }
+            const realv q_ = (realv)(real)q;
+            /* a NaN sum never wins: acc < bs is false */
+            bq = acc < bs ? q_ : bq;
+            bs = acc < bs ? acc : bs;
+        }
+        pb_vstore(bs, 0, best + r * P + p0);
+        pb_vstore(bq, 0, arg + r * P + p0);
+    }
+}
+#endif
+
+#else /* PB_VECTOR_REAL: the LM stage */
+
+#define PB_N PB_VECTOR_REAL
+#define pb_vl PB_CAT(vload, PB_VECTOR_REAL)
+#define pb_vs PB_CAT(vstore, PB_VECTOR_REAL)
+typedef PB_SCALAR scalar;
+
+#ifdef PBRDF_DOUBLE
+#define PB_EPS_SQRT ((real)1.4901161193847656e-08)
+#define PB_HUGE ((real)1e300)
+#define PB_TINY ((real)1e-300)
+#else
+#define PB_EPS_SQRT ((real)3.4526698e-04f)
+#define PB_HUGE ((real)1e30f)
+#define PB_TINY ((real)1e-30f)
+#endif
+
+#ifndef PB_X_KS
+#define PB_X_KS -1
+#endif
+/* parameter value: x[slot] when free, else the base value */
+#define PB_SLOT(s) ((s) >= 0 ? (s) : 0)
+#define PB_PAR(s, fixed) ((s) >= 0 ? x[PB_SLOT(s)] : (real)(fixed))
+
+typedef struct {
+    real n, k, sigma, ks, kd, c;  /* kd absolute (kd/ks times ks with intensities) */
+} pb_par;
+
+inline pb_par pb_params(const real *x, __global const scalar *base)
+{
+    pb_par p;
+    p.n = PB_PAR(PB_X_N, base[0]);
+    p.k = PB_PAR(PB_X_K, base[1]);
+    p.sigma = PB_PAR(PB_X_SIGMA, base[2]);
+    p.ks = PB_X_KS >= 0 ? exp(x[PB_SLOT(PB_X_KS)]) : (real)base[3];
+    p.kd = PB_PAR(PB_X_KD, base[4]);
+    p.c = PB_PAR(PB_X_C, base[5]);
+#ifdef PB_INTENSITY
+    p.kd = p.kd * p.ks;
+#endif
+    return p;
+}
+
+/* Residuals (DOP, and F00 with intensities) of one measurement and their forward differences
+ * along each free parameter, accumulated into sse, A = J^T J (row-major PB_D x PB_D), gr = J^T r. */
+inline void pb_accumulate(real res, const real *col, real *sse, real *A, real *gr)
+{
+    *sse += res * res;
+    for (int i = 0; i < PB_D; i++) {
+        gr[i] += col[i] * res;
+        for (int j = 0; j <= i; j++)
+            A[i * PB_D + j] += col[i] * col[j];
+    }
+}
+
+/* Evaluate the weighted residuals at x (and the Jacobian's normal equations) for the lanes'
+ * problems; h: the forward steps in x (internal coordinates). */
+inline void pb_evaluate(const real *x, const real *h, __global const scalar *base,
+                        __global const scalar *ti, __global const scalar *tr, __global const scalar *ph,
+                        __global const scalar *obs, __global const scalar *w,
+                        __global const scalar *fobs, __global const scalar *fw,
+                        const int P, const int M, const int p0, real *sse, real *A, real *gr)
+{
+    *sse = (real)0;
+    for (int i = 0; i < PB_D; i++) {
+        gr[i] = (real)0;
+        for (int j = 0; j < PB_D; j++)
+            A[i * PB_D + j] = (real)0;
+    }
+    const pb_par p = pb_params(x, base);
+    /* the parameters one step along each free coordinate */
+    real xs[PB_D];
+    pb_par ps[PB_D];
+    for (int i = 0; i < PB_D; i++) {
+        for (int j = 0; j < PB_D; j++)
+            xs[j] = x[j] + (i == j ? h[j] : (real)0);
+        ps[i] = pb_params(xs, base);
+    }
+    for (int m = 0; m < M; m++) {
+        const int o = m * P + p0;
+#ifdef PB_PIXEL_GEOMETRY
+        const pb_geom g = pb_geometry(pb_vl(0, ti + o), pb_vl(0, tr + o), pb_vl(0, ph + o));
+#else
+        const pb_geom g = pb_geometry((real)ti[m], (real)tr[m], (real)ph[m]);
+#endif
+        const real sw = sqrt(pb_vl(0, w + o));
+        const pb_fresnel_t f = pb_fresnel(p.n, p.k, g.cb, g.sb);
+        const real logK = pb_log_specular_scale(g, p.sigma, p.ks, pb_shadowing_factor(g, p.sigma, PBRDF_SHADOWING));
+        const real fd = pb_diffuse(g, p.kd, p.c);
+        const real dop0 = pb_dop(f, logK, fd);
+        real col[PB_D];
+#ifdef PB_INTENSITY
+        const real swf = sqrt(pb_vl(0, fw + o));
+        const real f000 = pb_brdf(f, logK, fd);
+        real fcol[PB_D];
+#endif
+        for (int i = 0; i < PB_D; i++) {
+            const pb_par q = ps[i];
+            /* only the factors the moved parameter enters are recomputed */
+            const int moves_f = i == PB_X_N || i == PB_X_K;
+            const int moves_s = i == PB_X_SIGMA || i == PB_X_KS;
+            const pb_fresnel_t fi = moves_f ? pb_fresnel(q.n, q.k, g.cb, g.sb) : f;
+            const real logKi = moves_s ? pb_log_specular_scale(g, q.sigma, q.ks,
+                                                                pb_shadowing_factor(g, q.sigma, PBRDF_SHADOWING))
+                                       : logK;
+            const real fdi = (i == PB_X_KD || i == PB_X_C || i == PB_X_KS) ? pb_diffuse(g, q.kd, q.c) : fd;
+            col[i] = sw * (pb_dop(fi, logKi, fdi) - dop0) / h[i];
+#ifdef PB_INTENSITY
+            fcol[i] = swf * (pb_brdf(fi, logKi, fdi) - f000) / h[i];
+#endif
+        }
+        pb_accumulate(sw * (dop0 - pb_vl(0, obs + o)), col, sse, A, gr);
+#ifdef PB_INTENSITY
+        pb_accumulate(swf * (f000 - pb_vl(0, fobs + o)), fcol, sse, A, gr);
+#endif
+    }
+    for (int i = 0; i < PB_D; i++)
+        for (int j = i + 1; j < PB_D; j++)
+            A[i * PB_D + j] = A[j * PB_D + i];
+    /* non-finite residuals lose against any finite point (as _finite does for the host stages) */
+    *sse = isfinite(*sse) ? *sse : PB_HUGE;
+}
+
+/* scipy's '2-point' steps: sqrt(eps) max(1, |x|), inwards at an upper bound, as taken */
+inline void pb_steps(const real *x, __global const scalar *hi, real *h)
+{
+    for (int i = 0; i < PB_D; i++) {
+        const real s = PB_EPS_SQRT * fmax((real)1, fabs(x[i]));
+        const real t = x[i] + s > (real)hi[i] ? -s : s;
+        h[i] = (x[i] + t) - x[i];
+    }
+}
+
+/* Solve (M) u = -g for the symmetric positive definite M (PB_D x PB_D, destroyed) by Cholesky;
+ * ok = 0 in lanes where a pivot is not positive and finite. */
+inline void pb_solve(real *Mx, const real *g, real *u, real *ok)
+{
+    for (int j = 0; j < PB_D; j++) {
+        real d = Mx[j * PB_D + j];
+        for (int k = 0; k < j; k++)
+            d -= Mx[j * PB_D + k] * Mx[j * PB_D + k];
+        const real good = (d > (real)0 && isfinite(d)) ? (real)1 : (real)0;
+        *ok = fmin(*ok, good);
+        const real l = sqrt(d > (real)0 ? d : (real)1);
+        Mx[j * PB_D + j] = l;
+        for (int i = j + 1; i < PB_D; i++) {
+            real s = Mx[i * PB_D + j];
+            for (int k = 0; k < j; k++)
+                s -= Mx[i * PB_D + k] * Mx[j * PB_D + k];
+            Mx[i * PB_D + j] = s / l;
+        }
+    }
+    real y[PB_D];
+    for (int i = 0; i < PB_D; i++) {
+        real s = -g[i];
+        for (int k = 0; k < i; k++)
+            s -= Mx[i * PB_D + k] * y[k];
+        y[i] = s / Mx[i * PB_D + i];
+    }
+    for (int i = PB_D - 1; i >= 0; i--) {
+        real s = y[i];
+        for (int k = i + 1; k < PB_D; k++)
+            s -= Mx[k * PB_D + i] * u[k];
+        u[i] = s / Mx[i * PB_D + i];
+    }
+    for (int i = 0; i < PB_D; i++)
+        u[i] = (*ok > (real)0 && isfinite(u[i])) ? u[i] : (real)0;
+}
+
+/* X[i * Q + q]: in the start, out the end (internal coordinates); sse_out[q], jtj_out[(i * PB_D
+ * + j) * Q + q] (J^T J at the end, unscaled), settled[q] (1 where the SSE fell by at most
+ * 1e-9 of itself plus tiny over the last quarter of the iterations, or the damping saturated).
+ * Problem q belongs to pixel q % P. */
+__kernel void batch_lm(__global scalar *X, __global scalar *sse_out, __global scalar *jtj_out,
+                       __global scalar *settled, const int Q, const int P, const int M, const int iterations,
+                       __global const scalar *base, __global const scalar *lo, __global const scalar *hi,
+                       __global const scalar *ti, __global const scalar *tr, __global const scalar *ph,
+                       __global const scalar *obs, __global const scalar *w,
+                       __global const scalar *fobs, __global const scalar *fw)
+{
+    const int q0 = get_global_id(0) * PB_N;
+    if (q0 >= Q) return;
+    const int p0 = q0 % P;
+    real x[PB_D], h[PB_D], A[PB_D * PB_D], gr[PB_D], sse;
+    real span[PB_D], tol[PB_D];
+    for (int i = 0; i < PB_D; i++) {
+        span[i] = (real)(hi[i] - lo[i]);
+        tol[i] = (real)1e-12 * span[i];
+        x[i] = clamp(pb_vl(0, X + i * Q + q0), (real)lo[i], (real)hi[i]);
+    }
+    pb_steps(x, hi, h);
+    pb_evaluate(x, h, base, ti, tr, ph, obs, w, fobs, fw, P, M, p0, &sse, A, gr);
+    real tr_ = (real)0;
+    for (int i = 0; i < PB_D; i++)
+        tr_ += A[i * PB_D + i] * span[i] * span[i];
+    real lam = (real)1e-3 * tr_ / (real)PB_D;
+    lam = isfinite(lam) && lam > (real)0 ? lam : (real)1e-3;
+    real mark = sse;
+    const int quarter = iterations - iterations / 4;
+    for (int it = 0; it < iterations; it++) {
+        if (it == quarter)
+            mark = sse;
+        real g[PB_D], Mx[PB_D * PB_D], du[PB_D], held[PB_D];
+        for (int i = 0; i < PB_D; i++) {
+            const real gi = gr[i] * span[i];
+            held[i] = (((x[i] <= (real)lo[i] + tol[i]) && (gi > (real)0)) ||
+                       ((x[i] >= (real)hi[i] - tol[i]) && (gi < (real)0))) ? (real)1 : (real)0;
+            g[i] = held[i] > (real)0 ? (real)0 : gi;
+        }
+        for (int i = 0; i < PB_D; i++)
+            for (int j = 0; j < PB_D; j++) {
+                const real a = (held[i] > (real)0 || held[j] > (real)0) ? (real)0 : A[i * PB_D + j] * span[i] * span[j];
+                Mx[i * PB_D + j] = a + (i == j ? lam + held[i] : (real)0);
+            }
+        real ok = (real)1, As[PB_D * PB_D];
+        for (int i = 0; i < PB_D * PB_D; i++)
+            As[i] = Mx[i];
+        pb_solve(Mx, g, du, &ok);
+        /* the coordinates this step would take out of the bounds go onto them, and the others are
+         * solved again with those fixed there (an active-set guess: clipping the step instead
+         * spoils it, and a descent into a bound crawls) */
+        real hit[PB_D], delta[PB_D];
+        int any_hit = 0;
+        for (int i = 0; i < PB_D; i++) {
+            const real xn = x[i] + du[i] * span[i];
+            hit[i] = (held[i] == (real)0 && (xn < (real)lo[i] || xn > (real)hi[i])) ? (real)1 : (real)0;
+            delta[i] = hit[i] > (real)0 ? (clamp(xn, (real)lo[i], (real)hi[i]) - x[i]) / span[i] : (real)0;
+            any_hit |= any(hit[i] > (real)0);
+        }
+        if (any_hit) {
+            real g2[PB_D], du2[PB_D], ok2 = (real)1;
+            for (int i = 0; i < PB_D; i++) {
+                real s = g[i];
+                for (int j = 0; j < PB_D; j++)
+                    s += (i == j ? (real)0 : As[i * PB_D + j]) * delta[j];
+                g2[i] = hit[i] > (real)0 ? (real)0 : s;
+                for (int j = 0; j < PB_D; j++)
+                    Mx[i * PB_D + j] = (hit[i] > (real)0 || hit[j] > (real)0) ? (i == j ? (real)1 : (real)0)
+                                                                           : As[i * PB_D + j];
+            }
+            pb_solve(Mx, g2, du2, &ok2);
+            for (int i = 0; i < PB_D; i++)
+                du[i] = hit[i] > (real)0 ? delta[i] : (ok2 > (real)0 ? du2[i] : du[i]);
+        }
+        real xt[PB_D], ht[PB_D], At[PB_D * PB_D], grt[PB_D], sset;
+        for (int i = 0; i < PB_D; i++)
+            xt[i] = clamp(x[i] + du[i] * span[i], (real)lo[i], (real)hi[i]);
+        pb_steps(xt, hi, ht);
+        pb_evaluate(xt, ht, base, ti, tr, ph, obs, w, fobs, fw, P, M, p0, &sset, At, grt);
+        const real better = sset < sse ? (real)1 : (real)0;
+        const int any_better = any(sset < sse);
+        if (any_better) {
+            for (int i = 0; i < PB_D; i++) {
+                x[i] = better > (real)0 ? xt[i] : x[i];
+                h[i] = better > (real)0 ? ht[i] : h[i];
+                gr[i] = better > (real)0 ? grt[i] : gr[i];
+                for (int j = 0; j < PB_D; j++)
+                    A[i * PB_D + j] = better > (real)0 ? At[i * PB_D + j] : A[i * PB_D + j];
+            }
+            sse = better > (real)0 ? sset : sse;
+        }
+        lam = clamp(better > (real)0 ? lam * (real)0.3 : lam * (real)6, PB_TINY, PB_HUGE);
+        /* every lane's damping saturated: no step can improve any of them */
+        if (all(lam >= PB_HUGE))
+            break;
+    }
+    const real done = (mark - sse <= (real)1e-9 * sse + (real)1e-12) || lam >= PB_HUGE ? (real)1 : (real)0;
+    for (int i = 0; i < PB_D; i++) {
+        pb_vs(x[i], 0, X + i * Q + q0);
+        for (int j = 0; j < PB_D; j++)
+            pb_vs(A[i * PB_D + j], 0, jtj_out + (i * PB_D + j) * Q + q0);
+    }
+    pb_vs(sse, 0, sse_out + q0);
+    pb_vs(done, 0, settled + q0);
+}
+
+#endif

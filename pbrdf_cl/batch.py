@@ -1,0 +1,1045 @@
+"""Per-pixel inversion of polarization image stacks: :func:`fit_batch`.
+
+Every pixel of a stack has its own M measurements of DOP (and optionally intensity) and is
+fitted on its own, by the stages of :func:`pbrdf_cl.fit` reshaped for many pixels at once:
+
+(a) the objective on a coarse grid for every pixel, on the device, keeping the minimum of each
+    region of the grid (the grid split in halves along every free parameter): with shared
+    geometry the DOP table of the grid is computed once and each pixel's SSE is its product with
+    the pixel's data; with per-pixel geometry the factor tables of ``pbrdf_tables.cl`` are built
+    per pixel and combined (``kernels/pbrdf_batch.cl``);
+(b) a bounded Levenberg-Marquardt run on the device from each pixel's best region minima, the
+    algorithm of :func:`pbrdf_cl.inversion._lm_batch` (float32), the best of them polished in
+    float64, derivatives by forward differences of the device functions of ``kernels/pbrdf.h``;
+    with intensities (``f00``/``s0``) a last float64 run adds ks (as log ks) and the intensity
+    residuals, as :func:`pbrdf_cl.fit`'s intensity stage;
+(c) the best start per pixel, covariance from J^T J, 95% intervals (the central 95% of the
+    Gaussian, or Student's t, truncated to the bounds), and a status per pixel.
+
+On the numpy backend the same stages run with ``reference.py`` (the grid from
+``dense._NumpyTables``, the descent by ``_lm_batch`` itself): slower, for machines without a
+usable OpenCL driver and for tests.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import api, reference
+from .engine import DTYPES, resolve_engine
+from .inversion import (DEFAULT_BOUNDS, DOP_NOISE_FLOOR, MODEL_FIXED, MODEL_PARAMS, X_RESOLUTION, _check_bounds,
+                        _grid_axis, _lm_batch, dop_resolution, fd_jacobian)
+
+#: Grid nodes per free parameter of the batched grid stage (coarser than :func:`fit`'s: the
+#: regions' minima only seed the descents).
+BATCH_GRID = {"n": 12, "k": 12, "sigma": 8, "kd": 8, "c": 4}
+BATCH_SPECULAR_GRID = {"n": 48, "k": 48}
+#: Starts per pixel: the best region minima of the grid.
+N_STARTS = 24
+#: Whether the grid's bound faces are regions of their own (see :func:`_regions`).
+FACES = True
+#: The float32 descents: (how many of the best starts, iterations), in turn, each continuing the
+#: best of the previous; then the float64 polish of the best POLISH_STARTS.
+SCREEN_SCHEDULE = ((24, 15), (6, 40))
+SCREEN_ITERATIONS = 55  # the numpy backend's one descent of every start: the schedule's iterations
+POLISH_STARTS = 2
+POLISH_ITERATIONS = 30
+#: Descents not settled after the polish continue alone, up to this many runs of this many iterations.
+EXTRA_ROUNDS = 3
+EXTRA_ITERATIONS = 60
+#: Iterations of the float64 run with intensities (ks free).
+INTENSITY_ITERATIONS = 40
+#: A parameter counts as determined by a pixel's data where its 95% interval is narrower than
+#: this fraction of its bound range.
+DETERMINED_FRACTION = 0.5
+#: Default relative uncertainty of intensities without f00_std (as :func:`pbrdf_cl.fit`).
+F00_REL_STD = 0.05
+#: Lanes of the LM kernel per work-item (float32, float64).
+LM_LANES = {"float32": 8, "float64": 4}
+DEFAULT_BUDGET = "512 MiB"
+
+#: status code -> (name, meaning)
+STATUS = {
+    1: ("converged", "the descent converged inside the bounds"),
+    2: ("on_bound", "converged with a parameter on a bound"),
+    3: ("ambiguous", "another start ended within one unit of chi2 of the best, more than 2 standard errors "
+                     "away in some parameter: the data cannot decide between them"),
+    4: ("underdetermined", "a parameter's 95% interval spans more than half its bounds: the pixel's data do not "
+                           "determine it (see `determined`)"),
+    0: ("not_converged", "the descent was still improving when its iterations ran out"),
+    -1: ("masked", "not fitted: masked"),
+    -2: ("too_few", "not fitted: fewer valid measurements (distinct geometries) than needed for the free "
+                    "parameters"),
+    -3: ("failed", "the model's residuals are not finite at any start"),
+}
+
+
+def _status_attrs():
+    return {"status_codes": "; ".join(f"{c}: {n} ({m})" for c, (n, m) in STATUS.items()),
+            "flag_values": list(STATUS), "flag_meanings": " ".join(n for n, _ in STATUS.values())}
+
+
+VARIABLES = ("dop", "theta_i", "theta_r", "phi", "dop_std", "f00", "s0", "f00_std", "mask")
+ANGLES = ("theta_i", "theta_r", "phi")
+
+
+class _Source:
+    """The input stack: variables as arrays (numpy or lazy xarray/dask) of the shape of ``dop``
+    (leading pixel dimensions, then M measurements) or, for the angles, shared (M,)."""
+
+    def __init__(self, data):
+        import xarray as xr
+        if isinstance(data, (str,)) or hasattr(data, "__fspath__"):
+            data = open_stack(data)
+        self.coords = {}
+        if isinstance(data, xr.Dataset):
+            if "dop" not in data:
+                raise ValueError(f"data: no 'dop' variable; the dataset has {', '.join(map(str, data.data_vars))}")
+            dop = data["dop"]
+            if dop.ndim < 2:
+                raise ValueError(f"data: dop must have pixel dimensions and a measurement dimension, got dims "
+                                 f"{dop.dims}")
+            self.dims = tuple(map(str, dop.dims[:-1]))
+            self.mdim = str(dop.dims[-1])
+            self.coords = {d: data[d].values for d in self.dims if d in data.coords}
+            vars_ = {}
+            for name in VARIABLES:
+                if name not in data:
+                    continue
+                v = data[name]
+                extra = set(v.dims) - set(dop.dims)
+                if extra:
+                    raise ValueError(f"data: {name} has dimensions {sorted(extra)} that dop does not have")
+                if name != "mask" and v.dims == (self.mdim,):
+                    vars_[name] = v.values
+                elif name == "mask":
+                    vars_[name] = v.transpose(*[d for d in self.dims if d in v.dims]).broadcast_like(dop[..., 0]).data
+                else:
+                    vars_[name] = v.broadcast_like(dop).transpose(*dop.dims).data
+            self.vars = vars_
+            self.shape = tuple(dop.shape[:-1])
+            self.M = int(dop.shape[-1])
+        elif isinstance(data, dict):
+            unknown = set(data) - set(VARIABLES) - {"mdim", "dims"}
+            if unknown:
+                raise ValueError(f"data: unknown variable {sorted(unknown)[0]!r}; variables are {', '.join(VARIABLES)}")
+            if "dop" not in data:
+                raise ValueError("data: no 'dop' array")
+            dop = data["dop"]
+            if not hasattr(dop, "shape"):
+                dop = np.asarray(dop, float)
+            if len(dop.shape) < 2:
+                raise ValueError(f"data: dop must have shape (..., M): pixel dimensions then M measurements, "
+                                 f"got shape {tuple(dop.shape)}")
+            self.shape, self.M = tuple(dop.shape[:-1]), int(dop.shape[-1])
+            nd = len(self.shape)
+            self.dims = tuple(data.get("dims") or (("y", "x") if nd == 2 else ("pixel",) if nd == 1
+                                                    else tuple(f"dim_{i}" for i in range(nd))))
+            self.mdim = data.get("mdim", "measurement")
+            self.vars = {"dop": dop}
+            for name in VARIABLES[1:]:
+                v = data.get(name)
+                if v is None:
+                    continue
+                if not hasattr(v, "shape"):
+                    v = np.asarray(v, float)
+                full = self.shape if name == "mask" else tuple(dop.shape)
+                if name != "mask" and tuple(v.shape) in ((self.M,), ()) and name in ANGLES:
+                    v = np.broadcast_to(np.asarray(v, float), (self.M,))
+                else:
+                    try:
+                        np.broadcast_shapes(tuple(v.shape), full)
+                    except ValueError:
+                        raise ValueError(f"data: {name} of shape {tuple(v.shape)} does not broadcast to "
+                                         f"{'the pixel shape' if name == 'mask' else 'dop'}'s shape {full}") from None
+                self.vars[name] = v
+        else:
+            raise ValueError(f"data must be an xarray.Dataset, a dict of arrays or a path to a stack, got "
+                             f"{type(data).__name__}")
+        for a in ANGLES[:2]:
+            if a not in self.vars:
+                raise ValueError(f"data: no {a!r} (degrees): give it shared, shape ({self.M},), or per pixel")
+        if "phi" not in self.vars:
+            self.vars["phi"] = np.full(self.M, 180.0)
+        if "s0" in self.vars:
+            if "f00" in self.vars:
+                raise ValueError("data: give f00 or s0, not both")
+            self.vars["f00"] = self.vars.pop("s0")
+        if "f00_std" in self.vars and "f00" not in self.vars:
+            raise ValueError("data: f00_std is given without f00")
+        if len(self.dims) != len(self.shape):
+            raise ValueError(f"data: dims {self.dims} do not match dop's pixel dimensions {self.shape}")
+        self.shared = all(np.ndim(self.vars[a]) == 1 for a in ANGLES)
+        self.n_pixels = int(np.prod(self.shape, dtype=np.int64))
+        if self.M < 2:
+            raise ValueError(f"data: dop has {self.M} measurement per pixel; a fit needs several")
+
+    def rows(self, r0, r1):
+        """The pixels of rows r0..r1 of the first pixel dimension, flat: dict name -> (p, M) float64
+        (angles (M,) when shared; mask (p,))."""
+        out = {}
+        for name, v in self.vars.items():
+            if np.ndim(v) == 1 and name in ANGLES:
+                out[name] = np.asarray(v, float)
+                continue
+            full = self.shape if name == "mask" else self.shape + (self.M,)
+            if len(v.shape) < len(full):
+                v = v.reshape((1,) * (len(full) - len(v.shape)) + tuple(v.shape))
+            part = v[r0:r1] if v.shape[0] != 1 else v
+            part = np.asarray(part)
+            block = (r1 - r0,) + full[1:]
+            part = np.broadcast_to(part, block)
+            out[name] = (part.reshape(-1) if name == "mask" else part.reshape(-1, self.M))
+            out[name] = out[name].astype(bool if name == "mask" else np.float64, copy=False)
+        return out
+
+
+def open_stack(path):
+    """An image stack from ``.npz``, ``.nc`` or ``.zarr`` as an ``xarray.Dataset`` (lazy for Zarr)."""
+    import pathlib
+    import xarray as xr
+    p = pathlib.Path(path)
+    if not p.exists():
+        raise ValueError(f"stack {str(p)!r} does not exist")
+    suffix = p.suffix.lower()
+    if suffix == ".npz":
+        with np.load(p) as z:
+            arrays = {k: z[k] for k in z.files}
+        if "dop" not in arrays:
+            raise ValueError(f"{p}: no 'dop' array (found {', '.join(arrays)})")
+        nd = arrays["dop"].ndim
+        lead = ("y", "x") if nd == 3 else tuple(f"dim_{i}" for i in range(nd - 1))
+        ds = xr.Dataset()
+        for k, a in arrays.items():
+            if a.shape == arrays["dop"].shape:
+                ds[k] = (lead + ("m",), a)
+            elif a.ndim == 1 and a.size == arrays["dop"].shape[-1]:
+                ds[k] = (("m",), a)
+            elif a.shape == arrays["dop"].shape[:-1]:
+                ds[k] = (lead, a)
+            elif a.ndim == 0:
+                ds[k] = ((), a)
+            else:
+                raise ValueError(f"{p}: array {k!r} of shape {a.shape} fits neither dop's shape "
+                                 f"{arrays['dop'].shape}, its pixels nor its measurements")
+        return ds
+    if suffix in (".nc", ".h5", ".netcdf"):
+        return xr.open_dataset(p)
+    if suffix == ".zarr" or (p / ".zgroup").exists() or (p / "zarr.json").exists():
+        return xr.open_zarr(p)
+    raise ValueError(f"stack {str(p)!r}: unknown format {suffix!r}; use .npz, .nc or .zarr")
+
+
+def _check_block(block, r0, source):
+    """Validate a block's values; errors name the variable and the first offending index (of the
+    full stack)."""
+    def where(name, flat_index):
+        if np.ndim(block[name]) == 1 and name in ANGLES:
+            return f"[{flat_index}]"
+        pix, m = divmod(int(flat_index), source.M) if name != "mask" else (int(flat_index), None)
+        idx = list(np.unravel_index(pix, (block[name].shape[0] // max(1, int(np.prod(source.shape[1:]))),)
+                                    + source.shape[1:]))
+        idx[0] += r0
+        if m is not None:
+            idx.append(m)
+        return str([int(i) for i in idx])
+
+    def first(name, bad):
+        i = int(np.argmax(bad.reshape(-1)))
+        return f"{float(block[name].reshape(-1)[i])!r} at index {where(name, i)}"
+    dop = block["dop"]
+    bad = ~(np.isnan(dop) | ((dop >= 0) & (dop <= 1)))
+    if bad.any():
+        raise ValueError(f"dop must be in [0, 1] (NaN for a missing measurement), got {first('dop', bad)}")
+    for name in ("theta_i", "theta_r"):
+        a = block[name]
+        bad = ~(np.isfinite(a) & (a >= 0) & (a < 90))
+        if bad.any():
+            raise ValueError(f"{name} must be in [0, 90) degrees, got {first(name, bad)}")
+    a = block["phi"]
+    bad = ~np.isfinite(a)
+    if bad.any():
+        raise ValueError(f"phi must be finite, got {first('phi', bad)}")
+    for name, rule, ok in (("dop_std", "> 0 (NaN for a missing measurement)", lambda a: np.isnan(a) | (a > 0)),
+                           ("f00", ">= 0 (NaN for a missing measurement)", lambda a: np.isnan(a) | (a >= 0)),
+                           ("f00_std", "> 0", lambda a: np.isnan(a) | (a > 0))):
+        if name in block:
+            bad = ~ok(block[name])
+            if bad.any():
+                raise ValueError(f"{name} must be {rule}, got {first(name, bad)}")
+
+
+@dataclass
+class _Setup:
+    """The checked fit settings of :func:`fit_batch`."""
+    model: str
+    shadowing: str
+    free: list
+    lo: np.ndarray
+    hi: np.ndarray
+    base: dict
+    fixed: dict
+    axes: dict
+    use_f00: bool
+    ks_bounds: tuple
+    n_starts: int
+    sigma_known: bool
+    noise_floor: float
+
+
+def _regions(axes, free):
+    """The grid points (flat index over (n, k, sigma, ks, kd, c) of ``axes``, ks of size 1) ordered
+    region by region; returns (order, rstart).  The regions: the halves of every free axis
+    combined (2^d boxes), then each free axis' two bound faces (the model's optimum often lies
+    on a bound: n = 1, k = 0, kd = 0, c = 0 or -1, and :func:`pbrdf_cl.fit` seeds from there too);
+    a face's points also belong to a box."""
+    names = ("n", "k", "sigma", "ks", "kd", "c")
+    sizes = [axes[n].size for n in names]
+    idx = np.indices(sizes).reshape(6, -1)
+    region = np.zeros(idx.shape[1], np.int64)
+    for axis, name in enumerate(names):
+        if name in free and sizes[axis] > 1:
+            region = region * 2 + (idx[axis] >= sizes[axis] // 2)
+    order = [np.argsort(region, kind="stable")]
+    counts = np.bincount(region)
+    counts = list(counts[counts > 0])
+    if FACES:
+        for axis, name in enumerate(names):
+            if name in free and sizes[axis] > 2:
+                for end in (0, sizes[axis] - 1):
+                    face = np.flatnonzero(idx[axis] == end)
+                    order.append(face)
+                    counts.append(face.size)
+    rstart = np.concatenate([[0], np.cumsum(counts)])
+    return np.concatenate(order).astype(np.int32), rstart.astype(np.int32)
+
+
+def _grid_values(setup):
+    """The grid's parameter values (every parameter: free on its axis, the others fixed) as arrays
+    for the tables: dict name -> 1-d array."""
+    v = {}
+    for name in ("n", "k", "sigma", "ks", "kd", "c"):
+        v[name] = setup.axes[name] if name in setup.axes else np.array([setup.base[name]], float)
+    return v
+
+
+def _grid_points(setup, order, flat):
+    """Parameter vectors (over ``setup.free``) of region-ordered grid indices ``flat``."""
+    v = _grid_values(setup)
+    sizes = [v[n].size for n in ("n", "k", "sigma", "ks", "kd", "c")]
+    unr = np.unravel_index(order[flat], sizes)
+    names = ("n", "k", "sigma", "ks", "kd", "c")
+    return np.stack([v[n][unr[names.index(n)]] for n in setup.free], axis=-1)
+
+
+class _Block:
+    """One block of pixels prepared for the stages: flat (p, M) arrays, weights, validity."""
+
+    def __init__(self, raw, setup, lanes):
+        self.raw, self.setup, self.lanes = raw, setup, lanes
+        self.p = raw["dop"].shape[0]
+        self.P = -(-self.p // lanes) * lanes  # padded
+        dop = raw["dop"]
+        mask = raw.get("mask", np.ones(self.p, bool))
+        std = raw.get("dop_std")
+        valid = np.isfinite(dop) & mask[:, None]
+        if std is not None:
+            valid &= np.isfinite(std)
+        if setup.use_f00:
+            valid &= np.isfinite(raw["f00"])
+        self.mask = mask
+        self.valid = valid
+        self.shared = raw["theta_i"].ndim == 1
+        self.angles = [raw[a] for a in ANGLES]
+        self.obs = np.where(valid, dop, 0.0)
+        w = valid / (std ** 2 if std is not None else 1.0)
+        self.w = np.where(valid, w, 0.0)
+        if setup.use_f00:
+            f00 = raw["f00"]
+            fstd = raw.get("f00_std")
+            if fstd is None:
+                fstd = F00_REL_STD * np.maximum(np.where(valid, f00, 1.0), 1e-300)
+            self.fobs = np.where(valid, f00, 0.0)
+            self.fw = np.where(valid, 1.0 / np.where(valid, fstd, 1.0) ** 2, 0.0)
+        else:
+            self.fobs = self.fw = None
+        self.count = valid.sum(axis=1)
+        self.distinct = self._distinct_geometries()
+
+    def _distinct_geometries(self):
+        """Distinct valid (theta_i, theta_r, phi) per pixel."""
+        ti, tr, ph = (np.broadcast_to(a, self.valid.shape) for a in self.angles)
+        key = np.stack([ti, tr, ph], axis=-1)
+        key = np.where(self.valid[..., None], key, np.nan)
+        s = np.ascontiguousarray(key).view(np.dtype((np.void, 24)))[..., 0]
+        s = np.sort(s, axis=1)
+        distinct = 1 + (s[:, 1:] != s[:, :-1]).sum(axis=1)
+        return distinct - (~self.valid).any(axis=1)
+
+    def subset(self, idx):
+        """The block of pixels ``idx`` (repeats allowed) of this one."""
+        raw = {k: (v if (v.ndim == 1 and k in ANGLES) else v[idx]) for k, v in self.raw.items()}
+        return _Block(raw, self.setup, self.lanes)
+
+    def padded(self, a, fill=0.0):
+        """(p, ...) -> (P, ...) padded with ``fill``."""
+        out = np.full((self.P,) + a.shape[1:], fill, a.dtype if a.dtype != bool else float)
+        out[:self.p] = a
+        return out
+
+    def pixel_major(self, a, dtype):
+        """(p, M) -> (M, P) contiguous in ``dtype`` (the kernels' layout)."""
+        return np.ascontiguousarray(self.padded(a).T, dtype=dtype)
+
+
+# ---- grid stage -------------------------------------------------------------------------------
+
+def _device_grid(eng, setup, blk, order, rstart):
+    """(best (R, p), arg (R, p)): each region's minimum and its region-ordered grid index."""
+    import pyopencl as cl  # noqa: F401  (the engine's)
+    dtype = "float32"
+    npdt = DTYPES[dtype]
+    v = _grid_values(setup)
+    R = rstart.size - 1
+    P, M = blk.P, blk.valid.shape[1]
+    w = blk.pixel_major(blk.w, npdt)
+    obs = blk.pixel_major(blk.obs, npdt)
+    best = np.empty((R, P), npdt)
+    arg = np.empty((R, P), npdt)
+    bbest, barg = eng.empty(best.nbytes), eng.empty(arg.nbytes)
+    from .engine import VECTOR_WIDTH
+    vw = VECTOR_WIDTH[dtype]
+    brs = eng.to_device(rstart, np.int32)
+    shadow = reference.SHADOWING[setup.shadowing]
+    if blk.shared:
+        T = _table_dop(eng, setup, blk.angles, v, order)  # (G, M) region-ordered, float32
+        a2 = np.ascontiguousarray(-2.0 * w * obs, npdt)
+        c = np.ascontiguousarray(np.einsum("mp,mp->p", w.astype(float), obs.astype(float) ** 2), npdt)
+        prog = eng.program("pbrdf_batch.cl", dtype, {"PBRDF_SHADOWING": shadow})
+        eng.launch(prog["batch_grid_table"], (P // vw,), bbest, barg, np.int32(P), np.int32(M),
+                   eng.to_device(T, npdt), brs, np.int32(R), eng.to_device(a2, npdt), eng.to_device(w, npdt),
+                   eng.to_device(c, npdt))
+    else:
+        nnk, nm, ni = v["n"].size * v["k"].size, v["sigma"].size * v["ks"].size, v["kd"].size * v["c"].size
+        ng = M * P
+        if ng * max(nnk, nm, ni) >= 2 ** 31:
+            raise ValueError("internal: a block of pixels too large for 32-bit table indices")
+        tab = eng.program("pbrdf_tables.cl", dtype, {"PBRDF_SHADOWING": shadow})
+        geo = [eng.to_device(blk.pixel_major(a, np.float64), npdt) for a in blk.angles]
+
+        def table(kname, outs, p1, p2, *extra):
+            np_ = p1.size * p2.size
+            bufs = [eng.empty(ng * np_ * np.dtype(npdt).itemsize) for _ in range(outs)]
+            eng.launch(tab[kname], (ng, np_), *bufs, np.int32(ng), np.int32(1), np.int32(ng), *geo,
+                       eng.to_device(p1, npdt), eng.to_device(p2, npdt), np.int32(p2.size), *extra)
+            return bufs
+        s_, d_ = table("fresnel_table", 2, v["n"], v["k"])
+        sc, = table("scale_table", 1, v["sigma"], v["ks"], npdt(-1))
+        fd, = table("diffuse_table", 1, v["kd"], v["c"], npdt(2))
+        prog = eng.program("pbrdf_batch.cl", dtype, {"PBRDF_SHADOWING": shadow, "PB_NNK": nnk, "PB_NM": nm,
+                                                     "PB_NI": ni})
+        eng.launch(prog["batch_grid_factors"], (P // vw,), bbest, barg, np.int32(P), np.int32(M), s_, d_, sc, fd,
+                   eng.to_device(order, np.int32), brs, np.int32(R), eng.to_device(obs, npdt),
+                   eng.to_device(w, npdt))
+    eng.read(bbest, best)
+    eng.read(barg, arg)
+    return best[:, :blk.p], arg[:, :blk.p].astype(np.int64)
+
+
+def _table_dop(eng, setup, angles, v, order):
+    """DOP of every grid point at the shared geometry, (G, M) in region order (the engine's
+    per-point path: pbrdf.h)."""
+    ti, tr, ph = angles
+    sizes = [v[n].size for n in ("n", "k", "sigma", "ks", "kd", "c")]
+    unr = np.unravel_index(order, sizes)
+    p = {n: v[n][unr[i]][:, None] for i, n in enumerate(("n", "k", "sigma", "ks", "kd", "c"))}
+    out = api.dop(ti[None, :], tr[None, :], ph[None, :], shadowing=setup.shadowing, dtype="float32", engine=eng,
+                  **p)
+    return np.ascontiguousarray(out, np.float32)
+
+
+def _numpy_grid(setup, blk, order, rstart):
+    """:func:`_device_grid` with ``reference.py`` (dense._NumpyTables, float64), pixel by pixel."""
+    from .dense import _NumpyTables
+    v = _grid_values(setup)
+    R = rstart.size - 1
+    sizes = [v[n].size for n in ("n", "k", "sigma", "ks", "kd", "c")]
+    nnk, nm, ni = sizes[0] * sizes[1], sizes[2] * sizes[3], sizes[4] * sizes[5]
+    best = np.full((R, blk.p), np.inf)
+    arg = np.zeros((R, blk.p), np.int64)
+    M = blk.valid.shape[1]
+    shared = None
+    for i in range(blk.p):
+        if blk.count[i] == 0:
+            continue
+        if blk.shared and shared is None or not blk.shared:
+            ang = [a if blk.shared else a[i] for a in blk.angles]
+            t = _NumpyTables(setup.shadowing, "dop", *ang, v)
+            T = t.combine(t.sum.reshape(M, nnk, 1, 1), t.diff.reshape(M, nnk, 1, 1), t.dif.reshape(M, 1, 1, ni),
+                          t.scale.reshape(M, 1, nm, 1)).reshape(M, -1)[:, order]
+            if blk.shared:
+                shared = T
+        T = shared if blk.shared else T
+        sse = blk.w[i] @ (T - blk.obs[i][:, None]) ** 2
+        for r in range(R):
+            part = sse[rstart[r]:rstart[r + 1]]
+            j = int(np.argmin(part))
+            best[r, i], arg[r, i] = part[j], rstart[r] + j
+    return best, arg
+
+
+# ---- LM stage -----------------------------------------------------------------------------------
+
+def _internal(setup, X, names):
+    """Parameter vectors to the descent's coordinates (ks as log ks)."""
+    X = np.array(X, float)
+    if "ks" in names:
+        j = names.index("ks")
+        X[..., j] = np.log(X[..., j])
+    return X
+
+
+def _external(X, names):
+    X = np.array(X, float)
+    if "ks" in names:
+        j = names.index("ks")
+        X[..., j] = np.exp(X[..., j])
+    return X
+
+
+def _bounds(setup, names):
+    lo = [np.log(setup.ks_bounds[0]) if n == "ks" else setup.lo[setup.free.index(n)] for n in names]
+    hi = [np.log(setup.ks_bounds[1]) if n == "ks" else setup.hi[setup.free.index(n)] for n in names]
+    return np.array(lo), np.array(hi)
+
+
+def _device_lm(eng, setup, blk, X0, names, dtype, iterations, intensity):
+    """The LM kernel from starts X0 (S, p, D) (external coordinates); returns (X (S, p, D), sse (S, p),
+    JtJ (S, p, D, D) in internal coordinates, settled (S, p))."""
+    npdt = DTYPES[dtype]
+    S, p, D = X0.shape
+    P = blk.P
+    Q = S * P
+    lanes = LM_LANES[dtype]
+    lo, hi = _bounds(setup, names)
+    slot = {n: (names.index(n) if n in names else -1) for n in ("n", "k", "sigma", "kd", "c", "ks")}
+    defines = {"PB_VECTOR_REAL": lanes, "PB_D": D, "PBRDF_SHADOWING": reference.SHADOWING[setup.shadowing],
+               **{f"PB_X_{n.upper()}": s for n, s in slot.items()}}
+    if intensity:
+        defines["PB_INTENSITY"] = None
+    if not blk.shared:
+        defines["PB_PIXEL_GEOMETRY"] = None
+    prog = eng.program("pbrdf_batch.cl", dtype, defines)
+    Xi = np.zeros((D, S, P))
+    Xi[:, :, :p] = np.moveaxis(_internal(setup, X0, names), -1, 0)
+    Xi[:, :, p:] = ((lo + hi) / 2)[:, None, None]
+    Xi = np.ascontiguousarray(Xi.reshape(D, Q), npdt)
+    base = np.array([setup.base.get(n, 0.0) for n in ("n", "k", "sigma", "ks", "kd", "c")], npdt)
+    bX = eng.to_device(Xi, npdt)
+    sse, jtj, settled = np.empty(Q, npdt), np.empty((D * D, Q), npdt), np.empty(Q, npdt)
+    bsse, bjtj, bset = eng.empty(sse.nbytes), eng.empty(jtj.nbytes), eng.empty(settled.nbytes)
+    if blk.shared:
+        geo = [eng.to_device(a, npdt) for a in blk.angles]
+    else:
+        geo = [eng.to_device(blk.pixel_major(a, np.float64), npdt) for a in blk.angles]
+    obs, w = eng.to_device(blk.pixel_major(blk.obs, npdt), npdt), eng.to_device(blk.pixel_major(blk.w, npdt), npdt)
+    if intensity:
+        fobs = eng.to_device(blk.pixel_major(blk.fobs, npdt), npdt)
+        fw = eng.to_device(blk.pixel_major(blk.fw, npdt), npdt)
+    else:
+        fobs = fw = eng.to_device(np.zeros(1, npdt), npdt)
+    M = blk.valid.shape[1]
+    eng.launch(prog["batch_lm"], (Q // lanes,), bX, bsse, bjtj, bset, np.int32(Q), np.int32(P), np.int32(M),
+               np.int32(iterations), eng.to_device(base, npdt), eng.to_device(lo, npdt), eng.to_device(hi, npdt),
+               *geo, obs, w, fobs, fw)
+    eng.read(bX, Xi)
+    eng.read(bsse, sse)
+    eng.read(bjtj, jtj)
+    eng.read(bset, settled)
+    X = _external(np.moveaxis(Xi.reshape(D, S, P)[:, :, :p], 0, -1), names)
+    jtj = np.moveaxis(jtj.reshape(D, D, S, P)[..., :p], (0, 1), (-2, -1)).astype(float)
+    return X, sse.reshape(S, P)[:, :p].astype(float), jtj, settled.reshape(S, P)[:, :p] > 0
+
+
+class _PixelResiduals:
+    """Weighted residual rows of the reference model for many pixels (the numpy backend): rows
+    of a (B, D) batch belong to pixels ``pix`` repeated ``B // len(pix)`` times each, as
+    :func:`fd_jacobian` lays them out."""
+
+    def __init__(self, setup, blk, names, pix, intensity):
+        self.setup, self.blk, self.names, self.pix, self.intensity = setup, blk, names, pix, intensity
+
+    def rows(self, X):
+        rep = X.shape[0] // self.pix.size
+        pix = np.repeat(self.pix, rep)
+        blk, setup = self.blk, self.setup
+        ang = [a[None, :] if blk.shared else a[pix] for a in blk.angles]
+        g = reference.geometry(*ang)
+        p = dict(setup.base)
+        ext = _external(X, self.names)
+        for j, n in enumerate(self.names):
+            p[n] = ext[:, j:j + 1]
+        if self.intensity:
+            p["kd"] = p["kd"] * p["ks"]
+        f = reference.fresnel(p["n"], p["k"], g.cb, g.sb)
+        variant = reference.SHADOWING[setup.shadowing]
+        log_k = reference.log_specular_scale(g, p["sigma"], p["ks"], reference.shadowing_factor(g, p["sigma"], variant))
+        fd = reference.diffuse(g, p["kd"], p["c"])
+        r = (reference.dop(f, log_k, fd) - blk.obs[pix]) * np.sqrt(blk.w[pix])
+        if self.intensity:
+            r = np.concatenate([r, (reference.brdf(f, log_k, fd) - blk.fobs[pix]) * np.sqrt(blk.fw[pix])], axis=1)
+        return np.where(np.isfinite(r), r, 1e150)
+
+
+def _numpy_lm(setup, blk, X0, names, iterations, intensity):
+    """:func:`_device_lm` on the numpy backend: :func:`_lm_batch` over every pixel x start."""
+    S, p, D = X0.shape
+    lo, hi = _bounds(setup, names)
+    pix = np.tile(np.arange(p), S)
+    res = _PixelResiduals(setup, blk, names, pix, intensity)
+    Xi = _internal(setup, X0, names).reshape(S * p, D)
+    X, sse, _ = _lm_batch(res.rows, Xi, lo, hi, iterations)
+    r, J = fd_jacobian(res.rows, X, lo, hi)
+    sse = np.einsum("pm,pm->p", r, r)
+    jtj = np.einsum("pim,pjm->pij", J, J)
+    return (_external(X, names).reshape(S, p, D), sse.reshape(S, p), jtj.reshape(S, p, D, D),
+            np.ones((S, p), bool))
+
+
+# ---- uncertainties, status ----------------------------------------------------------------------
+
+def _truncated_interval(x, se, lo, hi, dof):
+    """The central 95% of N(x, se) (Student's t with ``dof`` where given) truncated to [lo, hi],
+    elementwise."""
+    from scipy import special
+    if dof is None:
+        cdf, ppf = special.ndtr, special.ndtri
+    else:
+        def cdf(z):
+            return special.stdtr(dof, z)
+
+        def ppf(q):
+            return special.stdtrit(dof, q)
+    with np.errstate(all="ignore"):
+        a, b = cdf((lo - x) / se), cdf((hi - x) / se)
+        span = b - a
+        lo95 = x + se * ppf(np.clip(a + 0.025 * span, 1e-300, 1 - 1e-16))
+        hi95 = x + se * ppf(np.clip(a + 0.975 * span, 1e-300, 1 - 1e-16))
+    # where the truncated mass is numerically nothing (x far outside +- many se of both bounds)
+    lo95 = np.where(np.isfinite(lo95), np.clip(lo95, lo, hi), lo)
+    hi95 = np.where(np.isfinite(hi95), np.clip(hi95, lo, hi), hi)
+    return lo95, hi95
+
+
+def _covariances(jtj, s2, span):
+    """Covariance (p, D, D) from J^T J in internal coordinates (pseudo-inverse in coordinates
+    scaled to the bounds: a direction the data do not see gets an infinite variance)."""
+    A = jtj * span[None, :, None] * span[None, None, :]
+    eigval, eigvec = np.linalg.eigh(A)
+    top = np.maximum(eigval.max(axis=1, keepdims=True), 1e-300)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = np.where(eigval > 1e-12 * top, 1.0 / eigval, np.inf)
+    # infinite variance along a null direction: var_i = sum_k v_ik^2 / l_k (inf where v_ik != 0)
+    with np.errstate(invalid="ignore"):
+        cov = np.einsum("pik,pk,pjk->pij", eigvec, np.where(np.isinf(inv), 0.0, inv), eigvec)
+        null = np.einsum("pik,pk->pi", eigvec ** 2 > 1e-12, np.isinf(inv).astype(float)) > 0
+    cov = cov * span[None, :, None] * span[None, None, :] * s2[:, None, None]
+    var = np.where(null, np.inf, np.einsum("pii->pi", cov))
+    return cov, var
+
+
+def fit_batch(data, model="six-param", bounds=None, fixed=None, shadowing="paper", *, memory_budget=DEFAULT_BUDGET,
+              progress=False, n_starts=N_STARTS, grid_shape=None, engine=None, backend="auto", store=None):
+    """Fit the model to every pixel of a polarization image stack, batched on the device.
+
+    Parameters
+    ----------
+    data : xarray.Dataset, dict of arrays or path
+        ``dop`` of shape ``(..., M)`` (pixel dimensions, then M measurements; NaN marks a missing
+        measurement of that pixel); ``theta_i``, ``theta_r`` and optionally ``phi`` (degrees,
+        default 180) shared, shape ``(M,)``, or per pixel, broadcastable to ``dop``; optional
+        ``dop_std`` (broadcastable), ``f00`` or ``s0`` intensities (then ks and kd are
+        separated, as in :func:`pbrdf_cl.fit`), ``f00_std`` and a boolean ``mask`` over the
+        pixel dimensions (False: skip the pixel).  A path to a ``.npz``, ``.nc`` or ``.zarr``
+        stack with those variables.
+    model, bounds, fixed, shadowing
+        As for :func:`pbrdf_cl.fit`.
+    memory_budget : int or str, default "512 MiB"
+        Bounds the memory of one block of pixels (host and device); larger stacks are fitted
+        block by block.
+    progress : bool, default False
+        A progress bar in pixels, with pixels/s and the time left.
+    n_starts : int, default 4
+        Descents per pixel, from the best region minima of the grid stage.
+    grid_shape : dict, optional
+        Grid nodes per free parameter (default :data:`BATCH_GRID`).
+    engine, backend
+        Where to compute (as for :func:`pbrdf_cl.dop`); the numpy backend runs the same stages
+        with the float64 reference, much slower.
+    store : str or path, optional
+        Write the result to this Zarr store block by block, resumable (see
+        :func:`pbrdf_cl.batch_store.fit_batch_to_store`); the result is then opened from it.
+
+    Returns
+    -------
+    xarray.Dataset
+        Over the pixel dimensions: one variable per fitted parameter (``n``, ``k``, ``sigma``,
+        ``kd``, ``c``, and ``ks`` with intensities; kd is kd/ks without them), ``sse`` (sum of
+        squared DOP residuals), ``chi2`` (weighted), ``<name>_stderr``, ``<name>_ci95`` (a
+        trailing ``bound`` dimension: low, high), ``determined`` (per parameter: the 95%
+        interval is narrower than half the bounds), ``n_valid`` (measurements used), ``nfev``
+        and ``status`` (codes in ``attrs["status_codes"]``); units and settings in ``attrs``.
+
+    Raises
+    ------
+    ValueError
+        For bad input, naming the variable and the first offending index.
+
+    Examples
+    --------
+    >>> import numpy as np, pbrdf_cl
+    >>> ti, tr = np.repeat([30.0, 40, 50], 10), np.tile(np.arange(20.0, 66, 5), 3)
+    >>> truth = dict(n=1.6, k=2.139, sigma=0.5, kd=0.15, c=-0.3)
+    >>> dop = np.broadcast_to(pbrdf_cl.dop(ti, tr, **truth), (2, 3, 30))
+    >>> res = pbrdf_cl.fit_batch(dict(dop=dop, theta_i=ti, theta_r=tr))
+    >>> res.n.shape, bool(abs(res.n - 1.6).max() < 1e-3)
+    ((2, 3), True)
+    """
+    if store is not None:
+        from .batch_store import fit_batch_to_store
+        return fit_batch_to_store(data, store, model=model, bounds=bounds, fixed=fixed, shadowing=shadowing,
+                                  memory_budget=memory_budget, progress=progress, n_starts=n_starts,
+                                  grid_shape=grid_shape, engine=engine, backend=backend)
+    job = BatchJob(data, model, bounds, fixed, shadowing, memory_budget=memory_budget, n_starts=n_starts,
+                   grid_shape=grid_shape)
+    eng = resolve_engine(engine, backend)
+    parts = []
+    bar = _bar(job.source.n_pixels, progress)
+    t0 = time.perf_counter()
+    for r0, r1 in job.blocks():
+        parts.append(job.fit_rows(eng, r0, r1))
+        if bar is not None:
+            bar.update(parts[-1]["sse"].size)
+    if bar is not None:
+        bar.close()
+    out = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+    return job.dataset(out, seconds=time.perf_counter() - t0)
+
+
+def _bar(total, enabled):
+    if not enabled:
+        return None
+    from tqdm.auto import tqdm
+    return tqdm(total=total, desc="fit_batch", unit="px", unit_scale=True, smoothing=0.1)
+
+
+class BatchJob:
+    """A checked :func:`fit_batch` job: the source stack, the settings, its blocks of rows and
+    the fit of one block (:meth:`fit_rows`), so that a store or a Dask worker can run blocks on
+    their own."""
+
+    def __init__(self, data, model="six-param", bounds=None, fixed=None, shadowing="paper", *,
+                 memory_budget=DEFAULT_BUDGET, n_starts=N_STARTS, grid_shape=None):
+        from .ranges import parse_bytes
+        if model not in MODEL_PARAMS:
+            raise ValueError(f"model must be one of {sorted(MODEL_PARAMS)}, got {model!r}")
+        if shadowing not in reference.SHADOWING:
+            raise ValueError(f"shadowing must be one of {sorted(reference.SHADOWING)}, got {shadowing!r}")
+        n_starts = int(n_starts)
+        if n_starts < 1:
+            raise ValueError(f"n_starts must be >= 1, got {n_starts}")
+        self.memory_budget = parse_bytes("memory_budget", memory_budget)
+        self.source = _Source(data)
+        bnds, fx = _check_bounds(model, bounds, fixed)
+        free = [n for n in MODEL_PARAMS[model] if n not in fx]
+        if not free:
+            raise ValueError("every parameter is fixed: nothing to fit")
+        base = {**{n: 0.0 for n in ("n", "k", "sigma", "kd", "c")}, **MODEL_FIXED[model], **fx}
+        use_f00 = "f00" in self.source.vars and model == "six-param" and "ks" not in fx and "kd" not in fx
+        shape = {**(BATCH_SPECULAR_GRID if model == "specular" else BATCH_GRID), **(grid_shape or {})}
+        unknown = set(grid_shape or {}) - set(free)
+        if unknown:
+            raise ValueError(f"grid_shape: {sorted(unknown)[0]!r} is not a free parameter ({', '.join(free)})")
+        axes = {n: _grid_axis(n, bnds[n], int(shape[n])) for n in free}
+        if int(np.prod([a.size for a in axes.values()])) >= 2 ** 24:
+            raise ValueError("grid_shape: at most 2**24 grid points")
+        sigma_known = "dop_std" in self.source.vars
+        dop = self.source.vars["dop"]
+        floor = DOP_NOISE_FLOOR
+        if not sigma_known and isinstance(dop, np.ndarray) and dop.size <= 1 << 24:
+            finite = dop[np.isfinite(dop)]
+            floor = max(DOP_NOISE_FLOOR, dop_resolution(finite) / np.sqrt(12.0)) if finite.size else floor
+        self.setup = _Setup(model, shadowing, free, np.array([bnds[n][0] for n in free]),
+                            np.array([bnds[n][1] for n in free]), base, fx, axes, use_f00,
+                            tuple(bnds.get("ks", DEFAULT_BOUNDS["ks"])), n_starts, sigma_known, floor)
+        self.order, self.rstart = _regions(_grid_values(self.setup), free)
+        api.check_degrees(np.asarray(self.source.vars["theta_i"][..., :1]),
+                          np.asarray(self.source.vars["theta_r"][..., :1]), "data: ")
+
+    @property
+    def names(self):
+        """The fitted parameters, in the order of the outputs."""
+        return self.setup.free + (["ks"] if self.setup.use_f00 else [])
+
+    def pixel_bytes(self):
+        """Host and device bytes one pixel of a block needs (the largest stage)."""
+        M, D, S = self.source.M, len(self.names), self.setup.n_starts
+        v = _grid_values(self.setup)
+        per = 8 * M * 12 + 8 * S * D * (D + 3) * 2
+        if not self.source.shared:
+            nnk, nm, ni = v["n"].size * v["k"].size, v["sigma"].size, v["kd"].size * v["c"].size
+            per += 4 * M * (2 * nnk + nm + ni)
+        per += 8 * (self.rstart.size - 1) * 2
+        return per
+
+    def rows_per_block(self):
+        """Rows of the first pixel dimension per block within the memory budget."""
+        row = int(np.prod(self.source.shape[1:], dtype=np.int64))
+        fixed = 0 if not self.source.shared else 8 * len(self.order) * self.source.M
+        room = max(self.memory_budget - fixed, self.pixel_bytes() * 64)
+        px = max(64, room // self.pixel_bytes())
+        if not self.source.shared:  # 32-bit indices of the per-pixel tables
+            v = _grid_values(self.setup)
+            px = min(px, (2 ** 31 - 1) // (self.source.M * v["n"].size * v["k"].size) - 64)
+        return int(max(1, min(self.source.shape[0], px // max(row, 1))))
+
+    def blocks(self):
+        """(r0, r1) row ranges of the blocks, in order."""
+        step = self.rows_per_block()
+        return [(r0, min(r0 + step, self.source.shape[0])) for r0 in range(0, self.source.shape[0], step)]
+
+    def fit_rows(self, eng, r0, r1):
+        """Fit the pixels of rows r0..r1: a dict of flat per-pixel result arrays."""
+        raw = self.source.rows(r0, r1)
+        _check_block(raw, r0, self.source)
+        return _fit_block(eng, self.setup, raw, self.order, self.rstart, self.names)
+
+    def dataset(self, out, seconds=None):
+        """The result Dataset from the concatenated outputs of :meth:`fit_rows`."""
+        return _dataset(self, out, seconds)
+
+
+def _fit_block(eng, setup, raw, order, rstart, names):
+    D = len(setup.free)
+    lanes = max(LM_LANES.values()) * 2 if not eng.is_numpy else 1
+    blk = _Block(raw, setup, lanes)
+    p = blk.p
+    need = D + 1
+    fit_me = blk.mask & (blk.count >= need) & (blk.distinct >= D)
+    # (a) grid: each region's minimum; the best n_starts per pixel seed the descents
+    if eng.is_numpy:
+        best, arg = _numpy_grid(setup, blk, order, rstart)
+    else:
+        best, arg = _device_grid(eng, setup, blk, order, rstart)
+    X0 = _grid_points(setup, order, _distinct_starts(best, arg, order, setup.n_starts))  # (S, p, D)
+    S = X0.shape[0]
+    nfev = np.zeros(p, np.int64)
+    nfev += int(len(order))
+    # (b) float32 descents of every start, the best continued (successive halving: a short
+    # descent says which basin a start falls into), then the best few polished in float64
+    if eng.is_numpy:
+        X, sse, jtj, settled = _numpy_lm(setup, blk, X0, setup.free, SCREEN_ITERATIONS + POLISH_ITERATIONS, False)
+        nfev += S * (D + 1) * (SCREEN_ITERATIONS + POLISH_ITERATIONS + 2)
+    else:
+        X, sse = X0, np.zeros((S, p))
+        for count, iterations in SCREEN_SCHEDULE:
+            keep = min(count, X.shape[0])
+            top = np.argsort(np.where(np.isfinite(sse), sse, np.inf), axis=0, kind="stable")[:keep]
+            X = np.take_along_axis(X, top[..., None], axis=0)
+            X, sse, _, _ = _device_lm(eng, setup, blk, X, setup.free, "float32", iterations, False)
+            nfev += keep * (D + 1) * (iterations + 1)
+        T = min(POLISH_STARTS, X.shape[0])
+        top = np.argsort(np.where(np.isfinite(sse), sse, np.inf), axis=0, kind="stable")[:T]
+        X1 = np.take_along_axis(X, top[..., None], axis=0)
+        dtype = "float64" if eng.fp64 else "float32"
+        Xp, ssep, jtjp, setp = _device_lm(eng, setup, blk, X1, setup.free, dtype, POLISH_ITERATIONS, False)
+        nfev += T * (D + 1) * (POLISH_ITERATIONS + 1)
+        # descents still falling continue, alone (compacted), for up to EXTRA_ROUNDS more runs
+        for _ in range(EXTRA_ROUNDS):
+            t_idx, p_idx = np.nonzero(~setp)
+            if t_idx.size == 0:
+                break
+            sub = blk.subset(p_idx)
+            Xe, ssee, jtje, sete = _device_lm(eng, setup, sub, Xp[t_idx, p_idx][None], setup.free, dtype,
+                                              EXTRA_ITERATIONS, False)
+            Xp[t_idx, p_idx], ssep[t_idx, p_idx], jtjp[t_idx, p_idx], setp[t_idx, p_idx] = (
+                Xe[0], ssee[0], jtje[0], sete[0])
+            np.add.at(nfev, p_idx, (D + 1) * (EXTRA_ITERATIONS + 1))
+        # the best is one of the polished; the screened starts that were not polished keep their
+        # float32 result, which only the ambiguity test reads
+        X_all, sse_all = X.copy(), sse.copy()
+        np.put_along_axis(X_all, top[..., None], Xp, axis=0)
+        np.put_along_axis(sse_all, top, ssep, axis=0)
+        X, sse, jtj, settled = Xp, ssep, jtjp, setp
+    if eng.is_numpy:
+        X_all, sse_all = X, sse
+    sse = np.where(np.isfinite(sse) & (sse < 1e299), sse, np.inf)
+    sse_all = np.where(np.isfinite(sse_all) & (sse_all < 1e299), sse_all, np.inf)
+    b = np.argmin(sse, axis=0)
+    ar = np.arange(p)
+    xb, sb, jb, setb = X[b, ar], sse[b, ar], jtj[b, ar], settled[b, ar]
+    names_out = list(setup.free)
+    if setup.use_f00:
+        # ks from the weighted least-squares scale of F00 at ks = 1, then every parameter with ks
+        ks0 = _ks_start(eng, setup, blk, xb)
+        X2 = np.concatenate([xb, ks0[:, None]], axis=1)[None]
+        if eng.is_numpy:
+            Xf, ssef, jtjf, setf = _numpy_lm(setup, blk, X2, names, INTENSITY_ITERATIONS, True)
+        else:
+            Xf, ssef, jtjf, setf = _device_lm(eng, setup, blk, X2, names, "float64" if eng.fp64 else "float32",
+                                              INTENSITY_ITERATIONS, True)
+        nfev += (len(names) + 1) * (INTENSITY_ITERATIONS + 1)
+        xb, sb, jb, setb = Xf[0], ssef[0], jtjf[0], setf[0]
+        names_out = names
+    return _statistics(setup, blk, names_out, xb, sb, jb, setb, X_all, sse_all, fit_me, nfev)
+
+
+def _distinct_starts(best, arg, order, n):
+    """Per pixel, the grid indices (into ``order``) of the ``n`` best region minima that are distinct
+    grid points, (n, p); a pixel with fewer distinct ones repeats its best."""
+    rank = np.argsort(best, axis=0, kind="stable")
+    g = np.take_along_axis(order[arg], rank, axis=0)  # grid points, best region first
+    a = np.take_along_axis(arg, rank, axis=0)
+    dup = np.zeros(g.shape, bool)
+    for r in range(1, g.shape[0]):
+        dup[r] = np.any(g[:r] == g[r][None], axis=0)
+    key = np.where(dup, g.shape[0], np.arange(g.shape[0])[:, None])  # distinct ones first, in rank order
+    pick = np.argsort(key, axis=0, kind="stable")[:n]
+    chosen = np.take_along_axis(a, pick, axis=0)
+    ok = ~np.take_along_axis(dup, pick, axis=0)
+    return np.where(ok, chosen, chosen[:1])
+
+
+def _ks_start(eng, setup, blk, xb):
+    """Per pixel, the ks that best scales the model's F00 (ks = 1) to the intensities."""
+    p = dict(setup.base)
+    for j, n in enumerate(setup.free):
+        p[n] = xb[:, j:j + 1]
+    p["ks"] = 1.0
+    ang = [a[None, :] if blk.shared else a for a in blk.angles]
+    m1 = api.brdf(*ang, shadowing=setup.shadowing, engine=eng,
+                  **{n: p[n] for n in ("n", "k", "sigma", "ks", "kd", "c")})
+    w = blk.fw
+    num = (w * blk.fobs * m1).sum(axis=1)
+    den = np.maximum((w * m1 * m1).sum(axis=1), 1e-300)
+    return np.clip(num / den, *setup.ks_bounds)
+
+
+def _statistics(setup, blk, names, xb, chi2, jtj, settled, X_all, sse_all, fit_me, nfev):
+    p, D = xb.shape
+    lo, hi = _bounds(setup, names)
+    span = hi - lo
+    n_valid = blk.count + (blk.valid.sum(axis=1) if setup.use_f00 else 0)
+    dof = np.maximum(n_valid - D, 1)
+    if setup.sigma_known:
+        s2 = np.ones(p)
+    else:
+        s2 = np.maximum(chi2 / dof, setup.noise_floor ** 2)
+    cov, var = _covariances(jtj, s2, span)
+    se_int = np.sqrt(np.clip(var, 0, None))
+    xi = _internal(setup, xb, names)
+    resolution = X_RESOLUTION * span
+    floored = setup.sigma_known or (chi2 / dof < setup.noise_floor ** 2)
+    se_i = np.maximum(se_int, resolution)
+    lo95 = np.empty((p, D))
+    hi95 = np.empty((p, D))
+    known = floored if np.ndim(floored) else np.full(p, bool(floored))
+    for kind in (True, False):
+        sel = known == kind
+        if not sel.any():
+            continue
+        l_, h_ = _truncated_interval(xi[sel], se_i[sel], lo, hi, None if kind else dof[sel][:, None])
+        lo95[sel], hi95[sel] = l_, h_
+    determined = (hi95 - lo95) < DETERMINED_FRACTION * span
+    ci = np.stack([lo95, hi95], axis=-1)
+    se = se_int.copy()
+    if "ks" in names:  # back to ks from log ks
+        j = names.index("ks")
+        ci[:, j] = np.exp(ci[:, j])
+        se[:, j] = se_int[:, j] * xb[:, j]
+    # ambiguity: another start within one unit of chi2, more than 2 standard errors away
+    unit = np.where(setup.sigma_known, 1.0, s2)
+    D0 = len(setup.free)
+    best = chi2 if not setup.use_f00 else np.min(sse_all, axis=0)
+    close = (sse_all - np.min(sse_all, axis=0)[None]) <= unit[None]
+    far = np.any(np.abs(X_all - X_all[np.argmin(sse_all, axis=0), np.arange(p)][None])
+                 > 2 * np.maximum(se[None, :, :D0], 1e-12), axis=-1)
+    ambiguous = np.any(close & far, axis=0)
+    on_bound = np.any((xi <= lo + resolution) | (xi >= hi - resolution), axis=1)
+    status = np.ones(p, np.int8)
+    status[on_bound] = 2
+    status[ambiguous] = 3
+    status[~determined.all(axis=1)] = 4
+    status[~settled] = 0
+    status[~np.isfinite(best)] = -3
+    status[blk.count < D0 + 1] = -2
+    status[blk.distinct < D0] = -2
+    status[~blk.mask] = -1
+    unfit = status < 0
+    # DOP-only SSE (unweighted) at the optimum
+    dop_sse = _dop_sse(setup, blk, names, xb)
+    out = {"x": xb, "stderr": se, "ci95": ci, "determined": determined, "chi2": chi2, "sse": dop_sse,
+           "nfev": np.where(unfit, 0, nfev), "status": status, "n_valid": blk.count}
+    for k in ("x", "stderr", "ci95", "chi2", "sse"):
+        out[k] = np.where(unfit.reshape((-1,) + (1,) * (out[k].ndim - 1)), np.nan, out[k]).astype(float)
+    out["determined"] = np.where(unfit[:, None], False, determined)
+    return out
+
+
+def _dop_sse(setup, blk, names, xb):
+    """Sum of squared (unweighted) DOP residuals over each pixel's valid measurements, float64
+    reference model."""
+    res = _PixelResiduals(setup, blk, names, np.arange(blk.p), setup.use_f00)
+    saved = blk.w
+    blk.w = blk.valid.astype(float)
+    try:
+        r = res.rows(_internal(setup, xb, names))[:, :blk.valid.shape[1]]
+    finally:
+        blk.w = saved
+    r = np.where(blk.valid, r, 0.0)
+    return np.einsum("pm,pm->p", r, r)
+
+
+def _dataset(job, out, seconds):
+    import xarray as xr
+    src, setup = job.source, job.setup
+    shape, dims = src.shape, src.dims
+    names = job.names
+    ds = xr.Dataset(coords={d: src.coords[d] for d in dims if d in src.coords})
+    units = {"n": "1", "k": "1", "sigma": "1", "kd": "1", "c": "1", "ks": "1"}
+    long = {"n": "refractive index (real part)", "k": "extinction coefficient", "sigma": "slope std per axis",
+            "kd": "diffuse coefficient" + ("" if setup.use_f00 else " relative to ks (kd/ks)"),
+            "c": "Minnaert exponent", "ks": "specular coefficient"}
+    for j, n in enumerate(names):
+        ds[n] = (dims, out["x"][:, j].reshape(shape), {"units": units[n], "long_name": long[n]})
+        ds[f"{n}_stderr"] = (dims, out["stderr"][:, j].reshape(shape),
+                             {"units": units[n], "long_name": f"standard error of {n}"})
+        ds[f"{n}_ci95"] = (dims + ("bound",), out["ci95"][:, j].reshape(shape + (2,)),
+                           {"units": units[n], "long_name": f"95% interval of {n} (truncated to the bounds)"})
+    ds["sse"] = (dims, out["sse"].reshape(shape), {"long_name": "sum of squared DOP residuals", "units": "1"})
+    ds["chi2"] = (dims, out["chi2"].reshape(shape),
+                  {"long_name": "weighted sum of squared residuals" + (" (chi2)" if setup.sigma_known else
+                                                                     " (dop_std = 1: no uncertainties given)")})
+    ds["determined"] = (dims + ("param",), out["determined"].reshape(shape + (len(names),)),
+                        {"long_name": "the 95% interval is narrower than "
+                                      f"{DETERMINED_FRACTION:g} of the parameter's bounds"})
+    ds["n_valid"] = (dims, out["n_valid"].reshape(shape), {"long_name": "valid DOP measurements"})
+    ds["nfev"] = (dims, out["nfev"].reshape(shape), {"long_name": "model evaluations per measurement"})
+    ds["status"] = (dims, out["status"].reshape(shape), {"long_name": "fit status", **_status_attrs()})
+    ds = ds.assign_coords(bound=["low", "high"], param=names)
+    lo, hi = setup.lo, setup.hi
+    ds.attrs.update(model=setup.model, shadowing=setup.shadowing, free=" ".join(names),
+                    bounds="; ".join(f"{n} [{lo[i]:g}, {hi[i]:g}]" for i, n in enumerate(setup.free))
+                    + (f"; ks [{setup.ks_bounds[0]:g}, {setup.ks_bounds[1]:g}]" if setup.use_f00 else ""),
+                    grid=" x ".join(f"{n} {a.size}" for n, a in setup.axes.items()), n_starts=setup.n_starts,
+                    angles_units="degrees", sigma_known=int(setup.sigma_known),
+                    geometry="shared" if src.shared else "per pixel",
+                    **{f"fixed_{k}": v for k, v in setup.fixed.items()})
+    if setup.model == "six-param" and not setup.use_f00:
+        ds.attrs["note"] = ("DOP depends on ks and kd only through kd/ks: ks is fixed at "
+                            f"{setup.base['ks']:g} and kd is the ratio kd/ks")
+    if seconds is not None:
+        ds.attrs["seconds"] = float(seconds)
+    return ds
