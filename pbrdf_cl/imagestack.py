@@ -88,36 +88,43 @@ def _spherical(distance, theta, azimuth):
 LIGHT_AZIMUTHS = (180.0, 150.0, 210.0, 115.0, 245.0)
 
 
-def light_positions(n_lights=30, *, camera_azimuth=270.0, distance=400.0, zenith=(15.0, 80.0)):
+def light_positions(n_lights=30, *, camera_theta=60.0, camera_azimuth=270.0, distance=400.0, zenith=(15.0, 80.0),
+                    spread=(10.0, 15.0)):
     """The point-light positions of :func:`synthetic_stack`, on a sphere about the sample's centre.
 
-    A grid of rows of zenith angles by columns of relative azimuths (:data:`LIGHT_AZIMUTHS`: the
-    mirror plane phi = 180 and pairs at 180 +- 30 and +- 65 degrees, the forward half where the
-    specular lobe lies).  The rows are denser towards grazing (zenith ``lo + (hi - lo) sin(pi/2 t)``,
-    t uniform in [0, 1]): grazing light separates c, and the largest facet angles separate n and k.
-    With the default camera (zenith 60) a row falls within a few degrees of every pixel's mirror
-    direction, so every pixel has near-specular measurements.  ``n_lights`` sets the columns
-    (``round(sqrt(n_lights / 1.2))``, at most 5) and the rows (enough for ``n_lights``); extra grid
-    positions are dropped from the outer columns of the lowest row.  This grid was chosen over
-    golden-angle spirals over the whole hemisphere (back-scattering lights give DOP near 0 and
-    little information) by the Fisher information of the five parameters at the noise 0.005.
+    Two parts.  First ``n_lights // 5`` (at most 5) positions about the camera's mirror direction
+    (zenith ``camera_theta``, relative azimuth 180): the mirror direction itself, then
+    +-``spread[0]`` degrees in zenith and +-``spread[1]`` in azimuth, so that every pixel has a
+    measurement within a few degrees of facet tilt of its own mirror direction (8 degrees with
+    the defaults), which carries most of the information on n and k.  Then the rest on a grid of
+    rows of zenith angles by columns of relative azimuths (:data:`LIGHT_AZIMUTHS`: the mirror
+    plane and pairs at 180 +- 30 and +- 65 degrees, the forward half where the specular lobe
+    lies), the rows denser towards grazing (zenith ``lo + (hi - lo) sin(pi/2 t)``, t uniform in
+    [0, 1]): grazing light separates c, the spread of facet angles sigma and kd.  The columns are
+    ``round(sqrt(rest / 1.2))`` (at most 5), the rows enough for the rest; surplus grid positions
+    are dropped from the outer columns of the lowest row.  This design was chosen over golden-angle
+    spirals over the hemisphere (back-scattering lights see DOP near 0 and add little) and over
+    the grid alone by the Fisher information of (n, k, sigma, kd, c) at the DOP noise 0.005.
 
     Parameters
     ----------
     n_lights : int, default 30
         How many positions (at least 1).
-    camera_azimuth : float, default 270
-        Azimuth of the camera from the sample's centre (degrees); relative azimuths are counted
-        from it.
+    camera_theta, camera_azimuth : float, default 60, 270
+        Direction of the camera from the sample's centre (degrees); relative azimuths are counted
+        from the camera's.
     distance : float, default 400
         Distance of the lights from the sample's centre (the unit of the sample's coordinates, mm).
     zenith : (float, float), default (15, 80)
-        The lowest and highest zenith angles (degrees) of the rows.
+        The lowest and highest zenith angles (degrees) of the grid's rows.
+    spread : (float, float), default (10, 15)
+        Offsets (degrees) in zenith and azimuth of the near-specular positions.
 
     Returns
     -------
     numpy.ndarray, shape (n_lights, 3)
-        x, y, z of each position, row by row from the lowest zenith.
+        x, y, z of each position: the near-specular ones first, then the grid row by row from the
+        lowest zenith.
 
     Examples
     --------
@@ -127,14 +134,18 @@ def light_positions(n_lights=30, *, camera_azimuth=270.0, distance=400.0, zenith
     if isinstance(n_lights, bool) or not float(n_lights).is_integer() or int(n_lights) < 1:
         raise ValueError(f"n_lights must be an integer of at least 1, got {n_lights!r}")
     n_lights = int(n_lights)
-    n_az = max(1, min(len(LIGHT_AZIMUTHS), int(round(np.sqrt(n_lights / 1.2)))))
-    n_rows = -(-n_lights // n_az)
+    dz, da = spread
+    near = [(camera_theta, 180.0), (camera_theta - dz, 180.0), (camera_theta + dz, 180.0),
+            (camera_theta, 180.0 - da), (camera_theta, 180.0 + da)][:min(5, n_lights // 5)]
+    rest = n_lights - len(near)
+    n_az = max(1, min(len(LIGHT_AZIMUTHS), int(round(np.sqrt(rest / 1.2)))))
+    n_rows = -(-rest // n_az)
     lo, hi = zenith
     rows = lo + (hi - lo) * np.sin(np.pi / 2 * np.linspace(0.0, 1.0, n_rows))
-    pos = [(z, a) for z in rows for a in LIGHT_AZIMUTHS[:n_az]]
-    extra = len(pos) - n_lights
-    pos = pos[:n_az - extra] + pos[n_az:]
-    return np.array([_spherical(distance, z, camera_azimuth + a) for z, a in pos])
+    grid = [(z, a) for z in rows for a in LIGHT_AZIMUTHS[:n_az]]
+    surplus = len(grid) - rest
+    grid = grid[:n_az - surplus] + grid[n_az:]
+    return np.array([_spherical(distance, z, camera_azimuth + a) for z, a in near + grid])
 
 
 def truth_maps(size=256):
@@ -231,7 +242,8 @@ def synthetic_stack(size=256, n_lights=30, noise=0.005, seed=0, *, sample_mm=100
     if not (np.isfinite(noise) and noise >= 0):
         raise ValueError(f"noise must be a finite number >= 0, got {noise!r}")
     if lights is None:
-        lights = light_positions(n_lights, camera_azimuth=camera_azimuth, distance=light_distance)
+        lights = light_positions(n_lights, camera_theta=camera_theta, camera_azimuth=camera_azimuth,
+                                 distance=light_distance)
     lights = np.asarray(lights, dtype=np.float64)
     if lights.ndim != 2 or lights.shape[1] != 3 or not np.isfinite(lights).all():
         raise ValueError(f"lights must be finite positions of shape (M, 3), got shape {lights.shape}")
