@@ -73,7 +73,8 @@ def _frames(frames):
         if f.ndim != 2:
             raise ValueError(f"frames[{i}] must be a 2-D raw mosaic, got shape {f.shape}")
         if f.shape != out[0].shape:
-            raise ValueError(f"frames[{i}] has shape {f.shape}, frames[0] {out[0].shape}: every frame must have one shape")
+            raise ValueError(f"frames[{i}] has shape {f.shape}, frames[0] {out[0].shape}: every frame must have "
+                             "one shape")
         if not (np.issubdtype(f.dtype, np.integer) or np.issubdtype(f.dtype, np.floating)):
             raise ValueError(f"frames[{i}] must hold numbers, got dtype {f.dtype}")
     h, w = out[0].shape
@@ -264,7 +265,8 @@ def camera_dataset(frames, theta_i, theta_r, phi=180.0, *, dop_std=None, mask=No
     if dop_std is not None:
         std = np.asarray(dop_std, dtype=np.float64)
         if not (np.isfinite(std).all() and (std > 0).all()):
-            raise ValueError(f"dop_std must be finite and > 0, got {float(std[~(np.isfinite(std) & (std > 0))].flat[0])!r}")
+            bad = std[~(np.isfinite(std) & (std > 0))]
+            raise ValueError(f"dop_std must be finite and > 0, got {float(bad.flat[0])!r}")
         extra["dop_std"] = _broadcast("dop_std", std, shape)
     if mask is not None:
         mk = np.asarray(mask)

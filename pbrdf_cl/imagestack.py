@@ -51,8 +51,9 @@ def angles_from_positions(surface, light, camera, normal=(0.0, 0.0, 1.0)):
     theta_i, theta_r, phi : numpy.ndarray
         Degrees: the angles of the light and view directions to the normal, and the azimuth of the
         light direction minus that of the view direction (counter-clockwise about the normal), in
-        [0, 360), broadcast to one shape.  A mirror configuration gives phi = 180 and theta_i = theta_r; where a direction
-        is along the normal its azimuth is undefined and phi is 0.
+        [0, 360), broadcast to one shape.  A mirror configuration gives phi = 180 and
+        theta_i = theta_r; where a direction is along the normal its azimuth is undefined and
+        phi is 0.
 
     Examples
     --------
@@ -219,10 +220,12 @@ def synthetic_stack(size=256, n_lights=30, noise=0.005, seed=0, *, sample_mm=100
     -------
     xarray.Dataset
         Dims (y, x, m).  ``dop`` (y, x, m), ``theta_i``, ``theta_r``, ``phi`` (y, x, m, degrees),
-        ``dop_std`` (a scalar, the noise std, broadcastable to ``dop``), the truth ``true_n``, ``true_k``, ``true_sigma``,
-        ``true_kd`` (kd/ks, ks = 1), ``true_c`` and ``material`` (y, x); coordinates ``x_mm``,
-        ``y_mm`` (pixel centres), ``light_x``, ``light_y``, ``light_z`` (m); attrs describing the
-        units, the geometry, the noise and the seed.
+        ``dop_std`` (a scalar, the noise std, broadcastable to ``dop``), the truth ``true_n``,
+        ``true_k``, ``true_sigma``, ``true_kd`` (kd/ks, ks = 1), ``true_c`` and ``material``
+        (y, x); coordinates ``x_mm``, ``y_mm`` (pixel centres), ``light_x``, ``light_y``,
+        ``light_z`` (m); attrs describing the units, the geometry, the noise (``noise_std``,
+        ``seed``, ``clipped``: how many values were clipped to [0, 1]) and the camera
+        (``camera_mm``).
 
     Raises
     ------
@@ -257,7 +260,8 @@ def synthetic_stack(size=256, n_lights=30, noise=0.005, seed=0, *, sample_mm=100
         raise ValueError(f"the geometry reaches a zenith angle of {worst:.3g} degrees (at most {MAX_ZENITH} "
                          "allowed): move the lights or the camera")
     truth = truth_maps(size)
-    params = {name: np.broadcast_to(truth[name][:, :, None], ti.shape).ravel() for name in ("n", "k", "sigma", "kd", "c")}
+    params = {name: np.broadcast_to(truth[name][:, :, None], ti.shape).ravel()
+              for name in ("n", "k", "sigma", "kd", "c")}
     clean = np.empty(ti.size)
     flat = ti.ravel(), tr.ravel(), phi.ravel()
     for s in range(0, ti.size, _CHUNK):
@@ -395,8 +399,9 @@ def default_check_pixels(size):
     Returns
     -------
     list of (int, int)
-        Metal at the left, middle-left, right and in two corners; the dielectric disc at its left,
-        centre and right.
+        On the middle row: metal at the left and right edges (lowest and highest sigma), the
+        dielectric disc at its left, centre and right; metal near the top-left and bottom-right
+        corners.
 
     Examples
     --------
@@ -407,7 +412,7 @@ def default_check_pixels(size):
     mid, last = size // 2, size - 1
     frac = lambda f: min(last, max(0, int(round(f * last))))   # noqa: E731
     return [(mid, frac(0.03)), (mid, frac(0.97)), (frac(0.06), frac(0.06)), (frac(0.94), frac(0.94)),
-            (mid, frac(0.28)), (mid, mid), (mid, frac(0.72))]
+            (mid, frac(0.28)), (mid, mid), (mid, frac(0.72))]   # the disc spans x = 0.2..0.8 of the side
 
 
 def check_pixels(ds, pixels=None, **fit_kw):

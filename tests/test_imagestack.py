@@ -88,7 +88,8 @@ def test_mirror_configuration_is_phi_180():
     mirror = px + 1.5 * (cam - px) * np.array([-1, -1, 1])
     ds = imagestack.synthetic_stack(4, lights=[mirror], noise=0.0)
     q = ds.isel(y=2, x=1, m=0)
-    assert float(q.theta_i) == pytest.approx(float(q.theta_r), abs=1e-9) and float(q.phi) == pytest.approx(180, abs=1e-9)
+    assert float(q.theta_i) == pytest.approx(float(q.theta_r), abs=1e-9)
+    assert float(q.phi) == pytest.approx(180, abs=1e-9)
 
 
 def test_phi_matches_the_models_geometry():
@@ -172,3 +173,18 @@ def test_script(tmp_path, capsys):
     assert "stack.npz" in capsys.readouterr().out
     assert script.main(["--size", "1", "--out", str(out)]) == 2
     assert "size must be" in capsys.readouterr().err
+
+
+def test_check_pixels_fits_one_pixel():
+    """The stack's columns feed pbrdf_cl.fit as they are (one metal pixel, the numpy backend)."""
+    ds = imagestack.synthetic_stack(SIZE, seed=1)
+    (row,) = imagestack.check_pixels(ds, [(SIZE // 2, 0)], backend="numpy")
+    assert row["material"] == 0 and 0.3 < row["reduced_chi2"] < 3
+    for name in imagestack.FIT_PARAMETERS:
+        r = row[name]
+        assert r["true"] == float(ds[f"true_{name}"][SIZE // 2, 0]) and r["ci95"][0] <= r["ci95"][1]
+    assert abs(row["sigma"]["fit"] - row["sigma"]["true"]) < 5 * row["sigma"]["stderr"] < 0.05
+    for y, x in imagestack.default_check_pixels(64):
+        assert 0 <= y < 64 and 0 <= x < 64
+    mats = [int(imagestack.truth_maps(64)["material"][y, x]) for y, x in imagestack.default_check_pixels(64)]
+    assert mats == [0, 0, 0, 0, 1, 1, 1]
