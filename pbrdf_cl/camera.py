@@ -1,0 +1,307 @@
+"""From a division-of-focal-plane (DoFP) polarization camera to a DOP image stack.
+
+A monochrome DoFP sensor such as Sony's IMX250MZR puts a wire-grid polarizer on every pixel, in
+2x2 super-pixels of the angles
+
+    90  45
+    135  0
+
+(row 0: 90, 45; row 1: 135, 0 degrees, counted from the sensor's x axis), which is the layout
+``polanalyser`` assumes.  :func:`dop_from_frames` demosaics each raw frame (one per illumination
+geometry) into the four polarizer images with ``polanalyser.demosaicing``, fits the linear
+Stokes vector (S0, S1, S2) per pixel with ``polanalyser.calcStokes`` (Malus' law
+I(a) = (S0 + S1 cos 2a + S2 sin 2a) / 2) and takes the degree of linear polarization with
+``polanalyser.cvtStokesToDoLP``.  The model's reflected light has S3 = 0 (SPEC.md), so its DoLP
+is its DOP.  :func:`camera_dataset` adds the geometry and returns the Dataset that a per-pixel
+inversion takes.
+
+``polanalyser`` (and OpenCV, which it imports but does not declare) is an optional dependency:
+``pip install 'pbrdf-cl[camera]'``.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from . import api
+
+#: Polarizer angles (degrees) of the four images ``polanalyser.demosaicing`` returns, in order.
+POLARIZER_ANGLES = (0.0, 45.0, 90.0, 135.0)
+#: The 2x2 super-pixel of the IMX250MZR that polanalyser assumes: polarizer angle at [row, column].
+SUPERPIXEL = ((90.0, 45.0), (135.0, 0.0))
+#: Demosaicing methods: name -> the name of polanalyser's monochrome conversion code.
+DEMOSAIC = {"bilinear": "COLOR_PolarMono", "vng": "COLOR_PolarMono_VNG", "ea": "COLOR_PolarMono_EA"}
+#: Pixels of the raw frame that one demosaiced pixel depends on (a square of this side) per method.
+_FOOTPRINT = {"bilinear": 3, "vng": 5, "ea": 5}
+INSTALL_HINT = "pip install 'pbrdf-cl[camera]'"
+
+
+def polanalyser():
+    """The ``polanalyser`` module, imported on first use.
+
+    Returns
+    -------
+    module
+        ``polanalyser``.
+
+    Raises
+    ------
+    ImportError
+        One line naming ``pip install 'pbrdf-cl[camera]'`` when polanalyser or OpenCV is missing.
+
+    Examples
+    --------
+    >>> pa = polanalyser()  # doctest: +SKIP
+    """
+    try:
+        import polanalyser as pa
+    except ImportError as e:
+        missing = getattr(e, "name", None) or "polanalyser"
+        raise ImportError(f"the polarization-camera path needs polanalyser and OpenCV ({missing} is not "
+                          f"installed): {INSTALL_HINT}") from None
+    return pa
+
+
+def _frames(frames):
+    """The raw frames as a list of 2-D arrays of one shape with even sides, or a ValueError."""
+    if isinstance(frames, np.ndarray) and frames.ndim == 2:
+        raise ValueError(f"frames must be a sequence of 2-D raw frames (one per geometry), got one 2-D array "
+                         f"of shape {frames.shape}: wrap it in a list")
+    out = [np.asarray(f) for f in frames]
+    if not out:
+        raise ValueError("frames must hold at least one raw frame, got none")
+    for i, f in enumerate(out):
+        if f.ndim != 2:
+            raise ValueError(f"frames[{i}] must be a 2-D raw mosaic, got shape {f.shape}")
+        if f.shape != out[0].shape:
+            raise ValueError(f"frames[{i}] has shape {f.shape}, frames[0] {out[0].shape}: every frame must have "
+                             "one shape")
+        if not (np.issubdtype(f.dtype, np.integer) or np.issubdtype(f.dtype, np.floating)):
+            raise ValueError(f"frames[{i}] must hold numbers, got dtype {f.dtype}")
+    h, w = out[0].shape
+    if h % 2 or w % 2 or h < 2 or w < 2:
+        raise ValueError(f"frames must have even height and width (whole 2x2 super-pixels), got shape {(h, w)}")
+    return out
+
+
+def _demosaic(pa, raw, method):
+    """The four polarizer images (0, 45, 90, 135 degrees) of one raw frame as float64, (4, H, W)."""
+    code = getattr(pa, DEMOSAIC[method])
+    if np.issubdtype(raw.dtype, np.integer) and raw.dtype not in (np.uint8, np.uint16):
+        if raw.min() < 0 or raw.max() > 65535:
+            raise ValueError(f"integer frames must hold values in [0, 65535], got [{raw.min()}, {raw.max()}]")
+        raw = raw.astype(np.uint16)
+    if np.issubdtype(raw.dtype, np.floating) and not np.max(raw) > 0:
+        return np.zeros((4,) + raw.shape)   # polanalyser scales float frames by their maximum
+    return np.asarray(pa.demosaicing(raw, code), dtype=np.float64)
+
+
+def dop_from_frames(frames, *, demosaic="bilinear", dark=None, saturation=None, min_intensity=0.0,
+                    dtype="float64"):
+    """DOP (DoLP) and intensity S0 image stacks from raw DoFP polarization-camera frames.
+
+    Parameters
+    ----------
+    frames : sequence of 2-D arrays
+        One raw mosaic per illumination geometry (M frames of shape (H, W), H and W even), in
+        the IMX250MZR layout of :data:`SUPERPIXEL`; uint8 or uint16 as the camera writes them
+        (other integers in [0, 65535] are converted to uint16; float frames are scaled to uint16
+        by polanalyser, by their maximum, which costs precision in dark pixels).
+    demosaic : {"bilinear", "vng", "ea"}, default "bilinear"
+        polanalyser's demosaicing (OpenCV's bilinear, variable number of gradients or
+        edge-aware Bayer conversions); the output has the full resolution (H, W).
+    dark : float or array_like, optional
+        Black level subtracted from the four polarizer images before the Stokes fit: a number, a
+        raw dark frame (H, W) or one per frame (M, H, W) (demosaiced the same way).
+    saturation : float, optional
+        Raw value at which the sensor saturates: every output pixel whose demosaicing footprint
+        (3x3 raw pixels for bilinear, 5x5 otherwise) reaches it is NaN.  Default: the largest value
+        of the frames' integer dtype (255, 65535; a 12-bit camera's 4095 must be given), no check
+        for float frames.
+    min_intensity : float, default 0
+        Pixels with S0 <= this (after ``dark``) are NaN: no light, no DOP.
+    dtype : {"float64", "float32"}, default "float64"
+        Of the outputs.
+
+    Returns
+    -------
+    dop, s0 : numpy.ndarray, shape (H, W, M)
+        The degree of linear polarization sqrt(S1^2 + S2^2) / S0 and the intensity S0 (in raw
+        counts, after ``dark``).  NaN marks a missing measurement: saturated, at or below
+        ``min_intensity``, or a DoLP above 1 (noise or misregistration at edges); S0 is NaN only
+        where saturated.
+
+    Raises
+    ------
+    ImportError
+        Without polanalyser or OpenCV (``pip install 'pbrdf-cl[camera]'``).
+    ValueError
+        For frames of the wrong shape or dtype, or bad options, naming them.
+
+    Examples
+    --------
+    >>> dop, s0 = dop_from_frames([raw0, raw1, raw2], saturation=4095)  # doctest: +SKIP
+    >>> dop.shape  # doctest: +SKIP
+    (2048, 2448, 3)
+    """
+    if demosaic not in DEMOSAIC:
+        raise ValueError(f"demosaic must be one of {sorted(DEMOSAIC)}, got {demosaic!r}")
+    if dtype not in ("float64", "float32", np.float64, np.float32):
+        raise ValueError(f"dtype must be 'float64' or 'float32', got {dtype!r}")
+    if not np.isfinite(min_intensity):
+        raise ValueError(f"min_intensity must be a finite number, got {min_intensity!r}")
+    raws = _frames(frames)
+    pa = polanalyser()
+    shape, m = raws[0].shape, len(raws)
+    darks = _darks(pa, dark, shape, m, demosaic)
+    if saturation is None and np.issubdtype(raws[0].dtype, np.integer):
+        saturation = float(np.iinfo(raws[0].dtype).max)
+    if saturation is not None and not np.isfinite(saturation):
+        raise ValueError(f"saturation must be a finite number, got {saturation!r}")
+    dop = np.empty(shape + (m,), dtype=dtype)
+    s0 = np.empty(shape + (m,), dtype=dtype)
+    angles = np.radians(POLARIZER_ANGLES)
+    for j, raw in enumerate(raws):
+        images = _demosaic(pa, raw, demosaic)
+        if darks is not None:
+            images = images - darks[j if len(darks) > 1 else 0]
+        stokes = pa.calcStokes(images, angles)                        # (H, W, 3)
+        intensity = pa.cvtStokesToIntensity(stokes)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            dolp = pa.cvtStokesToDoLP(stokes)
+        bad = ~(intensity > min_intensity) | ~(dolp <= 1.0 + 1e-9)   # rounding above a DoLP of 1 is kept
+        if saturation is not None:
+            from scipy.ndimage import maximum_filter
+            hot = maximum_filter(raw, size=_FOOTPRINT[demosaic], mode="nearest") >= saturation
+            bad |= hot
+            intensity = np.where(hot, np.nan, intensity)
+        dop[..., j] = np.where(bad, np.nan, np.minimum(dolp, 1.0))
+        s0[..., j] = intensity
+    return dop, s0
+
+
+def _darks(pa, dark, shape, m, method):
+    """``dark`` as demosaiced float64 images (1 or M, 4, H, W), a (1, 1, 1, 1) number, or None."""
+    if dark is None:
+        return None
+    d = np.asarray(dark)
+    if d.ndim == 0:
+        if not np.isfinite(d):
+            raise ValueError(f"dark must be a finite number or a raw dark frame, got {dark!r}")
+        return np.full((1, 1, 1, 1), float(d))
+    frames = [d] if d.ndim == 2 else list(d)
+    if d.ndim not in (2, 3) or (d.ndim == 3 and len(frames) != m) or any(f.shape != shape for f in frames):
+        raise ValueError(f"dark must be a number, a raw frame of shape {shape} or {m} of them, got shape {d.shape}")
+    return np.stack([_demosaic(pa, f, method) for f in frames])
+
+
+def _angle(name, value, shape):
+    """A geometry array: (M,) shared, or broadcastable to (H, W, M); with its dims."""
+    a = api.check_values(name, value)
+    if a.size == 1 and a.ndim <= 1:
+        a = np.full(shape[-1:], float(a.flat[0]))
+    if a.ndim == 1:
+        if a.shape != shape[-1:]:
+            raise ValueError(f"{name} must have one value per frame ({shape[-1]}) or broadcast to {shape}, "
+                             f"got shape {a.shape}")
+        return ("m",), a
+    try:
+        return ("y", "x", "m"), np.array(np.broadcast_to(a, shape))
+    except ValueError:
+        raise ValueError(f"{name} must have one value per frame ({shape[-1]}) or broadcast to {shape}, "
+                         f"got shape {a.shape}") from None
+
+
+def camera_dataset(frames, theta_i, theta_r, phi=180.0, *, dop_std=None, mask=None, irradiance=None,
+                   demosaic="bilinear", dark=None, saturation=None, min_intensity=0.0):
+    """The Dataset of a per-pixel inversion from raw DoFP frames and their geometry.
+
+    Parameters
+    ----------
+    frames : sequence of 2-D arrays
+        M raw mosaics, one per illumination geometry (:func:`dop_from_frames`).
+    theta_i, theta_r, phi : float or array_like
+        Degrees, as everywhere in pbrdf-cl (phi = phi_i - phi_r, 180 = the mirror plane): one
+        value per frame, shape (M,), or per pixel, broadcastable to (H, W, M);
+        :func:`pbrdf_cl.imagestack.angles_from_positions` computes them from the positions of
+        the light, the camera and each pixel's surface point.
+    dop_std : float or array_like, optional
+        The DOP's standard deviation, broadcastable to (H, W, M) (the fit's weights).
+    mask : array_like of bool, shape (H, W), optional
+        True where a pixel is to be fitted.
+    irradiance : float or array_like, optional
+        The irradiance of each frame at the sample (e.g. source power cos(theta_i) / r^2, in any
+        one unit), broadcastable to (H, W, M).  With it the dataset has ``s0`` = S0 / irradiance,
+        proportional to the BRDF F00 (what the fit's intensity column must be); without it
+        only ``intensity`` (raw S0), which the fit does not read.
+    demosaic, dark, saturation, min_intensity
+        As for :func:`dop_from_frames`.
+
+    Returns
+    -------
+    xarray.Dataset
+        Dims (y, x, m): ``dop`` and ``intensity`` (y, x, m); ``theta_i``, ``theta_r``, ``phi``
+        with dims (m,) or (y, x, m) as given; ``dop_std``, ``mask`` and ``s0`` where given;
+        attrs naming the camera layout, the demosaicing and the count of missing measurements.
+
+    Raises
+    ------
+    ImportError
+        Without polanalyser or OpenCV (``pip install 'pbrdf-cl[camera]'``).
+    ValueError
+        For frames, angles, dop_std, mask or irradiance of the wrong shape or out of range.
+
+    Examples
+    --------
+    >>> ds = camera_dataset(frames, theta_i=[30, 40, 50], theta_r=45, phi=180)  # doctest: +SKIP
+    >>> ds.dop.dims  # doctest: +SKIP
+    ('y', 'x', 'm')
+    """
+    import xarray as xr
+
+    raws = _frames(frames)
+    shape = raws[0].shape + (len(raws),)
+    geometry = {name: _angle(name, v, shape) for name, v in (("theta_i", theta_i), ("theta_r", theta_r), ("phi", phi))}
+    extra = {}
+    if dop_std is not None:
+        std = np.asarray(dop_std, dtype=np.float64)
+        if not (np.isfinite(std).all() and (std > 0).all()):
+            bad = std[~(np.isfinite(std) & (std > 0))]
+            raise ValueError(f"dop_std must be finite and > 0, got {float(bad.flat[0])!r}")
+        extra["dop_std"] = _broadcast("dop_std", std, shape)
+    if mask is not None:
+        mk = np.asarray(mask)
+        if mk.dtype != bool or mk.shape != shape[:2]:
+            raise ValueError(f"mask must be a boolean array of shape {shape[:2]}, got {mk.dtype} of shape {mk.shape}")
+        extra["mask"] = (("y", "x"), mk)
+    if irradiance is not None:
+        irr = np.asarray(irradiance, dtype=np.float64)
+        if not (np.isfinite(irr).all() and (irr > 0).all()):
+            raise ValueError("irradiance must be finite and > 0, got "
+                             f"{float(irr[~(np.isfinite(irr) & (irr > 0))].flat[0])!r}")
+        irr_dims, irr = _broadcast("irradiance", irr, shape)
+    dop, s0 = dop_from_frames(raws, demosaic=demosaic, dark=dark, saturation=saturation, min_intensity=min_intensity)
+    yxm = ("y", "x", "m")
+    variables = {"dop": (yxm, dop, {"units": "1", "long_name": "degree of linear polarization (DoLP)"}),
+                 "intensity": (yxm, s0, {"units": "raw counts", "long_name": "Stokes S0 (not read by the fit)"})}
+    if irradiance is not None:
+        variables["s0"] = (yxm, s0 / np.broadcast_to(irr, shape),
+                           {"units": "counts per irradiance unit", "long_name": "S0 / irradiance, proportional to F00"})
+    for name, (dims, values) in geometry.items():
+        variables[name] = (dims, values, {"units": "degree"})
+    variables.update(extra)
+    missing = int(np.count_nonzero(np.isnan(dop)))
+    attrs = {"source": "DoFP polarization camera (IMX250MZR layout: 90 45 / 135 0), via polanalyser",
+             "demosaic": demosaic, "angles": "degrees; phi = phi_i - phi_r, 180 = in-plane (mirror) geometry",
+             "missing": missing,
+             "missing_means": "NaN dop: saturated, S0 <= min_intensity, or DoLP > 1"}
+    return xr.Dataset(variables, attrs=attrs)
+
+
+def _broadcast(name, a, shape):
+    """(dims, values) of ``a`` broadcast against (H, W, M): 0-d kept as a scalar."""
+    if a.ndim == 0:
+        return (), float(a)
+    try:
+        return ("y", "x", "m"), np.array(np.broadcast_to(a, shape))
+    except ValueError:
+        raise ValueError(f"{name} must broadcast to {shape}, got shape {a.shape}") from None

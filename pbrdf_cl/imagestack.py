@@ -1,0 +1,465 @@
+"""Synthetic polarization image stacks: a flat sample of two materials under a moving point light.
+
+:func:`synthetic_stack` renders the DOP that a fixed camera sees of a flat, rectified sample
+(pixel (y, x) images one patch of the plane z = 0) while a point source takes ``n_lights``
+positions.  Each pixel sees its own geometry, computed from the 3-D positions by
+:func:`angles_from_positions` (theta = angle to the surface normal, phi = azimuth of the light
+direction minus azimuth of the view direction, in [0, 360): phi = 180 is the mirror plane, as in
+SPEC.md).  The DOP comes from :func:`pbrdf_cl.dop` on the float64 numpy reference; nothing here
+evaluates the model itself.
+
+The parameter maps are known, so the stack tests a per-pixel inversion end to end: a metal (the
+paper's 45# steel, n = 1.6, k = 2.139) around a disc of a dielectric-like coating, each with its
+own kd (meaning kd/ks, ks = 1) and c, and a roughness (sigma) gradient from left to right.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .api import dop as _dop
+
+#: The two materials of :func:`synthetic_stack`: name -> n, k, kd (= kd/ks with ks = 1), c.
+MATERIALS = {
+    "metal": dict(n=1.6, k=2.139, kd=0.15, c=-0.3),       # the paper's 45# steel at 435 nm
+    "dielectric": dict(n=1.405, k=0.2289, kd=0.3, c=-0.6),  # the paper's black paint (Table 1), more diffuse
+}
+#: sigma at the left and right edges of :func:`synthetic_stack`'s image (linear in x).
+SIGMA_RANGE = (0.15, 0.6)
+#: No light or view direction of a synthetic stack lies this close to grazing (degrees).
+MAX_ZENITH = 89.0
+#: Points per call of :func:`pbrdf_cl.dop` (bounds the reference's temporaries to ~60 MB).
+_CHUNK = 1 << 18
+
+
+def _unit(v):
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def angles_from_positions(surface, light, camera, normal=(0.0, 0.0, 1.0)):
+    """Zenith angles and relative azimuth of a point light and a camera seen from surface points.
+
+    Parameters
+    ----------
+    surface, light, camera : array_like, shape (..., 3)
+        Positions (any one length unit) of the surface points, of the light source and of the
+        camera's pinhole; they broadcast together (e.g. surface (y, x, 1, 3) against light (m, 3)).
+    normal : array_like, shape (..., 3), default (0, 0, 1)
+        The mean surface normal (need not be a unit vector).
+
+    Returns
+    -------
+    theta_i, theta_r, phi : numpy.ndarray
+        Degrees: the angles of the light and view directions to the normal, and the azimuth of the
+        light direction minus that of the view direction (counter-clockwise about the normal), in
+        [0, 360), broadcast to one shape.  A mirror configuration gives phi = 180 and
+        theta_i = theta_r; where a direction is along the normal its azimuth is undefined and
+        phi is 0.
+
+    Examples
+    --------
+    >>> ti, tr, phi = angles_from_positions([0, 0, 0], [-1, 0, 1], [1, 0, 1])
+    >>> print(round(float(ti), 9), round(float(tr), 9), round(float(phi), 9))
+    45.0 45.0 180.0
+    """
+    surface, light, camera = (np.asarray(a, dtype=np.float64) for a in (surface, light, camera))
+    nrm = _unit(np.asarray(normal, dtype=np.float64))
+    for name, a in (("surface", surface), ("light", light), ("camera", camera), ("normal", nrm)):
+        if a.shape[-1:] != (3,):
+            raise ValueError(f"{name} must have a last axis of length 3 (x, y, z), got shape {a.shape}")
+    wi, wr = _unit(light - surface), _unit(camera - surface)
+    ci, cr = np.sum(wi * nrm, axis=-1), np.sum(wr * nrm, axis=-1)
+    it, rt = wi - ci[..., None] * nrm, wr - cr[..., None] * nrm     # projections on the tangent plane
+    # signed angle from the view's azimuth to the light's, counter-clockwise about the normal
+    phi = np.degrees(np.arctan2(np.sum(np.cross(rt, it) * nrm, axis=-1), np.sum(rt * it, axis=-1)))
+    theta_i = np.degrees(np.arctan2(np.linalg.norm(it, axis=-1), ci))
+    theta_r = np.degrees(np.arctan2(np.linalg.norm(rt, axis=-1), cr))
+    phi = np.mod(phi, 360.0)
+    phi = np.where(phi == 360.0, 0.0, phi)   # np.mod(-1e-17, 360) rounds to 360
+    return tuple(np.array(a) for a in np.broadcast_arrays(theta_i, theta_r, phi))
+
+
+def _spherical(distance, theta, azimuth):
+    """Cartesian points at ``distance`` from the origin, zenith ``theta`` and azimuth (degrees)."""
+    t, a = np.radians(theta), np.radians(azimuth)
+    return distance * np.stack([np.sin(t) * np.cos(a), np.sin(t) * np.sin(a), np.cos(t)], axis=-1)
+
+
+#: Relative azimuths (phi at the sample's centre, degrees) of the columns of :func:`light_positions`,
+#: in the order they are used: the mirror plane first, then pairs either side of it.
+LIGHT_AZIMUTHS = (180.0, 150.0, 210.0, 115.0, 245.0)
+
+
+def light_positions(n_lights=30, *, camera_theta=60.0, camera_azimuth=270.0, distance=400.0, zenith=(15.0, 80.0),
+                    spread=(10.0, 15.0)):
+    """The point-light positions of :func:`synthetic_stack`, on a sphere about the sample's centre.
+
+    Two parts.  First ``n_lights // 5`` (at most 5) positions about the camera's mirror direction
+    (zenith ``camera_theta``, relative azimuth 180): the mirror direction itself, then
+    +-``spread[0]`` degrees in zenith and +-``spread[1]`` in azimuth, so that every pixel has a
+    measurement within a few degrees of facet tilt of its own mirror direction (8 degrees with
+    the defaults), which carries most of the information on n and k.  Then the rest on a grid of
+    rows of zenith angles by columns of relative azimuths (:data:`LIGHT_AZIMUTHS`: the mirror
+    plane and pairs at 180 +- 30 and +- 65 degrees, the forward half where the specular lobe
+    lies), the rows denser towards grazing (zenith ``lo + (hi - lo) sin(pi/2 t)``, t uniform in
+    [0, 1]): grazing light separates c, the spread of facet angles sigma and kd.  The columns are
+    ``round(sqrt(rest / 1.2))`` (at most 5), the rows enough for the rest; surplus grid positions
+    are dropped from the outer columns of the lowest row.  This design was chosen over golden-angle
+    spirals over the hemisphere (back-scattering lights see DOP near 0 and add little) and over
+    the grid alone by the Fisher information of (n, k, sigma, kd, c) at the DOP noise 0.005.
+
+    Parameters
+    ----------
+    n_lights : int, default 30
+        How many positions (at least 1).
+    camera_theta, camera_azimuth : float, default 60, 270
+        Direction of the camera from the sample's centre (degrees); relative azimuths are counted
+        from the camera's.
+    distance : float, default 400
+        Distance of the lights from the sample's centre (the unit of the sample's coordinates, mm).
+    zenith : (float, float), default (15, 80)
+        The lowest and highest zenith angles (degrees) of the grid's rows.
+    spread : (float, float), default (10, 15)
+        Offsets (degrees) in zenith and azimuth of the near-specular positions.
+
+    Returns
+    -------
+    numpy.ndarray, shape (n_lights, 3)
+        x, y, z of each position: the near-specular ones first, then the grid row by row from the
+        lowest zenith.
+
+    Examples
+    --------
+    >>> light_positions(8).shape
+    (8, 3)
+    """
+    if isinstance(n_lights, bool) or not float(n_lights).is_integer() or int(n_lights) < 1:
+        raise ValueError(f"n_lights must be an integer of at least 1, got {n_lights!r}")
+    n_lights = int(n_lights)
+    dz, da = spread
+    near = [(camera_theta, 180.0), (camera_theta - dz, 180.0), (camera_theta + dz, 180.0),
+            (camera_theta, 180.0 - da), (camera_theta, 180.0 + da)][:min(5, n_lights // 5)]
+    rest = n_lights - len(near)
+    n_az = max(1, min(len(LIGHT_AZIMUTHS), int(round(np.sqrt(rest / 1.2)))))
+    n_rows = -(-rest // n_az)
+    lo, hi = zenith
+    rows = lo + (hi - lo) * np.sin(np.pi / 2 * np.linspace(0.0, 1.0, n_rows))
+    grid = [(z, a) for z in rows for a in LIGHT_AZIMUTHS[:n_az]]
+    surplus = len(grid) - rest
+    grid = grid[:n_az - surplus] + grid[n_az:]
+    return np.array([_spherical(distance, z, camera_azimuth + a) for z, a in near + grid])
+
+
+def truth_maps(size=256):
+    """The parameter maps of :func:`synthetic_stack` over (y, x).
+
+    Parameters
+    ----------
+    size : int, default 256
+        Pixels along each side.
+
+    Returns
+    -------
+    dict
+        ``material`` (int8: 0 metal, 1 dielectric; a disc of radius 0.3 * size about the centre is
+        the dielectric) and float64 maps ``n``, ``k``, ``sigma``, ``kd`` (kd/ks), ``c``; sigma
+        rises linearly in x over :data:`SIGMA_RANGE`.
+
+    Examples
+    --------
+    >>> m = truth_maps(16)
+    >>> sorted(m), m["n"].shape
+    (['c', 'k', 'kd', 'material', 'n', 'sigma'], (16, 16))
+    """
+    size = _check_size(size)
+    centre = (np.arange(size) + 0.5) / size - 0.5
+    yy, xx = np.meshgrid(centre, centre, indexing="ij")
+    material = (np.hypot(xx, yy) < 0.3).astype(np.int8)
+    maps = {"material": material}
+    for name in ("n", "k", "kd", "c"):
+        values = np.array([MATERIALS["metal"][name], MATERIALS["dielectric"][name]])
+        maps[name] = values[material]
+    lo, hi = SIGMA_RANGE
+    maps["sigma"] = np.broadcast_to(np.linspace(lo, hi, size), (size, size)).copy()   # first to last column
+    return maps
+
+
+def _check_size(size):
+    if isinstance(size, bool) or not float(size).is_integer() or int(size) < 2:
+        raise ValueError(f"size must be an integer of at least 2 pixels, got {size!r}")
+    return int(size)
+
+
+def synthetic_stack(size=256, n_lights=30, noise=0.005, seed=0, *, sample_mm=100.0, camera_distance=300.0,
+                    camera_theta=60.0, camera_azimuth=270.0, light_distance=400.0, lights=None, shadowing="paper"):
+    """A synthetic DOP image stack of a flat two-material sample with known parameter maps.
+
+    Parameters
+    ----------
+    size : int, default 256
+        The image is ``size`` x ``size`` pixels, each imaging one square patch of a sample of side
+        ``sample_mm`` centred at the origin of the plane z = 0 (the images are rectified to the
+        sample plane; x to the right, y upwards, row 0 at the top).
+    n_lights : int, default 30
+        Positions M of the point light (:func:`light_positions`).
+    noise : float, default 0.005
+        Standard deviation of the Gaussian noise added to the DOP (then clipped to [0, 1]).
+    seed : int, default 0
+        Seed of the noise (numpy's ``default_rng``): the same seed gives the same stack.
+    sample_mm, camera_distance, light_distance : float, default 100, 300, 400
+        Side of the sample, distance of the camera's pinhole and of the lights from its centre (mm).
+    camera_theta, camera_azimuth : float, default 60, 270
+        Direction of the camera from the sample's centre (degrees): off-axis, so theta_r varies
+        across the image (about 55..64 degrees with the defaults; theta_i spans about 6..81).
+    lights : array_like, shape (M, 3), optional
+        Light positions (mm) to use instead of :func:`light_positions` (``n_lights`` and
+        ``light_distance`` are then ignored).
+    shadowing : {"paper", "smith", "none"}, default "paper"
+        The shadowing function of the model rendered.
+
+    Returns
+    -------
+    xarray.Dataset
+        Dims (y, x, m).  ``dop`` (y, x, m), ``theta_i``, ``theta_r``, ``phi`` (y, x, m, degrees),
+        ``dop_std`` (a scalar, the noise std, broadcastable to ``dop``), the truth ``true_n``,
+        ``true_k``, ``true_sigma``, ``true_kd`` (kd/ks, ks = 1), ``true_c`` and ``material``
+        (y, x); coordinates ``x_mm``, ``y_mm`` (pixel centres), ``light_x``, ``light_y``,
+        ``light_z`` (m); attrs describing the units, the geometry, the noise (``noise_std``,
+        ``seed``, ``clipped``: how many values were clipped to [0, 1]) and the camera
+        (``camera_mm``).
+
+    Raises
+    ------
+    ValueError
+        For a bad size, n_lights or noise, or a geometry with a light or view direction at
+        ``MAX_ZENITH`` degrees or more.
+
+    Examples
+    --------
+    >>> ds = synthetic_stack(16, n_lights=8)
+    >>> ds.dop.dims, ds.dop.shape
+    (('y', 'x', 'm'), (16, 16, 8))
+    """
+    import xarray as xr
+
+    size = _check_size(size)
+    if not (np.isfinite(noise) and noise >= 0):
+        raise ValueError(f"noise must be a finite number >= 0, got {noise!r}")
+    if lights is None:
+        lights = light_positions(n_lights, camera_theta=camera_theta, camera_azimuth=camera_azimuth,
+                                 distance=light_distance)
+    lights = np.asarray(lights, dtype=np.float64)
+    if lights.ndim != 2 or lights.shape[1] != 3 or not np.isfinite(lights).all():
+        raise ValueError(f"lights must be finite positions of shape (M, 3), got shape {lights.shape}")
+    camera = _spherical(camera_distance, camera_theta, camera_azimuth)
+    coords = ((np.arange(size) + 0.5) / size - 0.5) * sample_mm
+    x_mm, y_mm = coords, coords[::-1]                                      # row 0 at the top
+    surface = np.stack(np.broadcast_arrays(x_mm[None, :], y_mm[:, None], 0.0), axis=-1)   # (y, x, 3)
+    ti, tr, phi = angles_from_positions(surface[:, :, None, :], lights[None, None], camera)
+    worst = max(float(ti.max()), float(tr.max()))
+    if worst >= MAX_ZENITH:
+        raise ValueError(f"the geometry reaches a zenith angle of {worst:.3g} degrees (at most {MAX_ZENITH} "
+                         "allowed): move the lights or the camera")
+    truth = truth_maps(size)
+    params = {name: np.broadcast_to(truth[name][:, :, None], ti.shape).ravel()
+              for name in ("n", "k", "sigma", "kd", "c")}
+    clean = np.empty(ti.size)
+    flat = ti.ravel(), tr.ravel(), phi.ravel()
+    for s in range(0, ti.size, _CHUNK):
+        sl = slice(s, s + _CHUNK)
+        clean[sl] = _dop(flat[0][sl], flat[1][sl], phi=flat[2][sl], ks=1.0, shadowing=shadowing, backend="numpy",
+                         **{k: v[sl] for k, v in params.items()})
+    clean = clean.reshape(ti.shape)
+    rng = np.random.default_rng(seed)
+    noisy = clean + rng.normal(0.0, noise, clean.shape) if noise > 0 else clean.copy()
+    clipped = int(np.count_nonzero((noisy < 0) | (noisy > 1)))
+    noisy = np.clip(noisy, 0.0, 1.0)
+
+    yxm, yx = ("y", "x", "m"), ("y", "x")
+    deg = {"units": "degree"}
+    ds = xr.Dataset(
+        {"dop": (yxm, noisy, {"units": "1", "long_name": "degree of polarization (unpolarized incidence)"}),
+         "dop_std": ((), float(noise), {"units": "1", "long_name": "std of the DOP noise (every measurement)"}),
+         "theta_i": (yxm, ti, {**deg, "long_name": "angle of the light direction to the normal"}),
+         "theta_r": (yxm, tr, {**deg, "long_name": "angle of the view direction to the normal"}),
+         "phi": (yxm, phi, {**deg, "long_name": "azimuth of light minus azimuth of view; 180 = mirror plane"}),
+         "true_n": (yx, truth["n"], {"units": "1", "long_name": "true refractive index n"}),
+         "true_k": (yx, truth["k"], {"units": "1", "long_name": "true extinction coefficient k"}),
+         "true_sigma": (yx, truth["sigma"], {"units": "1", "long_name": "true per-axis slope std"}),
+         "true_kd": (yx, truth["kd"], {"units": "1", "long_name": "true kd/ks (ks = 1)"}),
+         "true_c": (yx, truth["c"], {"units": "1", "long_name": "true diffuse exponent c"}),
+         "material": (yx, truth["material"], {"long_name": "0 = metal, 1 = dielectric"})},
+        coords={"x_mm": ("x", x_mm, {"units": "mm"}), "y_mm": ("y", y_mm, {"units": "mm"}),
+                "light_x": ("m", lights[:, 0], {"units": "mm"}), "light_y": ("m", lights[:, 1], {"units": "mm"}),
+                "light_z": ("m", lights[:, 2], {"units": "mm"})},
+        attrs={"title": "synthetic pBRDF DOP image stack (pbrdf_cl.imagestack.synthetic_stack)",
+               "angles": "degrees; phi = phi_i - phi_r in [0, 360), 180 = in-plane (mirror) geometry",
+               "geometry": (f"flat sample, side {sample_mm} mm, in the plane z = 0, normal +z, centred at the "
+                            f"origin; rectified pixels (x right, y up, row 0 at the top); pinhole camera at "
+                            f"{camera_distance} mm, zenith {camera_theta} deg, azimuth {camera_azimuth} deg; "
+                            f"{len(lights)} point-light positions at {light_distance} mm from the centre"),
+               "camera_mm": camera.tolist(),
+               "model": f"six-parameter pBRDF, shadowing {shadowing!r}, ks = 1 (true_kd is kd/ks)",
+               "materials": "; ".join(f"{m}: " + ", ".join(f"{k} = {v}" for k, v in p.items())
+                                      for m, p in MATERIALS.items()),
+               "sigma": f"linear in x from {SIGMA_RANGE[0]} (left) to {SIGMA_RANGE[1]} (right)",
+               "noise": f"Gaussian DOP noise of std {noise}, numpy default_rng(seed {seed}), then clipped to [0, 1]",
+               "noise_std": float(noise), "seed": int(seed), "clipped": clipped})
+    return ds
+
+
+def save_stack(ds, path):
+    """Write a stack to NetCDF (``.nc``, xarray's ``to_netcdf``) or to a numpy ``.npz``.
+
+    Parameters
+    ----------
+    ds : xarray.Dataset
+        A stack, e.g. from :func:`synthetic_stack`.
+    path : str or path
+        Ends in ``.nc`` or ``.npz``.  An ``.npz`` holds every variable and coordinate as an array
+        of the same name, their dims as ``<name>.dims`` and the attributes as ``attrs.json``;
+        :func:`load_stack` reads it back.
+
+    Returns
+    -------
+    pathlib.Path
+        The path written.
+
+    Examples
+    --------
+    >>> save_stack(synthetic_stack(16, n_lights=8), "stack.npz")  # doctest: +SKIP
+    """
+    import json
+    from pathlib import Path
+
+    path = Path(path)
+    if path.suffix == ".nc":
+        ds.to_netcdf(path)
+    elif path.suffix == ".npz":
+        arrays = {}
+        for name, var in {**ds.coords, **ds.data_vars}.items():
+            arrays[name] = var.values
+            arrays[f"{name}.dims"] = np.array(var.dims)
+            arrays[f"{name}.attrs"] = np.array(json.dumps(dict(var.attrs)))
+        arrays["attrs.json"] = np.array(json.dumps(dict(ds.attrs)))
+        arrays["coords"] = np.array(list(ds.coords))
+        np.savez_compressed(path, **arrays)
+    else:
+        raise ValueError(f"path must end in .nc or .npz, got {str(path)!r}")
+    return path
+
+
+def load_stack(path):
+    """Read a stack written by :func:`save_stack` (``.nc`` or ``.npz``).
+
+    Parameters
+    ----------
+    path : str or path
+        Ends in ``.nc`` or ``.npz``.
+
+    Returns
+    -------
+    xarray.Dataset
+        The stack, with its dims, coordinates and attributes.
+
+    Examples
+    --------
+    >>> ds = load_stack("stack.npz")  # doctest: +SKIP
+    """
+    import json
+    from pathlib import Path
+
+    import xarray as xr
+
+    path = Path(path)
+    if path.suffix == ".nc":
+        return xr.load_dataset(path)
+    if path.suffix != ".npz":
+        raise ValueError(f"path must end in .nc or .npz, got {str(path)!r}")
+    with np.load(path) as z:
+        names = [k for k in z.files if "." not in k and k != "coords"]
+        coords = set(z["coords"].tolist())
+        var = {k: (tuple(z[f"{k}.dims"].tolist()), z[k], json.loads(str(z[f"{k}.attrs"]))) for k in names}
+        attrs = json.loads(str(z["attrs.json"]))
+    return xr.Dataset({k: v for k, v in var.items() if k not in coords},
+                      coords={k: v for k, v in var.items() if k in coords}, attrs=attrs)
+
+
+#: The parameters a DOP-only fit determines (ks = 1), in the order of the truth maps.
+FIT_PARAMETERS = ("n", "k", "sigma", "kd", "c")
+
+
+def default_check_pixels(size):
+    """A handful of (y, x) pixels spanning both materials and the roughness gradient.
+
+    Parameters
+    ----------
+    size : int
+        Pixels along each side of the stack.
+
+    Returns
+    -------
+    list of (int, int)
+        On the middle row: metal at the left and right edges (lowest and highest sigma), the
+        dielectric disc at its left, centre and right; metal near the top-left and bottom-right
+        corners.
+
+    Examples
+    --------
+    >>> default_check_pixels(32)[:2]
+    [(16, 1), (16, 30)]
+    """
+    size = _check_size(size)
+    mid, last = size // 2, size - 1
+    frac = lambda f: min(last, max(0, int(round(f * last))))   # noqa: E731
+    return [(mid, frac(0.03)), (mid, frac(0.97)), (frac(0.06), frac(0.06)), (frac(0.94), frac(0.94)),
+            (mid, frac(0.28)), (mid, mid), (mid, frac(0.72))]   # the disc spans x = 0.2..0.8 of the side
+
+
+def check_pixels(ds, pixels=None, **fit_kw):
+    """Fit single pixels of a stack with :func:`pbrdf_cl.fit` and compare with the truth maps.
+
+    A check that the stack's geometry determines the parameters at its noise, not a batch fit.
+
+    Parameters
+    ----------
+    ds : xarray.Dataset
+        A stack with per-pixel ``theta_i``, ``theta_r``, ``phi``, ``dop``, ``dop_std`` and the
+        ``true_*`` maps (:func:`synthetic_stack`).
+    pixels : sequence of (int, int), optional
+        (y, x) indices; default :func:`default_check_pixels`.
+    **fit_kw
+        Passed to :func:`pbrdf_cl.fit` (``backend="numpy"``, ``bounds=...``).
+
+    Returns
+    -------
+    list of dict
+        One per pixel: ``y``, ``x``, ``material``, and for each of :data:`FIT_PARAMETERS` its
+        ``true``, ``fit``, ``stderr`` and ``ci95`` in a dict under the parameter's name, plus
+        ``reduced_chi2`` and ``seconds``.
+
+    Examples
+    --------
+    >>> rows = check_pixels(synthetic_stack(32), [(16, 16)], backend="numpy")  # doctest: +SKIP
+    >>> rows[0]["sigma"]["stderr"]  # doctest: +SKIP
+    """
+    import time
+    import warnings
+
+    from .inversion import fit
+
+    pixels = default_check_pixels(ds.sizes["x"]) if pixels is None else pixels
+    rows = []
+    for y, x in pixels:
+        p = ds.isel(y=y, x=x)
+        data = {v: np.asarray(p[v].values) for v in ("theta_i", "theta_r", "phi", "dop", "dop_std") if v in p}
+        t0 = time.perf_counter()
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")   # ignored columns, no-device notes: not the point here
+            res = fit(data, **fit_kw)
+        row = {"y": int(y), "x": int(x), "material": int(p["material"]) if "material" in p else None,
+               "reduced_chi2": float(res.reduced_chi2), "seconds": time.perf_counter() - t0}
+        for name in FIT_PARAMETERS:
+            row[name] = {"true": float(p[f"true_{name}"]), "fit": float(res.x[name]),
+                         "stderr": float(res.stderr[name]), "ci95": tuple(float(v) for v in res.ci95[name])}
+        rows.append(row)
+    return rows
