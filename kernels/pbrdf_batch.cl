@@ -269,8 +269,8 @@ inline void pb_solve(real *Mx, const real *g, real *u, real *ok)
 }
 
 /* X[i * Q + q]: in the start, out the end (internal coordinates); sse_out[q], jtj_out[(i * PB_D
- * + j) * Q + q] (J^T J at the end, unscaled), settled[q] (1 where the SSE fell by at most
- * 1e-9 of itself plus tiny over the last quarter of the iterations, or the damping saturated).
+ * + j) * Q + q] (J^T J at the end, unscaled), settled[q] (1 where a Gauss-Newton step would
+ * gain almost nothing: see the end).
  * Problem q belongs to pixel q % P. */
 __kernel void batch_lm(__global scalar *X, __global scalar *sse_out, __global scalar *jtj_out,
                        __global scalar *settled, const int Q, const int P, const int M, const int iterations,
@@ -296,11 +296,7 @@ __kernel void batch_lm(__global scalar *X, __global scalar *sse_out, __global sc
         tr_ += A[i * PB_D + i] * span[i] * span[i];
     real lam = (real)1e-3 * tr_ / (real)PB_D;
     lam = isfinite(lam) && lam > (real)0 ? lam : (real)1e-3;
-    real mark = sse;
-    const int quarter = iterations - iterations / 4;
     for (int it = 0; it < iterations; it++) {
-        if (it == quarter)
-            mark = sse;
         real g[PB_D], Mx[PB_D * PB_D], du[PB_D], held[PB_D];
         for (int i = 0; i < PB_D; i++) {
             const real gi = gr[i] * span[i];
@@ -365,7 +361,28 @@ __kernel void batch_lm(__global scalar *X, __global scalar *sse_out, __global sc
         if (all(lam >= PB_HUGE))
             break;
     }
-    const real done = (mark - sse <= (real)1e-9 * sse + (real)1e-12) || lam >= PB_HUGE ? (real)1 : (real)0;
+    /* settled: the Gauss-Newton step from here (the coordinates held on a bound left out, a ridge
+     * of 1e-8 of the mean curvature) would lower the objective by at most 1e-9 of itself (plus
+     * 1e-14): the descent is at a minimum, not crawling along a valley */
+    real g[PB_D], Mx[PB_D * PB_D], u[PB_D], held[PB_D], tr2 = (real)0;
+    for (int i = 0; i < PB_D; i++)
+        tr2 += A[i * PB_D + i] * span[i] * span[i];
+    const real ridge = (real)1e-8 * tr2 / (real)PB_D + PB_TINY;
+    for (int i = 0; i < PB_D; i++) {
+        const real gi = gr[i] * span[i];
+        held[i] = (((x[i] <= (real)lo[i] + tol[i]) && (gi > (real)0)) ||
+                   ((x[i] >= (real)hi[i] - tol[i]) && (gi < (real)0))) ? (real)1 : (real)0;
+        g[i] = held[i] > (real)0 ? (real)0 : gi;
+    }
+    for (int i = 0; i < PB_D; i++)
+        for (int j = 0; j < PB_D; j++)
+            Mx[i * PB_D + j] = ((held[i] > (real)0 || held[j] > (real)0) ? (real)0 : A[i * PB_D + j] * span[i] * span[j])
+                               + (i == j ? ridge + held[i] : (real)0);
+    real okd = (real)1, dec = (real)0;
+    pb_solve(Mx, g, u, &okd);
+    for (int i = 0; i < PB_D; i++)
+        dec -= g[i] * u[i];
+    const real done = (okd > (real)0 && dec <= (real)1e-9 * sse + (real)1e-14) ? (real)1 : (real)0;
     for (int i = 0; i < PB_D; i++) {
         pb_vs(x[i], 0, X + i * Q + q0);
         for (int j = 0; j < PB_D; j++)

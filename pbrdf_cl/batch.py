@@ -37,18 +37,21 @@ from .inversion import (DEFAULT_BOUNDS, DOP_NOISE_FLOOR, MODEL_FIXED, MODEL_PARA
 BATCH_GRID = {"n": 12, "k": 12, "sigma": 8, "kd": 8, "c": 4}
 BATCH_SPECULAR_GRID = {"n": 48, "k": 48}
 #: Starts per pixel: the best region minima of the grid.
-N_STARTS = 24
+N_STARTS = 16
 #: Whether the grid's bound faces are regions of their own (see :func:`_regions`).
-FACES = True
+FACES = False
 #: The float32 descents: (how many of the best starts, iterations), in turn, each continuing the
 #: best of the previous; then the float64 polish of the best POLISH_STARTS.
-SCREEN_SCHEDULE = ((24, 15), (6, 40))
+SCREEN_SCHEDULE = ((16, 15), (6, 40))
 SCREEN_ITERATIONS = 55  # the numpy backend's one descent of every start: the schedule's iterations
-POLISH_STARTS = 2
-POLISH_ITERATIONS = 30
+POLISH_STARTS = 1
+POLISH_ITERATIONS = 20
 #: Descents not settled after the polish continue alone, up to this many runs of this many iterations.
 EXTRA_ROUNDS = 3
 EXTRA_ITERATIONS = 60
+#: Coordinates of the best polished point within this fraction of the bound range from a bound are
+#: moved closer to it for one more polished descent (:func:`_towards_bounds`).
+SNAP = 0.05
 #: Iterations of the float64 run with intensities (ks free).
 INTENSITY_ITERATIONS = 40
 #: A parameter counts as determined by a pixel's data where its 95% interval is narrower than
@@ -59,6 +62,9 @@ F00_REL_STD = 0.05
 #: Lanes of the LM kernel per work-item (float32, float64).
 LM_LANES = {"float32": 8, "float64": 4}
 DEFAULT_BUDGET = "512 MiB"
+#: Work-group size of the batch kernels: each work-item holds a few kB of private arrays, which
+#: PoCL's CPU driver allocates for a whole work-group at once (a large group overflows its stack).
+LOCAL_SIZE = 4
 
 #: status code -> (name, meaning)
 STATUS = {
@@ -420,7 +426,7 @@ def _device_grid(eng, setup, blk, order, rstart):
         prog = eng.program("pbrdf_batch.cl", dtype, {"PBRDF_SHADOWING": shadow})
         eng.launch(prog["batch_grid_table"], (P // vw,), bbest, barg, np.int32(P), np.int32(M),
                    eng.to_device(T, npdt), brs, np.int32(R), eng.to_device(a2, npdt), eng.to_device(w, npdt),
-                   eng.to_device(c, npdt))
+                   eng.to_device(c, npdt), local_size=(LOCAL_SIZE,))
     else:
         nnk, nm, ni = v["n"].size * v["k"].size, v["sigma"].size * v["ks"].size, v["kd"].size * v["c"].size
         ng = M * P
@@ -442,7 +448,7 @@ def _device_grid(eng, setup, blk, order, rstart):
                                                      "PB_NI": ni})
         eng.launch(prog["batch_grid_factors"], (P // vw,), bbest, barg, np.int32(P), np.int32(M), s_, d_, sc, fd,
                    eng.to_device(order, np.int32), brs, np.int32(R), eng.to_device(obs, npdt),
-                   eng.to_device(w, npdt))
+                   eng.to_device(w, npdt), local_size=(LOCAL_SIZE,))
     eng.read(bbest, best)
     eng.read(barg, arg)
     return best[:, :blk.p], arg[:, :blk.p].astype(np.int64)
@@ -553,7 +559,7 @@ def _device_lm(eng, setup, blk, X0, names, dtype, iterations, intensity):
     M = blk.valid.shape[1]
     eng.launch(prog["batch_lm"], (Q // lanes,), bX, bsse, bjtj, bset, np.int32(Q), np.int32(P), np.int32(M),
                np.int32(iterations), eng.to_device(base, npdt), eng.to_device(lo, npdt), eng.to_device(hi, npdt),
-               *geo, obs, w, fobs, fw)
+               *geo, obs, w, fobs, fw, local_size=(LOCAL_SIZE,))
     eng.read(bX, Xi)
     eng.read(bsse, sse)
     eng.read(bjtj, jtj)
@@ -854,24 +860,30 @@ def _fit_block(eng, setup, raw, order, rstart, names):
         top = np.argsort(np.where(np.isfinite(sse), sse, np.inf), axis=0, kind="stable")[:T]
         X1 = np.take_along_axis(X, top[..., None], axis=0)
         dtype = "float64" if eng.fp64 else "float32"
-        Xp, ssep, jtjp, setp = _device_lm(eng, setup, blk, X1, setup.free, dtype, POLISH_ITERATIONS, False)
-        nfev += T * (D + 1) * (POLISH_ITERATIONS + 1)
-        # descents still falling continue, alone (compacted), for up to EXTRA_ROUNDS more runs
-        for _ in range(EXTRA_ROUNDS):
-            t_idx, p_idx = np.nonzero(~setp)
-            if t_idx.size == 0:
-                break
-            sub = blk.subset(p_idx)
-            Xe, ssee, jtje, sete = _device_lm(eng, setup, sub, Xp[t_idx, p_idx][None], setup.free, dtype,
-                                              EXTRA_ITERATIONS, False)
-            Xp[t_idx, p_idx], ssep[t_idx, p_idx], jtjp[t_idx, p_idx], setp[t_idx, p_idx] = (
-                Xe[0], ssee[0], jtje[0], sete[0])
-            np.add.at(nfev, p_idx, (D + 1) * (EXTRA_ITERATIONS + 1))
+        Xp, ssep, jtjp, setp = _polish(eng, setup, blk, X1, dtype, nfev)
+        # towards the bounds: from the best polished point, the coordinates near a bound moved 10,
+        # 100 and 1000 times closer to it (alone and together), the best of those polished too; a
+        # descent into this model's corners (n = 1, k = 0, kd = 0 where the DOP is discontinuous,
+        # sigma = 1) crawls geometrically, each step's move onto the bound rejected
+        bt = np.argmin(np.where(np.isfinite(ssep), ssep, np.inf), axis=0)
+        xb = Xp[bt, np.arange(p)]
+        cand = _towards_bounds(xb, setup.lo, setup.hi)
+        if cand is not None:
+            moved = np.flatnonzero(np.any(cand != xb[None], axis=(0, 2)))
+            sub = blk.subset(moved)
+            _, ssec, _, _ = _device_lm(eng, setup, sub, cand[:, moved], setup.free, dtype, 0, False)
+            nfev[moved] += cand.shape[0] * (D + 1)
+            c_best = np.argmin(ssec, axis=0)
+            start_ = cand[c_best, moved][None]
+            Xs, sses, jtjs, sets = _polish(eng, setup, sub, start_, dtype, nfev, moved)
+            row = [a[bt, np.arange(p)][None].copy() for a in (Xp, ssep, jtjp, setp)]
+            for r, v in zip(row, (Xs, sses, jtjs, sets)):
+                r[0, moved] = v[0]
+            Xp, ssep, jtjp, setp = (np.concatenate([a, r]) for a, r in zip((Xp, ssep, jtjp, setp), row))
         # the best is one of the polished; the screened starts that were not polished keep their
         # float32 result, which only the ambiguity test reads
         X_all, sse_all = X.copy(), sse.copy()
-        np.put_along_axis(X_all, top[..., None], Xp, axis=0)
-        np.put_along_axis(sse_all, top, ssep, axis=0)
+        X_all, sse_all = np.concatenate([X_all, Xp]), np.concatenate([sse_all, ssep])
         X, sse, jtj, settled = Xp, ssep, jtjp, setp
     if eng.is_numpy:
         X_all, sse_all = X, sse
@@ -894,6 +906,47 @@ def _fit_block(eng, setup, raw, order, rstart, names):
         xb, sb, jb, setb = Xf[0], ssef[0], jtjf[0], setf[0]
         names_out = names
     return _statistics(setup, blk, names_out, xb, sb, jb, setb, X_all, sse_all, fit_me, nfev)
+
+
+def _towards_bounds(x, lo, hi):
+    """Candidates (K, p, D) from the points ``x`` (p, D): the coordinates within SNAP of the bound
+    range from a bound moved 10, 100 and 1000 times closer to it, each alone and all together
+    (None where no coordinate of any point is near a bound)."""
+    span = hi - lo
+    near_lo, near_hi = x - lo < SNAP * span, hi - x < SNAP * span
+    near = near_lo | near_hi
+    if not near.any():
+        return None
+    out = []
+    for f in (1e-1, 1e-2, 1e-3):
+        closer = np.where(near_lo, lo + (x - lo) * f, np.where(near_hi, hi - (hi - x) * f, x))
+        out.append(closer)
+        for j in range(x.shape[1]):
+            if near[:, j].any():
+                one = x.copy()
+                one[:, j] = closer[:, j]
+                out.append(one)
+    return np.stack(out)
+
+
+def _polish(eng, setup, blk, X, dtype, nfev, pixels=None):
+    """The float64 descent from the starts X (T, p, D) of ``blk``: POLISH_ITERATIONS, then the
+    descents not settled continue alone (compacted) for up to EXTRA_ROUNDS runs of
+    EXTRA_ITERATIONS; adds the evaluations to ``nfev`` (of the pixels ``pixels`` of the caller's
+    block, default all).  Returns (X, sse, JtJ, settled)."""
+    D = X.shape[-1]
+    pixels = np.arange(X.shape[1]) if pixels is None else pixels
+    Xp, ssep, jtjp, setp = _device_lm(eng, setup, blk, X, setup.free, dtype, POLISH_ITERATIONS, False)
+    nfev[pixels] += X.shape[0] * (D + 1) * (POLISH_ITERATIONS + 1)
+    for _ in range(EXTRA_ROUNDS):
+        t_idx, p_idx = np.nonzero(~setp)
+        if t_idx.size == 0:
+            break
+        Xe, ssee, jtje, sete = _device_lm(eng, setup, blk.subset(p_idx), Xp[t_idx, p_idx][None], setup.free, dtype,
+                                          EXTRA_ITERATIONS, False)
+        Xp[t_idx, p_idx], ssep[t_idx, p_idx], jtjp[t_idx, p_idx], setp[t_idx, p_idx] = Xe[0], ssee[0], jtje[0], sete[0]
+        np.add.at(nfev, pixels[p_idx], (D + 1) * (EXTRA_ITERATIONS + 1))
+    return Xp, ssep, jtjp, setp
 
 
 def _distinct_starts(best, arg, order, n):
