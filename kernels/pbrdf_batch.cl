@@ -38,6 +38,9 @@
 
 #ifndef PB_VECTOR_REAL
 
+/* Grid points per tile of batch_grid_table: each measurement's data are loaded once per tile. */
+#define PB_TILE 4
+
 __kernel void batch_grid_table(__global real *best, __global real *arg, const int P, const int M,
                                __global const real *T, __global const int *rstart, const int R,
                                __global const real *a2, __global const real *b, __global const real *c)
@@ -47,17 +50,27 @@ __kernel void batch_grid_table(__global real *best, __global real *arg, const in
     const realv cc = pb_vload(0, c + p0);
     for (int r = 0; r < R; r++) {
         realv bs = (realv)INFINITY, bq = (realv)0;
-        for (int q = rstart[r]; q < rstart[r + 1]; q++) {
-            __global const real *t = T + (size_t)q * M;
-            realv acc = cc;
-            for (int m = 0; m < M; m++) {
-                const realv tm = (realv)t[m];
-                /* a2 = -2 w dop: acc += (w T - 2 w dop) T */
-                acc = fma(fma(pb_vload(0, b + m * P + p0), tm, pb_vload(0, a2 + m * P + p0)), tm, acc);
+        const int q1 = rstart[r + 1];
+        for (int q0 = rstart[r]; q0 < q1; q0 += PB_TILE) {
+            realv acc[PB_TILE];
+            __global const real *t[PB_TILE];
+            for (int u = 0; u < PB_TILE; u++) {
+                acc[u] = cc;
+                t[u] = T + (size_t)min(q0 + u, q1 - 1) * M;  /* clamped: the last tile re-reads */
             }
-            const realv q_ = (realv)(real)q;
-            bq = acc < bs ? q_ : bq;
-            bs = acc < bs ? acc : bs;
+            for (int m = 0; m < M; m++) {
+                const realv bm = pb_vload(0, b + m * P + p0), am = pb_vload(0, a2 + m * P + p0);
+                /* a2 = -2 w dop: acc += (w T - 2 w dop) T */
+                for (int u = 0; u < PB_TILE; u++) {
+                    const realv tm = (realv)t[u][m];
+                    acc[u] = fma(fma(bm, tm, am), tm, acc[u]);
+                }
+            }
+            for (int u = 0; u < PB_TILE && q0 + u < q1; u++) {
+                const realv q_ = (realv)(real)(q0 + u);
+                bq = acc[u] < bs ? q_ : bq;
+                bs = acc[u] < bs ? acc[u] : bs;
+            }
         }
         pb_vstore(bs, 0, best + r * P + p0);
         pb_vstore(bq, 0, arg + r * P + p0);

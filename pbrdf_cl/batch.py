@@ -357,8 +357,8 @@ class _Block:
             valid &= np.isfinite(raw["f00"])
         self.mask = mask
         self.valid = valid
-        self.shared = raw["theta_i"].ndim == 1
-        self.angles = [raw[a] for a in ANGLES]
+        self.shared = all(raw[a].ndim == 1 for a in ANGLES)
+        self.angles = [raw[a] if self.shared else np.broadcast_to(raw[a], dop.shape) for a in ANGLES]
         self.obs = np.where(valid, dop, 0.0)
         w = valid / (std ** 2 if std is not None else 1.0)
         self.w = np.where(valid, w, 0.0)
