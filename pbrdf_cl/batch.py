@@ -899,10 +899,10 @@ def _fit_block(eng, setup, raw, order, rstart, names):
         X2 = np.concatenate([xb, ks0[:, None]], axis=1)[None]
         if eng.is_numpy:
             Xf, ssef, jtjf, setf = _numpy_lm(setup, blk, X2, names, INTENSITY_ITERATIONS, True)
+            nfev += (len(names) + 1) * (INTENSITY_ITERATIONS + 1)
         else:
-            Xf, ssef, jtjf, setf = _device_lm(eng, setup, blk, X2, names, "float64" if eng.fp64 else "float32",
-                                              INTENSITY_ITERATIONS, True)
-        nfev += (len(names) + 1) * (INTENSITY_ITERATIONS + 1)
+            Xf, ssef, jtjf, setf = _polish(eng, setup, blk, X2, "float64" if eng.fp64 else "float32", nfev,
+                                           names=names, intensity=True, iterations=INTENSITY_ITERATIONS)
         xb, sb, jb, setb = Xf[0], ssef[0], jtjf[0], setf[0]
         names_out = names
     return _statistics(setup, blk, names_out, xb, sb, jb, setb, X_all, sse_all, fit_me, nfev)
@@ -929,21 +929,24 @@ def _towards_bounds(x, lo, hi):
     return np.stack(out)
 
 
-def _polish(eng, setup, blk, X, dtype, nfev, pixels=None):
-    """The float64 descent from the starts X (T, p, D) of ``blk``: POLISH_ITERATIONS, then the
-    descents not settled continue alone (compacted) for up to EXTRA_ROUNDS runs of
+def _polish(eng, setup, blk, X, dtype, nfev, pixels=None, names=None, intensity=False, iterations=None):
+    """The float64 descent from the starts X (T, p, D) of ``blk`` over ``names`` (default the free
+    parameters; ``intensity``: with the F00 residuals): ``iterations`` (default POLISH_ITERATIONS),
+    then the descents not settled continue alone (compacted) for up to EXTRA_ROUNDS runs of
     EXTRA_ITERATIONS; adds the evaluations to ``nfev`` (of the pixels ``pixels`` of the caller's
     block, default all).  Returns (X, sse, JtJ, settled)."""
     D = X.shape[-1]
+    names = setup.free if names is None else names
+    iterations = POLISH_ITERATIONS if iterations is None else iterations
     pixels = np.arange(X.shape[1]) if pixels is None else pixels
-    Xp, ssep, jtjp, setp = _device_lm(eng, setup, blk, X, setup.free, dtype, POLISH_ITERATIONS, False)
-    nfev[pixels] += X.shape[0] * (D + 1) * (POLISH_ITERATIONS + 1)
+    Xp, ssep, jtjp, setp = _device_lm(eng, setup, blk, X, names, dtype, iterations, intensity)
+    nfev[pixels] += X.shape[0] * (D + 1) * (iterations + 1)
     for _ in range(EXTRA_ROUNDS):
         t_idx, p_idx = np.nonzero(~setp)
         if t_idx.size == 0:
             break
-        Xe, ssee, jtje, sete = _device_lm(eng, setup, blk.subset(p_idx), Xp[t_idx, p_idx][None], setup.free, dtype,
-                                          EXTRA_ITERATIONS, False)
+        Xe, ssee, jtje, sete = _device_lm(eng, setup, blk.subset(p_idx), Xp[t_idx, p_idx][None], names, dtype,
+                                          EXTRA_ITERATIONS, intensity)
         Xp[t_idx, p_idx], ssep[t_idx, p_idx], jtjp[t_idx, p_idx], setp[t_idx, p_idx] = Xe[0], ssee[0], jtje[0], sete[0]
         np.add.at(nfev, pixels[p_idx], (D + 1) * (EXTRA_ITERATIONS + 1))
     return Xp, ssep, jtjp, setp
@@ -1008,10 +1011,24 @@ def _statistics(setup, blk, names, xb, chi2, jtj, settled, X_all, sse_all, fit_m
     determined = (hi95 - lo95) < DETERMINED_FRACTION * span
     ci = np.stack([lo95, hi95], axis=-1)
     se = se_int.copy()
-    if "ks" in names:  # back to ks from log ks
+    xb = xb.copy()
+    if "ks" in names:  # back to ks from log ks, and kd from kd/ks (reported as in pbrdf_cl.fit)
         j = names.index("ks")
         ci[:, j] = np.exp(ci[:, j])
         se[:, j] = se_int[:, j] * xb[:, j]
+        if "kd" in names:
+            d, ks = names.index("kd"), xb[:, j]
+            ratio = xb[:, d].copy()
+            # kd = ratio ks, d kd = ks d ratio + ratio ks d(log ks)
+            with np.errstate(invalid="ignore"):
+                var = ks ** 2 * (cov[:, d, d] + ratio ** 2 * cov[:, j, j] + 2 * ratio * cov[:, d, j])
+            var = np.where(np.isinf(se_int[:, d]) | np.isinf(se_int[:, j]), np.inf, var)
+            xb[:, d] = ratio * ks
+            se[:, d] = np.sqrt(np.clip(var, 0, None))
+            kd_hi = setup.hi[setup.free.index("kd")] * ks
+            l_, h_ = _truncated_interval(xb[:, d], np.maximum(se[:, d], resolution[d] * ks), 0.0 * ks, kd_hi,
+                                         None if setup.sigma_known else dof)
+            ci[:, d, 0], ci[:, d, 1] = l_, h_
     # ambiguity: another start within one unit of chi2, more than 2 standard errors away
     unit = np.where(setup.sigma_known, 1.0, s2)
     D0 = len(setup.free)
