@@ -801,11 +801,14 @@ class BatchJob:
         return per
 
     def rows_per_block(self):
-        """Rows of the first pixel dimension per block within the memory budget."""
+        """Rows of the first pixel dimension per block within the memory budget (at least one)."""
         row = int(np.prod(self.source.shape[1:], dtype=np.int64))
-        fixed = 0 if not self.source.shared else 8 * len(self.order) * self.source.M
-        room = max(self.memory_budget - fixed, self.pixel_bytes() * 64)
-        px = max(64, room // self.pixel_bytes())
+        fixed = 8 * len(self.order) * self.source.M if self.source.shared else 0  # the grid's DOP table
+        need = fixed + self.pixel_bytes() * row
+        if self.memory_budget < need:
+            raise ValueError(f"memory_budget={self.memory_budget} bytes is too small for one row of "
+                             f"{row} pixels ({need} bytes with the grid's tables); raise it")
+        px = (self.memory_budget - fixed) // self.pixel_bytes()
         if not self.source.shared:  # 32-bit indices of the per-pixel tables
             v = _grid_values(self.setup)
             px = min(px, (2 ** 31 - 1) // (self.source.M * v["n"].size * v["k"].size) - 64)
@@ -828,12 +831,31 @@ class BatchJob:
 
 
 def _fit_block(eng, setup, raw, order, rstart, names):
+    """The flat per-pixel results of one block of pixels (``raw``: :meth:`_Source.rows`): the
+    pixels that can be fitted go through the stages, the others get their status."""
     D = len(setup.free)
     lanes = max(LM_LANES.values()) * 2 if not eng.is_numpy else 1
     blk = _Block(raw, setup, lanes)
+    p, n_out = blk.p, len(names)
+    status = np.full(p, 1, np.int8)
+    status[(blk.count < D + 1) | (blk.distinct < D)] = -2
+    status[~blk.mask] = -1
+    todo = np.flatnonzero(status > 0)
+    out = {"x": np.full((p, n_out), np.nan), "stderr": np.full((p, n_out), np.nan),
+           "ci95": np.full((p, n_out, 2), np.nan), "determined": np.zeros((p, n_out), bool),
+           "chi2": np.full(p, np.nan), "sse": np.full(p, np.nan), "nfev": np.zeros(p, np.int64),
+           "status": status, "n_valid": blk.count}
+    if todo.size:
+        done = _fit_pixels(eng, setup, blk if todo.size == p else blk.subset(todo), order, rstart, names)
+        for k, v in done.items():
+            out[k][todo] = v
+    return out
+
+
+def _fit_pixels(eng, setup, blk, order, rstart, names):
+    """The stages for every pixel of ``blk`` (each has enough valid measurements)."""
+    D = len(setup.free)
     p = blk.p
-    need = D + 1
-    fit_me = blk.mask & (blk.count >= need) & (blk.distinct >= D)
     # (a) grid: each region's minimum; the best n_starts per pixel seed the descents
     if eng.is_numpy:
         best, arg = _numpy_grid(setup, blk, order, rstart)
@@ -868,8 +890,8 @@ def _fit_block(eng, setup, raw, order, rstart, names):
         bt = np.argmin(np.where(np.isfinite(ssep), ssep, np.inf), axis=0)
         xb = Xp[bt, np.arange(p)]
         cand = _towards_bounds(xb, setup.lo, setup.hi)
-        if cand is not None:
-            moved = np.flatnonzero(np.any(cand != xb[None], axis=(0, 2)))
+        moved = np.flatnonzero(np.any(cand != xb[None], axis=(0, 2))) if cand is not None else np.empty(0, int)
+        if moved.size:
             sub = blk.subset(moved)
             _, ssec, _, _ = _device_lm(eng, setup, sub, cand[:, moved], setup.free, dtype, 0, False)
             nfev[moved] += cand.shape[0] * (D + 1)
@@ -905,7 +927,7 @@ def _fit_block(eng, setup, raw, order, rstart, names):
                                            names=names, intensity=True, iterations=INTENSITY_ITERATIONS)
         xb, sb, jb, setb = Xf[0], ssef[0], jtjf[0], setf[0]
         names_out = names
-    return _statistics(setup, blk, names_out, xb, sb, jb, setb, X_all, sse_all, fit_me, nfev)
+    return _statistics(setup, blk, names_out, xb, sb, jb, setb, X_all, sse_all, nfev)
 
 
 def _towards_bounds(x, lo, hi):
@@ -983,7 +1005,7 @@ def _ks_start(eng, setup, blk, xb):
     return np.clip(num / den, *setup.ks_bounds)
 
 
-def _statistics(setup, blk, names, xb, chi2, jtj, settled, X_all, sse_all, fit_me, nfev):
+def _statistics(setup, blk, names, xb, chi2, jtj, settled, X_all, sse_all, nfev):
     p, D = xb.shape
     lo, hi = _bounds(setup, names)
     span = hi - lo
@@ -1044,17 +1066,13 @@ def _statistics(setup, blk, names, xb, chi2, jtj, settled, X_all, sse_all, fit_m
     status[~determined.all(axis=1)] = 4
     status[~settled] = 0
     status[~np.isfinite(best)] = -3
-    status[blk.count < D0 + 1] = -2
-    status[blk.distinct < D0] = -2
-    status[~blk.mask] = -1
-    unfit = status < 0
     # DOP-only SSE (unweighted) at the optimum
     dop_sse = _dop_sse(setup, blk, names, xb)
-    out = {"x": xb, "stderr": se, "ci95": ci, "determined": determined, "chi2": chi2, "sse": dop_sse,
-           "nfev": np.where(unfit, 0, nfev), "status": status, "n_valid": blk.count}
+    failed = status == -3
+    out = {"x": xb, "stderr": se, "ci95": ci, "determined": determined & ~failed[:, None], "chi2": chi2,
+           "sse": dop_sse, "nfev": nfev, "status": status}
     for k in ("x", "stderr", "ci95", "chi2", "sse"):
-        out[k] = np.where(unfit.reshape((-1,) + (1,) * (out[k].ndim - 1)), np.nan, out[k]).astype(float)
-    out["determined"] = np.where(unfit[:, None], False, determined)
+        out[k] = np.where(failed.reshape((-1,) + (1,) * (out[k].ndim - 1)), np.nan, out[k]).astype(float)
     return out
 
 

@@ -1,0 +1,192 @@
+"""Per-pixel inversion of image stacks (pbrdf_cl.fit_batch): agreement with pbrdf_cl.fit, both
+geometry paths and both backends, missing data and masks, intensities, fixed parameters, the
+result's layout, honest intervals, and one-line errors naming the variable and index."""
+import numpy as np
+import pytest
+
+import pbrdf_cl
+from pbrdf_cl import batch as B
+
+TI = np.repeat([30.0, 40.0, 50.0], 10)            # the paper's geometry
+TR = np.tile(np.arange(20.0, 66.0, 5.0), 3)
+TI1, TR1 = np.full(30, 45.0), np.linspace(5, 80, 30)  # one incidence
+
+
+@pytest.fixture
+def dev(engine):
+    if engine is None:
+        pytest.skip("no OpenCL device")
+    return engine
+
+
+def random_pixels(n, seed, ti=TI, tr=TR, noise=0.01):
+    rng = np.random.default_rng(seed)
+    truth = dict(n=rng.uniform(1.2, 4, n)[:, None], k=rng.uniform(0.0, 6, n)[:, None],
+                 sigma=rng.uniform(0.1, 0.9, n)[:, None], kd=rng.uniform(0.0, 1, n)[:, None],
+                 c=rng.uniform(-1, 0, n)[:, None])
+    dop = pbrdf_cl.dop(ti, tr, **truth, backend="numpy")
+    return np.clip(dop + rng.normal(0, noise, dop.shape), 0, 1), truth
+
+
+@pytest.mark.parametrize("geometry, share", [("paper", 6 / 8), ("one-incidence", 1.0)])
+def test_batched_sse_reaches_the_single_fit(dev, geometry, share):
+    """The batched fit's SSE reaches pbrdf_cl.fit's (1e-6 relative, or lower) on 8 random noisy
+    pixels: every one with one incidence; in the paper's three-incidence geometry, whose flat
+    multi-basin landscape (n = 1, k = 0 corners) defeats the batched starts more often, at least
+    6 and the others within 1% (scripts/bench_batch.py measures both shares on 500 pixels; the
+    issue's target is 99%)."""
+    ti, tr = (TI, TR) if geometry == "paper" else (TI1, TR1)
+    dop, _ = random_pixels(8, seed=11, ti=ti, tr=tr)
+    res = pbrdf_cl.fit_batch(dict(dop=dop, theta_i=ti, theta_r=tr), engine=dev)
+    single = np.array([pbrdf_cl.fit(dict(theta_i=ti, theta_r=tr, dop=d), engine=dev).sse for d in dop])
+    rel = (res.sse.values - single) / single
+    assert np.mean(rel <= 1e-6) >= share and np.all(rel <= 1e-2), rel
+    assert res.sse.dims == ("pixel",) and res.sse.shape == (8,)
+
+
+def test_noise_free_pixels_recover_their_truth(dev):
+    truth = dict(n=np.array([1.6, 2.5, 1.3])[:, None], k=np.array([2.139, 0.8, 3.0])[:, None],
+                 sigma=np.array([0.5, 0.3, 0.7])[:, None], kd=np.array([0.17, 0.4, 0.05])[:, None],
+                 c=np.array([-0.3, -0.6, -0.2])[:, None])
+    ti, tr = np.concatenate([TI, TI1]), np.concatenate([TR, TR1])
+    dop = pbrdf_cl.dop(ti, tr, **truth, backend="numpy")
+    res = pbrdf_cl.fit_batch(dict(dop=dop, theta_i=ti, theta_r=tr), engine=dev)
+    for name, v in truth.items():
+        np.testing.assert_allclose(res[name].values, v[:, 0], rtol=2e-4, atol=2e-4, err_msg=name)
+    assert np.all(res.sse.values < 1e-12)
+
+
+def test_shared_and_per_pixel_geometry_agree(dev):
+    dop, _ = random_pixels(6, seed=3)
+    dop = dop.reshape(2, 3, 30)
+    shared = pbrdf_cl.fit_batch(dict(dop=dop, theta_i=TI, theta_r=TR), engine=dev)
+    full = pbrdf_cl.fit_batch(dict(dop=dop, theta_i=np.broadcast_to(TI, dop.shape),
+                                   theta_r=np.broadcast_to(TR, dop.shape), phi=np.full(dop.shape, 180.0)),
+                              engine=dev)
+    assert shared.attrs["geometry"] == "shared" and full.attrs["geometry"] == "per pixel"
+    np.testing.assert_allclose(full.sse.values, shared.sse.values, rtol=1e-6)
+    np.testing.assert_array_equal(full.status.values, shared.status.values)
+
+
+def test_numpy_backend_runs_the_same_stages(dev):
+    dop, _ = random_pixels(3, seed=5, ti=TI1, tr=TR1)
+    a = pbrdf_cl.fit_batch(dict(dop=dop, theta_i=TI1, theta_r=TR1), engine=dev)
+    b = pbrdf_cl.fit_batch(dict(dop=dop, theta_i=TI1, theta_r=TR1), backend="numpy")
+    np.testing.assert_allclose(b.sse.values, a.sse.values, rtol=1e-6)
+
+
+def test_missing_measurements_and_masked_pixels(dev):
+    dop, _ = random_pixels(4, seed=7, ti=TI1, tr=TR1)
+    dop[1, ::3] = np.nan             # a third of pixel 1's measurements are missing
+    dop[2, 4:] = np.nan              # pixel 2 keeps 4: too few for 5 free parameters
+    mask = np.array([True, True, True, False])
+    res = pbrdf_cl.fit_batch(dict(dop=dop, theta_i=TI1, theta_r=TR1, mask=mask), engine=dev)
+    assert res.n_valid.values.tolist() == [30, 20, 4, 0]
+    status = res.status.values
+    assert status[2] == -2 and status[3] == -1 and status[0] >= 0 and status[1] >= 0
+    assert np.isnan(res.n.values[2:]).all() and np.isfinite(res.n.values[:2]).all()
+    assert "-2: too_few" in res.status.attrs["status_codes"]
+    # the pixel with gaps is the fit of its valid measurements alone
+    keep = np.isfinite(dop[1])
+    alone = pbrdf_cl.fit_batch(dict(dop=dop[1:2, keep], theta_i=TI1[keep], theta_r=TR1[keep]), engine=dev)
+    np.testing.assert_allclose(res.sse.values[1], alone.sse.values[0], rtol=1e-9)
+
+
+def test_intensities_separate_ks_and_kd_like_fit(dev):
+    truth = dict(n=1.6, k=2.139, sigma=0.5, ks=0.9, kd=0.15, c=-0.3)
+    rng = np.random.default_rng(2)
+    dop = pbrdf_cl.dop(TI, TR, **truth) + rng.normal(0, 0.003, (2, 30))
+    f00 = pbrdf_cl.brdf(TI, TR, **truth) * (1 + rng.normal(0, 0.01, (2, 30)))
+    f00_std = 0.01 * pbrdf_cl.brdf(TI, TR, **truth)
+    res = pbrdf_cl.fit_batch(dict(dop=dop, f00=f00, theta_i=TI, theta_r=TR, dop_std=0.003, f00_std=f00_std),
+                             engine=dev)
+    assert "ks" in res and res.attrs["free"].split() == ["n", "k", "sigma", "kd", "c", "ks"]
+    single = pbrdf_cl.fit(dict(theta_i=TI, theta_r=TR, dop=dop[0], f00=f00[0], dop_std=np.full(30, 0.003),
+                               f00_std=f00_std), engine=dev)
+    assert res.chi2.values[0] <= single.chi2 * (1 + 1e-6)
+    for name in ("n", "k", "sigma", "ks", "kd", "c"):
+        np.testing.assert_allclose(res[name].values[0], single.x[name], rtol=1e-3, atol=1e-3, err_msg=name)
+    np.testing.assert_allclose(res.ks_stderr.values[0], single.stderr["ks"], rtol=1e-2)
+
+
+def test_fixed_parameters_and_bounds(dev):
+    dop, _ = random_pixels(3, seed=9, ti=TI1, tr=TR1)
+    res = pbrdf_cl.fit_batch(dict(dop=dop, theta_i=TI1, theta_r=TR1), fixed={"sigma": 0.45},
+                             bounds={"n": (1.2, 3.0)}, engine=dev)
+    assert "sigma" not in res and res.attrs["fixed_sigma"] == 0.45
+    assert res.attrs["free"] == "n k kd c"
+    assert float(res.n.min()) >= 1.2 and float(res.n.max()) <= 3.0
+    single = pbrdf_cl.fit(dict(theta_i=TI1, theta_r=TR1, dop=dop[0]), fixed={"sigma": 0.45},
+                          bounds={"n": (1.2, 3.0)}, engine=dev)
+    assert res.sse.values[0] <= single.sse * (1 + 1e-6)
+
+
+def test_result_layout_follows_the_input_dataset(dev):
+    import xarray as xr
+    dop, _ = random_pixels(6, seed=4, ti=TI1, tr=TR1)
+    ds = xr.Dataset({"dop": (("row", "col", "meas"), dop.reshape(2, 3, 30)),
+                     "theta_i": (("meas",), TI1), "theta_r": (("meas",), TR1), "dop_std": ((), 0.01)},
+                    coords={"row": [10, 20], "col": [0.5, 1.5, 2.5]})
+    res = pbrdf_cl.fit_batch(ds, engine=dev)
+    assert res.n.dims == ("row", "col") and res.n_ci95.dims == ("row", "col", "bound")
+    assert res.row.values.tolist() == [10, 20] and res.bound.values.tolist() == ["low", "high"]
+    assert res.determined.dims == ("row", "col", "param")
+    for name in ("n", "k", "sigma", "kd", "c"):
+        lo, hi = res[f"{name}_ci95"].sel(bound="low"), res[f"{name}_ci95"].sel(bound="high")
+        # inside the bounds, and (the central 95% of a posterior truncated to them) not always
+        # around the value: a best fit on a bound with a wide interval lies outside its interval
+        assert bool((hi >= lo).all()) and float(lo.min()) >= B.DEFAULT_BOUNDS[name][0]
+        assert float(hi.max()) <= B.DEFAULT_BOUNDS[name][1]
+        assert res[f"{name}_stderr"].attrs["long_name"].startswith("standard error")
+    assert res.attrs["sigma_known"] == 1 and "kd/ks" in res.attrs["note"]
+    assert set(res.status.attrs["flag_values"]) == set(B.STATUS)
+
+
+def test_intervals_cover_the_truth(dev):
+    """95% intervals over noisy pixels of a well-determined design cover the truth about 95% of
+    the time (scripts/bench_batch.py measures it on the 256 x 256 synthetic image)."""
+    ti = np.concatenate([np.full(15, 30.0), np.full(15, 60.0)])
+    tr = np.concatenate([np.linspace(5, 80, 15)] * 2)
+    rng = np.random.default_rng(21)
+    n = 160
+    truth = dict(n=rng.uniform(1.4, 2.5, n)[:, None], k=rng.uniform(1.5, 4, n)[:, None],
+                 sigma=rng.uniform(0.2, 0.6, n)[:, None], kd=rng.uniform(0.1, 0.5, n)[:, None],
+                 c=rng.uniform(-0.7, -0.2, n)[:, None])
+    dop = np.clip(pbrdf_cl.dop(ti, tr, **truth, backend="numpy") + rng.normal(0, 0.003, (n, 30)), 0, 1)
+    res = pbrdf_cl.fit_batch(dict(dop=dop, theta_i=ti, theta_r=tr, dop_std=0.003), engine=dev)
+    for name, v in truth.items():
+        ci = res[f"{name}_ci95"].values
+        covered = np.mean((ci[:, 0] <= v[:, 0]) & (v[:, 0] <= ci[:, 1]))
+        assert 0.85 <= covered <= 1.0, (name, covered)
+
+
+@pytest.mark.parametrize("data, message", [
+    (dict(dop=np.full((2, 3, 30), 0.2), theta_i=TI, theta_r=np.where(np.arange(30) == 7, 95.0, TR)),
+     r"theta_r must be in \[0, 90\) degrees, got 95.0 at index \[7\]"),
+    (dict(dop=np.where(np.arange(180).reshape(2, 3, 30) == 37, 1.5, 0.2), theta_i=TI, theta_r=TR),
+     r"dop must be in \[0, 1\] \(NaN for a missing measurement\), got 1.5 at index \[0, 1, 7\]"),
+    (dict(dop=np.full((2, 3, 30), 0.2), theta_i=TI, theta_r=TR, dop_std=np.full((2, 3, 30), -1.0)),
+     r"dop_std must be > 0 .*got -1.0 at index \[0, 0, 0\]"),
+    (dict(dop=np.full((2, 3, 30), 0.2), theta_i=TI), r"no 'theta_r'"),
+    (dict(dop=np.full((2, 3, 30), 0.2), theta_i=TI, theta_r=TR, theta=TR), r"unknown variable 'theta'"),
+    (dict(dop=np.full(30, 0.2), theta_i=TI, theta_r=TR), r"dop must have shape \(\.\.\., M\)"),
+    (dict(dop=np.full((2, 3, 30), 0.2), theta_i=TI, theta_r=TR, mask=np.ones(5, bool)),
+     r"mask of shape \(5,\) does not broadcast"),
+])
+def test_bad_input_is_named_in_one_line(data, message):
+    with pytest.raises(ValueError, match=message) as err:
+        pbrdf_cl.fit_batch(data, backend="numpy")
+    assert "\n" not in str(err.value)
+
+
+def test_memory_budget_splits_the_image_into_blocks(dev):
+    dop, _ = random_pixels(12, seed=8, ti=TI1, tr=TR1)
+    data = dict(dop=dop.reshape(6, 2, 30), theta_i=TI1, theta_r=TR1)
+    whole = pbrdf_cl.fit_batch(data, engine=dev)
+    job = B.BatchJob(data)
+    budget = 8 * len(job.order) * 30 + job.pixel_bytes() * 4  # the grid's table and two rows
+    assert B.BatchJob(data, memory_budget=budget).blocks() == [(0, 2), (2, 4), (4, 6)]
+    parts = pbrdf_cl.fit_batch(data, memory_budget=budget, engine=dev)
+    np.testing.assert_allclose(parts.sse.values, whole.sse.values, rtol=1e-9)
+    with pytest.raises(ValueError, match=r"memory_budget=1000 bytes is too small for one row of 2 pixels"):
+        pbrdf_cl.fit_batch(data, memory_budget=1000, engine=dev)
