@@ -203,7 +203,32 @@ class _Source:
 
 
 def open_stack(path):
-    """An image stack from ``.npz``, ``.nc`` or ``.zarr`` as an ``xarray.Dataset`` (lazy for Zarr)."""
+    """An image stack from a file, as the ``xarray.Dataset`` :func:`fit_batch` takes.
+
+    Parameters
+    ----------
+    path : str or path
+        ``.npz`` (arrays named as :func:`fit_batch`'s variables: ``dop`` of shape (y, x, M), the
+        angles of shape (M,) or dop's, scalars or pixel maps for the rest), ``.nc`` (netCDF,
+        opened lazily) or ``.zarr`` (opened lazily: blocks of rows are read one at a time).
+
+    Returns
+    -------
+    xarray.Dataset
+
+    Raises
+    ------
+    ValueError
+        A missing file, an unknown format, no ``dop`` or an array of no usable shape.
+
+    Examples
+    --------
+    >>> import numpy as np, pbrdf_cl, tempfile, os
+    >>> path = os.path.join(tempfile.mkdtemp(), "stack.npz")
+    >>> np.savez(path, dop=np.full((4, 5, 30), 0.2), theta_i=np.full(30, 40.0), theta_r=np.linspace(5, 80, 30))
+    >>> pbrdf_cl.batch.open_stack(path).dop.dims
+    ('y', 'x', 'm')
+    """
     import pathlib
     import xarray as xr
     p = pathlib.Path(path)
@@ -404,7 +429,6 @@ class _Block:
 
 def _device_grid(eng, setup, blk, order, rstart):
     """(best (R, p), arg (R, p)): each region's minimum and its region-ordered grid index."""
-    import pyopencl as cl  # noqa: F401  (the engine's)
     dtype = "float32"
     npdt = DTYPES[dtype]
     v = _grid_values(setup)
@@ -543,7 +567,8 @@ def _device_lm(eng, setup, blk, X0, names, dtype, iterations, intensity):
     Xi[:, :, p:] = ((lo + hi) / 2)[:, None, None]
     Xi = np.ascontiguousarray(Xi.reshape(D, Q), npdt)
     base = np.array([setup.base.get(n, 0.0) for n in ("n", "k", "sigma", "ks", "kd", "c")], npdt)
-    bX = eng.to_device(Xi, npdt)
+    import pyopencl as cl
+    bX = cl.Buffer(eng.context, cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR, hostbuf=Xi)  # in and out
     sse, jtj, settled = np.empty(Q, npdt), np.empty((D * D, Q), npdt), np.empty(Q, npdt)
     bsse, bjtj, bset = eng.empty(sse.nbytes), eng.empty(jtj.nbytes), eng.empty(settled.nbytes)
     if blk.shared:

@@ -66,7 +66,25 @@ def main():
             configs += 1
         G.objective(data, points=dict(n=[1.2, 2.0], k=[0.0, 1.0], sigma=[0.3, 0.5]), dtype=dtype, engine=eng)
         configs += 1
-    print("ran", 2 * 3 * 5, "kernel configurations and", configs, "grid configurations")
+    # the batch kernels (pbrdf_batch.cl): grid stages with shared and per-pixel geometry, the
+    # descent in float32 and float64, with and without intensities; few pixels, short runs
+    from pbrdf_cl import batch as Bt
+    Bt.SCREEN_SCHEDULE, Bt.POLISH_ITERATIONS, Bt.EXTRA_ROUNDS, Bt.INTENSITY_ITERATIONS = ((2, 2), (1, 2)), 2, 1, 2
+    m_ti, m_tr = np.repeat([30.0, 50.0], 4), np.tile([20.0, 35.0, 50.0, 65.0], 2)
+    truth = dict(n=1.6, k=2.139, sigma=0.5, ks=0.9, kd=0.15, c=-0.3)
+    d = np.broadcast_to(pbrdf_cl.dop(m_ti, m_tr, backend="numpy", **truth), (3, 8)).copy()
+    f = np.broadcast_to(pbrdf_cl.brdf(m_ti, m_tr, backend="numpy", **truth), (3, 8)).copy()
+    shape = dict(n=3, k=3, sigma=2, kd=2, c=2)
+    batches = 0
+    for data in (dict(dop=d, theta_i=m_ti, theta_r=m_tr),
+                 dict(dop=d, theta_i=np.broadcast_to(m_ti, d.shape), theta_r=np.broadcast_to(m_tr, d.shape)),
+                 dict(dop=d, f00=f, theta_i=m_ti, theta_r=m_tr)):
+        res = pbrdf_cl.fit_batch(data, engine=eng, grid_shape=shape, n_starts=2)
+        if not np.isfinite(res.sse.values).all():
+            raise SystemExit("fit_batch under Oclgrind: non-finite results")
+        batches += 1
+    print("ran", 2 * 3 * 5, "kernel configurations and", configs, "grid configurations and", batches,
+          "batch fits")
 
 
 if __name__ == "__main__":
