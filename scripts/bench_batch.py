@@ -1,0 +1,182 @@
+#!/usr/bin/env python3
+"""Benchmark of the per-pixel inversion of image stacks, pbrdf_cl.fit_batch (issue targets).
+
+One run prints, on the default device (or --backend numpy):
+
+1. Rate with shared geometry (the paper's 30 measurements per pixel; --pixels random pixels,
+   parameters uniform in the default bounds, DOP noise 0.002 given as dop_std): end-to-end
+   pixels/s of fit_batch (input arrays to result Dataset), its stages' shares, and the rate of
+   pbrdf_cl.fit looped over --loop-pixels of the same pixels in the same run, and the ratio.
+2. Rate with per-pixel geometry: the synthetic camera stack of pbrdf_cl.imagestack
+   (--stack-size squared pixels, 30 light positions).
+3. SSE agreement: on --match random pixels in each of two geometries (the paper's; one incidence
+   angle, 45 degrees, theta_r 5..80 in 30 steps), the share of pixels where fit_batch's SSE
+   reaches pbrdf_cl.fit's (within 1e-6 relative, or lower).  Slow: pbrdf_cl.fit takes ~0.5 s
+   per pixel on 2 cores.
+4. Coverage: on the synthetic stack (--coverage-size squared pixels), the share of pixels whose
+   95% interval contains the truth, per parameter.
+5. Memory: the peak of host allocations (tracemalloc) of fit_batch at a fixed memory_budget for
+   two image sizes.
+
+    python scripts/bench_batch.py                       # everything (about 15 min on 2 cores)
+    python scripts/bench_batch.py --match 0 --coverage-size 64   # a quick look
+"""
+import argparse
+import time
+import tracemalloc
+
+import numpy as np
+
+import pbrdf_cl
+from pbrdf_cl import batch as B
+from pbrdf_cl import imagestack
+from pbrdf_cl.inversion import DEFAULT_BOUNDS
+
+NAMES = ("n", "k", "sigma", "kd", "c")
+LO = np.array([DEFAULT_BOUNDS[n][0] for n in NAMES])
+HI = np.array([DEFAULT_BOUNDS[n][1] for n in NAMES])
+NOISE = 0.002
+GEOMETRIES = {
+    "paper (theta_i 30/40/50 x theta_r 20..65)": (np.repeat([30.0, 40, 50], 10), np.tile(np.arange(20.0, 66, 5), 3)),
+    "one incidence (theta_i 45, theta_r 5..80)": (np.full(30, 45.0), np.linspace(5.0, 80.0, 30)),
+}
+
+
+def pixels(n, ti, tr, seed):
+    rng = np.random.default_rng(seed)
+    x = LO + rng.random((n, 5)) * (HI - LO)
+    truth = {name: x[:, j:j + 1] for j, name in enumerate(NAMES)}
+    d = pbrdf_cl.dop(ti, tr, backend="numpy", **truth)
+    return np.clip(d + rng.normal(0, NOISE, d.shape), 0, 1)
+
+
+class StageClock:
+    """Wall time spent in the stage functions of pbrdf_cl.batch (wrapped for the run)."""
+
+    STAGES = {"grid": ("_device_grid", "_numpy_grid"), "descent": ("_device_lm", "_numpy_lm"),
+              "statistics": ("_statistics",)}
+
+    def __init__(self):
+        self.seconds = dict.fromkeys(self.STAGES, 0.0)
+        self.saved = {}
+
+    def __enter__(self):
+        for stage, names in self.STAGES.items():
+            for name in names:
+                func = getattr(B, name)
+                self.saved[name] = func
+
+                def timed(*a, _f=func, _s=stage, **k):
+                    t0 = time.perf_counter()
+                    try:
+                        return _f(*a, **k)
+                    finally:
+                        self.seconds[_s] += time.perf_counter() - t0
+                setattr(B, name, timed)
+        return self
+
+    def __exit__(self, *exc):
+        for name, func in self.saved.items():
+            setattr(B, name, func)
+
+
+def rate(args, eng):
+    ti, tr = GEOMETRIES["paper (theta_i 30/40/50 x theta_r 20..65)"]
+    dop = pixels(args.pixels, ti, tr, seed=1)
+    data = dict(dop=dop, theta_i=ti, theta_r=tr, dop_std=NOISE)
+    pbrdf_cl.fit_batch(dict(dop=dop[:16], theta_i=ti, theta_r=tr, dop_std=NOISE), engine=eng)  # build kernels
+    with StageClock() as clock:
+        t0 = time.perf_counter()
+        res = pbrdf_cl.fit_batch(data, engine=eng)
+        t_batch = time.perf_counter() - t0
+    rate_batch = args.pixels / t_batch
+    t0 = time.perf_counter()
+    for d in dop[:args.loop_pixels]:
+        pbrdf_cl.fit(dict(theta_i=ti, theta_r=tr, dop=d, dop_std=np.full(d.size, NOISE)), engine=eng)
+    rate_loop = args.loop_pixels / (time.perf_counter() - t0)
+    shares = ", ".join(f"{k} {v / t_batch:.0%}" for k, v in clock.seconds.items())
+    print(f"shared geometry, 30 measurements: fit_batch {args.pixels} px in {t_batch:.2f} s = {rate_batch:.0f} px/s "
+          f"end to end (stages: {shares}); pbrdf_cl.fit looped over {args.loop_pixels} px: {rate_loop:.2f} px/s; "
+          f"ratio {rate_batch / rate_loop:.0f}x")
+    codes = dict(zip(*np.unique(res.status.values, return_counts=True)))
+    print("  status counts:", ", ".join(f"{B.STATUS[int(c)][0]} {n}" for c, n in codes.items()))
+
+
+def per_pixel_rate(args, eng):
+    ds = imagestack.synthetic_stack(size=args.stack_size, seed=3)
+    pbrdf_cl.fit_batch(ds.isel(y=slice(0, 4), x=slice(0, 4)), engine=eng)
+    with StageClock() as clock:
+        t0 = time.perf_counter()
+        pbrdf_cl.fit_batch(ds, engine=eng)
+        dt = time.perf_counter() - t0
+    n = args.stack_size ** 2
+    shares = ", ".join(f"{k} {v / dt:.0%}" for k, v in clock.seconds.items())
+    print(f"per-pixel geometry (synthetic camera stack {args.stack_size} x {args.stack_size}, 30 lights): "
+          f"{n} px in {dt:.2f} s = {n / dt:.0f} px/s end to end (stages: {shares})")
+
+
+def match(args, eng):
+    for name, (ti, tr) in GEOMETRIES.items():
+        dop = pixels(args.match, ti, tr, seed=2)
+        res = pbrdf_cl.fit_batch(dict(dop=dop, theta_i=ti, theta_r=tr, dop_std=NOISE), engine=eng)
+        single = np.array([pbrdf_cl.fit(dict(theta_i=ti, theta_r=tr, dop=d, dop_std=np.full(d.size, NOISE)),
+                                        engine=eng).chi2 for d in dop])
+        rel = (res.chi2.values - single) / single
+        worse = rel > 1e-6
+        print(f"SSE agreement, {name}: fit_batch reaches pbrdf_cl.fit's SSE (1e-6 relative or lower) on "
+              f"{1 - worse.mean():.1%} of {args.match} pixels (lower on {np.mean(rel < -1e-6):.1%}); "
+              f"where it does not, the median excess is {np.median(rel[worse]) if worse.any() else 0:.1e}")
+
+
+def coverage(args, eng):
+    ds = imagestack.synthetic_stack(size=args.coverage_size, seed=0)
+    t0 = time.perf_counter()
+    res = pbrdf_cl.fit_batch(ds, engine=eng)
+    dt = time.perf_counter() - t0
+    fitted = res.status.values >= 0
+    parts = []
+    for name in NAMES:
+        lo, hi = res[f"{name}_ci95"].values[..., 0], res[f"{name}_ci95"].values[..., 1]
+        t = ds[f"true_{name}"].values
+        parts.append(f"{name} {np.mean(((lo <= t) & (t <= hi))[fitted]):.1%}")
+    print(f"coverage of the truth by the 95% intervals, synthetic stack {args.coverage_size} x {args.coverage_size} "
+          f"({fitted.sum()} px fitted in {dt:.1f} s): " + ", ".join(parts))
+
+
+def memory(args, eng):
+    out = []
+    for size in (32, 96):
+        ds = imagestack.synthetic_stack(size=size, seed=4)
+        tracemalloc.start()
+        base = tracemalloc.get_traced_memory()[0]
+        pbrdf_cl.fit_batch(ds, engine=eng, memory_budget=args.budget)
+        peak = tracemalloc.get_traced_memory()[1] - base
+        tracemalloc.stop()
+        out.append(f"{size} x {size} px: {peak / 2**20:.1f} MiB")
+    print(f"peak host allocations of fit_batch at memory_budget={args.budget!r} (tracemalloc, inputs excluded): "
+          + ", ".join(out))
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--pixels", type=int, default=8192)
+    ap.add_argument("--loop-pixels", type=int, default=20)
+    ap.add_argument("--stack-size", type=int, default=64)
+    ap.add_argument("--match", type=int, default=500)
+    ap.add_argument("--coverage-size", type=int, default=256)
+    ap.add_argument("--budget", default="32 MiB")
+    ap.add_argument("--backend", default="auto")
+    args = ap.parse_args()
+    eng = pbrdf_cl.engine.resolve_engine(None, args.backend)
+    print("device:", getattr(eng, "description", "numpy"))
+    rate(args, eng)
+    per_pixel_rate(args, eng)
+    if args.match:
+        match(args, eng)
+    if args.coverage_size:
+        coverage(args, eng)
+    memory(args, eng)
+
+
+if __name__ == "__main__":
+    main()
