@@ -125,6 +125,13 @@ class _Source:
                 else:
                     vars_[name] = v.broadcast_like(dop).transpose(*dop.dims).data
             self.vars = vars_
+            unread = [str(n) for n, v in data.data_vars.items() if n not in VARIABLES and self.mdim in v.dims]
+            if unread:
+                import warnings
+                from .data import DataWarning
+                warnings.warn(f"data: variable{'s' if len(unread) > 1 else ''} {', '.join(unread)} "
+                              f"over the measurements not read (fit_batch reads {', '.join(VARIABLES)})",
+                              DataWarning, stacklevel=4)
             self.shape = tuple(dop.shape[:-1])
             self.M = int(dop.shape[-1])
         elif isinstance(data, dict):
@@ -559,6 +566,7 @@ def _device_lm(eng, setup, blk, X0, names, dtype, iterations, intensity):
                **{f"PB_X_{n.upper()}": s for n, s in slot.items()}}
     if intensity:
         defines["PB_INTENSITY"] = None
+
     if not blk.shared:
         defines["PB_PIXEL_GEOMETRY"] = None
     prog = eng.program("pbrdf_batch.cl", dtype, defines)
