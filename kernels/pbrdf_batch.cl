@@ -173,7 +173,8 @@ inline void pb_evaluate(const real *x, const real *h, __global const scalar *bas
                         __global const scalar *ti, __global const scalar *tr, __global const scalar *ph,
                         __global const scalar *obs, __global const scalar *w,
                         __global const scalar *fobs, __global const scalar *fw,
-                        const int P, const int M, const int p0, real *sse, real *A, real *gr)
+                        const int P, const int M, const int p0, real *sse, real *A, real *gr,
+                        __global scalar *rows, const int Q, const int q0)
 {
     *sse = (real)0;
     for (int i = 0; i < PB_D; i++) {
@@ -224,6 +225,12 @@ inline void pb_evaluate(const real *x, const real *h, __global const scalar *bas
 #endif
         }
         pb_accumulate(sw * (dop0 - pb_vl(0, obs + o)), col, sse, A, gr);
+#ifdef PB_GEODESIC
+        /* this point's Jacobian row and residual, for the geodesic acceleration */
+        for (int i = 0; i < PB_D; i++)
+            pb_vs(col[i], 0, rows + (size_t)(m * (PB_D + 1) + i) * PB_N);
+        pb_vs(sw * (dop0 - pb_vl(0, obs + o)), 0, rows + (size_t)(m * (PB_D + 1) + PB_D) * PB_N);
+#endif
 #ifdef PB_INTENSITY
         pb_accumulate(swf * (f000 - pb_vl(0, fobs + o)), fcol, sse, A, gr);
 #endif
@@ -234,6 +241,47 @@ inline void pb_evaluate(const real *x, const real *h, __global const scalar *bas
     /* non-finite residuals lose against any finite point (as _finite does for the host stages) */
     *sse = isfinite(*sse) ? *sse : PB_HUGE;
 }
+
+#ifdef PB_GEODESIC
+/* Geodesic acceleration (Transtrum and Sethna 2012): b = J_s^T r_vv at x, the residuals' second
+ * directional derivative along the step du (coordinates scaled to the bounds) from a finite
+ * difference at x + hv du: r_vv = 2 (r(x + hv du) - r - hv J_s du) / hv^2, with the Jacobian rows
+ * and residuals of x that pb_evaluate stored in rows. */
+inline void pb_accel_rhs(const real *x, const real *du, const real *span, const real hv,
+                         __global const scalar *lo, __global const scalar *hi, __global const scalar *base,
+                         __global const scalar *ti, __global const scalar *tr, __global const scalar *ph,
+                         __global const scalar *obs, __global const scalar *w,
+                         const int P, const int M, const int p0, __global const scalar *rows, const int Q,
+                         const int q0, real *b)
+{
+    real xv[PB_D];
+    for (int i = 0; i < PB_D; i++) {
+        xv[i] = clamp(x[i] + hv * du[i] * span[i], (real)lo[i], (real)hi[i]);
+        b[i] = (real)0;
+    }
+    const pb_par p = pb_params(xv, base);
+    for (int m = 0; m < M; m++) {
+        const int o = m * P + p0;
+#ifdef PB_PIXEL_GEOMETRY
+        const pb_geom g = pb_geometry(pb_vl(0, ti + o), pb_vl(0, tr + o), pb_vl(0, ph + o));
+#else
+        const pb_geom g = pb_geometry((real)ti[m], (real)tr[m], (real)ph[m]);
+#endif
+        const pb_fresnel_t f = pb_fresnel(p.n, p.k, g.cb, g.sb);
+        const real logK = pb_log_specular_scale(g, p.sigma, p.ks, pb_shadowing_factor(g, p.sigma, PBRDF_SHADOWING));
+        const real rv = sqrt(pb_vl(0, w + o)) * (pb_dop(f, logK, pb_diffuse(g, p.kd, p.c)) - pb_vl(0, obs + o));
+        real jrow[PB_D], jdu = (real)0;
+        for (int i = 0; i < PB_D; i++) {
+            jrow[i] = pb_vl(0, rows + (size_t)(m * (PB_D + 1) + i) * PB_N) * span[i];
+            jdu += jrow[i] * du[i];
+        }
+        const real r0 = pb_vl(0, rows + (size_t)(m * (PB_D + 1) + PB_D) * PB_N);
+        const real rvv = (real)2 * (rv - r0 - hv * jdu) / (hv * hv);
+        for (int i = 0; i < PB_D; i++)
+            b[i] += jrow[i] * rvv;
+    }
+}
+#endif
 
 /* scipy's '2-point' steps: sqrt(eps) max(1, |x|), inwards at an upper bound, as taken */
 inline void pb_steps(const real *x, __global const scalar *hi, real *h)
@@ -290,9 +338,13 @@ __kernel void batch_lm(__global scalar *X, __global scalar *sse_out, __global sc
                        __global const scalar *base, __global const scalar *lo, __global const scalar *hi,
                        __global const scalar *ti, __global const scalar *tr, __global const scalar *ph,
                        __global const scalar *obs, __global const scalar *w,
-                       __global const scalar *fobs, __global const scalar *fw)
+                       __global const scalar *fobs, __global const scalar *fw, __global scalar *rows)
 {
     const int q0 = get_global_id(0) * PB_N;
+    /* rows: two slots of M x (PB_D + 1) lane vectors per work-item, contiguous (the current
+     * point's Jacobian rows and residuals, the trial's), for the geodesic acceleration */
+    __global scalar *cur = rows + (size_t)(q0 / PB_N) * 2 * M * (PB_D + 1) * PB_N;
+    __global scalar *trial = cur + (size_t)M * (PB_D + 1) * PB_N;
     if (q0 >= Q) return;
     const int p0 = q0 % P;
     real x[PB_D], h[PB_D], A[PB_D * PB_D], gr[PB_D], sse;
@@ -303,7 +355,7 @@ __kernel void batch_lm(__global scalar *X, __global scalar *sse_out, __global sc
         x[i] = clamp(pb_vl(0, X + i * Q + q0), (real)lo[i], (real)hi[i]);
     }
     pb_steps(x, hi, h);
-    pb_evaluate(x, h, base, ti, tr, ph, obs, w, fobs, fw, P, M, p0, &sse, A, gr);
+    pb_evaluate(x, h, base, ti, tr, ph, obs, w, fobs, fw, P, M, p0, &sse, A, gr, cur, Q, q0);
     real tr_ = (real)0;
     for (int i = 0; i < PB_D; i++)
         tr_ += A[i * PB_D + i] * span[i] * span[i];
@@ -352,11 +404,37 @@ __kernel void batch_lm(__global scalar *X, __global scalar *sse_out, __global sc
             for (int i = 0; i < PB_D; i++)
                 du[i] = hit[i] > (real)0 ? delta[i] : (ok2 > (real)0 ? du2[i] : du[i]);
         }
+#ifdef PB_GEODESIC
+        /* the acceleration a along the coordinates that move freely, kept where 2 |a| <= 0.75 |du|
+         * (else the plain step): the step is du + a / 2, which follows a curved valley */
+        {
+            real b[PB_D], a[PB_D], ok3 = (real)1;
+            pb_accel_rhs(x, du, span, (real)0.1, lo, hi, base, ti, tr, ph, obs, w, P, M, p0, cur, Q, q0, b);
+            for (int i = 0; i < PB_D; i++) {
+                const real fixed_i = (held[i] > (real)0 || hit[i] > (real)0) ? (real)1 : (real)0;
+                b[i] = fixed_i > (real)0 ? (real)0 : b[i];
+                for (int j = 0; j < PB_D; j++) {
+                    const real fixed_j = (held[j] > (real)0 || hit[j] > (real)0) ? (real)1 : (real)0;
+                    Mx[i * PB_D + j] = (fixed_i > (real)0 || fixed_j > (real)0) ? (i == j ? (real)1 : (real)0)
+                                                                           : As[i * PB_D + j];
+                }
+            }
+            pb_solve(Mx, b, a, &ok3);
+            real na = (real)0, nv = (real)0;
+            for (int i = 0; i < PB_D; i++) {
+                na += a[i] * a[i];
+                nv += du[i] * du[i];
+            }
+            const real use = (ok3 > (real)0 && (real)4 * na <= (real)0.5625 * nv && isfinite(na)) ? (real)1 : (real)0;
+            for (int i = 0; i < PB_D; i++)
+                du[i] = use > (real)0 ? du[i] + (real)0.5 * a[i] : du[i];
+        }
+#endif
         real xt[PB_D], ht[PB_D], At[PB_D * PB_D], grt[PB_D], sset;
         for (int i = 0; i < PB_D; i++)
             xt[i] = clamp(x[i] + du[i] * span[i], (real)lo[i], (real)hi[i]);
         pb_steps(xt, hi, ht);
-        pb_evaluate(xt, ht, base, ti, tr, ph, obs, w, fobs, fw, P, M, p0, &sset, At, grt);
+        pb_evaluate(xt, ht, base, ti, tr, ph, obs, w, fobs, fw, P, M, p0, &sset, At, grt, trial, Q, q0);
         const real better = sset < sse ? (real)1 : (real)0;
         const int any_better = any(sset < sse);
         if (any_better) {
@@ -368,6 +446,12 @@ __kernel void batch_lm(__global scalar *X, __global scalar *sse_out, __global sc
                     A[i * PB_D + j] = better > (real)0 ? At[i * PB_D + j] : A[i * PB_D + j];
             }
             sse = better > (real)0 ? sset : sse;
+#ifdef PB_GEODESIC
+            for (size_t k = 0; k < (size_t)M * (PB_D + 1); k++) {
+                __global scalar *c = cur + k * PB_N;
+                pb_vs(better > (real)0 ? pb_vl(0, trial + k * PB_N) : pb_vl(0, c), 0, c);
+            }
+#endif
         }
         lam = clamp(better > (real)0 ? lam * (real)0.3 : lam * (real)6, PB_TINY, PB_HUGE);
         /* every lane's damping saturated: no step can improve any of them */
