@@ -832,7 +832,9 @@ class BatchJob:
         """Host and device bytes one pixel of a block needs (the largest stage)."""
         M, D, S = self.source.M, len(self.names), self.setup.n_starts
         v = _grid_values(self.setup)
-        per = 8 * M * 12 + 8 * S * D * (D + 3) * 2
+        # the block's data (float64 and the kernels' copies), the descents' vectors and J^T J, and
+        # the geodesic acceleration's scratch (two slots of M Jacobian rows per float32 start)
+        per = 8 * M * 12 + 8 * S * D * (D + 3) * 2 + (4 * 2 * M * (D + 1) * S if GEODESIC else 0)
         if not self.source.shared:
             nnk, nm, ni = v["n"].size * v["k"].size, v["sigma"].size, v["kd"].size * v["c"].size
             per += 4 * M * (2 * nnk + nm + ni)
