@@ -37,14 +37,14 @@ from .inversion import (DEFAULT_BOUNDS, DOP_NOISE_FLOOR, MODEL_FIXED, MODEL_PARA
 BATCH_GRID = {"n": 12, "k": 12, "sigma": 8, "kd": 8, "c": 4}
 BATCH_SPECULAR_GRID = {"n": 48, "k": 48}
 #: Starts per pixel: the best region minima of the grid.
-N_STARTS = 16
+N_STARTS = 32
 #: Whether the grid's bound faces are regions of their own (see :func:`_regions`).
 FACES = False
 #: Geodesic acceleration of the descents (Transtrum and Sethna 2012) without intensities.
 GEODESIC = True
 #: The float32 descents: (how many of the best starts, iterations), in turn, each continuing the
 #: best of the previous; then the float64 polish of the best POLISH_STARTS.
-SCREEN_SCHEDULE = ((16, 15), (6, 40))
+SCREEN_SCHEDULE = ((32, 15), (8, 40))
 SCREEN_ITERATIONS = 55  # the numpy backend's one descent of every start: the schedule's iterations
 POLISH_STARTS = 1
 POLISH_ITERATIONS = 20
@@ -972,15 +972,23 @@ def _fit_pixels(eng, setup, blk, order, rstart, names):
 
 
 def _towards_bounds(x, lo, hi):
-    """Candidates (K, p, D) from the points ``x`` (p, D): the coordinates within SNAP of the bound
-    range from a bound moved 10, 100 and 1000 times closer to it, each alone and all together
-    (None where no coordinate of any point is near a bound)."""
+    """Candidates (K, p, D) from the points ``x`` (p, D): the coordinates on a bound moved off it
+    by 0.1% and 1% of the range, and those within SNAP of the range from a bound moved 10, 100
+    and 1000 times closer to it, each alone and all together (None where no coordinate of any
+    point is near a bound)."""
     span = hi - lo
     near_lo, near_hi = x - lo < SNAP * span, hi - x < SNAP * span
     near = near_lo | near_hi
     if not near.any():
         return None
     out = []
+    # a coordinate on a bound can hide others: at kd = 0 the DOP depends on neither sigma nor c,
+    # so a descent that reached kd = 0 cannot move them; off the bound by 0.1% and 1% it can
+    on_lo, on_hi = x - lo <= 1e-9 * span, hi - x <= 1e-9 * span
+    for f in (1e-3, 1e-2):
+        off = np.where(on_lo, lo + f * span, np.where(on_hi, hi - f * span, x))
+        if (off != x).any():
+            out.append(off)
     for f in (1e-1, 1e-2, 1e-3):
         closer = np.where(near_lo, lo + (x - lo) * f, np.where(near_hi, hi - (hi - x) * f, x))
         out.append(closer)
