@@ -696,7 +696,8 @@ def _covariances(jtj, s2, span):
 
 
 def fit_batch(data, model="six-param", bounds=None, fixed=None, shadowing="paper", *, memory_budget=DEFAULT_BUDGET,
-              progress=False, n_starts=N_STARTS, grid_shape=None, engine=None, backend="auto", store=None):
+              progress=False, n_starts=N_STARTS, grid_shape=None, engine=None, backend="auto", store=None,
+              workers=None, scheduler=None, client=None):
     """Fit the model to every pixel of a polarization image stack, batched on the device.
 
     Parameters
@@ -726,6 +727,10 @@ def fit_batch(data, model="six-param", bounds=None, fixed=None, shadowing="paper
     store : str or path, optional
         Write the result to this Zarr store block by block, resumable (see
         :func:`pbrdf_cl.batch_store.fit_batch_to_store`); the result is then opened from it.
+    workers, scheduler, client : optional, with ``store`` only
+        Fit the blocks on a local ``dask.distributed`` cluster of this many processes, on the
+        cluster of this scheduler address, or through this client (each worker builds its own
+        engine and writes its blocks into the store).
 
     Returns
     -------
@@ -756,7 +761,10 @@ def fit_batch(data, model="six-param", bounds=None, fixed=None, shadowing="paper
         from .batch_store import fit_batch_to_store
         return fit_batch_to_store(data, store, model=model, bounds=bounds, fixed=fixed, shadowing=shadowing,
                                   memory_budget=memory_budget, progress=progress, n_starts=n_starts,
-                                  grid_shape=grid_shape, engine=engine, backend=backend)
+                                  grid_shape=grid_shape, engine=engine, backend=backend, workers=workers,
+                                  scheduler=scheduler, client=client)
+    if workers is not None or scheduler is not None or client is not None:
+        raise ValueError("workers=, scheduler= and client= need store= (the workers write their blocks into it)")
     job = BatchJob(data, model, bounds, fixed, shadowing, memory_budget=memory_budget, n_starts=n_starts,
                    grid_shape=grid_shape)
     eng = resolve_engine(engine, backend)

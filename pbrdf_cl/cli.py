@@ -1,4 +1,4 @@
-"""Command line interface: ``pbrdf-cl devices|eval|fit|reproduce|map|sweep|bench``.
+"""Command line interface: ``pbrdf-cl devices|eval|fit|fit-image|reproduce|map|sweep|bench``.
 
 Every problem a user can meet, bad input or a broken environment (no OpenCL, an unusable
 device, an unwritable cache or output folder), ends in one line on stderr, ``pbrdf-cl: error:
@@ -262,6 +262,46 @@ def cmd_sweep(args) -> int:
     return 0
 
 
+def cmd_fit_image(args) -> int:
+    import time
+    from . import batch_store, inversion as _fit
+    fixed = ranges.parse_assignments(args.fix, tuple(_fit.DEFAULT_BOUNDS), "value", "--fix", check=True)
+    bounds = ranges.parse_assignments(args.bounds, tuple(_fit.DEFAULT_BOUNDS), "bounds", "--bounds")
+    _check_output("--out", str(Path(args.out).parent), folder=True)
+    _check_output("--png", args.png)
+    cluster = bool(args.workers or args.scheduler)
+    t0 = time.perf_counter()
+    try:
+        engine = _engine_for(args) if not cluster else None
+        ds = batch_store.fit_batch_to_store(
+            args.stack, args.out, model=args.model, bounds=bounds or None, fixed=fixed or None,
+            shadowing=args.shadowing, memory_budget=args.memory_budget, progress=not args.no_progress, engine=engine, backend=args.backend,
+            device=args.device, workers=args.workers, scheduler=args.scheduler, allow_large=args.allow_large)
+        counts = batch_store.status_counts(ds)
+        if args.png:
+            from .batch_plots import plot_batch_maps
+            plot_batch_maps(ds, args.png)
+    except KeyboardInterrupt:
+        try:
+            done, total = batch_store.read_progress(args.out)
+            where = f"{done} of {total} blocks are in {args.out}"
+        except Exception:  # noqa: BLE001 - the store may not exist yet
+            where = "nothing was written"
+        print(f"pbrdf-cl: interrupted; {where}; run the same command again to resume", file=sys.stderr)
+        return 130
+    except (OSError, ValueError, RuntimeError, _engine.OpenCLUnavailableError) as exc:
+        return _error(exc)
+    seconds = time.perf_counter() - t0
+    px, fit_s = ds.attrs["pixels_computed"], ds.attrs["seconds"]
+    total = int(np.prod(ds["status"].shape, dtype=np.int64))
+    rate = f", {px / fit_s:.4g} pixels/s" if px and fit_s > 0 else ""
+    print(f"fit-image: {px} of {total} pixels fitted in {fit_s:.3g} s{rate} ({total - px} already in the store; "
+          f"{seconds:.3g} s in all)")
+    print("status: " + ", ".join(f"{n} {c}" for n, c in counts.items()))
+    print(f"store: {ds.attrs['store']}" + (f"; maps: {args.png}" if args.png else ""))
+    return 0
+
+
 def cmd_bench(args) -> int:
     from . import bench
     return bench.main(args.rest)
@@ -452,6 +492,35 @@ def _fit_parser(sub):
     f.set_defaults(func=cmd_fit)
 
 
+def _fit_image_parser(sub):
+    """The `pbrdf-cl fit-image` sub-command."""
+    from .batch import DEFAULT_BUDGET
+    f = sub.add_parser("fit-image", help="fit every pixel of a DOP image stack into a Zarr store (resumable; dask)",
+                       description="Fit the model to every pixel of a polarization image stack (.npz, .nc or "
+                       ".zarr with dop (y, x, m), theta_i, theta_r[, phi, dop_std, f00|s0, f00_std, mask]; angles "
+                       "shared (m) or per pixel) block by block into a Zarr store. Run the same command again "
+                       "after an interruption: only the missing blocks are fitted.")
+    f.add_argument("stack", help="image stack: .npz, .nc or .zarr")
+    f.add_argument("--out", required=True, metavar="STORE", help="Zarr store to create or resume (e.g. params.zarr)")
+    f.add_argument("--model", choices=("six-param", "specular"), default="six-param",
+                   help="the model to fit (specular: ref. [7], n and k only)")
+    f.add_argument("--fix", nargs="*", metavar="NAME=VALUE", help="hold parameters fixed, e.g. sigma=0.45")
+    f.add_argument("--bounds", nargs="*", metavar="NAME=LO:HI", help="search bounds, e.g. n=1:3 k=0:5")
+    f.add_argument("--shadowing", choices=sorted(SHADOWING), default="paper", help=_SHADOWING_HELP)
+    f.add_argument("--memory-budget", default=DEFAULT_BUDGET, metavar="SIZE",
+                   help="memory of one block of pixels in flight (host and device), e.g. 256MiB")
+    where = f.add_mutually_exclusive_group()
+    where.add_argument("--workers", type=int, metavar="N", help="fit on a local dask cluster of N processes")
+    where.add_argument("--scheduler", metavar="ADDR", help="fit on a dask.distributed cluster (tcp://host:8786)")
+    _device_options(f, " here or on every worker")
+    f.add_argument("--png", metavar="PNG", help="also draw the parameter maps, their 95%% interval widths and the "
+                   "fit status")
+    f.add_argument("--no-progress", action="store_true", help="no progress bar")
+    f.add_argument("--allow-large", action="store_true",
+                   help="start even when the store (uncompressed) would not fit on the free disk")
+    f.set_defaults(func=cmd_fit_image)
+
+
 def _reproduce_parser(sub):
     """The `pbrdf-cl reproduce` sub-command."""
     r = sub.add_parser("reproduce", help="reproduce the paper's figures and Table 1, plus roughness maps",
@@ -501,6 +570,7 @@ def build_parser() -> argparse.ArgumentParser:
     _eval_parser(sub)
     _sweep_parser(sub)
     _fit_parser(sub)
+    _fit_image_parser(sub)
     _reproduce_parser(sub)
     _map_parser(sub)
     b = sub.add_parser("bench", help="benchmark every evaluation path (options: pbrdf-cl bench --help)",

@@ -840,10 +840,26 @@ def _mark_complete(spec, name):
 
 
 def _run_distributed(spec, name, todo, device, backend, workers, scheduler, client, finished):
+    run_on_cluster(run_chunk, spec, todo, lambda i: (name, int(i), device, backend), "pbrdf-sweep",
+                   lambda result: finished(result[0], result[1]), workers=workers, scheduler=scheduler,
+                   client=client)
+
+
+def run_on_cluster(task, shared, items, args_of, key, finished, *, workers=None, scheduler=None, client=None):
+    """Run ``task(shared, *args_of(item))`` for every item on a ``dask.distributed`` cluster:
+    ``client``, or a new client of the scheduler at ``scheduler``, or a new local cluster of
+    ``workers`` processes (1 thread each), closed again at the end if made here.
+
+    ``shared`` is scattered to every worker once; at most two tasks per worker thread (plus two)
+    are in flight, the next submitted as one finishes; ``finished(result)`` is called on the
+    driver as the results arrive (in any order).  On an error (or Ctrl-C) the tasks not yet done
+    are cancelled and the error is raised.  Used by :func:`sweep` and
+    :func:`pbrdf_cl.batch_store.fit_batch_to_store`.
+    """
     try:
         from distributed import Client, LocalCluster, as_completed
     except ImportError:
-        raise RuntimeError("a cluster sweep needs dask.distributed: pip install 'pbrdf-cl[cluster]'") from None
+        raise RuntimeError("a cluster run needs dask.distributed: pip install 'pbrdf-cl[cluster]'") from None
     cluster = own_client = None
     try:
         if client is None:
@@ -856,19 +872,19 @@ def _run_distributed(spec, name, todo, device, backend, workers, scheduler, clie
                 own_client = client = Client(scheduler, timeout=60)
         n_threads = sum(client.nthreads().values()) or 1
         token = uuid.uuid4().hex[:8]
-        spec_future = client.scatter(spec, broadcast=True)
-        pending = iter(todo)
+        shared_future = client.scatter(shared, broadcast=True)
+        pending = iter(items)
 
-        def submit(i):
-            return client.submit(run_chunk, spec_future, name, int(i), device, backend, key=f"pbrdf-sweep-{token}-{i}",
-                                 pure=False, retries=1)
+        def submit(item):
+            return client.submit(task, shared_future, *args_of(item), key=f"{key}-{token}-{item}", pure=False,
+                                 retries=1)
         first = [submit(i) for i in itertools.islice(pending, 2 * n_threads + 2)]
         queue = as_completed(first)
         try:
             for fut in queue:
-                i, points, _ = fut.result()
+                result = fut.result()
                 fut.release()
-                finished(i, points)
+                finished(result)
                 nxt = next(pending, None)
                 if nxt is not None:
                     queue.add(submit(nxt))

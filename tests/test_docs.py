@@ -6,11 +6,11 @@ import inspect
 import pytest
 
 import pbrdf_cl
-from pbrdf_cl import api, batch, camera, data, dense, imagestack, maps
+from pbrdf_cl import api, batch, batch_plots, batch_store, camera, data, dense, imagestack, maps
 
 PUBLIC = [getattr(pbrdf_cl, n) for n in pbrdf_cl.__all__ if inspect.isfunction(getattr(pbrdf_cl, n))]
 PUBLIC += [maps.make_map, maps.plot_map, data.as_measurements]
-PUBLIC += [getattr(m, n) for m in (imagestack, camera, batch) for n in dir(m)
+PUBLIC += [getattr(m, n) for m in (imagestack, camera, batch, batch_store, batch_plots) for n in dir(m)
            if not n.startswith("_") and inspect.isfunction(getattr(m, n)) and getattr(m, n).__module__ == m.__name__]
 
 
@@ -25,7 +25,8 @@ def test_numpydoc_sections(func):
         assert name in params, f"{func.__name__}: parameter {name!r} is not in its Parameters section"
 
 
-@pytest.mark.parametrize("module", [api, dense, data, maps, imagestack, batch], ids=lambda m: m.__name__)
+@pytest.mark.parametrize("module", [api, dense, data, maps, imagestack, batch, batch_store, batch_plots],
+                         ids=lambda m: m.__name__)
 def test_docstring_examples_run(module):
     result = doctest.testmod(module, optionflags=doctest.ELLIPSIS | doctest.NORMALIZE_WHITESPACE,
                              extraglobs={"pbrdf_cl": pbrdf_cl})

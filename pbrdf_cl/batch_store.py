@@ -1,0 +1,656 @@
+"""Per-pixel fits of image stacks of any size into a Zarr store, block by block, resumable, on one
+machine or a ``dask.distributed`` cluster: :func:`fit_batch_to_store` (``pbrdf-cl fit-image``,
+``pbrdf_cl.batch.fit_batch(..., store=...)``).
+
+The unit of work is :class:`pbrdf_cl.batch.BatchJob`'s block of rows of the first pixel
+dimension (sized by ``memory_budget``); each block is read from the stack on its own, fitted,
+written, and marked done, as :mod:`pbrdf_cl.sweeps` does with its chunks.
+
+Layout of the store (Zarr format 2, consolidated metadata; ``xarray.open_zarr`` reads it as the
+Dataset :func:`pbrdf_cl.batch.fit_batch` returns):
+
+- the variables of that Dataset (``n``, ``n_stderr``, ``n_ci95``, ..., ``sse``, ``chi2``,
+  ``determined``, ``n_valid``, ``nfev``, ``status``) with their attrs, and its coordinates
+  (``bound``, ``param``, the stack's pixel coordinates); each Zarr chunk is exactly one block of
+  rows (the whole of the other dimensions), so no two writers ever share a Zarr chunk;
+- ``_sweep/done``: one uint8 per block, set (1) only after that block's values are in the store
+  (write-then-mark: a block without its mark is computed again), the record of a sweep store,
+  read by :func:`pbrdf_cl.sweeps.read_done`; ``_sweep/input_sha256``: per block, the SHA-256 of
+  the input rows it was fitted from (written before the mark);
+- root attrs: the Dataset's attrs (model, bounds, grid, ...), the canonical job settings as JSON
+  (``batch_settings``) and their SHA-256 (``batch_settings_sha256``), the SHA-256 of the OpenCL
+  sources (``sweep_kernels_sha256``, checked by the same helper as a sweep's), the memory budget
+  that chose the blocks (``batch_memory_budget``, not part of the settings: the block size is),
+  the devices that computed blocks (``batch_devices``) and ``batch_complete``.
+
+No timing is stored, so that a resumed store is byte for byte the store of an uninterrupted run
+(on the same device); the returned Dataset carries this run's ``seconds`` in its attrs.
+
+Testing aid: ``PBRDF_BATCH_BLOCK_DELAY=<seconds>`` sleeps that long per block (half before the
+values are written, half between writing them and marking the block done).
+"""
+from __future__ import annotations
+
+import copy
+import hashlib
+import json
+import os
+import re
+import shutil
+import sys
+import time
+import uuid
+from pathlib import Path
+
+import numpy as np
+
+from . import sizes, sweeps
+from .engine import kernels_sha256, resolve_engine
+
+#: Version of the canonical settings (part of their hash).
+SETTINGS_VERSION = 1
+DELAY_ENV = "PBRDF_BATCH_BLOCK_DELAY"
+DONE = sweeps.DONE
+HASHES = "_sweep/input_sha256"
+#: Rows of the stack read for the settings' sample hash (spread evenly, first and last included).
+SAMPLE_ROWS = 5
+
+
+class StoreError(ValueError):
+    """The store cannot take this job (another job's store, other settings, another input, other
+    kernels); the message names what differs."""
+
+
+class _Layout:
+    """What :func:`pbrdf_cl.sweeps.read_done` needs to know of a store: its number of blocks."""
+
+    def __init__(self, n_chunks):
+        self.n_chunks = int(n_chunks)
+
+
+# ---------------------------------------------------------------------------------------------
+# identity: the job's settings and its input
+
+def _rows_sha256(raw):
+    """SHA-256 of the arrays :meth:`pbrdf_cl.batch._Source.rows` returns (names, shapes, dtypes,
+    bytes)."""
+    h = hashlib.sha256()
+    for name in sorted(raw):
+        a = np.ascontiguousarray(raw[name])
+        h.update(f"{name}:{a.dtype.str}:{a.shape}\0".encode())
+        h.update(memoryview(a).cast("B"))
+    return h.hexdigest()
+
+
+def _sample_sha256(source):
+    """SHA-256 of SAMPLE_ROWS rows of the stack (every variable), read one row at a time."""
+    n0 = source.shape[0]
+    rows = sorted({int(r) for r in np.linspace(0, n0 - 1, min(n0, SAMPLE_ROWS)).round()})
+    h = hashlib.sha256()
+    for r in rows:
+        h.update(f"{r}:{_rows_sha256(_read(source, r, r + 1))}\0".encode())
+    return h.hexdigest()
+
+
+def settings(job, block_rows):
+    """The canonical settings of a store for ``job`` in blocks of ``block_rows`` rows: everything
+    that determines the stored values, as a JSON-ready dict.
+
+    Parameters
+    ----------
+    job : pbrdf_cl.batch.BatchJob
+        The checked job.
+    block_rows : int
+        Rows of the first pixel dimension per block (one Zarr chunk).
+
+    Returns
+    -------
+    dict
+        ``model``, ``shadowing``, ``free``, ``bounds``, ``fixed``, ``n_starts``, ``grid`` (the grid
+        axes' values), ``intensity``, ``sigma_known``, ``noise_floor``, ``block_rows``, the
+        kernels' SHA-256 is not in it (stored beside), and ``stack``: shape, dims, measurements,
+        variables, geometry and ``sample_sha256`` (SHA-256 of SAMPLE_ROWS rows of every
+        variable; the whole input is checked block by block, see :func:`fit_batch_to_store`).
+
+    Examples
+    --------
+    >>> import numpy as np, pbrdf_cl
+    >>> from pbrdf_cl.batch import BatchJob
+    >>> ti, tr = np.repeat([30.0, 40, 50], 10), np.tile(np.arange(20.0, 66, 5), 3)
+    >>> dop = np.broadcast_to(pbrdf_cl.dop(ti, tr, n=1.6, k=2.139, sigma=0.5, kd=0.15, c=-0.3), (2, 3, 30))
+    >>> s = settings(BatchJob(dict(dop=dop, theta_i=ti, theta_r=tr)), 1)
+    >>> s["model"], s["block_rows"], s["stack"]["shape"]
+    ('six-param', 1, [2, 3])
+    """
+    setup, src = job.setup, job.source
+    bounds = {n: [float(setup.lo[i]), float(setup.hi[i])] for i, n in enumerate(setup.free)}
+    if setup.use_f00:
+        bounds["ks"] = [float(v) for v in setup.ks_bounds]
+    return {"pbrdf_batch": SETTINGS_VERSION, "model": setup.model, "shadowing": setup.shadowing,
+            "free": list(job.names), "bounds": bounds, "fixed": {k: float(v) for k, v in sorted(setup.fixed.items())},
+            "n_starts": int(setup.n_starts), "grid": {n: [float(v) for v in a] for n, a in setup.axes.items()},
+            "intensity": bool(setup.use_f00), "sigma_known": bool(setup.sigma_known),
+            "noise_floor": float(setup.noise_floor), "block_rows": int(block_rows),
+            "stack": {"shape": [int(s) for s in src.shape], "dims": list(src.dims), "measurements": int(src.M),
+                      "variables": sorted(src.vars), "geometry": "shared" if src.shared else "per pixel",
+                      "sample_sha256": _sample_sha256(src)}}
+
+
+def _canonical(d):
+    text = json.dumps(d, separators=(",", ":"), sort_keys=True)
+    return text, hashlib.sha256(text.encode()).hexdigest()
+
+
+# ---------------------------------------------------------------------------------------------
+# reading and fitting one block
+
+def _read(source, r0, r1):
+    """Rows r0..r1 of the stack, read without a distributed client (a block is read inside a task,
+    or on the driver: dask's synchronous scheduler, one block in memory)."""
+    try:
+        import dask
+    except ImportError:  # pragma: no cover - no dask: the stack is numpy
+        return source.rows(r0, r1)
+    with dask.config.set(scheduler="synchronous"):
+        return source.rows(r0, r1)
+
+
+def _fit(job, eng, r0, r1):
+    try:
+        import dask
+    except ImportError:  # pragma: no cover
+        return job.fit_rows(eng, r0, r1)
+    with dask.config.set(scheduler="synchronous"), eng.lock:  # one block in flight per engine
+        return job.fit_rows(eng, r0, r1)
+
+
+def _block_dataset(job, out, r0, r1):
+    """The result Dataset of rows r0..r1 (``job.dataset`` of a job cut down to those rows)."""
+    part = copy.copy(job)
+    src = part.source = copy.copy(job.source)
+    src.shape = (r1 - r0,) + tuple(job.source.shape[1:])
+    first = src.dims[0]
+    src.coords = {d: (v[r0:r1] if d == first else v) for d, v in job.source.coords.items()}
+    return part.dataset(out)
+
+
+def _placeholder(job, rows):
+    """Outputs of :meth:`~pbrdf_cl.batch.BatchJob.fit_rows` for ``rows`` rows with the right keys,
+    shapes and dtypes (the store's template)."""
+    p = rows * int(np.prod(job.source.shape[1:], dtype=np.int64))
+    D = len(job.names)
+    return {"x": np.full((p, D), np.nan), "stderr": np.full((p, D), np.nan), "ci95": np.full((p, D, 2), np.nan),
+            "determined": np.zeros((p, D), bool), "chi2": np.full(p, np.nan), "sse": np.full(p, np.nan),
+            "nfev": np.zeros(p, np.int64), "status": np.zeros(p, np.int8), "n_valid": np.zeros(p, np.int64)}
+
+
+class _Writer:
+    """Writes blocks of one job into one store (opened once per process)."""
+
+    def __init__(self, name, digest):
+        g = sweeps._open_group(name, "r+")
+        _check_kernels(name, g.attrs)  # a worker with other kernels would mix values
+        if g.attrs.get("batch_settings_sha256") != digest:
+            raise StoreError(f"{name} holds another job now (settings sha256 {g.attrs.get('batch_settings_sha256')})")
+        self.group = g
+        self.variables = json.loads(g.attrs["batch_variables"])
+        self.arrays = {v: g[v] for v in self.variables}
+        self.done = g[DONE]
+        self.hashes = g[HASHES]
+
+    def run(self, job, eng, i, r0, r1):
+        """Fit block ``i`` (rows r0..r1), write it, then mark it done; returns (i, pixels, seconds,
+        device)."""
+        t0 = time.perf_counter()
+        digest = _rows_sha256(_read(job.source, r0, r1))
+        out = _fit(job, eng, r0, r1)
+        ds = _block_dataset(job, out, r0, r1)
+        if sorted(ds.data_vars) != sorted(self.variables):
+            raise RuntimeError(f"internal: the fit gives variables {sorted(ds.data_vars)}, the store holds "
+                               f"{sorted(self.variables)}")
+        delay = float(os.environ.get(DELAY_ENV) or 0)
+        if delay:
+            time.sleep(delay / 2)
+        for v in self.variables:
+            a, arr = ds[v].values, self.arrays[v]
+            if a.dtype != arr.dtype:
+                raise RuntimeError(f"internal: the fit gives {v} as {a.dtype}, the store holds {arr.dtype}")
+            arr[r0:r1] = a  # one whole Zarr chunk, written atomically by zarr
+        self.hashes[int(i)] = np.frombuffer(bytes.fromhex(digest), np.uint8)
+        if delay:
+            time.sleep(delay / 2)
+        self.done[int(i)] = 1  # ... and only then marked done
+        return int(i), int(out["status"].size), time.perf_counter() - t0, eng.description
+
+
+_WRITERS = {}
+
+
+def run_block(job, name, digest, i, r0, r1, device=None, backend="auto"):
+    """Dask task: fit block ``i`` (rows r0..r1) of ``job`` with this worker's engine and write it
+    into the store ``name``.
+
+    Parameters
+    ----------
+    job : pbrdf_cl.batch.BatchJob
+        The job (scattered to every worker).
+    name : str
+        The store (a path every worker sees, or a URL).
+    digest : str
+        The SHA-256 of the job's settings (``attrs["batch_settings_sha256"]`` of the store).
+    i, r0, r1 : int
+        The block and its rows.
+    device, backend
+        The engine each worker builds once (:func:`pbrdf_cl.sweeps.worker_engine`).
+
+    Returns
+    -------
+    tuple
+        (i, pixels, seconds, device description).
+
+    Examples
+    --------
+    >>> client.submit(run_block, job_future, "fit.zarr", digest, 0, 0, 8)  # doctest: +SKIP
+    """
+    key = (name, digest)
+    with sweeps._CACHE_LOCK:
+        if key not in _WRITERS:
+            _WRITERS[key] = _Writer(name, digest)
+        writer = _WRITERS[key]
+    return writer.run(job, sweeps.worker_engine(device, backend), i, r0, r1)
+
+
+# ---------------------------------------------------------------------------------------------
+# the store
+
+def _write_skeleton(job, blocks, block_rows, the_settings, memory_budget, store):
+    """Coordinates, empty variables, the done record, then (last: the commit point) the root attrs."""
+    template = _block_dataset(job, _placeholder(job, 1), 0, 1)
+    g = sweeps._open_group(store, "w")
+    first = job.source.dims[0]
+    n0 = job.source.shape[0]
+    for cname, c in template.coords.items():
+        values = np.asarray(job.source.coords[cname]) if cname == first else np.asarray(c.values)
+        arr = sweeps._create_array(g, cname, values.shape, values.shape or (1,), values.dtype, None, None,
+                                   {"_ARRAY_DIMENSIONS": list(c.dims), **c.attrs})
+        arr[...] = values
+    variables = list(template.data_vars)
+    for v in variables:
+        var = template[v]
+        shape = (n0,) + var.shape[1:]
+        fill = np.nan if var.dtype.kind == "f" else None  # no _FillValue on integers: 0 is a status
+        sweeps._create_array(g, v, shape, (block_rows,) + var.shape[1:], var.dtype, fill, sweeps._compressor(),
+                             {"_ARRAY_DIMENSIONS": list(var.dims), **var.attrs})
+    sub = g.require_group("_sweep")
+    sub.attrs.update(description=f"done[i] = 1 once block i (rows i*{block_rows} to (i+1)*{block_rows} of "
+                                 f"{first}) is in the store; input_sha256[i]: SHA-256 of those rows of the input",
+                     block_rows=int(block_rows))
+    sweeps._create_array(sub, "done", (len(blocks),), (1,), "u1", 0, None, {})
+    sweeps._create_array(sub, "input_sha256", (len(blocks), 32), (1, 32), "u1", 0, None, {})
+    from . import __version__
+    text, digest = _canonical(the_settings)
+    g.attrs.update({**template.attrs, "title": "pbrdf-cl per-pixel fit", "pbrdf_cl_version": __version__,
+                    "batch_settings": text, "batch_settings_sha256": digest, "sweep_kernels_sha256": kernels_sha256(),
+                    "batch_variables": json.dumps(variables), "batch_blocks": len(blocks),
+                    "batch_block_rows": int(block_rows), "batch_memory_budget": int(memory_budget),
+                    "batch_devices": [], "batch_complete": False})
+    sweeps._zarr().consolidate_metadata(store)
+
+
+def _open_store(job, blocks, block_rows, the_settings, memory_budget, store):
+    """Create the store, or check that an existing one holds this job; returns (name, existed)."""
+    name = sweeps._store_name(store)
+    _, digest = _canonical(the_settings)
+
+    def skeleton(where):
+        _write_skeleton(job, blocks, block_rows, the_settings, memory_budget, where)
+    if sweeps._is_local(store):
+        path = Path(name)
+        if sweeps._local_is_empty(path):
+            # build beside it and rename into place: a store either exists whole or not at all
+            tmp = path.with_name(f"{path.name}.creating-{uuid.uuid4().hex[:8]}")
+            try:
+                skeleton(str(tmp))
+                if path.exists():
+                    path.rmdir()
+                os.rename(tmp, path)
+                return name, False
+            except OSError:
+                if not (path / ".zgroup").exists():
+                    raise  # else another process created it just now: check it below
+            finally:
+                if tmp.exists():
+                    shutil.rmtree(tmp, ignore_errors=True)
+        elif not (path / ".zgroup").exists():
+            raise StoreError(f"{name} exists and is not a pbrdf-cl fit store; choose another --out or delete it")
+    try:
+        attrs = dict(sweeps._open_group(name, "r").attrs)
+    except Exception:  # noqa: BLE001 - zarr raises various errors for a missing group
+        if sweeps._is_local(store):
+            raise StoreError(f"{name} exists and is not a readable Zarr store; choose another --out or delete it") \
+                from None
+        skeleton(name)
+        return name, False
+    if "batch_settings_sha256" not in attrs:
+        what = "a pbrdf-cl sweep store" if "sweep_spec_sha256" in attrs else "not a pbrdf-cl fit store"
+        raise StoreError(f"{name} exists and is {what}; choose another --out or delete it")
+    if attrs["batch_settings_sha256"] != digest:
+        try:
+            diffs = sweeps._differences(json.loads(attrs.get("batch_settings", "{}")), the_settings)
+        except ValueError:
+            diffs = []
+        diffs = [re.sub(r'"([0-9a-f]{12})[0-9a-f]{52}"', r"\1...", d) for d in diffs]  # SHA-256s shortened
+        hint = ""
+        if any(d.startswith("block_rows") for d in diffs):
+            hint = (f" (the blocks follow the memory budget: the store's was "
+                    f"{sizes.human(int(attrs.get('batch_memory_budget', 0)))})")
+        raise StoreError(f"{name} was started with other settings ({'; '.join(diffs) or 'sha256 differs'}){hint}; "
+                         f"choose another --out, or delete {name} to start over")
+    _check_kernels(name, attrs)
+    return name, True
+
+
+def _check_kernels(name, attrs):
+    """:func:`pbrdf_cl.sweeps._check_kernels`, refusing with a :class:`StoreError`."""
+    try:
+        sweeps._check_kernels(name, attrs)
+    except sweeps.SpecError as exc:
+        raise StoreError(str(exc)) from None
+
+
+def _check_inputs(job, name, blocks, done):
+    """The blocks marked done were fitted from these rows of the stack: compare each one's
+    SHA-256 (read one block at a time)."""
+    hashes = sweeps._open_group(name, "r")[HASHES]
+    first = job.source.dims[0]
+    for i in np.flatnonzero(done):
+        r0, r1 = blocks[i]
+        stored = bytes(np.asarray(hashes[int(i)], np.uint8)).hex()
+        now = _rows_sha256(_read(job.source, r0, r1))
+        if stored != now:
+            raise StoreError(f"{name}: the stack's rows {r0}..{r1 - 1} of {first} differ from those the store's "
+                             f"block {i} was fitted from (input SHA-256 {stored[:12]} in the store, {now[:12]} now); "
+                             f"choose another --out, or delete {name} to start over")
+
+
+def _mark_complete(name, n_blocks):
+    g = sweeps._open_group(name, "r+")
+    if not g.attrs.get("batch_complete"):
+        if not sweeps.read_done(_Layout(n_blocks), name).all():
+            return
+        g.attrs["batch_complete"] = True
+    sweeps._zarr().consolidate_metadata(name)
+
+
+def _add_devices(name, found):
+    g = sweeps._open_group(name, "r+")
+    known = list(g.attrs.get("batch_devices", []))
+    new = sorted(set(known) | set(found))
+    if new != known:
+        g.attrs["batch_devices"] = new
+        sweeps._zarr().consolidate_metadata(name)
+
+
+def read_progress(store):
+    """How far a store's fit is: (blocks done, blocks in all).
+
+    Parameters
+    ----------
+    store : str or path
+        A store of :func:`fit_batch_to_store`.
+
+    Returns
+    -------
+    tuple of int
+        (blocks marked done, blocks).
+
+    Examples
+    --------
+    >>> read_progress("params.zarr")  # doctest: +SKIP
+    (3, 8)
+    """
+    name = sweeps._store_name(store)
+    total = int(sweeps._open_group(name, "r").attrs["batch_blocks"])
+    return int(sweeps.read_done(_Layout(total), name).sum()), total
+
+
+def store_bytes(job):
+    """Uncompressed bytes of the store of ``job`` (an upper bound: Blosc compresses).
+
+    Parameters
+    ----------
+    job : pbrdf_cl.batch.BatchJob
+        The job.
+
+    Returns
+    -------
+    int
+        Bytes per pixel of the result times the pixels.
+
+    Examples
+    --------
+    >>> store_bytes(job)  # doctest: +SKIP
+    53248
+    """
+    D = len(job.names)
+    per = 8 * D * 4 + D + 8 * 4 + 1
+    return int(per * job.source.n_pixels)
+
+
+def status_counts(ds):
+    """Pixels per status code of a result (read block by block from a store).
+
+    Parameters
+    ----------
+    ds : xarray.Dataset
+        A result of :func:`fit_batch_to_store` or :func:`pbrdf_cl.batch.fit_batch`.
+
+    Returns
+    -------
+    dict
+        Status name (``pbrdf_cl.batch.STATUS``) -> pixels, for the codes present, in the order of
+        ``STATUS``.
+
+    Examples
+    --------
+    >>> status_counts(ds)  # doctest: +SKIP
+    {'converged': 200, 'underdetermined': 56}
+    """
+    from .batch import STATUS
+    st = ds["status"]
+    counts = np.zeros(256, np.int64)
+    if st.chunks:
+        first = st.chunks[0]
+        r = 0
+        for size in first:
+            counts += np.bincount(np.asarray(st[r:r + size].values, np.int64).ravel() + 128, minlength=256)
+            r += size
+    else:
+        counts += np.bincount(np.asarray(st.values, np.int64).ravel() + 128, minlength=256)
+    out = {STATUS[c][0]: int(counts[c + 128]) for c in STATUS if counts[c + 128]}
+    other = int(counts.sum()) - sum(out.values())
+    if other:
+        out["unknown"] = other
+    return out
+
+
+def fit_batch_to_store(data, store, *, model="six-param", bounds=None, fixed=None, shadowing="paper",
+                       memory_budget=None, progress=False, n_starts=None, grid_shape=None, engine=None,
+                       backend="auto", workers=None, scheduler=None, client=None, device=None, allow_large=False):
+    """Fit every pixel of an image stack into a Zarr store, block by block; resumable.
+
+    A store that already holds this job (same settings, input and kernels) is resumed: only the
+    blocks not marked done are fitted, and the finished store is byte for byte the store of an
+    uninterrupted run on the same device (the fits are deterministic, and nothing run-dependent
+    is stored).  A store started with other settings, another input or other kernels is refused
+    with a one-line :class:`StoreError` naming what differs.
+
+    What is checked on resuming: the settings (model, bounds, fixed values, shadowing, n_starts,
+    the grid's values, whether intensities are fitted, dop_std given, the noise floor, the block
+    size in rows), the stack's shape, dims, measurements per pixel, variable names and geometry,
+    a SHA-256 of 5 of its rows (every variable; at the start, before any work), and then, for
+    every block already done, the SHA-256 of its rows of the input against the one recorded when
+    it was fitted (this reads the done part of the stack once more, one block at a time; a
+    changed value anywhere in it is found).  The device is not checked: a store resumed on
+    another device mixes both devices' last bits (``attrs["batch_devices"]`` lists them).
+
+    Memory: one block in flight per engine, sized by ``memory_budget``: the input is read a block
+    of rows at a time (with the chunks of a lazy stack that hold them), the outputs written a
+    block at a time.  Nothing here reads the whole stack; :class:`~pbrdf_cl.batch.BatchJob`'s
+    check of the angles reads the first measurement of per-pixel ``theta_i`` and ``theta_r`` of
+    every pixel (1/M of those variables), and a block is never smaller than one row.  (How much
+    one block takes is BatchJob's estimate.)  With a cluster the job is sent to each worker
+    once: an in-memory (numpy) stack goes with it whole, a lazy one (``xarray.open_zarr``, or a
+    path to a ``.zarr``/``.nc`` stack) as its recipe, each worker reading its blocks itself.
+
+    Parameters
+    ----------
+    data : xarray.Dataset, dict of arrays or path
+        The stack, as for :func:`pbrdf_cl.batch.fit_batch`; a path to a ``.nc`` stack is opened
+        lazily (dask) here, so that it is read a block at a time.
+    store : str or path
+        The Zarr store (a local path, or the URL of an fsspec store that every worker reaches);
+        created if absent, resumed if it holds this job, refused otherwise.
+    model, bounds, fixed, shadowing, memory_budget, n_starts, grid_shape
+        As for :func:`pbrdf_cl.batch.fit_batch` (None: its defaults).
+    progress : bool, default False
+        A tqdm bar in pixels (pixels/s, the time left) on stderr.
+    engine, backend
+        Where a local run computes (as for :func:`pbrdf_cl.batch.fit_batch`); ``backend`` (and
+        ``device``) is also what every cluster worker builds its own engine for.
+    workers : int, optional
+        Fit on a local ``dask.distributed`` cluster of this many processes (1 thread each).
+    scheduler : str, optional
+        Address of a running scheduler (``tcp://host:8786``).
+    client : distributed.Client, optional
+        A client of a running cluster.  The workers write their blocks into the store
+        themselves (as sweep workers do): it must be a path or URL they all reach.
+    device : str, optional
+        The OpenCL device (see :func:`pbrdf_cl.select_device`) for a local run without
+        ``engine``, and for every worker.
+    allow_large : bool, default False
+        Start even if the store (uncompressed) would not fit on the free disk.
+
+    Returns
+    -------
+    xarray.Dataset
+        The result opened from the store (``xarray.open_zarr``: lazy), with the variables of
+        :func:`pbrdf_cl.batch.fit_batch`; ``attrs`` add ``seconds`` (this run), ``blocks_computed``
+        and ``blocks_skipped`` (this run) to the store's.
+
+    Raises
+    ------
+    StoreError
+        The store holds another job, or another input; a ``ValueError``.
+    ValueError
+        Bad input (as :func:`pbrdf_cl.batch.fit_batch`), or more than one of ``workers``,
+        ``scheduler`` and ``client``.
+    RuntimeError
+        A cluster without ``dask.distributed`` installed.
+
+    Examples
+    --------
+    >>> import numpy as np, pbrdf_cl, tempfile, os
+    >>> from pbrdf_cl.batch_store import fit_batch_to_store
+    >>> ti, tr = np.repeat([30.0, 40, 50], 10), np.tile(np.arange(20.0, 66, 5), 3)
+    >>> dop = np.broadcast_to(pbrdf_cl.dop(ti, tr, n=1.6, k=2.139, sigma=0.5, kd=0.15, c=-0.3), (2, 3, 30))
+    >>> out = os.path.join(tempfile.mkdtemp(), "fit.zarr")
+    >>> ds = fit_batch_to_store(dict(dop=dop, theta_i=ti, theta_r=tr), out)
+    >>> ds.n.shape, ds.attrs["batch_complete"], bool(abs(ds.n - 1.6).max() < 1e-3)
+    ((2, 3), True, True)
+    """
+    import xarray as xr
+    from . import batch
+    given = sum(x is not None for x in (workers, scheduler, client))
+    if given > 1:
+        raise ValueError("give at most one of workers=, scheduler= and client=")
+    if workers is not None and (isinstance(workers, bool) or not isinstance(workers, (int, np.integer))
+                                or workers < 1):
+        raise ValueError(f"workers must be a positive integer, got {workers!r}")
+    if given and engine is not None:
+        raise ValueError("engine= is for a local run; every cluster worker builds its own (device=, backend=)")
+    if given:
+        import importlib.util
+        if importlib.util.find_spec("distributed") is None:
+            raise RuntimeError("a cluster fit needs dask.distributed: pip install 'pbrdf-cl[cluster]' "
+                               "(or run without --workers/--scheduler)")
+    if isinstance(data, (str, os.PathLike)):
+        data = _open_lazily(data)
+    job = batch.BatchJob(data, model, bounds, fixed, shadowing,
+                         memory_budget=batch.DEFAULT_BUDGET if memory_budget is None else memory_budget,
+                         n_starts=batch.N_STARTS if n_starts is None else n_starts, grid_shape=grid_shape)
+    blocks = job.blocks()
+    block_rows = blocks[0][1] - blocks[0][0]
+    need, free = store_bytes(job), sizes.free_disk(store)
+    if free is not None and need > free and not allow_large:
+        raise sizes.TooLargeError(
+            f"the store would hold up to {sizes.human(need)} ({job.source.n_pixels} pixels, uncompressed) but "
+            f"{sizes.human(free)} is free where it goes; free space, choose another store, or pass "
+            f"allow_large=True (pbrdf-cl fit-image --allow-large) to start anyway")
+    the_settings = settings(job, block_rows)
+    digest = _canonical(the_settings)[1]
+    name, existed = _open_store(job, blocks, block_rows, the_settings, job.memory_budget, store)
+    layout = _Layout(len(blocks))
+    if existed and sweeps._is_local(store):
+        sweeps._clean_partials(name)
+    done = sweeps.read_done(layout, name)
+    if existed and done.any():
+        _check_inputs(job, name, blocks, done)
+    todo = np.flatnonzero(~done)
+    skipped_px = sum(_pixels(job, *blocks[i]) for i in np.flatnonzero(done))
+    bar = None
+    if progress and todo.size:
+        from tqdm.auto import tqdm
+        bar = tqdm(total=job.source.n_pixels, initial=skipped_px, desc="fit_batch", unit="px", unit_scale=True,
+                   smoothing=0.1, dynamic_ncols=True, file=sys.stderr)
+    stats = dict(blocks=0, pixels=0, devices=set())
+    t0 = time.perf_counter()
+
+    def finished(result):
+        _, pixels, _, dev = result
+        stats["blocks"] += 1
+        stats["pixels"] += pixels
+        stats["devices"].add(dev)
+        if bar is not None:
+            bar.update(pixels)
+    try:
+        if todo.size and not given:
+            eng = resolve_engine(engine, backend) if engine is not None or device is None else \
+                sweeps.worker_engine(device, backend)
+            writer = _Writer(name, digest)
+            _add_devices(name, [eng.description])
+            for i in todo:
+                finished(writer.run(job, eng, i, *blocks[i]))
+        elif todo.size:
+            sweeps.run_on_cluster(run_block, job, [int(i) for i in todo],
+                                  lambda i: (name, digest, i, *blocks[i], device, backend), "pbrdf-fit", finished,
+                                  workers=workers, scheduler=scheduler, client=client)
+    finally:
+        if bar is not None:
+            bar.close()
+        if stats["devices"]:
+            _add_devices(name, stats["devices"])
+    seconds = time.perf_counter() - t0
+    _mark_complete(name, len(blocks))
+    ds = xr.open_zarr(name)
+    ds = ds[[v for v in json.loads(ds.attrs["batch_variables"]) if v in ds]]  # fit_batch's order
+    ds.attrs.update(seconds=seconds, blocks_computed=stats["blocks"], blocks_skipped=int(len(blocks) - todo.size),
+                    pixels_computed=stats["pixels"], store=name)
+    return ds
+
+
+def _pixels(job, r0, r1):
+    return (r1 - r0) * int(np.prod(job.source.shape[1:], dtype=np.int64))
+
+
+def _open_lazily(path):
+    """A stack path as a Dataset read a block at a time: ``.nc`` through dask (``open_stack``
+    reads it lazily, but the fit would load the whole of it); the others as ``open_stack``."""
+    from .batch import open_stack
+    ds = open_stack(path)
+    if Path(path).suffix.lower() in (".nc", ".h5", ".netcdf"):
+        try:
+            ds = ds.chunk()
+        except (ImportError, ValueError):  # pragma: no cover - no dask: read it whole
+            pass
+    return ds
