@@ -233,7 +233,7 @@ def _refusal(store, data, **kw):
     (dict(fixed={"c": -0.3}), 'fixed.c: (absent) in the store, -0.3 now'),
     (dict(bounds={"n": (1.0, 3.0)}), "bounds.n: [1.0, 5.0] in the store, [1.0, 3.0] now"),
     (dict(shadowing="smith"), 'shadowing: "paper" in the store, "smith" now'),
-    (dict(n_starts=4), "n_starts: 16 in the store, 4 now"),
+    (dict(n_starts=4), f"n_starts: {batch.N_STARTS} in the store, 4 now"),
     (dict(grid_shape={"n": 6}), "grid.n: 12 values 1..5 in the store, 6 values 1..5 now"),
     (dict(memory_budget="64 MiB"), "block_rows: 4 in the store, 16 now) (the blocks follow the memory budget: the "
                                    f"store's was {pbrdf_cl.sizes.human(BUDGET)})"),
