@@ -24,9 +24,11 @@ def _image(da, step):
     return np.asarray(da[::step, ::step].values)
 
 
-def plot_batch_maps(ds, path, *, max_side=MAX_SIDE):
+def plot_batch_maps(ds, path, *, truth=None, max_side=MAX_SIDE):
     """Draw the maps of a per-pixel fit into a PNG: per fitted parameter, its value and the width
-    of its 95% interval, and a panel of the fit status.
+    of its 95% interval (and, given the truth, the true map beside the fitted one on the same
+    colour scale, with the share of pixels whose interval covers it), and a panel of the fit
+    status.
 
     Parameters
     ----------
@@ -35,6 +37,9 @@ def plot_batch_maps(ds, path, *, max_side=MAX_SIDE):
         over one or two pixel dimensions (``attrs["free"]`` names the fitted parameters).
     path : str or path
         The PNG to write (matplotlib's Agg backend).
+    truth : xarray.Dataset, optional
+        Maps ``true_<name>`` over the same pixels (a synthetic stack of
+        :func:`pbrdf_cl.imagestack.synthetic_stack`).
     max_side : int, default 1024
         Images with more pixels along a side are drawn every s-th pixel (said in the title), so
         that a store of any size is read only in part.
@@ -84,7 +89,8 @@ def plot_batch_maps(ds, path, *, max_side=MAX_SIDE):
     aspect = (shape[0] / shape[1]) if len(shape) == 2 else 0.2
     w = 4.2
     h = max(1.2, min(4.2, w * aspect)) + 0.6
-    fig, axes = plt.subplots(len(names) + 1, 2, figsize=(2 * w + 1.2, h * (len(names) + 1)), squeeze=False,
+    ncol = 3 if truth is not None else 2
+    fig, axes = plt.subplots(len(names) + 1, ncol, figsize=(ncol * w + 1.2, h * (len(names) + 1)), squeeze=False,
                              constrained_layout=True)
     ylab, xlab = (dims if len(dims) == 2 else ("", dims[0]))
     for row, n in enumerate(names):
@@ -92,17 +98,27 @@ def plot_batch_maps(ds, path, *, max_side=MAX_SIDE):
         ci = ds[f"{n}_ci95"] if f"{n}_ci95" in ds else None
         long = ds[n].attrs.get("long_name", "")
         panels = [(value, f"{n}: {long}{sub}" if long else f"{n}{sub}", "viridis", f"{n} ({_units(ds[n].attrs)})")]
+        if truth is not None and f"true_{n}" in truth:
+            true = _image(truth[f"true_{n}"], step)
+            cover = ""
+            if ci is not None:
+                lo, hi = _image(ci.isel(bound=0), step), _image(ci.isel(bound=1), step)
+                fitted = np.isfinite(lo)
+                cover = f"; 95% intervals cover it in {np.mean(((lo <= true) & (true <= hi))[fitted]):.1%} of pixels"
+            panels.insert(0, (true, f"{n}: truth{cover}{sub}", "viridis", f"{n} ({_units(ds[n].attrs)})"))
         if ci is not None:
             lo, hi = _image(ci.isel(bound=0), step), _image(ci.isel(bound=1), step)
             panels.append((hi - lo, f"{n}: width of the 95% interval (high - low){sub}", "magma",
                            f"width of {n} ({_units(ds[n].attrs)})"))
-        for col in range(2):
+        shared_scale = [p[0] for p in panels[:-1]] if len(panels) == 3 else [panels[0][0]]
+        both = np.concatenate([a[np.isfinite(a)].ravel() for a in shared_scale])
+        for col in range(ncol):
             ax = axes[row, col]
             if col >= len(panels):
                 ax.set_axis_off()
                 continue
             img, title, cmap, label = panels[col]
-            finite = img[np.isfinite(img)]
+            finite = both if col < len(shared_scale) else img[np.isfinite(img)]  # truth and value share a scale
             kw = {}
             if finite.size:
                 kw = dict(vmin=float(finite.min()), vmax=float(finite.max()) if finite.max() > finite.min()
@@ -128,6 +144,8 @@ def plot_batch_maps(ds, path, *, max_side=MAX_SIDE):
                for c in codes if counts[c]]
     legend_ax = axes[-1, 1]
     legend_ax.set_axis_off()
+    for ax in axes[-1, 2:]:
+        ax.set_axis_off()
     legend_ax.legend(handles=handles, loc="center left", title="status (pixels drawn)", fontsize=8,
                      title_fontsize=9, frameon=False)
     model = ds.attrs.get("model", "")
