@@ -236,7 +236,8 @@ def open_stack(path):
     Raises
     ------
     ValueError
-        A missing file, an unknown format, no ``dop`` or an array of no usable shape.
+        A missing file, an unknown format or no ``dop``; arrays of no usable shape in an ``.npz``
+        (coordinates, light positions) are left out with a :class:`pbrdf_cl.DataWarning`.
 
     Examples
     --------
@@ -255,11 +256,15 @@ def open_stack(path):
     if suffix == ".npz":
         with np.load(p) as z:
             arrays = {k: z[k] for k in z.files}
+        if any(k.endswith(".dims") for k in arrays):  # written by pbrdf_cl.imagestack.save_stack
+            from .imagestack import load_stack
+            return load_stack(p)
         if "dop" not in arrays:
             raise ValueError(f"{p}: no 'dop' array (found {', '.join(arrays)})")
         nd = arrays["dop"].ndim
         lead = ("y", "x") if nd == 3 else tuple(f"dim_{i}" for i in range(nd - 1))
         ds = xr.Dataset()
+        skipped = []
         for k, a in arrays.items():
             if a.shape == arrays["dop"].shape:
                 ds[k] = (lead + ("m",), a)
@@ -270,8 +275,12 @@ def open_stack(path):
             elif a.ndim == 0:
                 ds[k] = ((), a)
             else:
-                raise ValueError(f"{p}: array {k!r} of shape {a.shape} fits neither dop's shape "
-                                 f"{arrays['dop'].shape}, its pixels nor its measurements")
+                skipped.append(f"{k} {a.shape}")
+        if skipped:  # coordinates, light positions, ...: not inputs of the fit
+            import warnings
+            from .data import DataWarning
+            warnings.warn(f"{p}: arrays not read (their shapes fit neither dop {arrays['dop'].shape}, its pixels "
+                          f"nor its measurements): {', '.join(skipped)}", DataWarning, stacklevel=2)
         return ds
     if suffix in (".nc", ".h5", ".netcdf"):
         return xr.open_dataset(p)

@@ -35,6 +35,9 @@ def main():
               "with 2% Gaussian relative noise (f00_std): intensities separate ks and kd, which DOP alone\n"
               "cannot.\n"
               "Written by scripts/make_examples.py.")
+    # a small camera stack (per-pixel geometry, two materials, a roughness gradient) for fit-image
+    from pbrdf_cl import imagestack
+    imagestack.save_stack(imagestack.synthetic_stack(size=16, seed=0), OUT / "camera_stack_16.npz")
 
 
 if __name__ == "__main__":
