@@ -27,8 +27,8 @@
  *                      Jacobians (each column recomputes only the factor its parameter enters).
  *   Build options: PB_D free parameters; PB_X_N, PB_X_K, PB_X_SIGMA, PB_X_KD, PB_X_C, PB_X_KS the
  *   slot of each parameter in x (-1: fixed at base[]); PB_INTENSITY adds the F00 residuals
- *   (then kd in x is kd/ks and ks enters x as log ks); PB_PIXEL_GEOMETRY reads the angles per
- *   pixel ([m * P + p]) instead of shared ([m]); PBRDF_SHADOWING.
+ *   (then kd in x is kd/ks and ks enters x as log ks); PB_PIXEL_GEOMETRY reads the geometry table
+ *   per pixel instead of shared (pb_geom_at); PB_GEODESIC the geodesic acceleration; PBRDF_SHADOWING.
  */
 #include "pbrdf.h"
 
@@ -155,6 +155,24 @@ inline pb_par pb_params(const real *x, __global const scalar *base)
     return p;
 }
 
+/* The geometry (pb_geometry's values) of measurement m, from a table computed once (the host's
+ * reference.geometry, which mirrors it): geo[c * M + m] for shared geometry, geo[(c * M + m) * P
+ * + p] per pixel (PB_PIXEL_GEOMETRY: the lanes' pixels p0 ..), c = cti, sti, ctr, str, cb, sb,
+ * tan2a.  A descent evaluates every measurement's model dozens of times; its geometry never changes. */
+inline pb_geom pb_geom_at(__global const scalar *geo, const int m, const int p0, const int M, const int P)
+{
+#ifdef PB_PIXEL_GEOMETRY
+#define PB_G(c) pb_vl(0, geo + ((size_t)(c) * M + m) * P + p0)
+#else
+#define PB_G(c) ((real)geo[(c) * M + m])
+#endif
+    pb_geom g;
+    g.cti = PB_G(0); g.sti = PB_G(1); g.ctr = PB_G(2); g.str = PB_G(3);
+    g.cb = PB_G(4); g.sb = PB_G(5); g.tan2a = PB_G(6);
+#undef PB_G
+    return g;
+}
+
 /* Residuals (DOP, and F00 with intensities) of one measurement and their forward differences
  * along each free parameter, accumulated into sse, A = J^T J (row-major PB_D x PB_D), gr = J^T r. */
 inline void pb_accumulate(real res, const real *col, real *sse, real *A, real *gr)
@@ -170,7 +188,7 @@ inline void pb_accumulate(real res, const real *col, real *sse, real *A, real *g
 /* Evaluate the weighted residuals at x (and the Jacobian's normal equations) for the lanes'
  * problems; h: the forward steps in x (internal coordinates). */
 inline void pb_evaluate(const real *x, const real *h, __global const scalar *base,
-                        __global const scalar *ti, __global const scalar *tr, __global const scalar *ph,
+                        __global const scalar *geo,
                         __global const scalar *obs, __global const scalar *w,
                         __global const scalar *fobs, __global const scalar *fw,
                         const int P, const int M, const int p0, real *sse, real *A, real *gr,
@@ -193,11 +211,7 @@ inline void pb_evaluate(const real *x, const real *h, __global const scalar *bas
     }
     for (int m = 0; m < M; m++) {
         const int o = m * P + p0;
-#ifdef PB_PIXEL_GEOMETRY
-        const pb_geom g = pb_geometry(pb_vl(0, ti + o), pb_vl(0, tr + o), pb_vl(0, ph + o));
-#else
-        const pb_geom g = pb_geometry((real)ti[m], (real)tr[m], (real)ph[m]);
-#endif
+        const pb_geom g = pb_geom_at(geo, m, p0, M, P);
         const real sw = sqrt(pb_vl(0, w + o));
         const pb_fresnel_t f = pb_fresnel(p.n, p.k, g.cb, g.sb);
         const real logK = pb_log_specular_scale(g, p.sigma, p.ks, pb_shadowing_factor(g, p.sigma, PBRDF_SHADOWING));
@@ -249,7 +263,7 @@ inline void pb_evaluate(const real *x, const real *h, __global const scalar *bas
  * and residuals of x that pb_evaluate stored in rows. */
 inline void pb_accel_rhs(const real *x, const real *du, const real *span, const real hv,
                          __global const scalar *lo, __global const scalar *hi, __global const scalar *base,
-                         __global const scalar *ti, __global const scalar *tr, __global const scalar *ph,
+                         __global const scalar *geo,
                          __global const scalar *obs, __global const scalar *w,
                          const int P, const int M, const int p0, __global const scalar *rows, const int Q,
                          const int q0, real *b)
@@ -262,11 +276,7 @@ inline void pb_accel_rhs(const real *x, const real *du, const real *span, const 
     const pb_par p = pb_params(xv, base);
     for (int m = 0; m < M; m++) {
         const int o = m * P + p0;
-#ifdef PB_PIXEL_GEOMETRY
-        const pb_geom g = pb_geometry(pb_vl(0, ti + o), pb_vl(0, tr + o), pb_vl(0, ph + o));
-#else
-        const pb_geom g = pb_geometry((real)ti[m], (real)tr[m], (real)ph[m]);
-#endif
+        const pb_geom g = pb_geom_at(geo, m, p0, M, P);
         const pb_fresnel_t f = pb_fresnel(p.n, p.k, g.cb, g.sb);
         const real logK = pb_log_specular_scale(g, p.sigma, p.ks, pb_shadowing_factor(g, p.sigma, PBRDF_SHADOWING));
         const real rv = sqrt(pb_vl(0, w + o)) * (pb_dop(f, logK, pb_diffuse(g, p.kd, p.c)) - pb_vl(0, obs + o));
@@ -329,6 +339,33 @@ inline void pb_solve(real *Mx, const real *g, real *u, real *ok)
         u[i] = (*ok > (real)0 && isfinite(u[i])) ? u[i] : (real)0;
 }
 
+/* Settled: the Gauss-Newton step from x (the coordinates held on a bound left out, a ridge of
+ * 1e-8 of the mean curvature) would lower the objective by at most 1e-9 of itself (plus 1e-14):
+ * the descent is at a minimum, not crawling along a valley.  1 or 0 per lane. */
+inline real pb_settled(const real *x, const real *A, const real *gr, const real sse, const real *span,
+                       const real *tol, __global const scalar *lo, __global const scalar *hi)
+{
+    real g[PB_D], Mx[PB_D * PB_D], u[PB_D], held[PB_D], tr2 = (real)0;
+    for (int i = 0; i < PB_D; i++)
+        tr2 += A[i * PB_D + i] * span[i] * span[i];
+    const real ridge = (real)1e-8 * tr2 / (real)PB_D + PB_TINY;
+    for (int i = 0; i < PB_D; i++) {
+        const real gi = gr[i] * span[i];
+        held[i] = (((x[i] <= (real)lo[i] + tol[i]) && (gi > (real)0)) ||
+                   ((x[i] >= (real)hi[i] - tol[i]) && (gi < (real)0))) ? (real)1 : (real)0;
+        g[i] = held[i] > (real)0 ? (real)0 : gi;
+    }
+    for (int i = 0; i < PB_D; i++)
+        for (int j = 0; j < PB_D; j++)
+            Mx[i * PB_D + j] = ((held[i] > (real)0 || held[j] > (real)0) ? (real)0 : A[i * PB_D + j] * span[i] * span[j])
+                               + (i == j ? ridge + held[i] : (real)0);
+    real okd = (real)1, dec = (real)0;
+    pb_solve(Mx, g, u, &okd);
+    for (int i = 0; i < PB_D; i++)
+        dec -= g[i] * u[i];
+    return (okd > (real)0 && dec <= (real)1e-9 * sse + (real)1e-14) ? (real)1 : (real)0;
+}
+
 /* X[i * Q + q]: in the start, out the end (internal coordinates); sse_out[q], jtj_out[(i * PB_D
  * + j) * Q + q] (J^T J at the end, unscaled), settled[q] (1 where a Gauss-Newton step would
  * gain almost nothing: see the end).
@@ -336,7 +373,7 @@ inline void pb_solve(real *Mx, const real *g, real *u, real *ok)
 __kernel void batch_lm(__global scalar *X, __global scalar *sse_out, __global scalar *jtj_out,
                        __global scalar *settled, const int Q, const int P, const int M, const int iterations,
                        __global const scalar *base, __global const scalar *lo, __global const scalar *hi,
-                       __global const scalar *ti, __global const scalar *tr, __global const scalar *ph,
+                       __global const scalar *geo,
                        __global const scalar *obs, __global const scalar *w,
                        __global const scalar *fobs, __global const scalar *fw, __global scalar *rows)
 {
@@ -355,13 +392,16 @@ __kernel void batch_lm(__global scalar *X, __global scalar *sse_out, __global sc
         x[i] = clamp(pb_vl(0, X + i * Q + q0), (real)lo[i], (real)hi[i]);
     }
     pb_steps(x, hi, h);
-    pb_evaluate(x, h, base, ti, tr, ph, obs, w, fobs, fw, P, M, p0, &sse, A, gr, cur, Q, q0);
+    pb_evaluate(x, h, base, geo, obs, w, fobs, fw, P, M, p0, &sse, A, gr, cur, Q, q0);
     real tr_ = (real)0;
     for (int i = 0; i < PB_D; i++)
         tr_ += A[i * PB_D + i] * span[i] * span[i];
     real lam = (real)1e-3 * tr_ / (real)PB_D;
     lam = isfinite(lam) && lam > (real)0 ? lam : (real)1e-3;
     for (int it = 0; it < iterations; it++) {
+        /* every lane settled: nothing left to gain (the work-item's other lanes are done too) */
+        if (it > 0 && all(pb_settled(x, A, gr, sse, span, tol, lo, hi) > (real)0))
+            break;
         real g[PB_D], Mx[PB_D * PB_D], du[PB_D], held[PB_D];
         for (int i = 0; i < PB_D; i++) {
             const real gi = gr[i] * span[i];
@@ -409,7 +449,7 @@ __kernel void batch_lm(__global scalar *X, __global scalar *sse_out, __global sc
          * (else the plain step): the step is du + a / 2, which follows a curved valley */
         {
             real b[PB_D], a[PB_D], ok3 = (real)1;
-            pb_accel_rhs(x, du, span, (real)0.1, lo, hi, base, ti, tr, ph, obs, w, P, M, p0, cur, Q, q0, b);
+            pb_accel_rhs(x, du, span, (real)0.1, lo, hi, base, geo, obs, w, P, M, p0, cur, Q, q0, b);
             for (int i = 0; i < PB_D; i++) {
                 const real fixed_i = (held[i] > (real)0 || hit[i] > (real)0) ? (real)1 : (real)0;
                 b[i] = fixed_i > (real)0 ? (real)0 : b[i];
@@ -434,7 +474,7 @@ __kernel void batch_lm(__global scalar *X, __global scalar *sse_out, __global sc
         for (int i = 0; i < PB_D; i++)
             xt[i] = clamp(x[i] + du[i] * span[i], (real)lo[i], (real)hi[i]);
         pb_steps(xt, hi, ht);
-        pb_evaluate(xt, ht, base, ti, tr, ph, obs, w, fobs, fw, P, M, p0, &sset, At, grt, trial, Q, q0);
+        pb_evaluate(xt, ht, base, geo, obs, w, fobs, fw, P, M, p0, &sset, At, grt, trial, Q, q0);
         const real better = sset < sse ? (real)1 : (real)0;
         const int any_better = any(sset < sse);
         if (any_better) {
@@ -458,28 +498,7 @@ __kernel void batch_lm(__global scalar *X, __global scalar *sse_out, __global sc
         if (all(lam >= PB_HUGE))
             break;
     }
-    /* settled: the Gauss-Newton step from here (the coordinates held on a bound left out, a ridge
-     * of 1e-8 of the mean curvature) would lower the objective by at most 1e-9 of itself (plus
-     * 1e-14): the descent is at a minimum, not crawling along a valley */
-    real g[PB_D], Mx[PB_D * PB_D], u[PB_D], held[PB_D], tr2 = (real)0;
-    for (int i = 0; i < PB_D; i++)
-        tr2 += A[i * PB_D + i] * span[i] * span[i];
-    const real ridge = (real)1e-8 * tr2 / (real)PB_D + PB_TINY;
-    for (int i = 0; i < PB_D; i++) {
-        const real gi = gr[i] * span[i];
-        held[i] = (((x[i] <= (real)lo[i] + tol[i]) && (gi > (real)0)) ||
-                   ((x[i] >= (real)hi[i] - tol[i]) && (gi < (real)0))) ? (real)1 : (real)0;
-        g[i] = held[i] > (real)0 ? (real)0 : gi;
-    }
-    for (int i = 0; i < PB_D; i++)
-        for (int j = 0; j < PB_D; j++)
-            Mx[i * PB_D + j] = ((held[i] > (real)0 || held[j] > (real)0) ? (real)0 : A[i * PB_D + j] * span[i] * span[j])
-                               + (i == j ? ridge + held[i] : (real)0);
-    real okd = (real)1, dec = (real)0;
-    pb_solve(Mx, g, u, &okd);
-    for (int i = 0; i < PB_D; i++)
-        dec -= g[i] * u[i];
-    const real done = (okd > (real)0 && dec <= (real)1e-9 * sse + (real)1e-14) ? (real)1 : (real)0;
+    const real done = pb_settled(x, A, gr, sse, span, tol, lo, hi);
     for (int i = 0; i < PB_D; i++) {
         pb_vs(x[i], 0, X + i * Q + q0);
         for (int j = 0; j < PB_D; j++)

@@ -44,8 +44,8 @@ FACES = False
 GEODESIC = True
 #: The float32 descents: (how many of the best starts, iterations), in turn, each continuing the
 #: best of the previous; then the float64 polish of the best POLISH_STARTS.
-SCREEN_SCHEDULE = ((32, 15), (8, 40))
-SCREEN_ITERATIONS = 55  # the numpy backend's one descent of every start: the schedule's iterations
+SCREEN_SCHEDULE = ((32, 12), (8, 30))
+SCREEN_ITERATIONS = 42  # the numpy backend's one descent of every start: the schedule's iterations
 POLISH_STARTS = 1
 POLISH_ITERATIONS = 20
 #: Descents not settled after the polish continue alone, up to this many runs of this many iterations.
@@ -616,10 +616,9 @@ def _device_lm(eng, setup, blk, X0, names, dtype, iterations, intensity):
     bX = cl.Buffer(eng.context, cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR, hostbuf=Xi)  # in and out
     sse, jtj, settled = np.empty(Q, npdt), np.empty((D * D, Q), npdt), np.empty(Q, npdt)
     bsse, bjtj, bset = eng.empty(sse.nbytes), eng.empty(jtj.nbytes), eng.empty(settled.nbytes)
-    if blk.shared:
-        geo = [eng.to_device(a, npdt) for a in blk.angles]
-    else:
-        geo = [eng.to_device(blk.pixel_major(a, np.float64), npdt) for a in blk.angles]
+    # the geometry of every measurement once (reference.geometry: the mirror of pb_geometry)
+    g = reference.geometry(*(blk.angles if blk.shared else [blk.pixel_major(a, np.float64) for a in blk.angles]))
+    geo = eng.to_device(np.stack([g.cti, g.sti, g.ctr, g.str, g.cb, g.sb, g.tan2a]), npdt)
     obs, w = eng.to_device(blk.pixel_major(blk.obs, npdt), npdt), eng.to_device(blk.pixel_major(blk.w, npdt), npdt)
     if intensity:
         fobs = eng.to_device(blk.pixel_major(blk.fobs, npdt), npdt)
@@ -629,7 +628,7 @@ def _device_lm(eng, setup, blk, X0, names, dtype, iterations, intensity):
     M = blk.valid.shape[1]
     eng.launch(prog["batch_lm"], (Q // lanes,), bX, bsse, bjtj, bset, np.int32(Q), np.int32(P), np.int32(M),
                np.int32(iterations), eng.to_device(base, npdt), eng.to_device(lo, npdt), eng.to_device(hi, npdt),
-               *geo, obs, w, fobs, fw, eng.empty(2 * M * (D + 1) * Q * np.dtype(npdt).itemsize if geodesic else 1),
+               geo, obs, w, fobs, fw, eng.empty(2 * M * (D + 1) * Q * np.dtype(npdt).itemsize if geodesic else 1),
                local_size=(LOCAL_SIZE,))
     eng.read(bX, Xi)
     eng.read(bsse, sse)

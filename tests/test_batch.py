@@ -28,12 +28,12 @@ def random_pixels(n, seed, ti=TI, tr=TR, noise=0.01):
     return np.clip(dop + rng.normal(0, noise, dop.shape), 0, 1), truth
 
 
-@pytest.mark.parametrize("geometry, share", [("paper", 6 / 8), ("one-incidence", 1.0)])
+@pytest.mark.parametrize("geometry, share", [("paper", 7 / 8), ("one-incidence", 1.0)])
 def test_batched_sse_reaches_the_single_fit(dev, geometry, share):
     """The batched fit's SSE reaches pbrdf_cl.fit's (1e-6 relative, or lower) on 8 random noisy
     pixels: every one with one incidence; in the paper's three-incidence geometry, whose flat
     multi-basin landscape (n = 1, k = 0 corners) defeats the batched starts more often, at least
-    6 and the others within 1% (scripts/bench_batch.py measures both shares on 500 pixels; the
+    7 and the others within 1% (scripts/bench_batch.py measures both shares on 500 pixels; the
     issue's target is 99%)."""
     ti, tr = (TI, TR) if geometry == "paper" else (TI1, TR1)
     dop, _ = random_pixels(8, seed=11, ti=ti, tr=tr)
