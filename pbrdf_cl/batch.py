@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import api, reference
-from .engine import DTYPES, resolve_engine
+from .engine import DTYPES, VECTOR_WIDTH, resolve_engine
 from .inversion import (DEFAULT_BOUNDS, DOP_MAX_DECIMALS, DOP_NOISE_FLOOR, MODEL_FIXED, MODEL_PARAMS, X_RESOLUTION,
                         _check_bounds, _grid_axis, _lm_batch, fd_jacobian)
 
@@ -62,7 +62,7 @@ DETERMINED_FRACTION = 0.5
 #: Default relative uncertainty of intensities without f00_std (as :func:`pbrdf_cl.fit`).
 F00_REL_STD = 0.05
 #: Lanes of the LM kernel per work-item (float32, float64).
-LM_LANES = {"float32": 8, "float64": 4}
+LM_LANES = {"float32": 16, "float64": 4}
 DEFAULT_BUDGET = "512 MiB"
 #: Work-group size of the batch kernels: each work-item holds a few kB of private arrays, which
 #: PoCL's CPU driver allocates for a whole work-group at once (a large group overflows its stack).
@@ -916,7 +916,7 @@ def _fit_block(eng, setup, raw, order, rstart, names):
     """The flat per-pixel results of one block of pixels (``raw``: :meth:`_Source.rows`): the
     pixels that can be fitted go through the stages, the others get their status."""
     D = len(setup.free)
-    lanes = max(LM_LANES.values()) * 2 if not eng.is_numpy else 1
+    lanes = max(*LM_LANES.values(), VECTOR_WIDTH["float32"]) if not eng.is_numpy else 1  # every kernel's lanes divide it
     blk = _Block(raw, setup, lanes)
     p, n_out = blk.p, len(names)
     status = np.full(p, 1, np.int8)
