@@ -339,26 +339,57 @@ inline void pb_solve(real *Mx, const real *g, real *u, real *ok)
         u[i] = (*ok > (real)0 && isfinite(u[i])) ? u[i] : (real)0;
 }
 
-/* Settled: the Gauss-Newton step from x (the coordinates held on a bound left out, a ridge of
- * 1e-8 of the mean curvature) would lower the objective by at most 1e-9 of itself (plus 1e-14):
- * the descent is at a minimum, not crawling along a valley.  1 or 0 per lane. */
-inline real pb_settled(const real *x, const real *A, const real *gr, const real sse, const real *span,
-                       const real *tol, __global const scalar *lo, __global const scalar *hi)
+/* The descent's coordinates held on a bound (1 where x is on a bound and the gradient points
+ * out of it), and the gradient g in coordinates scaled to the bounds with those held left out. */
+inline void pb_held(const real *x, const real *gr, const real *span, const real *tol,
+                    __global const scalar *lo, __global const scalar *hi, real *held, real *g)
 {
-    real g[PB_D], Mx[PB_D * PB_D], u[PB_D], held[PB_D], tr2 = (real)0;
-    for (int i = 0; i < PB_D; i++)
-        tr2 += A[i * PB_D + i] * span[i] * span[i];
-    const real ridge = (real)1e-8 * tr2 / (real)PB_D + PB_TINY;
     for (int i = 0; i < PB_D; i++) {
         const real gi = gr[i] * span[i];
         held[i] = (((x[i] <= (real)lo[i] + tol[i]) && (gi > (real)0)) ||
                    ((x[i] >= (real)hi[i] - tol[i]) && (gi < (real)0))) ? (real)1 : (real)0;
         g[i] = held[i] > (real)0 ? (real)0 : gi;
     }
+}
+
+/* The damped normal matrix in coordinates scaled to the bounds: J^T J with the held coordinates'
+ * rows and columns zeroed, plus lam + held on the diagonal. */
+inline void pb_damped(const real *A, const real *span, const real *held, const real lam, real *Mx)
+{
     for (int i = 0; i < PB_D; i++)
         for (int j = 0; j < PB_D; j++)
             Mx[i * PB_D + j] = ((held[i] > (real)0 || held[j] > (real)0) ? (real)0 : A[i * PB_D + j] * span[i] * span[j])
-                               + (i == j ? ridge + held[i] : (real)0);
+                               + (i == j ? lam + held[i] : (real)0);
+}
+
+/* Mx: As with the rows and columns of the coordinates ``fixed`` (1) replaced by the identity. */
+inline void pb_pinned(const real *As, const real *fixed, real *Mx)
+{
+    for (int i = 0; i < PB_D; i++)
+        for (int j = 0; j < PB_D; j++)
+            Mx[i * PB_D + j] = (fixed[i] > (real)0 || fixed[j] > (real)0) ? (i == j ? (real)1 : (real)0)
+                                                                       : As[i * PB_D + j];
+}
+
+/* The trace of J^T J in coordinates scaled to the bounds. */
+inline real pb_scaled_trace(const real *A, const real *span)
+{
+    real t = (real)0;
+    for (int i = 0; i < PB_D; i++)
+        t += A[i * PB_D + i] * span[i] * span[i];
+    return t;
+}
+
+/* Settled: the Gauss-Newton step from x (the coordinates held on a bound left out, a ridge of
+ * 1e-8 of the mean curvature) would lower the objective by at most 1e-9 of itself (plus 1e-14):
+ * the descent is at a minimum, not crawling along a valley.  1 or 0 per lane. */
+inline real pb_settled(const real *x, const real *A, const real *gr, const real sse, const real *span,
+                       const real *tol, __global const scalar *lo, __global const scalar *hi)
+{
+    real g[PB_D], Mx[PB_D * PB_D], u[PB_D], held[PB_D];
+    const real ridge = (real)1e-8 * pb_scaled_trace(A, span) / (real)PB_D + PB_TINY;
+    pb_held(x, gr, span, tol, lo, hi, held, g);
+    pb_damped(A, span, held, ridge, Mx);
     real okd = (real)1, dec = (real)0;
     pb_solve(Mx, g, u, &okd);
     for (int i = 0; i < PB_D; i++)
@@ -393,27 +424,15 @@ __kernel void batch_lm(__global scalar *X, __global scalar *sse_out, __global sc
     }
     pb_steps(x, hi, h);
     pb_evaluate(x, h, base, geo, obs, w, fobs, fw, P, M, p0, &sse, A, gr, cur, Q, q0);
-    real tr_ = (real)0;
-    for (int i = 0; i < PB_D; i++)
-        tr_ += A[i * PB_D + i] * span[i] * span[i];
-    real lam = (real)1e-3 * tr_ / (real)PB_D;
+    real lam = (real)1e-3 * pb_scaled_trace(A, span) / (real)PB_D;
     lam = isfinite(lam) && lam > (real)0 ? lam : (real)1e-3;
     for (int it = 0; it < iterations; it++) {
         /* every lane settled: nothing left to gain (the work-item's other lanes are done too) */
         if (it > 0 && all(pb_settled(x, A, gr, sse, span, tol, lo, hi) > (real)0))
             break;
         real g[PB_D], Mx[PB_D * PB_D], du[PB_D], held[PB_D];
-        for (int i = 0; i < PB_D; i++) {
-            const real gi = gr[i] * span[i];
-            held[i] = (((x[i] <= (real)lo[i] + tol[i]) && (gi > (real)0)) ||
-                       ((x[i] >= (real)hi[i] - tol[i]) && (gi < (real)0))) ? (real)1 : (real)0;
-            g[i] = held[i] > (real)0 ? (real)0 : gi;
-        }
-        for (int i = 0; i < PB_D; i++)
-            for (int j = 0; j < PB_D; j++) {
-                const real a = (held[i] > (real)0 || held[j] > (real)0) ? (real)0 : A[i * PB_D + j] * span[i] * span[j];
-                Mx[i * PB_D + j] = a + (i == j ? lam + held[i] : (real)0);
-            }
+        pb_held(x, gr, span, tol, lo, hi, held, g);
+        pb_damped(A, span, held, lam, Mx);
         real ok = (real)1, As[PB_D * PB_D];
         for (int i = 0; i < PB_D * PB_D; i++)
             As[i] = Mx[i];
@@ -436,10 +455,8 @@ __kernel void batch_lm(__global scalar *X, __global scalar *sse_out, __global sc
                 for (int j = 0; j < PB_D; j++)
                     s += (i == j ? (real)0 : As[i * PB_D + j]) * delta[j];
                 g2[i] = hit[i] > (real)0 ? (real)0 : s;
-                for (int j = 0; j < PB_D; j++)
-                    Mx[i * PB_D + j] = (hit[i] > (real)0 || hit[j] > (real)0) ? (i == j ? (real)1 : (real)0)
-                                                                           : As[i * PB_D + j];
             }
+            pb_pinned(As, hit, Mx);
             pb_solve(Mx, g2, du2, &ok2);
             for (int i = 0; i < PB_D; i++)
                 du[i] = hit[i] > (real)0 ? delta[i] : (ok2 > (real)0 ? du2[i] : du[i]);
@@ -448,17 +465,13 @@ __kernel void batch_lm(__global scalar *X, __global scalar *sse_out, __global sc
         /* the acceleration a along the coordinates that move freely, kept where 2 |a| <= 0.75 |du|
          * (else the plain step): the step is du + a / 2, which follows a curved valley */
         {
-            real b[PB_D], a[PB_D], ok3 = (real)1;
+            real b[PB_D], a[PB_D], fixed[PB_D], ok3 = (real)1;
             pb_accel_rhs(x, du, span, (real)0.1, lo, hi, base, geo, obs, w, P, M, p0, cur, Q, q0, b);
             for (int i = 0; i < PB_D; i++) {
-                const real fixed_i = (held[i] > (real)0 || hit[i] > (real)0) ? (real)1 : (real)0;
-                b[i] = fixed_i > (real)0 ? (real)0 : b[i];
-                for (int j = 0; j < PB_D; j++) {
-                    const real fixed_j = (held[j] > (real)0 || hit[j] > (real)0) ? (real)1 : (real)0;
-                    Mx[i * PB_D + j] = (fixed_i > (real)0 || fixed_j > (real)0) ? (i == j ? (real)1 : (real)0)
-                                                                           : As[i * PB_D + j];
-                }
+                fixed[i] = (held[i] > (real)0 || hit[i] > (real)0) ? (real)1 : (real)0;
+                b[i] = fixed[i] > (real)0 ? (real)0 : b[i];
             }
+            pb_pinned(As, fixed, Mx);
             pb_solve(Mx, b, a, &ok3);
             real na = (real)0, nv = (real)0;
             for (int i = 0; i < PB_D; i++) {
