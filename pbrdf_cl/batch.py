@@ -29,8 +29,8 @@ import numpy as np
 
 from . import api, reference
 from .engine import DTYPES, VECTOR_WIDTH, resolve_engine
-from .inversion import (DEFAULT_BOUNDS, DOP_MAX_DECIMALS, DOP_NOISE_FLOOR, MODEL_FIXED, MODEL_PARAMS, X_RESOLUTION,
-                        _check_bounds, _grid_axis, _lm_batch, fd_jacobian)
+from .inversion import (DEFAULT_BOUNDS, DOP_NOISE_FLOOR, MODEL_FIXED, MODEL_PARAMS, X_RESOLUTION, _check_bounds,
+                        _grid_axis, _lm_batch, dop_resolution, fd_jacobian)
 
 #: Grid nodes per free parameter of the batched grid stage (coarser than :func:`fit`'s: the
 #: regions' minima only seed the descents).
@@ -429,16 +429,9 @@ class _Block:
     def _noise_floor(self, floor):
         """Each pixel's floor of the noise estimate without dop_std, as :func:`pbrdf_cl.fit`'s
         (:func:`pbrdf_cl.inversion.dop_noise_floor`): the rounding error of the DOP resolution
-        of its valid values (10^-d for the fewest decimals d <= DOP_MAX_DECIMALS that write them
-        all), at least ``floor``."""
-        res = np.zeros(self.p)
-        found = np.zeros(self.p, bool)
-        for d in range(DOP_MAX_DECIMALS + 1):
-            step = 10.0 ** -d
-            exact = np.all(~self.valid | (np.abs(np.round(self.obs / step) * step - self.obs) <= 1e-9 * step), axis=1)
-            res = np.where(~found & exact, step, res)
-            found |= exact
-        return np.maximum(floor, res / np.sqrt(12.0))
+        of its valid values (invalid ones are 0 in ``obs``, exact at any resolution), at least
+        ``floor``."""
+        return np.maximum(floor, dop_resolution(self.obs, axis=1) / np.sqrt(12.0))
 
     def _distinct_geometries(self):
         """Distinct valid (theta_i, theta_r, phi) per pixel."""
@@ -563,21 +556,23 @@ def _numpy_grid(setup, blk, order, rstart):
 
 # ---- LM stage -----------------------------------------------------------------------------------
 
-def _internal(setup, X, names):
-    """Parameter vectors to the descent's coordinates (ks as log ks)."""
+def _map_ks(X, names, func):
+    """A copy of the parameter vectors X with ``func`` applied to their ks coordinate (if any)."""
     X = np.array(X, float)
     if "ks" in names:
         j = names.index("ks")
-        X[..., j] = np.log(X[..., j])
+        X[..., j] = func(X[..., j])
     return X
+
+
+def _internal(X, names):
+    """Parameter vectors to the descent's coordinates (ks as log ks)."""
+    return _map_ks(X, names, np.log)
 
 
 def _external(X, names):
-    X = np.array(X, float)
-    if "ks" in names:
-        j = names.index("ks")
-        X[..., j] = np.exp(X[..., j])
-    return X
+    """The descent's coordinates back to parameter vectors."""
+    return _map_ks(X, names, np.exp)
 
 
 def _bounds(setup, names):
@@ -608,7 +603,7 @@ def _device_lm(eng, setup, blk, X0, names, dtype, iterations, intensity):
         defines["PB_PIXEL_GEOMETRY"] = None
     prog = eng.program("pbrdf_batch.cl", dtype, defines)
     Xi = np.zeros((D, S, P))
-    Xi[:, :, :p] = np.moveaxis(_internal(setup, X0, names), -1, 0)
+    Xi[:, :, :p] = np.moveaxis(_internal(X0, names), -1, 0)
     Xi[:, :, p:] = ((lo + hi) / 2)[:, None, None]
     Xi = np.ascontiguousarray(Xi.reshape(D, Q), npdt)
     base = np.array([setup.base.get(n, 0.0) for n in ("n", "k", "sigma", "ks", "kd", "c")], npdt)
@@ -644,8 +639,9 @@ class _PixelResiduals:
     of a (B, D) batch belong to pixels ``pix`` repeated ``B // len(pix)`` times each, as
     :func:`fd_jacobian` lays them out."""
 
-    def __init__(self, setup, blk, names, pix, intensity):
+    def __init__(self, setup, blk, names, pix, intensity, weights=None):
         self.setup, self.blk, self.names, self.pix, self.intensity = setup, blk, names, pix, intensity
+        self.w = blk.w if weights is None else weights  # of the DOP residuals
 
     def rows(self, X):
         rep = X.shape[0] // self.pix.size
@@ -663,7 +659,7 @@ class _PixelResiduals:
         variant = reference.SHADOWING[setup.shadowing]
         log_k = reference.log_specular_scale(g, p["sigma"], p["ks"], reference.shadowing_factor(g, p["sigma"], variant))
         fd = reference.diffuse(g, p["kd"], p["c"])
-        r = (reference.dop(f, log_k, fd) - blk.obs[pix]) * np.sqrt(blk.w[pix])
+        r = (reference.dop(f, log_k, fd) - blk.obs[pix]) * np.sqrt(self.w[pix])
         if self.intensity:
             r = np.concatenate([r, (reference.brdf(f, log_k, fd) - blk.fobs[pix]) * np.sqrt(blk.fw[pix])], axis=1)
         return np.where(np.isfinite(r), r, 1e150)
@@ -675,7 +671,7 @@ def _numpy_lm(setup, blk, X0, names, iterations, intensity):
     lo, hi = _bounds(setup, names)
     pix = np.tile(np.arange(p), S)
     res = _PixelResiduals(setup, blk, names, pix, intensity)
-    Xi = _internal(setup, X0, names).reshape(S * p, D)
+    Xi = _internal(X0, names).reshape(S * p, D)
     X, sse, _ = _lm_batch(res.rows, Xi, lo, hi, iterations)
     r, J = fd_jacobian(res.rows, X, lo, hi)
     sse = np.einsum("pm,pm->p", r, r)
@@ -1107,7 +1103,7 @@ def _statistics(setup, blk, names, xb, chi2, jtj, settled, X_all, sse_all, nfev)
         s2 = np.maximum(chi2 / dof, blk.noise_floor ** 2)
     cov, var = _covariances(jtj, s2, span)
     se_int = np.sqrt(np.clip(var, 0, None))
-    xi = _internal(setup, xb, names)
+    xi = _internal(xb, names)
     resolution = X_RESOLUTION * span
     floored = setup.sigma_known or (chi2 / dof < blk.noise_floor ** 2)
     se_i = np.maximum(se_int, resolution)
@@ -1169,14 +1165,8 @@ def _statistics(setup, blk, names, xb, chi2, jtj, settled, X_all, sse_all, nfev)
 def _dop_sse(setup, blk, names, xb):
     """Sum of squared (unweighted) DOP residuals over each pixel's valid measurements, float64
     reference model."""
-    res = _PixelResiduals(setup, blk, names, np.arange(blk.p), setup.use_f00)
-    saved = blk.w
-    blk.w = blk.valid.astype(float)
-    try:
-        r = res.rows(_internal(setup, xb, names))[:, :blk.valid.shape[1]]
-    finally:
-        blk.w = saved
-    r = np.where(blk.valid, r, 0.0)
+    res = _PixelResiduals(setup, blk, names, np.arange(blk.p), setup.use_f00, weights=blk.valid.astype(float))
+    r = np.where(blk.valid, res.rows(_internal(xb, names))[:, :blk.valid.shape[1]], 0.0)
     return np.einsum("pm,pm->p", r, r)
 
 

@@ -567,15 +567,16 @@ def distinct_geometries(meas):
     return len(np.unique(np.column_stack([meas.theta_i, meas.theta_r, meas.phi]), axis=0))
 
 
-def dop_resolution(dop, max_decimals=DOP_MAX_DECIMALS):
+def dop_resolution(dop, max_decimals=DOP_MAX_DECIMALS, axis=None):
     """The DOP resolution of the values: 10 ** -d for the fewest decimals d (at most
-    ``max_decimals``) that write every value exactly, or 0.0 where none does."""
+    ``max_decimals``) that write every value exactly, or 0.0 where none does; with ``axis``, of
+    each slice along it (an array)."""
     dop = np.asarray(dop, float)
-    for d in range(max_decimals + 1):
+    res = 0.0
+    for d in range(max_decimals, -1, -1):  # the fewest decimals that write every value win
         step = 10.0 ** -d
-        if np.all(np.abs(np.round(dop / step) * step - dop) <= 1e-9 * step):
-            return step
-    return 0.0
+        res = np.where(np.all(np.abs(np.round(dop / step) * step - dop) <= 1e-9 * step, axis=axis), step, res)
+    return res if axis is not None else float(res)
 
 
 def dop_noise_floor(dop):
