@@ -1119,6 +1119,9 @@ def _statistics(setup, blk, names, xb, chi2, jtj, settled, X_all, sse_all, nfev)
     determined = (hi95 - lo95) < DETERMINED_FRACTION * span
     ci = np.stack([lo95, hi95], axis=-1)
     se = se_int.copy()
+    # DOP-only SSE (unweighted) at the optimum, from the descent's parameters (kd as kd/ks with
+    # intensities: it is made absolute just below)
+    dop_sse = _dop_sse(setup, blk, names, xb)
     xb = xb.copy()
     if "ks" in names:  # back to ks from log ks, and kd from kd/ks (reported as in pbrdf_cl.fit)
         j = names.index("ks")
@@ -1152,8 +1155,6 @@ def _statistics(setup, blk, names, xb, chi2, jtj, settled, X_all, sse_all, nfev)
     status[~determined.all(axis=1)] = 4
     status[~settled] = 0
     status[~np.isfinite(best)] = -3
-    # DOP-only SSE (unweighted) at the optimum
-    dop_sse = _dop_sse(setup, blk, names, xb)
     failed = status == -3
     out = {"x": xb, "stderr": se, "ci95": ci, "determined": determined & ~failed[:, None], "chi2": chi2,
            "sse": dop_sse, "nfev": nfev, "status": status}

@@ -104,6 +104,9 @@ def test_intensities_separate_ks_and_kd_like_fit(dev):
     single = pbrdf_cl.fit(dict(theta_i=TI, theta_r=TR, dop=dop[0], f00=f00[0], dop_std=np.full(30, 0.003),
                                f00_std=f00_std), engine=dev)
     assert res.chi2.values[0] <= single.chi2 * (1 + 1e-6)
+    # the reported DOP SSE is that of the reported parameters (kd absolute)
+    x = {n: res[n].values[0] for n in ("n", "k", "sigma", "ks", "kd", "c")}
+    np.testing.assert_allclose(res.sse.values[0], ((pbrdf_cl.dop(TI, TR, **x) - dop[0]) ** 2).sum(), rtol=1e-9)
     for name in ("n", "k", "sigma", "ks", "kd", "c"):
         np.testing.assert_allclose(res[name].values[0], single.x[name], rtol=1e-3, atol=1e-3, err_msg=name)
     np.testing.assert_allclose(res.ks_stderr.values[0], single.stderr["ks"], rtol=1e-2)
