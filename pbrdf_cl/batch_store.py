@@ -36,10 +36,8 @@ import hashlib
 import json
 import os
 import re
-import shutil
 import sys
 import time
-import uuid
 from pathlib import Path
 
 import numpy as np
@@ -307,20 +305,9 @@ def _open_store(job, blocks, block_rows, the_settings, memory_budget, store):
     if sweeps._is_local(store):
         path = Path(name)
         if sweeps._local_is_empty(path):
-            # build beside it and rename into place: a store either exists whole or not at all
-            tmp = path.with_name(f"{path.name}.creating-{uuid.uuid4().hex[:8]}")
-            try:
-                skeleton(str(tmp))
-                if path.exists():
-                    path.rmdir()
-                os.rename(tmp, path)
+            if sweeps.create_in_place(path, skeleton):
                 return name, False
-            except OSError:
-                if not (path / ".zgroup").exists():
-                    raise  # else another process created it just now: check it below
-            finally:
-                if tmp.exists():
-                    shutil.rmtree(tmp, ignore_errors=True)
+            # else another process created it just now: check it below
         elif not (path / ".zgroup").exists():
             raise StoreError(f"{name} exists and is not a pbrdf-cl fit store; choose another --out or delete it")
     try:

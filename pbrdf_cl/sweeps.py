@@ -531,6 +531,28 @@ def _local_is_empty(path):
     return not path.exists() or (path.is_dir() and not any(path.iterdir()))
 
 
+def create_in_place(path, write):
+    """Create the local store ``path`` (absent or an empty folder) with ``write(folder)``, built
+    beside it and renamed into place, so that a store exists whole or not at all.  True when this
+    call created it; False when another process created it meanwhile (``path`` then holds a Zarr
+    group, for the caller to check)."""
+    tmp = path.with_name(f"{path.name}.creating-{uuid.uuid4().hex[:8]}")
+    try:
+        write(str(tmp))
+        if path.exists():
+            path.rmdir()
+        os.rename(tmp, path)
+        return True
+    except OSError:
+        if not (path / ".zgroup").exists():
+            raise
+        return False
+    finally:
+        if tmp.exists():
+            import shutil
+            shutil.rmtree(tmp, ignore_errors=True)
+
+
 def open_store(spec, store):
     """Create the store for ``spec``, or check that an existing one was started with the same
     spec (and kernels); returns (absolute store name, whether it existed before)."""
@@ -538,21 +560,9 @@ def open_store(spec, store):
     if _is_local(store):
         path = Path(name)
         if _local_is_empty(path):
-            # build beside it and rename into place: a store either exists whole or not at all
-            tmp = path.with_name(f"{path.name}.creating-{uuid.uuid4().hex[:8]}")
-            try:
-                _write_skeleton(spec, str(tmp))
-                if path.exists():
-                    path.rmdir()
-                os.rename(tmp, path)
+            if create_in_place(path, lambda where: _write_skeleton(spec, where)):
                 return name, False
-            except OSError:
-                if not (path / ".zgroup").exists():
-                    raise  # else another process created it just now: check it below
-            finally:
-                if tmp.exists():
-                    import shutil
-                    shutil.rmtree(tmp, ignore_errors=True)
+            # else another process created it just now: check it below
         elif not (path / ".zgroup").exists():
             raise SpecError(f"{name} exists and is not a pbrdf-cl sweep store; choose another --out or delete it")
     attrs = None
