@@ -198,11 +198,17 @@ def _fit_brief(r):
     return "\n".join(lines)
 
 
+def _fit_assignments(args):
+    """(fixed, bounds) from --fix and --bounds (_fit_settings), checked against the parameters."""
+    from .inversion import DEFAULT_BOUNDS
+    return (ranges.parse_assignments(args.fix, tuple(DEFAULT_BOUNDS), "value", "--fix", check=True),
+            ranges.parse_assignments(args.bounds, tuple(DEFAULT_BOUNDS), "bounds", "--bounds"))
+
+
 def cmd_fit(args) -> int:
     from . import inversion as _fit
     from .data import read_csv
-    fixed = ranges.parse_assignments(args.fix, tuple(_fit.DEFAULT_BOUNDS), "value", "--fix", check=True)
-    bounds = ranges.parse_assignments(args.bounds, tuple(_fit.DEFAULT_BOUNDS), "bounds", "--bounds")
+    fixed, bounds = _fit_assignments(args)
     _check_output("--json", args.json)
     _check_output("--plot", args.plot)
     try:
@@ -264,9 +270,8 @@ def cmd_sweep(args) -> int:
 
 def cmd_fit_image(args) -> int:
     import time
-    from . import batch_store, inversion as _fit
-    fixed = ranges.parse_assignments(args.fix, tuple(_fit.DEFAULT_BOUNDS), "value", "--fix", check=True)
-    bounds = ranges.parse_assignments(args.bounds, tuple(_fit.DEFAULT_BOUNDS), "bounds", "--bounds")
+    from . import batch_store
+    fixed, bounds = _fit_assignments(args)
     _check_output("--out", str(Path(args.out).parent), folder=True)
     _check_output("--png", args.png)
     cluster = bool(args.workers or args.scheduler)
@@ -470,6 +475,19 @@ def _sweep_parser(sub):
     s.set_defaults(func=cmd_sweep)
 
 
+def _model_option(f):
+    """--model of `fit` and `fit-image`."""
+    f.add_argument("--model", choices=("six-param", "specular"), default="six-param",
+                   help="the model to fit (specular: ref. [7], n and k only)")
+
+
+def _fit_settings(f):
+    """--fix, --bounds and --shadowing of `fit` and `fit-image`."""
+    f.add_argument("--fix", nargs="*", metavar="NAME=VALUE", help="hold parameters fixed, e.g. sigma=0.45")
+    f.add_argument("--bounds", nargs="*", metavar="NAME=LO:HI", help="search bounds, e.g. n=1:3 k=0:5")
+    f.add_argument("--shadowing", choices=sorted(SHADOWING), default="paper", help=_SHADOWING_HELP)
+
+
 def _fit_parser(sub):
     """The `pbrdf-cl fit` sub-command."""
     f = sub.add_parser("fit", help="invert n, k, sigma, kd/ks, c from measured DOP (CSV)",
@@ -477,13 +495,10 @@ def _fit_parser(sub):
                        "specular model; --compare: both) to a CSV of measurements (columns theta_i, theta_r, "
                        "dop[, phi, dop_std, f00|s0, f00_std]).")
     f.add_argument("data", help="measurement CSV")
-    f.add_argument("--model", choices=("six-param", "specular"), default="six-param",
-                   help="the model to fit (specular: ref. [7], n and k only)")
+    _model_option(f)
     f.add_argument("--compare", action="store_true",
                    help="fit both models and compare them by AIC/BIC (--model's is listed first)")
-    f.add_argument("--fix", nargs="*", metavar="NAME=VALUE", help="hold parameters fixed, e.g. sigma=0.45")
-    f.add_argument("--bounds", nargs="*", metavar="NAME=LO:HI", help="search bounds, e.g. n=1:3 k=0:5")
-    f.add_argument("--shadowing", choices=sorted(SHADOWING), default="paper", help=_SHADOWING_HELP)
+    _fit_settings(f)
     _device_options(f, " for the grid stage")
     f.add_argument("--json", metavar="OUT", help="write both fits as JSON")
     f.add_argument("--plot", metavar="PNG", help="plot data, both models and residuals")
@@ -502,11 +517,8 @@ def _fit_image_parser(sub):
                        "after an interruption: only the missing blocks are fitted.")
     f.add_argument("stack", help="image stack: .npz, .nc or .zarr")
     f.add_argument("--out", required=True, metavar="STORE", help="Zarr store to create or resume (e.g. params.zarr)")
-    f.add_argument("--model", choices=("six-param", "specular"), default="six-param",
-                   help="the model to fit (specular: ref. [7], n and k only)")
-    f.add_argument("--fix", nargs="*", metavar="NAME=VALUE", help="hold parameters fixed, e.g. sigma=0.45")
-    f.add_argument("--bounds", nargs="*", metavar="NAME=LO:HI", help="search bounds, e.g. n=1:3 k=0:5")
-    f.add_argument("--shadowing", choices=sorted(SHADOWING), default="paper", help=_SHADOWING_HELP)
+    _model_option(f)
+    _fit_settings(f)
     f.add_argument("--memory-budget", default=DEFAULT_BUDGET, metavar="SIZE",
                    help="memory of one block of pixels in flight (host and device), e.g. 256MiB")
     where = f.add_mutually_exclusive_group()
