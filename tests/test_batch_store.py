@@ -18,6 +18,7 @@ import xarray as xr
 import pbrdf_cl
 from pbrdf_cl import batch, cli
 from pbrdf_cl.batch_store import StoreError, fit_batch_to_store, read_progress, status_counts
+from test_sweep import files, n_done  # the sweep store's helpers: the fit store has its layout
 
 BS = importlib.import_module("pbrdf_cl.batch_store")
 PACKAGE_ROOT = str(Path(pbrdf_cl.__file__).resolve().parent.parent)
@@ -53,17 +54,6 @@ def budget_for(data, rows, **kw):
 BUDGET = budget_for(make_stack(), 4)  # 4 blocks of 4 rows of the 16 x 16 stack
 
 
-def files(store):
-    """Every file of a store: relative path -> bytes."""
-    store = Path(store)
-    return {str(p.relative_to(store)): p.read_bytes() for p in sorted(store.rglob("*")) if p.is_file()}
-
-
-def n_done(store):
-    folder = Path(store, "_sweep", "done")
-    return sum(f.isdigit() for f in os.listdir(folder)) if folder.is_dir() else 0
-
-
 def assert_same_values(a, b):
     assert sorted(a.data_vars) == sorted(b.data_vars)
     for v in a.data_vars:
@@ -83,6 +73,16 @@ def reference(stack, tmp_path_factory):
     ds = batch.fit_batch(stack, memory_budget=BUDGET, store=store)
     assert ds.attrs["blocks_computed"] == 4 and ds.attrs["blocks_skipped"] == 0 and ds.attrs["batch_complete"]
     return store
+
+
+def traced_peak(run):
+    """(run(), the peak of host allocations during it, tracemalloc)."""
+    tracemalloc.start()
+    try:
+        out = run()
+        return out, tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
 
 
 def test_store_equals_fit_batch_in_memory(stack, reference):
@@ -312,24 +312,14 @@ def test_lazy_stack_is_read_block_by_block(tmp_path, monkeypatch):
     job = batch.BatchJob(xr.open_zarr(tmp_path / "in.zarr"), **kw)
     n_blocks = len(job.blocks())
     assert n_blocks >= 10
-    tracemalloc.start()
-    try:
-        ds = fit_batch_to_store(xr.open_zarr(tmp_path / "in.zarr"), tmp_path / "m.zarr", **kw)
-        peak = tracemalloc.get_traced_memory()[1]
-    finally:
-        tracemalloc.stop()
+    ds, peak = traced_peak(lambda: fit_batch_to_store(xr.open_zarr(tmp_path / "in.zarr"), tmp_path / "m.zarr", **kw))
     assert ds.attrs["blocks_computed"] == n_blocks and max(rows) == job.rows_per_block()
     block_input = input_bytes // 512 * job.rows_per_block()
     assert peak < 4 * block_input < input_bytes / 4, (peak, block_input, input_bytes)
     assert np.array_equal(ds.n_valid.values[1:], np.full((511, 64), 30))
     # resuming re-reads the done blocks' input to check it, one block at a time too
     (tmp_path / "m.zarr" / "_sweep" / "done" / str(n_blocks - 1)).unlink()
-    tracemalloc.start()
-    try:
-        ds = fit_batch_to_store(xr.open_zarr(tmp_path / "in.zarr"), tmp_path / "m.zarr", **kw)
-        peak = tracemalloc.get_traced_memory()[1]
-    finally:
-        tracemalloc.stop()
+    ds, peak = traced_peak(lambda: fit_batch_to_store(xr.open_zarr(tmp_path / "in.zarr"), tmp_path / "m.zarr", **kw))
     assert ds.attrs["blocks_computed"] == 1 and peak < 4 * block_input, (peak, block_input)
 
 
