@@ -38,8 +38,6 @@ BATCH_GRID = {"n": 12, "k": 12, "sigma": 8, "kd": 8, "c": 4}
 BATCH_SPECULAR_GRID = {"n": 48, "k": 48}
 #: Starts per pixel: the best region minima of the grid.
 N_STARTS = 32
-#: Whether the grid's bound faces are regions of their own (see :func:`_regions`).
-FACES = False
 #: Geodesic acceleration of the descents (Transtrum and Sethna 2012) without intensities.
 GEODESIC = True
 #: The float32 descents: (how many of the best starts, iterations), in turn, each continuing the
@@ -348,10 +346,8 @@ class _Setup:
 
 def _regions(axes, free):
     """The grid points (flat index over (n, k, sigma, ks, kd, c) of ``axes``, ks of size 1) ordered
-    region by region; returns (order, rstart).  The regions: the halves of every free axis
-    combined (2^d boxes), then each free axis' two bound faces (the model's optimum often lies
-    on a bound: n = 1, k = 0, kd = 0, c = 0 or -1, and :func:`pbrdf_cl.fit` seeds from there too);
-    a face's points also belong to a box."""
+    region by region, a region being one half of every free axis (2^d boxes); returns (order,
+    rstart), region r holding order[rstart[r]:rstart[r + 1]]."""
     names = ("n", "k", "sigma", "ks", "kd", "c")
     sizes = [axes[n].size for n in names]
     idx = np.indices(sizes).reshape(6, -1)
@@ -359,18 +355,9 @@ def _regions(axes, free):
     for axis, name in enumerate(names):
         if name in free and sizes[axis] > 1:
             region = region * 2 + (idx[axis] >= sizes[axis] // 2)
-    order = [np.argsort(region, kind="stable")]
     counts = np.bincount(region)
-    counts = list(counts[counts > 0])
-    if FACES:
-        for axis, name in enumerate(names):
-            if name in free and sizes[axis] > 2:
-                for end in (0, sizes[axis] - 1):
-                    face = np.flatnonzero(idx[axis] == end)
-                    order.append(face)
-                    counts.append(face.size)
-    rstart = np.concatenate([[0], np.cumsum(counts)])
-    return np.concatenate(order).astype(np.int32), rstart.astype(np.int32)
+    rstart = np.concatenate([[0], np.cumsum(counts[counts > 0])])
+    return np.argsort(region, kind="stable").astype(np.int32), rstart.astype(np.int32)
 
 
 def _grid_values(setup):
@@ -473,7 +460,6 @@ def _device_grid(eng, setup, blk, order, rstart):
     best = np.empty((R, P), npdt)
     arg = np.empty((R, P), npdt)
     bbest, barg = eng.empty(best.nbytes), eng.empty(arg.nbytes)
-    from .engine import VECTOR_WIDTH
     vw = VECTOR_WIDTH[dtype]
     brs = eng.to_device(rstart, np.int32)
     shadow = reference.SHADOWING[setup.shadowing]
