@@ -49,7 +49,30 @@ __kernel void quantity_points(__global real *out, PB_POINT_ARGS)
     for (int j = 0; j < PB_WIDTH; j++)
         out[(size_t)PB_WIDTH * i + j] = v[j];
 }
-#endif
+
+/* quantity at every (geometry, parameter set) pair: a 2-D range of S parameter sets (dimension 0:
+ * the six arrays nn..cc of length S) times G geometries (dimension 1: geometries g0 .. g0 + G - 1 of
+ * the lists ti, tr, ph), out laid out geometry by geometry, out[((g - g0) * S + s) * PB_WIDTH + j].  The sample sets of a global
+ * sensitivity analysis and the finite-difference steps of a Jacobian share every geometry, so
+ * this is one dense evaluation; the host checks the domain of both lists beforehand. */
+__kernel void quantity_outer(__global real *out, const int S, const int G, const int g0,
+                             __global const real *ti, __global const real *tr, __global const real *ph,
+                             __global const real *nn, __global const real *kk, __global const real *sg,
+                             __global const real *ks, __global const real *kd, __global const real *cc)
+{
+    const int s = get_global_id(0), j = get_global_id(1), gi = g0 + j;
+    if (s >= S || j >= G) return;
+    pb_geom g = pb_geometry(ti[gi], tr[gi], ph[gi]);
+    pb_fresnel_t f = pb_fresnel(nn[s], kk[s], g.cb, g.sb);
+    const real G_ = pb_shadowing_factor(g, sg[s], PBRDF_SHADOWING);
+    const real logK = pb_log_specular_scale(g, sg[s], ks[s], G_);
+    real v[PB_WIDTH];
+    PB_CAT(pb_point_, PB_QUANTITY)(g, f, ph[gi], logK, pb_diffuse(g, kd[s], cc[s]), v);
+    const size_t at = ((size_t)j * S + s) * PB_WIDTH;
+    for (int w = 0; w < PB_WIDTH; w++)
+        out[at + w] = v[w];
+}
+#endif  /* PB_QUANTITY */
 
 /* Weighted sum of squared DOP residuals for an explicit list of P parameter vectors (one
  * work-item each) over M measurements (theta_i, theta_r, phi in degrees, observed DOP, weight). */
@@ -126,6 +149,36 @@ __kernel void brdf_points_vec(__global PB_SCALAR *out, PB_VEC_ARGS)
 {
     PB_VEC_BODY
     pb_vstoren(PB_IN_DOMAIN ? pb_brdf(f, logK, fd) : (real)NAN, i, out);
+}
+
+/* quantity_outer's vector form for the vector quantities: N consecutive parameter sets (dimension 0,
+ * S = nvec * N of them: the host pads) at one geometry (dimension 1, geometries g0 ..). */
+#define PB_OUTER_VEC_ARGS                                                                     \
+    const int nvec, const int G, const int g0, __global const PB_SCALAR *ti,                  \
+    __global const PB_SCALAR *tr, __global const PB_SCALAR *ph, __global const PB_SCALAR *nn, \
+    __global const PB_SCALAR *kk, __global const PB_SCALAR *sg, __global const PB_SCALAR *ks, \
+    __global const PB_SCALAR *kd, __global const PB_SCALAR *cc
+#define PB_OUTER_VEC_BODY                                                                     \
+    const int i = get_global_id(0), j = get_global_id(1), gi = g0 + j;                       \
+    if (i >= nvec || j >= G) return;                                                          \
+    pb_geom g = pb_geometry((real)ti[gi], (real)tr[gi], (real)ph[gi]);                        \
+    pb_fresnel_t f = pb_fresnel(pb_in(nn, 1, i), pb_in(kk, 1, i), g.cb, g.sb);                \
+    const real sigma = pb_in(sg, 1, i);                                                       \
+    const real logK = pb_log_specular_scale(g, sigma, pb_in(ks, 1, i),                        \
+                                            pb_shadowing_factor(g, sigma, PBRDF_SHADOWING));  \
+    const real fd = pb_diffuse(g, pb_in(kd, 1, i), pb_in(cc, 1, i));                          \
+    const int at = j * nvec + i;
+
+__kernel void dop_outer_vec(__global PB_SCALAR *out, PB_OUTER_VEC_ARGS)
+{
+    PB_OUTER_VEC_BODY
+    pb_vstoren(pb_dop(f, logK, fd), at, out);
+}
+
+__kernel void brdf_outer_vec(__global PB_SCALAR *out, PB_OUTER_VEC_ARGS)
+{
+    PB_OUTER_VEC_BODY
+    pb_vstoren(pb_brdf(f, logK, fd), at, out);
 }
 
 #endif  /* PB_VECTOR_REAL */

@@ -16,6 +16,7 @@ from .dense import ObjectiveResult, grid, objective, reduce_grid
 from .sweeps import SpecError, SweepResult, SweepSpec, load_spec, sweep
 from .inversion import FitResult, compare_models, fit
 from .batch import fit_batch
+from .sensitivity import morris, sobol
 from .engine import (DeviceUnusableError, DeviceWarning, Engine, NumpyEngine, OpenCLUnavailableError,
                      get_default_engine, list_devices, probe, select_device, set_default_engine)
 
@@ -23,6 +24,6 @@ __version__ = "0.1.0"
 
 __all__ = ["dop", "brdf", "aop", "stokes", "mueller", "evaluate", "quantities", "validate", "MODELS", "grid", "reduce_grid", "objective", "ObjectiveResult",
            "sweep", "load_spec", "SweepSpec", "SweepResult", "SpecError",
-           "fit", "fit_batch", "compare_models", "FitResult", "read_csv", "as_measurements", "Measurements", "DataWarning", "Engine", "NumpyEngine", "probe",
+           "fit", "fit_batch", "sobol", "morris", "compare_models", "FitResult", "read_csv", "as_measurements", "Measurements", "DataWarning", "Engine", "NumpyEngine", "probe",
            "OpenCLUnavailableError", "DeviceUnusableError", "DeviceWarning",
            "get_default_engine", "set_default_engine", "list_devices", "select_device", "__version__"]

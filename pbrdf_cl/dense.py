@@ -811,3 +811,67 @@ def _objective_points(eng, points, meas, k_best, dtype, shadowing, return_sse, t
     best["index"] = order
     return ObjectiveResult(sse=sse if return_sse else None, best=best, n_pairs=P * ti.size,
                            seconds=time.perf_counter() - t0)
+
+
+#: Geometry x parameter-set pairs per launch of ``quantity_outer`` (one launch's output at most).
+OUTER_LAUNCH_PAIRS = 1 << 22
+#: float64 bytes per pair of a numpy-backend block of :func:`outer` (the values and temporaries).
+OUTER_NUMPY_BYTES = 160
+
+
+def outer(eng, quantity, geometry, params, dtype="float64", shadowing="paper", out=None, rows=None):
+    """``quantity`` at every pair of a geometry list and a list of parameter sets, without forming
+    the pairs: the sample sets of a sensitivity analysis, or a Jacobian's finite-difference
+    steps, over every candidate geometry.  Package-internal: the inputs are checked by the caller.
+
+    geometry : dict theta_i, theta_r, phi -> 1-d arrays of G values (degrees)
+    params : dict n, k, sigma, ks, kd, c -> 1-d arrays of S values
+    out : optional array of shape (G, S) + the quantity's trailing axes, of ``dtype``, written in place
+    rows : optional (g0, g1): only geometries g0..g1 (out then has g1 - g0 rows)
+
+    Returns ``out``: ``out[g, s]`` is the quantity at geometry g for parameter set s.  On a CPU
+    device the kernel writes straight into ``out``, launch by launch."""
+    q = quantities.get(quantity, "points")
+    npdt = np.dtype(DTYPES[dtype])
+    geo = [np.ascontiguousarray(geometry[n], np.float64).reshape(-1) for n in AXES[:3]]
+    par = [np.ascontiguousarray(params[n], np.float64).reshape(-1) for n in PARAMETERS]
+    g0, g1 = rows if rows is not None else (0, geo[0].size)
+    S = par[0].size
+    if out is None:
+        out = aligned_empty((g1 - g0) * S * q.width, npdt).reshape((g1 - g0, S) + q.trailing)
+    if g1 <= g0 or S == 0:
+        return out
+    flat = out.reshape(g1 - g0, S * q.width)
+    if getattr(eng, "is_numpy", False):
+        per = max(1, int(DEFAULT_BUDGET // 4 // (OUTER_NUMPY_BYTES * S * q.width)))
+        for a in range(g0, g1, per):
+            b = min(g1, a + per)
+            v = reference.evaluate(q.name, *(x[a:b, None] for x in geo), *(p[None, :] for p in par),
+                                   shadowing=shadowing)
+            flat[a - g0:b - g0] = np.asarray(v).reshape(b - a, -1)
+        return out
+    from .engine import VECTOR_LOCAL_SIZE, VECTOR_WIDTH
+    vec = q.vector and eng.vectorise  # N parameter sets per work-item, the sets padded to a multiple of N
+    lanes = VECTOR_WIDTH[dtype] if vec else 1
+    Sp = -(-S // lanes) * lanes
+    if Sp != S:
+        par = [np.concatenate([p, np.full(Sp - S, p[-1])]) for p in par]
+    kern = (eng.kernel(f"{q.name}_outer_vec", dtype, shadowing) if vec
+            else eng.kernel("quantity_outer", dtype, shadowing, q.name))
+    gbuf = [eng.to_device(x, dtype) for x in geo]
+    pbuf = [eng.to_device(p, dtype) for p in par]
+    per = max(1, OUTER_LAUNCH_PAIRS // (Sp * q.width))
+    tmp = None if Sp == S else aligned_empty(min(per, g1 - g0) * Sp * q.width, npdt)
+    for a in range(g0, g1, per):
+        b = min(g1, a + per)
+        view = flat[a - g0:b - g0].reshape(-1) if tmp is None else tmp[:(b - a) * Sp * q.width]
+        buf, done = eng.output(view)
+        if vec:
+            eng.launch(kern, (Sp // lanes, b - a), buf, np.int32(Sp // lanes), np.int32(b - a), np.int32(a),
+                       *gbuf, *pbuf, local_size=(VECTOR_LOCAL_SIZE, 1))
+        else:
+            eng.launch(kern, (S, b - a), buf, np.int32(S), np.int32(b - a), np.int32(a), *gbuf, *pbuf)
+        done()
+        if tmp is not None:  # the padded sets dropped
+            flat[a - g0:b - g0] = view.reshape(b - a, Sp * q.width)[:, :S * q.width]
+    return out
