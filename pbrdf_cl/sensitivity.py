@@ -115,6 +115,10 @@ def check_fixed(fixed, ranged, where="fixed"):
                              f"valid names are {', '.join(PARAMETERS)}")
         if name in ranged:
             raise ValueError(f"{where}: {name!r} has a range and a fixed value; give one")
+    missing = [n for n in PARAMETERS if n not in ranged and n not in fixed and n not in DEFAULTS]
+    if missing:
+        raise ValueError(f"{' and '.join(missing)} need{'s' if len(missing) == 1 else ''} a range or a fixed "
+                         f"value (no default)")
     out = {}
     for name in PARAMETERS:
         if name in ranged:
@@ -126,10 +130,8 @@ def check_fixed(fixed, ranged, where="fixed"):
             v = _number(f"{where}[{name!r}]", fixed[name])
             api.check_values(name, v)
             out[name] = v
-        elif name in DEFAULTS:
-            out[name] = float(DEFAULTS[name])
         else:
-            raise ValueError(f"{name} needs a range or a fixed value (it has no default)")
+            out[name] = float(DEFAULTS[name])
     return out
 
 
@@ -469,7 +471,7 @@ def sobol(ranges, geometry, fixed=None, quantity="dop", N=4096, seed=None, dtype
     seconds = time.perf_counter() - t0
     attrs = dict(method=method, quantity=q.name, quantity_units=q.units, N=int(N), seed=-1 if seed is None else int(seed),
                  dtype=dtype, shadowing=shadowing, runs_per_geometry=int(runs), geometries=G,
-                 model_runs=int(runs) * G, num_resamples=NUM_RESAMPLES, conf_level=CONF_LEVEL,
+                 model_runs=int(runs) * G, blocks=-(-G // block), num_resamples=NUM_RESAMPLES, conf_level=CONF_LEVEL,
                  engine=eng.description, seconds=round(seconds, 3),
                  sampler=("SALib.sample.sobol (Saltelli's scheme, scrambled Sobol' sequence)" if method == "sobol"
                           else f"SALib.sample.morris ({num_levels} levels)"),

@@ -83,8 +83,24 @@ def main():
         if not np.isfinite(res.sse.values).all():
             raise SystemExit("fit_batch under Oclgrind: non-finite results")
         batches += 1
+    # the outer kernels (parameter sets x geometries: sensitivity maps, design Jacobians): the vector
+    # kernels with padded sets (21 sets: not a multiple of the vector width) and several launches,
+    # the generic one for the other quantities
+    outers = 0
+    G.OUTER_LAUNCH_PAIRS = 64
+    geo = dict(theta_i=ti[:5], theta_r=tr[:5], phi=phi[:5])
+    sets = dict(n=rng.uniform(1.1, 3, 21), k=rng.uniform(0, 3, 21), sigma=rng.uniform(0.1, 0.8, 21),
+                ks=np.full(21, 0.9), kd=rng.uniform(0, 1, 21), c=rng.uniform(-1, 0, 21))
+    for dtype in ("float32", "float64"):
+        for quantity in ("dop", "brdf", "aop", "stokes"):
+            out = G.outer(eng, quantity, geo, sets, dtype, rows=(1, 5))
+            ref = G.outer(engine_mod.NumpyEngine(), quantity, geo, sets, "float64", rows=(1, 5))
+            tol = 1e-2 if quantity == "aop" else 1e-4 * np.nanmax(np.abs(ref))
+            if not np.allclose(out, ref, rtol=1e-4, atol=tol, equal_nan=True):
+                raise SystemExit(f"outer {quantity} {dtype}: Oclgrind result differs from the reference")
+            outers += 1
     print("ran", 2 * 3 * 5, "kernel configurations and", configs, "grid configurations and", batches,
-          "batch fits")
+          "batch fits and", outers, "outer evaluations")
 
 
 if __name__ == "__main__":
