@@ -221,9 +221,11 @@ class _SobolTerms:
         self.pairs = [(j, k) for j in range(D) for k in range(j + 1, D)] if second_order else []
         self.C = 4 + 2 * D + len(self.pairs)
 
-    def block_bytes(self, runs):
-        """float64 bytes per geometry: the terms (N x C), the centred AB columns and the resampled sums."""
-        return 8 * (self.N * (self.C + self.D + 2) + 3 * self.W.shape[0] * self.C)
+    def block_bytes(self, runs, itemsize=8):
+        """Bytes per geometry beyond its outputs: the terms (N x C float64, and their float32 copy for
+        float32 outputs), the centred AB columns and the resampled sums."""
+        return (8 * (self.N * (self.C + self.D + 2) + 3 * self.W.shape[0] * self.C)
+                + (4 * self.N * self.C if itemsize == 4 else 0))
 
     def __call__(self, Y):
         """``Y`` (G, runs) -> dict of S1, ST, S1_conf, ST_conf (D, G) (and S2, S2_conf (D, D, G)).
@@ -313,7 +315,8 @@ class _MorrisTerms:
         self.W = [_counts(rng.integers(T, size=(R, T)), T) for _ in range(D)]
         self.Z = Z
 
-    def block_bytes(self, runs):
+    def block_bytes(self, runs, itemsize=8):
+        """Bytes per geometry beyond its outputs: the float64 outputs, steps and elementary effects."""
         return 8 * (2 * runs + 3 * self.T * self.D + len(self.W) * self.W[0].shape[0])
 
     def __call__(self, Y):
@@ -435,7 +438,7 @@ def sobol(ranges, geometry, fixed=None, quantity="dop", N=4096, seed=None, dtype
     params = parameter_sets(X, rngs, fixed)
     eng = resolve_engine(engine, backend)
     itemsize = np.dtype(DTYPES[dtype]).itemsize
-    per_geometry = runs * itemsize + terms.block_bytes(runs)
+    per_geometry = runs * itemsize + terms.block_bytes(runs, itemsize)
     block = int(max(1, min(G, memory_budget // per_geometry)))
     results = {}
     bar = _bar(G, progress)

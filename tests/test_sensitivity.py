@@ -204,3 +204,25 @@ def test_outer_equals_the_reference_pair_by_pair(engine, quantity, dtype, monkey
         scale = np.abs(want).max()
         np.testing.assert_allclose(got, want, rtol=2e-5 if dtype == "float32" else 1e-12,
                                    atol=(2e-6 if dtype == "float32" else 1e-14) * scale)
+
+
+@pytest.mark.parametrize("dtype", ["float32", "float64"])
+def test_peak_memory_stays_within_the_budget(engine, dtype):
+    """Host allocations (tracemalloc sees numpy's) peak within memory_budget plus what does not
+    grow with the geometries' block: the samples, the bootstrap counts and the result."""
+    import tracemalloc
+    budget = 4 << 20
+    pbrdf_cl.sobol(RANGES, {"theta_i": 40, "theta_r": [1.0, 2.0]}, N=16, engine=engine, dtype=dtype)  # built
+    tracemalloc.start()
+    try:
+        ds = pbrdf_cl.sobol(RANGES, {"theta_i": "0:80@20", "theta_r": "0:85@30"}, N=1024, seed=1, dtype=dtype,
+                            memory_budget=budget, engine=engine)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    runs = ds.attrs["runs_per_geometry"]
+    fixed = (100 * 1024 * 8  # bootstrap counts
+             + 2 * 6 * runs * 8  # the sampler's rows and the parameter sets
+             + sum(v.nbytes for v in ds.data_vars.values()))
+    assert ds.attrs["blocks"] > 20
+    assert peak <= budget + fixed + (512 << 10), (peak, budget, fixed)
