@@ -735,12 +735,12 @@ def write_result(ds, path):
     if suffix == ".nc":
         ds.to_netcdf(path)
     elif suffix == ".zarr":
-        if path.exists() and not any((path / m).exists() for m in ("zarr.json", ".zgroup")):
+        if path.exists() and not any((path / m).exists() for m in (".zgroup", "zarr.json")):
             raise ValueError(f"{path} exists and is not a Zarr store; choose another path or delete it")
         import warnings
         with warnings.catch_warnings():
             warnings.filterwarnings("ignore", message=".*(fixed-length|FixedLengthUTF32|unstable).*")
-            ds.to_zarr(path, mode="w", consolidated=True)
+            ds.to_zarr(path, mode="w", zarr_format=2, consolidated=True)
     else:
         raise ValueError(f"{path}: write a result as .nc (netCDF) or .zarr (a Zarr store), not {suffix or 'no suffix'!r}")
     return str(path)
