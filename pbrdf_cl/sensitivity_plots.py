@@ -58,6 +58,21 @@ def _rows(ds):
     raise ValueError("plot_sensitivity: the dataset has neither S1/ST nor mu_star/sigma: not a result of pbrdf_cl.sobol")
 
 
+def check_axes(axes, what="plot_sensitivity"):
+    """A ``ValueError`` unless ``axes`` (name -> values: the geometry axes of a result) are one or
+    two, the figure's layouts; it suggests how to get there."""
+    geo = list(axes)
+    if len(geo) in (1, 2):
+        return
+    if geo:
+        first = np.ravel(axes[geo[-1]])[0]
+        hint = f"; select a value of {', '.join(geo[2:])} first, e.g. ds.sel({geo[-1]}={float(first):g})"
+    else:
+        hint = "; compute it over one or two geometry axes with more than one value (e.g. theta_r = \"0:85@64\")"
+    raise ValueError(f"{what}: draws one or two geometry axes, got {len(geo)}"
+                     f"{' (' + ', '.join(geo) + ')' if geo else ''}{hint}")
+
+
 def plot_sensitivity(ds, path, *, title=None, dpi=110):
     """Draw a sensitivity map (a result of :func:`pbrdf_cl.sobol`) into a PNG.
 
@@ -94,13 +109,7 @@ def plot_sensitivity(ds, path, *, title=None, dpi=110):
     """
     rows = _rows(ds)
     geo = [d for d in ds[rows[0]].dims if d != "parameter"]
-    if len(geo) not in (1, 2):
-        if geo:
-            hint = f"; select values of all but two first, e.g. ds.sel({geo[-1]}={float(ds[geo[-1]][0]):g})"
-        else:
-            hint = "; compute it over one or two geometry axes with more than one value (e.g. theta_r = \"0:85@64\")"
-        raise ValueError(f"plot_sensitivity: draws one or two geometry axes, got {len(geo)}"
-                         f"{' (' + ', '.join(geo) + ')' if geo else ''}{hint}")
+    check_axes({d: ds[d].values for d in geo})
     plt = _pyplot()
     if len(geo) == 2:
         fig = _maps(plt, ds, rows, geo)
