@@ -564,8 +564,8 @@ def _reproduce_parser(sub):
     """The `pbrdf-cl reproduce` sub-command."""
     r = sub.add_parser("reproduce", help="reproduce the paper's figures and Table 1, plus roughness maps",
                        description="Writes Fig. 2 (aluminum, black paint: synthetic data, both models fitted), "
-                       "Table 1, Fig. 4, Fig. 5, two dense DOP maps, the arrays of each figure (.npz) and "
-                       "summary.md into one folder.")
+                       "Table 1, Fig. 4, Fig. 5, two dense DOP maps, a Sobol' map of the DOP (.png, .nc), the arrays "
+                       "of each figure (.npz) and summary.md into one folder.")
     r.add_argument("--out", default="paper-figures", help="output folder (default: paper-figures)")
     r.add_argument("--resolution", type=int, default=256, help="points per map axis (default 256)")
     _device_options(r)
