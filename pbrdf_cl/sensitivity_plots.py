@@ -65,8 +65,11 @@ def check_axes(axes, what="plot_sensitivity"):
     if len(geo) in (1, 2):
         return
     if geo:
-        first = np.ravel(axes[geo[-1]])[0]
-        hint = f"; select a value of {', '.join(geo[2:])} first, e.g. ds.sel({geo[-1]}={float(first):g})"
+        order = [g for g in ("theta_i", "theta_r", "phi") if g in geo] + [g for g in geo if g not in
+                                                                          ("theta_i", "theta_r", "phi")]
+        drop = order[2:]  # keep theta_i and theta_r where they are axes
+        first = np.ravel(axes[drop[0]])[0]
+        hint = f"; select a value of {', '.join(drop)} first, e.g. ds.sel({drop[0]}={float(first):g})"
     else:
         hint = "; compute it over one or two geometry axes with more than one value (e.g. theta_r = \"0:85@64\")"
     raise ValueError(f"{what}: draws one or two geometry axes, got {len(geo)}"
