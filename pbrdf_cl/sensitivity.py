@@ -555,7 +555,10 @@ def _spec_settings(data):
     out["quantity"] = q.name
     out["N"] = _integer("N", data.get("N", 4096 if method == "sobol" else 256), 2)
     if "seed" in data:
-        out["seed"] = _integer("seed", data["seed"], 0)
+        if data["seed"] == 0 and not isinstance(data["seed"], bool):
+            raise SpecError("seed: must be an integer >= 1 (SALib's analysers take 0 as no seed: the bootstrap "
+                            "intervals would differ run to run); leave it out for an unseeded run")
+        out["seed"] = _integer("seed", data["seed"], 1)
     out["dtype"] = data.get("dtype", "float32")
     if out["dtype"] not in DTYPES:
         raise SpecError(f"dtype: must be float32 or float64, got {out['dtype']!r}")

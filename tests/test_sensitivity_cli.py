@@ -83,7 +83,7 @@ def _with(text, old, new):
 BAD = [  # (the change to TINY, the field the message starts with, a phrase it holds)
     (("N = 64", "N = 1"), "N:", ">= 2"),
     (("N = 64", "N = 6.5"), "N:", "integer"),
-    (("seed = 7", "seed = -1"), "seed:", ">= 0"),
+    (("seed = 7", "seed = 0"), "seed:", ">= 1"),
     (("seed = 7", "sead = 7"), "unknown key 'sead'", "did you mean 'seed'"),
     (('method = "sobol"', 'method = "sobel"'), "method:", "did you mean 'sobol'"),
     (('quantity = "dop"', 'quantity = "aop"'), "quantity:", "no sensitivity map"),
