@@ -371,6 +371,8 @@ def sobol(ranges, geometry, fixed=None, quantity="dop", N=4096, seed=None, dtype
         Seeds SALib's sampler and the bootstrap resamples exactly as SALib does.
     dtype : {"float32", "float64"}, default "float32"
         Precision of the model runs (the estimators are float64).
+    shadowing : {"paper", "smith", "none"}, default "paper"
+        The shadowing function (as for :func:`pbrdf_cl.dop`).
     second_order : bool, default False
         Also S2 and S2_conf (over ``parameter`` and ``parameter_2``; NaN on and below the diagonal).
     method : {"sobol", "morris"}, default "sobol"
@@ -494,7 +496,29 @@ def sobol(ranges, geometry, fixed=None, quantity="dop", N=4096, seed=None, dtype
 
 
 def morris(ranges, geometry, fixed=None, quantity="dop", N=256, seed=None, **kwargs):
-    """Morris screening (:func:`sobol` with ``method="morris"``): ``N`` trajectories."""
+    """Morris screening (:func:`sobol` with ``method="morris"``): ``N`` trajectories.
+
+    Parameters
+    ----------
+    ranges, geometry, fixed, quantity, seed : as for :func:`sobol`
+    N : int, default 256
+        Trajectories of D + 1 runs each (SALib's Morris sampler).
+    **kwargs
+        The other keywords of :func:`sobol` (``num_levels``, ``dtype``, ``memory_budget``, ...).
+
+    Returns
+    -------
+    xarray.Dataset
+        ``mu``, ``mu_star``, ``sigma``, ``mu_star_conf`` over ``parameter`` and the geometry axes.
+
+    Examples
+    --------
+    >>> import pbrdf_cl
+    >>> ds = pbrdf_cl.morris({"n": (1.2, 2.5), "sigma": (0.1, 0.6)}, {"theta_i": 40, "theta_r": "0:85@18"},
+    ...                      fixed={"k": 2.139}, N=16, seed=1)
+    >>> sorted(ds.data_vars)
+    ['mu', 'mu_star', 'mu_star_conf', 'samples', 'sigma']
+    """
     return sobol(ranges, geometry, fixed, quantity, N, seed, method="morris", **kwargs)
 
 
