@@ -1,4 +1,4 @@
-"""Command line interface: ``pbrdf-cl devices|eval|fit|fit-image|reproduce|map|sweep|bench``.
+"""Command line interface: ``pbrdf-cl devices|eval|fit|fit-image|reproduce|map|sweep|sobol|bench``.
 
 Every problem a user can meet, bad input or a broken environment (no OpenCL, an unusable
 device, an unwritable cache or output folder), ends in one line on stderr, ``pbrdf-cl: error:
@@ -307,6 +307,33 @@ def cmd_fit_image(args) -> int:
     return 0
 
 
+def cmd_sobol(args) -> int:
+    """`pbrdf-cl sobol SPEC.toml`: a Sobol' (or Morris) sensitivity map, its file, figure and summary."""
+    from . import sensitivity
+    if args.out and Path(args.out).suffix.lower() not in (".nc", ".zarr"):
+        return _error(f"--out {args.out}: write the result as .nc (netCDF) or .zarr (a Zarr store)")
+    _check_output("--out", args.out)
+    _check_output("--png", args.png)
+    try:
+        settings = sensitivity.load_sobol_spec(args.spec)
+        if args.png:  # refused before the work, not after it
+            from .sensitivity_plots import check_axes
+            check_axes(sensitivity.check_geometry(settings["geometry"])[0], "--png")
+        ds = sensitivity.sobol(**settings, progress=not args.no_progress, engine=_engine_for(args))
+        if args.out:
+            sensitivity.write_result(ds, args.out)
+        if args.png:
+            from .sensitivity_plots import plot_sensitivity
+            plot_sensitivity(ds, args.png)
+    except (OSError, ValueError, _engine.OpenCLUnavailableError) as exc:
+        return _error(exc)
+    print(sensitivity.summary(ds))
+    wrote = [p for p in (args.out, args.png) if p]
+    if wrote:
+        print(f"wrote {' and '.join(wrote)}")
+    return 0
+
+
 def cmd_bench(args) -> int:
     from . import bench
     return bench.main(args.rest)
@@ -537,8 +564,8 @@ def _reproduce_parser(sub):
     """The `pbrdf-cl reproduce` sub-command."""
     r = sub.add_parser("reproduce", help="reproduce the paper's figures and Table 1, plus roughness maps",
                        description="Writes Fig. 2 (aluminum, black paint: synthetic data, both models fitted), "
-                       "Table 1, Fig. 4, Fig. 5, two dense DOP maps, the arrays of each figure (.npz) and "
-                       "summary.md into one folder.")
+                       "Table 1, Fig. 4, Fig. 5, two dense DOP maps, a Sobol' map of the DOP (.png, .nc), the arrays "
+                       "of each figure (.npz) and summary.md into one folder.")
     r.add_argument("--out", default="paper-figures", help="output folder (default: paper-figures)")
     r.add_argument("--resolution", type=int, default=256, help="points per map axis (default 256)")
     _device_options(r)
@@ -568,6 +595,22 @@ def _map_parser(sub):
     m.set_defaults(func=cmd_map)
 
 
+def _sobol_parser(sub):
+    """The `pbrdf-cl sobol` sub-command."""
+    s = sub.add_parser("sobol", help="Sobol' indices (or Morris screening) of DOP/F00 over geometry axes (TOML spec)",
+                       description="Which parameters control the DOP (or F00), and where: Sobol' first-order and "
+                       "total indices (or Morris mu*, sigma) at every geometry of a grid, for the parameter box of a "
+                       "TOML spec (quantity, method, N, seed, dtype, [ranges], [geometry], [fixed]; see "
+                       "examples/sobol.toml and docs/sensitivity.md). Prints the model runs, the seconds and which "
+                       "parameter dominates where.")
+    s.add_argument("spec", help="TOML spec")
+    s.add_argument("--out", metavar="FILE", help="write the result: .nc (netCDF) or .zarr (a Zarr store)")
+    s.add_argument("--png", metavar="PNG", help="draw the maps (one or two geometry axes)")
+    _device_options(s)
+    s.add_argument("--no-progress", action="store_true", help="no progress bar")
+    s.set_defaults(func=cmd_sobol)
+
+
 def build_parser() -> argparse.ArgumentParser:
     from . import __version__
     p = _Parser(prog="pbrdf-cl", description="The six-parameter pBRDF model on OpenCL. "
@@ -585,6 +628,7 @@ def build_parser() -> argparse.ArgumentParser:
     _fit_image_parser(sub)
     _reproduce_parser(sub)
     _map_parser(sub)
+    _sobol_parser(sub)
     b = sub.add_parser("bench", help="benchmark every evaluation path (options: pbrdf-cl bench --help)",
                        add_help=False)
     b.add_argument("rest", nargs=argparse.REMAINDER)

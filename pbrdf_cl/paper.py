@@ -14,7 +14,10 @@
 - ``map_sigma_theta_r.png``: DOP over (theta_r, sigma) at theta_i = 40 deg with contours, and
   dDOP/dsigma from finite differences on the device grid.
 - ``map_theta_i_theta_r.png``: DOP over (theta_i, theta_r) for sigma = 0.35, 0.5, 0.65.
-- one ``.npz`` per figure with the arrays drawn, and ``summary.md`` listing every file.
+- ``sobol_dop_theta_i_theta_r.png`` / ``.nc``: Sobol' indices (S1, ST) of the DOP over
+  (theta_i, theta_r) for a box of materials around the paper's samples (:data:`SOBOL_RANGES`):
+  which parameter controls the DOP where.
+- one ``.npz`` per other figure with the arrays drawn, and ``summary.md`` listing every file.
 """
 from __future__ import annotations
 
@@ -41,6 +44,18 @@ TABLE1 = {"aluminum": {"true": (1.24, 6.6), "ref7": (1.37, 3.97), "six": (1.255,
 #: (the paper does not give them), stated wherever the data are shown.
 FIG2_SAMPLES = {"aluminum": dict(n=1.24, k=6.6, sigma=0.25, ks=1.0, kd=0.2, c=-0.3),
                 "black paint": dict(n=1.405, k=0.2289, sigma=0.3, ks=1.0, kd=0.05, c=-0.5)}
+#: The box of materials of the Sobol' map: it spans the paper's samples.  n: Table 1's aluminum
+#: (1.24) and black paint (1.405) and the steel fit (1.6); k: black paint's 0.2289 to aluminum's
+#: 6.6 (steel 2.139), log-uniform as it spans decades; sigma: the Fig. 2 samples' 0.25, 0.3 and
+#: Fig. 5's 0.35..0.65 around the steel fit's 0.5; kd with ks = 1 fixed (the DOP sees kd/ks only):
+#: Fig. 2's 0.05, 0.2 and the steel fit's kd/ks = 0.15/0.9 = 0.17; c: -0.3 (steel, aluminum) and
+#: -0.5 (black paint) up to 0 (Lambert).  (The Fig. 2 samples' sigma, kd and c are our choice: the
+#: paper gives only their n, k.)
+SOBOL_RANGES = {"n": (1.2, 1.7), "k": (0.2, 7.0, "log"), "sigma": (0.2, 0.7), "kd": (0.0, 0.25), "c": (-0.6, 0.0)}
+#: Base samples of the Sobol' map: N (D + 2) = 3584 model runs per geometry, a second or so on a CPU
+#: device at 32 x 32 geometries; intervals of about +-0.05 on the dominant indices.
+SOBOL_N = 512
+SOBOL_FILE = "sobol_dop_theta_i_theta_r"
 FIG2_ANGLES = np.arange(10.0, 80.0 + 1e-9, 2.5)
 FIG2_NOISE = 0.001
 SEED = 2020
@@ -237,6 +252,27 @@ def map_theta_i_theta_r(out, resolution=256, engine=None):
     return da
 
 
+def sobol_side(resolution):
+    """Geometries per axis of the Sobol' map: resolution / 8, from 8 to 32 (32 at the default 256)."""
+    return int(min(32, max(8, resolution // 8)))
+
+
+def sobol_map(out, resolution=256, engine=None, seed=SEED):
+    """Sobol' indices of the DOP over (theta_i, theta_r) for :data:`SOBOL_RANGES` (ks = 1): the
+    figure and the result (netCDF).  Returns the Dataset."""
+    from .sensitivity import sobol, write_result
+    from .sensitivity_plots import plot_sensitivity
+    side = sobol_side(resolution)
+    ds = sobol(SOBOL_RANGES, {"theta_i": np.linspace(0.0, 80.0, side), "theta_r": np.linspace(0.0, 85.0, side)},
+               {"ks": 1.0}, N=SOBOL_N, seed=seed, engine=engine)
+    plot_sensitivity(ds, out / f"{SOBOL_FILE}.png",
+                     title=f"Which parameters control the DOP where: Sobol' indices over (theta_i, theta_r), in "
+                           f"plane, for a box of materials around the paper's samples (N={SOBOL_N}, "
+                           f"{ds.attrs['runs_per_geometry']} runs per geometry, ks=1)")
+    write_result(ds, out / f"{SOBOL_FILE}.nc")
+    return ds
+
+
 DESCRIPTIONS = {
     "fig2_aluminum.png": "Fig. 2, aluminum: synthetic DOP data vs incidence angle with the six-parameter and "
                          "ref. [7] fits and the true curve.",
@@ -250,7 +286,18 @@ DESCRIPTIONS = {
                              "dDOP/dsigma by finite differences on the device grid.",
     "map_theta_i_theta_r.png": "Dense maps of DOP over (theta_i, theta_r) for sigma = 0.35, 0.5, 0.65 on one "
                                "colour scale.",
+    f"{SOBOL_FILE}.png": "Sobol' first-order (S1) and total (ST) indices of the DOP over (theta_i, theta_r) "
+                         "for a box of materials around the paper's samples: which parameter controls the DOP "
+                         "where.",
+    f"{SOBOL_FILE}.nc": "The Sobol' map's indices, bootstrap intervals, samples and settings (netCDF).",
 }
+
+
+def data_file(png):
+    """The data file written with a figure of :data:`DESCRIPTIONS`: the Sobol' map's ``.nc``, else
+    the ``.npz`` of the arrays drawn."""
+    stem = png[:-4]
+    return f"{stem}.nc" if f"{stem}.nc" in DESCRIPTIONS else f"{stem}.npz"
 
 
 def check_resolution(resolution):
@@ -284,9 +331,12 @@ def reproduce(out="paper-figures", *, resolution=256, engine=None, backend="auto
     map_sigma_theta_r(out, resolution, engine)
     map_theta_i_theta_r(out, resolution, engine)
     log(f"figures and maps done ({time.perf_counter() - t0:.1f} s)")
+    ds = sobol_map(out, resolution, engine, seed)
+    log(f"Sobol' map: {ds.attrs['model_runs']} model runs in {ds.attrs['seconds']:.1f} s "
+        f"({time.perf_counter() - t0:.1f} s)")
     files = dict(DESCRIPTIONS)
-    for png in [f for f in DESCRIPTIONS if f.endswith(".png")]:
-        files[png[:-4] + ".npz"] = f"the arrays drawn in {png}."
+    for png in [f for f in DESCRIPTIONS if f.endswith(".png") and data_file(f).endswith(".npz")]:
+        files[data_file(png)] = f"the arrays drawn in {png}."
     files["summary.md"] = "this list."
     lines = ["# Reproduction of Zhu et al. (2020) and roughness maps", "",
              f"Written by `pbrdf-cl reproduce` (pbrdf_cl.paper.reproduce, seed {seed}, maps at {resolution} "
@@ -296,7 +346,12 @@ def reproduce(out="paper-figures", *, resolution=256, engine=None, backend="auto
              f"(step {FIG2_ANGLES[1] - FIG2_ANGLES[0]:g}), phi = 180, Gaussian DOP noise sd {FIG2_NOISE:g}, clipped to [0, 1], with"]
     for sample, p in FIG2_SAMPLES.items():
         lines.append(f"- {sample}: {_params_text(p)}")
-    lines += ["", f"Steel (Fig. 4, 5 and maps): the paper's fit {_params_text(STEEL)}.", "", "| file | content |",
+    side = sobol_side(resolution)
+    box = ", ".join(f"{k} in [{r[0]:g}, {r[1]:g}]" + (" (log-uniform)" if len(r) > 2 else "")
+                    for k, r in SOBOL_RANGES.items())
+    lines += ["", f"Steel (Fig. 4, 5 and maps): the paper's fit {_params_text(STEEL)}.", "",
+              f"Sobol' map: {box}, ks=1; N={SOBOL_N} (seed {seed}), {side} x {side} geometries, float32, "
+              "SALib's sampler and estimators (pbrdf_cl.sobol).", "", "| file | content |",
               "|---|---|"]
     lines += [f"| `{name}` | {text} |" for name, text in files.items()]
     (out / "summary.md").write_text("\n".join(lines) + "\n")

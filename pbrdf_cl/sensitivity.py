@@ -59,6 +59,14 @@ class Range:
         return f"{self.name} in [{self.low:g}, {self.high:g}]" + (" (log-uniform)" if self.scale == "log" else "")
 
 
+def _hint(name, names):
+    """``"; did you mean 'sigma'?"`` for a near miss of one of ``names``, else ``""``."""
+    from .ranges import _did_you_mean
+    near = _did_you_mean(str(name), [n.lower() for n in names])
+    near = next((n for n in names if n.lower() == near), None) if near else None
+    return f" (did you mean {near!r}?)" if near else ""
+
+
 def _number(where, v):
     if isinstance(v, (bool, np.bool_)) or not isinstance(v, numbers.Real):
         raise ValueError(f"{where}: {v!r} is not a number")
@@ -78,8 +86,7 @@ def check_ranges(ranges, where="ranges"):
     out = {}
     for name, spec in ranges.items():
         if name not in PARAMETERS:
-            from .ranges import _did_you_mean
-            raise ValueError(f"{where}: unknown parameter {name!r}{_did_you_mean(name, PARAMETERS)}; "
+            raise ValueError(f"{where}: unknown parameter {name!r}{_hint(name, PARAMETERS)}; "
                              f"valid names are {', '.join(PARAMETERS)}")
         field = f"{where}[{name!r}]"
         if isinstance(spec, dict):
@@ -110,8 +117,7 @@ def check_fixed(fixed, ranged, where="fixed"):
     fixed = dict(fixed or {})
     for name, v in fixed.items():
         if name not in PARAMETERS:
-            from .ranges import _did_you_mean
-            raise ValueError(f"{where}: unknown parameter {name!r}{_did_you_mean(name, PARAMETERS)}; "
+            raise ValueError(f"{where}: unknown parameter {name!r}{_hint(name, PARAMETERS)}; "
                              f"valid names are {', '.join(PARAMETERS)}")
         if name in ranged:
             raise ValueError(f"{where}: {name!r} has a range and a fixed value; give one")
@@ -146,7 +152,7 @@ def check_geometry(geometry, where="geometry", defaults=(("phi", 180.0),)):
     values = dict(defaults)
     for name, v in geometry.items():
         if name not in GEOMETRY:
-            raise ValueError(f"{where}: unknown axis {name!r}{rg._did_you_mean(name, GEOMETRY)}; valid names are "
+            raise ValueError(f"{where}: unknown axis {name!r}{_hint(name, GEOMETRY)}; valid names are "
                              f"{', '.join(GEOMETRY)}")
         values[name] = v
     axes, scalars = {}, {}
@@ -168,7 +174,7 @@ def check_geometry(geometry, where="geometry", defaults=(("phi", 180.0),)):
             a = np.array([_number(f"{where}[{name!r}][{i}]" if a.ndim else f"{where}[{name!r}]", x)
                           for i, x in enumerate(a.reshape(-1))])
         api.check_values(name, a)
-        api.check_degrees(a if name == "theta_i" else 0.0, a if name == "theta_r" else 0.0, where=where)
+        api.check_degrees(a if name == "theta_i" else 0.0, a if name == "theta_r" else 0.0, where=f"{where}: ")
         if a.size == 1 and (isinstance(v, numbers.Real) or np.ndim(v) == 0):
             scalars[name] = float(a[0])
         else:
@@ -370,6 +376,8 @@ def sobol(ranges, geometry, fixed=None, quantity="dop", N=4096, seed=None, dtype
         Seeds SALib's sampler and the bootstrap resamples exactly as SALib does.
     dtype : {"float32", "float64"}, default "float32"
         Precision of the model runs (the estimators are float64).
+    shadowing : {"paper", "smith", "none"}, default "paper"
+        The shadowing function (as for :func:`pbrdf_cl.dop`).
     second_order : bool, default False
         Also S2 and S2_conf (over ``parameter`` and ``parameter_2``; NaN on and below the diagonal).
     method : {"sobol", "morris"}, default "sobol"
@@ -493,7 +501,29 @@ def sobol(ranges, geometry, fixed=None, quantity="dop", N=4096, seed=None, dtype
 
 
 def morris(ranges, geometry, fixed=None, quantity="dop", N=256, seed=None, **kwargs):
-    """Morris screening (:func:`sobol` with ``method="morris"``): ``N`` trajectories."""
+    """Morris screening (:func:`sobol` with ``method="morris"``): ``N`` trajectories.
+
+    Parameters
+    ----------
+    ranges, geometry, fixed, quantity, seed : as for :func:`sobol`
+    N : int, default 256
+        Trajectories of D + 1 runs each (SALib's Morris sampler).
+    **kwargs
+        The other keywords of :func:`sobol` (``num_levels``, ``dtype``, ``memory_budget``, ...).
+
+    Returns
+    -------
+    xarray.Dataset
+        ``mu``, ``mu_star``, ``sigma``, ``mu_star_conf`` over ``parameter`` and the geometry axes.
+
+    Examples
+    --------
+    >>> import pbrdf_cl
+    >>> ds = pbrdf_cl.morris({"n": (1.2, 2.5), "sigma": (0.1, 0.6)}, {"theta_i": 40, "theta_r": "0:85@18"},
+    ...                      fixed={"k": 2.139}, N=16, seed=1)
+    >>> sorted(ds.data_vars)
+    ['mu', 'mu_star', 'mu_star_conf', 'samples', 'sigma']
+    """
     return sobol(ranges, geometry, fixed, quantity, N, seed, method="morris", **kwargs)
 
 
@@ -502,3 +532,280 @@ def _bar(total, enabled):
         return None
     from tqdm.auto import tqdm
     return tqdm(total=total, desc="sensitivity", unit="geometry", leave=False, delay=1.0)
+
+
+# ---------------------------------------------------------------------------------------------
+# the TOML spec of `pbrdf-cl sobol`, writing a result, its summary
+
+#: The keys of a sensitivity spec (``examples/sobol.toml``); the tables last.
+SPEC_KEYS = ("title", "quantity", "method", "N", "seed", "dtype", "shadowing", "second_order", "num_levels",
+             "memory_budget", "ranges", "geometry", "fixed")
+
+
+def _spec_error(field, exc):
+    """``exc``'s message as a :class:`pbrdf_cl.sweeps.SpecError` that starts with ``field``; the
+    ``ranges['k']`` of :func:`check_ranges` and friends spelt as in TOML, ``ranges.k``."""
+    import re
+
+    from .sweeps import SpecError
+    text = re.sub(r"\b(ranges|geometry|fixed)\['(\w+)'\]", r"\1.\2", str(exc))
+    return SpecError(text if text.startswith(field) else f"{field}: {text}")
+
+
+def _integer(field, v, low):
+    from .sweeps import SpecError
+    if isinstance(v, bool) or not isinstance(v, int) or v < low:
+        raise SpecError(f"{field}: must be an integer >= {low}, got {v!r}")
+    return v
+
+
+def _spec_settings(data):
+    """A parsed spec (dict) -> the keyword arguments of :func:`sobol`, every field checked."""
+    from .engine import DTYPES
+    from .reference import SHADOWING
+    from .sweeps import SpecError
+    if not isinstance(data, dict):
+        raise SpecError(f"a sensitivity spec is a table (dict), got {type(data).__name__}")
+    for key in data:
+        if key not in SPEC_KEYS:
+            raise SpecError(f"unknown key {key!r}{_hint(key, SPEC_KEYS)}; valid keys are {', '.join(SPEC_KEYS)}")
+    out = {}
+    method = data.get("method", "sobol")
+    if method not in METHODS:
+        raise SpecError(f"method: must be one of {', '.join(map(repr, METHODS))}, got {method!r}{_hint(method, METHODS)}")
+    out["method"] = method
+    quantity = data.get("quantity", "dop")
+    try:
+        q = quantities.get(quantity, "points", "quantity")
+    except ValueError as exc:
+        raise _spec_error("quantity", exc) from None
+    if q.name not in SCALAR:
+        raise SpecError(f"quantity: {q.name!r} has no sensitivity map; available: {', '.join(SCALAR)}")
+    out["quantity"] = q.name
+    out["N"] = _integer("N", data.get("N", 4096 if method == "sobol" else 256), 2)
+    if "seed" in data:
+        if data["seed"] == 0 and not isinstance(data["seed"], bool):
+            raise SpecError("seed: must be an integer >= 1 (SALib's analysers take 0 as no seed: the bootstrap "
+                            "intervals would differ run to run); leave it out for an unseeded run")
+        out["seed"] = _integer("seed", data["seed"], 1)
+    out["dtype"] = data.get("dtype", "float32")
+    if out["dtype"] not in DTYPES:
+        raise SpecError(f"dtype: must be float32 or float64, got {out['dtype']!r}")
+    out["shadowing"] = data.get("shadowing", "paper")
+    if out["shadowing"] not in SHADOWING:
+        raise SpecError(f"shadowing: must be one of {', '.join(sorted(SHADOWING))}, got {out['shadowing']!r}"
+                        f"{_hint(out['shadowing'], sorted(SHADOWING))}")
+    if "second_order" in data:
+        if not isinstance(data["second_order"], bool):
+            raise SpecError(f"second_order: must be true or false, got {data['second_order']!r}")
+        if method != "sobol" and data["second_order"]:
+            raise SpecError("second_order: only with method = \"sobol\" (Morris has no second-order indices)")
+        if method == "sobol":
+            out["second_order"] = data["second_order"]
+    if "num_levels" in data:
+        if method != "morris":
+            raise SpecError("num_levels: only with method = \"morris\" (the levels of its grid)")
+        out["num_levels"] = _integer("num_levels", data["num_levels"], 2)
+    from .ranges import RangeError, parse_bytes
+    budget = data.get("memory_budget", DEFAULT_BUDGET)
+    try:
+        parse_bytes("memory_budget", budget)
+    except RangeError as exc:
+        raise SpecError(str(exc)) from None
+    out["memory_budget"] = budget
+
+    rng_in = data.get("ranges")
+    if not isinstance(rng_in, dict) or not rng_in:
+        raise SpecError("ranges: a table of parameter = [low, high] (or [low, high, \"log\"]), e.g. "
+                        "[ranges] n = [1.2, 2.5]")
+    ranges = {}
+    for name, spec in rng_in.items():
+        field = f"ranges.{name}"
+        if name not in PARAMETERS:
+            raise SpecError(f"{field}: unknown parameter{_hint(name, PARAMETERS)}; valid names are "
+                            f"{', '.join(PARAMETERS)}")
+        if isinstance(spec, list):
+            spec = tuple(spec)
+        try:
+            check_ranges({name: spec})
+        except ValueError as exc:
+            raise _spec_error(field, exc) from None
+        ranges[name] = spec
+    out["ranges"] = ranges
+    fixed = data.get("fixed", {})
+    if not isinstance(fixed, dict):
+        raise SpecError(f"fixed: must be a table of name = value, got {fixed!r}")
+    for name, v in fixed.items():
+        if name not in PARAMETERS:
+            raise SpecError(f"fixed.{name}: unknown parameter{_hint(name, PARAMETERS)}; valid names are "
+                            f"{', '.join(PARAMETERS)}")
+        if name in ranges:
+            raise SpecError(f"fixed.{name}: {name} also has a range (ranges.{name}); give it in one place only")
+        try:
+            check_fixed({name: v}, set(PARAMETERS) - {name})
+        except ValueError as exc:
+            raise _spec_error(f"fixed.{name}", exc) from None
+    missing = [n for n in PARAMETERS if n not in ranges and n not in fixed and n not in DEFAULTS]
+    if missing:
+        raise SpecError(f"ranges: {', '.join(missing)} need{'s' if len(missing) == 1 else ''} a range (or a value "
+                        "under [fixed]): no default")
+    out["fixed"] = dict(fixed)
+    geometry = data.get("geometry")
+    if not isinstance(geometry, dict) or not geometry:
+        raise SpecError("geometry: a table of theta_i, theta_r (and phi) = angles in degrees, e.g. "
+                        "[geometry] theta_i = \"0:80@64\"")
+    import warnings
+    with warnings.catch_warnings():  # a radians warning is sobol's to give, once, when it runs
+        warnings.simplefilter("ignore", api.UnitsWarning)
+        for name, v in geometry.items():
+            if name not in GEOMETRY:
+                raise SpecError(f"geometry.{name}: unknown axis{_hint(name, GEOMETRY)}; valid names are "
+                                f"{', '.join(GEOMETRY)}")
+            try:
+                check_geometry({"theta_i": 0.0, "theta_r": 0.0, name: v})
+            except ValueError as exc:
+                raise _spec_error(f"geometry.{name}", exc) from None
+        try:
+            check_geometry(geometry)
+        except ValueError as exc:
+            raise _spec_error("geometry", exc) from None
+    out["geometry"] = dict(geometry)
+    return out
+
+
+def load_sobol_spec(spec):
+    """The settings of a sensitivity map from its TOML spec (``pbrdf-cl sobol SPEC.toml``).
+
+    Parameters
+    ----------
+    spec : str, path or dict
+        A TOML file, TOML text (anything with a newline or ``=``), or the same keys as a dict:
+        ``quantity``, ``method``, ``N``, ``seed``, ``dtype``, ``shadowing``, ``second_order``,
+        ``num_levels`` (Morris), ``memory_budget``, an optional ``title``, and the tables
+        ``[ranges]`` (name = [low, high] or [low, high, "log"]), ``[geometry]`` (theta_i,
+        theta_r, phi = a value, a list or a range string such as ``"0:85@64"``, degrees) and
+        ``[fixed]``.  See ``examples/sobol.toml`` and ``docs/sensitivity.md``.
+
+    Returns
+    -------
+    dict
+        The keyword arguments of :func:`sobol` (``sobol(**settings)`` runs the map), every field
+        checked; ``title`` is not among them.
+
+    Raises
+    ------
+    pbrdf_cl.sweeps.SpecError
+        A ``ValueError`` of one line naming the field (``ranges.k: ...``), an unknown key with the
+        nearest valid one, a TOML syntax error with its line.
+
+    Examples
+    --------
+    >>> settings = load_sobol_spec('''
+    ... N = 256
+    ... seed = 1
+    ... [ranges]
+    ... n = [1.2, 2.5]
+    ... k = [0.01, 3.0, "log"]
+    ... sigma = [0.1, 0.6]
+    ... [geometry]
+    ... theta_i = 40
+    ... theta_r = "0:85@18"
+    ... ''')
+    >>> settings["ranges"]["k"], settings["N"]
+    ((0.01, 3.0, 'log'), 256)
+    """
+    import os
+    from pathlib import Path
+
+    from .sweeps import SpecError, tomllib
+    source = None
+    if isinstance(spec, dict):
+        return _spec_settings(spec)
+    if isinstance(spec, os.PathLike) or (isinstance(spec, str) and "\n" not in spec and "=" not in spec):
+        source = str(spec)
+        try:
+            spec = Path(spec).read_text()
+        except OSError as exc:
+            raise SpecError(f"cannot read the spec {source!r}: {exc.strerror or exc}") from None
+    if not isinstance(spec, str):
+        raise SpecError(f"spec must be a TOML file path, TOML text or a dict, got {type(spec).__name__}")
+    try:
+        data = tomllib.loads(spec)
+    except tomllib.TOMLDecodeError as exc:
+        raise SpecError(f"{source or 'spec'}: not valid TOML: {exc}") from None
+    return _spec_settings(data)
+
+
+def _storable(v):
+    """An attribute value every netCDF engine (scipy's netCDF3 included) and Zarr can store: bools and
+    None as ints / "", integers beyond int32 as floats, sequences as float arrays."""
+    if v is None:
+        return ""
+    if isinstance(v, (bool, np.bool_)):
+        return int(v)
+    if isinstance(v, (numbers.Integral,)):
+        return int(v) if -2 ** 31 <= int(v) < 2 ** 31 else float(v)
+    if isinstance(v, numbers.Real):
+        return float(v)
+    if isinstance(v, (list, tuple, np.ndarray)):
+        return [float(x) for x in np.asarray(v, dtype=float).ravel()]
+    return v if isinstance(v, str) else str(v)
+
+
+def write_result(ds, path):
+    """Write a result of :func:`sobol` to ``path``: ``.nc`` (netCDF: netCDF4 or h5netcdf when
+    installed, else scipy's netCDF3) or ``.zarr`` (a Zarr store, replaced if it is one already).
+    Returns the path as a string; a ``ValueError`` for any other suffix, or for a ``.zarr`` path that
+    exists and is not a Zarr store."""
+    from pathlib import Path
+    path = Path(path)
+    ds = ds.copy()
+    ds.attrs = {k: _storable(v) for k, v in ds.attrs.items()}
+    for name in list(ds.variables):
+        ds[name].attrs = {k: _storable(v) for k, v in ds[name].attrs.items()}
+    suffix = path.suffix.lower()
+    if suffix == ".nc":
+        ds.to_netcdf(path)
+    elif suffix == ".zarr":
+        if path.exists() and not any((path / m).exists() for m in (".zgroup", "zarr.json")):
+            raise ValueError(f"{path} exists and is not a Zarr store; choose another path or delete it")
+        import warnings
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message=".*(fixed-length|FixedLengthUTF32|unstable).*")
+            ds.to_zarr(path, mode="w", zarr_format=2, consolidated=True)
+    else:
+        raise ValueError(f"{path}: write a result as .nc (netCDF) or .zarr (a Zarr store), not {suffix or 'no suffix'!r}")
+    return str(path)
+
+
+def _indices(ds):
+    """The two index variables a summary and a figure show: (S1, ST) or (mu_star, sigma)."""
+    return ("S1", "ST") if "S1" in ds else ("mu_star", "sigma")
+
+
+def summary(ds):
+    """A few lines on a result of :func:`sobol`: the work done, and per parameter its mean indices
+    over the geometries and where it dominates (the share of geometries where its total index, or
+    mu*, is the largest)."""
+    first, second = _indices(ds)
+    geo = [d for d in ds[first].dims if d != "parameter"]
+    size = " x ".join(f"{d}[{ds.sizes[d]}]" for d in geo) or "one geometry"
+    a = ds.attrs
+    lines = [f"{a.get('method', 'sobol')}: {ds.sizes['parameter']} parameters ({', '.join(map(str, ds.parameter.values))}) "
+             f"of {a.get('quantity', '?')} over {size}: {a.get('runs_per_geometry')} runs per geometry, "
+             f"{a.get('model_runs')} model runs in {float(a.get('seconds', 0)):.3g} s on {a.get('engine', '?')}"]
+    key = "ST" if first == "S1" else "mu_star"
+    v = ds[key].values.reshape(ds.sizes["parameter"], -1)
+    finite = np.isfinite(v).all(axis=0) & (np.nanmax(np.abs(v), axis=0) > 0)
+    best = np.argmax(np.where(np.isfinite(v), v, -np.inf), axis=0)
+    m1 = ds[first].values.reshape(v.shape[0], -1)
+    m2 = ds[second].values.reshape(v.shape[0], -1)
+    what = "largest ST" if key == "ST" else "largest mu*"
+    lines.append(f"  {'parameter':10s} {'mean ' + first:>10s} {'mean ' + second:>10s}  dominates ({what})")
+    for i, p in enumerate(ds.parameter.values):
+        share = np.mean(best[finite] == i) if finite.any() else 0.0
+        lines.append(f"  {str(p):10s} {np.nanmean(m1[i]):10.3g} {np.nanmean(m2[i]):10.3g}  {share:6.1%} of geometries")
+    if (~finite).any():
+        lines.append(f"  ({int((~finite).sum())} geometries where {a.get('quantity', 'the output')} does not vary: "
+                     "indices 0)")
+    return "\n".join(lines)

@@ -6,10 +6,12 @@ import inspect
 import pytest
 
 import pbrdf_cl
-from pbrdf_cl import api, batch, batch_plots, batch_store, camera, data, dense, imagestack, maps
+from pbrdf_cl import (api, batch, batch_plots, batch_store, camera, data, dense, imagestack, maps, sensitivity,
+                      sensitivity_plots)
 
 PUBLIC = [getattr(pbrdf_cl, n) for n in pbrdf_cl.__all__ if inspect.isfunction(getattr(pbrdf_cl, n))]
-PUBLIC += [maps.make_map, maps.plot_map, data.as_measurements]
+PUBLIC += [maps.make_map, maps.plot_map, data.as_measurements, sensitivity.load_sobol_spec,
+           sensitivity_plots.plot_sensitivity]
 PUBLIC += [getattr(m, n) for m in (imagestack, camera, batch, batch_store, batch_plots) for n in dir(m)
            if not n.startswith("_") and inspect.isfunction(getattr(m, n)) and getattr(m, n).__module__ == m.__name__]
 
@@ -25,7 +27,8 @@ def test_numpydoc_sections(func):
         assert name in params, f"{func.__name__}: parameter {name!r} is not in its Parameters section"
 
 
-@pytest.mark.parametrize("module", [api, dense, data, maps, imagestack, batch, batch_store, batch_plots],
+@pytest.mark.parametrize("module", [api, dense, data, maps, imagestack, batch, batch_store, batch_plots, sensitivity,
+                                    sensitivity_plots],
                          ids=lambda m: m.__name__)
 def test_docstring_examples_run(module):
     result = doctest.testmod(module, optionflags=doctest.ELLIPSIS | doctest.NORMALIZE_WHITESPACE,

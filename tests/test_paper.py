@@ -56,7 +56,7 @@ def test_every_file_is_written_and_listed(reproduced):
         assert f"`{name}`" in listed
         if name.endswith(".png"):
             assert_png(reproduced / name)
-            assert (reproduced / (name[:-4] + ".npz")).exists()
+            assert (reproduced / paper.data_file(name)).exists()
     # the synthetic-data caveat and its parameters are stated
     assert "not published" in listed
     for p in paper.FIG2_SAMPLES.values():
@@ -95,6 +95,33 @@ def test_maps_match_reference_at_sampled_points(reproduced):
     for si, s in enumerate(t["sigma"]):
         a, b = rng.integers(0, t["theta_i"].size, 2)
         assert abs(t["dop"][si, b, a] - ref_dop(t["theta_i"][a], t["theta_r"][b], sigma=s, **fixed)) < 1e-12
+
+
+def test_sobol_map_is_pbrdf_cl_sobol_over_the_stated_box(reproduced):
+    """The Sobol' map of reproduce: the indices of pbrdf_cl.sobol for SOBOL_RANGES at the stated N and
+    seed (same samples, same numbers), its box spanning the paper's samples, listed in summary.md."""
+    import xarray as xr
+    import pbrdf_cl
+    ds = xr.open_dataset(reproduced / f"{paper.SOBOL_FILE}.nc")
+    side = paper.sobol_side(48)
+    assert ds.S1.dims == ("parameter", "theta_i", "theta_r") and ds.S1.shape == (5, side, side)
+    assert list(ds.parameter.values) == list(paper.SOBOL_RANGES) and ds.attrs["N"] == paper.SOBOL_N
+    for name, r in paper.SOBOL_RANGES.items():
+        np.testing.assert_array_equal(ds.attrs[f"range_{name}"], r[:2])
+        assert ds.attrs[f"scale_{name}"] == ("log" if len(r) > 2 else "linear")
+    # the box holds Table 1's true n, k and the steel fit (kd as kd/ks: ks is fixed at 1)
+    for sample in paper.TABLE1.values():
+        n, k = sample["true"]
+        assert paper.SOBOL_RANGES["n"][0] <= n <= paper.SOBOL_RANGES["n"][1]
+        assert paper.SOBOL_RANGES["k"][0] <= k <= paper.SOBOL_RANGES["k"][1]
+    assert paper.SOBOL_RANGES["kd"][0] <= paper.STEEL["kd"] / paper.STEEL["ks"] <= paper.SOBOL_RANGES["kd"][1]
+    direct = pbrdf_cl.sobol(paper.SOBOL_RANGES, {"theta_i": ds.theta_i.values, "theta_r": ds.theta_r.values},
+                            {"ks": 1.0}, N=paper.SOBOL_N, seed=paper.SEED)
+    np.testing.assert_array_equal(ds.samples.values, direct.samples.values)
+    for var in ("S1", "ST", "S1_conf", "ST_conf"):
+        np.testing.assert_allclose(ds[var].values, direct[var].values, rtol=0, atol=1e-6)
+    assert (0 <= ds.ST_conf).all() and float(ds.ST.max()) > 0.3  # some parameter controls the DOP somewhere
+    assert "Sobol' map:" in (reproduced / "summary.md").read_text()
 
 
 def test_fig2_data_fits_and_table1(reproduced):

@@ -1,0 +1,187 @@
+"""Figures of sensitivity maps (:func:`pbrdf_cl.sobol`, ``pbrdf-cl sobol --png``): which
+parameter controls the DOP (or F00) where.
+
+* Two geometry axes: one panel per parameter over the two axes, two rows (Sobol': S1 and ST;
+  Morris: mu* and sigma), one colour scale per row (0..1 for Sobol' indices) with its colour bar.
+* One geometry axis: S1 and ST (mu* and sigma) of every parameter as lines, with the 95%
+  bootstrap intervals as bands.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .maps import LABELS
+from .plots import _pyplot
+
+#: What each drawn variable is called on a figure.
+NAMES = {"S1": "first-order index S1", "ST": "total index ST", "mu_star": "mu* (mean |elementary effect|)",
+         "sigma": "sigma (sd of the elementary effects)"}
+#: Their short names in panel titles (Morris' sigma is not the roughness sigma).
+SHORT = {"S1": "S1", "ST": "ST", "mu_star": "mu*", "sigma": "sd of the effects"}
+#: The bootstrap interval drawn with a variable (1-d figures).
+CONF = {"S1": "S1_conf", "ST": "ST_conf", "mu_star": "mu_star_conf"}
+
+
+def _range_text(ds, p):
+    """``"k in [0.01, 3] (log)"`` from the attributes :func:`pbrdf_cl.sobol` writes."""
+    r = ds.attrs.get(f"range_{p}")
+    if r is None or len(np.ravel(r)) != 2:
+        return str(p)
+    lo, hi = np.ravel(r)
+    log = " (log)" if ds.attrs.get(f"scale_{p}") == "log" else ""
+    return f"{p} in [{lo:g}, {hi:g}]{log}"
+
+
+def _title(ds, geo):
+    a = ds.attrs
+    method = a.get("method", "sobol")
+    what = "Sobol' indices" if method == "sobol" else "Morris screening"
+    q = str(a.get("quantity", "")).upper() if a.get("quantity") == "dop" else a.get("quantity", "")
+    fixed = ", ".join(f"{k[6:]}={v:g}" for k, v in a.items() if k.startswith("fixed_"))
+    scalars = ", ".join(f"{n}={float(ds[n]):g} deg" for n in ("theta_i", "theta_r", "phi")
+                        if n in ds.coords and ds[n].ndim == 0)
+    size = "N" if method == "sobol" else "trajectories"
+    parts = [f"{what} of {q} over {' x '.join(geo)}", f"{size}={a.get('N', '?')}",
+             f"{a.get('runs_per_geometry', '?')} runs per geometry"]
+    if scalars:
+        parts.append(scalars)
+    if fixed:
+        parts.append(f"fixed {fixed}")
+    return ", ".join(parts)
+
+
+def _rows(ds):
+    if "S1" in ds:
+        return ("S1", "ST")
+    if "mu_star" in ds:
+        return ("mu_star", "sigma")
+    raise ValueError("plot_sensitivity: the dataset has neither S1/ST nor mu_star/sigma: not a result of pbrdf_cl.sobol")
+
+
+def check_axes(axes, what="plot_sensitivity"):
+    """A ``ValueError`` unless ``axes`` (name -> values: the geometry axes of a result) are one or
+    two, the figure's layouts; it suggests how to get there."""
+    geo = list(axes)
+    if len(geo) in (1, 2):
+        return
+    if geo:
+        order = [g for g in ("theta_i", "theta_r", "phi") if g in geo] + [g for g in geo if g not in
+                                                                          ("theta_i", "theta_r", "phi")]
+        drop = order[2:]  # keep theta_i and theta_r where they are axes
+        first = np.ravel(axes[drop[0]])[0]
+        hint = f"; select a value of {', '.join(drop)} first, e.g. ds.sel({drop[0]}={float(first):g})"
+    else:
+        hint = "; compute it over one or two geometry axes with more than one value (e.g. theta_r = \"0:85@64\")"
+    raise ValueError(f"{what}: draws one or two geometry axes, got {len(geo)}"
+                     f"{' (' + ', '.join(geo) + ')' if geo else ''}{hint}")
+
+
+def plot_sensitivity(ds, path, *, title=None, dpi=110):
+    """Draw a sensitivity map (a result of :func:`pbrdf_cl.sobol`) into a PNG.
+
+    Parameters
+    ----------
+    ds : xarray.Dataset
+        ``S1``, ``ST`` (and ``S1_conf``, ``ST_conf``) or ``mu_star``, ``sigma`` (and
+        ``mu_star_conf``) over ``parameter`` and one or two geometry axes (theta_i, theta_r,
+        phi; degrees).  Select a value of a third axis first (``ds.sel(phi=180)``).
+    path : str or path
+        The PNG to write (matplotlib's Agg backend).
+    title : str, optional
+        The figure's title (default: the method, quantity, axes, N, runs and fixed values).
+    dpi : int, default 110
+        Resolution of the PNG.
+
+    Returns
+    -------
+    str
+        ``path``.
+
+    Raises
+    ------
+    ValueError
+        A dataset without the indices, or with no geometry axis or more than two.
+
+    Examples
+    --------
+    >>> import os, tempfile, pbrdf_cl
+    >>> ds = pbrdf_cl.sobol({"n": (1.2, 2.5), "k": (0.01, 3, "log"), "sigma": (0.1, 0.6)},
+    ...                     {"theta_i": "0:80@5", "theta_r": "0:85@6"}, N=64, seed=1)
+    >>> plot_sensitivity(ds, os.path.join(tempfile.mkdtemp(), "s.png")).endswith("s.png")
+    True
+    """
+    rows = _rows(ds)
+    geo = [d for d in ds[rows[0]].dims if d != "parameter"]
+    check_axes({d: ds[d].values for d in geo})
+    plt = _pyplot()
+    if len(geo) == 2:
+        fig = _maps(plt, ds, rows, geo)
+    else:
+        fig = _lines(plt, ds, rows, geo[0])
+    fig.suptitle(title or _title(ds, geo), fontsize=10, wrap=True)
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
+    return str(path)
+
+
+def _units(ds, var):
+    u = ds[var].attrs.get("units", "1")
+    return "" if u in ("", "1") else f" ({u})"
+
+
+def _maps(plt, ds, rows, geo):
+    from matplotlib import colors
+    params = [str(p) for p in ds.parameter.values]
+    xname, yname = geo
+    x, y = ds[xname].values, ds[yname].values
+    ncol = len(params)
+    fig, axs = plt.subplots(2, ncol, figsize=(3.1 * ncol + 1.4, 6.4), sharex=True, sharey=True, squeeze=False,
+                            layout="constrained")
+    sobol = rows[0] == "S1"
+    for r, var in enumerate(rows):
+        z_all = ds[var].transpose("parameter", yname, xname).values
+        if sobol:
+            norm = colors.Normalize(0.0, 1.0)
+        else:
+            finite = z_all[np.isfinite(z_all)]
+            top = float(finite.max()) if finite.size and finite.max() > 0 else 1.0
+            norm = colors.Normalize(0.0, top)
+        for c, p in enumerate(params):
+            ax = axs[r, c]
+            mesh = ax.pcolormesh(x, y, z_all[c], shading="auto", cmap="viridis", norm=norm)
+            mean = np.nanmean(z_all[c])
+            ax.set_title(f"{_range_text(ds, p)}\n{SHORT[var]}, mean {mean:.2g}", fontsize=9)
+            if r == 1:
+                ax.set_xlabel(LABELS.get(xname, f"{xname} (deg)"), fontsize=8)
+            if c == 0:
+                ax.set_ylabel(LABELS.get(yname, f"{yname} (deg)"), fontsize=8)
+        label = NAMES[var] + ("" if sobol else _units(ds, var))
+        cb = fig.colorbar(mesh, ax=list(axs[r]), shrink=0.9, extend="both" if sobol else "neither")
+        cb.set_label(label)
+    return fig
+
+
+def _lines(plt, ds, rows, xname):
+    params = [str(p) for p in ds.parameter.values]
+    x = ds[xname].values
+    fig, axs = plt.subplots(1, 2, figsize=(11.0, 4.6), sharex=True, layout="constrained")
+    sobol = rows[0] == "S1"
+    for ax, var in zip(axs, rows):
+        for i, p in enumerate(params):
+            v = ds[var].sel(parameter=p).values
+            ax.plot(x, v, "-", color=f"C{i}", lw=1.5, label=_range_text(ds, p))
+            conf = CONF.get(var)
+            if conf in ds:
+                half = ds[conf].sel(parameter=p).values
+                ax.fill_between(x, v - half, v + half, color=f"C{i}", alpha=0.2, lw=0)
+        ax.set_xlabel(LABELS.get(xname, f"{xname} (deg)"))
+        ax.set_ylabel(NAMES[var] + ("" if sobol else _units(ds, var)))
+        if sobol:
+            ax.set_ylim(-0.05, 1.05)
+        else:
+            ax.set_ylim(bottom=0.0)
+        band = " (bands: 95% bootstrap intervals)" if CONF.get(var) in ds else ""
+        ax.set_title(f"{NAMES[var]}{band}", fontsize=9)
+        ax.grid(alpha=0.3)
+    axs[0].legend(fontsize=8)
+    return fig
