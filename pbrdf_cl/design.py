@@ -137,7 +137,7 @@ class DesignResult(Result):
                                                        np.stack([self.ci95_width_materials[n] for n in self.free],
                                                                 axis=1))
             coords["model_parameter"] = list(PARAMETERS)
-        attrs = dict(criterion=self.criterion, target=list(self.target), noise=self.noise,
+        attrs = dict(criterion=self.criterion, target=",".join(self.target), noise=self.noise,
                      intensity=int(self.intensity), intensity_noise=self.intensity_noise,
                      criterion_value=self.criterion_value, criterion_greedy=self.criterion_greedy,
                      criterion_reference=self.criterion_reference, swaps=self.swaps,
@@ -214,12 +214,9 @@ def _materials(params, fixed, count, seed):
     vals = check_fixed({**scalars, **fixed}, {r.name for r in rngs}, "params")
     if not rngs:
         return {n: np.array([vals[n]]) for n in PARAMETERS}, rngs
-    from scipy.stats import qmc
     d = len(rngs)
-    if count & (count - 1) == 0:
-        u = qmc.Sobol(d, scramble=True, seed=seed).random_base2(int(np.log2(count)))
-    else:
-        u = qmc.LatinHypercube(d, seed=seed).random(count)
+    rng = np.random.default_rng(seed)  # a seeded Latin hypercube: each range cut into count strata
+    u = (np.stack([rng.permutation(count) for _ in range(d)], axis=1) + rng.random((count, d))) / count
     lo = np.array([r.bounds[0] for r in rngs])
     hi = np.array([r.bounds[1] for r in rngs])
     X = lo + u * (hi - lo)
@@ -341,32 +338,27 @@ class _Criterion:
         return np.where(bad, np.inf, out)
 
 
-def _inv(Minfo):
-    return np.linalg.inv(Minfo)
-
-
-def _singular(Minfo):
-    w = np.linalg.eigvalsh(Minfo)
-    return bool(np.any(w[:, 0] <= w[:, -1] / SINGULAR_COND))
-
-
 def _final_value(crit, Minfo):
     return float(np.mean(crit.value(np.linalg.pinv(Minfo, rcond=1e-15, hermitian=True))))
 
 
 def select(A, n, crit, available, repeats=False, exchange=True):
     """Greedy forward selection then Fedorov exchange over candidate rows ``A`` (M, N, r, d) (scaled
-    parameters): indices of the ``n`` chosen, the greedy choice and the number of swaps."""
+    parameters): the indices of the ``n`` chosen, the greedy choice, the number of swaps and which
+    materials' information stayed singular (those keep the weak prior throughout)."""
     M, N, r, d = A.shape
     eye = np.eye(d)[None]
     Minfo = np.zeros((M, d, d))
     chosen = []
     taken = np.zeros(N, bool)
-    prior = True
+    prior = np.ones(M, bool)
+
+    def cov(Mi):
+        return np.linalg.inv(Mi + PRIOR * eye * prior[:, None, None])
+
     for step in range(n):
-        C = _inv(Minfo + (PRIOR * eye if prior else 0.0))
-        R = crit.factor(C)
-        gain = crit.change(C, R, A, np.ones(r)).mean(axis=0)
+        C = cov(Minfo)
+        gain = crit.change(C, crit.factor(C), A, np.ones(r)).mean(axis=0)
         gain = np.where(available & (repeats | ~taken), gain, np.inf)
         best = int(np.argmin(gain))
         if not np.isfinite(gain[best]):
@@ -375,23 +367,24 @@ def select(A, n, crit, available, repeats=False, exchange=True):
         chosen.append(best)
         taken[best] = True
         Minfo = Minfo + np.einsum("mrd,mre->mde", A[:, best], A[:, best])
-        if prior and step + 1 >= d:
-            prior = _singular(Minfo)
+        if prior.any() and step + 1 >= d:
+            prior = prior & _singular(Minfo)
     greedy = list(chosen)
     swaps = 0
-    if not exchange or prior:  # a design that stays singular keeps its greedy choice
+    if not exchange:
         return chosen, greedy, swaps, prior
     signs = np.concatenate([np.ones(r), -np.ones(r)])
-    f = float(np.mean(crit.value(_inv(Minfo))))
+    f = float(np.mean(crit.value(cov(Minfo))))
     for _ in range(MAX_SWAPS_PER_POINT * n):
-        C = _inv(Minfo)
+        C = cov(Minfo)
         R = crit.factor(C)
         best = (0.0, None, None)
+        ok0 = available & (repeats | ~taken)
         for p, ci in enumerate(chosen):
             ai = np.broadcast_to(A[:, ci][:, None], (M, N, r, d))
             U = np.concatenate([A, ai], axis=2)
             delta = crit.change(C, R, U, signs).mean(axis=0)
-            ok = available & (repeats | ~taken)
+            ok = ok0.copy()
             ok[ci] = False
             delta = np.where(ok, delta, np.inf)
             c = int(np.argmin(delta))
@@ -402,15 +395,21 @@ def select(A, n, crit, available, repeats=False, exchange=True):
         _, p, c = best
         old = chosen[p]
         Mnew = Minfo + np.einsum("mrd,mre->mde", A[:, c], A[:, c]) - np.einsum("mrd,mre->mde", A[:, old], A[:, old])
-        fnew = float(np.mean(crit.value(_inv(Mnew))))
+        fnew = float(np.mean(crit.value(cov(Mnew))))
         if not fnew < f:  # the update's prediction not confirmed (round-off): stop
             break
         Minfo, f = Mnew, fnew
         chosen[p] = c
-        taken[old] = chosen.count(old) > 0
+        taken[old] = old in chosen
         taken[c] = True
         swaps += 1
     return chosen, greedy, swaps, prior
+
+
+def _singular(Minfo):
+    """Per material: is the (scaled) information numerically singular?"""
+    w = np.linalg.eigvalsh(Minfo)
+    return w[:, 0] <= w[:, -1] / SINGULAR_COND
 
 
 # ----------------------------------------------------------------------------------- design
@@ -425,7 +424,7 @@ def design(params, candidates=None, noise=0.005, n_measurements=30, target=("n",
     params : dict
         The hypothesised material: n, k, sigma (and kd, c, ks; defaults 0, 0, 1) -> a value; or
         any of them -> (low, high) (or (low, high, "log")) for a box of materials, of which
-        ``materials`` are drawn (scrambled Sobol', LHS when not a power of 2) and the criterion
+        ``materials`` are drawn (a seeded Latin hypercube) and the criterion
         averaged over them.
     candidates : dict or sequence, optional
         The geometries to choose from (degrees): a dict theta_i, theta_r (, phi) -> a value, a 1-d
@@ -634,7 +633,7 @@ def design(params, candidates=None, noise=0.005, n_measurements=30, target=("n",
         candidates={g: cand[g].copy() for g in GEOMETRY}, comparisons=comparisons,
         information=info, information_axes=info_axes, information_label=info_label,
         criterion=criterion, criterion_value=f_final, criterion_greedy=f_greedy, criterion_reference=f_ref,
-        greedy={g: cand[g][np.array(greedy)].copy() for g in GEOMETRY}, swaps=swaps, singular=singular,
+        greedy={g: cand[g][np.array(greedy)].copy() for g in GEOMETRY}, swaps=swaps, singular=int(np.sum(singular)),
         free=list(free), target=list(target), noise=noise, intensity=bool(intensity),
         intensity_noise=intensity_noise, n_materials=M, materials={k: v.copy() for k, v in mat.items()},
         material={k: float(np.median(v)) for k, v in mat.items()}, ranges={r.name: (r.low, r.high) for r in rngs},
@@ -642,3 +641,69 @@ def design(params, candidates=None, noise=0.005, n_measurements=30, target=("n",
         fixed=fx, shadowing=shadowing, engine=eng.description, seconds=time.perf_counter() - t0)
     return out
 
+
+
+# ----------------------------------------------------------------------------------- figure
+
+def plot_design(result, path):
+    """Draw a design into a PNG (matplotlib Agg): left, the information map over (theta_i,
+    theta_r) (the maximum over phi where phi is an axis; explicit candidates as coloured points)
+    with the chosen geometries (circles) and the reference's (crosses); right, the predicted 95%
+    interval widths per parameter, chosen against reference, each with and without an intensity
+    column (log scale).  Returns the (closed) Figure."""
+    from .plots import _pyplot
+    plt = _pyplot()
+    fig, (ax, axb) = plt.subplots(1, 2, figsize=(13, 5.2), layout="constrained",
+                                  gridspec_kw=dict(width_ratios=[1.1, 1]))
+    info = np.asarray(result.information, float)
+    axes = result.information_axes
+    label = ("relative reduction of the A criterion\nby one more measurement (1)" if result.criterion == "A"
+             else "reduction of log det of the target\ncovariance by one more measurement (1)")
+    if "theta_i" in axes and "theta_r" in axes:
+        names = list(axes)
+        img = info
+        if "phi" in axes:
+            with np.errstate(all="ignore"):
+                img = np.nanmax(img, axis=names.index("phi"))
+            names.remove("phi")
+        if names.index("theta_i") > names.index("theta_r"):
+            img = img.T
+        ti, tr = axes["theta_i"], axes["theta_r"]
+        pos = img[np.isfinite(img) & (img > 0)]
+        norm = None
+        if pos.size and pos.max() / max(pos.min(), 1e-300) > 100:
+            from matplotlib.colors import LogNorm
+            norm = LogNorm(vmin=max(pos.min(), pos.max() * 1e-6), vmax=pos.max())
+        mesh = ax.pcolormesh(tr, ti, np.where(img > 0, img, np.nan) if norm else img, shading="nearest",
+                             cmap="viridis", norm=norm)
+    else:
+        c = result.candidates
+        mesh = ax.scatter(c["theta_r"], c["theta_i"], c=info.reshape(-1), s=18, cmap="viridis")
+    fig.colorbar(mesh, ax=ax, label=label)
+    ax.plot(result.reference["theta_r"], result.reference["theta_i"], "x", color="tab:red", ms=7, mew=1.5,
+            label="paper's geometry" if result.reference_is_paper else "reference")
+    ax.plot(result.theta_r, result.theta_i, "o", mfc="none", mec="white", ms=9, mew=1.8,
+            label=f"chosen ({len(result.theta_i)})")
+    ax.set_xlabel("theta_r (deg)")
+    ax.set_ylabel("theta_i (deg)")
+    ax.set_title(f"information for {', '.join(result.target)} at the final design (criterion {result.criterion})")
+    ax.legend(loc="lower left", fontsize=8, framealpha=0.8)
+    comp = result.comparisons
+    keys = ["chosen", "chosen_other", "reference", "reference_other"]
+    params = list(result.free) + ([] if "ks" in result.free else ["ks"])
+    width = 0.8 / len(keys)
+    colours = ["tab:blue", "tab:cyan", "tab:red", "tab:orange"]
+    for i, key in enumerate(keys):
+        w = comp[key]["widths"]
+        xs = [j + (i - (len(keys) - 1) / 2) * width for j, p in enumerate(params) if p in w]
+        axb.bar(xs, [w[p] for p in params if p in w], width, color=colours[i],
+                label=f"{comp[key]['description']} ({comp[key]['n_points']} points)")
+    axb.set_yscale("log")
+    axb.set_xticks(range(len(params)), [("kd/ks" if p == "kd" else p) for p in params])
+    axb.set_xlabel("parameter")
+    axb.set_ylabel("predicted 95% interval width (parameter units; dimensionless)")
+    axb.set_title(f"DOP noise {result.noise:g}" + (f", F00 relative noise {result.intensity_noise:g}"))
+    axb.legend(fontsize=8)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return fig
