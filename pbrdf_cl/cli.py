@@ -614,7 +614,7 @@ def _design_parser(sub):
                        "95%% interval widths)",
                        description="For a hypothesised material (--params) or a box of materials (--box), "
                        "choose the --n geometries out of the candidates that make the target parameters' "
-                       "predicted 95%% intervals narrowest, and compare with the paper's geometry (theta_i "
+                       "predicted 95% intervals narrowest, and compare with the paper's geometry (theta_i "
                        "30/40/50 x theta_r 20..65 step 5). Example: pbrdf-cl design --params n=1.6,k=2.139,"
                        "sigma=0.5,kd=0.15,c=-0.3 --noise 0.005 --n 30 --out design.nc --png design.png")
     d.add_argument("--params", nargs="+", metavar="NAME=VALUE", required=True,
