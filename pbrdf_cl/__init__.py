@@ -17,6 +17,7 @@ from .sweeps import SpecError, SweepResult, SweepSpec, load_spec, sweep
 from .inversion import FitResult, compare_models, fit
 from .batch import fit_batch
 from .sensitivity import morris, sobol
+from .design import DesignResult, design
 from .engine import (DeviceUnusableError, DeviceWarning, Engine, NumpyEngine, OpenCLUnavailableError,
                      get_default_engine, list_devices, probe, select_device, set_default_engine)
 
@@ -24,6 +25,6 @@ __version__ = "0.1.0"
 
 __all__ = ["dop", "brdf", "aop", "stokes", "mueller", "evaluate", "quantities", "validate", "MODELS", "grid", "reduce_grid", "objective", "ObjectiveResult",
            "sweep", "load_spec", "SweepSpec", "SweepResult", "SpecError",
-           "fit", "fit_batch", "sobol", "morris", "compare_models", "FitResult", "read_csv", "as_measurements", "Measurements", "DataWarning", "Engine", "NumpyEngine", "probe",
+           "fit", "fit_batch", "sobol", "morris", "design", "DesignResult", "compare_models", "FitResult", "read_csv", "as_measurements", "Measurements", "DataWarning", "Engine", "NumpyEngine", "probe",
            "OpenCLUnavailableError", "DeviceUnusableError", "DeviceWarning",
            "get_default_engine", "set_default_engine", "list_devices", "select_device", "__version__"]

@@ -1,4 +1,4 @@
-"""Command line interface: ``pbrdf-cl devices|eval|fit|fit-image|reproduce|map|sweep|sobol|bench``.
+"""Command line interface: ``pbrdf-cl devices|eval|fit|fit-image|reproduce|map|sweep|sobol|design|bench``.
 
 Every problem a user can meet, bad input or a broken environment (no OpenCL, an unusable
 device, an unwritable cache or output folder), ends in one line on stderr, ``pbrdf-cl: error:
@@ -386,6 +386,45 @@ def cmd_map(args) -> int:
 _SHADOWING_HELP = "shadowing function: paper (the paper's eq. 7-9), smith (Smith's), or none"
 
 
+def _items(values):
+    """NAME=VALUE items given space- or comma-separated (``n=1.6,k=2.139 sigma=0.5``)."""
+    return [t for v in values or [] for t in v.split(",") if t.strip()]
+
+
+def cmd_design(args) -> int:
+    from .design import GEOMETRY, design, plot_design
+    from .dense import PARAMETERS
+    from .inversion import DEFAULT_BOUNDS
+    params = ranges.parse_assignments(_items(args.params), PARAMETERS, "value", "--params", check=True)
+    box = ranges.parse_assignments(_items(args.box), PARAMETERS, "bounds", "--box")
+    both = sorted(set(params) & set(box))
+    if both:
+        return _error(f"--box {both[0]}: also given in --params; give it once")
+    params.update(box)
+    cand = ranges.parse_assignments(args.candidates, GEOMETRY, "values", "--candidates") if args.candidates else None
+    ref = ranges.parse_assignments(args.reference, GEOMETRY, "values", "--reference") if args.reference else None
+    fixed = ranges.parse_assignments(args.fix, tuple(DEFAULT_BOUNDS), "value", "--fix", check=True)
+    bounds = ranges.parse_assignments(args.bounds, tuple(DEFAULT_BOUNDS), "bounds", "--bounds")
+    target = tuple(t.strip() for t in args.target.split(",") if t.strip())
+    _check_output("--out", args.out)
+    _check_output("--png", args.png)
+    try:
+        res = design(params, cand, noise=args.noise, n_measurements=args.n, target=target, intensity=args.intensity,
+                     fixed=fixed, criterion=args.criterion, reference=ref, intensity_noise=args.intensity_noise,
+                     bounds=bounds, materials=args.materials, repeats=args.repeats, seed=args.seed,
+                     shadowing=args.shadowing, engine=_engine_for(args))
+    except (ValueError, _engine.OpenCLUnavailableError) as exc:
+        return _error(exc)
+    print(res.summary())
+    if args.out:
+        res.to_dataset().to_netcdf(args.out)
+        print(f"wrote {args.out}")
+    if args.png:
+        plot_design(res, args.png)
+        print(f"wrote {args.png}")
+    return 0
+
+
 def _quantity_choices(path):
     """The quantity names for ``path``, canonical and aliases (the registry, pbrdf_cl.quantities)."""
     names = quantities.names(path)
@@ -611,6 +650,41 @@ def _sobol_parser(sub):
     s.set_defaults(func=cmd_sobol)
 
 
+def _design_parser(sub):
+    """The `pbrdf-cl design` sub-command."""
+    from .inversion import F00_REL_STD
+    d = sub.add_parser("design", help="choose measurement geometries from the Fisher information (predicted "
+                       "95%% interval widths)",
+                       description="For a hypothesised material (--params) or a box of materials (--box), "
+                       "choose the --n geometries out of the candidates that make the target parameters' "
+                       "predicted 95% intervals narrowest, and compare with the paper's geometry (theta_i "
+                       "30/40/50 x theta_r 20..65 step 5). Example: pbrdf-cl design --params n=1.6,k=2.139,"
+                       "sigma=0.5,kd=0.15,c=-0.3 --noise 0.005 --n 30 --out design.nc --png design.png")
+    d.add_argument("--params", nargs="+", metavar="NAME=VALUE", required=True,
+                   help="the material: n, k, sigma (and kd, c, ks; defaults 0, 0, 1), e.g. n=1.6,k=2.139,sigma=0.5")
+    d.add_argument("--box", nargs="+", metavar="NAME=LO:HI", help="parameters ranging over a box (instead of "
+                   "a value in --params), e.g. n=1.2:2.5; the criterion is averaged over --materials draws")
+    d.add_argument("--candidates", nargs="+", action="extend", metavar="NAME=VALUES",
+                   help="candidate grid axes (degrees), e.g. theta_i=10:80:5 theta_r=0:85:5 (default; phi 180)")
+    d.add_argument("--reference", nargs="+", action="extend", metavar="NAME=VALUES",
+                   help="the grid to compare with (default the paper's: theta_i=30,40,50 theta_r=20:65:5)")
+    d.add_argument("--noise", type=float, default=0.005, help="standard deviation of each DOP measurement")
+    d.add_argument("--n", type=int, default=30, help="how many measurements to choose")
+    d.add_argument("--target", default="n,k", help="the parameters to determine best, comma-separated")
+    d.add_argument("--intensity", action="store_true", help="each geometry also measures F00 (ks free, kd as kd/ks)")
+    d.add_argument("--intensity-noise", type=float, default=F00_REL_STD, help="relative standard deviation of F00")
+    d.add_argument("--criterion", choices=("A", "D"), default="A",
+                   help="A: sum of the targets' variances / bound range^2; D: log det of their covariance")
+    d.add_argument("--materials", type=int, default=16, help="materials drawn from --box")
+    d.add_argument("--seed", type=int, default=0, help="seed of the materials drawn from --box")
+    d.add_argument("--repeats", action="store_true", help="allow a geometry to be chosen more than once")
+    _fit_settings(d)
+    _device_options(d)
+    d.add_argument("--out", metavar="NC", help="write the design as netCDF")
+    d.add_argument("--png", metavar="PNG", help="draw the information map and the predicted widths")
+    d.set_defaults(func=cmd_design)
+
+
 def build_parser() -> argparse.ArgumentParser:
     from . import __version__
     p = _Parser(prog="pbrdf-cl", description="The six-parameter pBRDF model on OpenCL. "
@@ -629,6 +703,7 @@ def build_parser() -> argparse.ArgumentParser:
     _reproduce_parser(sub)
     _map_parser(sub)
     _sobol_parser(sub)
+    _design_parser(sub)
     b = sub.add_parser("bench", help="benchmark every evaluation path (options: pbrdf-cl bench --help)",
                        add_help=False)
     b.add_argument("rest", nargs=argparse.REMAINDER)

@@ -1,0 +1,795 @@
+"""Measurement design from the Fisher information: which geometries to measure.
+
+For a hypothesised material (or a box of materials) and the DOP noise of the instrument,
+:func:`design` predicts each parameter's 95% interval width for any set of measurement
+geometries, and chooses the ``n_measurements`` geometries out of a candidate set that make the
+target parameters' intervals narrowest.
+
+How the widths are predicted (the local linearisation :func:`pbrdf_cl.fit` itself uses for its
+``ci95_jacobian``):
+
+* Every candidate geometry contributes whitened Jacobian rows: the central-difference
+  derivative of the DOP with respect to the free parameters divided by the DOP noise (one
+  row), and with ``intensity`` also that of F00 divided by its standard deviation,
+  ``intensity_noise`` times F00 (a second row).  The derivatives come from the device
+  (:func:`pbrdf_cl.dense.outer`, float64): the material and its +-h steps (h = 1e-6 of each
+  bound range, one-sided at a bound, as :func:`pbrdf_cl.inversion.fd_jacobian`) are extra
+  parameter sets of ONE evaluation over every candidate geometry.
+* The Fisher information of a set is the sum of its rows' J^T J; the covariance its
+  pseudo-inverse (as ``inversion._covariance``); the predicted interval of parameter j is
+  ``x_j +- 1.96 se_j`` clipped to the bounds, and its width is reported.
+* Without intensities the DOP depends on kd and ks only through kd/ks: ks is held at 1 and the
+  ``kd`` reported is the ratio kd/ks (as :func:`pbrdf_cl.fit` does).  With intensities ks is
+  free and ``kd`` is still the ratio kd/ks (``inversion.Residuals._with``).
+
+How the geometries are chosen: greedy forward selection (a weak Gaussian prior of standard
+deviation one bound range per parameter only while the information is singular), then Fedorov
+exchange (the best swap of a chosen geometry for a candidate, until no swap improves).  Each
+step evaluates every candidate (and every material of a box) at once by rank-r updates of the
+covariance (Sherman-Morrison-Woodbury).  Criterion "A" (default): the sum over the target
+parameters of variance / (bound range)^2; "D": log det of the target parameters' covariance
+(D-optimal when the target is every free parameter; Ds-optimal otherwise).
+
+Assumptions: Gaussian noise of known standard deviation, the model correct, and the material
+close enough to the hypothesis that the linearisation holds (for a box: the criterion is the
+mean over ``materials`` materials drawn from it).
+"""
+from __future__ import annotations
+
+import numbers
+import time
+
+import numpy as np
+
+from . import inversion
+from . import reference as _reference
+from .dense import PARAMETERS, outer
+from .engine import resolve_engine
+from .results import Result
+from .sensitivity import check_fixed, check_geometry, check_ranges, geometry_list
+
+GEOMETRY = ("theta_i", "theta_r", "phi")
+CRITERIA = ("A", "D")
+#: The paper's geometry (45# steel at 435 nm): theta_i 30/40/50 x theta_r 20..65 step 5, in plane.
+PAPER_GEOMETRY = {"theta_i": [30.0, 40.0, 50.0], "theta_r": "20:65:5", "phi": 180.0}
+#: The incidence the paper fits alone (its Fig. 5 and the fitted parameters).
+PAPER_INCIDENCE = 40.0
+DEFAULT_CANDIDATES = {"theta_i": "10:80:5", "theta_r": "0:85:5", "phi": 180.0}
+#: The paper's fit at theta_i = 40 (SPEC.md "Numbers from the paper").
+PAPER_MATERIAL = {"n": 1.6, "k": 2.139, "sigma": 0.5, "ks": 0.9, "kd": 0.15, "c": -0.3}
+Z95 = 1.959963984540054  # scipy.stats.norm.ppf(0.975)
+#: Prior precision (in parameters scaled by their bound ranges) of the greedy start while singular.
+PRIOR = 1.0
+#: Scaled information counts as non-singular once its condition number is below this.
+SINGULAR_COND = 1e12
+MAX_SWAPS_PER_POINT = 20
+
+
+class DesignResult(Result):
+    """The chosen measurements and their predicted 95% interval widths (attribute-access dict).
+
+    ``theta_i``, ``theta_r``, ``phi`` (degrees): the chosen geometries; ``ci95_width``: dict
+    parameter -> predicted width (the median over the materials of a box);
+    ``ci95_width_reference`` the same for ``reference`` (dict of geometry arrays);
+    ``comparisons``: name -> dict(widths, n_points, description); ``information``: each
+    candidate's value at the final design (shaped as the candidate grid, ``information_axes``);
+    ``criterion``, ``criterion_value``, ``criterion_greedy``, ``free``, ``target``, ``noise``, ...
+    """
+
+    def summary(self):
+        """A readable text table of the predicted widths."""
+        names = list(self.free) + ([] if "ks" in self.free else ["ks"])
+        lines = [f"measurement design: {len(self.theta_i)} measurements, criterion {self.criterion} on "
+                 f"{', '.join(self.target)}; DOP noise {self.noise:g}"
+                 + (f", F00 relative noise {self.intensity_noise:g}" if self.intensity else "")
+                 + (f"; median over {self.n_materials} materials" if self.n_materials > 1 else ""),
+                 f"  criterion: greedy {self.criterion_greedy:.6g} -> exchange {self.criterion_value:.6g} "
+                 f"({self.swaps} swaps; reference {self.criterion_reference:.6g}); {self.seconds:.2f} s",
+                 "", "predicted 95% interval widths (kd is kd/ks)"]
+        rows = [(k, v) for k, v in self.comparisons.items()]
+        head = f"  {'measurement set':<44s}{'points':>7s}" + "".join(f"{n:>10s}" for n in names)
+        lines.append(head)
+        for key, c in rows:
+            w = c["widths"]
+            lines.append(f"  {c['description'][:43]:<44s}{c['n_points']:>7d}"
+                         + "".join(f"{w[n]:>10.4g}" if n in w else f"{'-':>10s}" for n in names))
+        lines += ["", "chosen geometries (theta_i, theta_r, phi) [deg]:"]
+        pts = [f"({a:g}, {b:g}, {c:g})" for a, b, c in zip(self.theta_i, self.theta_r, self.phi)]
+        for i in range(0, len(pts), 6):
+            lines.append("  " + " ".join(pts[i:i + 6]))
+        return "\n".join(lines)
+
+    def to_dataset(self):
+        """The result as an ``xarray.Dataset`` (``to_netcdf`` saves it)."""
+        import xarray as xr
+        deg = {"units": "deg"}
+        data = {
+            "theta_i": xr.Variable(("measurement",), self.theta_i, deg),
+            "theta_r": xr.Variable(("measurement",), self.theta_r, deg),
+            "phi": xr.Variable(("measurement",), self.phi, deg),
+            "reference_theta_i": xr.Variable(("reference_measurement",), self.reference["theta_i"], deg),
+            "reference_theta_r": xr.Variable(("reference_measurement",), self.reference["theta_r"], deg),
+            "reference_phi": xr.Variable(("reference_measurement",), self.reference["phi"], deg),
+            "ci95_width": xr.Variable(("parameter",), [self.ci95_width[n] for n in self.free],
+                                      {"long_name": "predicted 95% interval width, chosen set"}),
+            "ci95_width_reference": xr.Variable(("parameter",), [self.ci95_width_reference[n] for n in self.free],
+                                                {"long_name": "predicted 95% interval width, reference set"}),
+        }
+        comp = list(self.comparisons)
+        allp = list(self.free) + (["ks"] if "ks" not in self.free else [])
+        data["comparison_width"] = xr.Variable(
+            ("comparison", "parameter_all"),
+            [[self.comparisons[c]["widths"].get(n, np.nan) for n in allp] for c in comp],
+            {"long_name": "predicted 95% interval width (NaN: not free)"})
+        data["comparison_points"] = xr.Variable(("comparison",), [self.comparisons[c]["n_points"] for c in comp])
+        data["comparison_description"] = xr.Variable(("comparison",), [self.comparisons[c]["description"]
+                                                                        for c in comp])
+        info_dims = tuple(f"candidate_{n}" for n in self.information_axes) or ("candidate",)
+        data["information"] = xr.Variable(info_dims, self.information, {"long_name": self.information_label,
+                                                                        "units": "1"})
+        coords = {"parameter": list(self.free), "parameter_all": allp, "comparison": comp}
+        for n, v in self.information_axes.items():
+            coords[f"candidate_{n}"] = xr.Variable((f"candidate_{n}",), v, deg)
+        if self.n_materials > 1:
+            data["materials"] = xr.Variable(("material", "model_parameter"),
+                                            np.stack([self.materials[n] for n in PARAMETERS], axis=1))
+            data["ci95_width_materials"] = xr.Variable(("material", "parameter"),
+                                                       np.stack([self.ci95_width_materials[n] for n in self.free],
+                                                                axis=1))
+            coords["model_parameter"] = list(PARAMETERS)
+        attrs = dict(criterion=self.criterion, target=",".join(self.target), noise=self.noise,
+                     intensity=int(self.intensity), intensity_noise=self.intensity_noise,
+                     criterion_value=self.criterion_value, criterion_greedy=self.criterion_greedy,
+                     criterion_reference=self.criterion_reference, swaps=self.swaps,
+                     n_materials=self.n_materials, shadowing=self.shadowing, engine=self.engine,
+                     seconds=round(self.seconds, 3))
+        for n, (lo, hi) in self.bounds.items():
+            attrs[f"bounds_{n}"] = [lo, hi]
+        for n, v in self.material.items():
+            attrs[f"material_{n}"] = v
+        return xr.Dataset(data, coords=coords, attrs=attrs)
+
+
+# ----------------------------------------------------------------------------------- inputs
+
+def _positive(name, v):
+    if isinstance(v, (bool, np.bool_)) or not isinstance(v, numbers.Real) or not np.isfinite(v) or v <= 0:
+        raise ValueError(f"{name} must be a positive number, got {v!r}")
+    return float(v)
+
+
+def check_points(where, spec, default_phi=180.0):
+    """A candidate or reference set: a geometry dict (the product grid of
+    :func:`pbrdf_cl.sensitivity.check_geometry`) or explicit points, a sequence of
+    (theta_i, theta_r) or (theta_i, theta_r, phi) or an (N, 2|3) array.  Returns
+    (dict theta_i/theta_r/phi -> 1-d arrays, grid axes dict or None)."""
+    from . import api
+    if isinstance(spec, dict):
+        axes, scalars = check_geometry(spec, where)
+        geo, shape = geometry_list(axes, scalars)
+        return geo, axes
+    try:
+        a = np.asarray(spec, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"{where}: give a dict of theta_i, theta_r (and phi) -> angles, or a list of "
+                         f"(theta_i, theta_r[, phi]) points in degrees; got {spec!r:.80}") from None
+    if a.ndim != 2 or a.shape[1] not in (2, 3) or a.shape[0] == 0:
+        raise ValueError(f"{where}: points must be an (N, 2) or (N, 3) array of (theta_i, theta_r[, phi]) "
+                         f"in degrees, got shape {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"{where}: the points must be finite numbers")
+    geo = {"theta_i": a[:, 0].copy(), "theta_r": a[:, 1].copy(),
+           "phi": a[:, 2].copy() if a.shape[1] == 3 else np.full(a.shape[0], default_phi)}
+    for n in GEOMETRY:
+        try:
+            api.check_values(n, geo[n])
+        except ValueError as exc:
+            raise ValueError(f"{where}: {exc}") from None
+    api.check_degrees(geo["theta_i"], geo["theta_r"], where=f"{where}: ")
+    return geo, None
+
+
+def _materials(params, fixed, count, seed):
+    """The hypothesised material(s): (dict name -> (S,) arrays over the six parameters, ranges)."""
+    if not isinstance(params, dict) or not params:
+        raise ValueError("params: give a dict of n, k, sigma (and kd, c, ks) -> a value, or -> (low, high) "
+                         "ranges for a box of materials")
+    ranged = {n: v for n, v in params.items() if isinstance(v, (tuple, list, dict))}
+    scalars = {n: v for n, v in params.items() if n not in ranged}
+    fixed = dict(fixed or {})
+    for n, v in fixed.items():
+        if n in ranged:
+            raise ValueError(f"fixed: {n!r} has a range in params and a fixed value; give one")
+        if n in scalars:
+            try:
+                same = float(scalars[n]) == float(v)
+            except (TypeError, ValueError):
+                same = False
+            if not same:
+                raise ValueError(f"fixed: {n} = {v!r} differs from params[{n!r}] = {scalars[n]!r}; give one")
+    for n in list(ranged):
+        if isinstance(ranged[n], (tuple, list)) and len(ranged[n]) == 1:
+            scalars[n] = ranged.pop(n)[0]
+    rngs = check_ranges(ranged, "params") if ranged else ()
+    vals = check_fixed({**scalars, **fixed}, {r.name for r in rngs}, "params")
+    if not rngs:
+        return {n: np.array([vals[n]]) for n in PARAMETERS}, rngs
+    d = len(rngs)
+    rng = np.random.default_rng(seed)  # a seeded Latin hypercube: each range cut into count strata
+    u = (np.stack([rng.permutation(count) for _ in range(d)], axis=1) + rng.random((count, d))) / count
+    lo = np.array([r.bounds[0] for r in rngs])
+    hi = np.array([r.bounds[1] for r in rngs])
+    X = lo + u * (hi - lo)
+    out = {n: np.full(count, vals[n]) for n in vals}
+    for j, r in enumerate(rngs):
+        out[r.name] = r.values(X[:, j])
+    return {n: out[n] for n in PARAMETERS}, rngs
+
+
+# -------------------------------------------------------------------------------- Jacobians
+
+def _x_of(mat, names):
+    """Material values -> the fit's coordinates: kd as the ratio kd/ks (DOP depends on it alone)."""
+    x = {n: np.asarray(mat[n], float) for n in PARAMETERS}
+    x["kd"] = x["kd"] / x["ks"]
+    return np.stack([x[n] for n in names], axis=-1)
+
+
+def _model_of(X, names, base):
+    """Fit coordinates (S, d) -> the model's six parameter arrays (kd = ratio * ks)."""
+    p = {n: np.asarray(base[n], float).copy() for n in PARAMETERS}
+    for j, n in enumerate(names):
+        p[n] = X[:, j]
+    p["kd"] = p["kd"] * p["ks"]
+    return p
+
+
+def jacobians(eng, geometry, mat, names, lo, hi, shadowing="paper"):
+    """Central-difference derivatives of DOP and F00 at every geometry for every material, in the
+    fit's coordinates ``names`` (any of n, k, sigma, kd = kd/ks, c, ks): the materials and their
+    steps (h = ``inversion.CENTRAL_STEP`` of each bound range, cut at a bound as
+    ``inversion.fd_jacobian``) are the parameter sets of one :func:`pbrdf_cl.dense.outer` call
+    per quantity (float64).
+
+    Returns (dop, f00, J_dop, J_f00): values (M, G) and derivatives (M, G, d)."""
+    X = _x_of(mat, names)  # (M, d)
+    M, d = X.shape
+    h = inversion.CENTRAL_STEP * (hi - lo)
+    up, dn = np.minimum(X + h, hi), np.maximum(X - h, lo)
+    eye = np.eye(d, dtype=bool)[None]
+    base = X[:, None, :]
+    pts = np.concatenate([base, np.where(eye, up[:, None, :], base), np.where(eye, dn[:, None, :], base)], axis=1)
+    S = pts.reshape(-1, d)
+    basep = {n: np.repeat(np.asarray(mat[n], float), 2 * d + 1) for n in PARAMETERS}
+    params = _model_of(S, names, basep)
+    out = []
+    for quantity in ("dop", "brdf"):
+        Y = outer(eng, quantity, geometry, params, "float64", shadowing)  # (G, M (2d+1))
+        Y = np.asarray(Y, float).reshape(-1, M, 2 * d + 1).transpose(1, 0, 2)  # (M, G, 2d+1)
+        J = (Y[:, :, 1:d + 1] - Y[:, :, d + 1:]) / (up - dn)[:, None, :]
+        out += [Y[:, :, 0], J]
+    return out[0], out[2], out[1], out[3]
+
+
+def whitened_rows(dop_J, f00, f00_J, noise, intensity_noise, intensity):
+    """Rows (M, G, r, d): dDOP/dx / noise, and with ``intensity`` dF00/dx / (intensity_noise F00)."""
+    rows = [dop_J / noise]
+    if intensity:
+        rows.append(f00_J / (intensity_noise * f00)[..., None])
+    return np.stack(rows, axis=2)
+
+
+def predicted_widths(rows, x, lo, hi):
+    """Predicted 95% interval widths of one material from its rows (K, d) at the measurements:
+    covariance (J^T J)^+ (``inversion._covariance``), x +- 1.96 se (never narrower than the
+    optimiser's resolution) clipped to the bounds.  Returns (widths (d,), se (d,))."""
+    cov, _, _ = inversion._covariance(rows, 1.0, hi - lo)
+    se = np.sqrt(np.clip(np.diag(cov), 0, None))
+    half = np.maximum(Z95 * se, inversion.X_RESOLUTION * (hi - lo))
+    return np.minimum(hi, x + half) - np.maximum(lo, x - half), se
+
+
+# ----------------------------------------------------------------------------------- search
+
+class _Criterion:
+    """Criterion A or D of covariances C (M, d, d) in scaled parameters, and its change by adding
+    rows (with signs) to the information, for many candidates at once."""
+
+    def __init__(self, kind, target_idx):
+        self.kind, self.t = kind, np.asarray(target_idx)
+
+    def value(self, C):
+        Ct = C[:, self.t[:, None], self.t[None, :]]
+        if self.kind == "A":
+            return np.trace(Ct, axis1=1, axis2=2)
+        sign, ld = np.linalg.slogdet(Ct)
+        return np.where(sign > 0, ld, np.inf)
+
+    def factor(self, C):
+        """R (M, t, t) with Z = (K_T R)(K_T R)^T the criterion's quadratic form."""
+        if self.kind == "A":
+            return None
+        Ct = C[:, self.t[:, None], self.t[None, :]]
+        return np.linalg.cholesky(np.linalg.inv(Ct))
+
+    def forms(self, C, R, U):
+        """The quadratic forms of rows U (M, N, m, d): V = U C U^T and Z = (U C)_T G (U C)_T^T
+        (G the identity for A, the inverse target covariance for D), and L = (U C)_T R."""
+        K = np.matmul(U, C[:, None])
+        L = K[..., self.t]
+        if R is not None:
+            L = np.matmul(L, R[:, None])
+        return np.matmul(K, np.swapaxes(U, -1, -2)), np.matmul(L, np.swapaxes(L, -1, -2)), L
+
+    def change(self, C, R, U, signs):
+        """Change of the criterion (M, N) when rows U (M, N, m, d) are added (signs +1) or removed
+        (-1) from the information of covariance C; +inf where the result is singular or invalid."""
+        V, Z, _ = self.forms(C, R, U)
+        return self.change_of(V, Z, signs)
+
+    def change_of(self, V, Z, signs):
+        """:meth:`change` from the forms V, Z (M, N, m, m) (Woodbury: the new covariance is
+        C - C U^T S^-1 U C with S = diag(1/signs) + V, so the A criterion falls by trace(S^-1 Z)
+        and log det of the target covariance changes by log det(S - Z) - log det S); closed forms
+        for m = 1 and 2, batched linear algebra otherwise."""
+        signs = np.asarray(signs, float)
+        m = signs.size
+        # the new information is positive definite iff (-1)^(removed rows) det S > 0
+        parity = 1.0 if np.sum(signs < 0) % 2 == 0 else -1.0
+        with np.errstate(all="ignore"):
+            if m == 1:
+                S, z = V[..., 0, 0] + 1.0 / signs[0], Z[..., 0, 0]
+                det, scale = S, np.abs(S)
+                out = -z / S if self.kind == "A" else np.log((S - z) / S)
+            elif m == 2:
+                s11, s12, s22 = V[..., 0, 0] + 1.0 / signs[0], V[..., 0, 1], V[..., 1, 1] + 1.0 / signs[1]
+                z11, z12, z22 = Z[..., 0, 0], Z[..., 0, 1], Z[..., 1, 1]
+                det = s11 * s22 - s12 * s12
+                scale = np.abs(s11 * s22) + s12 * s12
+                if self.kind == "A":
+                    out = -(s22 * z11 - 2 * s12 * z12 + s11 * z22) / det
+                else:
+                    out = np.log(((s11 - z11) * (s22 - z22) - (s12 - z12) ** 2) / det)
+            else:
+                S = V + np.diag(1.0 / signs)
+                det = np.linalg.det(S)
+                scale = np.prod(np.abs(np.diagonal(S, axis1=-2, axis2=-1)), axis=-1)
+                if self.kind == "A":
+                    ok = parity * det > 0
+                    Ssafe = np.where(ok[..., None, None], S, np.eye(m))
+                    out = -np.trace(np.linalg.solve(Ssafe, Z), axis1=-2, axis2=-1)
+                else:
+                    sn, ld = np.linalg.slogdet(S - Z)
+                    sd, ldS = np.linalg.slogdet(S)
+                    out = np.where(sn * sd > 0, ld - ldS, np.nan)
+            bad = ~np.isfinite(out) | ~(parity * det > 1e-12 * scale)
+        return np.where(bad, np.inf, out)
+
+
+def _det(X):
+    """Determinants of (..., r, r) arrays, closed forms for r = 1, 2."""
+    r = X.shape[-1]
+    if r == 1:
+        return X[..., 0, 0]
+    if r == 2:
+        return X[..., 0, 0] * X[..., 1, 1] - X[..., 0, 1] * X[..., 1, 0]
+    return np.linalg.det(X)
+
+
+def _inv_small(X):
+    """Inverses of (..., r, r) arrays, closed forms for r = 1, 2 (NaN/inf where singular)."""
+    r = X.shape[-1]
+    with np.errstate(all="ignore"):
+        if r == 1:
+            return 1.0 / X
+        if r == 2:
+            d = _det(X)[..., None, None]
+            out = np.empty_like(X)
+            out[..., 0, 0], out[..., 1, 1] = X[..., 1, 1], X[..., 0, 0]
+            out[..., 0, 1], out[..., 1, 0] = -X[..., 0, 1], -X[..., 1, 0]
+            return out / d
+    return np.linalg.inv(X)
+
+
+def _swap_change(kind, Vaa, Zaa, La, Vci, Zci, ci):
+    """Change of the criterion (M, N) when chosen geometry ``ci`` is swapped for each candidate:
+    the Woodbury update by [a_c; a_i] with signs (+1, -1), its 2r x 2r matrices eliminated
+    block-wise through the removed geometry's r x r block (closed forms, no batched LAPACK).
+    ``Vaa``, ``Zaa`` (M, N, r, r), ``La`` (M, N, r, t): the candidates' forms; ``Vci``, ``Zci``
+    (M, N, r, r): their cross forms with ``ci``.  +inf where the swap leaves the information
+    singular, or where removing ``ci`` alone would."""
+    r = Vaa.shape[-1]
+    eye = np.eye(r)
+    swapT = lambda X: np.swapaxes(X, -1, -2)  # noqa: E731
+    with np.errstate(all="ignore"):
+        Scc, Sci, Sii = Vaa + eye, Vci, (Vaa[:, ci] - eye)[:, None]  # Sii (M, 1, r, r)
+        Sii_inv = _inv_small(Sii)
+        T = Scc - Sci @ Sii_inv @ swapT(Sci)
+        detS = _det(Sii) * _det(T)
+        parity = 1.0 if r % 2 == 0 else -1.0
+        if kind == "A":
+            Li = La[:, ci][:, None]  # (M, 1, r, t)
+            Wi = Sii_inv @ Li
+            E = La - Sci @ Wi
+            out = -(np.sum(E * (_inv_small(T) @ E), axis=(-2, -1)) + np.sum(Li * Wi, axis=(-2, -1)))
+        else:
+            Xcc, Xci, Xii = Scc - Zaa, Sci - Zci, Sii - Zaa[:, ci][:, None]
+            detX = _det(Xii) * _det(Xcc - Xci @ _inv_small(Xii) @ swapT(Xci))
+            out = np.log(detX / detS)
+        scale = np.abs(_det(Sii)) * np.prod(np.abs(np.diagonal(T, axis1=-2, axis2=-1)), axis=-1)
+        bad = ~np.isfinite(out) | ~(parity * detS > 1e-12 * scale)
+    return np.where(bad, np.inf, out)
+
+
+def _final_value(crit, Minfo):
+    """The mean criterion of informations (M, d, d) from their pseudo-inverse (no prior)."""
+    return float(np.mean(crit.value(np.linalg.pinv(Minfo, rcond=1e-15, hermitian=True))))
+
+
+def select(A, n, crit, available, repeats=False, exchange=True):
+    """Greedy forward selection then Fedorov exchange over candidate rows ``A`` (M, N, r, d) (scaled
+    parameters): the indices of the ``n`` chosen, the greedy choice, the number of swaps and which
+    materials' information stayed singular (those keep the weak prior throughout)."""
+    M, N, r, d = A.shape
+    eye = np.eye(d)[None]
+    Minfo = np.zeros((M, d, d))
+    chosen = []
+    taken = np.zeros(N, bool)
+    prior = np.ones(M, bool)
+
+    def cov(Mi):
+        return np.linalg.inv(Mi + PRIOR * eye * prior[:, None, None])
+
+    for step in range(n):
+        C = cov(Minfo)
+        gain = crit.change(C, crit.factor(C), A, np.ones(r)).mean(axis=0)
+        gain = np.where(available & (repeats | ~taken), gain, np.inf)
+        best = int(np.argmin(gain))
+        if not np.isfinite(gain[best]):
+            raise ValueError("candidates: no candidate adds information (every Jacobian row is zero or "
+                             "non-finite at these geometries)")
+        chosen.append(best)
+        taken[best] = True
+        Minfo = Minfo + np.einsum("mrd,mre->mde", A[:, best], A[:, best])
+        if prior.any() and step + 1 >= d:
+            prior = prior & _singular(Minfo)
+    greedy = list(chosen)
+    swaps = 0
+    if not exchange:
+        return chosen, greedy, swaps, prior
+    f = float(np.mean(crit.value(cov(Minfo))))
+    for _ in range(MAX_SWAPS_PER_POINT * n):
+        C = cov(Minfo)
+        R = crit.factor(C)
+        best = (0.0, None, None)
+        ok0 = available & (repeats | ~taken)
+        Vaa, Zaa, La = crit.forms(C, R, A)  # the candidates' own forms, shared by every swap
+        KA = np.matmul(A, C[:, None])
+        for p, ci in enumerate(chosen):
+            # the cross forms between every candidate and the chosen geometry ci
+            Vci = np.matmul(KA, np.swapaxes(A[:, ci], -1, -2)[:, None])
+            Zci = np.matmul(La, np.swapaxes(La[:, ci], -1, -2)[:, None])
+            delta = _swap_change(crit.kind, Vaa, Zaa, La, Vci, Zci, ci).mean(axis=0)
+            ok = ok0.copy()
+            ok[ci] = False
+            delta = np.where(ok, delta, np.inf)
+            c = int(np.argmin(delta))
+            if delta[c] < best[0]:
+                best = (float(delta[c]), p, c)
+        if best[1] is None or best[0] > -1e-9 * max(1.0, abs(f)):
+            break
+        _, p, c = best
+        old = chosen[p]
+        Mnew = Minfo + np.einsum("mrd,mre->mde", A[:, c], A[:, c]) - np.einsum("mrd,mre->mde", A[:, old], A[:, old])
+        fnew = float(np.mean(crit.value(cov(Mnew))))
+        if not fnew < f:  # the update's prediction not confirmed (round-off): stop
+            break
+        Minfo, f = Mnew, fnew
+        chosen[p] = c
+        taken[old] = old in chosen
+        taken[c] = True
+        swaps += 1
+    return chosen, greedy, swaps, prior
+
+
+def _singular(Minfo):
+    """Per material: is the (scaled) information numerically singular?"""
+    w = np.linalg.eigvalsh(Minfo)
+    return w[:, 0] <= w[:, -1] / SINGULAR_COND
+
+
+# ----------------------------------------------------------------------------------- design
+
+def design(params, candidates=None, noise=0.005, n_measurements=30, target=("n", "k"), intensity=False, fixed=None,
+           *, criterion="A", reference=None, intensity_noise=inversion.F00_REL_STD, bounds=None, materials=16,
+           repeats=False, seed=0, shadowing="paper", engine=None, backend="auto", progress=False):
+    """Choose the measurement geometries that best determine the target parameters.
+
+    Parameters
+    ----------
+    params : dict
+        The hypothesised material: n, k, sigma (and kd, c, ks; defaults 0, 0, 1) -> a value; or
+        any of them -> (low, high) (or (low, high, "log")) for a box of materials, of which
+        ``materials`` are drawn (a seeded Latin hypercube) and the criterion
+        averaged over them.
+    candidates : dict or sequence, optional
+        The geometries to choose from (degrees): a dict theta_i, theta_r (, phi) -> a value, a 1-d
+        sequence or a range string ("10:80:5", "0:85@18") for their product grid, or explicit
+        points, a sequence of (theta_i, theta_r[, phi]) or an (N, 2|3) array.  Default
+        theta_i 10..80 and theta_r 0..85 in 5 degree steps, in plane.
+    noise : float, default 0.005
+        Standard deviation of each DOP measurement.
+    n_measurements : int, default 30
+        How many geometries to choose (more than the free parameters).
+    target : sequence of str, default ("n", "k")
+        The free parameters whose intervals the criterion minimises.
+    intensity : bool, default False
+        Each geometry also measures F00 with relative standard deviation ``intensity_noise``:
+        ks becomes free, and kd is the ratio kd/ks (as :func:`pbrdf_cl.fit` with an f00 column).
+    fixed : dict, optional
+        Parameters held fixed (known) in the fit: name -> value.
+    criterion : {"A", "D"}, default "A"
+        "A": the sum over the targets of variance / (bound range)^2; "D": log det of the
+        targets' covariance.
+    reference : dict or sequence, optional
+        A measurement set to compare with (same forms as ``candidates``); default the paper's,
+        theta_i 30/40/50 x theta_r 20..65 step 5, in plane.
+    intensity_noise : float, default 0.05
+        Relative standard deviation of F00 (the fit's assumption without an f00_std column).
+    bounds : dict, optional
+        The fit's bounds (name -> (low, high)); defaults those of :func:`pbrdf_cl.fit`.
+    materials : int, default 16
+        Materials drawn from a box.
+    repeats : bool, default False
+        Allow a geometry to be chosen more than once.
+    seed : int, default 0
+        Seeds the materials drawn from a box.
+    shadowing, engine, backend : as for :func:`pbrdf_cl.fit`
+    progress : bool
+        Accepted for symmetry with the other entry points (the design takes about a second).
+
+    Returns
+    -------
+    DesignResult
+        ``theta_i``, ``theta_r``, ``phi``, ``ci95_width``, ``ci95_width_reference``,
+        ``reference``, ``comparisons``, ``information``, ``criterion``, ``free``, ``target``,
+        ``noise``; ``summary()``, ``to_dataset()``.
+
+    Examples
+    --------
+    >>> import pbrdf_cl
+    >>> r = pbrdf_cl.design(dict(n=1.6, k=2.139, sigma=0.5, kd=0.15, c=-0.3), noise=0.005, backend="numpy")
+    >>> len(r.theta_i), bool(r.ci95_width["n"] < r.ci95_width_reference["n"])
+    (30, True)
+    """
+    t0 = time.perf_counter()
+    if criterion not in CRITERIA:
+        raise ValueError(f"criterion must be 'A' or 'D', got {criterion!r}")
+    noise = _positive("noise", noise)
+    intensity_noise = _positive("intensity_noise", intensity_noise)
+    if not isinstance(intensity, (bool, np.bool_)):
+        raise ValueError(f"intensity must be True or False, got {intensity!r}")
+    if isinstance(materials, bool) or not isinstance(materials, (int, np.integer)) or materials < 1:
+        raise ValueError(f"materials must be a positive integer, got {materials!r}")
+    if shadowing not in _reference.SHADOWING:
+        raise ValueError(f"shadowing must be one of {sorted(_reference.SHADOWING)}, got {shadowing!r}")
+    mat, rngs = _materials(params, fixed, int(materials), seed)
+    fixed = dict(fixed or {})
+    bnds, fx = inversion._check_bounds("six-param", {k: v for k, v in (bounds or {}).items() if k != "ks"}, fixed)
+    ks_bounds = tuple(map(float, (bounds or {}).get("ks", inversion.DEFAULT_BOUNDS["ks"])))
+    if intensity and ("ks" in fx or "kd" in fx):
+        raise ValueError(f"intensity: with {'ks' if 'ks' in fx else 'kd'} fixed the fit ignores intensities "
+                         "(it separates ks and kd only with both free); drop it from fixed or intensity=False")
+    free5 = [n for n in inversion.MODEL_PARAMS["six-param"] if n not in fx]
+    names_all = free5 + (["ks"] if "ks" not in fx else [])
+    free = free5 + (["ks"] if intensity else [])
+    if isinstance(target, str):
+        target = (target,)
+    target = tuple(target)
+    if not target:
+        raise ValueError("target: give at least one parameter, e.g. ('n', 'k')")
+    for t in target:
+        if t not in PARAMETERS:
+            raise ValueError(f"target: unknown parameter {t!r}; parameters are {', '.join(PARAMETERS)}")
+        if t not in free:
+            why = ("is fixed" if t in fx else
+                   "is free only with intensity=True (DOP depends on kd/ks alone)" if t == "ks" else "is not free")
+            raise ValueError(f"target: {t!r} {why}; free parameters are {', '.join(free)}")
+    if len(set(target)) != len(target):
+        raise ValueError(f"target: {target!r} names a parameter twice")
+    if isinstance(n_measurements, bool) or not isinstance(n_measurements, (int, np.integer)):
+        raise ValueError(f"n_measurements must be an integer, got {n_measurements!r}")
+    n = int(n_measurements)
+    if n <= len(free):
+        raise ValueError(f"n_measurements: {n} is too few for {len(free)} free parameters ({', '.join(free)}); "
+                         f"the fit needs at least {len(free) + 1}")
+    cand, cand_axes = check_points("candidates", DEFAULT_CANDIDATES if candidates is None else candidates)
+    ref_given = reference is not None
+    ref, _ = check_points("reference", PAPER_GEOMETRY if reference is None else reference)
+    N, Gr = cand["theta_i"].size, ref["theta_i"].size
+    if not repeats and n > N:
+        raise ValueError(f"n_measurements: {n} is more than the {N} candidate geometries (repeats=False)")
+    # bounds and the material(s)
+    lo_all = np.array([bnds[x][0] if x != "ks" else ks_bounds[0] for x in names_all])
+    hi_all = np.array([bnds[x][1] if x != "ks" else ks_bounds[1] for x in names_all])
+    for name in PARAMETERS:
+        if name in fx:
+            mat[name] = np.full_like(mat[name], fx[name])
+    X = _x_of(mat, names_all)
+    for j, name in enumerate(names_all):
+        outside = (X[:, j] < lo_all[j]) | (X[:, j] > hi_all[j])
+        if np.any(outside):
+            v = X[int(np.argmax(outside)), j]
+            label = "kd/ks" if name == "kd" else name
+            raise ValueError(f"params: {label} = {v:g} lies outside the fit's bounds ({lo_all[j]:g}, {hi_all[j]:g}); "
+                             "widen bounds or change params")
+    eng = resolve_engine(engine, backend)
+    geo = {g: np.concatenate([cand[g], ref[g]]) for g in GEOMETRY}
+    dop, f00, Jd, Jf = jacobians(eng, geo, mat, names_all, lo_all, hi_all, shadowing)
+    span_all = hi_all - lo_all
+    M = X.shape[0]
+
+    def mode_cols(with_int):
+        names = free5 + (["ks"] if with_int else [])
+        return names, np.array([names_all.index(x) for x in names])
+
+    def rows_for(with_int, scaled):
+        names, cols = mode_cols(with_int)
+        R = whitened_rows(Jd[..., cols], f00, Jf[..., cols], noise, intensity_noise, with_int)
+        return R * span_all[cols] if scaled else R
+
+    def widths_of(idx, with_int):
+        """Median widths over the materials and the per-material widths of a set of indices."""
+        names, cols = mode_cols(with_int)
+        R = rows_for(with_int, False)[:, idx]
+        W = np.stack([predicted_widths(R[m].reshape(-1, len(cols)), X[m, cols], lo_all[cols], hi_all[cols])[0]
+                      for m in range(M)])
+        return {x: float(np.median(W[:, j])) for j, x in enumerate(names)}, W
+
+    A = rows_for(intensity, True)
+    t_idx = [free.index(t) for t in target]
+    crit = _Criterion(criterion, t_idx)
+    available = np.all(np.isfinite(A[:, :N]), axis=(0, 2, 3)) & np.any(A[:, :N] != 0, axis=(0, 2, 3))
+    Ac = np.where(np.isfinite(A[:, :N]), A[:, :N], 0.0)
+    if not repeats and int(available.sum()) < n:
+        raise ValueError(f"n_measurements: {n} is more than the {int(available.sum())} candidate geometries "
+                         "where the model is defined (repeats=False)")
+    chosen, greedy, swaps, singular = select(Ac, n, crit, available, bool(repeats))
+
+    def info_of(idx):
+        return np.einsum("mkrd,mkre->mde", Ac[:, idx], Ac[:, idx])
+
+    Aref = np.where(np.isfinite(A[:, N:]), A[:, N:], 0.0)
+    f_final, f_greedy = _final_value(crit, info_of(chosen)), _final_value(crit, info_of(greedy))
+    f_ref = _final_value(crit, np.einsum("mkrd,mkre->mde", Aref, Aref))
+    # each candidate's value at the final design: what one more measurement there would gain
+    Mfin = info_of(chosen)
+    Cfin = np.linalg.pinv(Mfin, rcond=1e-15, hermitian=True)
+    gain = crit.change(Cfin, crit.factor(Cfin), Ac, np.ones(Ac.shape[2]))
+    if criterion == "A":
+        info = -np.mean(gain / crit.value(Cfin)[:, None], axis=0)
+        info_label = "relative reduction of the A criterion by one more measurement here"
+    else:
+        info = -np.mean(gain, axis=0)
+        info_label = "reduction of log det of the target covariance by one more measurement here"
+    info = np.where(available & np.isfinite(info), info, np.nan)
+    if cand_axes is not None:
+        shape = tuple(a.size for a in cand_axes.values())
+        info_axes = dict(cand_axes)
+        info = info.reshape(shape)
+    else:
+        info_axes = {}
+    # the widths: chosen, reference and their variants
+    idx_c, idx_r = np.array(chosen), N + np.arange(Gr)
+    wc, Wc = widths_of(idx_c, intensity)
+    wr, _ = widths_of(idx_r, intensity)
+    comparisons = {}
+    tag = " + F00" if intensity else ""
+    comparisons["chosen"] = dict(widths=wc, n_points=n, description=f"chosen ({criterion}){tag}")
+    comparisons["reference"] = dict(widths=wr, n_points=Gr,
+                                    description=("reference" if ref_given else "paper 30/40/50 x 20..65") + tag)
+    other = not intensity
+    comparisons["chosen_other"] = dict(widths=widths_of(idx_c, other)[0], n_points=n,
+                                       description=f"chosen ({criterion})" + (" + F00" if other else ", DOP only"))
+    comparisons["reference_other"] = dict(widths=widths_of(idx_r, other)[0], n_points=Gr,
+                                          description=("reference" if ref_given else "paper")
+                                          + (" + F00" if other else ", DOP only"))
+    # one incidence of the reference against two
+    incid = np.unique(ref["theta_i"])
+    first = PAPER_INCIDENCE if (not ref_given and PAPER_INCIDENCE in incid) else float(incid[len(incid) // 2])
+    one = idx_r[ref["theta_i"] == first]
+    if one.size > len(free):
+        comparisons["one_incidence"] = dict(widths=widths_of(one, intensity)[0], n_points=int(one.size),
+                                            description=f"ref. theta_i {first:g} alone{tag}")
+        best = None
+        for second in [v for v in incid if v != first]:
+            idx2 = np.concatenate([one, idx_r[ref["theta_i"] == second]])
+            f2 = _final_value(crit, np.einsum("mkrd,mkre->mde", A[:, idx2], A[:, idx2]))
+            if best is None or f2 < best[0]:
+                best = (f2, second, idx2)
+        if best is not None:
+            comparisons["two_incidences"] = dict(widths=widths_of(best[2], intensity)[0],
+                                                 n_points=int(best[2].size),
+                                                 description=f"ref. theta_i {first:g} + {best[1]:g}{tag}")
+    out = DesignResult(
+        theta_i=cand["theta_i"][idx_c].copy(), theta_r=cand["theta_r"][idx_c].copy(), phi=cand["phi"][idx_c].copy(),
+        indices=idx_c, ci95_width=wc, ci95_width_reference=wr,
+        ci95_width_materials={x: Wc[:, j] for j, x in enumerate(free)},
+        reference={g: ref[g].copy() for g in GEOMETRY}, reference_is_paper=not ref_given,
+        candidates={g: cand[g].copy() for g in GEOMETRY}, comparisons=comparisons,
+        information=info, information_axes=info_axes, information_label=info_label,
+        criterion=criterion, criterion_value=f_final, criterion_greedy=f_greedy, criterion_reference=f_ref,
+        greedy={g: cand[g][np.array(greedy)].copy() for g in GEOMETRY}, swaps=swaps, singular=int(np.sum(singular)),
+        free=list(free), target=list(target), noise=noise, intensity=bool(intensity),
+        intensity_noise=intensity_noise, n_materials=M, materials={k: v.copy() for k, v in mat.items()},
+        material={k: float(np.median(v)) for k, v in mat.items()}, ranges={r.name: (r.low, r.high) for r in rngs},
+        bounds={x: (float(lo_all[j]), float(hi_all[j])) for j, x in enumerate(names_all) if x in free},
+        fixed=fx, shadowing=shadowing, engine=eng.description, seconds=time.perf_counter() - t0)
+    return out
+
+
+
+# ----------------------------------------------------------------------------------- figure
+
+def plot_design(result, path):
+    """Draw a design into a PNG (matplotlib Agg): left, the information map over (theta_i,
+    theta_r) (the maximum over phi where phi is an axis; explicit candidates as coloured points)
+    with the chosen geometries (circles) and the reference's (crosses); right, the predicted 95%
+    interval widths per parameter, chosen against reference, each with and without an intensity
+    column (log scale).  Returns the (closed) Figure."""
+    from .plots import _pyplot
+    plt = _pyplot()
+    fig, (ax, axb) = plt.subplots(1, 2, figsize=(13, 5.2), layout="constrained",
+                                  gridspec_kw=dict(width_ratios=[1.1, 1]))
+    info = np.asarray(result.information, float)
+    axes = result.information_axes
+    label = ("relative reduction of the A criterion\nby one more measurement (1)" if result.criterion == "A"
+             else "reduction of log det of the target\ncovariance by one more measurement (1)")
+    if "theta_i" in axes and "theta_r" in axes:
+        names = list(axes)
+        img = info
+        if "phi" in axes:
+            with np.errstate(all="ignore"):
+                img = np.nanmax(img, axis=names.index("phi"))
+            names.remove("phi")
+        if names.index("theta_i") > names.index("theta_r"):
+            img = img.T
+        ti, tr = axes["theta_i"], axes["theta_r"]
+        pos = img[np.isfinite(img) & (img > 0)]
+        norm = None
+        if pos.size and pos.max() / max(pos.min(), 1e-300) > 100:
+            from matplotlib.colors import LogNorm
+            norm = LogNorm(vmin=max(pos.min(), pos.max() * 1e-6), vmax=pos.max())
+        mesh = ax.pcolormesh(tr, ti, np.where(img > 0, img, np.nan) if norm else img, shading="nearest",
+                             cmap="viridis", norm=norm)
+    else:
+        c = result.candidates
+        mesh = ax.scatter(c["theta_r"], c["theta_i"], c=info.reshape(-1), s=18, cmap="viridis")
+    fig.colorbar(mesh, ax=ax, label=label)
+    ax.plot(result.reference["theta_r"], result.reference["theta_i"], "x", color="tab:red", ms=7, mew=1.5,
+            label="paper's geometry" if result.reference_is_paper else "reference")
+    ax.plot(result.theta_r, result.theta_i, "o", mfc="none", mec="white", ms=9, mew=1.8,
+            label=f"chosen ({len(result.theta_i)})")
+    ax.set_xlabel("theta_r (deg)")
+    ax.set_ylabel("theta_i (deg)")
+    ax.set_title(f"information for {', '.join(result.target)} at the final design (criterion {result.criterion})")
+    ax.legend(loc="lower left", fontsize=8, framealpha=0.8)
+    comp = result.comparisons
+    keys = ["chosen", "chosen_other", "reference", "reference_other"]
+    params = list(result.free) + ([] if "ks" in result.free else ["ks"])
+    width = 0.8 / len(keys)
+    colours = ["tab:blue", "tab:cyan", "tab:red", "tab:orange"]
+    for i, key in enumerate(keys):
+        w = comp[key]["widths"]
+        xs = [j + (i - (len(keys) - 1) / 2) * width for j, p in enumerate(params) if p in w]
+        axb.bar(xs, [w[p] for p in params if p in w], width, color=colours[i],
+                label=f"{comp[key]['description']} ({comp[key]['n_points']} points)")
+    axb.set_yscale("log")
+    axb.set_xticks(range(len(params)), [("kd/ks" if p == "kd" else p) for p in params])
+    axb.set_xlabel("parameter")
+    axb.set_ylabel("predicted 95% interval width (parameter units; dimensionless)")
+    axb.set_title(f"DOP noise {result.noise:g}" + (f", F00 relative noise {result.intensity_noise:g}"))
+    axb.legend(fontsize=8)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return fig
