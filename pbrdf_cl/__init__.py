@@ -17,7 +17,7 @@ from .sweeps import SpecError, SweepResult, SweepSpec, load_spec, sweep
 from .inversion import FitResult, compare_models, fit
 from .batch import fit_batch
 from .sensitivity import morris, sobol
-from .design import DesignResult, design
+from .designs import DesignResult, design
 from .engine import (DeviceUnusableError, DeviceWarning, Engine, NumpyEngine, OpenCLUnavailableError,
                      get_default_engine, list_devices, probe, select_device, set_default_engine)
 

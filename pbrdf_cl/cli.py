@@ -392,7 +392,7 @@ def _items(values):
 
 
 def cmd_design(args) -> int:
-    from .design import GEOMETRY, design, plot_design
+    from .designs import GEOMETRY, design, plot_design
     from .dense import PARAMETERS
     from .inversion import DEFAULT_BOUNDS
     params = ranges.parse_assignments(_items(args.params), PARAMETERS, "value", "--params", check=True)

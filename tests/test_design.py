@@ -1,6 +1,5 @@
 """pbrdf_cl.design: measurement design from the Fisher information (Jacobians, predicted widths,
 the greedy + exchange search, the criteria, intensities, boxes, the figure, errors, the CLI)."""
-import importlib
 
 import numpy as np
 import pytest
@@ -10,7 +9,7 @@ from pbrdf_cl import cli, inversion, reference
 from pbrdf_cl.data import as_measurements
 from conftest import requires_opencl
 
-dz = importlib.import_module("pbrdf_cl.design")  # the module (pbrdf_cl.design is the function)
+from pbrdf_cl import designs as dz  # the module (pbrdf_cl.design is the function)
 
 STEEL = dict(n=1.6, k=2.139, sigma=0.5, ks=0.9, kd=0.15, c=-0.3)
 NAMES = ["n", "k", "sigma", "kd", "c", "ks"]

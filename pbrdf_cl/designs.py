@@ -502,7 +502,7 @@ def _singular(Minfo):
 
 def design(params, candidates=None, noise=0.005, n_measurements=30, target=("n", "k"), intensity=False, fixed=None,
            *, criterion="A", reference=None, intensity_noise=inversion.F00_REL_STD, bounds=None, materials=16,
-           repeats=False, seed=0, shadowing="paper", engine=None, backend="auto", progress=False):
+           repeats=False, seed=0, shadowing="paper", engine=None, backend="auto"):
     """Choose the measurement geometries that best determine the target parameters.
 
     Parameters
@@ -545,8 +545,6 @@ def design(params, candidates=None, noise=0.005, n_measurements=30, target=("n",
     seed : int, default 0
         Seeds the materials drawn from a box.
     shadowing, engine, backend : as for :func:`pbrdf_cl.fit`
-    progress : bool
-        Accepted for symmetry with the other entry points (the design takes about a second).
 
     Returns
     -------
