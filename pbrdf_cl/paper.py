@@ -17,6 +17,9 @@
 - ``sobol_dop_theta_i_theta_r.png`` / ``.nc``: Sobol' indices (S1, ST) of the DOP over
   (theta_i, theta_r) for a box of materials around the paper's samples (:data:`SOBOL_RANGES`):
   which parameter controls the DOP where.
+- ``design_steel.png`` / ``.nc``: where to measure the steel of Fig. 4: the 30 in-plane geometries of a
+  5 degree grid that make the predicted 95% intervals of n and k narrowest (:func:`pbrdf_cl.design`,
+  DOP noise :data:`DESIGN_NOISE`), against the paper's 30 (theta_i 30/40/50 x theta_r 20..65).
 - one ``.npz`` per other figure with the arrays drawn, and ``summary.md`` listing every file.
 """
 from __future__ import annotations
@@ -56,6 +59,11 @@ SOBOL_RANGES = {"n": (1.2, 1.7), "k": (0.2, 7.0, "log"), "sigma": (0.2, 0.7), "k
 #: device at 32 x 32 geometries; intervals of about +-0.05 on the dominant indices.
 SOBOL_N = 512
 SOBOL_FILE = "sobol_dop_theta_i_theta_r"
+#: The measurement design of the steel: the DOP noise of one measurement (the paper does not state
+#: its camera's; 0.005 is a typical DOP resolution of a liquid-crystal polarimeter) and the count.
+DESIGN_NOISE = 0.005
+DESIGN_MEASUREMENTS = 30
+DESIGN_FILE = "design_steel"
 FIG2_ANGLES = np.arange(10.0, 80.0 + 1e-9, 2.5)
 FIG2_NOISE = 0.001
 SEED = 2020
@@ -273,6 +281,18 @@ def sobol_map(out, resolution=256, engine=None, seed=SEED):
     return ds
 
 
+def design_map(out, engine=None):
+    """The measurement design for the steel (:data:`STEEL`): the figure and the result (netCDF).
+    Returns the :class:`pbrdf_cl.designs.DesignResult`."""
+    from .designs import design, plot_design
+    from .sensitivity import write_result
+    r = design(STEEL, {"theta_i": "10:80:5", "theta_r": "0:85:5"}, noise=DESIGN_NOISE,
+               n_measurements=DESIGN_MEASUREMENTS, target=("n", "k"), engine=engine)
+    plot_design(r, out / f"{DESIGN_FILE}.png")
+    write_result(r.to_dataset(), out / f"{DESIGN_FILE}.nc")
+    return r
+
+
 DESCRIPTIONS = {
     "fig2_aluminum.png": "Fig. 2, aluminum: synthetic DOP data vs incidence angle with the six-parameter and "
                          "ref. [7] fits and the true curve.",
@@ -290,12 +310,17 @@ DESCRIPTIONS = {
                          "for a box of materials around the paper's samples: which parameter controls the DOP "
                          "where.",
     f"{SOBOL_FILE}.nc": "The Sobol' map's indices, bootstrap intervals, samples and settings (netCDF).",
+    f"{DESIGN_FILE}.png": "Where to measure the steel: the information map over (theta_i, theta_r) with the 30 "
+                          "chosen geometries and the paper's, and the predicted 95% interval widths of both "
+                          "sets (with and without an F00 column).",
+    f"{DESIGN_FILE}.nc": "The design: chosen and reference geometries, predicted widths, comparisons, the "
+                         "information map (netCDF).",
 }
 
 
 def data_file(png):
-    """The data file written with a figure of :data:`DESCRIPTIONS`: the Sobol' map's ``.nc``, else
-    the ``.npz`` of the arrays drawn."""
+    """The data file written with a figure of :data:`DESCRIPTIONS`: the ``.nc`` of the Sobol' map and
+    the design, else the ``.npz`` of the arrays drawn."""
     stem = png[:-4]
     return f"{stem}.nc" if f"{stem}.nc" in DESCRIPTIONS else f"{stem}.npz"
 
@@ -334,6 +359,10 @@ def reproduce(out="paper-figures", *, resolution=256, engine=None, backend="auto
     ds = sobol_map(out, resolution, engine, seed)
     log(f"Sobol' map: {ds.attrs['model_runs']} model runs in {ds.attrs['seconds']:.1f} s "
         f"({time.perf_counter() - t0:.1f} s)")
+    des = design_map(out, engine)
+    w, wr = des.ci95_width, des.ci95_width_reference
+    log(f"design: predicted n, k widths {w['n']:.3g}, {w['k']:.3g} at the chosen geometries against "
+        f"{wr['n']:.3g}, {wr['k']:.3g} at the paper's ({time.perf_counter() - t0:.1f} s)")
     files = dict(DESCRIPTIONS)
     for png in [f for f in DESCRIPTIONS if f.endswith(".png") and data_file(f).endswith(".npz")]:
         files[data_file(png)] = f"the arrays drawn in {png}."
@@ -351,7 +380,11 @@ def reproduce(out="paper-figures", *, resolution=256, engine=None, backend="auto
                     for k, r in SOBOL_RANGES.items())
     lines += ["", f"Steel (Fig. 4, 5 and maps): the paper's fit {_params_text(STEEL)}.", "",
               f"Sobol' map: {box}, ks=1; N={SOBOL_N} (seed {seed}), {side} x {side} geometries, float32, "
-              "SALib's sampler and estimators (pbrdf_cl.sobol).", "", "| file | content |",
+              "SALib's sampler and estimators (pbrdf_cl.sobol).", "",
+              f"Design: the steel, DOP noise {DESIGN_NOISE:g}, {DESIGN_MEASUREMENTS} geometries out of theta_i "
+              "10..80 x theta_r 0..85 (step 5, in plane) for n and k (pbrdf_cl.design, criterion A); predicted 95% "
+              f"widths n {w['n']:.3g}, k {w['k']:.3g} against the paper's geometry's {wr['n']:.3g}, {wr['k']:.3g}.",
+              "", "| file | content |",
               "|---|---|"]
     lines += [f"| `{name}` | {text} |" for name, text in files.items()]
     (out / "summary.md").write_text("\n".join(lines) + "\n")
