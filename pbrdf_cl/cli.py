@@ -307,11 +307,19 @@ def cmd_fit_image(args) -> int:
     return 0
 
 
+def _result_file_refused(path):
+    """The one-line error for a ``--out`` that is neither .nc nor .zarr (checked before the work), else None."""
+    if path and Path(path).suffix.lower() not in (".nc", ".zarr"):
+        return _error(f"--out {path}: write the result as .nc (netCDF) or .zarr (a Zarr store)")
+    return None
+
+
 def cmd_sobol(args) -> int:
     """`pbrdf-cl sobol SPEC.toml`: a Sobol' (or Morris) sensitivity map, its file, figure and summary."""
     from . import sensitivity
-    if args.out and Path(args.out).suffix.lower() not in (".nc", ".zarr"):
-        return _error(f"--out {args.out}: write the result as .nc (netCDF) or .zarr (a Zarr store)")
+    refused = _result_file_refused(args.out)
+    if refused is not None:
+        return refused
     _check_output("--out", args.out)
     _check_output("--png", args.png)
     try:
@@ -394,6 +402,7 @@ def _items(values):
 def cmd_design(args) -> int:
     from .designs import GEOMETRY, design, plot_design
     from .dense import PARAMETERS
+    from .sensitivity import write_result
     from .inversion import DEFAULT_BOUNDS
     params = ranges.parse_assignments(_items(args.params), PARAMETERS, "value", "--params", check=True)
     box = ranges.parse_assignments(_items(args.box), PARAMETERS, "bounds", "--box")
@@ -406,6 +415,9 @@ def cmd_design(args) -> int:
     fixed = ranges.parse_assignments(args.fix, tuple(DEFAULT_BOUNDS), "value", "--fix", check=True)
     bounds = ranges.parse_assignments(args.bounds, tuple(DEFAULT_BOUNDS), "bounds", "--bounds")
     target = tuple(t.strip() for t in args.target.split(",") if t.strip())
+    refused = _result_file_refused(args.out)
+    if refused is not None:
+        return refused
     _check_output("--out", args.out)
     _check_output("--png", args.png)
     try:
@@ -417,7 +429,10 @@ def cmd_design(args) -> int:
         return _error(exc)
     print(res.summary())
     if args.out:
-        res.to_dataset().to_netcdf(args.out)
+        try:
+            write_result(res.to_dataset(), args.out)
+        except ValueError as exc:  # a .zarr path that is something else
+            return _error(exc)
         print(f"wrote {args.out}")
     if args.png:
         plot_design(res, args.png)
@@ -680,7 +695,7 @@ def _design_parser(sub):
     d.add_argument("--repeats", action="store_true", help="allow a geometry to be chosen more than once")
     _fit_settings(d)
     _device_options(d)
-    d.add_argument("--out", metavar="NC", help="write the design as netCDF")
+    d.add_argument("--out", metavar="FILE", help="write the design: .nc (netCDF) or .zarr (a Zarr store)")
     d.add_argument("--png", metavar="PNG", help="draw the information map and the predicted widths")
     d.set_defaults(func=cmd_design)
 

@@ -290,6 +290,12 @@ def test_cli_design(tmp_path, capsys):
                    "--backend", "numpy"])
     out = capsys.readouterr().out
     assert rc == 0 and "median over 4 materials" in out and "criterion D" in out
+    store = tmp_path / "d.zarr"  # a Zarr store as for pbrdf-cl sobol
+    rc = cli.main(["design", "--params", "n=1.6,k=2.139,sigma=0.5", "--candidates", "theta_i=20:70:10",
+                   "theta_r=0:80:10", "--n", "8", "--out", str(store), "--backend", "numpy"])
+    assert rc == 0
+    with xr.open_zarr(store) as ds:
+        assert ds.sizes["measurement"] == 8
 
 
 @pytest.mark.parametrize("argv, words", [
@@ -298,6 +304,7 @@ def test_cli_design(tmp_path, capsys):
     (["--params", "n=1.6,k=2.139,sigma=0.5", "--candidates", "theta_q=1"], ["--candidates", "theta_q"]),
     (["--params", "n=1.6,k=2.139", "--box", "n=1:2"], ["--box", "n", "--params"]),
     (["--params", "n=1.6,k=2.139,sigma=0.5", "--box", "kd=0.3:0.1"], ["--box", "kd=0.3:0.1"]),
+    (["--params", "n=1.6,k=2.139,sigma=0.5", "--out", "design.txt"], ["--out design.txt", ".nc", ".zarr"]),
 ])
 def test_cli_design_errors_are_one_line(argv, words, capsys):
     rc = cli.main(["design", *argv, "--backend", "numpy"])
