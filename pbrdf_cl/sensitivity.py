@@ -405,9 +405,6 @@ def sobol(ranges, geometry, fixed=None, quantity="dop", N=4096, seed=None, dtype
     >>> ds.S1.dims
     ('parameter', 'theta_r')
     """
-    import xarray as xr
-    from scipy.stats import norm
-
     from .ranges import parse_bytes
     t0 = time.perf_counter()
     if method not in METHODS:
@@ -427,24 +424,57 @@ def sobol(ranges, geometry, fixed=None, quantity="dop", N=4096, seed=None, dtype
     fixed = check_fixed(fixed, {r.name for r in rngs})
     axes, scalars = check_geometry(geometry)
     geo, shape = geometry_list(axes, scalars)
-    D, G = len(rngs), int(np.prod(shape, dtype=np.int64))
+    G = int(np.prod(shape, dtype=np.int64))
+    X, terms = _sampler(method, rngs, int(N), second_order, int(num_levels), seed)
+    params = parameter_sets(X, rngs, fixed)
+    eng = resolve_engine(engine, backend)
+    results, blocks = _run_blocks(eng, q.name, geo, params, dtype, shadowing, terms, memory_budget, progress)
+    ds = _dataset(results, method, q, rngs, params, axes, scalars, shape)
+    ds.attrs.update(method=method, quantity=q.name, quantity_units=q.units, N=int(N),
+                    seed=-1 if seed is None else int(seed), dtype=dtype, shadowing=shadowing,
+                    runs_per_geometry=int(X.shape[0]), geometries=G, model_runs=int(X.shape[0]) * G, blocks=blocks,
+                    num_resamples=NUM_RESAMPLES, conf_level=CONF_LEVEL, engine=eng.description,
+                    seconds=round(time.perf_counter() - t0, 3),
+                    sampler=("SALib.sample.sobol (Saltelli's scheme, scrambled Sobol' sequence)" if method == "sobol"
+                             else f"SALib.sample.morris ({num_levels} levels)"),
+                    estimator=("SALib.analyze.sobol (Saltelli 2010 first order, Jansen total order), vectorised"
+                               if method == "sobol" else
+                               "SALib.analyze.morris (unscaled elementary effects), vectorised"))
+    if method == "sobol":
+        ds.attrs["second_order"] = int(bool(second_order))
+    else:
+        ds.attrs["num_levels"] = int(num_levels)
+    for r in rngs:
+        ds.attrs[f"range_{r.name}"] = [r.low, r.high]
+        ds.attrs[f"scale_{r.name}"] = r.scale
+    for n, v in fixed.items():
+        ds.attrs[f"fixed_{n}"] = v
+    return ds
+
+
+def _sampler(method, rngs, N, second_order, num_levels, seed):
+    """SALib's samples for ``method`` (rows in the sampler's space) and the estimators of the
+    outputs, their bootstrap resamples drawn as SALib's analysers draw them for ``seed``."""
+    from scipy.stats import norm
     problem = _problem(rngs)
     Z = float(norm.ppf(0.5 + CONF_LEVEL / 2))
     if method == "sobol":
         from SALib.sample import sobol as sobol_sample
-        X = sobol_sample.sample(problem, int(N), calc_second_order=second_order, seed=seed)
+        X = sobol_sample.sample(problem, N, calc_second_order=second_order, seed=seed)
         # SALib.analyze.sobol: a truthy seed seeds the resamples, else numpy's global generator
         draw = np.random.default_rng(seed).integers if seed else np.random.randint
-        terms = _SobolTerms(D, int(N), second_order, _counts(draw(int(N), size=(int(N), NUM_RESAMPLES)).T,
-                                                              int(N)), Z)
-    else:
-        from SALib.sample import morris as morris_sample
-        from SALib.util import handle_seed
-        X = morris_sample.sample(problem, int(N), num_levels=int(num_levels), seed=seed)
-        terms = _MorrisTerms(X, D, int(num_levels), handle_seed(seed), NUM_RESAMPLES, Z)
-    runs = X.shape[0]
-    params = parameter_sets(X, rngs, fixed)
-    eng = resolve_engine(engine, backend)
+        return X, _SobolTerms(len(rngs), N, second_order, _counts(draw(N, size=(N, NUM_RESAMPLES)).T, N), Z)
+    from SALib.sample import morris as morris_sample
+    from SALib.util import handle_seed
+    X = morris_sample.sample(problem, N, num_levels=num_levels, seed=seed)
+    return X, _MorrisTerms(X, len(rngs), num_levels, handle_seed(seed), NUM_RESAMPLES, Z)
+
+
+def _run_blocks(eng, quantity, geo, params, dtype, shadowing, terms, memory_budget, progress):
+    """The model runs of every parameter set at every geometry, block of geometries by block within
+    ``memory_budget``, each reduced by ``terms`` as it comes: (name -> array (..., G), blocks)."""
+    G = geo["theta_i"].size
+    runs = params["n"].size
     itemsize = np.dtype(DTYPES[dtype]).itemsize
     per_geometry = runs * itemsize + terms.block_bytes(runs, itemsize)
     block = int(max(1, min(G, memory_budget // per_geometry)))
@@ -452,9 +482,8 @@ def sobol(ranges, geometry, fixed=None, quantity="dop", N=4096, seed=None, dtype
     bar = _bar(G, progress)
     for g0 in range(0, G, block):
         g1 = min(G, g0 + block)
-        Y = outer(eng, q.name, geo, params, dtype, shadowing, rows=(g0, g1))
-        part = terms(Y.reshape(g1 - g0, runs))
-        for key, v in part.items():
+        Y = outer(eng, quantity, geo, params, dtype, shadowing, rows=(g0, g1))
+        for key, v in terms(Y.reshape(g1 - g0, runs)).items():
             if key not in results:
                 results[key] = np.empty(v.shape[:-1] + (G,))
             results[key][..., g0:g1] = v
@@ -462,6 +491,13 @@ def sobol(ranges, geometry, fixed=None, quantity="dop", N=4096, seed=None, dtype
             bar.update(g1 - g0)
     if bar is not None:
         bar.close()
+    return results, -(-G // block)
+
+
+def _dataset(results, method, q, rngs, params, axes, scalars, shape):
+    """The indices over (parameter, geometry axes) as a Dataset with labelled coordinates and the
+    samples; the caller adds the settings to ``attrs``."""
+    import xarray as xr
     names = [r.name for r in rngs]
     dims = ("parameter",) + tuple(axes)
     coords = {"parameter": names}
@@ -479,25 +515,7 @@ def sobol(ranges, geometry, fixed=None, quantity="dop", N=4096, seed=None, dtype
         coords["parameter_2"] = names
     data["samples"] = xr.Variable(("run", "parameter"), np.stack([params[n] for n in names], axis=1),
                                   {"long_name": "parameter sets run at every geometry"})
-    seconds = time.perf_counter() - t0
-    attrs = dict(method=method, quantity=q.name, quantity_units=q.units, N=int(N), seed=-1 if seed is None else int(seed),
-                 dtype=dtype, shadowing=shadowing, runs_per_geometry=int(runs), geometries=G,
-                 model_runs=int(runs) * G, blocks=-(-G // block), num_resamples=NUM_RESAMPLES, conf_level=CONF_LEVEL,
-                 engine=eng.description, seconds=round(seconds, 3),
-                 sampler=("SALib.sample.sobol (Saltelli's scheme, scrambled Sobol' sequence)" if method == "sobol"
-                          else f"SALib.sample.morris ({num_levels} levels)"),
-                 estimator=("SALib.analyze.sobol (Saltelli 2010 first order, Jansen total order), vectorised"
-                            if method == "sobol" else "SALib.analyze.morris (unscaled elementary effects), vectorised"))
-    if method == "sobol":
-        attrs["second_order"] = int(bool(second_order))
-    else:
-        attrs["num_levels"] = int(num_levels)
-    for r in rngs:
-        attrs[f"range_{r.name}"] = [r.low, r.high]
-        attrs[f"scale_{r.name}"] = r.scale
-    for n, v in fixed.items():
-        attrs[f"fixed_{n}"] = v
-    return xr.Dataset(data, coords=coords, attrs=attrs)
+    return xr.Dataset(data, coords=coords)
 
 
 def morris(ranges, geometry, fixed=None, quantity="dop", N=256, seed=None, **kwargs):
@@ -561,14 +579,25 @@ def _integer(field, v, low):
 
 def _spec_settings(data):
     """A parsed spec (dict) -> the keyword arguments of :func:`sobol`, every field checked."""
-    from .engine import DTYPES
-    from .reference import SHADOWING
     from .sweeps import SpecError
     if not isinstance(data, dict):
         raise SpecError(f"a sensitivity spec is a table (dict), got {type(data).__name__}")
     for key in data:
         if key not in SPEC_KEYS:
             raise SpecError(f"unknown key {key!r}{_hint(key, SPEC_KEYS)}; valid keys are {', '.join(SPEC_KEYS)}")
+    out = _spec_options(data)
+    out["ranges"] = _spec_ranges(data)
+    out["fixed"] = _spec_fixed(data, out["ranges"])
+    out["geometry"] = _spec_geometry(data)
+    return out
+
+
+def _spec_options(data):
+    """The spec's top-level settings (method, quantity, N, seed, dtype, shadowing, second_order,
+    num_levels, memory_budget), checked."""
+    from .engine import DTYPES
+    from .reference import SHADOWING
+    from .sweeps import SpecError
     out = {}
     method = data.get("method", "sobol")
     if method not in METHODS:
@@ -613,7 +642,12 @@ def _spec_settings(data):
     except RangeError as exc:
         raise SpecError(str(exc)) from None
     out["memory_budget"] = budget
+    return out
 
+
+def _spec_ranges(data):
+    """The spec's ``[ranges]`` table, each range checked (``ranges.<name>: ...``)."""
+    from .sweeps import SpecError
     rng_in = data.get("ranges")
     if not isinstance(rng_in, dict) or not rng_in:
         raise SpecError("ranges: a table of parameter = [low, high] (or [low, high, \"log\"]), e.g. "
@@ -631,7 +665,13 @@ def _spec_settings(data):
         except ValueError as exc:
             raise _spec_error(field, exc) from None
         ranges[name] = spec
-    out["ranges"] = ranges
+    return ranges
+
+
+def _spec_fixed(data, ranges):
+    """The spec's ``[fixed]`` table, checked against the ranges (a parameter in one place only, none
+    without a value)."""
+    from .sweeps import SpecError
     fixed = data.get("fixed", {})
     if not isinstance(fixed, dict):
         raise SpecError(f"fixed: must be a table of name = value, got {fixed!r}")
@@ -649,12 +689,17 @@ def _spec_settings(data):
     if missing:
         raise SpecError(f"ranges: {', '.join(missing)} need{'s' if len(missing) == 1 else ''} a range (or a value "
                         "under [fixed]): no default")
-    out["fixed"] = dict(fixed)
+    return dict(fixed)
+
+
+def _spec_geometry(data):
+    """The spec's ``[geometry]`` table, each axis checked (``geometry.<name>: ...``)."""
+    import warnings
+    from .sweeps import SpecError
     geometry = data.get("geometry")
     if not isinstance(geometry, dict) or not geometry:
         raise SpecError("geometry: a table of theta_i, theta_r (and phi) = angles in degrees, e.g. "
                         "[geometry] theta_i = \"0:80@64\"")
-    import warnings
     with warnings.catch_warnings():  # a radians warning is sobol's to give, once, when it runs
         warnings.simplefilter("ignore", api.UnitsWarning)
         for name, v in geometry.items():
@@ -669,8 +714,7 @@ def _spec_settings(data):
             check_geometry(geometry)
         except ValueError as exc:
             raise _spec_error("geometry", exc) from None
-    out["geometry"] = dict(geometry)
-    return out
+    return dict(geometry)
 
 
 def load_sobol_spec(spec):
