@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import numbers
 import time
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -65,6 +66,11 @@ SINGULAR_COND = 1e12
 MAX_SWAPS_PER_POINT = 20
 
 
+def _with_ks(free):
+    """The free parameters and ks after them (where ks is not free): the columns of the comparisons."""
+    return list(free) + ([] if "ks" in free else ["ks"])
+
+
 class DesignResult(Result):
     """The chosen measurements and their predicted 95% interval widths (attribute-access dict).
 
@@ -78,7 +84,7 @@ class DesignResult(Result):
 
     def summary(self):
         """A readable text table of the predicted widths."""
-        names = list(self.free) + ([] if "ks" in self.free else ["ks"])
+        names = _with_ks(self.free)
         lines = [f"measurement design: {len(self.theta_i)} measurements, criterion {self.criterion} on "
                  f"{', '.join(self.target)}; DOP noise {self.noise:g}"
                  + (f", F00 relative noise {self.intensity_noise:g}" if self.intensity else "")
@@ -103,20 +109,17 @@ class DesignResult(Result):
         """The result as an ``xarray.Dataset`` (``to_netcdf`` saves it)."""
         import xarray as xr
         deg = {"units": "deg"}
-        data = {
-            "theta_i": xr.Variable(("measurement",), self.theta_i, deg),
-            "theta_r": xr.Variable(("measurement",), self.theta_r, deg),
-            "phi": xr.Variable(("measurement",), self.phi, deg),
-            "reference_theta_i": xr.Variable(("reference_measurement",), self.reference["theta_i"], deg),
-            "reference_theta_r": xr.Variable(("reference_measurement",), self.reference["theta_r"], deg),
-            "reference_phi": xr.Variable(("reference_measurement",), self.reference["phi"], deg),
+        data = {g: xr.Variable(("measurement",), self[g], deg) for g in GEOMETRY}
+        data.update({f"reference_{g}": xr.Variable(("reference_measurement",), self.reference[g], deg)
+                     for g in GEOMETRY})
+        data.update({
             "ci95_width": xr.Variable(("parameter",), [self.ci95_width[n] for n in self.free],
                                       {"long_name": "predicted 95% interval width, chosen set"}),
             "ci95_width_reference": xr.Variable(("parameter",), [self.ci95_width_reference[n] for n in self.free],
                                                 {"long_name": "predicted 95% interval width, reference set"}),
-        }
+        })
         comp = list(self.comparisons)
-        allp = list(self.free) + (["ks"] if "ks" not in self.free else [])
+        allp = _with_ks(self.free)
         data["comparison_width"] = xr.Variable(
             ("comparison", "parameter_all"),
             [[self.comparisons[c]["widths"].get(n, np.nan) for n in allp] for c in comp],
@@ -298,8 +301,13 @@ class _Criterion:
     def __init__(self, kind, target_idx):
         self.kind, self.t = kind, np.asarray(target_idx)
 
+    def target_block(self, C):
+        """The target parameters' block (M, t, t) of covariances C (M, d, d)."""
+        return C[:, self.t[:, None], self.t[None, :]]
+
     def value(self, C):
-        Ct = C[:, self.t[:, None], self.t[None, :]]
+        """The criterion of covariances C (M, d, d): (M,)."""
+        Ct = self.target_block(C)
         if self.kind == "A":
             return np.trace(Ct, axis1=1, axis2=2)
         sign, ld = np.linalg.slogdet(Ct)
@@ -309,7 +317,7 @@ class _Criterion:
         """R (M, t, t) with Z = (K_T R)(K_T R)^T the criterion's quadratic form."""
         if self.kind == "A":
             return None
-        Ct = C[:, self.t[:, None], self.t[None, :]]
+        Ct = self.target_block(C)
         return np.linalg.cholesky(np.linalg.inv(Ct))
 
     def forms(self, C, R, U):
@@ -421,9 +429,19 @@ def _swap_change(kind, Vaa, Zaa, La, Vci, Zci, ci):
     return np.where(bad, np.inf, out)
 
 
+def _pinv(Minfo):
+    """Covariances: the pseudo-inverses of informations (M, d, d) (no prior)."""
+    return np.linalg.pinv(Minfo, rcond=1e-15, hermitian=True)
+
+
 def _final_value(crit, Minfo):
     """The mean criterion of informations (M, d, d) from their pseudo-inverse (no prior)."""
-    return float(np.mean(crit.value(np.linalg.pinv(Minfo, rcond=1e-15, hermitian=True))))
+    return float(np.mean(crit.value(_pinv(Minfo))))
+
+
+def _outer(a):
+    """The informations (M, d, d) of one geometry's rows (M, r, d)."""
+    return np.einsum("mrd,mre->mde", a, a)
 
 
 def select(A, n, crit, available, repeats=False, exchange=True):
@@ -440,6 +458,9 @@ def select(A, n, crit, available, repeats=False, exchange=True):
     def cov(Mi):
         return np.linalg.inv(Mi + PRIOR * eye * prior[:, None, None])
 
+    def mean_value(Mi):
+        return float(np.mean(crit.value(cov(Mi))))
+
     for step in range(n):
         C = cov(Minfo)
         gain = crit.change(C, crit.factor(C), A, np.ones(r)).mean(axis=0)
@@ -450,14 +471,14 @@ def select(A, n, crit, available, repeats=False, exchange=True):
                              "non-finite at these geometries)")
         chosen.append(best)
         taken[best] = True
-        Minfo = Minfo + np.einsum("mrd,mre->mde", A[:, best], A[:, best])
+        Minfo = Minfo + _outer(A[:, best])
         if prior.any() and step + 1 >= d:
             prior = prior & _singular(Minfo)
     greedy = list(chosen)
     swaps = 0
     if not exchange:
         return chosen, greedy, swaps, prior
-    f = float(np.mean(crit.value(cov(Minfo))))
+    f = mean_value(Minfo)
     for _ in range(MAX_SWAPS_PER_POINT * n):
         C = cov(Minfo)
         R = crit.factor(C)
@@ -480,8 +501,8 @@ def select(A, n, crit, available, repeats=False, exchange=True):
             break
         _, p, c = best
         old = chosen[p]
-        Mnew = Minfo + np.einsum("mrd,mre->mde", A[:, c], A[:, c]) - np.einsum("mrd,mre->mde", A[:, old], A[:, old])
-        fnew = float(np.mean(crit.value(cov(Mnew))))
+        Mnew = Minfo + _outer(A[:, c]) - _outer(A[:, old])
+        fnew = mean_value(Mnew)
         if not fnew < f:  # the update's prediction not confirmed (round-off): stop
             break
         Minfo, f = Mnew, fnew
@@ -499,6 +520,252 @@ def _singular(Minfo):
 
 
 # ----------------------------------------------------------------------------------- design
+
+@dataclass
+class _Problem:
+    """The checked inputs of :func:`design`: the options, the free parameters (``names``: those of
+    the Jacobians, ks included unless fixed; ``free``: the fit's, ks only with intensities), their
+    bounds ``lo``, ``hi``, the material(s) ``mat`` and their fit coordinates ``X`` (M, len(names)),
+    and the candidate and reference geometries."""
+    criterion: str
+    noise: float
+    intensity_noise: float
+    intensity: bool
+    n: int
+    repeats: bool
+    target: tuple
+    fx: dict
+    free5: list
+    names: list
+    free: list
+    lo: np.ndarray
+    hi: np.ndarray
+    mat: dict
+    rngs: tuple
+    X: np.ndarray
+    cand: dict
+    cand_axes: dict | None
+    ref: dict
+    ref_given: bool
+
+
+def _check_options(criterion, noise, intensity_noise, intensity, materials, shadowing):
+    """Check the scalar options of :func:`design`; returns (noise, intensity_noise) as floats."""
+    if criterion not in CRITERIA:
+        raise ValueError(f"criterion must be 'A' or 'D', got {criterion!r}")
+    noise = _positive("noise", noise)
+    intensity_noise = _positive("intensity_noise", intensity_noise)
+    if not isinstance(intensity, (bool, np.bool_)):
+        raise ValueError(f"intensity must be True or False, got {intensity!r}")
+    if isinstance(materials, bool) or not isinstance(materials, (int, np.integer)) or materials < 1:
+        raise ValueError(f"materials must be a positive integer, got {materials!r}")
+    if shadowing not in _reference.SHADOWING:
+        raise ValueError(f"shadowing must be one of {sorted(_reference.SHADOWING)}, got {shadowing!r}")
+    return noise, intensity_noise
+
+
+def _free_parameters(bounds, fixed, intensity):
+    """The fit's fixed values and free parameters: (fx, free5 (of the five besides ks), names
+    (the Jacobians' coordinates: free5 and ks unless fixed), free (the fit's: ks only with
+    intensities), lo, hi (the bounds of ``names``))."""
+    bnds, fx = inversion._check_bounds("six-param", {k: v for k, v in (bounds or {}).items() if k != "ks"}, fixed)
+    ks_bounds = tuple(map(float, (bounds or {}).get("ks", inversion.DEFAULT_BOUNDS["ks"])))
+    if intensity and ("ks" in fx or "kd" in fx):
+        raise ValueError(f"intensity: with {'ks' if 'ks' in fx else 'kd'} fixed the fit ignores intensities "
+                         "(it separates ks and kd only with both free); drop it from fixed or intensity=False")
+    free5 = [n for n in inversion.MODEL_PARAMS["six-param"] if n not in fx]
+    names = free5 + (["ks"] if "ks" not in fx else [])
+    free = free5 + (["ks"] if intensity else [])
+    pairs = [ks_bounds if x == "ks" else bnds[x] for x in names]
+    lo = np.array([b[0] for b in pairs])
+    hi = np.array([b[1] for b in pairs])
+    return fx, free5, names, free, lo, hi
+
+
+def _check_target(target, free, fx):
+    """The target parameters as a tuple: each a free parameter, named once."""
+    if isinstance(target, str):
+        target = (target,)
+    target = tuple(target)
+    if not target:
+        raise ValueError("target: give at least one parameter, e.g. ('n', 'k')")
+    for t in target:
+        if t not in PARAMETERS:
+            raise ValueError(f"target: unknown parameter {t!r}; parameters are {', '.join(PARAMETERS)}")
+        if t not in free:
+            why = ("is fixed" if t in fx else
+                   "is free only with intensity=True (DOP depends on kd/ks alone)" if t == "ks" else "is not free")
+            raise ValueError(f"target: {t!r} {why}; free parameters are {', '.join(free)}")
+    if len(set(target)) != len(target):
+        raise ValueError(f"target: {target!r} names a parameter twice")
+    return target
+
+
+def _check_count(n_measurements, free):
+    """The number of measurements as an int, more than the free parameters."""
+    if isinstance(n_measurements, bool) or not isinstance(n_measurements, (int, np.integer)):
+        raise ValueError(f"n_measurements must be an integer, got {n_measurements!r}")
+    n = int(n_measurements)
+    if n <= len(free):
+        raise ValueError(f"n_measurements: {n} is too few for {len(free)} free parameters ({', '.join(free)}); "
+                         f"the fit needs at least {len(free) + 1}")
+    return n
+
+
+def _fix_materials(mat, fx, names, lo, hi):
+    """Set the fixed parameters of the material(s) ``mat`` (in place) and check them inside the
+    bounds; returns their fit coordinates (M, len(names))."""
+    for name in PARAMETERS:
+        if name in fx:
+            mat[name] = np.full_like(mat[name], fx[name])
+    X = _x_of(mat, names)
+    for j, name in enumerate(names):
+        outside = (X[:, j] < lo[j]) | (X[:, j] > hi[j])
+        if np.any(outside):
+            v = X[int(np.argmax(outside)), j]
+            label = "kd/ks" if name == "kd" else name
+            raise ValueError(f"params: {label} = {v:g} lies outside the fit's bounds ({lo[j]:g}, {hi[j]:g}); "
+                             "widen bounds or change params")
+    return X
+
+
+def _problem(params, candidates, noise, n_measurements, target, intensity, fixed, criterion, reference,
+             intensity_noise, bounds, materials, repeats, seed, shadowing):
+    """Check every input of :func:`design` (in the order its errors are reported) into a :class:`_Problem`."""
+    noise, intensity_noise = _check_options(criterion, noise, intensity_noise, intensity, materials, shadowing)
+    mat, rngs = _materials(params, fixed, int(materials), seed)
+    fx, free5, names, free, lo, hi = _free_parameters(bounds, dict(fixed or {}), intensity)
+    target = _check_target(target, free, fx)
+    n = _check_count(n_measurements, free)
+    cand, cand_axes = check_points("candidates", DEFAULT_CANDIDATES if candidates is None else candidates)
+    ref, _ = check_points("reference", PAPER_GEOMETRY if reference is None else reference)
+    N = cand["theta_i"].size
+    if not repeats and n > N:
+        raise ValueError(f"n_measurements: {n} is more than the {N} candidate geometries (repeats=False)")
+    X = _fix_materials(mat, fx, names, lo, hi)
+    return _Problem(criterion, noise, intensity_noise, intensity, n, repeats, target, fx, free5, names, free,
+                    lo, hi, mat, rngs, X, cand, cand_axes, ref, reference is not None)
+
+
+class _Linearisation:
+    """The derivatives of DOP and F00 at the candidates then the reference geometries (as
+    :func:`jacobians`), and from them the whitened rows and the predicted widths of any set of
+    geometries, with or without the intensity rows."""
+
+    def __init__(self, p, eng, shadowing):
+        self.p = p
+        geo = {g: np.concatenate([p.cand[g], p.ref[g]]) for g in GEOMETRY}
+        _, self.f00, self.Jd, self.Jf = jacobians(eng, geo, p.mat, p.names, p.lo, p.hi, shadowing)
+
+    def columns(self, with_int):
+        """The parameters of a fit with or without intensities and their columns in the Jacobians."""
+        names = self.p.free5 + (["ks"] if with_int else [])
+        return names, np.array([self.p.names.index(x) for x in names])
+
+    def rows(self, with_int, scaled):
+        """Whitened rows (M, G, r, d); ``scaled``: in parameters scaled by their bound ranges."""
+        p = self.p
+        _, cols = self.columns(with_int)
+        R = whitened_rows(self.Jd[..., cols], self.f00, self.Jf[..., cols], p.noise, p.intensity_noise, with_int)
+        return R * (p.hi - p.lo)[cols] if scaled else R
+
+    def widths(self, idx, with_int):
+        """Median widths over the materials and the per-material widths of a set of indices."""
+        p = self.p
+        names, cols = self.columns(with_int)
+        R = self.rows(with_int, False)[:, idx]
+        W = np.stack([predicted_widths(R[m].reshape(-1, len(cols)), p.X[m, cols], p.lo[cols], p.hi[cols])[0]
+                      for m in range(p.X.shape[0])])
+        return {x: float(np.median(W[:, j])) for j, x in enumerate(names)}, W
+
+
+def _finite(A):
+    """Rows with their non-finite entries (where the model is undefined) zero."""
+    return np.where(np.isfinite(A), A, 0.0)
+
+
+def _information(A):
+    """The informations (M, d, d) of rows (M, K, r, d): the sum of their J^T J."""
+    return np.einsum("mkrd,mkre->mde", A, A)
+
+
+def _select_design(p, A, crit):
+    """Choose the design among the candidates' rows ``A`` (M, N, r, d) (scaled parameters): returns
+    (the candidates' finite rows, which candidates are usable, then :func:`select`'s chosen,
+    greedy, swaps and singular)."""
+    available = np.all(np.isfinite(A), axis=(0, 2, 3)) & np.any(A != 0, axis=(0, 2, 3))
+    Ac = _finite(A)
+    if not p.repeats and int(available.sum()) < p.n:
+        raise ValueError(f"n_measurements: {p.n} is more than the {int(available.sum())} candidate geometries "
+                         "where the model is defined (repeats=False)")
+    return (Ac, available) + select(Ac, p.n, crit, available, bool(p.repeats))
+
+
+def _information_map(p, crit, Ac, available, Mfin):
+    """Each candidate's value at the final design of information ``Mfin``: what one more
+    measurement there would gain (shaped as the candidate grid; NaN where unusable).  Returns
+    (map, its axes, its label)."""
+    Cfin = _pinv(Mfin)
+    gain = crit.change(Cfin, crit.factor(Cfin), Ac, np.ones(Ac.shape[2]))
+    if p.criterion == "A":
+        info = -np.mean(gain / crit.value(Cfin)[:, None], axis=0)
+        label = "relative reduction of the A criterion by one more measurement here"
+    else:
+        info = -np.mean(gain, axis=0)
+        label = "reduction of log det of the target covariance by one more measurement here"
+    info = np.where(available & np.isfinite(info), info, np.nan)
+    if p.cand_axes is None:
+        return info, {}, label
+    shape = tuple(a.size for a in p.cand_axes.values())
+    return info.reshape(shape), dict(p.cand_axes), label
+
+
+def _comparisons(p, lin, idx_c, idx_r):
+    """The predicted widths of the chosen and the reference set, each with the design's rows and
+    with the other kind (intensities added or dropped): (comparisons, per-material widths of the
+    chosen set)."""
+    other = not p.intensity
+    modes = (("", p.intensity, " + F00" if p.intensity else ""),
+             ("_other", other, " + F00" if other else ", DOP only"))
+    ref_labels = {"": "reference" if p.ref_given else "paper 30/40/50 x 20..65",
+                  "_other": "reference" if p.ref_given else "paper"}
+    comparisons, W = {}, {}
+    for key, with_int, tag in modes:
+        w, W[key] = lin.widths(idx_c, with_int)
+        comparisons["chosen" + key] = dict(widths=w, n_points=p.n, description=f"chosen ({p.criterion}){tag}")
+        comparisons["reference" + key] = dict(widths=lin.widths(idx_r, with_int)[0], n_points=idx_r.size,
+                                              description=ref_labels[key] + tag)
+    return comparisons, W[""]
+
+
+def _incidence_comparisons(p, lin, crit, A, idx_r):
+    """The reference's one incidence alone (the paper's 40 degrees for the paper's set, else the
+    middle one) and with the best second incidence of the criterion: comparisons (empty where one
+    incidence has too few points)."""
+    tag = " + F00" if p.intensity else ""
+    incid = np.unique(p.ref["theta_i"])
+    first = PAPER_INCIDENCE if (not p.ref_given and PAPER_INCIDENCE in incid) else float(incid[len(incid) // 2])
+    one = idx_r[p.ref["theta_i"] == first]
+    if one.size <= len(p.free):
+        return {}
+    out = {"one_incidence": dict(widths=lin.widths(one, p.intensity)[0], n_points=int(one.size),
+                                 description=f"ref. theta_i {first:g} alone{tag}")}
+    best = None
+    for second in [v for v in incid if v != first]:
+        idx2 = np.concatenate([one, idx_r[p.ref["theta_i"] == second]])
+        f2 = _final_value(crit, _information(A[:, idx2]))
+        if best is None or f2 < best[0]:
+            best = (f2, second, idx2)
+    if best is not None:
+        out["two_incidences"] = dict(widths=lin.widths(best[2], p.intensity)[0], n_points=int(best[2].size),
+                                     description=f"ref. theta_i {first:g} + {best[1]:g}{tag}")
+    return out
+
+
+def _subset(geo, idx):
+    """Copies of a geometry dict's arrays at indices ``idx`` (all of them for None)."""
+    return {g: (geo[g] if idx is None else geo[g][idx]).copy() for g in GEOMETRY}
+
 
 def design(params, candidates=None, noise=0.005, n_measurements=30, target=("n", "k"), intensity=False, fixed=None,
            *, criterion="A", reference=None, intensity_noise=inversion.F00_REL_STD, bounds=None, materials=16,
@@ -561,169 +828,34 @@ def design(params, candidates=None, noise=0.005, n_measurements=30, target=("n",
     (30, True)
     """
     t0 = time.perf_counter()
-    if criterion not in CRITERIA:
-        raise ValueError(f"criterion must be 'A' or 'D', got {criterion!r}")
-    noise = _positive("noise", noise)
-    intensity_noise = _positive("intensity_noise", intensity_noise)
-    if not isinstance(intensity, (bool, np.bool_)):
-        raise ValueError(f"intensity must be True or False, got {intensity!r}")
-    if isinstance(materials, bool) or not isinstance(materials, (int, np.integer)) or materials < 1:
-        raise ValueError(f"materials must be a positive integer, got {materials!r}")
-    if shadowing not in _reference.SHADOWING:
-        raise ValueError(f"shadowing must be one of {sorted(_reference.SHADOWING)}, got {shadowing!r}")
-    mat, rngs = _materials(params, fixed, int(materials), seed)
-    fixed = dict(fixed or {})
-    bnds, fx = inversion._check_bounds("six-param", {k: v for k, v in (bounds or {}).items() if k != "ks"}, fixed)
-    ks_bounds = tuple(map(float, (bounds or {}).get("ks", inversion.DEFAULT_BOUNDS["ks"])))
-    if intensity and ("ks" in fx or "kd" in fx):
-        raise ValueError(f"intensity: with {'ks' if 'ks' in fx else 'kd'} fixed the fit ignores intensities "
-                         "(it separates ks and kd only with both free); drop it from fixed or intensity=False")
-    free5 = [n for n in inversion.MODEL_PARAMS["six-param"] if n not in fx]
-    names_all = free5 + (["ks"] if "ks" not in fx else [])
-    free = free5 + (["ks"] if intensity else [])
-    if isinstance(target, str):
-        target = (target,)
-    target = tuple(target)
-    if not target:
-        raise ValueError("target: give at least one parameter, e.g. ('n', 'k')")
-    for t in target:
-        if t not in PARAMETERS:
-            raise ValueError(f"target: unknown parameter {t!r}; parameters are {', '.join(PARAMETERS)}")
-        if t not in free:
-            why = ("is fixed" if t in fx else
-                   "is free only with intensity=True (DOP depends on kd/ks alone)" if t == "ks" else "is not free")
-            raise ValueError(f"target: {t!r} {why}; free parameters are {', '.join(free)}")
-    if len(set(target)) != len(target):
-        raise ValueError(f"target: {target!r} names a parameter twice")
-    if isinstance(n_measurements, bool) or not isinstance(n_measurements, (int, np.integer)):
-        raise ValueError(f"n_measurements must be an integer, got {n_measurements!r}")
-    n = int(n_measurements)
-    if n <= len(free):
-        raise ValueError(f"n_measurements: {n} is too few for {len(free)} free parameters ({', '.join(free)}); "
-                         f"the fit needs at least {len(free) + 1}")
-    cand, cand_axes = check_points("candidates", DEFAULT_CANDIDATES if candidates is None else candidates)
-    ref_given = reference is not None
-    ref, _ = check_points("reference", PAPER_GEOMETRY if reference is None else reference)
-    N, Gr = cand["theta_i"].size, ref["theta_i"].size
-    if not repeats and n > N:
-        raise ValueError(f"n_measurements: {n} is more than the {N} candidate geometries (repeats=False)")
-    # bounds and the material(s)
-    lo_all = np.array([bnds[x][0] if x != "ks" else ks_bounds[0] for x in names_all])
-    hi_all = np.array([bnds[x][1] if x != "ks" else ks_bounds[1] for x in names_all])
-    for name in PARAMETERS:
-        if name in fx:
-            mat[name] = np.full_like(mat[name], fx[name])
-    X = _x_of(mat, names_all)
-    for j, name in enumerate(names_all):
-        outside = (X[:, j] < lo_all[j]) | (X[:, j] > hi_all[j])
-        if np.any(outside):
-            v = X[int(np.argmax(outside)), j]
-            label = "kd/ks" if name == "kd" else name
-            raise ValueError(f"params: {label} = {v:g} lies outside the fit's bounds ({lo_all[j]:g}, {hi_all[j]:g}); "
-                             "widen bounds or change params")
+    p = _problem(params, candidates, noise, n_measurements, target, intensity, fixed, criterion, reference,
+                 intensity_noise, bounds, materials, repeats, seed, shadowing)
     eng = resolve_engine(engine, backend)
-    geo = {g: np.concatenate([cand[g], ref[g]]) for g in GEOMETRY}
-    dop, f00, Jd, Jf = jacobians(eng, geo, mat, names_all, lo_all, hi_all, shadowing)
-    span_all = hi_all - lo_all
-    M = X.shape[0]
-
-    def mode_cols(with_int):
-        names = free5 + (["ks"] if with_int else [])
-        return names, np.array([names_all.index(x) for x in names])
-
-    def rows_for(with_int, scaled):
-        names, cols = mode_cols(with_int)
-        R = whitened_rows(Jd[..., cols], f00, Jf[..., cols], noise, intensity_noise, with_int)
-        return R * span_all[cols] if scaled else R
-
-    def widths_of(idx, with_int):
-        """Median widths over the materials and the per-material widths of a set of indices."""
-        names, cols = mode_cols(with_int)
-        R = rows_for(with_int, False)[:, idx]
-        W = np.stack([predicted_widths(R[m].reshape(-1, len(cols)), X[m, cols], lo_all[cols], hi_all[cols])[0]
-                      for m in range(M)])
-        return {x: float(np.median(W[:, j])) for j, x in enumerate(names)}, W
-
-    A = rows_for(intensity, True)
-    t_idx = [free.index(t) for t in target]
-    crit = _Criterion(criterion, t_idx)
-    available = np.all(np.isfinite(A[:, :N]), axis=(0, 2, 3)) & np.any(A[:, :N] != 0, axis=(0, 2, 3))
-    Ac = np.where(np.isfinite(A[:, :N]), A[:, :N], 0.0)
-    if not repeats and int(available.sum()) < n:
-        raise ValueError(f"n_measurements: {n} is more than the {int(available.sum())} candidate geometries "
-                         "where the model is defined (repeats=False)")
-    chosen, greedy, swaps, singular = select(Ac, n, crit, available, bool(repeats))
-
-    def info_of(idx):
-        return np.einsum("mkrd,mkre->mde", Ac[:, idx], Ac[:, idx])
-
-    Aref = np.where(np.isfinite(A[:, N:]), A[:, N:], 0.0)
-    f_final, f_greedy = _final_value(crit, info_of(chosen)), _final_value(crit, info_of(greedy))
-    f_ref = _final_value(crit, np.einsum("mkrd,mkre->mde", Aref, Aref))
-    # each candidate's value at the final design: what one more measurement there would gain
-    Mfin = info_of(chosen)
-    Cfin = np.linalg.pinv(Mfin, rcond=1e-15, hermitian=True)
-    gain = crit.change(Cfin, crit.factor(Cfin), Ac, np.ones(Ac.shape[2]))
-    if criterion == "A":
-        info = -np.mean(gain / crit.value(Cfin)[:, None], axis=0)
-        info_label = "relative reduction of the A criterion by one more measurement here"
-    else:
-        info = -np.mean(gain, axis=0)
-        info_label = "reduction of log det of the target covariance by one more measurement here"
-    info = np.where(available & np.isfinite(info), info, np.nan)
-    if cand_axes is not None:
-        shape = tuple(a.size for a in cand_axes.values())
-        info_axes = dict(cand_axes)
-        info = info.reshape(shape)
-    else:
-        info_axes = {}
-    # the widths: chosen, reference and their variants
-    idx_c, idx_r = np.array(chosen), N + np.arange(Gr)
-    wc, Wc = widths_of(idx_c, intensity)
-    wr, _ = widths_of(idx_r, intensity)
-    comparisons = {}
-    tag = " + F00" if intensity else ""
-    comparisons["chosen"] = dict(widths=wc, n_points=n, description=f"chosen ({criterion}){tag}")
-    comparisons["reference"] = dict(widths=wr, n_points=Gr,
-                                    description=("reference" if ref_given else "paper 30/40/50 x 20..65") + tag)
-    other = not intensity
-    comparisons["chosen_other"] = dict(widths=widths_of(idx_c, other)[0], n_points=n,
-                                       description=f"chosen ({criterion})" + (" + F00" if other else ", DOP only"))
-    comparisons["reference_other"] = dict(widths=widths_of(idx_r, other)[0], n_points=Gr,
-                                          description=("reference" if ref_given else "paper")
-                                          + (" + F00" if other else ", DOP only"))
-    # one incidence of the reference against two
-    incid = np.unique(ref["theta_i"])
-    first = PAPER_INCIDENCE if (not ref_given and PAPER_INCIDENCE in incid) else float(incid[len(incid) // 2])
-    one = idx_r[ref["theta_i"] == first]
-    if one.size > len(free):
-        comparisons["one_incidence"] = dict(widths=widths_of(one, intensity)[0], n_points=int(one.size),
-                                            description=f"ref. theta_i {first:g} alone{tag}")
-        best = None
-        for second in [v for v in incid if v != first]:
-            idx2 = np.concatenate([one, idx_r[ref["theta_i"] == second]])
-            f2 = _final_value(crit, np.einsum("mkrd,mkre->mde", A[:, idx2], A[:, idx2]))
-            if best is None or f2 < best[0]:
-                best = (f2, second, idx2)
-        if best is not None:
-            comparisons["two_incidences"] = dict(widths=widths_of(best[2], intensity)[0],
-                                                 n_points=int(best[2].size),
-                                                 description=f"ref. theta_i {first:g} + {best[1]:g}{tag}")
-    out = DesignResult(
-        theta_i=cand["theta_i"][idx_c].copy(), theta_r=cand["theta_r"][idx_c].copy(), phi=cand["phi"][idx_c].copy(),
-        indices=idx_c, ci95_width=wc, ci95_width_reference=wr,
-        ci95_width_materials={x: Wc[:, j] for j, x in enumerate(free)},
-        reference={g: ref[g].copy() for g in GEOMETRY}, reference_is_paper=not ref_given,
-        candidates={g: cand[g].copy() for g in GEOMETRY}, comparisons=comparisons,
-        information=info, information_axes=info_axes, information_label=info_label,
-        criterion=criterion, criterion_value=f_final, criterion_greedy=f_greedy, criterion_reference=f_ref,
-        greedy={g: cand[g][np.array(greedy)].copy() for g in GEOMETRY}, swaps=swaps, singular=int(np.sum(singular)),
-        free=list(free), target=list(target), noise=noise, intensity=bool(intensity),
-        intensity_noise=intensity_noise, n_materials=M, materials={k: v.copy() for k, v in mat.items()},
-        material={k: float(np.median(v)) for k, v in mat.items()}, ranges={r.name: (r.low, r.high) for r in rngs},
-        bounds={x: (float(lo_all[j]), float(hi_all[j])) for j, x in enumerate(names_all) if x in free},
-        fixed=fx, shadowing=shadowing, engine=eng.description, seconds=time.perf_counter() - t0)
-    return out
+    lin = _Linearisation(p, eng, shadowing)
+    N = p.cand["theta_i"].size
+    A = lin.rows(p.intensity, True)
+    crit = _Criterion(criterion, [p.free.index(t) for t in p.target])
+    Ac, available, chosen, greedy, swaps, singular = _select_design(p, A[:, :N], crit)
+    Mfin = _information(Ac[:, chosen])
+    info, info_axes, info_label = _information_map(p, crit, Ac, available, Mfin)
+    idx_c, idx_r = np.array(chosen), N + np.arange(p.ref["theta_i"].size)
+    comparisons, Wc = _comparisons(p, lin, idx_c, idx_r)
+    comparisons.update(_incidence_comparisons(p, lin, crit, A, idx_r))
+    return DesignResult(
+        **_subset(p.cand, idx_c), indices=idx_c, ci95_width=comparisons["chosen"]["widths"],
+        ci95_width_reference=comparisons["reference"]["widths"],
+        ci95_width_materials={x: Wc[:, j] for j, x in enumerate(p.free)},
+        reference=_subset(p.ref, None), reference_is_paper=not p.ref_given, candidates=_subset(p.cand, None),
+        comparisons=comparisons, information=info, information_axes=info_axes, information_label=info_label,
+        criterion=criterion, criterion_value=_final_value(crit, Mfin),
+        criterion_greedy=_final_value(crit, _information(Ac[:, greedy])),
+        criterion_reference=_final_value(crit, _information(_finite(A[:, N:]))),
+        greedy=_subset(p.cand, np.array(greedy)), swaps=swaps, singular=int(np.sum(singular)),
+        free=list(p.free), target=list(p.target), noise=p.noise, intensity=bool(intensity),
+        intensity_noise=p.intensity_noise, n_materials=p.X.shape[0], materials={k: v.copy() for k, v in p.mat.items()},
+        material={k: float(np.median(v)) for k, v in p.mat.items()}, ranges={r.name: (r.low, r.high) for r in p.rngs},
+        bounds={x: (float(p.lo[j]), float(p.hi[j])) for j, x in enumerate(p.names) if x in p.free},
+        fixed=p.fx, shadowing=shadowing, engine=eng.description, seconds=time.perf_counter() - t0)
 
 
 
@@ -774,7 +906,7 @@ def plot_design(result, path):
     ax.legend(loc="lower left", fontsize=8, framealpha=0.8)
     comp = result.comparisons
     keys = ["chosen", "chosen_other", "reference", "reference_other"]
-    params = list(result.free) + ([] if "ks" in result.free else ["ks"])
+    params = _with_ks(result.free)
     width = 0.8 / len(keys)
     colours = ["tab:blue", "tab:cyan", "tab:red", "tab:orange"]
     for i, key in enumerate(keys):
