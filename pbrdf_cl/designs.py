@@ -840,7 +840,7 @@ def design(params, candidates=None, noise=0.005, n_measurements=30, target=("n",
     info, info_axes, info_label = _information_map(p, crit, Ac, available, Mfin)
     idx_c, idx_r = np.array(chosen), N + np.arange(p.ref["theta_i"].size)
     comparisons, Wc = _comparisons(p, lin, idx_c, idx_r)
-    comparisons.update(_incidence_comparisons(p, lin, crit, A, idx_r))
+    comparisons.update(_incidence_comparisons(p, lin, crit, _finite(A), idx_r))  # as the reference's criterion
     return DesignResult(
         **_subset(p.cand, idx_c), indices=idx_c, ci95_width=comparisons["chosen"]["widths"],
         ci95_width_reference=comparisons["reference"]["widths"],

@@ -1052,9 +1052,12 @@ def resolve_engine(engine=None, backend="auto"):
     ``backend="numpy"`` always gives the numpy engine; ``backend="opencl"`` refuses a numpy one."""
     check_backend(backend)
     if backend == "numpy":
-        return engine if engine is not None and engine.is_numpy else NumpyEngine()
+        return engine if isinstance(engine, NumpyEngine) else NumpyEngine()
     if engine is None:
         return get_default_engine(backend)
+    if not isinstance(engine, (Engine, NumpyEngine)):
+        raise ValueError(f"engine must be a pbrdf_cl.Engine or NumpyEngine, got {engine!r}; to choose a device by "
+                         "name use pbrdf_cl.Engine(device) (or PYOPENCL_CTX), or backend='numpy'")
     if backend == "opencl" and engine.is_numpy:
         raise ValueError("backend='opencl' with a NumpyEngine: pass an OpenCL Engine, or backend='auto'")
     return engine

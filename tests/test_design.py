@@ -312,3 +312,11 @@ def test_cli_design_errors_are_one_line(argv, words, capsys):
     assert rc == 1 and err.count("\n") == 1 and err.startswith("pbrdf-cl: error:")
     for w in words:
         assert w in err, (w, err)
+
+
+def test_an_engine_that_is_not_one_is_a_clear_error():
+    """engine= takes an Engine or a NumpyEngine; a device name there is one line saying what to do."""
+    with pytest.raises(ValueError, match="engine must be a pbrdf_cl.Engine or NumpyEngine, got 'nope'"):
+        pbrdf_cl.design(dict(n=1.6, k=2.139, sigma=0.5), engine="nope")
+    with pytest.raises(ValueError, match="engine must be"):
+        pbrdf_cl.dop(40, 30, n=1.6, k=2.0, sigma=0.3, engine="0:1")
