@@ -567,15 +567,17 @@ def _bounds(setup, names):
     return np.array(lo), np.array(hi)
 
 
-def _device_lm(eng, setup, blk, X0, names, dtype, iterations, intensity):
+def _device_lm(eng, setup, blk, X0, names, dtype, iterations, intensity, corner=False):
     """The LM kernel from starts X0 (S, p, D) (external coordinates); returns (X (S, p, D), sse (S, p),
-    JtJ (S, p, D, D) in internal coordinates, settled (S, p))."""
+    JtJ (S, p, D, D) in internal coordinates, settled (S, p)).  ``corner``: descend in the
+    corner's coordinates (:func:`_corner_polish`; JtJ then in those)."""
     npdt = DTYPES[dtype]
     S, p, D = X0.shape
     P = blk.P
     Q = S * P
     lanes = LM_LANES[dtype]
-    lo, hi = _bounds(setup, names)
+    lo, hi = _corner_bounds(setup, names) if corner else _bounds(setup, names)
+    to_internal, to_external = (_to_corner, _from_corner) if corner else (_internal, _external)
     slot = {n: (names.index(n) if n in names else -1) for n in ("n", "k", "sigma", "kd", "c", "ks")}
     defines = {"PB_VECTOR_REAL": lanes, "PB_D": D, "PBRDF_SHADOWING": reference.SHADOWING[setup.shadowing],
                **{f"PB_X_{n.upper()}": s for n, s in slot.items()}}
@@ -585,11 +587,13 @@ def _device_lm(eng, setup, blk, X0, names, dtype, iterations, intensity):
     if geodesic:
         defines["PB_GEODESIC"] = None
 
+    if corner:
+        defines["PB_CORNER"] = None
     if not blk.shared:
         defines["PB_PIXEL_GEOMETRY"] = None
     prog = eng.program("pbrdf_batch.cl", dtype, defines)
     Xi = np.zeros((D, S, P))
-    Xi[:, :, :p] = np.moveaxis(_internal(X0, names), -1, 0)
+    Xi[:, :, :p] = np.moveaxis(to_internal(X0, names), -1, 0)
     Xi[:, :, p:] = ((lo + hi) / 2)[:, None, None]
     Xi = np.ascontiguousarray(Xi.reshape(D, Q), npdt)
     base = np.array([setup.base.get(n, 0.0) for n in ("n", "k", "sigma", "ks", "kd", "c")], npdt)
@@ -615,7 +619,7 @@ def _device_lm(eng, setup, blk, X0, names, dtype, iterations, intensity):
     eng.read(bsse, sse)
     eng.read(bjtj, jtj)
     eng.read(bset, settled)
-    X = _external(np.moveaxis(Xi.reshape(D, S, P)[:, :, :p], 0, -1), names)
+    X = to_external(np.moveaxis(Xi.reshape(D, S, P)[:, :, :p], 0, -1), names)
     jtj = np.moveaxis(jtj.reshape(D, D, S, P)[..., :p], (0, 1), (-2, -1)).astype(float)
     return X, sse.reshape(S, P)[:, :p].astype(float), jtj, settled.reshape(S, P)[:, :p] > 0
 
@@ -664,6 +668,140 @@ def _numpy_lm(setup, blk, X0, names, iterations, intensity):
     jtj = np.einsum("pim,pjm->pij", J, J)
     return (_external(X, names).reshape(S, p, D), sse.reshape(S, p), jtj.reshape(S, p, D, D),
             np.ones((S, p), bool))
+
+
+#: The model's singular corner n -> 1, k -> 0, kd -> 0: an index-matched surface, where the
+#: Fresnel terms and the diffuse term vanish together and the DOP depends on their ratio (and on
+#: sigma and c).  Pixels of nearly unpolarised light fall into it; a descent in the parameters
+#: crawls geometrically along the valley towards it, so pixels whose best point lies within
+#: CORNER of each range from it continue in log(n - 1), log k and log kd (floored at CORNER_FLOOR
+#: of the ranges), where that valley is a straight line: CORNER_ITERATIONS Levenberg-Marquardt
+#: iterations on the host with the reference (they are a few per cent of random pixels), kept
+#: where they lower the pixel's objective.
+CORNER = 0.01
+CORNER_FLOOR = 1e-12
+CORNER_ITERATIONS = 200
+#: With shared geometry, every pixel's objective is also evaluated on a small table of corner
+#: points (n - 1 or k of 1e-3, kd/ks from 1e-9 to 1e-2, the grid's sigma and c nodes; one DOP
+#: table, then a product with the pixels' data as in the grid stage): a pixel whose best corner
+#: point comes within CORNER_TRIGGER of its best objective so far descends from there too (the
+#: corner valley is too narrow for the grid's nodes and the descents' starts).
+CORNER_TRIGGER = 1.05
+CORNER_KD = np.logspace(-9.0, -2.0, 15)
+CORNER_EPS = ((1e-3, 0.0), (0.0, 1e-3))
+
+
+def _corner_table_starts(setup, blk, names, logged, sb):
+    """The shared-geometry corner table's best point per pixel, for the pixels where it comes
+    within CORNER_TRIGGER of ``sb``: (pixels, their starts (q, D))."""
+    if not blk.shared:
+        return np.empty(0, int), np.empty((0, len(names)))
+    free = {n: (np.linspace(setup.lo[names.index(n)], setup.hi[names.index(n)], BATCH_GRID[n]) if n in names
+                else np.array([setup.base[n]])) for n in ("sigma", "c")}
+    E, KD, SG, C = np.meshgrid(np.arange(len(CORNER_EPS)), CORNER_KD, free["sigma"], free["c"], indexing="ij")
+    eps = np.array(CORNER_EPS)[E.ravel()]
+    pts = {"n": 1.0 + eps[:, 0], "k": eps[:, 1], "kd": KD.ravel(), "sigma": SG.ravel(), "c": C.ravel()}
+    base = dict(setup.base)
+    g = reference.geometry(*(a[None, :] for a in blk.angles))
+    par = {n: (pts[n] if n in pts else np.full(eps.shape[0], base[n]))[:, None] for n in ("n", "k", "sigma", "ks", "kd", "c")}
+    f = reference.fresnel(par["n"], par["k"], g.cb, g.sb)
+    variant = reference.SHADOWING[setup.shadowing]
+    log_k = reference.log_specular_scale(g, par["sigma"], par["ks"], reference.shadowing_factor(g, par["sigma"], variant))
+    T = reference.dop(f, log_k, reference.diffuse(g, par["kd"], par["c"]))  # (points, M)
+    T = np.where(np.isfinite(T), T, 1e3)
+    w, obs = blk.w, blk.obs
+    sse = (np.einsum("pm,pm->p", w, obs * obs)[:, None] - 2.0 * (w * obs) @ T.T + w @ (T * T).T)
+    j = np.argmin(sse, axis=1)
+    pix = np.flatnonzero(sse[np.arange(sse.shape[0]), j] < CORNER_TRIGGER * sb)
+    X = np.stack([pts[n][j[pix]] if n in pts else np.full(pix.size, base[n]) for n in names], axis=1)
+    return pix, X
+
+
+#: The corner's coordinates: n, k, kd -> log(n - 1), log k, log kd (kd/ks: the DOP stage), each at
+#: least CORNER_FLOOR of its range above the corner.
+CORNER_OFFSET = {"n": 1.0, "k": 0.0, "kd": 0.0}
+
+
+def _corner_slots(names):
+    return [names.index(n) for n in CORNER_OFFSET], np.array(list(CORNER_OFFSET.values()))
+
+
+def _to_corner(X, names):
+    j, off = _corner_slots(names)
+    U = np.array(X, float)
+    U[..., j] = np.log(np.maximum(U[..., j] - off, CORNER_FLOOR))
+    return U
+
+
+def _from_corner(U, names):
+    j, off = _corner_slots(names)
+    X = np.array(U, float)
+    X[..., j] = off + np.exp(X[..., j])
+    return X
+
+
+def _corner_bounds(setup, names):
+    lo, hi = _bounds(setup, names)
+    j, off = _corner_slots(names)
+    lo, hi = lo.copy(), hi.copy()
+    lo[j], hi[j] = np.log(CORNER_FLOOR * (hi[j] - lo[j])), np.log(hi[j] - off)
+    return lo, hi
+
+
+def _corner_polish(eng, setup, blk, xb, sb, jb, nfev):
+    """The pixels at the corner (:data:`CORNER`), and those whose corner table point comes close
+    to their objective, descended in the corner's coordinates (on the device; with the
+    reference on the numpy backend); ``xb`` (p, D), ``sb`` (p,) and ``jb`` (p, D, D: JtJ in the
+    descent's coordinates) updated in place where the objective falls.  Only with n, k and kd
+    free and bounded below by 1, 0 and 0."""
+    names = list(setup.free)
+    if not set(CORNER_OFFSET) <= set(names):
+        return
+    logged, offset = _corner_slots(names)
+    lo, hi = np.asarray(setup.lo, float), np.asarray(setup.hi, float)
+    if not np.array_equal(lo[logged], offset):
+        return
+    span = (hi - lo)[logged]
+    near = np.all(xb[:, logged] - offset < CORNER * span, axis=1) & np.isfinite(sb)
+    extra, X_extra = _corner_table_starts(setup, blk, names, logged, np.where(near, -np.inf, sb))
+    pix = np.concatenate([np.flatnonzero(near), extra])  # distinct: the table skips the pixels near
+    if not pix.size:
+        return
+    X0 = np.clip(np.concatenate([xb[near], X_extra]), _corner_floor(lo, hi, logged), hi)
+    if eng.is_numpy:
+        ulo, uhi = _corner_bounds(setup, names)
+        res = _PixelResiduals(setup, blk, names, pix, False)
+        U, sse, evals = _lm_batch(lambda V: res.rows(_from_corner(V, names)), _to_corner(X0, names), ulo, uhi,
+                                  CORNER_ITERATIONS)
+        X = _from_corner(U, names)
+        nfev[pix] += evals // pix.size
+    else:
+        dtype = "float64" if eng.fp64 else "float32"
+        X, sse, _, _ = _device_lm(eng, setup, blk.subset(pix), X0[None], names, dtype, CORNER_ITERATIONS, False,
+                                  corner=True)
+        X, sse = X[0], sse[0]
+        nfev[pix] += (len(names) + 1) * (CORNER_ITERATIONS + 1)
+    better = np.flatnonzero(sse < sb[pix])
+    if not better.size:
+        return
+    X = np.clip(X[better], lo, hi)
+    won = pix[better]
+    if eng.is_numpy:
+        sub = _PixelResiduals(setup, blk, names, won, False)
+        r, J = fd_jacobian(sub.rows, X, lo, hi)
+        s_new, j_new = np.einsum("pm,pm->p", r, r), np.einsum("pim,pjm->pij", J, J)
+    else:  # the objective and JtJ at the new points in the usual coordinates (no iteration)
+        _, s_new, j_new, _ = _device_lm(eng, setup, blk.subset(won), X[None], names, dtype, 0, False)
+        s_new, j_new = s_new[0], j_new[0]
+    keep = s_new < sb[won]
+    xb[won[keep]], sb[won[keep]], jb[won[keep]] = X[keep], s_new[keep], j_new[keep]
+
+
+def _corner_floor(lo, hi, logged):
+    """The lower bounds with the corner's coordinates at their floor above the corner."""
+    out = np.array(lo, float)
+    out[logged] = lo[logged] + CORNER_FLOOR * (hi - lo)[logged]
+    return out
 
 
 # ---- uncertainties, status ----------------------------------------------------------------------
@@ -978,6 +1116,7 @@ def _fit_pixels(eng, setup, blk, order, rstart, names):
     b = np.argmin(sse, axis=0)
     ar = np.arange(p)
     xb, sb, jb, setb = X[b, ar], sse[b, ar], jtj[b, ar], settled[b, ar]
+    _corner_polish(eng, setup, blk, xb, sb, jb, nfev)
     names_out = list(setup.free)
     if setup.use_f00:
         # ks from the weighted least-squares scale of F00 at ks = 1, then every parameter with ks

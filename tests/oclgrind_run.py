@@ -83,6 +83,13 @@ def main():
         if not np.isfinite(res.sse.values).all():
             raise SystemExit("fit_batch under Oclgrind: non-finite results")
         batches += 1
+    # the corner stage's build of the descent (PB_CORNER: log(n - 1), log k, log kd), every pixel
+    # sent there by an infinite trigger
+    Bt.CORNER_TRIGGER, Bt.CORNER_ITERATIONS = np.inf, 2
+    res = pbrdf_cl.fit_batch(dict(dop=d, theta_i=m_ti, theta_r=m_tr), engine=eng, grid_shape=shape, n_starts=2)
+    if not np.isfinite(res.sse.values).all():
+        raise SystemExit("fit_batch's corner stage under Oclgrind: non-finite results")
+    batches += 1
     # the outer kernels (parameter sets x geometries: sensitivity maps, design Jacobians): the vector
     # kernels with padded sets (21 sets: not a multiple of the vector width) and several launches,
     # the generic one for the other quantities

@@ -193,3 +193,48 @@ def test_memory_budget_splits_the_image_into_blocks(dev):
     np.testing.assert_allclose(parts.sse.values, whole.sse.values, rtol=1e-9)
     with pytest.raises(ValueError, match=r"memory_budget=1000 bytes is too small for one row of 2 pixels"):
         pbrdf_cl.fit_batch(data, memory_budget=1000, engine=dev)
+
+
+def corner_pixels():
+    """Three pixels of nearly unpolarised light whose optimum is in the corner n -> 1, k -> 0,
+    kd -> 0 (numbers 199, 297 and 396 of scripts/bench_batch.py's 500 random pixels in the
+    paper's geometry, DOP noise 0.002): parameters uniform in the fit's bounds."""
+    from pbrdf_cl.inversion import DEFAULT_BOUNDS
+    names = ("n", "k", "sigma", "kd", "c")
+    lo, hi = (np.array([DEFAULT_BOUNDS[n][i] for n in names]) for i in (0, 1))
+    rng = np.random.default_rng(2)
+    x = lo + rng.random((500, 5)) * (hi - lo)
+    d = pbrdf_cl.dop(TI, TR, backend="numpy", **{n: x[:, j:j + 1] for j, n in enumerate(names)})
+    return np.clip(d + rng.normal(0, 0.002, d.shape), 0, 1)[[199, 297, 396]]
+
+
+@pytest.mark.parametrize("backend", ["opencl", "numpy"])
+def test_nearly_unpolarised_pixels_reach_the_single_fit_at_the_corner(engine, backend, monkeypatch):
+    """At the corner n -> 1, k -> 0, kd -> 0 the Fresnel and diffuse terms vanish together and
+    a descent in the parameters crawls along the valley: without the corner stage these pixels
+    stop short of pbrdf_cl.fit's objective; with it (log(n - 1), log k, log kd) they reach it
+    (1e-6 relative, or lower)."""
+    if backend == "opencl" and engine is None:
+        pytest.skip("no OpenCL device")
+    eng = engine if backend == "opencl" else pbrdf_cl.NumpyEngine()
+    dop = corner_pixels()
+    data = dict(dop=dop, theta_i=TI, theta_r=TR, dop_std=0.002)
+    res = pbrdf_cl.fit_batch(data, engine=eng)
+    with monkeypatch.context() as mp:  # the stage switched off
+        mp.setattr(B, "CORNER", -1.0)
+        mp.setattr(B, "CORNER_TRIGGER", 0.0)
+        off = pbrdf_cl.fit_batch(data, engine=eng)
+    single = np.array([pbrdf_cl.fit(dict(theta_i=TI, theta_r=TR, dop=d, dop_std=np.full(d.size, 0.002)),
+                                    engine=eng if backend == "opencl" else None).chi2 for d in dop])
+    rel, rel_off = ((r.chi2.values - single) / single for r in (res, off))
+    assert np.all(rel <= 1e-6), rel
+    assert np.any(rel_off > 1e-6), rel_off
+    assert np.all(res.n.values - 1 < B.CORNER * 4) and np.all(res.kd.values < B.CORNER * 5)
+
+
+def test_corner_coordinates_round_trip():
+    names = ["n", "k", "sigma", "kd", "c"]
+    X = np.array([[1.0 + 3e-4, 2e-5, 0.4, 7e-6, -0.5], [1.2, 0.3, 0.8, 0.01, -0.1]])
+    np.testing.assert_allclose(B._from_corner(B._to_corner(X, names), names), X, rtol=1e-14)
+    U = B._to_corner(X, names)
+    assert U[0, 0] == np.log(3e-4 + 1.0 - 1.0) and U[0, 2] == 0.4  # sigma and c untouched
