@@ -249,28 +249,23 @@ def _model_of(X, names, base):
 
 def jacobians(eng, geometry, mat, names, lo, hi, shadowing="paper"):
     """Central-difference derivatives of DOP and F00 at every geometry for every material, in the
-    fit's coordinates ``names`` (any of n, k, sigma, kd = kd/ks, c, ks): the materials and their
-    steps (h = ``inversion.CENTRAL_STEP`` of each bound range, cut at a bound as
-    ``inversion.fd_jacobian``) are the parameter sets of one :func:`pbrdf_cl.dense.outer` call
-    per quantity (float64).
+    fit's coordinates ``names`` (any of n, k, sigma, kd = kd/ks, c, ks): ``inversion.fd_jacobian``'s
+    central scheme, the materials and all their steps the parameter sets of one
+    :func:`pbrdf_cl.dense.outer` call per quantity (float64).
 
     Returns (dop, f00, J_dop, J_f00): values (M, G) and derivatives (M, G, d)."""
     X = _x_of(mat, names)  # (M, d)
-    M, d = X.shape
-    h = inversion.CENTRAL_STEP * (hi - lo)
-    up, dn = np.minimum(X + h, hi), np.maximum(X - h, lo)
-    eye = np.eye(d, dtype=bool)[None]
-    base = X[:, None, :]
-    pts = np.concatenate([base, np.where(eye, up[:, None, :], base), np.where(eye, dn[:, None, :], base)], axis=1)
-    S = pts.reshape(-1, d)
-    basep = {n: np.repeat(np.asarray(mat[n], float), 2 * d + 1) for n in PARAMETERS}
-    params = _model_of(S, names, basep)
+    M = X.shape[0]
+
+    def rows_of(quantity):
+        def rows(S):  # parameter vectors (M * steps, d), material by material -> values (M * steps, G)
+            basep = {n: np.repeat(np.asarray(mat[n], float), S.shape[0] // M) for n in PARAMETERS}
+            return outer(eng, quantity, geometry, _model_of(S, names, basep), "float64", shadowing).T
+        return rows
     out = []
     for quantity in ("dop", "brdf"):
-        Y = outer(eng, quantity, geometry, params, "float64", shadowing)  # (G, M (2d+1))
-        Y = np.asarray(Y, float).reshape(-1, M, 2 * d + 1).transpose(1, 0, 2)  # (M, G, 2d+1)
-        J = (Y[:, :, 1:d + 1] - Y[:, :, d + 1:]) / (up - dn)[:, None, :]
-        out += [Y[:, :, 0], J]
+        Y, J = inversion.fd_jacobian(rows_of(quantity), X, lo, hi, "central")  # (M, G), (M, d, G)
+        out += [Y, J.transpose(0, 2, 1)]
     return out[0], out[2], out[1], out[3]
 
 
