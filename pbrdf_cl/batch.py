@@ -676,7 +676,7 @@ def _numpy_lm(setup, blk, X0, names, iterations, intensity):
 #: crawls geometrically along the valley towards it, so pixels whose best point lies within
 #: CORNER of each range from it continue in log(n - 1), log k and log kd (floored at CORNER_FLOOR
 #: of the ranges), where that valley is a straight line: CORNER_ITERATIONS Levenberg-Marquardt
-#: iterations on the host with the reference (they are a few per cent of random pixels), kept
+#: iterations (the PB_CORNER build of the descent; the reference on the numpy backend), kept
 #: where they lower the pixel's objective.
 CORNER = 0.01
 CORNER_FLOOR = 1e-12
@@ -691,7 +691,7 @@ CORNER_KD = np.logspace(-9.0, -2.0, 15)
 CORNER_EPS = ((1e-3, 0.0), (0.0, 1e-3))
 
 
-def _corner_table_starts(setup, blk, names, logged, sb):
+def _corner_table_starts(setup, blk, names, sb):
     """The shared-geometry corner table's best point per pixel, for the pixels where it comes
     within CORNER_TRIGGER of ``sb``: (pixels, their starts (q, D))."""
     if not blk.shared:
@@ -702,12 +702,8 @@ def _corner_table_starts(setup, blk, names, logged, sb):
     eps = np.array(CORNER_EPS)[E.ravel()]
     pts = {"n": 1.0 + eps[:, 0], "k": eps[:, 1], "kd": KD.ravel(), "sigma": SG.ravel(), "c": C.ravel()}
     base = dict(setup.base)
-    g = reference.geometry(*(a[None, :] for a in blk.angles))
-    par = {n: (pts[n] if n in pts else np.full(eps.shape[0], base[n]))[:, None] for n in ("n", "k", "sigma", "ks", "kd", "c")}
-    f = reference.fresnel(par["n"], par["k"], g.cb, g.sb)
-    variant = reference.SHADOWING[setup.shadowing]
-    log_k = reference.log_specular_scale(g, par["sigma"], par["ks"], reference.shadowing_factor(g, par["sigma"], variant))
-    T = reference.dop(f, log_k, reference.diffuse(g, par["kd"], par["c"]))  # (points, M)
+    par = [(pts[n] if n in pts else np.full(eps.shape[0], base[n]))[:, None] for n in ("n", "k", "sigma", "ks", "kd", "c")]
+    T = reference.evaluate("dop", *(a[None, :] for a in blk.angles), *par, shadowing=setup.shadowing)  # (points, M)
     T = np.where(np.isfinite(T), T, 1e3)
     w, obs = blk.w, blk.obs
     sse = (np.einsum("pm,pm->p", w, obs * obs)[:, None] - 2.0 * (w * obs) @ T.T + w @ (T * T).T)
@@ -763,7 +759,7 @@ def _corner_polish(eng, setup, blk, xb, sb, jb, nfev):
         return
     span = (hi - lo)[logged]
     near = np.all(xb[:, logged] - offset < CORNER * span, axis=1) & np.isfinite(sb)
-    extra, X_extra = _corner_table_starts(setup, blk, names, logged, np.where(near, -np.inf, sb))
+    extra, X_extra = _corner_table_starts(setup, blk, names, np.where(near, -np.inf, sb))
     pix = np.concatenate([np.flatnonzero(near), extra])  # distinct: the table skips the pixels near
     if not pix.size:
         return
@@ -786,13 +782,12 @@ def _corner_polish(eng, setup, blk, xb, sb, jb, nfev):
         return
     X = np.clip(X[better], lo, hi)
     won = pix[better]
+    # the objective and JtJ at the new points in the usual coordinates (no iteration)
     if eng.is_numpy:
-        sub = _PixelResiduals(setup, blk, names, won, False)
-        r, J = fd_jacobian(sub.rows, X, lo, hi)
-        s_new, j_new = np.einsum("pm,pm->p", r, r), np.einsum("pim,pjm->pij", J, J)
-    else:  # the objective and JtJ at the new points in the usual coordinates (no iteration)
+        _, s_new, j_new, _ = _numpy_lm(setup, blk.subset(won), X[None], names, 0, False)
+    else:
         _, s_new, j_new, _ = _device_lm(eng, setup, blk.subset(won), X[None], names, dtype, 0, False)
-        s_new, j_new = s_new[0], j_new[0]
+    s_new, j_new = s_new[0], j_new[0]
     keep = s_new < sb[won]
     xb[won[keep]], sb[won[keep]], jb[won[keep]] = X[keep], s_new[keep], j_new[keep]
 
