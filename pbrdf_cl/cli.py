@@ -307,21 +307,19 @@ def cmd_fit_image(args) -> int:
     return 0
 
 
-def _result_file_refused(path):
-    """The one-line error for a ``--out`` that is neither .nc nor .zarr (checked before the work), else None."""
-    if path and Path(path).suffix.lower() not in (".nc", ".zarr"):
-        return _error(f"--out {path}: write the result as .nc (netCDF) or .zarr (a Zarr store)")
-    return None
+def _check_result_outputs(args):
+    """Refuse before any work (:class:`_Refused`) a ``--out`` that is neither .nc nor .zarr, and an
+    ``--out`` or ``--png`` that cannot be written (the sobol and design commands)."""
+    if args.out and Path(args.out).suffix.lower() not in (".nc", ".zarr"):
+        raise _Refused(f"--out {args.out}: write the result as .nc (netCDF) or .zarr (a Zarr store)")
+    _check_output("--out", args.out)
+    _check_output("--png", args.png)
 
 
 def cmd_sobol(args) -> int:
     """`pbrdf-cl sobol SPEC.toml`: a Sobol' (or Morris) sensitivity map, its file, figure and summary."""
     from . import sensitivity
-    refused = _result_file_refused(args.out)
-    if refused is not None:
-        return refused
-    _check_output("--out", args.out)
-    _check_output("--png", args.png)
+    _check_result_outputs(args)
     try:
         settings = sensitivity.load_sobol_spec(args.spec)
         if args.png:  # refused before the work, not after it
@@ -415,11 +413,7 @@ def cmd_design(args) -> int:
     fixed = ranges.parse_assignments(args.fix, tuple(DEFAULT_BOUNDS), "value", "--fix", check=True)
     bounds = ranges.parse_assignments(args.bounds, tuple(DEFAULT_BOUNDS), "bounds", "--bounds")
     target = tuple(t.strip() for t in args.target.split(",") if t.strip())
-    refused = _result_file_refused(args.out)
-    if refused is not None:
-        return refused
-    _check_output("--out", args.out)
-    _check_output("--png", args.png)
+    _check_result_outputs(args)
     try:
         res = design(params, cand, noise=args.noise, n_measurements=args.n, target=target, intensity=args.intensity,
                      fixed=fixed, criterion=args.criterion, reference=ref, intensity_noise=args.intensity_noise,
@@ -428,15 +422,16 @@ def cmd_design(args) -> int:
     except (ValueError, _engine.OpenCLUnavailableError) as exc:
         return _error(exc)
     print(res.summary())
-    if args.out:
-        try:
+    try:
+        if args.out:
             write_result(res.to_dataset(), args.out)
-        except ValueError as exc:  # a .zarr path that is something else
-            return _error(exc)
-        print(f"wrote {args.out}")
-    if args.png:
-        plot_design(res, args.png)
-        print(f"wrote {args.png}")
+        if args.png:
+            plot_design(res, args.png)
+    except (OSError, ValueError) as exc:  # e.g. a .zarr path that is something else
+        return _error(exc)
+    wrote = [p for p in (args.out, args.png) if p]
+    if wrote:
+        print(f"wrote {' and '.join(wrote)}")
     return 0
 
 
@@ -618,8 +613,8 @@ def _reproduce_parser(sub):
     """The `pbrdf-cl reproduce` sub-command."""
     r = sub.add_parser("reproduce", help="reproduce the paper's figures and Table 1, plus roughness maps",
                        description="Writes Fig. 2 (aluminum, black paint: synthetic data, both models fitted), "
-                       "Table 1, Fig. 4, Fig. 5, two dense DOP maps, a Sobol' map of the DOP (.png, .nc), the arrays "
-                       "of each figure (.npz) and summary.md into one folder.")
+                       "Table 1, Fig. 4, Fig. 5, two dense DOP maps, a Sobol' map of the DOP and a measurement design "
+                       "for the steel (.png, .nc), the arrays of each figure (.npz) and summary.md into one folder.")
     r.add_argument("--out", default="paper-figures", help="output folder (default: paper-figures)")
     r.add_argument("--resolution", type=int, default=256, help="points per map axis (default 256)")
     _device_options(r)

@@ -309,14 +309,14 @@ def _check_quantity(quantity, path="grid"):
     return quantities.get(quantity, path)
 
 
-def _progress(total, enabled, desc):
+def _progress(total, enabled, desc, unit="pt"):
     if not enabled:
         return None
     try:
         from tqdm.auto import tqdm
     except ImportError:  # pragma: no cover - tqdm is a dependency
         return None
-    return tqdm(total=total, desc=desc, unit="pt", unit_scale=True, leave=False, delay=1.0)  # only if > 1 s
+    return tqdm(total=total, desc=desc, unit=unit, unit_scale=True, leave=False, delay=1.0)  # only if > 1 s
 
 
 def grid(axes, fixed=None, quantity="dop", dtype="float32", shadowing="paper", *, engine=None, backend="auto",
@@ -842,7 +842,7 @@ def outer(eng, quantity, geometry, params, dtype="float64", shadowing="paper", o
     if g1 <= g0 or S == 0:
         return out
     flat = out.reshape(g1 - g0, S * q.width)
-    if getattr(eng, "is_numpy", False):
+    if eng.is_numpy:
         per = max(1, int(DEFAULT_BUDGET // 4 // (OUTER_NUMPY_BYTES * S * q.width)))
         for a in range(g0, g1, per):
             b = min(g1, a + per)

@@ -26,7 +26,7 @@ import time
 import numpy as np
 
 from . import api, quantities
-from .dense import DEFAULTS, LONG_NAMES, PARAMETERS, outer
+from .dense import DEFAULTS, LONG_NAMES, PARAMETERS, _progress, outer
 from .engine import DTYPES, resolve_engine
 
 GEOMETRY = ("theta_i", "theta_r", "phi")
@@ -479,7 +479,7 @@ def _run_blocks(eng, quantity, geo, params, dtype, shadowing, terms, memory_budg
     per_geometry = runs * itemsize + terms.block_bytes(runs, itemsize)
     block = int(max(1, min(G, memory_budget // per_geometry)))
     results = {}
-    bar = _bar(G, progress)
+    bar = _progress(G, progress, "sensitivity", unit="geometry")
     for g0 in range(0, G, block):
         g1 = min(G, g0 + block)
         Y = outer(eng, quantity, geo, params, dtype, shadowing, rows=(g0, g1))
@@ -543,13 +543,6 @@ def morris(ranges, geometry, fixed=None, quantity="dop", N=256, seed=None, **kwa
     ['mu', 'mu_star', 'mu_star_conf', 'samples', 'sigma']
     """
     return sobol(ranges, geometry, fixed, quantity, N, seed, method="morris", **kwargs)
-
-
-def _bar(total, enabled):
-    if not enabled:
-        return None
-    from tqdm.auto import tqdm
-    return tqdm(total=total, desc="sensitivity", unit="geometry", leave=False, delay=1.0)
 
 
 # ---------------------------------------------------------------------------------------------
