@@ -28,8 +28,9 @@
  *   Build options: PB_D free parameters; PB_X_N, PB_X_K, PB_X_SIGMA, PB_X_KD, PB_X_C, PB_X_KS the
  *   slot of each parameter in x (-1: fixed at base[]); PB_INTENSITY adds the F00 residuals
  *   (then kd in x is kd/ks and ks enters x as log ks); PB_PIXEL_GEOMETRY reads the geometry table
- *   per pixel instead of shared (pb_geom_at); PB_GEODESIC the geodesic acceleration; PB_CORNER: x holds
- *   log(n - 1), log k and log kd instead of n, k, kd (pbrdf_cl.batch._corner_polish); PBRDF_SHADOWING.
+ *   per pixel instead of shared (pb_geom_at); PB_GEODESIC the geodesic acceleration; PB_LOG_N, PB_LOG_K,
+ *   PB_LOG_KD: x holds log(n - 1), log k, log kd instead of n, k, kd (a corner's coordinates:
+ *   pbrdf_cl.batch.CORNERS); PBRDF_SHADOWING.
  */
 #include "pbrdf.h"
 
@@ -150,9 +151,14 @@ inline pb_par pb_params(const real *x, __global const scalar *base)
     p.ks = PB_X_KS >= 0 ? exp(x[PB_SLOT(PB_X_KS)]) : (real)base[3];
     p.kd = PB_PAR(PB_X_KD, base[4]);
     p.c = PB_PAR(PB_X_C, base[5]);
-#ifdef PB_CORNER  /* x holds log(n - 1), log k and log kd/ks: the descent along the corner's valley */
+/* a corner's coordinates (the descent along its valley): log(n - 1), log k, log kd/ks */
+#ifdef PB_LOG_N
     p.n = (real)1 + exp(p.n);
+#endif
+#ifdef PB_LOG_K
     p.k = exp(p.k);
+#endif
+#ifdef PB_LOG_KD
     p.kd = exp(p.kd);
 #endif
 #ifdef PB_INTENSITY

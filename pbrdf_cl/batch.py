@@ -24,10 +24,11 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
-from . import api, reference
+from . import api, dense, reference
 from .engine import DTYPES, VECTOR_WIDTH, resolve_engine
 from .inversion import (DEFAULT_BOUNDS, DOP_NOISE_FLOOR, MODEL_FIXED, MODEL_PARAMS, X_RESOLUTION, _check_bounds,
                         _grid_axis, _lm_batch, dop_resolution, fd_jacobian)
@@ -450,9 +451,12 @@ class _Block:
 
 def _device_grid(eng, setup, blk, order, rstart):
     """(best (R, p), arg (R, p)): each region's minimum and its region-ordered grid index."""
+    v = _grid_values(setup)
+    shadow = reference.SHADOWING[setup.shadowing]
+    if blk.shared:
+        return _table_minima(eng, blk, _table_dop(eng, setup, blk.angles, v, order), rstart)
     dtype = "float32"
     npdt = DTYPES[dtype]
-    v = _grid_values(setup)
     R = rstart.size - 1
     P, M = blk.P, blk.valid.shape[1]
     w = blk.pixel_major(blk.w, npdt)
@@ -460,42 +464,60 @@ def _device_grid(eng, setup, blk, order, rstart):
     best = np.empty((R, P), npdt)
     arg = np.empty((R, P), npdt)
     bbest, barg = eng.empty(best.nbytes), eng.empty(arg.nbytes)
-    vw = VECTOR_WIDTH[dtype]
-    brs = eng.to_device(rstart, np.int32)
-    shadow = reference.SHADOWING[setup.shadowing]
-    if blk.shared:
-        T = _table_dop(eng, setup, blk.angles, v, order)  # (G, M) region-ordered, float32
-        a2 = np.ascontiguousarray(-2.0 * w * obs, npdt)
-        c = np.ascontiguousarray(np.einsum("mp,mp->p", w.astype(float), obs.astype(float) ** 2), npdt)
-        prog = eng.program("pbrdf_batch.cl", dtype, {"PBRDF_SHADOWING": shadow})
-        eng.launch(prog["batch_grid_table"], (P // vw,), bbest, barg, np.int32(P), np.int32(M),
-                   eng.to_device(T, npdt), brs, np.int32(R), eng.to_device(a2, npdt), eng.to_device(w, npdt),
-                   eng.to_device(c, npdt), local_size=(LOCAL_SIZE,))
-    else:
-        nnk, nm, ni = v["n"].size * v["k"].size, v["sigma"].size * v["ks"].size, v["kd"].size * v["c"].size
-        ng = M * P
-        if ng * max(nnk, nm, ni) >= 2 ** 31:
-            raise ValueError("internal: a block of pixels too large for 32-bit table indices")
-        tab = eng.program("pbrdf_tables.cl", dtype, {"PBRDF_SHADOWING": shadow})
-        geo = [eng.to_device(blk.pixel_major(a, np.float64), npdt) for a in blk.angles]
+    nnk, nm, ni = v["n"].size * v["k"].size, v["sigma"].size * v["ks"].size, v["kd"].size * v["c"].size
+    ng = M * P
+    if ng * max(nnk, nm, ni) >= 2 ** 31:
+        raise ValueError("internal: a block of pixels too large for 32-bit table indices")
+    tab = eng.program("pbrdf_tables.cl", dtype, {"PBRDF_SHADOWING": shadow})
+    geo = [eng.to_device(blk.pixel_major(a, np.float64), npdt) for a in blk.angles]
 
-        def table(kname, outs, p1, p2, *extra):
-            np_ = p1.size * p2.size
-            bufs = [eng.empty(ng * np_ * np.dtype(npdt).itemsize) for _ in range(outs)]
-            eng.launch(tab[kname], (ng, np_), *bufs, np.int32(ng), np.int32(1), np.int32(ng), *geo,
-                       eng.to_device(p1, npdt), eng.to_device(p2, npdt), np.int32(p2.size), *extra)
-            return bufs
-        s_, d_ = table("fresnel_table", 2, v["n"], v["k"])
-        sc, = table("scale_table", 1, v["sigma"], v["ks"], npdt(-1))
-        fd, = table("diffuse_table", 1, v["kd"], v["c"], npdt(2))
-        prog = eng.program("pbrdf_batch.cl", dtype, {"PBRDF_SHADOWING": shadow, "PB_NNK": nnk, "PB_NM": nm,
-                                                     "PB_NI": ni})
-        eng.launch(prog["batch_grid_factors"], (P // vw,), bbest, barg, np.int32(P), np.int32(M), s_, d_, sc, fd,
-                   eng.to_device(order, np.int32), brs, np.int32(R), eng.to_device(obs, npdt),
-                   eng.to_device(w, npdt), local_size=(LOCAL_SIZE,))
+    def table(kname, outs, p1, p2, *extra):
+        np_ = p1.size * p2.size
+        bufs = [eng.empty(ng * np_ * np.dtype(npdt).itemsize) for _ in range(outs)]
+        eng.launch(tab[kname], (ng, np_), *bufs, np.int32(ng), np.int32(1), np.int32(ng), *geo,
+                   eng.to_device(p1, npdt), eng.to_device(p2, npdt), np.int32(p2.size), *extra)
+        return bufs
+    s_, d_ = table("fresnel_table", 2, v["n"], v["k"])
+    sc, = table("scale_table", 1, v["sigma"], v["ks"], npdt(-1))
+    fd, = table("diffuse_table", 1, v["kd"], v["c"], npdt(2))
+    prog = eng.program("pbrdf_batch.cl", dtype, {"PBRDF_SHADOWING": shadow, "PB_NNK": nnk, "PB_NM": nm,
+                                                 "PB_NI": ni})
+    eng.launch(prog["batch_grid_factors"], (P // VECTOR_WIDTH[dtype],), bbest, barg, np.int32(P), np.int32(M),
+               s_, d_, sc, fd, eng.to_device(order, np.int32), eng.to_device(rstart, np.int32), np.int32(R),
+               eng.to_device(obs, npdt), eng.to_device(w, npdt), local_size=(LOCAL_SIZE,))
     eng.read(bbest, best)
     eng.read(barg, arg)
     return best[:, :blk.p], arg[:, :blk.p].astype(np.int64)
+
+
+def _table_minima(eng, blk, T, rstart):
+    """Each region's least objective over the points of a DOP table ``T`` (G, M) at the shared
+    geometry, for every pixel of ``blk``: (best (R, p), arg (R, p), the index into T), region r
+    holding T[rstart[r]:rstart[r + 1]].  The objective is expanded as sum w obs^2 - 2 sum w obs T
+    + sum w T^2: on a device a float32 kernel (batch_grid_table) that streams T past the pixels'
+    data; on the numpy backend one float64 matrix product."""
+    R = rstart.size - 1
+    if eng.is_numpy:
+        w, obs = blk.w, blk.obs
+        part = np.concatenate([w * obs, w], axis=1) @ np.concatenate([-2.0 * T, T * T], axis=1).T
+        part += np.einsum("pm,pm->p", w, obs * obs)[:, None]
+        arg = np.stack([rstart[r] + np.argmin(part[:, rstart[r]:rstart[r + 1]], axis=1) for r in range(R)])
+        return np.take_along_axis(part.T, arg, axis=0), arg
+    dtype = "float32"
+    npdt = DTYPES[dtype]
+    P, M = blk.P, blk.valid.shape[1]
+    w, obs = blk.pixel_major(blk.w, npdt), blk.pixel_major(blk.obs, npdt)
+    best, arg = np.empty((R, P), npdt), np.empty((R, P), npdt)
+    bbest, barg = eng.empty(best.nbytes), eng.empty(arg.nbytes)
+    a2 = np.ascontiguousarray(-2.0 * w * obs, npdt)
+    c = np.ascontiguousarray(np.einsum("mp,mp->p", w.astype(float), obs.astype(float) ** 2), npdt)
+    prog = eng.program("pbrdf_batch.cl", dtype, {"PBRDF_SHADOWING": reference.SHADOWING[blk.setup.shadowing]})
+    eng.launch(prog["batch_grid_table"], (P // VECTOR_WIDTH[dtype],), bbest, barg, np.int32(P), np.int32(M),
+               eng.to_device(np.ascontiguousarray(T, npdt), npdt), eng.to_device(rstart, np.int32), np.int32(R),
+               eng.to_device(a2, npdt), eng.to_device(w, npdt), eng.to_device(c, npdt), local_size=(LOCAL_SIZE,))
+    eng.read(bbest, best)
+    eng.read(barg, arg)
+    return best[:, :blk.p].astype(float), arg[:, :blk.p].astype(np.int64)
 
 
 def _table_dop(eng, setup, angles, v, order):
@@ -567,17 +589,21 @@ def _bounds(setup, names):
     return np.array(lo), np.array(hi)
 
 
-def _device_lm(eng, setup, blk, X0, names, dtype, iterations, intensity, corner=False):
+def _device_lm(eng, setup, blk, X0, names, dtype, iterations, intensity, corner=None):
     """The LM kernel from starts X0 (S, p, D) (external coordinates); returns (X (S, p, D), sse (S, p),
-    JtJ (S, p, D, D) in internal coordinates, settled (S, p)).  ``corner``: descend in the
-    corner's coordinates (:func:`_corner_polish`; JtJ then in those)."""
+    JtJ (S, p, D, D) in internal coordinates, settled (S, p)).  ``corner`` (one of
+    :data:`CORNERS`): descend in the corner's coordinates (:func:`_corner_polish`; JtJ then in those)."""
     npdt = DTYPES[dtype]
     S, p, D = X0.shape
     P = blk.P
     Q = S * P
     lanes = LM_LANES[dtype]
-    lo, hi = _corner_bounds(setup, names) if corner else _bounds(setup, names)
-    to_internal, to_external = (_to_corner, _from_corner) if corner else (_internal, _external)
+    if corner:
+        lo, hi = _corner_bounds(setup, names, corner)
+        to_internal, to_external = (lambda X, nm: _to_corner(X, nm, corner)), (lambda U, nm: _from_corner(U, nm, corner))
+    else:
+        lo, hi = _bounds(setup, names)
+        to_internal, to_external = _internal, _external
     slot = {n: (names.index(n) if n in names else -1) for n in ("n", "k", "sigma", "kd", "c", "ks")}
     defines = {"PB_VECTOR_REAL": lanes, "PB_D": D, "PBRDF_SHADOWING": reference.SHADOWING[setup.shadowing],
                **{f"PB_X_{n.upper()}": s for n, s in slot.items()}}
@@ -587,8 +613,8 @@ def _device_lm(eng, setup, blk, X0, names, dtype, iterations, intensity, corner=
     if geodesic:
         defines["PB_GEODESIC"] = None
 
-    if corner:
-        defines["PB_CORNER"] = None
+    for n in (corner.logged if corner else ()):
+        defines[f"PB_LOG_{n.upper()}"] = None
     if not blk.shared:
         defines["PB_PIXEL_GEOMETRY"] = None
     prog = eng.program("pbrdf_batch.cl", dtype, defines)
@@ -670,111 +696,150 @@ def _numpy_lm(setup, blk, X0, names, iterations, intensity):
             np.ones((S, p), bool))
 
 
-#: The model's singular corner n -> 1, k -> 0, kd -> 0: an index-matched surface, where the
-#: Fresnel terms and the diffuse term vanish together and the DOP depends on their ratio (and on
-#: sigma and c).  Pixels of nearly unpolarised light fall into it; a descent in the parameters
-#: crawls geometrically along the valley towards it, so pixels whose best point lies within
-#: CORNER of each range from it continue in log(n - 1), log k and log kd (floored at CORNER_FLOOR
-#: of the ranges), where that valley is a straight line: CORNER_ITERATIONS Levenberg-Marquardt
-#: iterations (the PB_CORNER build of the descent; the reference on the numpy backend), kept
-#: where they lower the pixel's objective.
+#: Two corners of the model where a descent in the parameters crawls along a valley onto bounds:
+#:
+#: - "index": n -> 1, k -> 0, kd -> 0, an index-matched surface where the Fresnel terms and the
+#:   diffuse term vanish together and the DOP depends on their ratio (and on sigma and c); pixels
+#:   of nearly unpolarised light fall into it.
+#: - "mirror": sigma at its lower bound with kd -> 0, a near-mirror with a faint diffuse term: off
+#:   the specular direction the specular lobe falls as exp(-tan^2(alpha) / (2 sigma^2)) and the
+#:   DOP there depends on log kd against 1 / sigma^2, so the fit drives kd towards 0 by decades.
+#:
+#: Pixels whose best point lies within CORNER of the range from the lower bound of each of a
+#: corner's ``near`` parameters (at the mirror corner only kd: at kd = 0 the DOP does not depend on
+#: sigma, so a descent that reached it cannot move sigma) continue with the corner's ``logged``
+#: parameters as log(p - corner) (floored at CORNER_FLOOR of the ranges), where
+#: the valley is nearly a straight line: CORNER_ITERATIONS Levenberg-Marquardt iterations (the
+#: PB_LOG_* build of the descent; the reference on the numpy backend), kept where they lower the
+#: pixel's objective.
 CORNER = 0.01
 CORNER_FLOOR = 1e-12
 CORNER_ITERATIONS = 200
-#: With shared geometry, every pixel's objective is also evaluated on a small table of corner
-#: points (n - 1 or k of 1e-3, kd/ks from 1e-9 to 1e-2, the grid's sigma and c nodes; one DOP
-#: table, then a product with the pixels' data as in the grid stage): a pixel whose best corner
-#: point comes within CORNER_TRIGGER of its best objective so far descends from there too (the
-#: corner valley is too narrow for the grid's nodes and the descents' starts).
+#: With shared geometry, every pixel's objective is also evaluated on a small table of each
+#: corner's points (one DOP table, then a product with the pixels' data as in the grid stage): a
+#: pixel whose best corner point comes within CORNER_TRIGGER of its best objective so far descends
+#: from there too (the valleys are too narrow for the grid's nodes and the descents' starts).
+#: The index corner's table: (n - 1, k) of CORNER_EPS, kd/ks of CORNER_KD (four steps a decade:
+#: the DOP there depends on kd / |n + ik - 1|^2, and half a decade misses the valley), the grid's
+#: sigma and c nodes.  The mirror corner's: sigma at its lower bound, kd/ks of MIRROR_KD, the
+#: grid's n, k and c nodes.
 CORNER_TRIGGER = 1.05
-CORNER_KD = np.logspace(-9.0, -2.0, 15)
-CORNER_EPS = ((1e-3, 0.0), (0.0, 1e-3))
+CORNER_KD = np.logspace(-9.0, -2.0, 29)
+CORNER_EPS = ((1e-3, 0.0), (0.0, 1e-3), (1e-3, 1e-3))
+MIRROR_KD = np.logspace(-9.0, -2.0, 15)
 
 
-def _corner_table_starts(setup, blk, names, sb):
-    """The shared-geometry corner table's best point per pixel, for the pixels where it comes
-    within CORNER_TRIGGER of ``sb``: (pixels, their starts (q, D))."""
+class _Corner(NamedTuple):
+    name: str
+    at: tuple       # the parameters at their lower bound in the corner
+    near: tuple     # those a pixel's best point must be near to descend there
+    logged: tuple   # the parameters descended as log(p - offset) there
+    offset: tuple   # of the logged parameters (their lower bounds, which the kernel assumes)
+
+
+CORNERS = (_Corner("index", ("n", "k", "kd"), ("n", "k", "kd"), ("n", "k", "kd"), (1.0, 0.0, 0.0)),
+           _Corner("mirror", ("sigma", "kd"), ("kd",), ("kd",), (0.0,)))
+
+
+def _corner_table(setup, names, corner):
+    """The table points of ``corner``: name -> values (only names of free parameters)."""
+    def nodes(n):
+        j = names.index(n)
+        return np.linspace(setup.lo[j], setup.hi[j], BATCH_GRID[n])
+    if corner.name == "index":
+        E, KD, SG, C = np.meshgrid(np.arange(len(CORNER_EPS)), CORNER_KD, nodes("sigma"), nodes("c"), indexing="ij")
+        eps = np.array(CORNER_EPS)[E.ravel()]
+        return {"n": 1.0 + eps[:, 0], "k": eps[:, 1], "kd": KD.ravel(), "sigma": SG.ravel(), "c": C.ravel()}
+    N, K, KD, C = np.meshgrid(nodes("n"), nodes("k"), MIRROR_KD, nodes("c"), indexing="ij")
+    return {"n": N.ravel(), "k": K.ravel(), "kd": KD.ravel(), "sigma": np.full(N.size, setup.lo[names.index("sigma")]),
+            "c": C.ravel()}
+
+
+def _corner_table_starts(eng, setup, blk, names, corner, sb):
+    """The shared-geometry table's best point of ``corner`` per pixel, for the pixels where it
+    comes within CORNER_TRIGGER of ``sb``: (pixels, their starts (q, D))."""
     if not blk.shared:
         return np.empty(0, int), np.empty((0, len(names)))
-    free = {n: (np.linspace(setup.lo[names.index(n)], setup.hi[names.index(n)], BATCH_GRID[n]) if n in names
-                else np.array([setup.base[n]])) for n in ("sigma", "c")}
-    E, KD, SG, C = np.meshgrid(np.arange(len(CORNER_EPS)), CORNER_KD, free["sigma"], free["c"], indexing="ij")
-    eps = np.array(CORNER_EPS)[E.ravel()]
-    pts = {"n": 1.0 + eps[:, 0], "k": eps[:, 1], "kd": KD.ravel(), "sigma": SG.ravel(), "c": C.ravel()}
-    base = dict(setup.base)
-    par = [(pts[n] if n in pts else np.full(eps.shape[0], base[n]))[:, None] for n in ("n", "k", "sigma", "ks", "kd", "c")]
-    T = reference.evaluate("dop", *(a[None, :] for a in blk.angles), *par, shadowing=setup.shadowing)  # (points, M)
+    pts = _corner_table(setup, names, corner)
+    q = next(iter(pts.values())).size
+    par = {n: pts[n] if n in pts else np.full(q, setup.base[n]) for n in ("n", "k", "sigma", "ks", "kd", "c")}
+    # float32 as the grid stage's table: it only ranks starts for the float64 descent
+    T = dense.outer(eng, "dop", dict(zip(ANGLES, blk.angles)), par, "float32" if not eng.is_numpy else "float64",
+                    setup.shadowing).T
     T = np.where(np.isfinite(T), T, 1e3)
-    w, obs = blk.w, blk.obs
-    sse = (np.einsum("pm,pm->p", w, obs * obs)[:, None] - 2.0 * (w * obs) @ T.T + w @ (T * T).T)
-    j = np.argmin(sse, axis=1)
-    pix = np.flatnonzero(sse[np.arange(sse.shape[0]), j] < CORNER_TRIGGER * sb)
-    X = np.stack([pts[n][j[pix]] if n in pts else np.full(pix.size, base[n]) for n in names], axis=1)
-    return pix, X
+    best, arg = _table_minima(eng, blk, T, np.array([0, q], np.int32))
+    j = arg[0]
+    pix = np.flatnonzero(best[0] < CORNER_TRIGGER * sb)
+    return pix, np.stack([pts[n][j[pix]] for n in names], axis=1)
 
 
-#: The corner's coordinates: n, k, kd -> log(n - 1), log k, log kd (kd/ks: the DOP stage), each at
-#: least CORNER_FLOOR of its range above the corner.
-CORNER_OFFSET = {"n": 1.0, "k": 0.0, "kd": 0.0}
+def _corner_slots(names, corner):
+    return [names.index(n) for n in corner.logged], np.array(corner.offset)
 
 
-def _corner_slots(names):
-    return [names.index(n) for n in CORNER_OFFSET], np.array(list(CORNER_OFFSET.values()))
-
-
-def _to_corner(X, names):
-    j, off = _corner_slots(names)
+def _to_corner(X, names, corner):
+    j, off = _corner_slots(names, corner)
     U = np.array(X, float)
     U[..., j] = np.log(np.maximum(U[..., j] - off, CORNER_FLOOR))
     return U
 
 
-def _from_corner(U, names):
-    j, off = _corner_slots(names)
+def _from_corner(U, names, corner):
+    j, off = _corner_slots(names, corner)
     X = np.array(U, float)
     X[..., j] = off + np.exp(X[..., j])
     return X
 
 
-def _corner_bounds(setup, names):
+def _corner_bounds(setup, names, corner):
     lo, hi = _bounds(setup, names)
-    j, off = _corner_slots(names)
+    j, off = _corner_slots(names, corner)
     lo, hi = lo.copy(), hi.copy()
     lo[j], hi[j] = np.log(CORNER_FLOOR * (hi[j] - lo[j])), np.log(hi[j] - off)
     return lo, hi
 
 
+def _corner_applies(setup, names, corner):
+    """Whether ``corner`` is a corner of this fit's box: its parameters free, the logged ones
+    bounded below by the offsets the kernel assumes."""
+    if not set(corner.at) <= set(names):
+        return False
+    j, off = _corner_slots(names, corner)
+    return bool(np.array_equal(np.asarray(setup.lo, float)[j], off))
+
+
 def _corner_polish(eng, setup, blk, xb, sb, jb, nfev):
-    """The pixels at the corner (:data:`CORNER`), and those whose corner table point comes close
-    to their objective, descended in the corner's coordinates (on the device; with the
-    reference on the numpy backend); ``xb`` (p, D), ``sb`` (p,) and ``jb`` (p, D, D: JtJ in the
-    descent's coordinates) updated in place where the objective falls.  Only with n, k and kd
-    free and bounded below by 1, 0 and 0."""
+    """For each of :data:`CORNERS`: the pixels at it (:data:`CORNER`), and those whose table
+    point comes close to their objective, descended in the corner's coordinates (on the device;
+    with the reference on the numpy backend); ``xb`` (p, D), ``sb`` (p,) and ``jb`` (p, D, D: JtJ
+    in the descent's coordinates) updated in place where the objective falls."""
     names = list(setup.free)
-    if not set(CORNER_OFFSET) <= set(names):
-        return
-    logged, offset = _corner_slots(names)
+    for corner in CORNERS:
+        if _corner_applies(setup, names, corner):
+            _descend_corner(eng, setup, blk, names, corner, xb, sb, jb, nfev)
+
+
+def _descend_corner(eng, setup, blk, names, corner, xb, sb, jb, nfev):
     lo, hi = np.asarray(setup.lo, float), np.asarray(setup.hi, float)
-    if not np.array_equal(lo[logged], offset):
-        return
-    span = (hi - lo)[logged]
-    near = np.all(xb[:, logged] - offset < CORNER * span, axis=1) & np.isfinite(sb)
-    extra, X_extra = _corner_table_starts(setup, blk, names, np.where(near, -np.inf, sb))
+    at = [names.index(n) for n in corner.near]
+    near = np.all(xb[:, at] - lo[at] < CORNER * (hi - lo)[at], axis=1) & np.isfinite(sb)
+    extra, X_extra = _corner_table_starts(eng, setup, blk, names, corner, np.where(near, -np.inf, sb))
     pix = np.concatenate([np.flatnonzero(near), extra])  # distinct: the table skips the pixels near
     if not pix.size:
         return
+    logged, _ = _corner_slots(names, corner)
     X0 = np.clip(np.concatenate([xb[near], X_extra]), _corner_floor(lo, hi, logged), hi)
     if eng.is_numpy:
-        ulo, uhi = _corner_bounds(setup, names)
+        ulo, uhi = _corner_bounds(setup, names, corner)
         res = _PixelResiduals(setup, blk, names, pix, False)
-        U, sse, evals = _lm_batch(lambda V: res.rows(_from_corner(V, names)), _to_corner(X0, names), ulo, uhi,
-                                  CORNER_ITERATIONS)
-        X = _from_corner(U, names)
+        U, sse, evals = _lm_batch(lambda V: res.rows(_from_corner(V, names, corner)), _to_corner(X0, names, corner),
+                                  ulo, uhi, CORNER_ITERATIONS)
+        X = _from_corner(U, names, corner)
         nfev[pix] += evals // pix.size
     else:
         dtype = "float64" if eng.fp64 else "float32"
         X, sse, _, _ = _device_lm(eng, setup, blk.subset(pix), X0[None], names, dtype, CORNER_ITERATIONS, False,
-                                  corner=True)
+                                  corner=corner)
         X, sse = X[0], sse[0]
         nfev[pix] += (len(names) + 1) * (CORNER_ITERATIONS + 1)
     better = np.flatnonzero(sse < sb[pix])

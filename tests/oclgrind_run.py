@@ -83,8 +83,8 @@ def main():
         if not np.isfinite(res.sse.values).all():
             raise SystemExit("fit_batch under Oclgrind: non-finite results")
         batches += 1
-    # the corner stage's build of the descent (PB_CORNER: log(n - 1), log k, log kd), every pixel
-    # sent there by an infinite trigger
+    # the corner stage's builds of the descent (PB_LOG_N/K/KD at the index corner, PB_LOG_KD at the
+    # mirror corner), every pixel sent to both by an infinite trigger
     Bt.CORNER_TRIGGER, Bt.CORNER_ITERATIONS = np.inf, 2
     res = pbrdf_cl.fit_batch(dict(dop=d, theta_i=m_ti, theta_r=m_tr), engine=eng, grid_shape=shape, n_starts=2)
     if not np.isfinite(res.sse.values).all():

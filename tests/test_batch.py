@@ -195,50 +195,64 @@ def test_memory_budget_splits_the_image_into_blocks(dev):
         pbrdf_cl.fit_batch(data, memory_budget=1000, engine=dev)
 
 
-def corner_pixels():
-    """Three pixels of nearly unpolarised light whose optimum is in the corner n -> 1, k -> 0,
-    kd -> 0 (numbers 199, 297 and 396 of scripts/bench_batch.py's 500 random pixels in the
-    paper's geometry, DOP noise 0.002): parameters uniform in the fit's bounds."""
+def bench_pixels(which):
+    """Pixels ``which`` of scripts/bench_batch.py's 500 random pixels in the paper's geometry
+    (parameters uniform in the fit's bounds, DOP noise 0.002)."""
     from pbrdf_cl.inversion import DEFAULT_BOUNDS
     names = ("n", "k", "sigma", "kd", "c")
     lo, hi = (np.array([DEFAULT_BOUNDS[n][i] for n in names]) for i in (0, 1))
     rng = np.random.default_rng(2)
     x = lo + rng.random((500, 5)) * (hi - lo)
     d = pbrdf_cl.dop(TI, TR, backend="numpy", **{n: x[:, j:j + 1] for j, n in enumerate(names)})
-    return np.clip(d + rng.normal(0, 0.002, d.shape), 0, 1)[[199, 297, 396]]
+    return np.clip(d + rng.normal(0, 0.002, d.shape), 0, 1)[list(which)]
 
 
-def test_nearly_unpolarised_pixels_reach_the_single_fit_at_the_corner(dev, monkeypatch):
-    check_corner_pixels(dev, monkeypatch)
+#: Pixels whose optimum is in a corner (bench_pixels numbers): nearly unpolarised light in the
+#: index corner n -> 1, k -> 0, kd -> 0 (4 is found only through the table's quarter-decade kd
+#: steps); the mirror corner, sigma at its lower bound with kd -> 0 (194 stops short of it in the
+#: usual coordinates, 438 is found only through the mirror table).
+CORNER_PIXELS = {"index": (4, 199, 297, 396), "mirror": (194, 438)}
 
 
-def test_nearly_unpolarised_pixels_on_the_numpy_backend(monkeypatch):
-    check_corner_pixels(pbrdf_cl.NumpyEngine(), monkeypatch)
+@pytest.mark.parametrize("corner", sorted(CORNER_PIXELS))
+def test_pixels_reach_the_single_fit_at_the_corners(dev, monkeypatch, corner):
+    check_corner_pixels(dev, monkeypatch, corner)
 
 
-def check_corner_pixels(eng, monkeypatch):
-    """At the corner n -> 1, k -> 0, kd -> 0 the Fresnel and diffuse terms vanish together and
-    a descent in the parameters crawls along the valley: without the corner stage these pixels
-    stop short of pbrdf_cl.fit's objective; with it (log(n - 1), log k, log kd) they reach it
-    (1e-6 relative, or lower)."""
-    dop = corner_pixels()
+@pytest.mark.parametrize("corner", sorted(CORNER_PIXELS))
+def test_corner_pixels_on_the_numpy_backend(monkeypatch, corner):
+    check_corner_pixels(pbrdf_cl.NumpyEngine(), monkeypatch, corner)
+
+
+def check_corner_pixels(eng, monkeypatch, corner):
+    """At a corner (batch.CORNERS) a descent in the parameters crawls along a valley: without
+    the corner stage these pixels stop short of pbrdf_cl.fit's objective; with it (log(n - 1),
+    log k, log kd at the index corner, log kd at the mirror corner) they reach it (1e-6 relative,
+    or lower), in the corner."""
+    dop = bench_pixels(CORNER_PIXELS[corner])
     data = dict(dop=dop, theta_i=TI, theta_r=TR, dop_std=0.002)
     res = pbrdf_cl.fit_batch(data, engine=eng)
-    with monkeypatch.context() as mp:  # the stage switched off
-        mp.setattr(B, "CORNER", -1.0)
-        mp.setattr(B, "CORNER_TRIGGER", 0.0)
+    with monkeypatch.context() as mp:  # this corner's stage switched off
+        mp.setattr(B, "CORNERS", tuple(c for c in B.CORNERS if c.name != corner))
         off = pbrdf_cl.fit_batch(data, engine=eng)
     single = np.array([pbrdf_cl.fit(dict(theta_i=TI, theta_r=TR, dop=d, dop_std=np.full(d.size, 0.002)),
                                     engine=None if eng.is_numpy else eng).chi2 for d in dop])
     rel, rel_off = ((r.chi2.values - single) / single for r in (res, off))
     assert np.all(rel <= 1e-6), rel
     assert np.any(rel_off > 1e-6), rel_off
-    assert np.all(res.n.values - 1 < B.CORNER * 4) and np.all(res.kd.values < B.CORNER * 5)
+    (at,) = [c.at for c in B.CORNERS if c.name == corner]
+    for n in at:  # every parameter of the corner within CORNER of its range from its lower bound
+        lo, hi = B.DEFAULT_BOUNDS[n]
+        assert np.all(res[n].values - lo < B.CORNER * (hi - lo)), (n, res[n].values)
 
 
 def test_corner_coordinates_round_trip():
     names = ["n", "k", "sigma", "kd", "c"]
     X = np.array([[1.0 + 3e-4, 2e-5, 0.4, 7e-6, -0.5], [1.2, 0.3, 0.8, 0.01, -0.1]])
-    np.testing.assert_allclose(B._from_corner(B._to_corner(X, names), names), X, rtol=1e-14)
-    U = B._to_corner(X, names)
+    index, mirror = B.CORNERS
+    for corner in B.CORNERS:
+        np.testing.assert_allclose(B._from_corner(B._to_corner(X, names, corner), names, corner), X, rtol=1e-14)
+    U = B._to_corner(X, names, index)
     assert U[0, 0] == np.log(3e-4 + 1.0 - 1.0) and U[0, 2] == 0.4  # sigma and c untouched
+    V = B._to_corner(X, names, mirror)
+    assert V[0, 3] == np.log(7e-6) and np.array_equal(V[:, :3], X[:, :3])  # only kd logged
