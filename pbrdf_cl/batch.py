@@ -709,12 +709,11 @@ def _numpy_lm(setup, blk, X0, names, iterations, intensity):
 #: corner's ``near`` parameters (at the mirror corner only kd: at kd = 0 the DOP does not depend on
 #: sigma, so a descent that reached it cannot move sigma) continue with the corner's ``logged``
 #: parameters as log(p - corner) (floored at CORNER_FLOOR of the ranges), where
-#: the valley is nearly a straight line: CORNER_ITERATIONS Levenberg-Marquardt iterations (the
+#: the valley is nearly a straight line: the corner's ``iterations`` Levenberg-Marquardt iterations (the
 #: PB_LOG_* build of the descent; the reference on the numpy backend), kept where they lower the
 #: pixel's objective.
 CORNER = 0.01
 CORNER_FLOOR = 1e-12
-CORNER_ITERATIONS = 200
 #: With shared geometry, every pixel's objective is also evaluated on a small table of each
 #: corner's points (one DOP table, then a product with the pixels' data as in the grid stage): a
 #: pixel whose best corner point comes within CORNER_TRIGGER of its best objective so far descends
@@ -735,10 +734,11 @@ class _Corner(NamedTuple):
     near: tuple     # those a pixel's best point must be near to descend there
     logged: tuple   # the parameters descended as log(p - offset) there
     offset: tuple   # of the logged parameters (their lower bounds, which the kernel assumes)
+    iterations: int  # of the descent there (the mirror's valley is short: 60 do what 200 do)
 
 
-CORNERS = (_Corner("index", ("n", "k", "kd"), ("n", "k", "kd"), ("n", "k", "kd"), (1.0, 0.0, 0.0)),
-           _Corner("mirror", ("sigma", "kd"), ("kd",), ("kd",), (0.0,)))
+CORNERS = (_Corner("index", ("n", "k", "kd"), ("n", "k", "kd"), ("n", "k", "kd"), (1.0, 0.0, 0.0), 200),
+           _Corner("mirror", ("sigma", "kd"), ("kd",), ("kd",), (0.0,), 60))
 
 
 def _corner_table(setup, names, corner):
@@ -833,15 +833,15 @@ def _descend_corner(eng, setup, blk, names, corner, xb, sb, jb, nfev):
         ulo, uhi = _corner_bounds(setup, names, corner)
         res = _PixelResiduals(setup, blk, names, pix, False)
         U, sse, evals = _lm_batch(lambda V: res.rows(_from_corner(V, names, corner)), _to_corner(X0, names, corner),
-                                  ulo, uhi, CORNER_ITERATIONS)
+                                  ulo, uhi, corner.iterations)
         X = _from_corner(U, names, corner)
         nfev[pix] += evals // pix.size
     else:
         dtype = "float64" if eng.fp64 else "float32"
-        X, sse, _, _ = _device_lm(eng, setup, blk.subset(pix), X0[None], names, dtype, CORNER_ITERATIONS, False,
+        X, sse, _, _ = _device_lm(eng, setup, blk.subset(pix), X0[None], names, dtype, corner.iterations, False,
                                   corner=corner)
         X, sse = X[0], sse[0]
-        nfev[pix] += (len(names) + 1) * (CORNER_ITERATIONS + 1)
+        nfev[pix] += (len(names) + 1) * (corner.iterations + 1)
     better = np.flatnonzero(sse < sb[pix])
     if not better.size:
         return

@@ -85,7 +85,7 @@ def main():
         batches += 1
     # the corner stage's builds of the descent (PB_LOG_N/K/KD at the index corner, PB_LOG_KD at the
     # mirror corner), every pixel sent to both by an infinite trigger
-    Bt.CORNER_TRIGGER, Bt.CORNER_ITERATIONS = np.inf, 2
+    Bt.CORNER_TRIGGER, Bt.CORNERS = np.inf, tuple(c._replace(iterations=2) for c in Bt.CORNERS)
     res = pbrdf_cl.fit_batch(dict(dop=d, theta_i=m_ti, theta_r=m_tr), engine=eng, grid_shape=shape, n_starts=2)
     if not np.isfinite(res.sse.values).all():
         raise SystemExit("fit_batch's corner stage under Oclgrind: non-finite results")
