@@ -742,8 +742,10 @@ CORNERS = (_Corner("index", ("n", "k", "kd"), ("n", "k", "kd"), ("n", "k", "kd")
 
 
 def _corner_table(setup, names, corner):
-    """The table points of ``corner``: name -> values (only names of free parameters)."""
+    """The table points of ``corner``: name -> values (a fixed parameter's one value)."""
     def nodes(n):
+        if n not in names:
+            return np.array([setup.base[n]], float)
         j = names.index(n)
         return np.linspace(setup.lo[j], setup.hi[j], BATCH_GRID[n])
     if corner.name == "index":
@@ -762,7 +764,7 @@ def _corner_table_starts(eng, setup, blk, names, corner, sb):
         return np.empty(0, int), np.empty((0, len(names)))
     pts = _corner_table(setup, names, corner)
     q = next(iter(pts.values())).size
-    par = {n: pts[n] if n in pts else np.full(q, setup.base[n]) for n in ("n", "k", "sigma", "ks", "kd", "c")}
+    par = {n: pts.get(n, np.full(q, setup.base[n])) for n in ("n", "k", "sigma", "ks", "kd", "c")}
     # float32 as the grid stage's table: it only ranks starts for the float64 descent
     T = dense.outer(eng, "dop", dict(zip(ANGLES, blk.angles)), par, "float32" if not eng.is_numpy else "float64",
                     setup.shadowing).T

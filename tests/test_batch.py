@@ -246,6 +246,19 @@ def check_corner_pixels(eng, monkeypatch, corner):
         assert np.all(res[n].values - lo < B.CORNER * (hi - lo)), (n, res[n].values)
 
 
+def test_corner_stage_with_sigma_and_c_fixed(dev):
+    """With sigma and c fixed the index corner's table has one sigma and one c, and the mirror
+    corner (sigma at its lower bound) is not one of this box: two pixels whose optimum is the
+    index corner at sigma = 1, c = -1 reach pbrdf_cl.fit's objective with the same values fixed."""
+    dop = bench_pixels((4, 220))
+    fixed = {"sigma": 1.0, "c": -1.0}
+    res = pbrdf_cl.fit_batch(dict(dop=dop, theta_i=TI, theta_r=TR, dop_std=0.002), fixed=fixed, engine=dev)
+    assert res.attrs["free"] == "n k kd"
+    single = np.array([pbrdf_cl.fit(dict(theta_i=TI, theta_r=TR, dop=d, dop_std=np.full(d.size, 0.002)), fixed=fixed,
+                                    engine=dev).chi2 for d in dop])
+    assert np.all(res.chi2.values <= single * (1 + 1e-6)), (res.chi2.values, single)
+
+
 def test_corner_coordinates_round_trip():
     names = ["n", "k", "sigma", "kd", "c"]
     X = np.array([[1.0 + 3e-4, 2e-5, 0.4, 7e-6, -0.5], [1.2, 0.3, 0.8, 0.01, -0.1]])
