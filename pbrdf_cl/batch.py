@@ -452,9 +452,9 @@ class _Block:
 def _device_grid(eng, setup, blk, order, rstart):
     """(best (R, p), arg (R, p)): each region's minimum and its region-ordered grid index."""
     v = _grid_values(setup)
-    shadow = reference.SHADOWING[setup.shadowing]
     if blk.shared:
         return _table_minima(eng, blk, _table_dop(eng, setup, blk.angles, v, order), rstart)
+    shadow = reference.SHADOWING[setup.shadowing]
     dtype = "float32"
     npdt = DTYPES[dtype]
     R = rstart.size - 1
@@ -823,8 +823,8 @@ def _corner_polish(eng, setup, blk, xb, sb, jb, nfev):
 
 def _descend_corner(eng, setup, blk, names, corner, xb, sb, jb, nfev):
     lo, hi = np.asarray(setup.lo, float), np.asarray(setup.hi, float)
-    at = [names.index(n) for n in corner.near]
-    near = np.all(xb[:, at] - lo[at] < CORNER * (hi - lo)[at], axis=1) & np.isfinite(sb)
+    j = [names.index(n) for n in corner.near]
+    near = np.all(xb[:, j] - lo[j] < CORNER * (hi - lo)[j], axis=1) & np.isfinite(sb)
     extra, X_extra = _corner_table_starts(eng, setup, blk, names, corner, np.where(near, -np.inf, sb))
     pix = np.concatenate([np.flatnonzero(near), extra])  # distinct: the table skips the pixels near
     if not pix.size:
