@@ -179,10 +179,22 @@ inline real pb_log_specular_scale(pb_geom g, real sigma, real ks, real G)
            - (real)2 * pb_log(sigma) - (real)0.5 * u2;
 }
 
+/* Eq. 15's Minnaert factor (cos ti cos tr)^c. */
+inline real pb_minnaert(pb_geom g, real c)
+{
+    return pb_exp(c * pb_log(g.cti * g.ctr));
+}
+
+/* Eq. 15: Minnaert diffuse term kd/pi (cos ti cos tr)^c, from its factor pb_minnaert(g, c). */
+inline real pb_diffuse_of(real kd, real minnaert)
+{
+    return kd == (real)0 ? (real)0 : kd * PB_1_PI * minnaert;
+}
+
 /* Eq. 15: Minnaert diffuse term kd/pi (cos ti cos tr)^c. */
 inline real pb_diffuse(pb_geom g, real kd, real c)
 {
-    return kd == (real)0 ? (real)0 : kd * PB_1_PI * pb_exp(c * pb_log(g.cti * g.ctr));
+    return pb_diffuse_of(kd, pb_minnaert(g, c));
 }
 
 /* Eq. 17-18 from precomputed factors: DOP = (Rs - Rp) / (Rs + Rp + fd2 / K), where
@@ -214,10 +226,16 @@ inline real pb_brdf_combine(real sum, real K, real fd)
     return (real)0.5 * K * sum + fd;
 }
 
+/* Eq. 17-18 at inv_K = 1/K: K (Rs - Rp) / (K (Rs + Rp) + 2 fd). */
+inline real pb_dop_at(pb_fresnel_t f, real inv_K, real fd)
+{
+    return pb_dop_combine(f.Rs + f.Rp, f.diff, (real)2 * fd, inv_K);
+}
+
 /* Eq. 17-18: DOP for unpolarized incidence, = K (Rs - Rp) / (K (Rs + Rp) + 2 fd). */
 inline real pb_dop(pb_fresnel_t f, real logK, real fd)
 {
-    return pb_dop_combine(f.Rs + f.Rp, f.diff, (real)2 * fd, pb_exp(-logK));
+    return pb_dop_at(f, pb_exp(-logK), fd);
 }
 
 /* F00 = K (Rs + Rp) / 2 + fd. */

@@ -227,8 +227,10 @@ inline void pb_evaluate(const real *x, const real *h, __global const scalar *bas
         const real sw = sqrt(pb_vl(0, w + o));
         const pb_fresnel_t f = pb_fresnel(p.n, p.k, g.cb, g.sb);
         const real logK = pb_log_specular_scale(g, p.sigma, p.ks, pb_shadowing_factor(g, p.sigma, PBRDF_SHADOWING));
-        const real fd = pb_diffuse(g, p.kd, p.c);
-        const real dop0 = pb_dop(f, logK, fd);
+        /* 1/K and the Minnaert factor, shared by the columns that do not move them */
+        const real inv_K = pb_exp(-logK), mn = pb_minnaert(g, p.c);
+        const real fd = pb_diffuse_of(p.kd, mn);
+        const real dop0 = pb_dop_at(f, inv_K, fd);
         real col[PB_D];
 #ifdef PB_INTENSITY
         const real swf = sqrt(pb_vl(0, fw + o));
@@ -244,8 +246,10 @@ inline void pb_evaluate(const real *x, const real *h, __global const scalar *bas
             const real logKi = moves_s ? pb_log_specular_scale(g, q.sigma, q.ks,
                                                                 pb_shadowing_factor(g, q.sigma, PBRDF_SHADOWING))
                                        : logK;
-            const real fdi = (i == PB_X_KD || i == PB_X_C || i == PB_X_KS) ? pb_diffuse(g, q.kd, q.c) : fd;
-            col[i] = sw * (pb_dop(fi, logKi, fdi) - dop0) / h[i];
+            const real inv_Ki = moves_s ? pb_exp(-logKi) : inv_K;
+            const real fdi = i == PB_X_C ? pb_diffuse(g, q.kd, q.c)
+                                         : ((i == PB_X_KD || i == PB_X_KS) ? pb_diffuse_of(q.kd, mn) : fd);
+            col[i] = sw * (pb_dop_at(fi, inv_Ki, fdi) - dop0) / h[i];
 #ifdef PB_INTENSITY
             fcol[i] = swf * (pb_brdf(fi, logKi, fdi) - f000) / h[i];
 #endif

@@ -112,10 +112,20 @@ def log_specular_scale(g, sigma, ks, G):
             - 2.0 * np.log(sigma) - 0.5 * u2)
 
 
+def minnaert(g, c):
+    """Eq. 15's Minnaert factor (cos ti cos tr)^c (``pb_minnaert``)."""
+    return np.exp(c * np.log(g.cti * g.ctr))
+
+
+def diffuse_of(kd, minnaert_):
+    """Eq. 15: kd/pi (cos ti cos tr)^c from its factor :func:`minnaert` (``pb_diffuse_of``)."""
+    kd = np.asarray(kd, dtype=np.float64)
+    return np.where(kd == 0.0, 0.0, kd * (1.0 / np.pi) * minnaert_)
+
+
 def diffuse(g, kd, c):
     """Eq. 15: Minnaert diffuse term kd/pi (cos ti cos tr)^c (``pb_diffuse``)."""
-    kd = np.asarray(kd, dtype=np.float64)
-    return np.where(kd == 0.0, 0.0, kd * (1.0 / np.pi) * np.exp(c * np.log(g.cti * g.ctr)))
+    return diffuse_of(kd, minnaert(g, c))
 
 
 def dop_combine(sum_, diff, fd2, inv_K):
@@ -132,10 +142,15 @@ def brdf_combine(sum_, K, fd):
     return 0.5 * K * sum_ + fd
 
 
+def dop_at(f, inv_K, fd):
+    """Eq. 17-18 at inv_K = 1/K: K (Rs - Rp) / (K (Rs + Rp) + 2 fd) (``pb_dop_at``)."""
+    return dop_combine(f.Rs + f.Rp, f.diff, 2.0 * fd, inv_K)
+
+
 def dop(f, logK, fd):
     """Eq. 17-18: K (Rs - Rp) / (K (Rs + Rp) + 2 fd) (``pb_dop``)."""
     with np.errstate(over="ignore"):
-        return dop_combine(f.Rs + f.Rp, f.diff, 2.0 * fd, np.exp(-logK))
+        return dop_at(f, np.exp(-logK), fd)
 
 
 def brdf(f, logK, fd):
