@@ -5,28 +5,36 @@
  *
  * Included by pbrdf.h after it has defined real (scalar, or a vector with -DPB_VECTOR_REAL=N).
  *
- * float32 builds use the branch-free versions below by default (PB_FAST_MATH): pure arithmetic,
+ * Both precisions use the branch-free versions below by default (PB_FAST_MATH): pure arithmetic,
  * bit operations and ?: selects, so that they inline and vectorise (PoCL 3.0 calls its builtins
- * out of line, and evaluates erfc with scalar code).  -DPB_BUILTIN_MATH selects the OpenCL
- * builtins instead; float64 builds always use the builtins (float64 results must stay within
- * 1e-12 of the reference).  Max relative errors of the float32 versions against float64 at the
- * same float32 arguments (measured by tests/test_fastmath.py, which asserts the bounds in brackets):
- *   pb_exp         8.2e-8 [1.2e-7]  x in [-104, 89]; 0 below, +inf above; denormal results
- *                                   within one denormal step
- *   pb_log         8.2e-8 [1.0e-7]  every x > 0, denormals included; log(0) = -inf, NaN below 0
- *   pb_erfc        3.5e-7 [4.0e-7]  x in [0, 10.5] where erfc(x) >= FLT_MIN; 0 beyond 10.5;
- *                                   x >= 0 only
- *   pb_sincos_pi4  1.0e-7 [1.2e-7]  |y| <= pi/4 (pb_sincosd: 1.4e-7 [2e-7] for any degrees)
- *   pb_hypot       1.1e-7 [1.2e-7]  |x|, |y| in [1e-18, 1e18] (sqrt(x^2 + y^2): no rescaling)
+ * out of line, spilling every vector register, and evaluates erfc with scalar code: float64
+ * evaluation ran at half the speed it does with these).  -DPB_BUILTIN_MATH selects the OpenCL
+ * builtins instead.  Max relative errors against float64 (float32 versions, at the same float32
+ * arguments) or against numpy/scipy (float64 versions), measured by tests/test_fastmath.py, which
+ * asserts the bounds in brackets:
+ *   pb_exp         f32 8.2e-8 [1.2e-7]  x in [-104, 89]; 0 below, +inf above; denormal results
+ *                                       within one denormal step
+ *                  f64 2.2e-16 [3e-16]  x in [-746, 710], likewise
+ *   pb_log         f32 8.2e-8 [1.0e-7]  every x > 0, denormals included; log(0) = -inf, NaN below 0
+ *                  f64 2.2e-16 [3e-16]  likewise
+ *   pb_erfc        f32 3.5e-7 [4.0e-7]  x in [0, 10.5] where erfc(x) >= FLT_MIN; 0 beyond 10.5;
+ *                                       x >= 0 only
+ *                  f64 1.1e-15 [1.5e-15] x in [0, 26] (against 40-digit values: 4.4e-16); 0 beyond 27
+ *   pb_sincos_pi4  f32 1.0e-7 [1.2e-7]  |y| <= pi/4 (pb_sincosd: 1.4e-7 [2e-7] for any degrees)
+ *                  f64 2.2e-16 [3e-16]  (pb_sincosd: [4e-16])
+ *   pb_hypot       f32 1.1e-7 [1.2e-7]  |x|, |y| in [1e-18, 1e18] (sqrt(x^2 + y^2): no rescaling)
+ *                  f64 2.2e-16 [3e-16]  |x|, |y| in [1e-150, 1e150]
  *   pb_sqrt: correctly rounded, both precisions
- * The polynomial coefficients are weighted minimax fits (Lawson) in float64, rounded to float32.
+ * The float32 polynomial coefficients are weighted minimax fits (Lawson) in float64, rounded to
+ * float32; float64 uses Taylor series (exp, sincos), FDLIBM's log polynomial and a Chebyshev
+ * series for erfc.
  * These rely on IEEE arithmetic as written: do not build with -cl-fast-relaxed-math or
  * -cl-unsafe-math-optimizations ((x + 2^23) - 2^23 is not x).
  */
 #ifndef PB_MATH_H
 #define PB_MATH_H
 
-#if !defined(PBRDF_DOUBLE) && !defined(PB_BUILTIN_MATH)
+#if !defined(PB_BUILTIN_MATH)
 #define PB_FAST_MATH 1
 #endif
 
@@ -73,7 +81,123 @@ inline real pb_sqrt(real x) { return PB_SQRT1(x); }
 inline real pb_sqrt(real x) { return sqrt(x); }
 #endif
 
-#ifdef PB_FAST_MATH
+#if defined(PB_FAST_MATH) && defined(PBRDF_DOUBLE)
+
+/* float64: exp(x): x = n ln2 + r, |r| <= ln2/2 (Cody-Waite: ln2_hi has 21 trailing zero bits, so
+ * n ln2_hi is exact), exp(r) = 1 + r + r^2 P(r) with P the Taylor series to r^11 (truncation
+ * below 1e-17 relative), times 2^n in two factors (normal for every n in range). */
+inline real pb_exp(real x)
+{
+    x = x < -746.0 ? (real)-746.0 : x;  /* exp(-746) < 2^-1075: rounds to 0 */
+    x = x > 710.0 ? (real)710.0 : x;    /* exp(710) > DBL_MAX: +inf */
+    const real t = x * 1.4426950408889634 + PB_ROUND_MAGIC;  /* n = rint(x / ln2) in t's low bits */
+    const real nf = t - PB_ROUND_MAGIC;
+    const pb_bits n = PB_AS_BITS(t) - PB_AS_BITS(PB_ROUND_MAGIC);
+    const real r = (x - nf * 6.93147180369123816490e-01) - nf * 1.90821492927058770002e-10;
+    const real P = 0.5 + r * (1.6666666666666666e-01 + r * (4.1666666666666664e-02 + r * (8.3333333333333332e-03
+                   + r * (1.3888888888888889e-03 + r * (1.9841269841269841e-04 + r * (2.4801587301587302e-05
+                   + r * (2.7557319223985893e-06 + r * (2.7557319223985888e-07 + r * (2.5052108385441720e-08
+                   + r * (2.0876756987868100e-09 + r * 1.6059043836821613e-10))))))))));
+    const real p = (real)1 + (r + r * r * P);
+    const pb_bits n1 = n >> 1;  /* n in [-1077, 1025]: both halves give normal powers of 2 */
+    return p * PB_AS_REAL((n1 + 1023) << 52) * PB_AS_REAL((n - n1 + 1023) << 52);
+}
+
+/* float64: log(x): x = 2^e m with m in [sqrt(1/2), sqrt(2)), f = m - 1, s = f / (2 + f),
+ * log(1 + f) = f - f^2/2 + s (f^2/2 + R(s^2)) with R the minimax polynomial of FDLIBM's e_log.c
+ * (error below 1 ulp), plus e ln2 (Cody-Waite split).  Denormals are scaled by 2^54 first;
+ * log(0) = -inf, log(x < 0) = NaN, log(+inf) = +inf, NaN stays NaN. */
+inline real pb_log(real x)
+{
+    const pb_bits sub = x < 0x1p-1022;
+    const real xs = sub ? x * (real)0x1p54 : x;
+    const pb_bits ix = PB_AS_BITS(xs) - (pb_bits)0x3fe6a09e667f3bcdL;  /* bits of sqrt(1/2) */
+    const pb_bits e = (ix >> 52) - (sub ? (pb_bits)54 : (pb_bits)0);
+    const real f = PB_AS_REAL((ix & (pb_bits)0x000fffffffffffffL) + (pb_bits)0x3fe6a09e667f3bcdL) - (real)1;
+    const real ef = PB_AS_REAL(e + PB_AS_BITS(PB_ROUND_MAGIC)) - PB_ROUND_MAGIC;  /* (real)e */
+    const real s = f / ((real)2 + f);
+    const real z = s * s, w = z * z;
+    const real R = z * (6.666666666666735130e-01 + w * (2.857142874366239149e-01 + w * (1.818357216161805012e-01
+                   + w * 1.479819860511658591e-01)))
+                   + w * (3.999999999940941908e-01 + w * (2.222219843214978396e-01 + w * 1.531383769920937332e-01));
+    const real hfsq = (real)0.5 * f * f;
+    real r = ef * 6.93147180369123816490e-01 - ((hfsq - (s * (hfsq + R) + ef * 1.90821492927058770002e-10)) - f);
+    r = x < (real)INFINITY ? r : x;
+    return x > (real)0 ? r : x == (real)0 ? (real)-INFINITY : (real)NAN;
+}
+
+/* float64: erfc(x) for x >= 0 = exp(-x^2) erfcx(x), with (1 + 2x) erfcx(x) = 1 + P(q), q = (x - 2) /
+ * (x + 2) (the form of the float32 version below), P a Chebyshev series of degree 26 in q mapped
+ * from [-1, 25/29] (x in [0, 27]) onto [-1, 1], evaluated by Clenshaw's recurrence (coefficients
+ * from 40-digit erfc values at 2000 Chebyshev nodes; truncation 1e-16), and the rounding error t
+ * of x^2 corrected: exp(-x^2) = exp(-fl(x^2)) (1 - t).  0 beyond x = 27 (erfc(27) < 1e-318). */
+#define PB_CLENSHAW(c) { const real b0 = u2 * b1 - b2 + (real)(c); b2 = b1; b1 = b0; }
+inline real pb_erfc(real x)
+{
+    const real d = (real)1 + (real)2 * x;
+    const real rcp = (real)1 / ((x + (real)2) * d);
+    const real q = (x - (real)2) * d * rcp;
+    const real u = q * 1.0740740740740742 + 0.07407407407407411;
+    const real u2 = (real)2 * u;
+    real b2 = (real)0, b1 = (real)-1.015271658266677e-18;
+    PB_CLENSHAW(-6.256175477884e-17);
+    PB_CLENSHAW(-2.3391884723788363e-16);
+    PB_CLENSHAW(2.5158594605268048e-20);
+    PB_CLENSHAW(3.670374942366494e-15);
+    PB_CLENSHAW(1.4538457400804143e-14);
+    PB_CLENSHAW(-3.249984758271317e-15);
+    PB_CLENSHAW(-2.5583434136028265e-13);
+    PB_CLENSHAW(-9.093478766010714e-13);
+    PB_CLENSHAW(1.1500490764983634e-12);
+    PB_CLENSHAW(2.062635527456776e-11);
+    PB_CLENSHAW(5.062186591581214e-11);
+    PB_CLENSHAW(-2.2760610317834061e-10);
+    PB_CLENSHAW(-1.7489408085673871e-09);
+    PB_CLENSHAW(-6.173785623864705e-10);
+    PB_CLENSHAW(3.6241640662636236e-08);
+    PB_CLENSHAW(1.0872974541345352e-07);
+    PB_CLENSHAW(-6.205050348889623e-07);
+    PB_CLENSHAW(-3.9651852960545826e-06);
+    PB_CLENSHAW(1.1385394763548858e-05);
+    PB_CLENSHAW(0.00012585620959943607);
+    PB_CLENSHAW(-0.00040284209186637544);
+    PB_CLENSHAW(-0.003935557574655554);
+    PB_CLENSHAW(0.03383415117427362);
+    PB_CLENSHAW(-0.10426944550821916);
+    PB_CLENSHAW(0.040802111220209554);
+    const real p = u * b1 - b2 + (real)0.18232722389066927;
+    const real ex = ((real)1 + p) * ((x + (real)2) * rcp);  /* erfcx(x) */
+    /* t = x^2 - fl(x^2), exactly, by splitting x into 26-bit halves (Dekker) */
+    const real s = x * x;
+    const real xh = PB_AS_REAL(PB_AS_BITS(x) & (pb_bits)0xfffffffff8000000L);
+    const real xl = x - xh;
+    const real t = ((xh * xh - s) + (real)2 * xh * xl) + xl * xl;
+    const real e = pb_exp(-x * x) * ex;
+    const real r = e - e * t;
+    return x > (real)27 ? (real)0 : r;
+}
+#undef PB_CLENSHAW
+
+/* sqrt(x^2 + y^2) (no rescaling: |x|, |y| must stay within about 1e-150 .. 1e150). */
+inline real pb_hypot(real x, real y)
+{
+    return pb_sqrt(x * x + y * y);
+}
+
+/* float64: sin(y), and cos(y) in *c, for |y| <= pi/4: the Taylor series to y^15 and y^16
+ * (truncation below 5e-17 relative). */
+inline real pb_sincos_pi4(real y, real *c)
+{
+    const real z = y * y;
+    *c = (real)1 - (real)0.5 * z + z * z * (4.1666666666666664e-02 + z * (-1.3888888888888889e-03
+         + z * (2.4801587301587302e-05 + z * (-2.7557319223985888e-07 + z * (2.0876756987868100e-09
+         + z * (-1.1470745597729725e-11 + z * 4.7794773323873853e-14))))));
+    return y + y * z * (-1.6666666666666666e-01 + z * (8.3333333333333332e-03 + z * (-1.9841269841269841e-04
+           + z * (2.7557319223985893e-06 + z * (-2.5052108385441720e-08 + z * (1.6059043836821613e-10
+           + z * -7.6471637318198164e-13))))));
+}
+
+#elif defined(PB_FAST_MATH)
 
 /* exp(x): x = n ln2 + r, |r| <= ln2/2 (Cody-Waite, ln2 = 0.693359375 - 2.12194440e-4 with n ln2_hi
  * exact), exp(r) = 1 + r + r^2 P(r), times 2^n in two factors (normal for every n in range, so

@@ -1,13 +1,14 @@
-"""Accuracy of the elementary functions of kernels/pb_math.h (the float32 build's inline exp, log,
-erfc, hypot, sincos) against numpy/scipy in float64 at the same float32 arguments, in scalar and
-vector builds, plus pb_sincosd (exact degree reduction) in both precisions.  The bounds are those stated in
-pb_math.h's header comment."""
+"""Accuracy of the elementary functions of kernels/pb_math.h (the inline exp, log, erfc, hypot,
+sincos of both precisions) against numpy/scipy: float32 against float64 at the same float32
+arguments, float64 against numpy (erfc: scipy's erfcx times exp(-x^2) in long double), in scalar
+and vector builds, plus pb_sincosd (exact degree reduction) in both precisions.  The bounds are
+those stated in pb_math.h's header comment."""
 import warnings
 
 import numpy as np
 import pyopencl as cl
 import pytest
-from scipy.special import erfc
+from scipy.special import erfc, erfcx
 
 from pbrdf_cl import engine as engine_mod
 from pbrdf_cl import reference
@@ -192,3 +193,77 @@ def test_builtin_math_build(run, width):
     x = f32(np.linspace(-20, 20, 1001))
     got, _ = run("exp", x, width=width, builtin=True)
     assert rel_err(got, np.exp(x)).max() <= 4e-7
+
+
+# ---- float64 -------------------------------------------------------------------------------------
+WIDTHS64 = [None, 8]
+DBL_TINY = float(np.finfo(np.float64).tiny)  # 2^-1022
+
+
+@pytest.mark.parametrize("width", WIDTHS64)
+def test_exp_float64(run, rng, width):
+    x = np.concatenate([np.linspace(-745, 709.7, 400001), rng.uniform(-20, 20, 200000), rng.uniform(-1e-3, 1e-3, 10000)])
+    got, _ = run("exp", x, dtype="float64", width=width)
+    want = np.exp(x)
+    normal = want >= DBL_TINY
+    assert rel_err(got[normal], want[normal]).max() <= 3e-16
+    assert np.all(np.abs(got[~normal] - want[~normal]) <= 3e-16 * want[~normal] + 2.0 ** -1074)
+    special, _ = run("exp", [-np.inf, np.inf, np.nan, -1e300, 1e300, 0.0, -746.0, 710.0], dtype="float64", width=width)
+    assert special[0] == 0 and special[1] == np.inf and np.isnan(special[2])
+    assert special[3] == 0 and special[4] == np.inf and special[5] == 1 and special[6] == 0 and special[7] == np.inf
+
+
+@pytest.mark.parametrize("width", WIDTHS64)
+def test_log_float64(run, rng, width):
+    x = np.concatenate([10.0 ** rng.uniform(-323, 308, 300000), rng.uniform(0.5, 2, 200000),
+                        1 + rng.uniform(-1e-6, 1e-6, 10000), [5e-324, 2.0 ** -1022, np.finfo(np.float64).max]])
+    got, _ = run("log", x, dtype="float64", width=width)
+    want = np.log(x)
+    nz = want != 0
+    assert rel_err(got[nz], want[nz]).max() <= 3e-16 and np.all(got[~nz] == 0)
+    special, _ = run("log", [0.0, -0.0, -1.0, -np.inf, np.inf, np.nan, 1.0], dtype="float64", width=width)
+    assert special[0] == -np.inf and special[1] == -np.inf
+    assert np.all(np.isnan(special[2:4])) and special[4] == np.inf and np.isnan(special[5]) and special[6] == 0
+
+
+@pytest.mark.parametrize("width", WIDTHS64)
+def test_erfc_float64(run, rng, width):
+    """Against erfcx(x) exp(-x^2) with x^2 in long double: scipy's erfc itself loses x^2 ulps
+    (7e-15 at x = 9) to the rounding of x^2."""
+    x = np.concatenate([np.linspace(0, 26, 400001), rng.uniform(0, 9, 200000), rng.uniform(0, 1e-3, 1000)])
+    got, _ = run("erfc", x, dtype="float64", width=width)
+    xl = x.astype(np.longdouble)
+    want = (erfcx(x).astype(np.longdouble) * np.exp(-xl * xl)).astype(np.float64)
+    assert want.min() > DBL_TINY
+    assert rel_err(got, want).max() <= 1.5e-15
+    special, _ = run("erfc", [np.inf, np.nan, 0.0, 27.5, 1e300], dtype="float64", width=width)
+    assert special[0] == 0 and np.isnan(special[1]) and special[2] == 1 and special[3] == 0 and special[4] == 0
+
+
+@pytest.mark.parametrize("width", WIDTHS64)
+def test_hypot_and_sqrt_float64(run, rng, width):
+    x = 10.0 ** rng.uniform(-150, 150, 200000) * rng.choice([-1, 1], 200000)
+    y = 10.0 ** rng.uniform(-150, 150, 200000)
+    got, _ = run("hypot", x, y, dtype="float64", width=width)
+    assert rel_err(got, np.hypot(x, y)).max() <= 3e-16
+    s, _ = run("sqrt", np.abs(x), dtype="float64", width=width)
+    np.testing.assert_array_equal(s, np.sqrt(np.abs(x)))  # correctly rounded
+
+
+@pytest.mark.parametrize("width", WIDTHS64)
+def test_sincos_pi4_float64(run, rng, width):
+    y = np.concatenate([np.linspace(-np.pi / 4, np.pi / 4, 200001), rng.uniform(-1e-3, 1e-3, 1000)])
+    s, c = run("sincos_pi4", y, dtype="float64", width=width)
+    nz = y != 0
+    assert rel_err(s[nz], np.sin(y[nz])).max() <= 3e-16 and np.all(s[~nz] == 0)
+    assert rel_err(c, np.cos(y)).max() <= 3e-16
+
+
+@pytest.mark.parametrize("width", WIDTHS64)
+def test_builtin_math_build_float64(run, width):
+    """-DPB_BUILTIN_MATH switches the float64 build back to the OpenCL builtins too."""
+    x = np.linspace(0, 9, 1001)
+    got, _ = run("erfc", x, dtype="float64", width=width, builtin=True)
+    fast, _ = run("erfc", x, dtype="float64", width=width)
+    assert rel_err(got, erfc(x)).max() <= 1e-13
+    assert np.any(got != fast)  # a different implementation, not the inline one
