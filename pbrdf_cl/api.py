@@ -199,12 +199,9 @@ def _evaluate(quantity, theta_i, theta_r, phi, n, k, sigma, ks, kd, c, shadowing
     sizes.check_memory(points * q.width * np.dtype(DTYPES[dtype_name]).itemsize, f"the {quantity} of {points} points",
                        "evaluate fewer points per call; for a Cartesian product of axes use pbrdf_cl.grid, or "
                        "pbrdf-cl sweep (chunked into a Zarr store)")
-    if eng.is_numpy:  # the reference broadcasts by itself
-        out = eng.evaluate(quantity, arrays, shape, dtype=dtype_name, shadowing=shadowing)
-    else:
-        inputs = {name: (a if a.size == 1 or a.shape == shape else np.broadcast_to(a, shape))
-                  for name, a in arrays.items()}
-        out = eng.evaluate(quantity, inputs, shape, dtype=dtype_name, shadowing=shadowing)
+    # the arrays as given: the reference broadcasts by itself, the device engine sends a short axis
+    # once with its index rule (engine.input_plan) and gathers only other broadcast patterns
+    out = eng.evaluate(quantity, arrays, shape, dtype=dtype_name, shadowing=shadowing)
     if not q.undefined_nan and not _all_finite(out):
         if fused:  # the kernel marks points outside the domain with NaN: name the first
             validate(*args, **kw)
