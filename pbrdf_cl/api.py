@@ -259,7 +259,8 @@ _POINT_PARAMETERS = """
     engine : pbrdf_cl.Engine, optional
         The engine (device) to use instead of the default one.
 
-    All array arguments broadcast together.
+    All array arguments broadcast together; a short axis (``theta_r[:, None]``, ``sigma[None, :]``)
+    is sent to the device once, its values read through an index rule, never expanded.
 
     Raises
     ------
