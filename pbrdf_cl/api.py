@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from . import quantities, reference, sizes
-from .engine import BACKENDS, DTYPES, POINT_INPUTS, check_backend, resolve_engine  # noqa: F401 (api.BACKENDS stays)
+from .engine import BACKENDS, DTYPES, POINT_INPUTS, check_backend, compact_values, resolve_engine  # noqa: F401 (api.BACKENDS stays)
 
 MODELS = ("six-param", "specular")
 #: The quantities with a per-point path (the registry, :mod:`pbrdf_cl.quantities`, says more).
@@ -27,9 +27,30 @@ def _as_array(name, value):
         raise ValueError(f"{name} must be a number or an array of numbers, got {value!r}") from None
 
 
+#: Elements per block of the one-read checks: the minimum and maximum of each block are taken
+#: while it is in cache.
+CHECK_BLOCK = 1 << 16
+
+
+def _min_max(a):
+    """``(min, max)`` of the non-empty array ``a`` (NaN when it holds one: NaN propagates) in one
+    read and no temporary beyond a block: blocks of :data:`CHECK_BLOCK` elements in memory order
+    (a transposed or strided array too; a broadcast view's repeated axes are read once), the
+    minimum and maximum of each taken while it is in cache."""
+    a = compact_values(a, a.ndim)
+    if a.size <= CHECK_BLOCK:
+        return np.min(a), np.max(a)
+    lo = hi = None
+    for block in np.nditer(a, flags=["external_loop", "buffered"], buffersize=CHECK_BLOCK, order="K"):
+        b_lo, b_hi = np.min(block), np.max(block)
+        lo = b_lo if lo is None else np.minimum(lo, b_lo)
+        hi = b_hi if hi is None else np.maximum(hi, b_hi)
+    return lo, hi
+
+
 def _all_finite(a):
-    """Whether every value is finite: two reads (min, max: NaN propagates) and no temporary."""
-    return a.size == 0 or bool(np.isfinite(np.min(a)) and np.isfinite(np.max(a)))
+    """Whether every value is finite: one read (:func:`_min_max`) and no temporary."""
+    return a.size == 0 or bool(np.all(np.isfinite(_min_max(a))))
 
 
 class _Range:
@@ -82,11 +103,11 @@ def check_values(name, value):
 
 def _check_domain(name, a):
     """Every value of ``a`` (either float dtype) finite and in ``RULES[name]``, else a ``ValueError``
-    naming the first bad one; two reads (min, max) when all is well.  Returns ``(min, max)`` (None
-    for an empty array)."""
+    naming the first bad one; one read (:func:`_min_max`) when all is well.  Returns ``(min, max)``
+    (None for an empty array)."""
     ok, rule = RULES[name]
     if a.size:
-        lo, hi = np.min(a), np.max(a)  # NaN propagates
+        lo, hi = _min_max(a)  # NaN propagates
         if np.isfinite(lo) and np.isfinite(hi) and ok(lo) and ok(hi):
             return float(lo), float(hi)
         bad = ~np.isfinite(a)
@@ -106,12 +127,12 @@ RADIANS_HINT = 1.6
 def radians_suspect(theta_i, theta_r, bounds=None):
     """The largest zenith angle when every one lies in [0, 1.6) and not all are 0 (such angles are
     almost always radians: pbrdf-cl takes degrees), else None.  ``bounds``: name -> (min, max)
-    already read (by :func:`_check_domain`); the other arrays are read twice (min, max)."""
+    already read (by :func:`_check_domain`); the other arrays are read once (:func:`_min_max`)."""
     ranges = []
     for name, a in (("theta_i", theta_i), ("theta_r", theta_r)):
         known = (bounds or {}).get(name)
         ranges.append(known if known is not None else
-                      ((float(np.min(a)), float(np.max(a))) if np.size(a) else (0.0, 0.0)))
+                      (tuple(float(v) for v in _min_max(np.asarray(a))) if np.size(a) else (0.0, 0.0)))
     lo, hi = min(r[0] for r in ranges), max(r[1] for r in ranges)
     return hi if 0.0 < hi < RADIANS_HINT and lo >= 0.0 else None
 
@@ -199,12 +220,9 @@ def _evaluate(quantity, theta_i, theta_r, phi, n, k, sigma, ks, kd, c, shadowing
     sizes.check_memory(points * q.width * np.dtype(DTYPES[dtype_name]).itemsize, f"the {quantity} of {points} points",
                        "evaluate fewer points per call; for a Cartesian product of axes use pbrdf_cl.grid, or "
                        "pbrdf-cl sweep (chunked into a Zarr store)")
-    if eng.is_numpy:  # the reference broadcasts by itself
-        out = eng.evaluate(quantity, arrays, shape, dtype=dtype_name, shadowing=shadowing)
-    else:
-        inputs = {name: (a if a.size == 1 or a.shape == shape else np.broadcast_to(a, shape))
-                  for name, a in arrays.items()}
-        out = eng.evaluate(quantity, inputs, shape, dtype=dtype_name, shadowing=shadowing)
+    # the arrays as given: the reference broadcasts by itself, the device engine sends a short axis
+    # once with its index rule (engine.input_plan) and gathers only other broadcast patterns
+    out = eng.evaluate(quantity, arrays, shape, dtype=dtype_name, shadowing=shadowing)
     if not q.undefined_nan and not _all_finite(out):
         if fused:  # the kernel marks points outside the domain with NaN: name the first
             validate(*args, **kw)
@@ -241,7 +259,8 @@ _POINT_PARAMETERS = """
     engine : pbrdf_cl.Engine, optional
         The engine (device) to use instead of the default one.
 
-    All array arguments broadcast together.
+    All array arguments broadcast together; a short axis (``theta_r[:, None]``, ``sigma[None, :]``)
+    is sent to the device once, its values read through an index rule, never expanded.
 
     Raises
     ------

@@ -5,7 +5,9 @@ run :func:`main`; it prints a table and writes the same rows as JSON.
 Rates are medians over ``--repeats`` runs.  "kernel" rows time the device work alone
 (queue finished, outputs left on the device, as in reductions and the objective);
 "end-to-end" rows are what a user gets from the public API (validation, transfers, the numpy
-result; their peak extra memory is measured with tracemalloc).  Two limits are measured in the
+result; their peak extra memory is measured with tracemalloc); a broadcast call (``theta_r[:, None]``
+against ``sigma[None, :]``) is timed both ways in the same run, its inputs sent once with their
+index rules and gathered launch by launch as before issue #12.  Two limits are measured in the
 same run where a C compiler exists: "C loop" (``kernels/pbrdf_host.c``: pbrdf.h itself compiled
 by the host's C compiler, vectorised with OpenMP) and "memory roofline" (a loop moving the path's
 bytes, read its inputs and write its output, without arithmetic); each end-to-end row reports its
@@ -168,6 +170,45 @@ def bench_points(eng, rows, rng, size, repeats, sample):
                    peak_extra_mb=traced(call)[1] / 1e6, output_mb=got.nbytes / 1e6)
         rows.append(row)
         _limits(rows, row, dtype, arrays, got, repeats, per_point=True)
+    bench_broadcast(eng, rows, rng, size, repeats, sample)
+
+
+#: The broadcast call's axes: theta_r[:, None] (rows) against sigma[None, :] (BROADCAST_COLUMNS).
+BROADCAST_COLUMNS = 4096
+
+
+def bench_broadcast(eng, rows, rng, size, repeats, sample, dtype="float32"):
+    """``pbrdf_cl.dop`` over ``theta_r[:, None]`` x ``sigma[None, :]`` (size / 4096 x 4096 points,
+    the other inputs single values, all in ``dtype``): sent once with their index rules (issue
+    #12), and gathered launch by launch on the host as before (``Engine.index_rules = False``),
+    in the same run, each with its peak extra memory."""
+    cols = min(BROADCAST_COLUMNS, size)
+    npdt = _engine.DTYPES[dtype]
+    th = rng.uniform(0, 89.9, size // cols).astype(npdt)
+    sg = rng.uniform(0.05, 1, cols).astype(npdt)
+    fixed = dict(n=1.5, k=2.125, ks=1.0, kd=0.25, c=-0.25)  # exact in float32: the reference sees the same inputs
+
+    def call():
+        return api_dop(40.0, th[:, None], 150.0, sigma=sg[None, :], dtype=dtype, engine=eng, **fixed)
+    idx = np.arange(min(sample, th.size * cols))
+    want = reference_dop(dict(theta_i=np.full(idx.size, 40.0), theta_r=th[idx // cols].astype(np.float64),
+                              phi=np.full(idx.size, 150.0), sigma=sg[idx % cols].astype(np.float64),
+                              **{n: np.full(idx.size, v) for n, v in fixed.items()}))
+    c_rows = [r["rate"] for r in rows if r["path"].startswith("C loop") and r["dtype"] == dtype]
+    for rules, label in ((True, "sent once"), (False, "gathered")):  # with index rules; as before #12
+        saved, eng.index_rules = getattr(eng, "index_rules", True), rules
+        try:
+            got = call()
+            rate, sec = median_rate(call, got.size, repeats)
+            row = dict(path=f"pbrdf_cl.dop, {th.size} x {cols} broadcast, {label} (end-to-end)", dtype=dtype,
+                       rate=rate, unit="evals/s", seconds=sec, n=got.size,
+                       max_abs_err=float(np.max(np.abs(got.reshape(-1)[idx] - want))),
+                       peak_extra_mb=traced(call)[1] / 1e6, output_mb=got.nbytes / 1e6)
+        finally:
+            eng.index_rules = saved
+        if c_rows:
+            row["of_c_loop"] = row["rate"] / c_rows[-1]
+        rows.append(row)
 
 
 def _limits(rows, row, dtype, arrays, out, repeats, per_point):
@@ -355,6 +396,10 @@ def bench_sweep(eng, device, rows, rng, scale, repeats, workers=2, backend="auto
         shutil.rmtree(folder, ignore_errors=True)
 
 
+#: The sections of a run, in order (``--only`` picks some).
+SECTIONS = ("points", "grid", "objective", "sweep")
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(prog="pbrdf-cl bench", description=__doc__.split("\n\n")[0])
     p.add_argument("--device", help="OpenCL device (P:D or a name substring); default as pbrdf_cl.Engine()")
@@ -367,6 +412,9 @@ def main(argv=None):
     p.add_argument("--json", default="bench.json", help="where to write the JSON (default bench.json)")
     p.add_argument("--sweep-workers", type=int, default=2,
                    help="LocalCluster processes for the sweep row (default 2; 0 skips it; --quick skips it)")
+    p.add_argument("--only", nargs="+", choices=SECTIONS, default=list(SECTIONS),
+                   help="run only these sections (default: all): points (the per-point and broadcast rows), grid, "
+                        "objective, sweep")
     args = p.parse_args(argv)
     size, repeats, scale = args.points, args.repeats, 1.0
     if args.quick:
@@ -379,11 +427,15 @@ def main(argv=None):
     rng = np.random.default_rng(2020)
     rows = []
     t0 = time.perf_counter()
-    bench_points(eng, rows, rng, size, repeats, min(size, 1 << 18))
-    bench_grid(eng, rows, rng, scale, repeats)
-    bench_objective(eng, rows, rng, scale, repeats)
-    bench_sweep(eng, args.device, rows, rng, sweep_scale, repeats, workers=0 if args.quick else args.sweep_workers,
-                backend=args.backend)
+    if "points" in args.only:
+        bench_points(eng, rows, rng, size, repeats, min(size, 1 << 18))
+    if "grid" in args.only:
+        bench_grid(eng, rows, rng, scale, repeats)
+    if "objective" in args.only:
+        bench_objective(eng, rows, rng, scale, repeats)
+    if "sweep" in args.only:
+        bench_sweep(eng, args.device, rows, rng, sweep_scale, repeats, workers=0 if args.quick else args.sweep_workers,
+                    backend=args.backend)
     device = eng.description
     print(f"device: {device}; host: {platform.processor() or platform.machine()}, {os.cpu_count()} cpus")
     print(f"{'path':58s} {'dtype':8s} {'rate':>12s} {'unit':14s} {'max |err|':>10s}  of C loop / roofline, peak")

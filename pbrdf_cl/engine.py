@@ -63,9 +63,16 @@ VECTOR_WIDTH = {"float32": 16, "float64": 8}
 VECTOR_LOCAL_SIZE = 8
 #: Points per kernel launch; bounds the temporary device memory of one call.
 LAUNCH_POINTS = 1 << 22
+#: The most points of a launch of the broadcast kernels: their 32-bit index arithmetic counts on
+#: it (see :data:`RULE_MAX`).
+RULE_LAUNCH_MAX = 1 << 22
 #: Points per launch when inputs must be converted or gathered first (another dtype, a broadcast
-#: view): bounds the host memory of the converted copies (9 inputs x 2^19 x 8 bytes = 38 MB).
+#: view that is not one run of axes): bounds the host memory of the converted copies (9 inputs x
+#: 2^19 x 8 bytes = 38 MB).
 CONVERT_POINTS = 1 << 19
+#: The most values of a broadcast input's table (:func:`broadcast_table`, a copy sent once): a
+#: larger one is gathered launch by launch instead, so that memory stays within the same bound.
+TABLE_POINTS = 1 << 19
 FAKE_FAILURE_ENV = "PBRDF_CL_FAKE_BUILD_FAILURE"
 
 _HOW_TO_GET_ONE = "remedies: " + drivers.REMEDIES
@@ -620,6 +627,9 @@ class Engine:
         #: evaluate through the transfer pipeline of GPUs (pinned staging, copies overlapped with
         #: compute) even on a CPU device; for tests of that path where no GPU is present
         self.force_transfers = False
+        #: send a broadcast input once with its index rule (:func:`input_plan`); False gathers it
+        #: launch by launch on the host, as before issue #12 (for comparisons: tests, the bench)
+        self.index_rules = True
         self._copy_queue = None
         self._kernels = {}
         self._last_event = None
@@ -726,43 +736,52 @@ class Engine:
     def evaluate(self, quantity: str, inputs: dict, shape, dtype="float64", shadowing="paper"):
         """Evaluate ``quantity`` (a name of the registry, :mod:`pbrdf_cl.quantities`) element-wise.
 
-        ``inputs`` maps each name of :data:`POINT_INPUTS` to an array of ``shape`` (any float
-        dtype, any strides: a broadcast view is read launch by launch, never expanded whole) or of
-        size 1.  Angles in degrees.  Returns an array of ``shape`` (``shape + (4, 4)`` for
-        "mueller") in ``dtype``.  On a CPU device the kernels read contiguous inputs of ``dtype``
-        in place and write straight into the returned array (host-pointer buffers); other inputs
-        are converted one launch at a time, so memory beyond the inputs and the result stays
-        within a launch's worth.  Where :meth:`checks_domain`, a point outside the model's domain
-        gets NaN; no other validation here.  The result has the quantity's trailing axes
-        (``shape + (4, 4)`` for "mueller", ``shape + (4,)`` for "stokes").
+        ``inputs`` maps each name of :data:`POINT_INPUTS` to an array (any float dtype, any
+        strides) that broadcasts to ``shape``: of ``shape`` itself, a broadcast view of it, or as
+        given (``theta_r[:, None]``, a scalar).  Angles in degrees.  Each input is read as
+        :func:`input_plan` says: one value, or a short axis (any single run of axes) sent once
+        with its index rule, which the kernels apply point by point (never expanded, on the host
+        or the device); an input with a value per point is read in place on a CPU device when it
+        is contiguous and of ``dtype``, else converted (or gathered, for other broadcast
+        patterns) one launch at a time.  The kernels write straight into the returned array
+        (host-pointer buffers on a CPU device), so memory beyond the inputs and the result stays
+        within a launch's worth, plus each broadcast input's table (:func:`broadcast_table`, at
+        most :data:`TABLE_POINTS` values; a longer one is gathered launch by launch).  Where
+        :meth:`checks_domain`, a point outside the model's domain gets NaN; no
+        other validation here.  The result has ``shape`` and the quantity's trailing axes
+        (``shape + (4, 4)`` for "mueller", ``shape + (4,)`` for "stokes"), in ``dtype``.
         """
         npdt = np.dtype(DTYPES[dtype])
         q = quantities.get(quantity, "points")
         vec = self.checks_domain(q.name)
         lanes = VECTOR_WIDTH[dtype] if vec else 1
-        kern = (self.kernel(f"{q.name}_points_vec", dtype, shadowing) if vec
-                else self.kernel("quantity_points", dtype, shadowing, q.name))
-        size = int(np.prod(shape, dtype=np.int64))
+        shape = tuple(int(n) for n in shape)
+        size = _prod(shape)
         width = q.width
         out = aligned_empty(size * width, npdt)  # page-aligned: every driver writes it in place
         if size == 0:
-            return out.reshape(tuple(shape) + q.trailing)
-        host = self.host_memory
-        flat = {}
-        for name in POINT_INPUTS:
-            a = inputs[name]
-            flat[name] = np.asarray(a, npdt).reshape(1) if a.size == 1 else (a.reshape(-1) if a.flags.c_contiguous else a)
+            return out.reshape(shape + q.trailing)
+        plan, flat, values = self._inputs(inputs, shape, npdt, lanes)
+        if values:  # a broadcast input: the twin kernel, reading each input through its rule
+            kern = (self.kernel(f"{q.name}_bcast_points_vec", dtype, shadowing) if vec
+                    else self.kernel("quantity_bcast_points", dtype, shadowing, q.name))
+        else:
+            kern = (self.kernel(f"{q.name}_points_vec", dtype, shadowing) if vec
+                    else self.kernel("quantity_points", dtype, shadowing, q.name))
+            plan = None
         if self.overlaps_transfers:
-            _TransferPipeline(self, kern, flat, npdt, lanes, vec, width).run(size, out)
-            return out.reshape(tuple(shape) + q.trailing)
+            _TransferPipeline(self, kern, flat, values, plan, npdt, lanes, vec, width).run(size, out)
+            return out.reshape(shape + q.trailing)
+        host = self.host_memory
+        sent = {n: self._input_buffer(v, npdt, host) for n, v in values.items()}  # once per call
         # inputs the device cannot read in place are converted launch by launch: smaller launches
         staged = [n for n, a in flat.items() if a.size != 1 and not self.can_use_in_place(a, npdt)]
-        step = (CONVERT_POINTS if staged else LAUNCH_POINTS) // lanes * lanes
+        step = min(CONVERT_POINTS if staged else LAUNCH_POINTS, _launch_limit(plan)) // lanes * lanes
         # page-aligned staging arrays, reused by every launch (each completes before the next is filled)
         stage = {n: aligned_empty(min(step, size) + lanes, npdt) for n in staged}
 
         def parts_of(s0, s1, padded):  # the inputs of points s0..s1, padded to ``padded`` points
-            parts = {}
+            parts = dict(sent)
             for n, a in flat.items():
                 if a.size == 1:
                     parts[n] = a
@@ -784,19 +803,49 @@ class Engine:
             whole = count // lanes * lanes
             if whole:
                 self._launch_points(kern, parts_of(start, start + whole, whole), whole,
-                                    out[start * width:(start + whole) * width], npdt, lanes, vec, host)
+                                    out[start * width:(start + whole) * width], npdt, lanes, vec, host,
+                                    None if plan is None else rule_table(plan, start))
             if whole < count:  # the last few points, padded to a whole vector
                 tail = count - whole
                 padded = lanes if vec else tail
                 tmp = np.empty(padded * width, npdt)
                 self._launch_points(kern, parts_of(start + whole, start + count, padded), padded, tmp, npdt, lanes,
-                                    vec, host)
+                                    vec, host, None if plan is None else rule_table(plan, start + whole))
                 out[(start + whole) * width:(start + count) * width] = tmp[:tail * width]
-        return out.reshape(tuple(shape) + q.trailing)
+        return out.reshape(shape + q.trailing)
+
+    def _inputs(self, inputs, shape, npdt, lanes):
+        """``(plan, flat, values)`` of :meth:`evaluate`'s inputs for kernels of ``lanes`` points
+        per work-item: each input's rule (:func:`input_plan`, the broadcast ones as
+        :func:`broadcast_table` lays them out; without :attr:`index_rules` one value or one per
+        point, as before issue #12), ``flat`` the one-value (a 1-value array of ``npdt``) and
+        per-point inputs (1-d, or a strided or broadcast view of ``shape``), ``values`` the
+        broadcast ones' tables (contiguous, of ``npdt``)."""
+        if self.index_rules:
+            plan = input_plan(shape, inputs)
+        else:
+            plan = {n: IndexRule(SINGLE if np.size(a) == 1 else PER_POINT) for n, a in inputs.items()}
+        flat, values = {}, {}
+        for name in POINT_INPUTS:
+            a = np.asarray(inputs[name])
+            if plan[name].kind == BROADCAST:
+                laid = broadcast_table(plan[name], compact_values(a, len(shape)), shape, lanes, npdt)
+                if laid is not None:
+                    plan[name], values[name] = laid
+                    continue
+                plan[name] = IndexRule(PER_POINT)  # a large table: gathered instead
+            if plan[name].kind == SINGLE:
+                flat[name] = np.array([a[(0,) * a.ndim]], npdt)  # one value, even of a broadcast view
+                continue
+            b = a if a.shape == shape else np.broadcast_to(a, shape)
+            flat[name] = b.reshape(-1) if b.flags.c_contiguous else b
+        return plan, flat, values
 
     def _input_buffer(self, a, npdt, host):
         """A read-only buffer of the contiguous 1-d array ``a`` of ``npdt``: over ``a`` itself on a
-        CPU device, a device copy elsewhere."""
+        CPU device, a device copy elsewhere (``a`` itself if it is a buffer already)."""
+        if isinstance(a, cl.Buffer):
+            return a
         if not host:
             return self.to_device(a, npdt)
         a = np.ascontiguousarray(a, npdt)  # as it is, where evaluate has staged it
@@ -837,18 +886,27 @@ class Engine:
         buf = self.empty(view.nbytes)
         return buf, lambda: self.read(buf, view)
 
-    def _launch_points(self, kern, parts, n, out, npdt, lanes, vec, host):
-        """One launch of a per-point kernel over ``n`` points (``parts``: name -> n values or one),
-        its result in ``out`` (contiguous, n * width values) when this returns."""
+    def _launch_points(self, kern, parts, n, out, npdt, lanes, vec, host, rules=None):
+        """One launch of a per-point kernel over ``n`` points (``parts``: name -> n values or one,
+        or a buffer), its result in ``out`` (contiguous, n * width values) when this returns.
+        ``rules``: the launch's :func:`rule_table`, for the broadcast twins (None: strides)."""
         out_buf, done = self.output(out)
         args = [out_buf, np.int32(n // lanes)]
         for name in POINT_INPUTS:
             p = parts[name]
-            args += [self._input_buffer(p, npdt, host), np.int32(0 if p.size == 1 else 1)]
+            args.append(self._input_buffer(p, npdt, host))
+            if rules is None:
+                args.append(np.int32(0 if p.size == 1 else 1))
+        if rules is not None:
+            args.append(self._rules_buffer(rules))
         # a small work-group: PoCL keeps every work-item's private state of a group on one
         # thread's stack, and the vector kernels' state overflows it in large groups
         self.launch(kern, (n // lanes,), *args, local_size=(VECTOR_LOCAL_SIZE,) if vec else None)
         done()
+
+    def _rules_buffer(self, table):
+        """A read-only device copy of a launch's :func:`rule_table` (a few hundred bytes)."""
+        return cl.Buffer(self.context, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=table)
 
     @property
     def last_event_seconds(self):
@@ -863,16 +921,17 @@ class _TransferPipeline:
     """Per-point evaluation on a device with its own memory (a GPU): two slots, each a set of
     pinned (``ALLOC_HOST_PTR``, mapped) host staging arrays and device buffers; while the kernel of
     launch k runs on the engine's queue, a second queue uploads the inputs of launch k + 1 and
-    reads back the result of launch k - 1, straight into its slice of the result.  A broadcast
-    single value is uploaded once.  Memory beyond the inputs and the result: two launches' worth."""
+    reads back the result of launch k - 1, straight into its slice of the result.  A single value
+    and a broadcast input's compact values (``values``, read through the rules of ``plan``) are
+    uploaded once.  Memory beyond the inputs and the result: two launches' worth."""
 
     SLOTS = 2
 
-    def __init__(self, eng, kern, flat, npdt, lanes, vec, width):
-        self.eng, self.kern, self.flat, self.npdt = eng, kern, flat, npdt
+    def __init__(self, eng, kern, flat, values, plan, npdt, lanes, vec, width):
+        self.eng, self.kern, self.flat, self.npdt, self.plan = eng, kern, flat, npdt, plan
         self.lanes, self.vec, self.width = lanes, vec, width
-        self.names = [n for n in POINT_INPUTS if flat[n].size != 1]
-        self.single = {n: eng.to_device(flat[n], npdt) for n in POINT_INPUTS if flat[n].size == 1}
+        self.names = [n for n in POINT_INPUTS if n in flat and flat[n].size != 1]
+        self.single = {n: eng.to_device(a, npdt) for n, a in {**flat, **values}.items() if n not in self.names}
         self.copies = eng.copy_queue
 
     def _slot(self, cap):
@@ -887,7 +946,7 @@ class _TransferPipeline:
                     out=cl.Buffer(ctx, mf.WRITE_ONLY, cap * self.width * isz))
 
     def run(self, size, out):
-        step = LAUNCH_POINTS // self.lanes * self.lanes
+        step = min(LAUNCH_POINTS, _launch_limit(self.plan)) // self.lanes * self.lanes
         cap = min(step, size) + self.lanes
         slots = [self._slot(cap) for _ in range(self.SLOTS)]
         tails = []
@@ -906,7 +965,11 @@ class _TransferPipeline:
                     uploads.append(cl.enqueue_copy(self.copies, slot["dev"][n], dst, is_blocking=False))
                 args = [slot["out"], np.int32(padded // self.lanes)]
                 for n in POINT_INPUTS:
-                    args += [slot["dev"][n], np.int32(1)] if n in slot["dev"] else [self.single[n], np.int32(0)]
+                    args.append(slot["dev"][n] if n in slot["dev"] else self.single[n])
+                    if self.plan is None:
+                        args.append(np.int32(1 if n in slot["dev"] else 0))
+                if self.plan is not None:
+                    args.append(self.eng._rules_buffer(rule_table(self.plan, start)))
                 ran = self.eng.launch(self.kern, (padded // self.lanes,), *args,
                                       local_size=(VECTOR_LOCAL_SIZE,) if self.vec else None, wait_for=uploads)
                 w = self.width
@@ -933,6 +996,145 @@ def aligned_empty(n, dtype, align=4096):
     raw = np.empty(n * dtype.itemsize + align, np.uint8)
     skip = -raw.ctypes.data % align
     return raw[skip:skip + n * dtype.itemsize].view(dtype)
+
+
+# ---------------------------------------------------------------------------------------------
+# broadcast inputs: index rules (issue #12)
+
+#: The kinds of :class:`IndexRule`: one value, one value per point, a broadcast rule.
+SINGLE, PER_POINT, BROADCAST = 0, 1, 2
+#: The largest ``div`` and ``mod`` of a broadcast rule: with launches of at most
+#: :data:`RULE_LAUNCH_MAX` points every numerator of the kernels' index arithmetic stays below 2^31
+#: (``PB_UDIV`` in pbrdf_points.cl).
+RULE_MAX = 1 << 30
+#: The fields of one input's row of the kernels' ``rules`` table, in order (``PB_R_*`` there).
+RULE_FIELDS = ("kind", "div", "div_m", "div_s", "mod", "mod_m", "mod_s", "r0", "q0")
+
+
+@dataclasses.dataclass(frozen=True)
+class IndexRule:
+    """How the kernels read one input at flat point t (C order) of the broadcast shape S.
+
+    ``kind`` :data:`SINGLE` (0): its one value.  :data:`PER_POINT` (1): value t of the input as
+    broadcast to S (read in place, or gathered launch by launch).  :data:`BROADCAST` (2): value
+    ``(t // div) % mod`` of its compact values (:func:`compact_values`), where its axes other than
+    1 are one run ``axes = (p, q)`` of S's axes, ``div = prod(S[q:])``, ``mod = prod(S[p:q])``."""
+
+    kind: int
+    div: int = 1
+    mod: int = 1
+    axes: tuple = ()
+
+
+def _launch_limit(plan):
+    """The most points of one launch: any number with strides, :data:`RULE_LAUNCH_MAX` with rules."""
+    return RULE_LAUNCH_MAX if plan is not None else 1 << 62
+
+
+def _prod(shape):
+    out = 1
+    for n in shape:
+        out *= int(n)
+    return out
+
+
+def effective_shape(a, ndim):
+    """``a``'s shape right-aligned to ``ndim`` axes, with 1 wherever it holds one value: an axis of
+    length 1, or one of stride 0 (a broadcast view)."""
+    a = np.asarray(a)
+    lead = (1,) * (ndim - a.ndim)
+    return lead + tuple(1 if n == 1 or st == 0 else n for n, st in zip(a.shape, a.strides))
+
+
+def compact_values(a, ndim):
+    """The values of ``a`` on its :func:`effective_shape` (a stride-0 axis taken once), a view of
+    that shape: in C order they are the values a :data:`BROADCAST` rule indexes."""
+    a = np.asarray(a)
+    a = a.reshape((1,) * (ndim - a.ndim) + a.shape)
+    return a[tuple(slice(0, 1) if st == 0 else slice(None) for st in a.strides)]
+
+
+def input_plan(shape, arrays):
+    """The :class:`IndexRule` of each array (by name) broadcast to ``shape``.
+
+    An array (or broadcast view) that holds one value is :data:`SINGLE`; one with a value per
+    point, :data:`PER_POINT`; one whose other axes are one contiguous run of ``shape``'s axes (a
+    short axis ``theta_r[:, None]`` against ``sigma[None, :]``, a scalar per row or per column, a
+    run like (1, B, C, 1) in (A, B, C, D)), :data:`BROADCAST`, sent once with its rule.  Any
+    other pattern, (A, 1, C) in (A, B, C) for instance, and a rule whose ``div`` or ``mod``
+    exceeds :data:`RULE_MAX`, stays :data:`PER_POINT`: gathered launch by launch, correct but not
+    sent once.
+
+    Examples
+    --------
+    >>> plan = input_plan((3, 4), dict(a=np.ones((3, 1)), b=np.ones(4), c=2.0, d=np.ones((3, 4))))
+    >>> [(r.kind, r.div, r.mod) for r in plan.values()]
+    [(2, 4, 3), (2, 1, 4), (0, 1, 1), (1, 1, 1)]
+    """
+    shape = tuple(int(n) for n in shape)
+    return {name: _rule(shape, effective_shape(a, len(shape))) for name, a in arrays.items()}
+
+
+def _rule(shape, eff):
+    size = _prod(eff)
+    if size == 1:
+        return IndexRule(SINGLE)
+    if size == _prod(shape):
+        return IndexRule(PER_POINT)
+    run = [j for j, n in enumerate(eff) if n != 1]
+    p, q = run[0], run[-1] + 1
+    if any(eff[j] != shape[j] for j in range(p, q)):
+        return IndexRule(PER_POINT)  # not one run of axes
+    div = _prod(shape[q:])
+    if div > RULE_MAX or size > RULE_MAX:
+        return IndexRule(PER_POINT)
+    return IndexRule(BROADCAST, div, size, (p, q))
+
+
+def broadcast_table(rule, compact, shape, lanes, dtype):
+    """``(rule, table)``: the values the kernels read for the :data:`BROADCAST` ``rule`` of an
+    input whose :func:`compact_values` are ``compact``, and the rule they read them with; None
+    when the table would hold more than :data:`TABLE_POINTS` values (gather that input instead).
+
+    ``lanes`` = 1 (one point per work-item): the compact values as they are.  ``lanes`` = N (the
+    vector kernels, N points per work-item) lays them out so that each work-item's N values are
+    one vector load or a choice between two values (``pb_in_rule`` in pbrdf_points.cl): a rule
+    with 1 < div < N is widened over its trailing axes to div = 1 (its values repeated div times,
+    fewer than N-fold); a div = 1 table repeats its first N - 1 values at its end, a div >= N
+    table its first value, so no read wraps or leaves the table.
+    """
+    p = rule.axes[0]
+    if lanes > 1 and 1 < rule.div < lanes:
+        compact = np.broadcast_to(compact[(0,) * p], shape[p:])
+        rule = IndexRule(BROADCAST, 1, _prod(shape[p:]), (p, len(shape)))
+    halo = 0 if lanes == 1 else lanes - 1 if rule.div == 1 else 1
+    if rule.mod + halo > TABLE_POINTS:
+        return None
+    flat = compact.reshape(-1)
+    if halo:
+        flat = flat[np.arange(rule.mod + halo) % rule.mod]
+    return rule, np.array(flat, dtype)
+
+
+def udiv_magic(d):
+    """``(m, s)`` with ``n // d == ((2 n m) >> 32) >> s`` for every 0 <= n < 2^31 (1 <= d <= 2^31):
+    ``s = ceil(log2 d)``, ``m = ceil(2^(31 + s) / d) < 2^32`` (Granlund and Montgomery 1994 with
+    31-bit numerators), the kernels' ``PB_UDIV``."""
+    s = (int(d) - 1).bit_length()
+    return -(-(1 << (31 + s)) // int(d)), s
+
+
+def rule_table(plan, start):
+    """The kernels' ``rules`` table (uint32, :data:`RULE_FIELDS` per input of
+    :data:`POINT_INPUTS`) for a launch whose first point is flat point ``start``: a broadcast
+    rule's offsets ``r0 = start % div`` and ``q0 = (start // div) % mod`` computed here, exactly,
+    so that the kernels' arithmetic stays within 32 bits at any ``start``."""
+    table = np.zeros((len(POINT_INPUTS), len(RULE_FIELDS)), np.uint32)
+    for j, name in enumerate(POINT_INPUTS):
+        r = plan[name]
+        table[j] = (r.kind, r.div, *udiv_magic(r.div), r.mod, *udiv_magic(r.mod), start % r.div,
+                    (start // r.div) % r.mod)
+    return table
 
 
 def _gather(dst, a, start, stop):

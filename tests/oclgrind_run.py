@@ -43,6 +43,28 @@ def main():
                     ok = np.allclose(out, ref, rtol=1e-4, atol=1e-5 * scale)
                 if not ok:
                     raise SystemExit(f"{func.__name__} {dtype} {shadowing}: Oclgrind result differs from the reference")
+    # the broadcast twins (inputs read through their index rules, pbrdf_points.cl): blocks that
+    # straddle a vector (theta_r every 17 points), a trailing axis that wraps (sigma, 17 values), a
+    # block shorter than a vector (widened: kd every 3 points) and a period shorter than one (phi,
+    # 2 values); launches of 16 points start inside the periods; an out-of-bounds read of a table
+    # is reported by Oclgrind
+    bcasts = 0
+    cases = [(dict(theta_r=ti[:5, None], sigma=rng.uniform(0.1, 1, 17)), (5, 17)),
+             (dict(theta_r=tr[:7, None, None], kd=rng.uniform(0, 1, (1, 3, 1)), phi=np.array([60.0, 180.0])), (7, 3, 2))]
+    for dtype in ("float32", "float64"):
+        for given, shape in cases:
+            inp = dict(theta_i=40.0, theta_r=30.0, phi=150.0, n=1.6, k=2.1, sigma=0.3, ks=1.0, kd=0.2, c=-0.3)
+            inp.update(given)
+            assert any(r.kind == engine_mod.BROADCAST for r in engine_mod.input_plan(shape, inp).values())
+            for func in (pbrdf_cl.dop, pbrdf_cl.brdf, pbrdf_cl.aop, pbrdf_cl.mueller):
+                args = [inp[n] for n in ("theta_i", "theta_r", "phi")]
+                kw = {n: inp[n] for n in ("n", "k", "sigma", "kd", "c")}
+                out = func(*args, dtype=dtype, engine=eng, **kw)
+                ref = func(*args, dtype=dtype, backend="numpy", **kw)
+                tol = 1e-2 if func is pbrdf_cl.aop else 1e-5 * np.nanmax(np.abs(ref))
+                if out.shape != ref.shape or not np.allclose(out, ref, rtol=1e-4, atol=tol, equal_nan=True):
+                    raise SystemExit(f"broadcast {func.__name__} {dtype} {shape}: Oclgrind result differs from the reference")
+                bcasts += 1
     # grid kernels: every row level and the one-point-per-work-item path, reductions, objective
     from pbrdf_cl import dense as G
     fixed = dict(theta_i=40.0, theta_r=30.0, n=1.6, k=2.0, sigma=0.4, kd=0.2, c=-0.3)
@@ -106,8 +128,8 @@ def main():
             if not np.allclose(out, ref, rtol=1e-4, atol=tol, equal_nan=True):
                 raise SystemExit(f"outer {quantity} {dtype}: Oclgrind result differs from the reference")
             outers += 1
-    print("ran", 2 * 3 * 5, "kernel configurations and", configs, "grid configurations and", batches,
-          "batch fits and", outers, "outer evaluations")
+    print("ran", 2 * 3 * 5, "kernel configurations and", bcasts, "broadcast evaluations and", configs,
+          "grid configurations and", batches, "batch fits and", outers, "outer evaluations")
 
 
 if __name__ == "__main__":

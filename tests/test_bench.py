@@ -43,6 +43,10 @@ def test_bench_quick_reports_every_path(tmp_path):
     for dtype in ("float32", "float64"):
         e2e = rows[(f"pbrdf_cl.dop, {dtype} inputs (end-to-end)", dtype)]
         assert e2e["peak_extra_mb"] <= 2 * e2e["output_mb"] + 64
+        if dtype == "float32":  # the broadcast call, its inputs sent once and gathered as before (#12)
+            bc = {r["path"].split(" broadcast, ")[1]: r for r in report["rows"] if " broadcast, " in r["path"]}
+            assert set(bc) == {"sent once (end-to-end)", "gathered (end-to-end)"}, bc
+            assert all(r["n"] == 1 << 16 and r["peak_extra_mb"] <= r["output_mb"] + 8 for r in bc.values()), bc
         grid = rows[("pbrdf_cl.grid -> host DataArray (end-to-end)", dtype)]
         assert grid["peak_extra_mb"] <= 2 * grid["output_mb"] + 64
         if shutil.which("cc") or shutil.which("gcc"):

@@ -133,3 +133,175 @@ def test_the_transfer_pipeline_of_gpus_gives_the_same_values(engine, monkeypatch
         np.testing.assert_array_equal(a, b, err_msg=str(cases[i] if i < len(cases) else ("grid", i)))
     with pytest.raises(ValueError, match=r"theta_r must be in \[0, 90\) degrees, got 95.0 at index \[7\]"):
         pbrdf_cl.dop(40, np.where(np.arange(50) == 7, 95.0, 30.0), n=1.6, k=2, sigma=0.3, engine=engine)
+
+
+# ---- broadcast inputs sent once with their index rule (issue #12)
+
+def test_the_plan_classifies_each_input_by_its_axes():
+    S = (4, 5, 6, 7)
+    shapes = {(): (E.SINGLE,), (1, 1, 1, 1): (E.SINGLE,), S: (E.PER_POINT,), (5, 6, 7): (E.BROADCAST, 1, 210, (1, 4)),
+              (7,): (E.BROADCAST, 1, 7, (3, 4)), (4, 1, 1, 1): (E.BROADCAST, 210, 4, (0, 1)),
+              (5, 6, 1): (E.BROADCAST, 7, 30, (1, 3)), (1, 5, 1, 1): (E.BROADCAST, 42, 5, (1, 2)),
+              (4, 5, 6, 1): (E.BROADCAST, 7, 120, (0, 3)), (6, 7): (E.BROADCAST, 1, 42, (2, 4)),
+              (4, 1, 6, 1): (E.PER_POINT,), (5, 1, 7): (E.PER_POINT,), (4, 1, 1, 7): (E.PER_POINT,)}
+    plan = E.input_plan(S, {str(s): np.ones(s) for s in shapes})
+    for s, want in shapes.items():
+        r = plan[str(s)]
+        assert (r.kind,) + ((r.div, r.mod, r.axes) if r.kind == E.BROADCAST else ()) == want, (s, r)
+    # an axis of length 1 in the output is no break in the run; broadcast views count by their strides
+    assert E.input_plan((3, 1, 4, 2), dict(a=np.ones((3, 1, 4, 1))))["a"] == E.IndexRule(E.BROADCAST, 2, 12, (0, 3))
+    views = dict(row=np.broadcast_to(np.arange(6.0), (5, 6)), col=np.broadcast_to(np.ones((5, 1)), (5, 6)),
+                 one=np.broadcast_to(2.0, (5, 6)), strided=np.ones((5, 12))[:, ::2])
+    plan = E.input_plan((5, 6), views)
+    assert [plan[n].kind for n in views] == [E.BROADCAST, E.BROADCAST, E.SINGLE, E.PER_POINT]
+    assert (plan["row"].div, plan["row"].mod, plan["col"].div, plan["col"].mod) == (1, 6, 6, 5)
+    np.testing.assert_array_equal(E.compact_values(views["row"], 2).reshape(-1), np.arange(6.0))
+    # a rule whose block would need more than 32-bit kernel arithmetic stays per point
+    huge = np.broadcast_to(np.ones((2, 1)), (2, 1 << 31))
+    assert E.input_plan((2, 1 << 31), dict(a=huge))["a"].kind == E.PER_POINT
+
+
+def test_the_division_by_multiplier_is_exact_for_every_31_bit_numerator():
+    rng = np.random.default_rng(5)
+    ds = sorted({1, 2, 3, 5, 7, 15, 16, 17, 641, 4095, 4096, 4097, 6700417, (1 << 30) - 1, 1 << 30, (1 << 30) + 1,
+                 (1 << 31) - 1, 1 << 31} | set(rng.integers(1, 1 << 31, 200).tolist()))
+    top = (1 << 31) - 1
+    for d in ds:
+        m, s = E.udiv_magic(d)
+        assert 0 < m < 1 << 32
+        n = np.concatenate([np.arange(0, 40), top - np.arange(40), rng.integers(0, 1 << 31, 4000),
+                            np.clip(np.arange(-3, 4)[None, :] + d * np.arange(0, 64)[:, None], 0, top).ravel()])
+        n = n.astype(np.uint64)
+        got = (((n << np.uint64(1)) * np.uint64(m)) >> np.uint64(32)) >> np.uint64(s)  # the kernels' PB_UDIV
+        np.testing.assert_array_equal(got, n // np.uint64(d), err_msg=str(d))
+
+
+def _kernel_index(table, j, l):
+    """pbrdf_points.cl's pb_rule_index (the scalar kernels' kind-2 index) at launch offsets l, in uint32."""
+    kind, div, dm, ds, mod, mm, ms, r0, q0 = (np.uint64(v) for v in table[j])
+
+    def udiv(n, m, s):
+        return (((n << np.uint64(1)) * m) >> np.uint64(32)) >> s
+    u = r0 + l
+    assert (u < 1 << 31).all()
+    q = q0 + udiv(u, dm, ds)
+    assert (q < 1 << 31).all()
+    return q - udiv(q, mm, ms) * mod
+
+
+def test_the_rule_table_keeps_32_bit_arithmetic_exact_at_any_start():
+    """Launches start anywhere (beyond 2^32 points too): the host's r0 and q0 make the kernels'
+    32-bit index equal ``((start + l) // div) % mod`` for every offset of a launch, across period
+    boundaries."""
+    l = np.arange(E.LAUNCH_POINTS + 16, dtype=np.uint64)
+    for div, mod in ((1, 7), (1, 4096), (3, 5), (4095, 2048), (4096, 2048), (1 << 30, 3), (17, (1 << 30) - 1)):
+        plan = {n: E.IndexRule(E.SINGLE) for n in E.POINT_INPUTS}
+        plan["sigma"] = E.IndexRule(E.BROADCAST, div, mod, (0, 1))
+        for start in (0, div * mod - 5, 3 * div * mod + div - 1, (1 << 32) + 12345, (1 << 40) + 7):
+            table = E.rule_table(plan, start)
+            assert table.dtype == np.uint32 and table.shape == (9, len(E.RULE_FIELDS))
+            want = ((np.uint64(start) + l) // np.uint64(div)) % np.uint64(mod)
+            np.testing.assert_array_equal(_kernel_index(table, E.POINT_INPUTS.index("sigma"), l), want,
+                                          err_msg=str((div, mod, start)))
+
+
+def _broadcast_cases(rng):
+    """(shape, inputs) pairs: leading and trailing axes, runs of axes, blocks shorter than a vector
+    (widened), periods shorter than a vector, a mix of one value, per-point and broadcast inputs,
+    and a pattern that is not one run (gathered); odd sizes (padded tails)."""
+    u = rng.uniform
+    return [
+        ((300, 45), dict(theta_r=u(0, 89.9, (300, 1)), sigma=u(0.05, 1, 45))),
+        ((7, 3, 257), dict(theta_i=u(0, 89.9, (7, 1, 1)), kd=u(0, 2, (1, 3, 1)), phi=u(0, 360, 257),
+                           sigma=u(0.05, 1, (7, 3, 1)))),
+        ((1000, 3), dict(theta_r=u(0, 89.9, (1000, 1)), phi=np.array([60.0, 180.0, 300.0]))),
+        ((3, 4099), dict(theta_r=u(0, 89.9, (3, 1)), sigma=u(0.05, 1, 4099), n=u(1.1, 3, (3, 4099)),
+                         k=np.float32(2.5))),
+        ((5, 3, 300), dict(theta_r=u(0, 89.9, (5, 1, 300)), sigma=u(0.05, 1, (1, 3, 1)))),  # (5, 1, 300): gathered
+        ((2, 5, 1, 7, 11), dict(theta_r=u(0, 89.9, (5, 1, 7, 1)), sigma=u(0.05, 1, (2, 1, 1, 1, 1)),
+                                phi=u(0, 360, 11))),
+    ]
+
+
+def _expanded(inp, shape):
+    return {k: np.ascontiguousarray(np.broadcast_to(v, shape)) for k, v in inp.items()}
+
+
+@pytest.mark.parametrize("transfers", [False, True], ids=["in-place", "transfer-pipeline"])
+def test_broadcast_inputs_give_the_expanded_call_bit_for_bit(each_device, monkeypatch, rng, transfers):
+    """Sent once with their rules (several launches, so launches start inside periods, and padded
+    tails), broadcast inputs give exactly what the same call with every input expanded gives, on
+    the same device and dtype; so does the gathered path of before (``index_rules = False``)."""
+    monkeypatch.setattr(E, "LAUNCH_POINTS", 4096)
+    monkeypatch.setattr(E, "CONVERT_POINTS", 1024)
+    monkeypatch.setattr(each_device, "force_transfers", transfers)
+    asked = []
+    kernel = each_device.kernel
+    monkeypatch.setattr(each_device, "kernel", lambda name, *a: asked.append(name) or kernel(name, *a))
+    fixed = dict(theta_i=40.0, theta_r=30.0, phi=150.0, n=1.6, k=2.1, sigma=0.4, ks=0.9, kd=0.2, c=-0.3)
+    for shape, given in _broadcast_cases(rng):
+        inp = {**fixed, **given}
+        plan = E.input_plan(shape, inp)
+        assert any(r.kind == E.BROADCAST for r in plan.values()), shape
+        full = _expanded(inp, shape)
+        for dtype in ("float32", "float64"):
+            for q in ("dop", "brdf", "aop", "mueller"):
+                del asked[:]
+                got = pbrdf_cl.evaluate(q, dtype=dtype, **inp)
+                assert asked == [f"{q}_bcast_points_vec" if q in ("dop", "brdf") else "quantity_bcast_points"], asked
+                want = pbrdf_cl.evaluate(q, dtype=dtype, **full)
+                assert got.dtype == np.dtype(dtype) and got.shape == want.shape
+                np.testing.assert_array_equal(got, want, err_msg=str((shape, q, dtype)))
+            each_device.index_rules = False
+            try:
+                np.testing.assert_array_equal(pbrdf_cl.dop(dtype=dtype, **inp), pbrdf_cl.dop(dtype=dtype, **full))
+            finally:
+                each_device.index_rules = True
+
+
+def test_a_launch_far_into_the_array_reads_the_right_values(each_device, monkeypatch, rng):
+    """The twin kernels at a start beyond 2^32 points (launched directly: no such array is made):
+    the values at flat points start .. start + 5000 of a (2^21 x 4093)-point broadcast, where
+    theta_r changes every 4093 points and sigma repeats every 4093."""
+    monkeypatch.setattr(E, "TABLE_POINTS", 1 << 22)  # theta_r's 2^21 values sent as a table
+    div = 4093
+    th, sg = rng.uniform(0, 89.9, 1 << 21), rng.uniform(0.05, 1, div)
+    shape = (th.size, div)
+    start = (1 << 32) + 3 * div - 7
+    t = start + np.arange(5000)
+    for dtype in ("float32", "float64"):
+        npdt = np.dtype(E.DTYPES[dtype])
+        lanes = E.VECTOR_WIDTH[dtype]
+        inp = dict(theta_i=40.0, theta_r=th[:, None], phi=150.0, n=1.6, k=2.1, sigma=sg[None, :], ks=1.0, kd=0.2, c=-0.3)
+        plan, flat, values = each_device._inputs(inp, shape, npdt, lanes)
+        assert plan["theta_r"].kind == plan["sigma"].kind == E.BROADCAST
+        parts = {**flat, **values}
+        out = np.empty(5000, npdt)
+        kern = each_device.kernel("dop_bcast_points_vec", dtype, "paper")
+        each_device._launch_points(kern, parts, 5000 // lanes * lanes, out[:5000 // lanes * lanes], npdt, lanes, True,
+                                   each_device.host_memory, E.rule_table(plan, start))
+        want = pbrdf_cl.dop(40.0, th[t // div], 150.0, n=1.6, k=2.1, sigma=sg[t % div], kd=0.2, c=-0.3, dtype=dtype)
+        np.testing.assert_array_equal(out[:5000 // lanes * lanes], want[:5000 // lanes * lanes])
+
+
+def test_broadcast_inputs_take_no_memory_beyond_the_output(each_device, rng):
+    th, sg = np.linspace(0, 89, 2048), np.linspace(0.05, 1, 1024)
+    pbrdf_cl.dop(40, th[:4, None], n=1.6, k=2.1, sigma=sg[None, :], dtype="float32")  # kernels built
+    out, peak = traced(lambda: pbrdf_cl.dop(40, th[:, None], n=1.6, k=2.1, sigma=sg[None, :], dtype="float32"))
+    assert out.shape == (2048, 1024) and peak <= out.nbytes + (256 << 10), (peak, out.nbytes)
+    out, peak = traced(lambda: pbrdf_cl.aop(40, th[:, None], 120.0, n=1.6, k=2.1, sigma=sg[None, :], dtype="float32"))
+    assert peak <= out.nbytes + (256 << 10), (peak, out.nbytes)
+
+
+@pytest.mark.parametrize("func", [pbrdf_cl.dop, pbrdf_cl.brdf, pbrdf_cl.aop])
+def test_a_bad_value_in_a_broadcast_input_is_named_with_its_index(each_device, monkeypatch, func):
+    monkeypatch.setattr(E, "LAUNCH_POINTS", 4096)
+    th, sg = np.linspace(0, 89, 300)[:, None], np.linspace(0.05, 1, 45)[None, :].copy()
+    assert E.input_plan((300, 45), dict(theta_r=th, sigma=sg))["sigma"].kind == E.BROADCAST
+    sg[0, 44] = 0.0
+    with pytest.raises(ValueError, match=r"sigma must be > 0, got 0\.0 at index \[0, 44\]"):
+        func(40, th, n=1.6, k=2.1, sigma=sg, kd=0.2, dtype="float32")
+    th = th.copy()
+    th[217, 0] = np.nan
+    with pytest.raises(ValueError, match=r"theta_r must be finite, got nan at index \[217, 0\]"):
+        func(40, th, n=1.6, k=2.1, sigma=0.5, kd=0.2)

@@ -78,3 +78,46 @@ def test_float64_on_a_device_without_it_is_refused():
     e.fp64 = False
     with pytest.raises(ValueError, match="dtype='float64'.*no float64 support"):
         pbrdf_cl.dop(40, 20, n=1.6, k=2, sigma=0.5, engine=e, dtype="float64")
+
+
+def _layouts(values):
+    """``values`` (2-d, more than one check block) as a contiguous, a transposed (Fortran-ordered), a
+    strided and, for a first row repeated, a broadcast array."""
+    rows, cols = values.shape
+    t = np.empty((cols, rows), values.dtype).T
+    t[...] = values
+    s = np.empty((rows, 2 * cols), values.dtype)[:, ::2]
+    s[...] = values
+    return dict(contiguous=values.copy(), transposed=t, strided=s,
+                broadcast=np.broadcast_to(values[0], values.shape))
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_min_and_max_of_every_layout_in_one_pass(dtype):
+    from pbrdf_cl import api
+    rng = np.random.default_rng(4)
+    values = rng.uniform(0.1, 1, (300, 1001)).astype(dtype)  # 4.6 blocks of CHECK_BLOCK
+    assert values.size > 4 * api.CHECK_BLOCK
+    for name, a in _layouts(values).items():
+        assert api._min_max(a) == (np.min(a), np.max(a)), name
+        if a.flags.writeable:
+            a[299, 1000] = np.nan  # the last block
+            assert all(np.isnan(api._min_max(a))), name
+            assert not api._all_finite(a)
+
+
+@pytest.mark.parametrize("layout", ["contiguous", "transposed", "strided", "broadcast"])
+def test_a_bad_value_in_any_block_of_any_layout_is_named_as_before(layout):
+    """The one-pass check (blocks of CHECK_BLOCK elements) names the same argument, value and index
+    (in the argument's own shape) as reading the whole array would."""
+    for (i, j), value, pattern in [((250, 600), 0.0, r"sigma must be > 0, got 0\.0 at index \[{}, 600\]"),
+                                   ((120, 7), np.nan, r"sigma must be finite, got nan at index \[{}, 7\]"),
+                                   ((299, 1000), -np.inf, r"sigma must be finite, got -inf at index \[{}, 1000\]")]:
+        values = np.full((300, 1001), 0.5)
+        values[0 if layout == "broadcast" else i, j] = value
+        sigma = _layouts(values)[layout]
+        row = 0 if layout == "broadcast" else i
+        with pytest.raises(ValueError, match=pattern.format(row)):
+            pbrdf_cl.aop(40.0, 30.0, 120.0, n=1.6, k=2.1, sigma=sigma, backend="numpy")
+        with pytest.raises(ValueError, match=pattern.format(row)):
+            pbrdf_cl.api.check_values("sigma", sigma)
