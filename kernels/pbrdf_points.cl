@@ -11,13 +11,13 @@
  *
  * Broadcast inputs (issue #12): the *_bcast_* twins (quantity_bcast_points, dop_bcast_points_vec,
  * brdf_bcast_points_vec) read each input through an index rule instead of a stride, from a table
- * `rules` of PB_RULE_LEN uints per input (pbrdf_cl.engine.input_plan and Engine._rule_table write
+ * `rules` of PB_RULE_LEN uints per input (pbrdf_cl.engine.input_plan and engine.rule_table write
  * it): kind 0, one value; kind 1, one value per point of the launch (as stride 1); kind 2, the
  * launch's point l (global flat index t = start + l) reads x[(t / div) % mod] of the compact
  * array x (a short axis, or a run of axes, sent once).  The host turns start into the 32-bit
  * offsets r0 = start % div and q0 = (start / div) % mod, so that the kernels need only 32-bit
  * arithmetic: the index is (q0 + (r0 + l) / div) % mod, both divisions by a multiplier and a
- * shift computed on the host (pb_udiv).  The model's code is the same macro body for both.
+ * shift computed on the host (PB_UDIV).  The model's code is the same macro body for both.
  */
 #include "pbrdf.h"
 
@@ -40,8 +40,8 @@
     __global const T *cc, __constant const uint *rules
 
 /* The fields of one input's rule in `rules` (pbrdf_cl.engine.RULE_FIELDS names them in order).
- * Bounds the host keeps (engine.RULE_MAX, LAUNCH_POINTS <= 2^22): div, mod <= 2^30, so every
- * numerator below is < 2^31. */
+ * Bounds the host keeps (engine.RULE_MAX, engine.RULE_LAUNCH_MAX): div, mod <= 2^30 and launches of
+ * at most 2^22 points, so every numerator below is < 2^31. */
 #define PB_RULE_LEN 9
 #define PB_R_KIND 0
 #define PB_R_DIV 1
@@ -191,7 +191,7 @@ inline real pb_in(__global const PB_SCALAR *x, const int s, const int i)
 #endif
 
 /* input x under rule r for the N points of work-item i: kinds 1 and 0 as pb_in.  Kind 2 takes two
- * forms (the host lays the compact values out for them, Engine._vector_table): div = 1, N
+ * forms (the host lays the compact values out for them, engine.broadcast_table): div = 1, N
  * consecutive values from index q, one vector load (the table repeats its first N - 1 values at
  * its end, so no load wraps); div >= N, at most two values, x[q] on the lanes before the next
  * block starts and x[q + 1] after it (the table repeats its first value at its end).
