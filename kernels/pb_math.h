@@ -126,17 +126,15 @@ inline real pb_log(real x)
     return x > (real)0 ? r : x == (real)0 ? (real)-INFINITY : (real)NAN;
 }
 
-/* float64: erfc(x) for x >= 0 = exp(-x^2) erfcx(x), with (1 + 2x) erfcx(x) = 1 + P(q), q = (x - 2) /
- * (x + 2) (the form of the float32 version below), P a Chebyshev series of degree 26 in q mapped
- * from [-1, 25/29] (x in [0, 27]) onto [-1, 1], evaluated by Clenshaw's recurrence (coefficients
- * from 40-digit erfc values at 2000 Chebyshev nodes; truncation 1e-16), and the rounding error t
- * of x^2 corrected: exp(-x^2) = exp(-fl(x^2)) (1 - t).  0 beyond x = 27 (erfc(27) < 1e-318). */
+/* float64: P(q) of pb_erfc, a Chebyshev series of degree 26 in q mapped from [-1, 25/29] (x in
+ * [0, 27]) onto [-1, 1], evaluated by Clenshaw's recurrence (coefficients from 40-digit erfc
+ * values at 2000 Chebyshev nodes; truncation 1e-16).  x is split into 26-bit halves; erfc is 0
+ * beyond x = 27 (erfc(27) < 1e-318). */
+#define PB_ERFC_SPLIT ((pb_bits)0xfffffffff8000000L)
+#define PB_ERFC_ZERO ((real)27)
 #define PB_CLENSHAW(c) { const real b0 = u2 * b1 - b2 + (real)(c); b2 = b1; b1 = b0; }
-inline real pb_erfc(real x)
+inline real pb_erfc_series(real q)
 {
-    const real d = (real)1 + (real)2 * x;
-    const real rcp = (real)1 / ((x + (real)2) * d);
-    const real q = (x - (real)2) * d * rcp;
     const real u = q * 1.0740740740740742 + 0.07407407407407411;
     const real u2 = (real)2 * u;
     real b2 = (real)0, b1 = (real)-1.015271658266677e-18;
@@ -165,24 +163,9 @@ inline real pb_erfc(real x)
     PB_CLENSHAW(0.03383415117427362);
     PB_CLENSHAW(-0.10426944550821916);
     PB_CLENSHAW(0.040802111220209554);
-    const real p = u * b1 - b2 + (real)0.18232722389066927;
-    const real ex = ((real)1 + p) * ((x + (real)2) * rcp);  /* erfcx(x) */
-    /* t = x^2 - fl(x^2), exactly, by splitting x into 26-bit halves (Dekker) */
-    const real s = x * x;
-    const real xh = PB_AS_REAL(PB_AS_BITS(x) & (pb_bits)0xfffffffff8000000L);
-    const real xl = x - xh;
-    const real t = ((xh * xh - s) + (real)2 * xh * xl) + xl * xl;
-    const real e = pb_exp(-x * x) * ex;
-    const real r = e - e * t;
-    return x > (real)27 ? (real)0 : r;
+    return u * b1 - b2 + (real)0.18232722389066927;
 }
 #undef PB_CLENSHAW
-
-/* sqrt(x^2 + y^2) (no rescaling: |x|, |y| must stay within about 1e-150 .. 1e150). */
-inline real pb_hypot(real x, real y)
-{
-    return pb_sqrt(x * x + y * y);
-}
 
 /* float64: sin(y), and cos(y) in *c, for |y| <= pi/4: the Taylor series to y^15 and y^16
  * (truncation below 5e-17 relative). */
@@ -235,33 +218,16 @@ inline real pb_log(real x)
     return x > (real)0 ? r : x == (real)0 ? (real)-INFINITY : (real)NAN;
 }
 
-/* erfc(x) for x >= 0 (the shadowing function's argument) = exp(-x^2) erfcx(x), with
- * (1 + 2x) erfcx(x) = 1 + P(q), q = (x - 2) / (x + 2) (the form of N. Juffa's erfcf, coefficients
- * refitted), and the rounding error t of x^2 corrected: exp(-x^2) = exp(-fl(x^2)) (1 - t).
- * exp(-x * x) is written as the callers write it, so that the compiler shares it with them. */
-inline real pb_erfc(real x)
+/* float32: P(q) of pb_erfc (the form of N. Juffa's erfcf, coefficients refitted).  x is split
+ * into 12-bit halves; erfc is 0 beyond x = 10.5 (erfc(10.5) < 1e-49; also no inf - inf, no
+ * inf / inf). */
+#define PB_ERFC_SPLIT ((pb_bits)0xfffff000)
+#define PB_ERFC_ZERO 10.5f
+inline real pb_erfc_series(real q)
 {
-    const real d = (real)1 + (real)2 * x;
-    const real rcp = (real)1 / ((x + (real)2) * d);
-    const real q = (x - (real)2) * d * rcp;
-    const real p = 0.2769784f + q * (-0.092764f + q * (-0.16603157f + q * (0.16405566f
-                   + q * (-0.05420262f + q * (-0.008060887f + q * (0.008625355f + q * (0.0013125681f
-                   + q * (-0.0012223385f + q * -0.0003961044f))))))));
-    const real ex = ((real)1 + p) * ((x + (real)2) * rcp);  /* erfcx(x) */
-    /* t = x^2 - fl(x^2), exactly, by splitting x into 12-bit halves (Dekker) */
-    const real s = x * x;
-    const real xh = PB_AS_REAL(PB_AS_BITS(x) & (pb_bits)0xfffff000);
-    const real xl = x - xh;
-    const real t = ((xh * xh - s) + (real)2 * xh * xl) + xl * xl;
-    const real e = pb_exp(-x * x) * ex;
-    const real r = e - e * t;
-    return x > 10.5f ? (real)0 : r;  /* erfc(10.5) < 1e-49; also no inf - inf, no inf / inf */
-}
-
-/* sqrt(x^2 + y^2) (no rescaling: |x|, |y| must stay within about 1e-19 .. 1e19). */
-inline real pb_hypot(real x, real y)
-{
-    return pb_sqrt(x * x + y * y);
+    return 0.2769784f + q * (-0.092764f + q * (-0.16603157f + q * (0.16405566f
+           + q * (-0.05420262f + q * (-0.008060887f + q * (0.008625355f + q * (0.0013125681f
+           + q * (-0.0012223385f + q * -0.0003961044f))))))));
 }
 
 /* sin(y), and cos(y) in *c, for |y| <= pi/4: y + y^3 S(y^2) and 1 - y^2/2 + y^4 C(y^2). */
@@ -280,6 +246,35 @@ inline real pb_erfc(real x) { return erfc(x); }
 inline real pb_hypot(real x, real y) { return hypot(x, y); }
 inline real pb_sincos_pi4(real y, real *c) { return sincos(y, c); }
 
+#endif  /* PB_FAST_MATH */
+
+#ifdef PB_FAST_MATH
+/* erfc(x) for x >= 0 (the shadowing function's argument) = exp(-x^2) erfcx(x), with
+ * (1 + 2x) erfcx(x) = 1 + P(q), q = (x - 2) / (x + 2) (pb_erfc_series of each precision), and the
+ * rounding error t of x^2 corrected: exp(-x^2) = exp(-fl(x^2)) (1 - t).  exp(-x * x) is written
+ * as the callers write it, so that the compiler shares it with them. */
+inline real pb_erfc(real x)
+{
+    const real d = (real)1 + (real)2 * x;
+    const real rcp = (real)1 / ((x + (real)2) * d);
+    const real q = (x - (real)2) * d * rcp;
+    const real ex = ((real)1 + pb_erfc_series(q)) * ((x + (real)2) * rcp);  /* erfcx(x) */
+    /* t = x^2 - fl(x^2), exactly, by splitting x into halves (Dekker) */
+    const real s = x * x;
+    const real xh = PB_AS_REAL(PB_AS_BITS(x) & PB_ERFC_SPLIT);
+    const real xl = x - xh;
+    const real t = ((xh * xh - s) + (real)2 * xh * xl) + xl * xl;
+    const real e = pb_exp(-x * x) * ex;
+    const real r = e - e * t;
+    return x > PB_ERFC_ZERO ? (real)0 : r;
+}
+
+/* sqrt(x^2 + y^2), no rescaling: |x|, |y| must stay within about 1e-19 .. 1e19 in float32,
+ * 1e-150 .. 1e150 in float64. */
+inline real pb_hypot(real x, real y)
+{
+    return pb_sqrt(x * x + y * y);
+}
 #endif  /* PB_FAST_MATH */
 
 #endif  /* PB_MATH_H */
