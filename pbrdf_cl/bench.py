@@ -194,7 +194,6 @@ def bench_broadcast(eng, rows, rng, size, repeats, sample, dtype="float32"):
     want = reference_dop(dict(theta_i=np.full(idx.size, 40.0), theta_r=th[idx // cols].astype(np.float64),
                               phi=np.full(idx.size, 150.0), sigma=sg[idx % cols].astype(np.float64),
                               **{n: np.full(idx.size, v) for n, v in fixed.items()}))
-    c_rows = [r["rate"] for r in rows if r["path"].startswith("C loop") and r["dtype"] == dtype]
     for rules, label in ((True, "sent once"), (False, "gathered")):  # with index rules; as before #12
         saved, eng.index_rules = getattr(eng, "index_rules", True), rules
         try:
@@ -206,8 +205,7 @@ def bench_broadcast(eng, rows, rng, size, repeats, sample, dtype="float32"):
                        peak_extra_mb=traced(call)[1] / 1e6, output_mb=got.nbytes / 1e6)
         finally:
             eng.index_rules = saved
-        if c_rows:
-            row["of_c_loop"] = row["rate"] / c_rows[-1]
+        _fractions_of_earlier_limits(rows, row, dtype, np.dtype(npdt).itemsize)
         rows.append(row)
 
 
