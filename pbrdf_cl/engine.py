@@ -32,6 +32,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import math
 import os
 import re
 import threading
@@ -756,7 +757,7 @@ class Engine:
         vec = self.checks_domain(q.name)
         lanes = VECTOR_WIDTH[dtype] if vec else 1
         shape = tuple(int(n) for n in shape)
-        size = _prod(shape)
+        size = math.prod(shape)
         width = q.width
         out = aligned_empty(size * width, npdt)  # page-aligned: every driver writes it in place
         if size == 0:
@@ -1031,13 +1032,6 @@ def _launch_limit(plan):
     return RULE_LAUNCH_MAX if plan is not None else 1 << 62
 
 
-def _prod(shape):
-    out = 1
-    for n in shape:
-        out *= int(n)
-    return out
-
-
 def effective_shape(a, ndim):
     """``a``'s shape right-aligned to ``ndim`` axes, with 1 wherever it holds one value: an axis of
     length 1, or one of stride 0 (a broadcast view)."""
@@ -1076,16 +1070,16 @@ def input_plan(shape, arrays):
 
 
 def _rule(shape, eff):
-    size = _prod(eff)
+    size = math.prod(eff)
     if size == 1:
         return IndexRule(SINGLE)
-    if size == _prod(shape):
+    if size == math.prod(shape):
         return IndexRule(PER_POINT)
     run = [j for j, n in enumerate(eff) if n != 1]
     p, q = run[0], run[-1] + 1
     if any(eff[j] != shape[j] for j in range(p, q)):
         return IndexRule(PER_POINT)  # not one run of axes
-    div = _prod(shape[q:])
+    div = math.prod(shape[q:])
     if div > RULE_MAX or size > RULE_MAX:
         return IndexRule(PER_POINT)
     return IndexRule(BROADCAST, div, size, (p, q))
@@ -1106,7 +1100,7 @@ def broadcast_table(rule, compact, shape, lanes, dtype):
     p = rule.axes[0]
     if lanes > 1 and 1 < rule.div < lanes:
         compact = np.broadcast_to(compact[(0,) * p], shape[p:])
-        rule = IndexRule(BROADCAST, 1, _prod(shape[p:]), (p, len(shape)))
+        rule = IndexRule(BROADCAST, 1, math.prod(shape[p:]), (p, len(shape)))
     halo = 0 if lanes == 1 else lanes - 1 if rule.div == 1 else 1
     if rule.mod + halo > TABLE_POINTS:
         return None
