@@ -182,12 +182,14 @@ inline real pb_in(__global const PB_SCALAR *x, const int s, const int i)
 #define PB_IN_STRIDED(x, s, j) PB_IN(x, s)
 
 /* the lane numbers 0 .. N-1 as reals */
-#if PB_VECTOR_REAL == 8
+#if PB_VECTOR_REAL == 4
+#define PB_LANES ((real)(0, 1, 2, 3))
+#elif PB_VECTOR_REAL == 8
 #define PB_LANES ((real)(0, 1, 2, 3, 4, 5, 6, 7))
 #elif PB_VECTOR_REAL == 16
 #define PB_LANES ((real)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15))
 #else
-#error "the broadcast kernels need PB_VECTOR_REAL 8 or 16"
+#error "the broadcast kernels need PB_VECTOR_REAL 4, 8 or 16"
 #endif
 
 /* input x under rule r for the N points of work-item i: kinds 1 and 0 as pb_in.  Kind 2 takes two

@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from . import quantities, reference, sizes
+from . import engine as _engine
 from .engine import BACKENDS, DTYPES, POINT_INPUTS, check_backend, compact_values, resolve_engine  # noqa: F401 (api.BACKENDS stays)
 
 MODELS = ("six-param", "specular")
@@ -207,6 +208,7 @@ def validate(theta_i, theta_r, phi, n, k, sigma, ks, kd, c, *, shadowing="paper"
     return arrays, shape, dtype_name
 
 
+@_engine.falls_back
 def _evaluate(quantity, theta_i, theta_r, phi, n, k, sigma, ks, kd, c, shadowing, dtype, backend,
               model, engine):
     q = quantities.get(quantity, "points")

@@ -29,7 +29,8 @@ from typing import NamedTuple
 import numpy as np
 
 from . import api, dense, reference
-from .engine import DTYPES, VECTOR_WIDTH, resolve_engine
+from . import engine as _engine
+from .engine import DTYPES, resolve_engine
 from .inversion import (DEFAULT_BOUNDS, DOP_NOISE_FLOOR, MODEL_FIXED, MODEL_PARAMS, X_RESOLUTION, _check_bounds,
                         _grid_axis, _lm_batch, dop_resolution, fd_jacobian)
 
@@ -60,8 +61,6 @@ INTENSITY_ITERATIONS = 40
 DETERMINED_FRACTION = 0.5
 #: Default relative uncertainty of intensities without f00_std (as :func:`pbrdf_cl.fit`).
 F00_REL_STD = 0.05
-#: Lanes of the LM kernel per work-item (float32, float64).
-LM_LANES = {"float32": 16, "float64": 4}
 DEFAULT_BUDGET = "512 MiB"
 #: Work-group size of the batch kernels: each work-item holds a few kB of private arrays, which
 #: PoCL's CPU driver allocates for a whole work-group at once (a large group overflows its stack).
@@ -482,7 +481,7 @@ def _device_grid(eng, setup, blk, order, rstart):
     fd, = table("diffuse_table", 1, v["kd"], v["c"], npdt(2))
     prog = eng.program("pbrdf_batch.cl", dtype, {"PBRDF_SHADOWING": shadow, "PB_NNK": nnk, "PB_NM": nm,
                                                  "PB_NI": ni})
-    eng.launch(prog["batch_grid_factors"], (P // VECTOR_WIDTH[dtype],), bbest, barg, np.int32(P), np.int32(M),
+    eng.launch(prog["batch_grid_factors"], (P // eng.vector_width[dtype],), bbest, barg, np.int32(P), np.int32(M),
                s_, d_, sc, fd, eng.to_device(order, np.int32), eng.to_device(rstart, np.int32), np.int32(R),
                eng.to_device(obs, npdt), eng.to_device(w, npdt), local_size=(LOCAL_SIZE,))
     eng.read(bbest, best)
@@ -512,7 +511,7 @@ def _table_minima(eng, blk, T, rstart):
     a2 = np.ascontiguousarray(-2.0 * w * obs, npdt)
     c = np.ascontiguousarray(np.einsum("mp,mp->p", w.astype(float), obs.astype(float) ** 2), npdt)
     prog = eng.program("pbrdf_batch.cl", dtype, {"PBRDF_SHADOWING": reference.SHADOWING[blk.setup.shadowing]})
-    eng.launch(prog["batch_grid_table"], (P // VECTOR_WIDTH[dtype],), bbest, barg, np.int32(P), np.int32(M),
+    eng.launch(prog["batch_grid_table"], (P // eng.vector_width[dtype],), bbest, barg, np.int32(P), np.int32(M),
                eng.to_device(np.ascontiguousarray(T, npdt), npdt), eng.to_device(rstart, np.int32), np.int32(R),
                eng.to_device(a2, npdt), eng.to_device(w, npdt), eng.to_device(c, npdt), local_size=(LOCAL_SIZE,))
     eng.read(bbest, best)
@@ -597,7 +596,7 @@ def _device_lm(eng, setup, blk, X0, names, dtype, iterations, intensity, corner=
     S, p, D = X0.shape
     P = blk.P
     Q = S * P
-    lanes = LM_LANES[dtype]
+    lanes = eng.lm_lanes[dtype]
     if corner:
         lo, hi = _corner_bounds(setup, names, corner)
         to_internal, to_external = (lambda X, nm: _to_corner(X, nm, corner)), (lambda U, nm: _from_corner(U, nm, corner))
@@ -1094,11 +1093,12 @@ class BatchJob:
         return _dataset(self, out, seconds)
 
 
+@_engine.falls_back
 def _fit_block(eng, setup, raw, order, rstart, names):
     """The flat per-pixel results of one block of pixels (``raw``: :meth:`_Source.rows`): the
     pixels that can be fitted go through the stages, the others get their status."""
     D = len(setup.free)
-    lanes = max(*LM_LANES.values(), VECTOR_WIDTH["float32"]) if not eng.is_numpy else 1  # every kernel's lanes divide it
+    lanes = max(*eng.lm_lanes.values(), *eng.vector_width.values()) if not eng.is_numpy else 1  # every kernel's lanes divide it
     blk = _Block(raw, setup, lanes)
     p, n_out = blk.p, len(names)
     status = np.full(p, 1, np.int8)

@@ -139,7 +139,7 @@ def bench_points(eng, rows, rng, size, repeats, sample):
         return  # no kernel to time
     for dtype in ("float32", "float64"):
         npdt = _engine.DTYPES[dtype]
-        lanes = _engine.VECTOR_WIDTH[dtype]
+        lanes = eng.vector_width[dtype]
         kern = eng.kernel("dop_points_vec", dtype, "paper")
         bufs = [eng.to_device(pts[n], dtype) for n in INPUTS]
         out = eng.empty(size * np.dtype(npdt).itemsize)

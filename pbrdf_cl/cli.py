@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import api, drivers, engine as _engine, quantities, ranges, sizes
+from . import api, drivers, engine as _engine, quantities, ranges, sizes, trials
 from .reference import SHADOWING
 
 PARAMS = (("theta_i", None), ("theta_r", None), ("phi", "180"), ("n", None), ("k", None),
@@ -76,7 +76,21 @@ def _device_type(bits: int) -> str:
     return "/".join(names) or "OTHER"
 
 
+def _verdict_lines(verdicts):
+    """What ``pbrdf-cl devices`` says of one device's stored trial verdicts."""
+    if not verdicts:
+        return []
+    bad = [v for v in verdicts if not v.usable]
+    lines = [f"trials: {len(verdicts) - len(bad)} of {len(verdicts)} programs built and ran in the trial process"]
+    for v in bad:
+        lines.append(f"  UNUSABLE {v.program}: {v.reason} ({v.when.replace('T', ' ')})")
+    return lines
+
+
 def cmd_devices(args) -> int:
+    if args.forget:
+        _engine.clear_probe_cache(disk=True)
+        trials.forget(disk=True)
     try:
         found = _engine.list_devices()
     except _engine.OpenCLUnavailableError as exc:
@@ -89,6 +103,7 @@ def cmd_devices(args) -> int:
         except (_engine.OpenCLUnavailableError, ValueError) as exc:
             why_none = str(exc)
     rows = []
+    dev_of = {f"{ip}:{idev}": dev for ip, idev, _, dev in found}
     for ip, idev, plat, dev in found:
         result = _engine.probe(dev)
         rows.append(dict(id=f"{ip}:{idev}", platform=plat.name.strip(), device=dev.name.strip(),
@@ -97,7 +112,11 @@ def cmd_devices(args) -> int:
                          driver=dev.driver_version.strip(), usable=result.usable, probe=result.reason,
                          probe_seconds=round(result.seconds, 4), probe_cached=result.cached,
                          simulator=_engine._is_simulator(plat),
-                         default=default is not None and dev.int_ptr == default.int_ptr))
+                         default=default is not None and dev.int_ptr == default.int_ptr,
+                         vector_width=_engine.vector_widths(dev)[0], narrow_vectors=_engine.narrow_reason(dev),
+                         trials=[dict(program=v.program, usable=v.usable, reason=v.reason,
+                                      seconds=round(v.seconds, 3), when=v.when)
+                                 for v in trials.stored_verdicts(dev)]))
     if args.json:
         print(json.dumps(rows, indent=2))
         return 0
@@ -109,6 +128,10 @@ def cmd_devices(args) -> int:
         extra = "; a simulator, never the default" if r["simulator"] else ""
         when = "probe cached" if r["probe_cached"] else f"probe {r['probe_seconds']:.2f} s"
         print(f"        {state}: {r['probe']} ({when}{extra})")
+        if r["narrow_vectors"]:
+            print(f"        256-bit vectors in the row and batch programs: {r['narrow_vectors']}")
+        for line in _verdict_lines(trials.stored_verdicts(dev_of[r['id']])):
+            print(f"        {line}")
     if _engine.DRIVER_MESSAGES:
         print("the drivers printed, while listed and probed:")
         for line in _engine.DRIVER_MESSAGES[:20]:
@@ -702,9 +725,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--version", action="version", version=f"pbrdf-cl {__version__}")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    d = sub.add_parser("devices", help="list OpenCL platforms and devices")
+    d = sub.add_parser("devices", help="list OpenCL platforms and devices, their probe results and the verdicts "
+                       "of their programs' trial builds")
     d.add_argument("--device", help="mark this device as the one chosen (P:D or a name substring)")
     d.add_argument("--json", action="store_true", help="JSON output")
+    d.add_argument("--forget", action="store_true", help="forget the stored probe results and trial verdicts "
+                   "first (each is made again when next needed)")
     d.set_defaults(func=cmd_devices)
     _eval_parser(sub)
     _sweep_parser(sub)

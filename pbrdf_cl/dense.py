@@ -28,6 +28,7 @@ import time
 import numpy as np
 
 from . import api, quantities, reference, sizes
+from . import engine as _engine
 from .engine import DTYPES, aligned_empty, resolve_engine
 
 AXES = ("theta_i", "theta_r", "phi", "n", "k", "sigma", "ks", "kd", "c")
@@ -319,6 +320,7 @@ def _progress(total, enabled, desc, unit="pt"):
     return tqdm(total=total, desc=desc, unit=unit, unit_scale=True, leave=False, delay=1.0)  # only if > 1 s
 
 
+@_engine.falls_back
 def grid(axes, fixed=None, quantity="dop", dtype="float32", shadowing="paper", *, engine=None, backend="auto",
          memory_budget=DEFAULT_BUDGET, progress=False):
     """Evaluate ``quantity`` ("dop", "brdf" (alias "f00"), "aop" or "stokes") over the Cartesian
@@ -403,6 +405,7 @@ def row_level(nnk, nm, ni, ng, chunk, max_level=3):
     return 0, 1
 
 
+@_engine.falls_back
 def grid_blocks(eng, plan, quantity, dtype, shadowing, memory_budget, progress=False, out=None):
     """Yield (flat start, values) chunks of the grid in order, each within ``memory_budget``;
     with ``out`` (the whole flat grid) the values land in, and are views of, its slices."""
@@ -461,6 +464,7 @@ def grid_blocks(eng, plan, quantity, dtype, shadowing, memory_budget, progress=F
         bar.close()
 
 
+@_engine.falls_back
 def reduce_grid(axes, fixed=None, over=(), quantity="dop", dtype="float32", shadowing="paper", *,
                 engine=None, backend="auto", memory_budget=DEFAULT_BUDGET):
     """Min, argmin and mean of ``quantity`` over the axes ``over``, computed on the device
@@ -631,6 +635,7 @@ def _update_best(best_idx, best_sse, idx, sse, k):
     return idx, sse
 
 
+@_engine.falls_back
 def objective(data, grid=None, points=None, *, k_best=10, dtype="float32", shadowing="paper", engine=None,
               backend="auto", memory_budget=DEFAULT_BUDGET, return_sse=True, progress=False):
     """Weighted sum of squared DOP residuals, sum_m w_m (DOP(p, m) - dop_m)^2, for many parameter
@@ -819,6 +824,7 @@ OUTER_LAUNCH_PAIRS = 1 << 22
 OUTER_NUMPY_BYTES = 160
 
 
+@_engine.falls_back
 def outer(eng, quantity, geometry, params, dtype="float64", shadowing="paper", out=None, rows=None):
     """``quantity`` at every pair of a geometry list and a list of parameter sets, without forming
     the pairs: the sample sets of a sensitivity analysis, or a Jacobian's finite-difference
@@ -850,9 +856,9 @@ def outer(eng, quantity, geometry, params, dtype="float64", shadowing="paper", o
                                    shadowing=shadowing)
             flat[a - g0:b - g0] = np.asarray(v).reshape(b - a, -1)
         return out
-    from .engine import VECTOR_LOCAL_SIZE, VECTOR_WIDTH
+    from .engine import VECTOR_LOCAL_SIZE
     vec = q.vector and eng.vectorise  # N parameter sets per work-item, the sets padded to a multiple of N
-    lanes = VECTOR_WIDTH[dtype] if vec else 1
+    lanes = eng.vector_width[dtype] if vec else 1
     Sp = -(-S // lanes) * lanes
     if Sp != S:
         par = [np.concatenate([p, np.full(Sp - S, p[-1])]) for p in par]

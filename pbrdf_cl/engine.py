@@ -21,7 +21,20 @@ or, when no device is usable, on :class:`NumpyEngine` (the float64 reference of
 error; ``"numpy"`` always uses the reference.  :func:`resolve_engine` implements this.
 
 Programs are built once per (precision, shadowing variant) with ``-D`` options and kept, with
-their ``cl.Kernel`` objects, for the life of the engine.
+their ``cl.Kernel`` objects, for the life of the engine.  Before a process first builds a program on
+a device (and before it probes one), the build and one launch of each kernel are tried in a child
+process (:mod:`pbrdf_cl.trials`), whose verdict is stored on disk: a driver that crashes, aborts or
+hangs there takes the child down, not this process.  A program the trial found unusable raises
+:class:`ProgramUnusableError`; the functions marked :func:`falls_back` then compute on the next
+usable device, else on the numpy backend, with one :class:`DeviceWarning` line (an explicitly
+chosen device makes it an error instead).
+
+**Vector widths.**  The vector per-point kernels compute ``PB_VECTOR_REAL`` points per work-item,
+the row and batch programs (``pbrdf_grid.cl``, ``pbrdf_batch.cl``) ``PB_VW`` values, and
+``batch_lm`` as many problems as it has lanes: 512-bit vectors (``float16``/``double8``), except on
+PoCL built with LLVM 14 or older on an AVX-512 CPU, where they are 256-bit (:func:`vector_widths`):
+its code generator aborts on some 512-bit programs, and programs of 512-bit vectors that it loads
+back from its cache have no kernels.
 
 Testing aid: ``PBRDF_CL_FAKE_BUILD_FAILURE=<substring>`` makes the probe program of every device
 whose "platform / device" name contains the substring (case-insensitive) fail to build, as the
@@ -30,7 +43,9 @@ PyPI PoCL 3.0 does on CPUs its LLVM does not know.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
+import inspect
 import json
 import math
 import os
@@ -43,7 +58,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import drivers, quantities, reference
+from . import drivers, quantities, reference, trials
 
 drivers.register_pip_drivers()  # before the first OpenCL call of this process
 
@@ -58,8 +73,14 @@ else:
 POINT_INPUTS = ("theta_i", "theta_r", "phi", "n", "k", "sigma", "ks", "kd", "c")
 DTYPES = {"float32": np.float32, "float64": np.float64}
 BACKENDS = ("auto", "opencl", "numpy")
-#: Vector width of the explicitly vectorised kernels (float16 / double8 were fastest on PoCL 3.0).
+#: Vector width of the explicitly vectorised per-point kernels (float16 / double8 were fastest on
+#: PoCL 3.0) and ``PB_VW`` of the row and batch programs, unless :func:`vector_widths` narrows them.
 VECTOR_WIDTH = {"float32": 16, "float64": 8}
+#: Lanes of the batch Levenberg-Marquardt kernel (``batch_lm``: one problem per lane).
+LM_LANES = {"float32": 16, "float64": 4}
+#: The widths where the driver cannot generate 512-bit vector code (256-bit vectors).
+NARROW_VECTOR_WIDTH = {"float32": 8, "float64": 4}
+NARROW_LM_LANES = {"float32": 8, "float64": 4}
 #: Work-group size of the vector per-point kernels.
 VECTOR_LOCAL_SIZE = 8
 #: Points per kernel launch; bounds the temporary device memory of one call.
@@ -75,6 +96,7 @@ CONVERT_POINTS = 1 << 19
 #: larger one is gathered launch by launch instead, so that memory stays within the same bound.
 TABLE_POINTS = 1 << 19
 FAKE_FAILURE_ENV = "PBRDF_CL_FAKE_BUILD_FAILURE"
+NARROW_ENV = "PBRDF_CL_NARROW_VECTORS"
 
 _HOW_TO_GET_ONE = "remedies: " + drivers.REMEDIES
 
@@ -89,6 +111,18 @@ class DeviceUnusableError(OpenCLUnavailableError):
 
 class KernelBuildError(OpenCLUnavailableError):
     """A driver failed to build one of pbrdf-cl's programs (the first line of its log says why)."""
+
+
+class ProgramUnusableError(KernelBuildError):
+    """A device cannot run one program: its trial build in a child process failed, crashed, aborted
+    or timed out (:mod:`pbrdf_cl.trials`).  ``engine``: where; ``verdict``: the trial's finding;
+    ``program``: a key of the program that does not depend on the device."""
+
+    def __init__(self, message, engine=None, verdict=None, program=None):
+        super().__init__(message)
+        self.engine = engine
+        self.verdict = verdict
+        self.program = program
 
 
 class DeviceWarning(UserWarning):
@@ -126,10 +160,11 @@ def kernels_sha256():
     return _KERNELS_SHA256
 
 
-def build_options(dtype, defines=None):
-    """The compiler options of every pbrdf-cl program for ``dtype`` and ``-D`` ``defines``."""
+def build_options(dtype, defines=None, width=None):
+    """The compiler options of every pbrdf-cl program for ``dtype``, ``-D`` ``defines`` and the row
+    programs' vector width ``width`` (default :data:`VECTOR_WIDTH`)."""
     # -w: PoCL's clang otherwise prints ABI notes about wide vectors to stderr
-    opts = ["-I", str(kernel_dir()), "-w", f"-DPB_VW={VECTOR_WIDTH[dtype]}"]
+    opts = ["-I", str(kernel_dir()), "-w", f"-DPB_VW={width or VECTOR_WIDTH[dtype]}"]
     if dtype == "float64":
         opts.append("-DPBRDF_DOUBLE")
     opts += [f"-D{name}" if value is None else f"-D{name}={value}" for name, value in (defines or {}).items()]
@@ -277,6 +312,59 @@ def has_fp64(device) -> bool:
     return bool(device.double_fp_config) or "cl_khr_fp64" in device.extensions
 
 
+_CPU_FLAGS = None
+
+
+def cpu_flags():
+    """The flags of this machine's CPU (``/proc/cpuinfo``; empty where it cannot be read)."""
+    global _CPU_FLAGS
+    if _CPU_FLAGS is None:
+        try:
+            text = Path("/proc/cpuinfo").read_text()
+        except OSError:
+            text = ""
+        m = re.search(r"^flags\s*:(.*)$", text, re.M)
+        _CPU_FLAGS = frozenset(m.group(1).split()) if m else frozenset()
+    return _CPU_FLAGS
+
+
+def llvm_version(plat):
+    """The major version of the LLVM a PoCL platform was built with (its version string names it),
+    or None."""
+    m = re.search(r"LLVM (\d+)", plat.version)
+    return int(m.group(1)) if m else None
+
+
+def narrow_reason(dev):
+    """Why every vector program must use 256-bit vectors on ``dev``, or None.  PoCL built with
+    LLVM 14 (the PyPI wheel's PoCL 3.0) generates code with the host's AVX-512 features; on such a
+    host (measured on a Zen 4) its code generator aborts ("LLVM ERROR: Do not know how to scalarize
+    this operator's operand!") or segfaults on the objective's and the batch programs' float16 /
+    double8 arithmetic, and a per-point program of float16 / double8 that it loads back from its
+    cache has no kernels (and aborts the process at exit).  The same programs with float8 /
+    double4 build in seconds, load from the cache and give the same values.  LLVM 15 (PoCL 3.1)
+    has neither fault.  ``PBRDF_CL_NARROW_VECTORS=1`` narrows them on every device, ``=0`` on none
+    (for measurements, and a way out should another driver fail alike)."""
+    forced = os.environ.get(NARROW_ENV, "").strip()
+    if forced in ("0", "1"):
+        return f"{NARROW_ENV}={forced}" if forced == "1" else None
+    plat = dev.platform
+    if not (_is_pocl(plat) and dev.type & cl.device_type.CPU):
+        return None
+    llvm = llvm_version(plat)
+    if llvm is None or llvm >= 15 or "avx512f" not in cpu_flags():
+        return None
+    return f"PoCL with LLVM {llvm} on an AVX-512 CPU cannot generate or cache 512-bit vector code for every program"
+
+
+def vector_widths(dev):
+    """``(vector widths, LM lanes)`` per dtype for the programs built on ``dev``: :data:`VECTOR_WIDTH`
+    and :data:`LM_LANES`, or their 256-bit forms where :func:`narrow_reason` says so."""
+    if narrow_reason(dev):
+        return dict(NARROW_VECTOR_WIDTH), dict(NARROW_LM_LANES)
+    return dict(VECTOR_WIDTH), dict(LM_LANES)
+
+
 # ---------------------------------------------------------------------------------------------
 # the probe
 
@@ -314,7 +402,8 @@ def _probe_key(dev):
     plat = dev.platform
     parts = dict(platform=plat.name.strip(), platform_version=plat.version.strip(), device=dev.name.strip(),
                  vendor=dev.vendor.strip(), driver=dev.driver_version.strip(), version=dev.version.strip(),
-                 kernels=kernels_sha256(), fake=_fake_failure(dev), v=PROBE_CACHE_VERSION)
+                 kernels=kernels_sha256(), fake=_fake_failure(dev), v=PROBE_CACHE_VERSION,
+                 trial_fake=trials.fake_way(describe(dev), "pbrdf_probe.cl"))
     return hashlib.sha256(json.dumps(parts, sort_keys=True).encode()).hexdigest()
 
 
@@ -347,29 +436,67 @@ def _disk_cache_write(key, result):
 
 
 def _run_probe(dev) -> ProbeResult:
-    with _CapturedStderr() as captured:
-        result = _run_probe_quietly(dev)
-    _keep_messages(captured.text)
-    if not result.usable and captured.text.strip() and "error" not in result.reason.lower():
-        result.reason += f" ({first_error_line(captured.text)})"
-    return result
+    if not trials.enabled():
+        with _CapturedStderr() as captured:
+            result = _run_probe_quietly(dev)
+        _keep_messages(captured.text)
+        if not result.usable and captured.text.strip() and "error" not in result.reason.lower():
+            result.reason += f" ({first_error_line(captured.text)})"
+        return result
+    return _run_probe_in_child(dev)
+
+
+def _probe_source(dev):
+    source = (kernel_dir() / "pbrdf_probe.cl").read_text()
+    if _fake_failure(dev):
+        source = f"#error unknown target CPU 'generic' (simulated by {FAKE_FAILURE_ENV})\n" + source
+    return source
+
+
+def _check_probe_values(values, t0):
+    """The probe's verdict on the DOP each precision returned."""
+    want = reference.evaluate("dop", *PROBE_POINTS.T)
+    for dtype, got in values.items():
+        out = np.asarray(got, dtype=np.float64)
+        err = float(np.max(np.abs(out - want)))
+        if not np.isfinite(err) or err > PROBE_TOLERANCE[dtype]:
+            return ProbeResult(False, f"{dtype} probe returned DOP {np.array2string(out, precision=6)}, "
+                               f"SPEC's check values are {PROBE_SPEC.tolist()} (error {err:.2g})",
+                               values=values, seconds=time.perf_counter() - t0)
+    checked = " and ".join(values)
+    return ProbeResult(True, f"{checked} give SPEC's check values", fp64="float64" in values, values=values,
+                       seconds=time.perf_counter() - t0)
+
+
+def _run_probe_in_child(dev) -> ProbeResult:
+    """The probe, built and run in the trial process: a driver that crashes there is unusable."""
+    t0 = time.perf_counter()
+    dtypes = ("float32", "float64") if has_fp64(dev) else ("float32",)
+    widths, _ = vector_widths(dev)
+    options = {dt: build_options(dt, width=widths[dt]) for dt in dtypes}
+    values, why = trials.run_probe(dev, _device_index(dev), _probe_source(dev), options, dtypes, PROBE_POINTS)
+    _keep_messages(trials.last_child_text())
+    if why:
+        return ProbeResult(False, why if "build failed" in why or "crashed" in why else f"probe failed: {why}",
+                           values=values or {}, seconds=time.perf_counter() - t0)
+    if set(values) != set(dtypes):
+        return ProbeResult(False, f"probe failed: no values for {sorted(set(dtypes) - set(values))}",
+                           values=values, seconds=time.perf_counter() - t0)
+    return _check_probe_values(values, t0)
 
 
 def _run_probe_quietly(dev) -> ProbeResult:
+    """The probe in this process (only with trials switched off, ``PBRDF_CL_TRIALS=0``)."""
     t0 = time.perf_counter()
-    want = reference.evaluate("dop", *PROBE_POINTS.T)
     values = {}
     try:
         context = cl.Context([dev])
         queue = cl.CommandQueue(context)
         dtypes = ("float32", "float64") if has_fp64(dev) else ("float32",)
-        source = (kernel_dir() / "pbrdf_probe.cl").read_text()
+        widths, _ = vector_widths(dev)
         for dtype in dtypes:
-            src = source
-            if _fake_failure(dev):
-                src = f"#error unknown target CPU 'generic' (simulated by {FAKE_FAILURE_ENV})\n" + source
             try:
-                program = _build(context, src, build_options(dtype))
+                program = _build(context, _probe_source(dev), build_options(dtype, width=widths[dtype]))
             except cl.Error as exc:
                 return ProbeResult(False, f"{dtype} build failed: {first_error_line(exc)}",
                                    seconds=time.perf_counter() - t0)
@@ -382,17 +509,18 @@ def _run_probe_quietly(dev) -> ProbeResult:
             cl.enqueue_copy(queue, out, buf_out)
             queue.finish()
             values[dtype] = out.astype(float).tolist()
-            err = float(np.max(np.abs(out.astype(np.float64) - want)))
-            if not np.isfinite(err) or err > PROBE_TOLERANCE[dtype]:
-                return ProbeResult(False, f"{dtype} probe returned DOP {np.array2string(out, precision=6)}, "
-                                   f"SPEC's check values are {PROBE_SPEC.tolist()} (error {err:.2g})",
-                                   values=values, seconds=time.perf_counter() - t0)
     except cl.Error as exc:
         return ProbeResult(False, f"probe failed: {first_error_line(exc)}", values=values,
                            seconds=time.perf_counter() - t0)
-    checked = " and ".join(values)
-    return ProbeResult(True, f"{checked} give SPEC's check values", fp64="float64" in values, values=values,
-                       seconds=time.perf_counter() - t0)
+    return _check_probe_values(values, t0)
+
+
+def _device_index(dev):
+    """``(platform index, device index)`` of ``dev`` in :func:`list_devices`' order, or None."""
+    for ip, idev, _, d in list_devices():
+        if d.int_ptr == dev.int_ptr:
+            return ip, idev
+    return None
 
 
 def probe(dev, *, use_cache=True) -> ProbeResult:
@@ -613,7 +741,14 @@ class Engine:
     is_numpy = False
 
     def __init__(self, device=None, *, profiling=False):
+        #: chosen by the caller (``device``, ``PYOPENCL_CTX``): a program it cannot run is an error,
+        #: never a silent move to another device (see :func:`falls_back`)
+        self.explicit = device is not None or bool(os.environ.get("PYOPENCL_CTX"))
         self.device = select_device(device)
+        #: per dtype: the points per work-item of the vector per-point kernels (``PB_VECTOR_REAL``) and
+        #: ``PB_VW`` of the row and batch programs; the lanes of ``batch_lm``
+        self.vector_width, self.lm_lanes = vector_widths(self.device)
+        self._index = None
         try:
             self.context = cl.Context([self.device])
         except cl.Error as exc:
@@ -648,6 +783,13 @@ class Engine:
         """``"platform / device"``."""
         return describe(self.device)
 
+    @property
+    def index(self):
+        """``(platform index, device index)`` as ``pbrdf-cl devices`` lists them."""
+        if self._index is None:
+            self._index = _device_index(self.device) or ("?", "?")
+        return self._index
+
     def program(self, filename: str, dtype: str, defines=None, prefix: str = ""):
         """The kernels of ``kernels/<filename>`` built for ``dtype`` with ``-D`` ``defines`` (and
         ``prefix`` source text prepended), as a dict name -> ``cl.Kernel``; built once per key."""
@@ -661,22 +803,42 @@ class Engine:
             if dtype == "float64" and not self.fp64:
                 raise ValueError(f"dtype='float64': device {self.device.name.strip()!r} has no float64 "
                                  "support; use dtype='float32' or another device")
-            src = prefix + (kernel_dir() / filename).read_text()
+            source = (kernel_dir() / filename).read_text()
+            options = build_options(dtype, defines, self.vector_width[dtype])
+            if trials.enabled():
+                self._check_trial(filename, dtype, source, options, prefix)
             try:
-                program = _build(self.context, src, build_options(dtype, defines))
+                program = _build(self.context, prefix + source, options)
             except cl.Error as exc:
                 raise KernelBuildError(f"{describe(self.device)} failed to build {filename} ({dtype}): "
                                        f"{first_error_line(exc)}") from None
-            self._kernels[key] = {k.function_name: k for k in program.all_kernels()}
+            kernels = {k.function_name: k for k in program.all_kernels()}
+            if not kernels:  # PoCL 3.0 loads some programs back from its cache without their kernels
+                raise ProgramUnusableError(
+                    f"OpenCL device {self.index[0]}:{self.index[1]} ({self.description}) built "
+                    f"{trials.label(filename, dtype, options)} without kernels (a broken entry in the driver's "
+                    f"cache? for PoCL, empty {drivers.pocl_cache_dir()})", engine=self,
+                    program=trials.program_key(filename, options, prefix))
+            self._kernels[key] = kernels
         return self._kernels[key]
+
+    def _check_trial(self, filename, dtype, source, options, prefix):
+        """Raise :class:`ProgramUnusableError` unless the trial of this program (stored, or run now
+        in the child process) found it usable on this device."""
+        verdict = trials.check_program(self.device, self.index, kernels_sha256(), filename, dtype, source,
+                                       options, prefix)
+        if not verdict.usable:
+            where = f"OpenCL device {self.index[0]}:{self.index[1]} ({self.description})"
+            raise ProgramUnusableError(f"{where} cannot run {verdict.program}: {verdict.reason}", engine=self,
+                                       verdict=verdict, program=trials.program_key(filename, options, prefix))
 
     def kernel(self, name: str, dtype: str, shadowing: str, quantity=None):
         """The ``cl.Kernel`` ``name`` of ``pbrdf_points.cl`` for this precision and variant (built once);
-        names ending in ``_vec`` come from the vector build (``VECTOR_WIDTH`` points per work-item);
+        names ending in ``_vec`` come from the vector build (:attr:`vector_width` points per work-item);
         ``quantity_points`` is built for the registry's ``quantity`` (its name)."""
         defines = {"PBRDF_SHADOWING": reference.SHADOWING[shadowing]}
         if name.endswith("_vec"):
-            defines["PB_VECTOR_REAL"] = VECTOR_WIDTH[dtype]
+            defines["PB_VECTOR_REAL"] = self.vector_width[dtype]
         if quantity is not None:
             defines.update(quantities.get(quantity, "points").defines())
         return self.program("pbrdf_points.cl", dtype, defines)[name]
@@ -755,7 +917,7 @@ class Engine:
         npdt = np.dtype(DTYPES[dtype])
         q = quantities.get(quantity, "points")
         vec = self.checks_domain(q.name)
-        lanes = VECTOR_WIDTH[dtype] if vec else 1
+        lanes = self.vector_width[dtype] if vec else 1
         shape = tuple(int(n) for n in shape)
         size = math.prod(shape)
         width = q.width
@@ -1215,6 +1377,99 @@ def get_default_engine(backend="auto"):
     if backend == "opencl" and eng.is_numpy:
         raise OpenCLUnavailableError(f"backend='opencl': {eng.reason or 'the default engine is the numpy backend'}")
     return eng
+
+
+# ---------------------------------------------------------------------------------------------
+# a program a device cannot run: the next usable device, else the numpy backend
+
+_FALLBACK_LOCK = threading.RLock()
+_AUTO_ENGINES = {}      # device int_ptr -> an Engine made for a fallback (reused)
+_CANNOT = {}            # program key -> device int_ptrs whose trial of it failed
+
+
+def _device_name(eng):
+    return f"OpenCL device {eng.index[0]}:{eng.index[1]} ({eng.description})"
+
+
+def fallback_engine(exc, backend="auto", exclude=()):
+    """The engine to compute on after ``exc`` (a :class:`ProgramUnusableError`): the next usable
+    device in the default order that has not failed this program, else a :class:`NumpyEngine`
+    (not with ``backend="opencl"``), skipping the devices ``exclude`` (``int_ptr``s) too.  Warns
+    once per device and program.  An explicitly chosen device (``Engine(device)``,
+    ``PYOPENCL_CTX``, ``--device``) re-raises ``exc``: a one-line error."""
+    failed = exc.engine
+    if failed is None or failed.explicit:
+        raise exc
+    with _FALLBACK_LOCK:
+        bad = _CANNOT.setdefault(exc.program, set())
+        bad.add(failed.device.int_ptr)
+        replacement = None
+        for dev in candidates():
+            if dev.int_ptr in bad or dev.int_ptr in exclude or not probe(dev).usable:
+                continue
+            if dev.int_ptr not in _AUTO_ENGINES:
+                try:
+                    _AUTO_ENGINES[dev.int_ptr] = Engine(dev)
+                except OpenCLUnavailableError:
+                    bad.add(dev.int_ptr)
+                    continue
+                _AUTO_ENGINES[dev.int_ptr].explicit = False
+            replacement = _AUTO_ENGINES[dev.int_ptr]
+            break
+        if replacement is None:
+            if backend == "opencl":
+                raise exc
+            replacement = NumpyEngine(str(exc))
+        where = "the numpy backend (the float64 reference, slower)" if replacement.is_numpy else \
+            _device_name(replacement)
+        _warn_once(("program", failed.device.int_ptr, exc.program), f"{exc}; computing it on {where}")
+        return replacement
+
+
+def falls_back(func):
+    """Decorate a function that computes on an engine (its ``engine`` or ``eng`` argument): where a
+    program it needs is unusable on that engine's device (:class:`ProgramUnusableError`), it is run
+    again on :func:`fallback_engine`'s choice.  A generator is run again only if it has yielded
+    nothing yet."""
+    sig = inspect.signature(func)
+    name = "engine" if "engine" in sig.parameters else "eng"
+
+    def bound_call(args, kwargs):
+        bound = sig.bind(*args, **kwargs)
+        return bound, bound.arguments.get("backend", "auto")
+
+    if inspect.isgeneratorfunction(func):
+        @functools.wraps(func)
+        def generator(*args, **kwargs):
+            bound, backend = bound_call(args, kwargs)
+            failed = set()
+            while True:
+                started = False
+                try:
+                    for item in func(*bound.args, **bound.kwargs):
+                        started = True
+                        yield item
+                    return
+                except ProgramUnusableError as exc:
+                    if started or exc.engine is None:
+                        raise
+                    failed.add(exc.engine.device.int_ptr)
+                    bound.arguments[name] = fallback_engine(exc, backend, failed)
+        return generator
+
+    @functools.wraps(func)
+    def wrapper(*args, **kwargs):
+        bound, backend = bound_call(args, kwargs)
+        failed = set()  # each device at most once per call: the loop ends on the numpy backend
+        while True:
+            try:
+                return func(*bound.args, **bound.kwargs)
+            except ProgramUnusableError as exc:
+                if exc.engine is None:
+                    raise
+                failed.add(exc.engine.device.int_ptr)
+                bound.arguments[name] = fallback_engine(exc, backend, failed)
+    return wrapper
 
 
 def set_default_engine(engine) -> None:

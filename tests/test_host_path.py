@@ -271,7 +271,7 @@ def test_a_launch_far_into_the_array_reads_the_right_values(each_device, monkeyp
     t = start + np.arange(5000)
     for dtype in ("float32", "float64"):
         npdt = np.dtype(E.DTYPES[dtype])
-        lanes = E.VECTOR_WIDTH[dtype]
+        lanes = each_device.vector_width[dtype]
         inp = dict(theta_i=40.0, theta_r=th[:, None], phi=150.0, n=1.6, k=2.1, sigma=sg[None, :], ks=1.0, kd=0.2, c=-0.3)
         plan, flat, values = each_device._inputs(inp, shape, npdt, lanes)
         assert plan["theta_r"].kind == plan["sigma"].kind == E.BROADCAST
