@@ -17,7 +17,8 @@ Requests (``op``):
   Answer: ``{"ok": true, "values": {dtype: [...]}}`` or ``{"ok": false, "error": ...}``.
 
 The parent's test switch (``fake``: ``abort``, ``segv``, ``hang``, ``llvm``, ``exit``) makes this
-process die as a broken driver would, before it builds anything.
+process die as a broken driver would, after the build (which the driver may have cached) and before
+the first launch.
 """
 import json
 import os
@@ -85,6 +86,8 @@ def _program(cl, np, req):
         prg = cl.Program(ctx, req["source"]).build(options=req["options"])
     except cl.Error as exc:
         return {"ok": False, "error": "build failed", "log": str(exc)}
+    if req.get("fake"):  # built (and cached), it dies where PoCL 3.0 does: generating the kernels' code
+        _fake(req["fake"])
     names = []
     for kernel in prg.all_kernels():
         _zero_args(cl, np, kernel)
@@ -111,6 +114,8 @@ def _probe(cl, np, req):
             prg = cl.Program(ctx, req["source"]).build(options=req["options"][dtype])
         except cl.Error as exc:
             return {"ok": False, "error": f"{dtype} build failed", "log": str(exc), "values": values}
+        if req.get("fake"):
+            _fake(req["fake"])
         pts = np.ascontiguousarray(req["points"], dtype=dtype)
         mf = cl.mem_flags
         buf_in = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=pts)
@@ -144,8 +149,6 @@ def main():
             return 0
         req = json.loads(line)
         print(f"pbrdf-cl trial: {req.get('label', req['op'])}", file=sys.stderr, flush=True)
-        if req.get("fake"):
-            _fake(req["fake"])
         t0 = time.perf_counter()
         try:
             answer = (_probe if req["op"] == "probe" else _program)(cl, np, req)

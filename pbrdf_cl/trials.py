@@ -118,15 +118,17 @@ def fake_way(device_name: str, label: str):
 # verdict keys: a family of builds
 
 def _size_class(value, width):
-    """Which sizes build the same code paths: 1, below the vector width, or at least it (a whole
-    multiple or not: the remainder loops are there or not)."""
+    """Which sizes build the same code paths: 1; below the vector width (no vector loop); a whole
+    multiple of it (no remainder loop); larger and not a multiple (both loops)."""
     try:
         v = int(value)
     except ValueError:
         return value
     if v <= 1:
         return "1"
-    return ("<vw" if v < width else ">=vw") + ("" if v % width else "*vw")
+    if v < width:
+        return "<vw"
+    return "n*vw" if v % width == 0 else ">vw"
 
 
 def family(options, prefix=""):
@@ -263,7 +265,7 @@ def _write_store(key, verdict):
 
 
 def stored_verdicts(dev=None):
-    """The verdicts on disk (of device ``dev`` only, if given), as :class:`Verdict`\ s, oldest first."""
+    """The verdicts on disk (of device ``dev`` only, if given), as a list of :class:`Verdict`, oldest first."""
     want = device_key(dev) if dev is not None else None
     out = []
     for entry in _read_store().values():
