@@ -798,12 +798,22 @@ class Engine:
         with self.lock:
             return self._program(key, filename, dtype, defines, prefix)
 
-    def _program(self, key, filename, dtype, defines, prefix):
+    def source_program(self, name: str, source: str, dtype: str, defines=None):
+        """The kernels of the OpenCL ``source`` (a program of its own, e.g. a test's, which may
+        ``#include "pbrdf.h"``) built as :meth:`program` builds the package's: the same options, the
+        same trial in the child process first; ``name`` names it in messages."""
+        defines = dict(defines or {})
+        key = ("<source>", name, hashlib.sha256(source.encode()).hexdigest(), dtype, tuple(sorted(defines.items())))
+        with self.lock:
+            return self._program(key, name, dtype, defines, "", source)
+
+    def _program(self, key, filename, dtype, defines, prefix, source=None):
         if key not in self._kernels:
             if dtype == "float64" and not self.fp64:
                 raise ValueError(f"dtype='float64': device {self.device.name.strip()!r} has no float64 "
                                  "support; use dtype='float32' or another device")
-            source = (kernel_dir() / filename).read_text()
+            if source is None:
+                source = (kernel_dir() / filename).read_text()
             options = build_options(dtype, defines, self.vector_width[dtype])
             if trials.enabled():
                 self._check_trial(filename, dtype, source, options, prefix)

@@ -188,10 +188,10 @@ def program_key(filename, options, prefix=""):
     return hashlib.sha256(json.dumps([filename, opts, pre]).encode()).hexdigest()[:24]
 
 
-def verdict_key(dev, kernels_sha, filename, options, prefix, fake):
+def verdict_key(dev, kernels_sha, filename, source, options, prefix, fake):
     opts, pre = family(options, prefix)
     parts = dict(device=device_identity(dev), kernels=kernels_sha, program=filename, options=opts, prefix=pre,
-                 fake=fake, v=VERDICT_CACHE_VERSION)
+                 source=hashlib.sha256(source.encode()).hexdigest(), fake=fake, v=VERDICT_CACHE_VERSION)
     return hashlib.sha256(json.dumps(parts, sort_keys=True).encode()).hexdigest()
 
 
@@ -475,7 +475,7 @@ def check_program(dev, index, kernels_sha, filename, dtype, source, options, pre
     name = describe(dev)
     what = label(filename, dtype, options)
     fake = fake_way(name, what)
-    key = verdict_key(dev, kernels_sha, filename, options, prefix, fake)
+    key = verdict_key(dev, kernels_sha, filename, source, options, prefix, fake)
     with _STORE_LOCK:
         if key in _MEMORY:
             return _MEMORY[key]

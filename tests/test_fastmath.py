@@ -3,7 +3,6 @@ sincos of both precisions) against numpy/scipy: float32 against float64 at the s
 arguments, float64 against numpy (erfc: scipy's erfcx times exp(-x^2) in long double), in scalar
 and vector builds, plus pb_sincosd (exact degree reduction) in both precisions.  The bounds are
 those stated in pb_math.h's header comment."""
-import warnings
 
 import numpy as np
 import pyopencl as cl
@@ -53,20 +52,20 @@ __kernel void fm(__global const PB_SCALAR *x, __global const PB_SCALAR *y,
 
 
 def make_runner(engine):
-    """run(func, x, y=None, dtype, width, builtin) -> (result, second result) as float64 arrays."""
+    """run(func, x, y=None, dtype, width, builtin) -> (result, second result) as float64 arrays;
+    ``width`` None: the scalar build, "vector": the vector build of the device's width (the one its
+    kernels use, :attr:`pbrdf_cl.Engine.vector_width`), built as the package's programs are."""
     built = {}
 
     def run(func, x, y=None, dtype="float32", width=None, builtin=False):
         npdt = np.dtype(engine_mod.DTYPES[dtype])
+        width = engine.vector_width[dtype] if width == "vector" else width
         key = (func, dtype, width, builtin)
         if key not in built:
-            opts = ["-I", str(engine_mod.kernel_dir()), "-w", f"-DFN={FUNCS[func]}"]
-            opts += ["-DPBRDF_DOUBLE"] if dtype == "float64" else []
-            opts += [f"-DPB_VECTOR_REAL={width}"] if width else []
-            opts += ["-DPB_BUILTIN_MATH"] if builtin else []
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", cl.CompilerWarning)
-                built[key] = cl.Program(engine.context, SOURCE).build(options=opts).fm
+            defines = {"FN": FUNCS[func]}
+            defines.update({"PB_VECTOR_REAL": width} if width else {})
+            defines.update({"PB_BUILTIN_MATH": None} if builtin else {})
+            built[key] = engine.source_program("test_fastmath", SOURCE, dtype, defines)["fm"]
         lanes = width or 1
         x = np.asarray(x, dtype=npdt).ravel()
         y = np.zeros_like(x) if y is None else np.asarray(y, dtype=npdt).ravel()
@@ -92,7 +91,7 @@ def run(engine):
     return make_runner(engine)
 
 
-WIDTHS = [None, 16]
+WIDTHS = [None, "vector"]
 F32 = np.float32
 TINY = float(np.finfo(F32).tiny)  # 2^-126
 
@@ -196,7 +195,7 @@ def test_builtin_math_build(run, width):
 
 
 # ---- float64 -------------------------------------------------------------------------------------
-WIDTHS64 = [None, 8]
+WIDTHS64 = [None, "vector"]
 DBL_TINY = float(np.finfo(np.float64).tiny)  # 2^-1022
 
 
