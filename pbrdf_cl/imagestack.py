@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from . import sizes
 from .api import dop as _dop
 
 #: The two materials of :func:`synthetic_stack`: name -> n, k, kd (= kd/ks with ks = 1), c.
@@ -183,6 +184,21 @@ def truth_maps(size=256):
     return maps
 
 
+#: Peak memory of :func:`synthetic_stack` per measurement (pixel x light): the geometry's 3-vector
+#: temporaries (light directions, their tangent parts, cross products), the angles, the parameters
+#: and the outputs, measured at 115-265 bytes with tracemalloc for 128-256 pixels and 8-30
+#: lights, with the fixed part below; the estimate is above every measurement.
+STACK_BYTES_PER_MEASUREMENT = 120
+#: The fixed part of that peak: the reference's temporaries for one chunk of :data:`_CHUNK` points.
+STACK_BYTES_FIXED = 80 << 20
+
+
+def stack_bytes(size, n_lights):
+    """An upper estimate of the memory :func:`synthetic_stack` takes for ``size`` x ``size``
+    pixels and ``n_lights`` light positions (bytes)."""
+    return STACK_BYTES_PER_MEASUREMENT * int(size) * int(size) * int(n_lights) + STACK_BYTES_FIXED
+
+
 def _check_size(size):
     if isinstance(size, bool) or not float(size).is_integer() or int(size) < 2:
         raise ValueError(f"size must be an integer of at least 2 pixels, got {size!r}")
@@ -231,7 +247,8 @@ def synthetic_stack(size=256, n_lights=30, noise=0.005, seed=0, *, sample_mm=100
     ------
     ValueError
         For a bad size, n_lights or noise, or a geometry with a light or view direction at
-        ``MAX_ZENITH`` degrees or more.
+        ``MAX_ZENITH`` degrees or more; :class:`pbrdf_cl.sizes.TooLargeError` (a ValueError and a
+        MemoryError) before any work when the stack cannot fit in memory (:func:`stack_bytes`).
 
     Examples
     --------
@@ -250,6 +267,8 @@ def synthetic_stack(size=256, n_lights=30, noise=0.005, seed=0, *, sample_mm=100
     lights = np.asarray(lights, dtype=np.float64)
     if lights.ndim != 2 or lights.shape[1] != 3 or not np.isfinite(lights).all():
         raise ValueError(f"lights must be finite positions of shape (M, 3), got shape {lights.shape}")
+    sizes.check_memory(stack_bytes(size, len(lights)), f"a synthetic stack of {size} x {size} pixels x "
+                       f"{len(lights)} lights", "use a smaller size or fewer lights")
     camera = _spherical(camera_distance, camera_theta, camera_azimuth)
     coords = ((np.arange(size) + 0.5) / size - 0.5) * sample_mm
     x_mm, y_mm = coords, coords[::-1]                                      # row 0 at the top
