@@ -635,7 +635,8 @@ def _map_parser(sub):
     m.add_argument("--quantity", choices=_quantity_choices("map"), default="dop", type=str.lower,
                    help="what to map: dop, brdf (alias f00; 1/sr, log colours when it spans decades), aop (deg)")
     m.add_argument("--derivative", metavar="NAME",
-                   help="add a panel with d(quantity)/d(NAME): finite differences on the device grid")
+                   help="add a panel with d(quantity)/d(NAME): finite differences of step 1e-4 at every node, "
+                   "one-sided at a bound of the domain, on float64 device grids")
     m.add_argument("--dtype", choices=("float32", "float64"), default="float64", help="precision")
     m.add_argument("--shadowing", choices=sorted(SHADOWING), default="paper", help=_SHADOWING_HELP)
     _device_options(m)

@@ -35,6 +35,40 @@ def test_angles_in_radians_are_flagged():
         "radians? pbrdf-cl takes degrees (np.degrees(...) converts)"]
 
 
+def test_radians_are_flagged_on_the_grid_paths_too(tmp_path):
+    """grid, reduce_grid, map (once, though its derivative runs more grids) and sweep specs warn as
+    eval and fit do, whether the zenith angles are axes or fixed values; degrees stay silent."""
+    rad = np.radians(np.linspace(0, 85, 8))
+    for call in (lambda: pbrdf_cl.grid({"theta_r": rad}, dict(theta_i=0.7, **STEEL), backend="numpy"),
+                 lambda: pbrdf_cl.grid({"theta_i": rad, "theta_r": rad}, STEEL, backend="numpy"),
+                 lambda: pbrdf_cl.reduce_grid({"theta_r": rad, "sigma": [0.3, 0.5]}, dict(theta_i=0.7, n=1.6, k=2.1),
+                                              over="theta_r", backend="numpy")):
+        with pytest.warns(api.UnitsWarning, match=r"all lie below 1.6 degrees .*are they in radians\?"):
+            call()
+    fixed = {k: v for k, v in STEEL.items() if k != "sigma"}
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        maps.make_map(("theta_r", rad), ("sigma", np.linspace(0.1, 1, 5)), dict(theta_i=0.7, **fixed),
+                      derivative="sigma", backend="numpy")
+    assert [str(w.message)[:40] for w in seen if issubclass(w.category, api.UnitsWarning)] == [
+        "theta_i and theta_r all lie below 1.6 de"]
+    with pytest.warns(api.UnitsWarning, match="spec: theta_i and theta_r all lie below 1.6 degrees"):
+        sweeps.load_spec(dict(axes=dict(theta_r=rad.tolist()), fixed=dict(theta_i=0.7, **STEEL)))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", api.UnitsWarning)
+        pbrdf_cl.grid({"theta_r": np.linspace(0, 85, 8)}, dict(theta_i=40, **STEEL), backend="numpy")
+        pbrdf_cl.grid({"theta_r": rad}, dict(theta_i=40, **STEEL), backend="numpy")  # theta_i in degrees
+        sweeps.load_spec(dict(axes=dict(theta_r=np.linspace(0, 85, 8).tolist()), fixed=dict(theta_i=40, **STEEL)))
+    proc = run_cli("map", "--x", "theta_r=0:1.4@8", "--y", "sigma=0.1:1@4", "--fix", "theta_i=0.7", "n=1.6", "k=2",
+                   "kd=0.1", "--derivative", "sigma", "--backend", "numpy", "--out", str(tmp_path / "m.png"))
+    assert proc.returncode == 0 and proc.stderr.count("are they in radians?") == 1, proc.stderr
+    spec = tmp_path / "s.toml"
+    spec.write_text('quantity = "dop"\n[axes]\ntheta_r = "0:1.4@8"\n[fixed]\ntheta_i = 0.7\nn = 1.6\nk = 2.0\n'
+                    'sigma = 0.3\n')
+    proc = run_cli("sweep", str(spec), "--out", str(tmp_path / "s.zarr"), "--quiet", "--backend", "numpy")
+    assert proc.returncode == 0 and "pbrdf-cl: warning: spec: theta_i and theta_r all lie below" in proc.stderr
+
+
 def test_a_map_axis_the_quantity_does_not_depend_on_is_noted(tmp_path):
     x, y = ("theta_r", np.linspace(0, 85, 20)), ("sigma", np.linspace(0.05, 1, 12))
     ds = maps.make_map(x, y, dict(theta_i=40, n=1.6, k=2.1), backend="numpy")  # kd = 0
