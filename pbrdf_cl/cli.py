@@ -70,6 +70,49 @@ def _check_output(option, path, folder=False):
         raise _Refused(f"{option} {path}: cannot write into {target} ({why}); choose a writable {option}")
 
 
+def _suffix(path):
+    """The lower-case suffix of a path or URL (``""`` for none)."""
+    return Path(str(path).split("://", 1)[-1]).suffix.lower()
+
+
+def figure_formats():
+    """The file suffixes matplotlib writes figures as (``.png``, ``.pdf``, ``.svg``, ...)."""
+    from matplotlib.backend_bases import FigureCanvasBase
+    return tuple(sorted("." + f for f in FigureCanvasBase.get_supported_filetypes()))
+
+
+def check_suffix(option, path, suffixes, what, allow_none=False):
+    """Refuse before any work (:class:`_Refused`) an output whose suffix is not one of ``suffixes``
+    (the format it will be written in): ``--out params.npz`` for a Zarr store, ``--out m.txt`` for
+    a figure.  ``what`` says what is written there.  ``allow_none``: a path without a suffix is
+    written as that format (a store's folder, a JSON file); where a writer would append a suffix of
+    its own (matplotlib, numpy's savez) it is refused too, so that the file written is the one named."""
+    if path is None:
+        return
+    suffix = _suffix(path)
+    if suffix in suffixes or (allow_none and not suffix):
+        return
+    name = Path(str(path).split("://", 1)[-1]).name
+    stem = name[: len(name) - len(suffix)] if suffix else name
+    names = ", ".join(suffixes[:3]) + (", ..." if len(suffixes) > 3 else "") + (" or none" if allow_none else "")
+    raise _Refused(f"{option} {path}: {what}, named with the suffix {names}, not "
+                   f"{repr(suffix) if suffix else 'without one'}; write e.g. {option} {stem}{suffixes[0]}")
+
+
+def check_figure(option, path):
+    """Refuse before any work a figure path matplotlib cannot write as its suffix says."""
+    if path is not None:
+        formats = figure_formats()
+        order = [".png", ".pdf", ".svg"] + [f for f in formats if f not in (".png", ".pdf", ".svg")]
+        check_suffix(option, path, tuple(order), "a figure is written here in the format its suffix names")
+
+
+def check_store(option, path):
+    """Refuse before any work a Zarr store path with another format's suffix (``params.npz``)."""
+    check_suffix(option, path, (".zarr",), "a Zarr store (a folder that xarray.open_zarr reads) is written here",
+                 allow_none=True)
+
+
 def _device_type(bits: int) -> str:
     dt = _engine.cl.device_type
     names = [name for name in ("CPU", "GPU", "ACCELERATOR") if bits & getattr(dt, name)]
@@ -209,6 +252,8 @@ def cmd_fit(args) -> int:
     from . import inversion as _fit
     from .data import read_csv
     fixed, bounds = _fit_assignments(args)
+    check_suffix("--json", args.json, (".json",), "JSON is written here", allow_none=True)
+    check_figure("--plot", args.plot)
     _check_output("--json", args.json)
     _check_output("--plot", args.plot)
     try:
@@ -248,6 +293,7 @@ def cmd_fit(args) -> int:
 
 def cmd_sweep(args) -> int:
     from .sweeps import load_spec, read_done, sweep
+    check_store("--out", args.out)
     _check_output("--out", str(Path(args.out).parent), folder=True)
     try:
         spec = load_spec(args.spec)
@@ -272,6 +318,8 @@ def cmd_fit_image(args) -> int:
     import time
     from . import batch_store
     fixed, bounds = _fit_assignments(args)
+    check_store("--out", args.out)
+    check_figure("--png", args.png)
     _check_output("--out", str(Path(args.out).parent), folder=True)
     _check_output("--png", args.png)
     cluster = bool(args.workers or args.scheduler)
@@ -312,6 +360,7 @@ def _check_result_outputs(args):
     ``--out`` or ``--png`` that cannot be written (the sobol and design commands)."""
     if args.out and Path(args.out).suffix.lower() not in (".nc", ".zarr"):
         raise _Refused(f"--out {args.out}: write the result as .nc (netCDF) or .zarr (a Zarr store)")
+    check_figure("--png", args.png)
     _check_output("--out", args.out)
     _check_output("--png", args.png)
 
@@ -370,6 +419,8 @@ def cmd_map(args) -> int:
         x = maps.parse_axis("--x", args.x)
         y = maps.parse_axis("--y", args.y)
         fixed = maps.parse_fixed("--fix", args.fix)
+        check_figure("--out", args.out)
+        check_suffix("--npz", args.npz, (".npz",), "numpy's archive of the arrays is written here")
         _check_output("--out", args.out)
         _check_output("--npz", args.npz)
         engine = _engine_for(args)

@@ -109,11 +109,50 @@ def test_outputs_that_cannot_fit_are_refused_first(monkeypatch):
     (["reproduce", "--resolution", "100000"], "pbrdf-cl: error: --resolution 100000: a map of 100000 x 300000 points"),
 ])
 def test_cli_sizes_refused_in_one_line_before_any_work(tmp_path, args, start):
-    proc = run_cli(*args, *(["--out", str(tmp_path / "o")] if args[0] != "eval" else []))
+    out = {"map": ["--out", str(tmp_path / "o.png")], "reproduce": ["--out", str(tmp_path / "o")]}
+    proc = run_cli(*args, *out.get(args[0], []))
     assert proc.returncode == 1 and proc.stdout == ""
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith(start) and "memory is available" in lines[0]
-    assert not (tmp_path / "o").exists()
+    assert not (tmp_path / "o").exists() and not (tmp_path / "o.png").exists()
+
+
+@pytest.mark.parametrize("argv, option, suffix", [
+    (["fit-image", "stack.npz", "--out", "params.npz"], "--out", "'.npz'"),
+    (["fit-image", "stack.npz", "--out", "params.zarr", "--png", "maps.txt"], "--png", "'.txt'"),
+    (["sweep", "examples/sweep_sigma_theta.toml", "--out", "sweep.nc"], "--out", "'.nc'"),
+    (["map", "--x", "theta_r=0:85@8", "--y", "sigma=0.1:1@4", "--fix", "theta_i=40", "n=1.6", "k=2", "--out", "m.txt"],
+     "--out", "'.txt'"),
+    (["map", "--x", "theta_r=0:85@8", "--y", "sigma=0.1:1@4", "--fix", "theta_i=40", "n=1.6", "k=2", "--out", "m"],
+     "--out", "without one"),
+    (["map", "--x", "theta_r=0:85@8", "--y", "sigma=0.1:1@4", "--fix", "theta_i=40", "n=1.6", "k=2", "--out", "m.png",
+      "--npz", "m.txt"], "--npz", "'.txt'"),
+    (["fit", "examples/steel_435nm.csv", "--json", "fit.csv"], "--json", "'.csv'"),
+    (["fit", "examples/steel_435nm.csv", "--plot", "fit.txt"], "--plot", "'.txt'"),
+    (["sobol", "examples/sobol.toml", "--png", "sobol.txt"], "--png", "'.txt'"),
+    (["design", "--params", "n=1.6,k=2.139,sigma=0.5", "--png", "design.nc"], "--png", "'.nc'"),
+    (["bench", "--quick", "--json", "bench.txt"], "--json", "'.txt'"),
+])
+def test_every_output_suffix_is_checked_before_the_work(argv, option, suffix, capsys, monkeypatch):
+    """An output whose suffix names another format (a Zarr store called params.npz, a figure called
+    m.txt) is refused in one line naming the option, the suffix and a name that works, before any
+    work: the functions that would do it fail the test if called."""
+    import os
+    from pbrdf_cl import batch_store, designs, engine, inversion, sensitivity
+    root = __import__("pathlib").Path(__file__).resolve().parents[1]
+    monkeypatch.chdir(root)
+
+    def no_work(*a, **k):
+        raise AssertionError("the work started before the output was checked")
+    for module, name in ((batch_store, "fit_batch_to_store"), (sweeps, "sweep"), (maps, "make_map"),
+                         (inversion, "fit"), (sensitivity, "sobol"), (designs, "design"), (engine, "resolve_engine")):
+        monkeypatch.setattr(module, name, no_work)
+    rc = cli.main(argv)
+    err = capsys.readouterr().err
+    assert rc == 1 and err.count("\n") == 1 and err.startswith(f"pbrdf-cl: error: {option} "), err
+    assert suffix in err and "write e.g." in err
+    assert not any(os.path.exists(a) for a in argv if a.endswith((".zarr", ".nc", ".txt", ".csv")) and a != "stack.npz"
+                   and not a.startswith("examples"))
 
 
 def test_sweep_checks_disk_and_extras_before_creating_the_store(tmp_path, monkeypatch, capsys):
