@@ -374,7 +374,9 @@ def cmd_sobol(args) -> int:
         if args.png:  # refused before the work, not after it
             from .sensitivity_plots import check_axes
             check_axes(sensitivity.check_geometry(settings["geometry"])[0], "--png")
-        ds = sensitivity.sobol(**settings, progress=not args.no_progress, engine=_engine_for(args))
+        with warnings.catch_warnings():  # the summary below prints the result's notes
+            warnings.simplefilter("ignore", sensitivity.SensitivityWarning)
+            ds = sensitivity.sobol(**settings, progress=not args.no_progress, engine=_engine_for(args))
         if args.out:
             sensitivity.write_result(ds, args.out)
         if args.png:
