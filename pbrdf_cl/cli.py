@@ -224,7 +224,9 @@ def cmd_eval(args) -> int:
 def _fit_json(r):
     corr = np.asarray(r.corr, dtype=float)
     return dict(model=r.model, shadowing=r.shadowing, success=bool(r.success), status=r.status, message=r.message,
-                fits_data=bool(r.fits_data), x=r.x, free=r.free, stderr=r.stderr,
+                fits_data=bool(r.fits_data), x=r.x, kd_ratio=r.get("kd_ratio"),
+                kd_fitted_as=("kd/ks" if "ks" in r.free and "kd" in r.free else "kd") if "kd" in r.free else None,
+                free=r.free, stderr=r.stderr,
                 ci95={k: list(v) for k, v in r.ci95.items()}, sse=r.sse, rmse=r.rmse, chi2=r.chi2,
                 reduced_chi2=r.reduced_chi2 if r.sigma_known else None, p_value=r.p_value, r2=r.r2, aic=r.aic,
                 bic=r.bic, dof=r.dof, residuals=r.residuals.tolist(),
@@ -235,9 +237,13 @@ def _fit_json(r):
 def _fit_brief(r):
     """One line per fitted parameter and a first line with the model, for --quiet."""
     lines = [f"{r.model}: SSE {r.sse:.4g}" + ("" if r.fits_data else " (the model does not describe these data)")]
+    ratio = "ks" in r.free and "kd" in r.free  # intensities: the interval under "kd" is that of kd/ks
     for name in r.free:
         lo, hi = r.ci95[name]
-        lines.append(f"  {name} = {r.x[name]:.5g}  [{lo:.4g}, {hi:.4g}]")
+        if name == "kd" and ratio:
+            lines.append(f"  kd/ks = {r.kd_ratio:.5g}  [{lo:.4g}, {hi:.4g}]  (kd = {r.x['kd']:.5g})")
+        else:
+            lines.append(f"  {name} = {r.x[name]:.5g}  [{lo:.4g}, {hi:.4g}]")
     return "\n".join(lines)
 
 
