@@ -194,8 +194,26 @@ STACK_BYTES_FIXED = 80 << 20
 
 
 def stack_bytes(size, n_lights):
-    """An upper estimate of the memory :func:`synthetic_stack` takes for ``size`` x ``size``
-    pixels and ``n_lights`` light positions (bytes)."""
+    """An upper estimate of the memory :func:`synthetic_stack` takes.
+
+    Parameters
+    ----------
+    size : int
+        Pixels along each side.
+    n_lights : int
+        Light positions M.
+
+    Returns
+    -------
+    int
+        Bytes: :data:`STACK_BYTES_PER_MEASUREMENT` per pixel and light, plus :data:`STACK_BYTES_FIXED`.
+
+    Examples
+    --------
+    >>> from pbrdf_cl.sizes import human
+    >>> human(stack_bytes(256, 30)), human(stack_bytes(20000, 30))
+    ('305 MiB', '1.31 TiB')
+    """
     return STACK_BYTES_PER_MEASUREMENT * int(size) * int(size) * int(n_lights) + STACK_BYTES_FIXED
 
 
