@@ -688,6 +688,7 @@ def objective(data, grid=None, points=None, *, k_best=10, dtype="float32", shado
     dtype = api.check_options(shadowing, dtype)
     from .data import as_measurements
     meas = as_measurements(data)
+    api.check_degrees(meas.theta_i, meas.theta_r, f"{meas.source}: ")
     ti, tr, ph, obs = meas.theta_i, meas.theta_r, meas.phi, meas.dop
     w = meas.weights if meas.dop_std is not None else np.ones(len(meas))
     eng = resolve_engine(engine, backend)

@@ -609,9 +609,12 @@ def dop_noise_floor(dop):
 def grid_stage(meas, free, axes, base, shadowing="paper", *, engine=None, backend="auto", progress=False):
     """(a) The objective on the grid ``axes`` (name -> nodes, one per free parameter) with the
     other parameters at ``base``, on the OpenCL device (float32), and its profiles."""
+    import warnings
     t0 = time.perf_counter()
-    obj = dense.objective(meas.as_dict(), grid={**base, **axes}, k_best=1, dtype="float32", shadowing=shadowing,
-                          engine=engine, backend=backend, progress=progress)
+    with warnings.catch_warnings():  # fit's argument check gives the radians warning, once
+        warnings.simplefilter("ignore", api.UnitsWarning)
+        obj = dense.objective(meas.as_dict(), grid={**base, **axes}, k_best=1, dtype="float32", shadowing=shadowing,
+                              engine=engine, backend=backend, progress=progress)
     sse = obj.sse.transpose(*free).values
     profiles = _grid_profiles(sse, free)
     return StageResult(GridStage(sse, axes, profiles), int(sse.size), time.perf_counter() - t0)

@@ -36,13 +36,16 @@ def test_angles_in_radians_are_flagged():
 
 
 def test_radians_are_flagged_on_the_grid_paths_too(tmp_path):
-    """grid, reduce_grid, map (once, though its derivative runs more grids) and sweep specs warn as
-    eval and fit do, whether the zenith angles are axes or fixed values; degrees stay silent."""
+    """grid, reduce_grid, objective, map (once, though its derivative runs more grids) and sweep specs
+    warn as eval and fit (once, though its grid stage runs objective) do, whether the zenith angles
+    are axes or fixed values; degrees stay silent."""
     rad = np.radians(np.linspace(0, 85, 8))
     for call in (lambda: pbrdf_cl.grid({"theta_r": rad}, dict(theta_i=0.7, **STEEL), backend="numpy"),
                  lambda: pbrdf_cl.grid({"theta_i": rad, "theta_r": rad}, STEEL, backend="numpy"),
                  lambda: pbrdf_cl.reduce_grid({"theta_r": rad, "sigma": [0.3, 0.5]}, dict(theta_i=0.7, n=1.6, k=2.1),
-                                              over="theta_r", backend="numpy")):
+                                              over="theta_r", backend="numpy"),
+                 lambda: pbrdf_cl.objective(dict(theta_i=[0.5, 0.7, 0.9], theta_r=[0.3, 0.8, 1.1], dop=[0.1, 0.2, 0.3]),
+                                            grid=dict(n=[1.5, 2.0], k=2.0, sigma=0.5), backend="numpy")):
         with pytest.warns(api.UnitsWarning, match=r"all lie below 1.6 degrees .*are they in radians\?"):
             call()
     fixed = {k: v for k, v in STEEL.items() if k != "sigma"}
@@ -54,6 +57,11 @@ def test_radians_are_flagged_on_the_grid_paths_too(tmp_path):
         "theta_i and theta_r all lie below 1.6 de"]
     with pytest.warns(api.UnitsWarning, match="spec: theta_i and theta_r all lie below 1.6 degrees"):
         sweeps.load_spec(dict(axes=dict(theta_r=rad.tolist()), fixed=dict(theta_i=0.7, **STEEL)))
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        pbrdf_cl.fit(dict(theta_i=np.radians([30.0, 40, 50, 30, 40, 50]), theta_r=np.radians([20.0, 45, 65, 40, 60, 30]),
+                          dop=[0.05, 0.17, 0.34, 0.1, 0.2, 0.3]), backend="numpy")
+    assert sum(issubclass(w.category, api.UnitsWarning) for w in seen) == 1
     with warnings.catch_warnings():
         warnings.simplefilter("error", api.UnitsWarning)
         pbrdf_cl.grid({"theta_r": np.linspace(0, 85, 8)}, dict(theta_i=40, **STEEL), backend="numpy")
