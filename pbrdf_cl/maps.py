@@ -446,7 +446,11 @@ def plot_map(ds, path, title=None, dpi=120):
 
 def save_npz(ds, path):
     """The map's arrays beside the picture: x, y (coordinates), the quantity, the derivative if
-    any, their names, and the attrs as JSON."""
+    any, their names, and the attrs as JSON; ``path`` ends in ``.npz`` (numpy would append it to
+    any other name, writing a file other than the one named)."""
+    from pathlib import Path
+    if Path(path).suffix.lower() != ".npz":
+        raise ValueError(f"{path}: numpy's archive is named .npz; write e.g. {Path(path).with_suffix('.npz')}")
     xname, yname = ds.attrs["x"], ds.attrs["y"]
     arrays = {"x": ds[xname].values, "y": ds[yname].values, "x_name": np.array(xname), "y_name": np.array(yname),
               "attrs": np.array(json.dumps(ds.attrs, default=str))}

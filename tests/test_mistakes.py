@@ -125,6 +125,15 @@ def test_cli_sizes_refused_in_one_line_before_any_work(tmp_path, args, start):
     assert not (tmp_path / "o").exists() and not (tmp_path / "o.png").exists()
 
 
+def test_save_npz_writes_the_file_it_names(tmp_path):
+    ds = maps.make_map("theta_r=0:85@4", "sigma=0.1:1@3", dict(theta_i=40, n=1.6, k=2.0), backend="numpy")
+    with pytest.raises(ValueError, match=r"m.txt: numpy's archive is named .npz; write e.g. .*m.npz"):
+        maps.save_npz(ds, tmp_path / "m.txt")
+    assert not list(tmp_path.iterdir())  # not m.txt.npz
+    maps.save_npz(ds, tmp_path / "m.npz")
+    assert [p.name for p in tmp_path.iterdir()] == ["m.npz"]
+
+
 @pytest.mark.parametrize("argv, option, suffix", [
     (["fit-image", "stack.npz", "--out", "params.npz"], "--out", "'.npz'"),
     (["fit-image", "stack.npz", "--out", "params.zarr", "--png", "maps.txt"], "--png", "'.txt'"),
