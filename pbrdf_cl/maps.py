@@ -144,7 +144,9 @@ def stencil(name, nodes, step=None):
     """Finite-difference stencils of d/d``name`` at ``nodes``: (points (N, 3), weights (N, 3)),
     the derivative at node i being sum_j weights[i, j] f(points[i, j]).
 
-    The step is h = ``step`` (default :data:`FD_STEP`) times :func:`step_scale`.  Central, (f(v + h) -
+    The step is h = ``step`` (default :data:`FD_STEP`) times :func:`step_scale`, and at most a
+    tenth of the distance to an open bound of the domain (theta < 90, where the model may be
+    singular).  Central, (f(v + h) -
     f(v - h)) / 2h, where both points lie in the model's domain (``api.RULES``); at a bound of the
     domain (theta = 0, k = 0, kd = 0; theta below 90) the second-order one-sided form, (-3 f(v) +
     4 f(v + h) - f(v + 2h)) / 2h forward or its mirror backward, whose error is O(h^2) as the
@@ -152,6 +154,11 @@ def stencil(name, nodes, step=None):
     ok = api.RULES[name][0]
     v = np.asarray(nodes, dtype=np.float64).reshape(-1)
     h = (FD_STEP if step is None else step) * step_scale(name, v)
+    # an open bound of the domain (theta < 90, sigma > 0) may be singular: keep 10 steps from it
+    if getattr(ok, "hi", None) is not None and not ok.hi_included:
+        h = np.minimum(h, (ok.hi - v) / 10)
+    if getattr(ok, "lo", None) is not None and not ok.lo_included:
+        h = np.minimum(h, (v - ok.lo) / 10)
     central = ok(v - h) & ok(v + h)
     forward = ~central & ok(v + 2 * h)
     backward = ~central & ~forward
@@ -196,6 +203,9 @@ def _derivative(name, nodes, axes, fixed, kw, dims, period):
     if (~central).any():
         kinds.append("second-order one-sided differences at the model's domain bound")
     scale = _SCALE_TEXT[_scale_kind(name)].format(name=name)
+    actual = np.abs(pts[:, 1] - pts[:, 0]) / np.where(central, 2.0, 1.0)
+    if np.any(actual < FD_STEP * step_scale(name, nodes) * (1 - 1e-9)):
+        scale += ", at most a tenth of the distance to the domain's open bound"
     method = (f"{' and '.join(kinds)} of {dtype} device grids at {name} +- h, h = {FD_STEP:g} x {scale}"
               + (f" ({name} = {float(nodes[0]):.8g})" if len(nodes) == 1 else ""))
     return d, method

@@ -244,6 +244,13 @@ def test_map_derivatives_equal_a_reference_derivative_at_the_edges_too():
                                  np.zeros((n.size, tr.size)), 1e-3, bound=0.0)
     _assert_derivative(ds["ddop_dkd"].values, want)
     assert "one-sided" in ds["ddop_dkd"].attrs["method"]
+    # 5e-5 deg from grazing (an open bound where the DOP is steep): the step stays 10x closer than the bound
+    ds = maps.make_map("theta_r=60:89.99995@8", "sigma=0.2:1@4", dict(theta_i=40, **steel), derivative="theta_r")
+    sg = ds.sigma.values[:, None]
+    t = np.broadcast_to(ds.theta_r.values, (sg.size, ds.theta_r.size))
+    want = _reference_derivative(lambda x: ref_dop(40.0, x, sigma=sg, **steel), t, np.minimum(1e-3, (90 - t) / 100))
+    _assert_derivative(ds["ddop_dtheta_r"].values, want)
+    assert "open bound" in ds["ddop_dtheta_r"].attrs["method"]
 
 
 @pytest.mark.parametrize("args, message", [
