@@ -169,6 +169,11 @@ def test_a_stack_too_large_for_memory_is_refused_before_any_work(monkeypatch):
     text = str(err.value)
     assert "20000 x 20000 pixels x 30 lights" in text and "8 GiB" in text and "\n" not in text
     assert isinstance(err.value, ValueError) and isinstance(err.value, MemoryError)
+    monkeypatch.setattr(imagestack, "light_positions", no_work)  # many lights: refused before they are placed
+    with pytest.raises(pbrdf_cl.sizes.TooLargeError, match="64 x 64 pixels x 1000000000 lights"):
+        imagestack.synthetic_stack(64, n_lights=10 ** 9)
+    with pytest.raises(pbrdf_cl.sizes.TooLargeError, match="^truth maps of 200000 x 200000 pixels needs"):
+        imagestack.truth_maps(200000)
 
 
 @pytest.mark.parametrize("suffix", [".npz", ".nc"])
