@@ -107,6 +107,16 @@ def check_figure(option, path):
         check_suffix(option, path, tuple(order), "a figure is written here in the format its suffix names")
 
 
+def check_json(option, path, prog="pbrdf-cl"):
+    """For the scripts: refuse a JSON output with another suffix, or that cannot be written, before
+    their work, in one line on stderr (``SystemExit``)."""
+    try:
+        check_suffix(option, path, (".json",), "JSON is written here", allow_none=True)
+        _check_output(option, path)
+    except _Refused as exc:
+        raise SystemExit(f"{prog}: error: {exc}") from None
+
+
 def check_store(option, path):
     """Refuse before any work a Zarr store path with another format's suffix (``params.npz``)."""
     check_suffix(option, path, (".zarr",), "a Zarr store (a folder that xarray.open_zarr reads) is written here",

@@ -125,6 +125,16 @@ def test_cli_sizes_refused_in_one_line_before_any_work(tmp_path, args, start):
     assert not (tmp_path / "o").exists() and not (tmp_path / "o.png").exists()
 
 
+@pytest.mark.parametrize("script", ["bench_fit", "bench_sobol", "check_design"])
+def test_scripts_check_their_json_before_the_work(script, tmp_path):
+    root = __import__("pathlib").Path(__file__).resolve().parents[1]
+    proc = subprocess.run([sys.executable, str(root / "scripts" / f"{script}.py"), "--json", str(tmp_path / "o.txt")],
+                          capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert proc.returncode == 1 and proc.stdout == "" and proc.stderr.count("\n") == 1
+    assert proc.stderr.startswith(f"{script}: error: --json ") and "'.txt'" in proc.stderr
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_save_npz_writes_the_file_it_names(tmp_path):
     ds = maps.make_map("theta_r=0:85@4", "sigma=0.1:1@3", dict(theta_i=40, n=1.6, k=2.0), backend="numpy")
     with pytest.raises(ValueError, match=r"m.txt: numpy's archive is named .npz; write e.g. .*m.npz"):
