@@ -59,8 +59,9 @@ def test_radians_are_flagged_on_the_grid_paths_too(tmp_path):
         sweeps.load_spec(dict(axes=dict(theta_r=rad.tolist()), fixed=dict(theta_i=0.7, **STEEL)))
     with warnings.catch_warnings(record=True) as seen:
         warnings.simplefilter("always")
-        pbrdf_cl.fit(dict(theta_i=np.radians([30.0, 40, 50, 30, 40, 50]), theta_r=np.radians([20.0, 45, 65, 40, 60, 30]),
-                          dop=[0.05, 0.17, 0.34, 0.1, 0.2, 0.3]), backend="numpy")
+        pbrdf_cl.fit(dict(theta_i=np.radians([30.0, 40, 50, 30, 40, 50]),
+                          theta_r=np.radians([20.0, 45, 65, 40, 60, 30]), dop=[0.05, 0.17, 0.34, 0.1, 0.2, 0.3]),
+                     backend="numpy")
     assert sum(issubclass(w.category, api.UnitsWarning) for w in seen) == 1
     with warnings.catch_warnings():
         warnings.simplefilter("error", api.UnitsWarning)
