@@ -24,6 +24,7 @@ import os
 import platform
 import shutil
 import subprocess
+import sys
 import tempfile
 import time
 import tracemalloc
@@ -414,6 +415,13 @@ def main(argv=None):
                    help="run only these sections (default: all): points (the per-point and broadcast rows), grid, "
                         "objective, sweep")
     args = p.parse_args(argv)
+    from .cli import _Refused, _check_output, check_suffix
+    try:  # the report's file, checked before the work rather than after it
+        check_suffix("--json", args.json, (".json",), "JSON is written here", allow_none=True)
+        _check_output("--json", args.json)
+    except _Refused as exc:
+        print(f"pbrdf-cl: error: {exc}", file=sys.stderr)
+        return 1
     size, repeats, scale = args.points, args.repeats, 1.0
     if args.quick:
         size, repeats, scale = 1 << 16, 2, 0.25

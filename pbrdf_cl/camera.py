@@ -61,11 +61,38 @@ def polanalyser():
     return pa
 
 
-def _frames(frames):
-    """The raw frames as a list of 2-D arrays of one shape with even sides, or a ValueError."""
+def _even_sides(shape):
+    """Whether a raw frame of ``shape`` is whole 2x2 super-pixels (even height and width)."""
+    return len(shape) == 2 and all(n >= 2 and n % 2 == 0 for n in shape)
+
+
+def _frames(frames, axis=None, m=None):
+    """The raw frames as a list of 2-D arrays of one shape with even sides, or a ValueError.
+
+    One 3-D array holds the frames along its measurement axis: ``axis`` (0, for (M, H, W), or
+    -1/2, for (H, W, M) as the outputs have it), else the one of those two readings under which
+    every frame is whole super-pixels (even sides) and, where ``m`` (the geometry's measurement
+    count) is known, there are ``m`` of them; a shape both readings fit is refused as ambiguous."""
     if isinstance(frames, np.ndarray) and frames.ndim == 2:
         raise ValueError(f"frames must be a sequence of 2-D raw frames (one per geometry), got one 2-D array "
                          f"of shape {frames.shape}: wrap it in a list")
+    if axis is not None and not (isinstance(frames, np.ndarray) and frames.ndim == 3):
+        raise ValueError("axis: only for frames given as one 3-D array (a list holds one frame per geometry)")
+    if isinstance(frames, np.ndarray) and frames.ndim == 3:
+        shape = frames.shape
+        if axis is None:
+            fits = [a for a in (0, 2) if _even_sides(tuple(n for i, n in enumerate(shape) if i != a))
+                    and (m is None or shape[a] == m)]
+            if len(fits) != 1:
+                count = "" if m is None else f" with {m} measurements (the geometry's)"
+                why = ("is ambiguous: it reads as (M, H, W) and as (H, W, M)" if fits else
+                       "fits neither (M, H, W) nor (H, W, M) frames of even sides" + count)
+                raise ValueError(f"frames: one 3-D array of shape {shape} {why}; say which axis holds the "
+                                 "measurements (axis=0 or axis=-1), or pass a list of 2-D raw frames")
+            axis = fits[0]
+        if axis not in (0, 2, -1):
+            raise ValueError(f"axis must be 0 ((M, H, W)) or -1 ((H, W, M)), got {axis!r}")
+        frames = list(np.moveaxis(frames, axis, 0))
     out = [np.asarray(f) for f in frames]
     if not out:
         raise ValueError("frames must hold at least one raw frame, got none")
@@ -96,16 +123,18 @@ def _demosaic(pa, raw, method):
 
 
 def dop_from_frames(frames, *, demosaic="bilinear", dark=None, saturation=None, min_intensity=0.0,
-                    dtype="float64"):
+                    dtype="float64", axis=None):
     """DOP (DoLP) and intensity S0 image stacks from raw DoFP polarization-camera frames.
 
     Parameters
     ----------
-    frames : sequence of 2-D arrays
+    frames : sequence of 2-D arrays, or one 3-D array
         One raw mosaic per illumination geometry (M frames of shape (H, W), H and W even), in
         the IMX250MZR layout of :data:`SUPERPIXEL`; uint8 or uint16 as the camera writes them
         (other integers in [0, 65535] are converted to uint16; float frames are scaled to uint16
-        by polanalyser, by their maximum, which costs precision in dark pixels).
+        by polanalyser, by their maximum, which costs precision in dark pixels).  One 3-D array
+        holds them along ``axis``; without it, along the axis (first or last) under which every
+        frame has even sides, a shape that fits both being refused as ambiguous.
     demosaic : {"bilinear", "vng", "ea"}, default "bilinear"
         polanalyser's demosaicing (OpenCV's bilinear, variable number of gradients or
         edge-aware Bayer conversions); the output has the full resolution (H, W).
@@ -121,6 +150,9 @@ def dop_from_frames(frames, *, demosaic="bilinear", dark=None, saturation=None, 
         Pixels with S0 <= this (after ``dark``) are NaN: no light, no DOP.
     dtype : {"float64", "float32"}, default "float64"
         Of the outputs.
+    axis : {0, -1}, optional
+        For one 3-D array of frames: the axis that holds the measurements, 0 for (M, H, W), -1 for
+        (H, W, M) (the outputs' layout).
 
     Returns
     -------
@@ -149,7 +181,7 @@ def dop_from_frames(frames, *, demosaic="bilinear", dark=None, saturation=None, 
         raise ValueError(f"dtype must be 'float64' or 'float32', got {dtype!r}")
     if not np.isfinite(min_intensity):
         raise ValueError(f"min_intensity must be a finite number, got {min_intensity!r}")
-    raws = _frames(frames)
+    raws = _frames(frames, axis)
     pa = polanalyser()
     shape, m = raws[0].shape, len(raws)
     darks = _darks(pa, dark, shape, m, demosaic)
@@ -212,13 +244,15 @@ def _angle(name, value, shape):
 
 
 def camera_dataset(frames, theta_i, theta_r, phi=180.0, *, dop_std=None, mask=None, irradiance=None,
-                   demosaic="bilinear", dark=None, saturation=None, min_intensity=0.0):
+                   demosaic="bilinear", dark=None, saturation=None, min_intensity=0.0, axis=None):
     """The Dataset of a per-pixel inversion from raw DoFP frames and their geometry.
 
     Parameters
     ----------
-    frames : sequence of 2-D arrays
-        M raw mosaics, one per illumination geometry (:func:`dop_from_frames`).
+    frames : sequence of 2-D arrays, or one 3-D array
+        M raw mosaics, one per illumination geometry (:func:`dop_from_frames`).  Of one 3-D array
+        the measurement axis is ``axis``, else the one (first or last) whose length matches the
+        geometry's per-frame values and leaves frames of even sides; an ambiguous shape is refused.
     theta_i, theta_r, phi : float or array_like
         Degrees, as everywhere in pbrdf-cl (phi = phi_i - phi_r, 180 = the mirror plane): one
         value per frame, shape (M,), or per pixel, broadcastable to (H, W, M);
@@ -233,7 +267,7 @@ def camera_dataset(frames, theta_i, theta_r, phi=180.0, *, dop_std=None, mask=No
         one unit), broadcastable to (H, W, M).  With it the dataset has ``s0`` = S0 / irradiance,
         proportional to the BRDF F00 (what the fit's intensity column must be); without it
         only ``intensity`` (raw S0), which the fit does not read.
-    demosaic, dark, saturation, min_intensity
+    demosaic, dark, saturation, min_intensity, axis
         As for :func:`dop_from_frames`.
 
     Returns
@@ -258,7 +292,7 @@ def camera_dataset(frames, theta_i, theta_r, phi=180.0, *, dop_std=None, mask=No
     """
     import xarray as xr
 
-    raws = _frames(frames)
+    raws = _frames(frames, axis, _geometry_count(theta_i, theta_r, phi))
     shape = raws[0].shape + (len(raws),)
     geometry = {name: _angle(name, v, shape) for name, v in (("theta_i", theta_i), ("theta_r", theta_r), ("phi", phi))}
     extra = {}
@@ -295,6 +329,16 @@ def camera_dataset(frames, theta_i, theta_r, phi=180.0, *, dop_std=None, mask=No
              "missing": missing,
              "missing_means": "NaN dop: saturated, S0 <= min_intensity, or DoLP > 1"}
     return xr.Dataset(variables, attrs=attrs)
+
+
+def _geometry_count(*angles):
+    """The number of measurements the geometry implies: the length of a 1-d angle array with more
+    than one value, or the last axis of a per-pixel one; None where every angle is a scalar."""
+    for a in angles:
+        a = np.asarray(a)
+        if a.ndim >= 1 and a.shape[-1] > 1:
+            return int(a.shape[-1])
+    return None
 
 
 def _broadcast(name, a, shape):

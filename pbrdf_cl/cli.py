@@ -70,6 +70,59 @@ def _check_output(option, path, folder=False):
         raise _Refused(f"{option} {path}: cannot write into {target} ({why}); choose a writable {option}")
 
 
+def _suffix(path):
+    """The lower-case suffix of a path or URL (``""`` for none)."""
+    return Path(str(path).split("://", 1)[-1]).suffix.lower()
+
+
+def figure_formats():
+    """The file suffixes matplotlib writes figures as (``.png``, ``.pdf``, ``.svg``, ...)."""
+    from matplotlib.backend_bases import FigureCanvasBase
+    return tuple(sorted("." + f for f in FigureCanvasBase.get_supported_filetypes()))
+
+
+def check_suffix(option, path, suffixes, what, allow_none=False):
+    """Refuse before any work (:class:`_Refused`) an output whose suffix is not one of ``suffixes``
+    (the format it will be written in): ``--out params.npz`` for a Zarr store, ``--out m.txt`` for
+    a figure.  ``what`` says what is written there.  ``allow_none``: a path without a suffix is
+    written as that format (a store's folder, a JSON file); where a writer would append a suffix of
+    its own (matplotlib, numpy's savez) it is refused too, so that the file written is the one named."""
+    if path is None:
+        return
+    suffix = _suffix(path)
+    if suffix in suffixes or (allow_none and not suffix):
+        return
+    name = Path(str(path).split("://", 1)[-1]).name
+    stem = name[: len(name) - len(suffix)] if suffix else name
+    names = ", ".join(suffixes[:3]) + (", ..." if len(suffixes) > 3 else "") + (" or none" if allow_none else "")
+    raise _Refused(f"{option} {path}: {what}, named with the suffix {names}, not "
+                   f"{repr(suffix) if suffix else 'without one'}; write e.g. {option} {stem}{suffixes[0]}")
+
+
+def check_figure(option, path):
+    """Refuse before any work a figure path matplotlib cannot write as its suffix says."""
+    if path is not None:
+        formats = figure_formats()
+        order = [".png", ".pdf", ".svg"] + [f for f in formats if f not in (".png", ".pdf", ".svg")]
+        check_suffix(option, path, tuple(order), "a figure is written here in the format its suffix names")
+
+
+def check_json(option, path, prog="pbrdf-cl"):
+    """For the scripts: refuse a JSON output with another suffix, or that cannot be written, before
+    their work, in one line on stderr (``SystemExit``)."""
+    try:
+        check_suffix(option, path, (".json",), "JSON is written here", allow_none=True)
+        _check_output(option, path)
+    except _Refused as exc:
+        raise SystemExit(f"{prog}: error: {exc}") from None
+
+
+def check_store(option, path):
+    """Refuse before any work a Zarr store path with another format's suffix (``params.npz``)."""
+    check_suffix(option, path, (".zarr",), "a Zarr store (a folder that xarray.open_zarr reads) is written here",
+                 allow_none=True)
+
+
 def _device_type(bits: int) -> str:
     dt = _engine.cl.device_type
     names = [name for name in ("CPU", "GPU", "ACCELERATOR") if bits & getattr(dt, name)]
@@ -204,7 +257,9 @@ def cmd_eval(args) -> int:
 def _fit_json(r):
     corr = np.asarray(r.corr, dtype=float)
     return dict(model=r.model, shadowing=r.shadowing, success=bool(r.success), status=r.status, message=r.message,
-                fits_data=bool(r.fits_data), x=r.x, free=r.free, stderr=r.stderr,
+                fits_data=bool(r.fits_data), x=r.x, kd_ratio=r.get("kd_ratio"),
+                kd_fitted_as=("kd/ks" if "ks" in r.free and "kd" in r.free else "kd") if "kd" in r.free else None,
+                free=r.free, stderr=r.stderr,
                 ci95={k: list(v) for k, v in r.ci95.items()}, sse=r.sse, rmse=r.rmse, chi2=r.chi2,
                 reduced_chi2=r.reduced_chi2 if r.sigma_known else None, p_value=r.p_value, r2=r.r2, aic=r.aic,
                 bic=r.bic, dof=r.dof, residuals=r.residuals.tolist(),
@@ -215,9 +270,13 @@ def _fit_json(r):
 def _fit_brief(r):
     """One line per fitted parameter and a first line with the model, for --quiet."""
     lines = [f"{r.model}: SSE {r.sse:.4g}" + ("" if r.fits_data else " (the model does not describe these data)")]
+    ratio = "ks" in r.free and "kd" in r.free  # intensities: the interval under "kd" is that of kd/ks
     for name in r.free:
         lo, hi = r.ci95[name]
-        lines.append(f"  {name} = {r.x[name]:.5g}  [{lo:.4g}, {hi:.4g}]")
+        if name == "kd" and ratio:
+            lines.append(f"  kd/ks = {r.kd_ratio:.5g}  [{lo:.4g}, {hi:.4g}]  (kd = {r.x['kd']:.5g})")
+        else:
+            lines.append(f"  {name} = {r.x[name]:.5g}  [{lo:.4g}, {hi:.4g}]")
     return "\n".join(lines)
 
 
@@ -232,6 +291,8 @@ def cmd_fit(args) -> int:
     from . import inversion as _fit
     from .data import read_csv
     fixed, bounds = _fit_assignments(args)
+    check_suffix("--json", args.json, (".json",), "JSON is written here", allow_none=True)
+    check_figure("--plot", args.plot)
     _check_output("--json", args.json)
     _check_output("--plot", args.plot)
     try:
@@ -271,6 +332,7 @@ def cmd_fit(args) -> int:
 
 def cmd_sweep(args) -> int:
     from .sweeps import load_spec, read_done, sweep
+    check_store("--out", args.out)
     _check_output("--out", str(Path(args.out).parent), folder=True)
     try:
         spec = load_spec(args.spec)
@@ -295,6 +357,8 @@ def cmd_fit_image(args) -> int:
     import time
     from . import batch_store
     fixed, bounds = _fit_assignments(args)
+    check_store("--out", args.out)
+    check_figure("--png", args.png)
     _check_output("--out", str(Path(args.out).parent), folder=True)
     _check_output("--png", args.png)
     cluster = bool(args.workers or args.scheduler)
@@ -335,6 +399,7 @@ def _check_result_outputs(args):
     ``--out`` or ``--png`` that cannot be written (the sobol and design commands)."""
     if args.out and Path(args.out).suffix.lower() not in (".nc", ".zarr"):
         raise _Refused(f"--out {args.out}: write the result as .nc (netCDF) or .zarr (a Zarr store)")
+    check_figure("--png", args.png)
     _check_output("--out", args.out)
     _check_output("--png", args.png)
 
@@ -348,7 +413,9 @@ def cmd_sobol(args) -> int:
         if args.png:  # refused before the work, not after it
             from .sensitivity_plots import check_axes
             check_axes(sensitivity.check_geometry(settings["geometry"])[0], "--png")
-        ds = sensitivity.sobol(**settings, progress=not args.no_progress, engine=_engine_for(args))
+        with warnings.catch_warnings():  # the summary below prints the result's notes
+            warnings.simplefilter("ignore", sensitivity.SensitivityWarning)
+            ds = sensitivity.sobol(**settings, progress=not args.no_progress, engine=_engine_for(args))
         if args.out:
             sensitivity.write_result(ds, args.out)
         if args.png:
@@ -393,6 +460,8 @@ def cmd_map(args) -> int:
         x = maps.parse_axis("--x", args.x)
         y = maps.parse_axis("--y", args.y)
         fixed = maps.parse_fixed("--fix", args.fix)
+        check_figure("--out", args.out)
+        check_suffix("--npz", args.npz, (".npz",), "numpy's archive of the arrays is written here")
         _check_output("--out", args.out)
         _check_output("--npz", args.npz)
         engine = _engine_for(args)
@@ -658,7 +727,8 @@ def _map_parser(sub):
     m.add_argument("--quantity", choices=_quantity_choices("map"), default="dop", type=str.lower,
                    help="what to map: dop, brdf (alias f00; 1/sr, log colours when it spans decades), aop (deg)")
     m.add_argument("--derivative", metavar="NAME",
-                   help="add a panel with d(quantity)/d(NAME): finite differences on the device grid")
+                   help="add a panel with d(quantity)/d(NAME): finite differences of step 1e-4 at every node, "
+                   "one-sided at a bound of the domain, on float64 device grids")
     m.add_argument("--dtype", choices=("float32", "float64"), default="float64", help="precision")
     m.add_argument("--shadowing", choices=sorted(SHADOWING), default="paper", help=_SHADOWING_HELP)
     _device_options(m)

@@ -89,6 +89,12 @@ class GridPlan:
             self.values[name] = a
         self.sizes = {name: self.values[name].size for name in names}
 
+    def check_degrees(self, where=""):
+        """Warn (:class:`pbrdf_cl.api.UnitsWarning`) when the zenith angles, axes or fixed values,
+        all look like radians (:func:`pbrdf_cl.api.check_degrees`)."""
+        if "theta_i" in self.values and "theta_r" in self.values:
+            api.check_degrees(self.values["theta_i"], self.values["theta_r"], where)
+
     @property
     def shape(self):
         return tuple(self.sizes[n] for n in self.axis_names)
@@ -356,6 +362,11 @@ def grid(axes, fixed=None, quantity="dop", dtype="float32", shadowing="paper", *
         Naming the axis and the bad value; :class:`pbrdf_cl.sizes.TooLargeError` when the result
         cannot fit in memory (found before any work).
 
+    Warns
+    -----
+    pbrdf_cl.api.UnitsWarning
+        When theta_i and theta_r all lie below 1.6 degrees: radians, most likely.
+
     Examples
     --------
     >>> import numpy as np, pbrdf_cl
@@ -371,6 +382,7 @@ def grid(axes, fixed=None, quantity="dop", dtype="float32", shadowing="paper", *
     q = _check_quantity(quantity)
     dtype = api.check_options(shadowing, dtype)
     plan = GridPlan(axes, fixed)
+    plan.check_degrees()
     sizes.check_memory(plan.size * q.width * np.dtype(DTYPES[dtype]).itemsize,
                        f"the grid of {' x '.join(map(str, plan.shape + q.trailing))} = {plan.size} points",
                        "use fewer values per axis, pbrdf_cl.reduce_grid (reductions on the device), or pbrdf-cl "
@@ -504,6 +516,7 @@ def reduce_grid(axes, fixed=None, over=(), quantity="dop", dtype="float32", shad
     quantity = _check_quantity(quantity, "reduce").name
     dtype = api.check_options(shadowing, dtype)
     plan = GridPlan(axes, fixed)
+    plan.check_degrees()
     over = (over,) if isinstance(over, str) else tuple(over)
     if not over:
         raise ValueError("over: name at least one axis to reduce")
@@ -680,6 +693,7 @@ def objective(data, grid=None, points=None, *, k_best=10, dtype="float32", shado
     dtype = api.check_options(shadowing, dtype)
     from .data import as_measurements
     meas = as_measurements(data)
+    api.check_degrees(meas.theta_i, meas.theta_r, f"{meas.source}: ")
     ti, tr, ph, obs = meas.theta_i, meas.theta_r, meas.phi, meas.dop
     w = meas.weights if meas.dop_std is not None else np.ones(len(meas))
     eng = resolve_engine(engine, backend)

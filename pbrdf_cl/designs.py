@@ -20,7 +20,8 @@ How the widths are predicted (the local linearisation :func:`pbrdf_cl.fit` itsel
   ``x_j +- 1.96 se_j`` clipped to the bounds, and its width is reported.
 * Without intensities the DOP depends on kd and ks only through kd/ks: ks is held at 1 and the
   ``kd`` reported is the ratio kd/ks (as :func:`pbrdf_cl.fit` does).  With intensities ks is
-  free and ``kd`` is still the ratio kd/ks (``inversion.Residuals._with``).
+  free and ``kd`` is still the ratio kd/ks (``inversion.Residuals._with``).  With ks fixed
+  (``fixed={"ks": v}``) ``kd`` is the absolute kd, as in :func:`pbrdf_cl.fit`.
 
 How the geometries are chosen: greedy forward selection (a weak Gaussian prior of standard
 deviation one bound range per parameter only while the information is singular), then Fedorov
@@ -61,9 +62,22 @@ PAPER_MATERIAL = {"n": 1.6, "k": 2.139, "sigma": 0.5, "ks": 0.9, "kd": 0.15, "c"
 Z95 = 1.959963984540054  # scipy.stats.norm.ppf(0.975)
 #: Prior precision (in parameters scaled by their bound ranges) of the greedy start while singular.
 PRIOR = 1.0
-#: Scaled information counts as non-singular once its condition number is below this.
+#: Scaled information counts as non-singular once its condition number is below this; directions
+#: whose information is below 1/SINGULAR_COND of the largest are the data's null space.
 SINGULAR_COND = 1e12
+#: A parameter whose axis has a share of the null space above this (rounding of the eigenvectors
+#: lies far below) gets an infinite standard error.
+NULL_SHARE_NEGLIGIBLE = 1e-6
+#: A predicted interval within this fraction of its whole bound range counts as spanning them:
+#: the parameter is undetermined.
+UNDETERMINED_RTOL = 1e-9
 MAX_SWAPS_PER_POINT = 20
+
+
+def _kd_meaning(result):
+    """What a design's ``kd`` is: the ratio kd/ks, or the absolute kd where ks is fixed."""
+    fx = result.get("fixed", {})
+    return f"kd is absolute, ks fixed at {fx['ks']:g}" if "ks" in fx else "kd is kd/ks"
 
 
 def _with_ks(free):
@@ -77,8 +91,11 @@ class DesignResult(Result):
     ``theta_i``, ``theta_r``, ``phi`` (degrees): the chosen geometries; ``ci95_width``: dict
     parameter -> predicted width (the median over the materials of a box);
     ``ci95_width_reference`` the same for ``reference`` (dict of geometry arrays);
-    ``comparisons``: name -> dict(widths, n_points, description); ``information``: each
-    candidate's value at the final design (shaped as the candidate grid, ``information_axes``);
+    ``comparisons``: name -> dict(widths, n_points, description, undetermined); ``information``:
+    each candidate's value at the final design (shaped as the candidate grid,
+    ``information_axes``); ``undetermined`` (``undetermined_reference``): the free parameters the
+    chosen (reference) set does not determine, whose predicted interval spans their whole bounds
+    (their width is then the bound range); ``notes``: sentences on what the design cannot do;
     ``criterion``, ``criterion_value``, ``criterion_greedy``, ``free``, ``target``, ``noise``, ...
     """
 
@@ -91,14 +108,19 @@ class DesignResult(Result):
                  + (f"; median over {self.n_materials} materials" if self.n_materials > 1 else ""),
                  f"  criterion: greedy {self.criterion_greedy:.6g} -> exchange {self.criterion_value:.6g} "
                  f"({self.swaps} swaps; reference {self.criterion_reference:.6g}); {self.seconds:.2f} s",
-                 "", "predicted 95% interval widths (kd is kd/ks)"]
+                 "", f"predicted 95% interval widths ({_kd_meaning(self)})"]
         rows = [(k, v) for k, v in self.comparisons.items()]
         head = f"  {'measurement set':<44s}{'points':>7s}" + "".join(f"{n:>10s}" for n in names)
         lines.append(head)
         for key, c in rows:
-            w = c["widths"]
+            w, u = c["widths"], c.get("undetermined", ())
             lines.append(f"  {c['description'][:43]:<44s}{c['n_points']:>7d}"
-                         + "".join(f"{w[n]:>10.4g}" if n in w else f"{'-':>10s}" for n in names))
+                         + "".join(f"{'undet.':>10s}" if n in u else f"{w[n]:>10.4g}" if n in w else f"{'-':>10s}"
+                                   for n in names))
+        if any(c.get("undetermined") for _, c in rows):
+            lines.append("  undet.: undetermined, the predicted interval spans the whole bounds (the data do not "
+                         "determine the parameter)")
+        lines += [f"note: {n}" for n in self.get("notes", ())]
         lines += ["", "chosen geometries (theta_i, theta_r, phi) [deg]:"]
         pts = [f"({a:g}, {b:g}, {c:g})" for a, b, c in zip(self.theta_i, self.theta_r, self.phi)]
         for i in range(0, len(pts), 6):
@@ -117,6 +139,12 @@ class DesignResult(Result):
                                       {"long_name": "predicted 95% interval width, chosen set"}),
             "ci95_width_reference": xr.Variable(("parameter",), [self.ci95_width_reference[n] for n in self.free],
                                                 {"long_name": "predicted 95% interval width, reference set"}),
+            "undetermined": xr.Variable(("parameter",), np.array([n in self.undetermined for n in self.free], np.int8),
+                                        {"long_name": "1 where the chosen set does not determine the parameter "
+                                                      "(its predicted interval spans the whole bounds)"}),
+            "undetermined_reference": xr.Variable(
+                ("parameter",), np.array([n in self.undetermined_reference for n in self.free], np.int8),
+                {"long_name": "1 where the reference set does not determine the parameter"}),
         })
         comp = list(self.comparisons)
         allp = _with_ks(self.free)
@@ -124,6 +152,10 @@ class DesignResult(Result):
             ("comparison", "parameter_all"),
             [[self.comparisons[c]["widths"].get(n, np.nan) for n in allp] for c in comp],
             {"long_name": "predicted 95% interval width (NaN: not free)"})
+        data["comparison_undetermined"] = xr.Variable(
+            ("comparison", "parameter_all"),
+            np.array([[n in self.comparisons[c].get("undetermined", ()) for n in allp] for c in comp], dtype=np.int8),
+            {"long_name": "1 where the predicted interval spans the whole bounds: the parameter is undetermined"})
         data["comparison_points"] = xr.Variable(("comparison",), [self.comparisons[c]["n_points"] for c in comp])
         data["comparison_description"] = xr.Variable(("comparison",), [self.comparisons[c]["description"]
                                                                         for c in comp])
@@ -145,7 +177,7 @@ class DesignResult(Result):
                      criterion_value=self.criterion_value, criterion_greedy=self.criterion_greedy,
                      criterion_reference=self.criterion_reference, swaps=self.swaps,
                      n_materials=self.n_materials, shadowing=self.shadowing, engine=self.engine,
-                     seconds=round(self.seconds, 3))
+                     seconds=round(self.seconds, 3), notes=" | ".join(self.get("notes", ())))
         for n, (lo, hi) in self.bounds.items():
             attrs[f"bounds_{n}"] = [lo, hi]
         for n, v in self.material.items():
@@ -232,18 +264,22 @@ def _materials(params, fixed, count, seed):
 # -------------------------------------------------------------------------------- Jacobians
 
 def _x_of(mat, names):
-    """Material values -> the fit's coordinates: kd as the ratio kd/ks (DOP depends on it alone)."""
+    """Material values -> the fit's coordinates: kd as the ratio kd/ks (DOP depends on it alone),
+    or as itself where ks is fixed (not among ``names``), as :func:`pbrdf_cl.fit` has it."""
     x = {n: np.asarray(mat[n], float) for n in PARAMETERS}
-    x["kd"] = x["kd"] / x["ks"]
+    if "ks" in names:
+        x["kd"] = x["kd"] / x["ks"]
     return np.stack([x[n] for n in names], axis=-1)
 
 
 def _model_of(X, names, base):
-    """Fit coordinates (S, d) -> the model's six parameter arrays (kd = ratio * ks)."""
+    """Fit coordinates (S, d) -> the model's six parameter arrays (kd = ratio * ks where kd is a
+    coordinate; a fixed kd is the material's own, absolute)."""
     p = {n: np.asarray(base[n], float).copy() for n in PARAMETERS}
     for j, n in enumerate(names):
         p[n] = X[:, j]
-    p["kd"] = p["kd"] * p["ks"]
+    if "kd" in names and "ks" in names:
+        p["kd"] = p["kd"] * p["ks"]
     return p
 
 
@@ -278,13 +314,33 @@ def whitened_rows(dop_J, f00, f00_J, noise, intensity_noise, intensity):
 
 
 def predicted_widths(rows, x, lo, hi):
-    """Predicted 95% interval widths of one material from its rows (K, d) at the measurements:
-    covariance (J^T J)^+ (``inversion._covariance``), x +- 1.96 se (never narrower than the
-    optimiser's resolution) clipped to the bounds.  Returns (widths (d,), se (d,))."""
-    cov, _, _ = inversion._covariance(rows, 1.0, hi - lo)
+    """Predicted 95% interval widths of one material from its rows (K, d) at the measurements.
+
+    The covariance is the pseudo-inverse of J^T J (as ``inversion._covariance``), taken in
+    parameters scaled by their bound ranges, where the directions whose information is below
+    1/:data:`SINGULAR_COND` of the largest are the data's null space: combinations of the
+    parameters that the measurements do not constrain at all (a Jacobian column that is zero,
+    such as sigma's and c's at kd = 0, or one in the span of the others).  The pseudo-inverse
+    gives them no variance; here each parameter's half-width is x +- 1.96 se (never narrower than
+    the optimiser's resolution) plus its share of that null space times its bound range (a
+    parameter along the null space alone moves freely over its bounds), clipped to the bounds.
+
+    Returns (widths (d,), se (d,), undetermined (d,) bool): ``undetermined`` where the interval
+    spans the whole bounds (the data do not determine the parameter within them); ``se`` is
+    infinite for a parameter with a share of the null space."""
+    span = hi - lo
+    Js = rows * span[None, :]
+    w, V = np.linalg.eigh(Js.T @ Js)
+    null = w <= max(float(w[-1]), 0.0) / SINGULAR_COND
+    keep = ~null
+    cov = ((V[:, keep] / w[keep]) @ V[:, keep].T) * span[:, None] * span[None, :]
+    share = np.sqrt(np.sum(V[:, null] ** 2, axis=1))  # |projection of each parameter's axis on the null space|
     se = np.sqrt(np.clip(np.diag(cov), 0, None))
-    half = np.maximum(Z95 * se, inversion.X_RESOLUTION * (hi - lo))
-    return np.minimum(hi, x + half) - np.maximum(lo, x - half), se
+    se = np.where(share > NULL_SHARE_NEGLIGIBLE, np.inf, se)
+    half = np.maximum(Z95 * np.sqrt(np.clip(np.diag(cov), 0, None)), inversion.X_RESOLUTION * span) + share * span
+    widths = np.minimum(hi, x + half) - np.maximum(lo, x - half)
+    undetermined = widths >= span * (1.0 - UNDETERMINED_RTOL)
+    return np.where(undetermined, span, widths), se, undetermined
 
 
 # ----------------------------------------------------------------------------------- search
@@ -542,6 +598,7 @@ class _Problem:
     cand_axes: dict | None
     ref: dict
     ref_given: bool
+    f00_usable: bool
 
 
 def _check_options(criterion, noise, intensity_noise, intensity, materials, shadowing):
@@ -618,7 +675,7 @@ def _fix_materials(mat, fx, names, lo, hi):
         outside = (X[:, j] < lo[j]) | (X[:, j] > hi[j])
         if np.any(outside):
             v = X[int(np.argmax(outside)), j]
-            label = "kd/ks" if name == "kd" else name
+            label = "kd/ks" if name == "kd" and "ks" in names else name
             raise ValueError(f"params: {label} = {v:g} lies outside the fit's bounds ({lo[j]:g}, {hi[j]:g}); "
                              "widen bounds or change params")
     return X
@@ -639,7 +696,8 @@ def _problem(params, candidates, noise, n_measurements, target, intensity, fixed
         raise ValueError(f"n_measurements: {n} is more than the {N} candidate geometries (repeats=False)")
     X = _fix_materials(mat, fx, names, lo, hi)
     return _Problem(criterion, noise, intensity_noise, intensity, n, repeats, target, fx, free5, names, free,
-                    lo, hi, mat, rngs, X, cand, cand_axes, ref, reference is not None)
+                    lo, hi, mat, rngs, X, cand, cand_axes, ref, reference is not None,
+                    "ks" not in fx and "kd" not in fx)
 
 
 class _Linearisation:
@@ -665,13 +723,17 @@ class _Linearisation:
         return R * (p.hi - p.lo)[cols] if scaled else R
 
     def widths(self, idx, with_int):
-        """Median widths over the materials and the per-material widths of a set of indices."""
+        """Median widths over the materials, the per-material widths of a set of indices, and the
+        parameters undetermined by the set (their median width spans the whole bounds)."""
         p = self.p
         names, cols = self.columns(with_int)
-        R = self.rows(with_int, False)[:, idx]
+        R = _finite(self.rows(with_int, False)[:, idx])
         W = np.stack([predicted_widths(R[m].reshape(-1, len(cols)), p.X[m, cols], p.lo[cols], p.hi[cols])[0]
                       for m in range(p.X.shape[0])])
-        return {x: float(np.median(W[:, j])) for j, x in enumerate(names)}, W
+        med = np.median(W, axis=0)
+        span = (p.hi - p.lo)[cols]
+        undetermined = [x for j, x in enumerate(names) if med[j] >= span[j] * (1.0 - UNDETERMINED_RTOL)]
+        return {x: float(med[j]) for j, x in enumerate(names)}, W, undetermined
 
 
 def _finite(A):
@@ -717,19 +779,22 @@ def _information_map(p, crit, Ac, available, Mfin):
 
 def _comparisons(p, lin, idx_c, idx_r):
     """The predicted widths of the chosen and the reference set, each with the design's rows and
-    with the other kind (intensities added or dropped): (comparisons, per-material widths of the
-    chosen set)."""
+    with the other kind (intensities added or dropped; not added where ks or kd is fixed, since
+    the fit then ignores intensities): (comparisons, per-material widths of the chosen set)."""
     other = not p.intensity
-    modes = (("", p.intensity, " + F00" if p.intensity else ""),
-             ("_other", other, " + F00" if other else ", DOP only"))
+    modes = [("", p.intensity, " + F00" if p.intensity else "")]
+    if p.f00_usable or not other:
+        modes.append(("_other", other, " + F00" if other else ", DOP only"))
     ref_labels = {"": "reference" if p.ref_given else "paper 30/40/50 x 20..65",
                   "_other": "reference" if p.ref_given else "paper"}
     comparisons, W = {}, {}
     for key, with_int, tag in modes:
-        w, W[key] = lin.widths(idx_c, with_int)
-        comparisons["chosen" + key] = dict(widths=w, n_points=p.n, description=f"chosen ({p.criterion}){tag}")
-        comparisons["reference" + key] = dict(widths=lin.widths(idx_r, with_int)[0], n_points=idx_r.size,
-                                              description=ref_labels[key] + tag)
+        w, W[key], u = lin.widths(idx_c, with_int)
+        comparisons["chosen" + key] = dict(widths=w, n_points=p.n, description=f"chosen ({p.criterion}){tag}",
+                                           undetermined=u)
+        w, _, u = lin.widths(idx_r, with_int)
+        comparisons["reference" + key] = dict(widths=w, n_points=idx_r.size, description=ref_labels[key] + tag,
+                                              undetermined=u)
     return comparisons, W[""]
 
 
@@ -743,8 +808,9 @@ def _incidence_comparisons(p, lin, crit, A, idx_r):
     one = idx_r[p.ref["theta_i"] == first]
     if one.size <= len(p.free):
         return {}
-    out = {"one_incidence": dict(widths=lin.widths(one, p.intensity)[0], n_points=int(one.size),
-                                 description=f"ref. theta_i {first:g} alone{tag}")}
+    w, _, u = lin.widths(one, p.intensity)
+    out = {"one_incidence": dict(widths=w, n_points=int(one.size), description=f"ref. theta_i {first:g} alone{tag}",
+                                 undetermined=u)}
     best = None
     for second in [v for v in incid if v != first]:
         idx2 = np.concatenate([one, idx_r[p.ref["theta_i"] == second]])
@@ -752,9 +818,35 @@ def _incidence_comparisons(p, lin, crit, A, idx_r):
         if best is None or f2 < best[0]:
             best = (f2, second, idx2)
     if best is not None:
-        out["two_incidences"] = dict(widths=lin.widths(best[2], p.intensity)[0], n_points=int(best[2].size),
-                                     description=f"ref. theta_i {first:g} + {best[1]:g}{tag}")
+        w, _, u = lin.widths(best[2], p.intensity)
+        out["two_incidences"] = dict(widths=w, n_points=int(best[2].size),
+                                     description=f"ref. theta_i {first:g} + {best[1]:g}{tag}", undetermined=u)
     return out
+
+
+def _notes(p, comparisons):
+    """Sentences on what the design cannot do: the parameters the chosen set leaves undetermined
+    (and why, where known), a target among them, and comparisons with F00 left out."""
+    notes = []
+    und = comparisons["chosen"]["undetermined"]
+    if und:
+        why = ""
+        if np.all(p.mat["kd"] == 0) and any(n in ("sigma", "c") for n in und):
+            why = ("; with kd = 0 there is no diffuse term: the DOP depends on neither sigma nor c (the specular "
+                   "scale cancels), and F00 not on c")
+        label = ", ".join("kd/ks" if n == "kd" and "ks" not in p.fx else n for n in und)
+        notes.append(f"undetermined by the chosen set: {label} (the predicted 95% interval spans the whole "
+                     f"bounds: the data do not determine {'it' if len(und) == 1 else 'them'} within them){why}")
+        lost = [t for t in p.target if t in und]
+        if lost:
+            notes.append(f"the target {', '.join(lost)} cannot be determined at this material by these candidates: "
+                         "the choice of geometries does not help it; fix it (fixed=) or change the material or the "
+                         "candidates")
+    if not p.intensity and not p.f00_usable:
+        which = "ks" if "ks" in p.fx else "kd"
+        notes.append(f"no comparison with an F00 column: with {which} fixed the fit ignores intensities (it "
+                     "separates ks and kd only with both free)")
+    return notes
 
 
 def _subset(geo, idx):
@@ -841,7 +933,9 @@ def design(params, candidates=None, noise=0.005, n_measurements=30, target=("n",
         ci95_width_reference=comparisons["reference"]["widths"],
         ci95_width_materials={x: Wc[:, j] for j, x in enumerate(p.free)},
         reference=_subset(p.ref, None), reference_is_paper=not p.ref_given, candidates=_subset(p.cand, None),
-        comparisons=comparisons, information=info, information_axes=info_axes, information_label=info_label,
+        comparisons=comparisons, undetermined=list(comparisons["chosen"]["undetermined"]),
+        undetermined_reference=list(comparisons["reference"]["undetermined"]), notes=_notes(p, comparisons),
+        information=info, information_axes=info_axes, information_label=info_label,
         criterion=criterion, criterion_value=_final_value(crit, Mfin),
         criterion_greedy=_final_value(crit, _information(Ac[:, greedy])),
         criterion_reference=_final_value(crit, _information(_finite(A[:, N:]))),
@@ -858,13 +952,16 @@ def design(params, candidates=None, noise=0.005, n_measurements=30, target=("n",
 
 def plot_design(result, path):
     """Draw a design into a PNG (matplotlib Agg): left, the information map over (theta_i,
-    theta_r) (the maximum over phi where phi is an axis; explicit candidates as coloured points)
-    with the chosen geometries (circles) and the reference's (crosses); right, the predicted 95%
-    interval widths per parameter, chosen against reference, each with and without an intensity
-    column (log scale).  Returns the (closed) Figure."""
+    theta_r), theta_i on the horizontal axis as in the Sobol' maps (the maximum over phi where
+    phi is an axis; explicit candidates as coloured points) with the chosen geometries (circles)
+    and the reference's (crosses); right, the predicted 95% interval widths per parameter,
+    chosen against reference, each with and without an intensity column (log scale).  A
+    parameter a set leaves undetermined (its interval spans the whole bounds) is drawn as a
+    hatched, unfilled bar of its bound range, named in the legend.  Returns the (closed) Figure."""
+    from matplotlib.patches import Patch
     from .plots import _pyplot
     plt = _pyplot()
-    fig, (ax, axb) = plt.subplots(1, 2, figsize=(13, 5.2), layout="constrained",
+    fig, (ax, axb) = plt.subplots(1, 2, figsize=(13, 5.6), layout="constrained",
                                   gridspec_kw=dict(width_ratios=[1.1, 1]))
     info = np.asarray(result.information, float)
     axes = result.information_axes
@@ -877,44 +974,62 @@ def plot_design(result, path):
             with np.errstate(all="ignore"):
                 img = np.nanmax(img, axis=names.index("phi"))
             names.remove("phi")
-        if names.index("theta_i") > names.index("theta_r"):
-            img = img.T
+        if names.index("theta_r") > names.index("theta_i"):
+            img = img.T  # rows theta_r, columns theta_i
         ti, tr = axes["theta_i"], axes["theta_r"]
         pos = img[np.isfinite(img) & (img > 0)]
         norm = None
         if pos.size and pos.max() / max(pos.min(), 1e-300) > 100:
             from matplotlib.colors import LogNorm
             norm = LogNorm(vmin=max(pos.min(), pos.max() * 1e-6), vmax=pos.max())
-        mesh = ax.pcolormesh(tr, ti, np.where(img > 0, img, np.nan) if norm else img, shading="nearest",
+        mesh = ax.pcolormesh(ti, tr, np.where(img > 0, img, np.nan) if norm else img, shading="nearest",
                              cmap="viridis", norm=norm)
     else:
         c = result.candidates
-        mesh = ax.scatter(c["theta_r"], c["theta_i"], c=info.reshape(-1), s=18, cmap="viridis")
+        mesh = ax.scatter(c["theta_i"], c["theta_r"], c=info.reshape(-1), s=18, cmap="viridis")
     fig.colorbar(mesh, ax=ax, label=label)
-    ax.plot(result.reference["theta_r"], result.reference["theta_i"], "x", color="tab:red", ms=7, mew=1.5,
+    ax.plot(result.reference["theta_i"], result.reference["theta_r"], "x", color="tab:red", ms=7, mew=1.5,
             label="paper's geometry" if result.reference_is_paper else "reference")
-    ax.plot(result.theta_r, result.theta_i, "o", mfc="none", mec="white", ms=9, mew=1.8,
+    ax.plot(result.theta_i, result.theta_r, "o", mfc="none", mec="white", ms=9, mew=1.8,
             label=f"chosen ({len(result.theta_i)})")
-    ax.set_xlabel("theta_r (deg)")
-    ax.set_ylabel("theta_i (deg)")
+    ax.set_xlabel("theta_i (deg)")
+    ax.set_ylabel("theta_r (deg)")
     ax.set_title(f"information for {', '.join(result.target)} at the final design (criterion {result.criterion})")
     ax.legend(loc="lower left", fontsize=8, framealpha=0.8)
     comp = result.comparisons
-    keys = ["chosen", "chosen_other", "reference", "reference_other"]
+    keys = [k for k in ("chosen", "chosen_other", "reference", "reference_other") if k in comp]
+    colours = {"chosen": "tab:blue", "chosen_other": "tab:cyan", "reference": "tab:red",
+               "reference_other": "tab:orange"}
     params = _with_ks(result.free)
+    span = {n: hi - lo for n, (lo, hi) in result.bounds.items()}
     width = 0.8 / len(keys)
-    colours = ["tab:blue", "tab:cyan", "tab:red", "tab:orange"]
+    handles, any_undetermined = [], False
     for i, key in enumerate(keys):
-        w = comp[key]["widths"]
-        xs = [j + (i - (len(keys) - 1) / 2) * width for j, p in enumerate(params) if p in w]
-        axb.bar(xs, [w[p] for p in params if p in w], width, color=colours[i],
-                label=f"{comp[key]['description']} ({comp[key]['n_points']} points)")
+        w, und = comp[key]["widths"], set(comp[key].get("undetermined", ()))
+        where = [(j, p) for j, p in enumerate(params) if p in w]
+        xs = np.array([j + (i - (len(keys) - 1) / 2) * width for j, _ in where])
+        ok = np.array([p not in und for _, p in where], bool)
+        heights = np.array([w[p] for _, p in where])
+        axb.bar(xs[ok], heights[ok], width, color=colours[key])
+        if (~ok).any():
+            any_undetermined = True
+            axb.bar(xs[~ok], [span.get(p, w[p]) for (_, p), o in zip(where, ok) if not o], width, fill=False,
+                    hatch="///", edgecolor=colours[key], linewidth=1.0)
+        handles.append(Patch(color=colours[key], label=f"{comp[key]['description']} ({comp[key]['n_points']} points)"))
+    if any_undetermined:
+        handles.append(Patch(fill=False, hatch="///", edgecolor="0.3",
+                             label="hatched: undetermined\n(interval spans the bounds;\nbar = bound range)"))
     axb.set_yscale("log")
-    axb.set_xticks(range(len(params)), [("kd/ks" if p == "kd" else p) for p in params])
+    kd_label = "kd" if "ks" in result.get("fixed", {}) else "kd/ks"
+    axb.set_xticks(range(len(params)), [(kd_label if p == "kd" else p) for p in params])
     axb.set_xlabel("parameter")
     axb.set_ylabel("predicted 95% interval width (parameter units; dimensionless)")
-    axb.set_title(f"DOP noise {result.noise:g}" + (f", F00 relative noise {result.intensity_noise:g}"))
-    axb.legend(fontsize=8)
+    axb.set_title(f"DOP noise {result.noise:g}" + (f", F00 relative noise {result.intensity_noise:g}"
+                                                    if any(k.endswith("_other") for k in keys) or result.intensity
+                                                    else ""))
+    lo_y, hi_y = axb.get_ylim()
+    axb.set_ylim(lo_y, hi_y * (hi_y / lo_y) ** 0.45)  # room above the bars for the legend
+    axb.legend(handles=handles, fontsize=8, loc="upper left", ncol=2)
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return fig

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from . import sizes
 from .api import dop as _dop
 
 #: The two materials of :func:`synthetic_stack`: name -> n, k, kd (= kd/ks with ks = 1), c.
@@ -89,6 +90,12 @@ def _spherical(distance, theta, azimuth):
 LIGHT_AZIMUTHS = (180.0, 150.0, 210.0, 115.0, 245.0)
 
 
+def _check_lights(n_lights):
+    if isinstance(n_lights, bool) or not float(n_lights).is_integer() or int(n_lights) < 1:
+        raise ValueError(f"n_lights must be an integer of at least 1, got {n_lights!r}")
+    return int(n_lights)
+
+
 def light_positions(n_lights=30, *, camera_theta=60.0, camera_azimuth=270.0, distance=400.0, zenith=(15.0, 80.0),
                     spread=(10.0, 15.0)):
     """The point-light positions of :func:`synthetic_stack`, on a sphere about the sample's centre.
@@ -132,9 +139,7 @@ def light_positions(n_lights=30, *, camera_theta=60.0, camera_azimuth=270.0, dis
     >>> light_positions(8).shape
     (8, 3)
     """
-    if isinstance(n_lights, bool) or not float(n_lights).is_integer() or int(n_lights) < 1:
-        raise ValueError(f"n_lights must be an integer of at least 1, got {n_lights!r}")
-    n_lights = int(n_lights)
+    n_lights = _check_lights(n_lights)
     dz, da = spread
     near = [(camera_theta, 180.0), (camera_theta - dz, 180.0), (camera_theta + dz, 180.0),
             (camera_theta, 180.0 - da), (camera_theta, 180.0 + da)][:min(5, n_lights // 5)]
@@ -171,6 +176,8 @@ def truth_maps(size=256):
     (['c', 'k', 'kd', 'material', 'n', 'sigma'], (16, 16))
     """
     size = _check_size(size)
+    sizes.check_memory(MAPS_BYTES_PER_PIXEL * size * size, f"truth maps of {size} x {size} pixels",
+                       "use a smaller size")
     centre = (np.arange(size) + 0.5) / size - 0.5
     yy, xx = np.meshgrid(centre, centre, indexing="ij")
     material = (np.hypot(xx, yy) < 0.3).astype(np.int8)
@@ -181,6 +188,42 @@ def truth_maps(size=256):
     lo, hi = SIGMA_RANGE
     maps["sigma"] = np.broadcast_to(np.linspace(lo, hi, size), (size, size)).copy()   # first to last column
     return maps
+
+
+#: Peak memory of :func:`synthetic_stack` per measurement (pixel x light): the geometry's 3-vector
+#: temporaries (light directions, their tangent parts, cross products), the angles, the parameters
+#: and the outputs, measured at 115-265 bytes with tracemalloc for 128-256 pixels and 8-30
+#: lights, with the fixed part below; the estimate is above every measurement.
+STACK_BYTES_PER_MEASUREMENT = 120
+#: The fixed part of that peak: the reference's temporaries for one chunk of :data:`_CHUNK` points.
+STACK_BYTES_FIXED = 80 << 20
+#: Peak memory of :func:`truth_maps` per pixel (57 bytes measured: the maps and the disc's
+#: coordinates), with a margin.
+MAPS_BYTES_PER_PIXEL = 64
+
+
+def stack_bytes(size, n_lights):
+    """An upper estimate of the memory :func:`synthetic_stack` takes.
+
+    Parameters
+    ----------
+    size : int
+        Pixels along each side.
+    n_lights : int
+        Light positions M.
+
+    Returns
+    -------
+    int
+        Bytes: :data:`STACK_BYTES_PER_MEASUREMENT` per pixel and light, plus :data:`STACK_BYTES_FIXED`.
+
+    Examples
+    --------
+    >>> from pbrdf_cl.sizes import human
+    >>> human(stack_bytes(256, 30)), human(stack_bytes(20000, 30))
+    ('305 MiB', '1.31 TiB')
+    """
+    return STACK_BYTES_PER_MEASUREMENT * int(size) * int(size) * int(n_lights) + STACK_BYTES_FIXED
 
 
 def _check_size(size):
@@ -231,7 +274,8 @@ def synthetic_stack(size=256, n_lights=30, noise=0.005, seed=0, *, sample_mm=100
     ------
     ValueError
         For a bad size, n_lights or noise, or a geometry with a light or view direction at
-        ``MAX_ZENITH`` degrees or more.
+        ``MAX_ZENITH`` degrees or more; :class:`pbrdf_cl.sizes.TooLargeError` (a ValueError and a
+        MemoryError) before any work when the stack cannot fit in memory (:func:`stack_bytes`).
 
     Examples
     --------
@@ -245,11 +289,17 @@ def synthetic_stack(size=256, n_lights=30, noise=0.005, seed=0, *, sample_mm=100
     if not (np.isfinite(noise) and noise >= 0):
         raise ValueError(f"noise must be a finite number >= 0, got {noise!r}")
     if lights is None:
-        lights = light_positions(n_lights, camera_theta=camera_theta, camera_azimuth=camera_azimuth,
+        count = _check_lights(n_lights)
+    else:
+        lights = np.asarray(lights, dtype=np.float64)
+        if lights.ndim != 2 or lights.shape[1] != 3 or not np.isfinite(lights).all():
+            raise ValueError(f"lights must be finite positions of shape (M, 3), got shape {lights.shape}")
+        count = len(lights)
+    sizes.check_memory(stack_bytes(size, count), f"a synthetic stack of {size} x {size} pixels x {count} lights",
+                       "use a smaller size or fewer lights")
+    if lights is None:
+        lights = light_positions(count, camera_theta=camera_theta, camera_azimuth=camera_azimuth,
                                  distance=light_distance)
-    lights = np.asarray(lights, dtype=np.float64)
-    if lights.ndim != 2 or lights.shape[1] != 3 or not np.isfinite(lights).all():
-        raise ValueError(f"lights must be finite positions of shape (M, 3), got shape {lights.shape}")
     camera = _spherical(camera_distance, camera_theta, camera_azimuth)
     coords = ((np.arange(size) + 0.5) / size - 0.5) * sample_mm
     x_mm, y_mm = coords, coords[::-1]                                      # row 0 at the top

@@ -78,10 +78,18 @@ class FitResult(Result):
     below :func:`dop_noise_floor` (an exact fit would make every interval a point); a note says
     when the floor was used.  Fewer distinct geometries than free parameters are refused.
 
-    x (dict: every model parameter, fitted and fixed), free (names fitted), sse, chi2,
-    reduced_chi2, rmse, residuals, stderr, corr (matrix over ``free``), condition_number, aic,
-    bic, dof, nfev and seconds per stage, basins (candidates with their SSE), ambiguous, notes
-    (list of sentences), and three kinds of 95% interval (dicts name -> (lo, hi)):
+    x (dict: every model parameter, fitted and fixed, as the model takes them: ``x["kd"]`` is
+    the absolute kd, so that ``pbrdf_cl.dop(..., **res.x)`` evaluates the fit), kd_ratio (kd/ks),
+    free (names fitted), sse, chi2, reduced_chi2, rmse, residuals, stderr, corr (matrix over
+    ``free``), condition_number, aic, bic, dof, nfev and seconds per stage, basins (candidates
+    with their SSE), ambiguous, notes (list of sentences), and three kinds of 95% interval (dicts
+    name -> (lo, hi)).
+
+    Which kd: without intensities the DOP sees kd/ks only, ks is fixed (at 1 unless ``fixed``
+    says otherwise) and kd is fitted as itself (equal to kd/ks at ks = 1).  With an intensity
+    column (``f00``/``s0``) ks is fitted too and the fitted coordinate is the ratio: ``stderr``,
+    the intervals, ``corr`` and ``profiles`` under "kd" are those of kd/ks (``kd_ratio``), while
+    ``x["kd"]`` is kd/ks x ks.  ``summary()`` prints both rows, kd/ks and kd, saying which is which.
 
     ci95
         the central 95% of the parameter's posterior under a uniform prior over the bounds,
@@ -110,13 +118,19 @@ class FitResult(Result):
         if not self.get("fits_data", True):
             lines.append("  WARNING: the model does not describe these data (see the first note); the "
                          "values and intervals below are not to be trusted")
+        ratio = "ks" in self["free"] and "kd" in self["free"]  # intensities: kd/ks and ks were fitted
         for name in self["x"]:
-            if name in self["free"]:
+            if name == "kd" and ratio:
+                lo, hi = self["ci95"][name]
+                lines.append(f"  {'kd/ks':6s} = {self['kd_ratio']:10.5g}  +- {self['stderr'][name]:.3g}   "
+                             f"95% interval [{lo:.4g}, {hi:.4g}]  (fitted: stderr, ci95, corr of 'kd')")
+                lines.append(f"  {'kd':6s} = {self['x'][name]:10.5g}  (absolute, kd/ks x ks: x['kd'])")
+            elif name in self["free"]:
                 lo, hi = self["ci95"][name]
                 lines.append(f"  {name:6s} = {self['x'][name]:10.5g}  +- {self['stderr'][name]:.3g}   "
-                             f"95% interval [{lo:.4g}, {hi:.4g}]")
+                             f"95% interval [{lo:.4g}, {hi:.4g}]" + self._kd_tag(name))
             else:
-                lines.append(f"  {name:6s} = {self['x'][name]:10.5g}  (fixed)")
+                lines.append(f"  {name:6s} = {self['x'][name]:10.5g}  (fixed)" + self._kd_tag(name))
         fit_line = f"  SSE {self['sse']:.4g} (DOP), RMSE {self['rmse']:.4g}"
         if self.get("sigma_known"):  # chi2 means something only with given uncertainties
             fit_line += (f", chi2 {self['chi2']:.4g} for {self['dof']} dof (reduced {self['reduced_chi2']:.3g}, "
@@ -129,6 +143,13 @@ class FitResult(Result):
         for note in self["notes"]:
             lines.append(f"  note: {note}")
         return "\n".join(lines)
+
+    def _kd_tag(self, name):
+        """What a DOP-only fit's kd is: the ratio kd/ks where ks is 1, else absolute at the fixed ks."""
+        if name != "kd" or "ks" not in self["x"] or "ks" in self["free"]:
+            return ""
+        ks = self["x"]["ks"]
+        return "  (= kd/ks: ks fixed at 1)" if ks == 1.0 else f"  (absolute, with ks fixed at {ks:g})"
 
     def __repr__(self):
         values = ", ".join(f"{n}={v:.4g}" for n, v in self["x"].items())
@@ -588,9 +609,12 @@ def dop_noise_floor(dop):
 def grid_stage(meas, free, axes, base, shadowing="paper", *, engine=None, backend="auto", progress=False):
     """(a) The objective on the grid ``axes`` (name -> nodes, one per free parameter) with the
     other parameters at ``base``, on the OpenCL device (float32), and its profiles."""
+    import warnings
     t0 = time.perf_counter()
-    obj = dense.objective(meas.as_dict(), grid={**base, **axes}, k_best=1, dtype="float32", shadowing=shadowing,
-                          engine=engine, backend=backend, progress=progress)
+    with warnings.catch_warnings():  # fit's argument check gives the radians warning, once
+        warnings.simplefilter("ignore", api.UnitsWarning)
+        obj = dense.objective(meas.as_dict(), grid={**base, **axes}, k_best=1, dtype="float32", shadowing=shadowing,
+                              engine=engine, backend=backend, progress=progress)
     sse = obj.sse.transpose(*free).values
     profiles = _grid_profiles(sse, free)
     return StageResult(GridStage(sse, axes, profiles), int(sse.size), time.perf_counter() - t0)
@@ -953,10 +977,12 @@ def _fit_result(meas, model, shadowing, resid, x, lo, hi, unc, cands, grid, stag
                      f"{cands[0].sse:.4g}, within one unit of chi2, {unc.unit:.3g}); the data cannot decide "
                      "between them")
     x_out = {n: float(p[n]) for n in ("n", "k", "sigma", "ks", "kd", "c")}
+    kd_ratio = x_out["kd"] / x_out["ks"]
     if model == "specular":
         x_out = {n: x_out[n] for n in ("n", "k")}
     return FitResult(
-        model=model, shadowing=shadowing, x=x_out, free=names, sse=float(dop_resid @ dop_resid), chi2=unc.chi2,
+        model=model, shadowing=shadowing, x=x_out, kd_ratio=float(kd_ratio) if model == "six-param" else None,
+        free=names, sse=float(dop_resid @ dop_resid), chi2=unc.chi2,
         reduced_chi2=unc.chi2 / unc.dof, rmse=float(np.sqrt(np.mean(dop_resid ** 2))), residuals=dop_resid,
         dof=unc.dof, n_points=len(meas), stderr=dict(zip(names, map(float, unc.stderr))), ci95=unc.ci95,
         ci95_jacobian=unc.ci95_jacobian, ci95_profile=unc.ci95_profile,

@@ -1,10 +1,13 @@
 """Two-axis maps of the model from the dense-grid engine: values, derivatives, figures, data.
 
 A map is the model (any quantity of the registry with a map path: DOP, F00, AoP) over the Cartesian product of two axes ``x`` and ``y`` with
-every other input fixed, computed on the OpenCL device by :func:`pbrdf_cl.grid`.  A derivative
-along one of the map's axes is a finite difference on that same device grid (second order,
-``numpy.gradient`` with the axis' coordinates); a derivative along a fixed input is a central
-difference of two device grids at ``p +- h``.
+every other input fixed, computed on the OpenCL device by :func:`pbrdf_cl.grid`.  A derivative,
+along one of the map's axes or along a fixed input, is a finite difference of step h = 1e-4
+deg (angles), 1e-4 |value| (n, sigma, ks) or 1e-4 max(1, |value|) (k, kd, c) at every node
+(:func:`stencil`): central, and second-order one-sided at a bound of
+the model's domain (theta = 0, k = 0, kd = 0), from one float64 device grid over the stencils'
+points.  (Differences on the map's own grid were wrong where the quantity changes by decades
+between nodes: at sigma = 0.05 their one-sided edge form gave dDOP/dsigma < 0 where the DOP rises.)
 """
 from __future__ import annotations
 
@@ -23,7 +26,8 @@ LABELS = {"theta_i": "incidence zenith angle theta_i (deg)", "theta_r": "reflect
           "kd": "diffuse weight kd", "c": "Minnaert exponent c"}
 #: Colour-bar labels of the quantities that have maps (from the registry).
 QUANTITY_LABELS = {n: quantities.REGISTRY[n].label for n in quantities.names("map")}
-#: Relative step of the central difference along a fixed input.
+#: Relative step of the finite differences of a derivative: h = FD_STEP times 1 degree (angles),
+#: |value| (n, sigma, ks) or max(1, |value|) (k, kd, c) (:func:`step_scale`).
 FD_STEP = 1e-4
 
 
@@ -56,8 +60,9 @@ def make_map(x, y, fixed=None, quantity="dop", derivative=None, *, dtype="float6
         (name, values) pairs (degrees for angles)
     fixed : dict name -> value for the other inputs (phi, ks, kd, c default to 180, 1, 0, 0)
     quantity : "dop", "brdf" (alias "f00") or "aop": :func:`pbrdf_cl.quantities.names` ("map")
-    derivative : None, the name of x or y (a finite difference on the device grid) or of a fixed
-        input (a central difference of two device grids)
+    derivative : None, or the name of x, y or a fixed input: finite differences of step
+        h = :data:`FD_STEP` x :func:`step_scale` at every node, central, or second-order one-sided
+        at a bound of the model's domain (:func:`stencil`), in float64 (where the device has it)
     dtype, shadowing, engine, backend : as for :func:`pbrdf_cl.grid` (dtype defaults to float64 here)
 
     Returns
@@ -99,44 +104,119 @@ def make_map(x, y, fixed=None, quantity="dop", derivative=None, *, dtype="float6
     if notes:
         ds.attrs["notes"] = notes
     if derivative is not None:
-        dname = f"d{quantity}_d{derivative}"
-        values = da.values.astype(np.float64)
-        if derivative in (xname, yname):
-            axis = 0 if derivative == yname else 1
-            coord = yv if axis == 0 else xv
-            if coord.size < 3:
-                raise ValueError(f"derivative along {derivative} needs at least 3 points on that axis")
-            if q.period is not None:  # an angle: unwrapped along the axis first
-                scale = 2 * np.pi / q.period
-                values = np.unwrap(values * scale, axis=axis) / scale
-            d = np.gradient(values, coord, axis=axis, edge_order=2)
-            method = "second-order finite difference on the map's own grid (numpy.gradient, edge_order=2)"
-        elif derivative in dense.AXES:
-            p = float(da.attrs[f"fixed_{derivative}"])  # the grid's value of it, defaults included
-            h = FD_STEP * max(1.0, abs(p))
-            lo, hi = p - h, p + h
-            try:
-                api.check_values(derivative, lo)
-            except ValueError:
-                lo = p  # one-sided at the edge of the valid range (k = 0, kd = 0)
-            pair = dense.grid({**axes, derivative: np.array([lo, hi])},
-                              {n: v for n, v in fixed.items() if n != derivative}, **kw)
-            pair = pair.transpose(derivative, yname, xname).values.astype(np.float64)
-            d = quantities.wrap(pair[1] - pair[0], q.period) / (hi - lo)
-            method = f"difference of two device grids at {derivative} = {lo:.8g} and {hi:.8g}"
-        else:
+        if derivative not in dense.AXES:
             raise ValueError(f"derivative: unknown input {derivative!r}; valid names are {', '.join(dense.AXES)}")
+        dname = f"d{quantity}_d{derivative}"
+        if derivative in (xname, yname):
+            nodes = xv if derivative == xname else yv
+        else:
+            nodes = np.array([float(da.attrs[f"fixed_{derivative}"])])  # the grid's value, defaults included
+        d, method = _derivative(derivative, nodes, axes, fixed, kw, (yname, xname), q.period)
+        if derivative not in (xname, yname):
+            d = d[0]
+        elif derivative == xname:
+            d = np.moveaxis(d, 0, 1)
         ds[dname] = ((yname, xname), d, {"long_name": f"d {quantity} / d {derivative}", "method": method})
         ds.attrs["derivative"] = derivative
     return ds
 
 
+#: The scale of each input's finite-difference step (:func:`step_scale`), in words.
+_SCALE_TEXT = {"angle": "1 deg", "positive": "|{name}|", "other": "max(1, |{name}|)"}
+
+
+def _scale_kind(name):
+    if name in ("theta_i", "theta_r", "phi"):
+        return "angle"
+    return "positive" if not bool(api.RULES[name][0](np.array(0.0))) else "other"
+
+
+def step_scale(name, values):
+    """The scale of the finite-difference step of d/d``name`` at ``values``: 1 degree for an angle
+    (its value says nothing of its scale: phi = 360 is phi = 0), |value| for an input that must be
+    positive (n, sigma, ks), max(1, |value|) for k, kd and c, which reach 0."""
+    v = np.abs(np.asarray(values, dtype=np.float64))
+    kind = _scale_kind(name)
+    return np.ones_like(v) if kind == "angle" else v if kind == "positive" else np.maximum(1.0, v)
+
+
+def stencil(name, nodes, step=None):
+    """Finite-difference stencils of d/d``name`` at ``nodes``: (points (N, 3), weights (N, 3)),
+    the derivative at node i being sum_j weights[i, j] f(points[i, j]).
+
+    The step is h = ``step`` (default :data:`FD_STEP`) times :func:`step_scale`, and at most a
+    tenth of the distance to an open bound of the domain (theta < 90, where the model may be
+    singular).  Central, (f(v + h) -
+    f(v - h)) / 2h, where both points lie in the model's domain (``api.RULES``); at a bound of the
+    domain (theta = 0, k = 0, kd = 0; theta below 90) the second-order one-sided form, (-3 f(v) +
+    4 f(v + h) - f(v + 2h)) / 2h forward or its mirror backward, whose error is O(h^2) as the
+    central one's.  A central stencil's third point repeats its first with weight 0."""
+    ok = api.RULES[name][0]
+    v = np.asarray(nodes, dtype=np.float64).reshape(-1)
+    h = (FD_STEP if step is None else step) * step_scale(name, v)
+    # an open bound of the domain (theta < 90, sigma > 0) may be singular: keep 10 steps from it
+    if getattr(ok, "hi", None) is not None and not ok.hi_included:
+        h = np.minimum(h, (ok.hi - v) / 10)
+    if getattr(ok, "lo", None) is not None and not ok.lo_included:
+        h = np.minimum(h, (v - ok.lo) / 10)
+    central = ok(v - h) & ok(v + h)
+    forward = ~central & ok(v + 2 * h)
+    backward = ~central & ~forward
+    pts = np.where(central[:, None], np.stack([v - h, v + h, v - h], 1),
+                   np.where(forward[:, None], np.stack([v, v + h, v + 2 * h], 1),
+                            np.stack([v, v - h, v - 2 * h], 1)))
+    w = np.where(central[:, None], np.array([-1.0, 1.0, 0.0]),
+                 np.where(forward[:, None], np.array([-3.0, 4.0, -1.0]), np.array([3.0, -4.0, 1.0])))
+    w = w / (2 * h[:, None])
+    if not np.all(ok(pts)):
+        bad = v[~np.all(ok(pts), axis=1)][0]
+        raise ValueError(f"derivative: {name} = {bad:g} leaves no finite-difference step of {FD_STEP:g} inside "
+                         f"the model's domain ({name} must be {api.RULES[name][1]})")
+    return pts, w
+
+
+def _derivative(name, nodes, axes, fixed, kw, dims, period):
+    """d(quantity)/d(name) at ``nodes`` (an axis of the map, or the one fixed value) over the map's
+    other axis or axes: (array (nodes, *the map's dims without name), method text).  The stencil
+    points of every node are one axis of one float64 device grid (:func:`stencil`); an angle's
+    differences are wrapped into one period first."""
+    import warnings
+    pts, w = stencil(name, nodes)
+    values, inverse = np.unique(pts, return_inverse=True)
+    inverse = inverse.reshape(pts.shape)
+    grid_axes = {n: v for n, v in axes.items() if n != name}
+    grid_axes[name] = values
+    others = tuple(d for d in dims if d != name)
+    with warnings.catch_warnings():  # the map's own grid has given any radians warning already
+        warnings.simplefilter("ignore", api.UnitsWarning)
+        dtype = "float64" if getattr(kw["engine"], "fp64", True) else kw["dtype"]  # float64 where the device has it
+        g = dense.grid(grid_axes, {n: v for n, v in fixed.items() if n != name}, **{**kw, "dtype": dtype})
+    g = g.transpose(name, *others).values.astype(np.float64)  # (points, others...)
+    f = g[inverse]  # (nodes, 3, others...)
+    diff = quantities.wrap(f - f[:, :1], period)  # relative to the first point: the weights sum to 0
+    wb = w.reshape(w.shape + (1,) * (f.ndim - 2))
+    d = np.sum(wb * diff, axis=1)
+    kinds = []
+    central = w[:, 2] == 0
+    if central.any():
+        kinds.append("central differences")
+    if (~central).any():
+        kinds.append("second-order one-sided differences at the model's domain bound")
+    scale = _SCALE_TEXT[_scale_kind(name)].format(name=name)
+    actual = np.abs(pts[:, 1] - pts[:, 0]) / np.where(central, 2.0, 1.0)
+    if np.any(actual < FD_STEP * step_scale(name, nodes) * (1 - 1e-9)):
+        scale += ", at most a tenth of the distance to the domain's open bound"
+    method = (f"{' and '.join(kinds)} of {dtype} device grids at {name} +- h, h = {FD_STEP:g} x {scale}"
+              + (f" ({name} = {float(nodes[0]):.8g})" if len(nodes) == 1 else ""))
+    return d, method
+
+
 def map_bytes(nx, ny, derivative):
     """An estimate of the memory a map of nx x ny points takes: its float64 arrays (values, and with
-    a derivative its pair grid, the difference and the panel) and the figure's meshes (~128 bytes a
-    cell per panel)."""
+    a derivative its grid of up to three stencil points per node, their gathered copy, the
+    differences and the panel) and the figure's meshes (~128 bytes a cell per panel)."""
     panels = 2 if derivative else 1
-    return int(nx) * int(ny) * (8 * (2 + 4 * (panels - 1)) + 128 * panels)
+    return int(nx) * int(ny) * (8 * (2 + 12 * (panels - 1)) + 128 * panels)
 
 
 def check_map_size(nx, ny, derivative, what="the map"):
@@ -376,7 +456,11 @@ def plot_map(ds, path, title=None, dpi=120):
 
 def save_npz(ds, path):
     """The map's arrays beside the picture: x, y (coordinates), the quantity, the derivative if
-    any, their names, and the attrs as JSON."""
+    any, their names, and the attrs as JSON; ``path`` ends in ``.npz`` (numpy would append it to
+    any other name, writing a file other than the one named)."""
+    from pathlib import Path
+    if Path(path).suffix.lower() != ".npz":
+        raise ValueError(f"{path}: numpy's archive is named .npz; write e.g. {Path(path).with_suffix('.npz')}")
     xname, yname = ds.attrs["x"], ds.attrs["y"]
     arrays = {"x": ds[xname].values, "y": ds[yname].values, "x_name": np.array(xname), "y_name": np.array(yname),
               "attrs": np.array(json.dumps(ds.attrs, default=str))}

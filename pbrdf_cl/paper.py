@@ -12,7 +12,7 @@
 - ``fig4_steel.png``: DOP vs theta_r at theta_i = 30, 40, 50 deg with the paper's steel fit.
 - ``fig5_sigma.png``: DOP vs theta_r at theta_i = 40 deg for sigma = 0.35, 0.5, 0.65.
 - ``map_sigma_theta_r.png``: DOP over (theta_r, sigma) at theta_i = 40 deg with contours, and
-  dDOP/dsigma from finite differences on the device grid.
+  dDOP/dsigma from finite differences of device grids (maps.stencil).
 - ``map_theta_i_theta_r.png``: DOP over (theta_i, theta_r) for sigma = 0.35, 0.5, 0.65.
 - ``sobol_dop_theta_i_theta_r.png`` / ``.nc``: Sobol' indices (S1, ST) of the DOP over
   (theta_i, theta_r) for a box of materials around the paper's samples (:data:`SOBOL_RANGES`):
@@ -303,7 +303,7 @@ DESCRIPTIONS = {
     "fig4_steel.png": "Fig. 4: DOP vs theta_r of 45# steel at theta_i = 30, 40, 50 deg with the paper's fit.",
     "fig5_sigma.png": "Fig. 5: DOP vs theta_r at theta_i = 40 deg for sigma = 0.35, 0.5, 0.65.",
     "map_sigma_theta_r.png": "Dense map of DOP over (theta_r, sigma) at theta_i = 40 deg with contours, and "
-                             "dDOP/dsigma by finite differences on the device grid.",
+                             "dDOP/dsigma by finite differences of device grids (step 1e-4 sigma at every node).",
     "map_theta_i_theta_r.png": "Dense maps of DOP over (theta_i, theta_r) for sigma = 0.35, 0.5, 0.65 on one "
                                "colour scale.",
     f"{SOBOL_FILE}.png": "Sobol' first-order (S1) and total (ST) indices of the DOP over (theta_i, theta_r) "

@@ -279,7 +279,8 @@ class _SobolTerms:
         del T
         est = [self._indices(x, varies, scale) for x in (full, boot)]
         out = {"S1": est[0][0][:, 0], "ST": est[0][1][:, 0],
-               "S1_conf": self.Z * _std1(est[1][0], axis=1), "ST_conf": self.Z * _std1(est[1][1], axis=1)}
+               "S1_conf": self.Z * _std1(est[1][0], axis=1), "ST_conf": self.Z * _std1(est[1][1], axis=1),
+               "constant": ~varies}
         if self.second_order:
             s2, s2c = (np.full((D, D, G), np.nan) for _ in range(2))
             for p, (j, k) in enumerate(self.pairs):
@@ -307,7 +308,7 @@ class _SobolTerms:
 
 class _MorrisTerms:
     """The Morris statistics of ``SALib.analyze.morris`` (unscaled elementary effects) for a block
-    of geometries: mu, mu_star, sigma and mu_star's bootstrap interval."""
+    of geometries: mu, mu_star, ee_std (SALib's sigma) and mu_star's bootstrap interval."""
 
     def __init__(self, X, D, num_levels, rng, R, Z):
         T = X.shape[0] // (D + 1)
@@ -335,10 +336,24 @@ class _MorrisTerms:
             ee[self.var[:, s], :, np.arange(self.T)] = step[:, :, s].T
         mu = ee.mean(axis=2)
         mu_star = np.abs(ee).mean(axis=2)
-        sigma = ee.std(axis=2, ddof=1)
+        ee_std = ee.std(axis=2, ddof=1)
         conf = np.stack([self.Z * _std1(self.W[j] @ np.abs(ee[j]).T / self.T) for j in range(self.D)])
-        return {"mu": mu, "mu_star": mu_star, "sigma": sigma, "mu_star_conf": conf}
+        return {"mu": mu, "mu_star": mu_star, "ee_std": ee_std, "mu_star_conf": conf, "constant": _constant(Y)}
 
+
+def _constant(Y):
+    """Per geometry (rows of ``Y``, (G, runs)): does the output not vary over the box (its range
+    within rounding of its scale, SALib's test of the normalised output)?"""
+    Y = np.asarray(Y, np.float64)
+    mean = Y.mean(axis=1, keepdims=True)
+    scale = np.sqrt(np.mean((Y - mean) ** 2, axis=1)) + np.abs(mean[:, 0])
+    with np.errstate(invalid="ignore"):
+        return ~(np.ptp(Y, axis=1) > np.finfo(float).eps * np.maximum(scale, np.finfo(float).tiny))
+
+
+#: The long name of the ``constant`` variable.
+CONSTANT = ("1 where the output does not vary over the box at this geometry: every index is 0 there "
+            "and means nothing")
 
 VARIABLES = {
     "sobol": {"S1": "first-order Sobol' index", "ST": "total Sobol' index",
@@ -346,13 +361,13 @@ VARIABLES = {
               "ST_conf": "half-width of the 95% bootstrap interval of ST",
               "S2": "second-order Sobol' index", "S2_conf": "half-width of the 95% bootstrap interval of S2"},
     "morris": {"mu": "mean elementary effect", "mu_star": "mean absolute elementary effect (mu*)",
-               "sigma": "standard deviation of the elementary effects",
+               "ee_std": "standard deviation of the elementary effects (SALib's sigma)",
                "mu_star_conf": "half-width of the 95% bootstrap interval of mu*"},
 }
 
 
 def sobol(ranges, geometry, fixed=None, quantity="dop", N=4096, seed=None, dtype="float32", shadowing="paper",
-          second_order=False, *, method="sobol", num_levels=4, memory_budget=DEFAULT_BUDGET, progress=False,
+          second_order=False, *, method="sobol", num_levels=None, memory_budget=DEFAULT_BUDGET, progress=False,
           engine=None, backend="auto"):
     """Global sensitivity of ``quantity`` to the model's parameters at every geometry of a grid.
 
@@ -380,9 +395,12 @@ def sobol(ranges, geometry, fixed=None, quantity="dop", N=4096, seed=None, dtype
         The shadowing function (as for :func:`pbrdf_cl.dop`).
     second_order : bool, default False
         Also S2 and S2_conf (over ``parameter`` and ``parameter_2``; NaN on and below the diagonal).
+    num_levels : int, optional
+        Morris only: the levels of its grid (default 4).
     method : {"sobol", "morris"}, default "sobol"
         "morris": elementary effects on a ``num_levels`` grid (SALib's Morris sampler and
-        analyser): mu, mu_star, sigma and mu_star_conf.
+        analyser): mu, mu_star, ee_std (the elementary effects' standard deviation, SALib's
+        ``sigma``, renamed so as not to be read as the roughness) and mu_star_conf.
     memory_budget : int or str, default "512 MiB"
         Host memory of one block of geometries (the outputs and the estimators' terms).
     progress : bool
@@ -393,9 +411,11 @@ def sobol(ranges, geometry, fixed=None, quantity="dop", N=4096, seed=None, dtype
     -------
     xarray.Dataset
         Sobol: ``S1``, ``ST``, ``S1_conf``, ``ST_conf`` over ``parameter`` and the geometry axes;
-        Morris: ``mu``, ``mu_star``, ``sigma``, ``mu_star_conf``.  ``samples`` (run, parameter)
-        holds the parameter sets run at every geometry; ``attrs`` the settings, the ranges, the
-        fixed values, the model runs and the seconds.
+        Morris: ``mu``, ``mu_star``, ``ee_std``, ``mu_star_conf``.  ``constant`` (geometry axes)
+        marks the geometries where the output does not vary over the box (every index is 0 there,
+        as in SALib, and means nothing).  ``samples`` (run, parameter) holds the parameter sets run
+        at every geometry; ``attrs`` the settings, the ranges, the fixed values, the model runs,
+        the seconds and ``notes`` (what the indices cannot mean for these settings).
 
     Examples
     --------
@@ -417,11 +437,21 @@ def sobol(ranges, geometry, fixed=None, quantity="dop", N=4096, seed=None, dtype
     dtype = api.check_options(shadowing, dtype)
     if isinstance(N, bool) or not isinstance(N, (int, np.integer)) or N < 2:
         raise ValueError(f"N must be an integer >= 2, got {N!r}")
+    if method == "morris" and second_order:
+        raise ValueError("second_order: Morris screening has no second-order indices (only Sobol' has S2: "
+                         "method='sobol'); drop second_order")
+    if method == "sobol" and num_levels is not None:
+        raise ValueError(f"num_levels = {num_levels!r}: only Morris screening has levels (method='morris'); drop it")
+    num_levels = 4 if num_levels is None else num_levels
     if not isinstance(num_levels, (int, np.integer)) or isinstance(num_levels, bool) or num_levels < 2:
         raise ValueError(f"num_levels must be an integer >= 2, got {num_levels!r}")
     memory_budget = parse_bytes("memory_budget", memory_budget)
     rngs = check_ranges(ranges)
     fixed = check_fixed(fixed, {r.name for r in rngs})
+    notes = _notes(q.name, rngs)
+    for note in notes:
+        import warnings
+        warnings.warn(note, SensitivityWarning, stacklevel=2)
     axes, scalars = check_geometry(geometry)
     geo, shape = geometry_list(axes, scalars)
     G = int(np.prod(shape, dtype=np.int64))
@@ -449,7 +479,22 @@ def sobol(ranges, geometry, fixed=None, quantity="dop", N=4096, seed=None, dtype
         ds.attrs[f"scale_{r.name}"] = r.scale
     for n, v in fixed.items():
         ds.attrs[f"fixed_{n}"] = v
+    ds.attrs["notes"] = " | ".join(notes)
     return ds
+
+
+class SensitivityWarning(UserWarning):
+    """Settings whose indices cannot mean what they seem (ks and kd both ranged for the DOP)."""
+
+
+def _notes(quantity, rngs):
+    """Sentences on what the indices of these settings cannot mean."""
+    names = {r.name for r in rngs}
+    if quantity == "dop" and {"ks", "kd"} <= names:
+        return ["ks and kd both have a range, but the DOP depends on them only through kd/ks: the variance of kd/ks "
+                "is split between them and neither index means what it seems; give ks a fixed value (fixed={'ks': 1})"
+                " and a range to kd, which then stands for kd/ks"]
+    return []
 
 
 def _sampler(method, rngs, N, second_order, num_levels, seed):
@@ -507,6 +552,9 @@ def _dataset(results, method, q, rngs, params, axes, scalars, shape):
         coords[n] = xr.Variable((), v, {"units": "deg", "long_name": LONG_NAMES[n]})
     data = {}
     for key, v in results.items():
+        if key == "constant":
+            data[key] = xr.Variable(tuple(axes), v.reshape(shape).astype(np.int8), {"long_name": CONSTANT})
+            continue
         lead = v.shape[:-1]
         kdims = ("parameter", "parameter_2") + tuple(axes) if len(lead) == 2 else dims
         data[key] = xr.Variable(kdims, v.reshape(lead + shape),
@@ -532,7 +580,8 @@ def morris(ranges, geometry, fixed=None, quantity="dop", N=256, seed=None, **kwa
     Returns
     -------
     xarray.Dataset
-        ``mu``, ``mu_star``, ``sigma``, ``mu_star_conf`` over ``parameter`` and the geometry axes.
+        ``mu``, ``mu_star``, ``ee_std``, ``mu_star_conf`` over ``parameter`` and the geometry axes,
+        and ``constant``.
 
     Examples
     --------
@@ -540,7 +589,7 @@ def morris(ranges, geometry, fixed=None, quantity="dop", N=256, seed=None, **kwa
     >>> ds = pbrdf_cl.morris({"n": (1.2, 2.5), "sigma": (0.1, 0.6)}, {"theta_i": 40, "theta_r": "0:85@18"},
     ...                      fixed={"k": 2.139}, N=16, seed=1)
     >>> sorted(ds.data_vars)
-    ['mu', 'mu_star', 'mu_star_conf', 'samples', 'sigma']
+    ['constant', 'ee_std', 'mu', 'mu_star', 'mu_star_conf', 'samples']
     """
     return sobol(ranges, geometry, fixed, quantity, N, seed, method="morris", **kwargs)
 
@@ -816,14 +865,16 @@ def write_result(ds, path):
 
 
 def _indices(ds):
-    """The two index variables a summary and a figure show: (S1, ST) or (mu_star, sigma)."""
-    return ("S1", "ST") if "S1" in ds else ("mu_star", "sigma")
+    """The two index variables a summary and a figure show: (S1, ST) or (mu_star, ee_std)."""
+    return ("S1", "ST") if "S1" in ds else ("mu_star", "ee_std")
 
 
 def summary(ds):
     """A few lines on a result of :func:`sobol`: the work done, and per parameter its mean indices
     over the geometries and where it dominates (the share of geometries where its total index, or
     mu*, is the largest)."""
+    from .sensitivity_plots import _compatible
+    ds = _compatible(ds)
     first, second = _indices(ds)
     geo = [d for d in ds[first].dims if d != "parameter"]
     size = " x ".join(f"{d}[{ds.sizes[d]}]" for d in geo) or "one geometry"
@@ -834,6 +885,8 @@ def summary(ds):
     key = "ST" if first == "S1" else "mu_star"
     v = ds[key].values.reshape(ds.sizes["parameter"], -1)
     finite = np.isfinite(v).all(axis=0) & (np.nanmax(np.abs(v), axis=0) > 0)
+    if "constant" in ds:
+        finite &= ~ds["constant"].values.reshape(-1).astype(bool)
     best = np.argmax(np.where(np.isfinite(v), v, -np.inf), axis=0)
     m1 = ds[first].values.reshape(v.shape[0], -1)
     m2 = ds[second].values.reshape(v.shape[0], -1)
@@ -844,5 +897,6 @@ def summary(ds):
         lines.append(f"  {str(p):10s} {np.nanmean(m1[i]):10.3g} {np.nanmean(m2[i]):10.3g}  {share:6.1%} of geometries")
     if (~finite).any():
         lines.append(f"  ({int((~finite).sum())} geometries where {a.get('quantity', 'the output')} does not vary: "
-                     "indices 0)")
+                     "indices 0, meaning nothing; marked in `constant` and hatched in the figure)")
+    lines += [f"  note: {n}" for n in str(a.get("notes", "")).split(" | ") if n]
     return "\n".join(lines)

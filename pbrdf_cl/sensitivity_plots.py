@@ -1,10 +1,15 @@
 """Figures of sensitivity maps (:func:`pbrdf_cl.sobol`, ``pbrdf-cl sobol --png``): which
 parameter controls the DOP (or F00) where.
 
-* Two geometry axes: one panel per parameter over the two axes, two rows (Sobol': S1 and ST;
-  Morris: mu* and sigma), one colour scale per row (0..1 for Sobol' indices) with its colour bar.
-* One geometry axis: S1 and ST (mu* and sigma) of every parameter as lines, with the 95%
+* Two geometry axes: one panel per parameter over the two axes (theta_i horizontal where it is
+  one of them, as in the design figure), two rows (Sobol': S1 and ST; Morris: mu* and ee_std),
+  one colour scale per row (0..1 for Sobol' indices) with its colour bar.
+* One geometry axis: S1 and ST (mu* and ee_std) of every parameter as lines, with the 95%
   bootstrap intervals as bands.
+
+Geometries where the output does not vary over the box (``constant``: every index is 0 there and
+means nothing) are hatched grey and named in a legend.  For the DOP with ks fixed, kd is labelled
+kd/ks, the only combination the DOP depends on.
 """
 from __future__ import annotations
 
@@ -15,21 +20,52 @@ from .plots import _pyplot
 
 #: What each drawn variable is called on a figure.
 NAMES = {"S1": "first-order index S1", "ST": "total index ST", "mu_star": "mu* (mean |elementary effect|)",
-         "sigma": "sigma (sd of the elementary effects)"}
-#: Their short names in panel titles (Morris' sigma is not the roughness sigma).
-SHORT = {"S1": "S1", "ST": "ST", "mu_star": "mu*", "sigma": "sd of the effects"}
+         "ee_std": "sd of the elementary effects (SALib's sigma)"}
+#: Their short names in panel titles.
+SHORT = {"S1": "S1", "ST": "ST", "mu_star": "mu*", "ee_std": "sd of the effects"}
+#: How geometries where the output is constant over the box are drawn.
+CONSTANT_STYLE = dict(facecolor="0.85", edgecolor="0.45", hatch="xxx", linewidth=0.0)
 #: The bootstrap interval drawn with a variable (1-d figures).
 CONF = {"S1": "S1_conf", "ST": "ST_conf", "mu_star": "mu_star_conf"}
 
 
 def _range_text(ds, p):
-    """``"k in [0.01, 3] (log)"`` from the attributes :func:`pbrdf_cl.sobol` writes."""
+    """``"k in [0.01, 3] (log)"`` from the attributes :func:`pbrdf_cl.sobol` writes; for the DOP
+    with ks fixed, kd is named kd/ks (ks = 1) or given its kd/ks range too."""
     r = ds.attrs.get(f"range_{p}")
     if r is None or len(np.ravel(r)) != 2:
         return str(p)
     lo, hi = np.ravel(r)
     log = " (log)" if ds.attrs.get(f"scale_{p}") == "log" else ""
+    ks = ds.attrs.get("fixed_ks")
+    if p == "kd" and ds.attrs.get("quantity") == "dop" and ks is not None:
+        ks = float(ks)
+        if ks == 1.0:
+            return f"kd/ks in [{lo:g}, {hi:g}]{log} (ks = 1)"
+        return f"kd in [{lo:g}, {hi:g}]{log}: kd/ks in [{lo / ks:g}, {hi / ks:g}]"
     return f"{p} in [{lo:g}, {hi:g}]{log}"
+
+
+def _compatible(ds):
+    """A Morris result written before ``sigma`` became ``ee_std`` (the roughness is sigma)."""
+    if "mu_star" in ds and "sigma" in ds.data_vars and "ee_std" not in ds:
+        return ds.rename({"sigma": "ee_std"})
+    return ds
+
+
+def _edges(v):
+    """Cell edges around the centres ``v`` (as pcolormesh's nearest shading draws them)."""
+    v = np.asarray(v, float)
+    if v.size == 1:
+        return np.array([v[0] - 0.5, v[0] + 0.5])
+    mid = 0.5 * (v[1:] + v[:-1])
+    return np.concatenate([[2 * v[0] - mid[0]], mid, [2 * v[-1] - mid[-1]]])
+
+
+def _constant_legend(ds):
+    from matplotlib.patches import Patch
+    what = "DOP" if ds.attrs.get("quantity") == "dop" else str(ds.attrs.get("quantity", "the output"))
+    return Patch(**CONSTANT_STYLE, label=f"{what} constant over the box here: indices undefined (0)")
 
 
 def _title(ds, geo):
@@ -54,8 +90,9 @@ def _rows(ds):
     if "S1" in ds:
         return ("S1", "ST")
     if "mu_star" in ds:
-        return ("mu_star", "sigma")
-    raise ValueError("plot_sensitivity: the dataset has neither S1/ST nor mu_star/sigma: not a result of pbrdf_cl.sobol")
+        return ("mu_star", "ee_std")
+    raise ValueError("plot_sensitivity: the dataset has neither S1/ST nor mu_star/ee_std: not a result of "
+                     "pbrdf_cl.sobol")
 
 
 def check_axes(axes, what="plot_sensitivity"):
@@ -82,9 +119,10 @@ def plot_sensitivity(ds, path, *, title=None, dpi=110):
     Parameters
     ----------
     ds : xarray.Dataset
-        ``S1``, ``ST`` (and ``S1_conf``, ``ST_conf``) or ``mu_star``, ``sigma`` (and
-        ``mu_star_conf``) over ``parameter`` and one or two geometry axes (theta_i, theta_r,
-        phi; degrees).  Select a value of a third axis first (``ds.sel(phi=180)``).
+        ``S1``, ``ST`` (and ``S1_conf``, ``ST_conf``) or ``mu_star``, ``ee_std`` (and
+        ``mu_star_conf``; a result with Morris' old ``sigma`` is read too) over ``parameter`` and
+        one or two geometry axes (theta_i, theta_r, phi; degrees), and ``constant`` where
+        present.  Select a value of a third axis first (``ds.sel(phi=180)``).
     path : str or path
         The PNG to write (matplotlib's Agg backend).
     title : str, optional
@@ -110,6 +148,7 @@ def plot_sensitivity(ds, path, *, title=None, dpi=110):
     >>> plot_sensitivity(ds, os.path.join(tempfile.mkdtemp(), "s.png")).endswith("s.png")
     True
     """
+    ds = _compatible(ds)
     rows = _rows(ds)
     geo = [d for d in ds[rows[0]].dims if d != "parameter"]
     check_axes({d: ds[d].values for d in geo})
@@ -129,15 +168,30 @@ def _units(ds, var):
     return "" if u in ("", "1") else f" ({u})"
 
 
+def _constant_cells(ds, names):
+    """The ``constant`` flags over ``names`` (the figure's geometry axes, in that order), or None."""
+    if "constant" not in ds:
+        return None
+    c = ds["constant"]
+    if not set(names) <= set(c.dims):
+        return None
+    c = c.transpose(*names).values.astype(bool)
+    return c if c.any() else None
+
+
 def _maps(plt, ds, rows, geo):
     from matplotlib import colors
+    from matplotlib.collections import PatchCollection
+    from matplotlib.patches import Rectangle
     params = [str(p) for p in ds.parameter.values]
     xname, yname = geo
     x, y = ds[xname].values, ds[yname].values
     ncol = len(params)
-    fig, axs = plt.subplots(2, ncol, figsize=(3.1 * ncol + 1.4, 6.4), sharex=True, sharey=True, squeeze=False,
+    fig, axs = plt.subplots(2, ncol, figsize=(3.1 * ncol + 1.4, 6.8), sharex=True, sharey=True, squeeze=False,
                             layout="constrained")
     sobol = rows[0] == "S1"
+    const = _constant_cells(ds, (yname, xname))
+    xe, ye = _edges(x), _edges(y)
     for r, var in enumerate(rows):
         z_all = ds[var].transpose("parameter", yname, xname).values
         if sobol:
@@ -149,7 +203,12 @@ def _maps(plt, ds, rows, geo):
         for c, p in enumerate(params):
             ax = axs[r, c]
             mesh = ax.pcolormesh(x, y, z_all[c], shading="auto", cmap="viridis", norm=norm)
-            mean = np.nanmean(z_all[c])
+            if const is not None:
+                iy, ix = np.nonzero(const)
+                cells = [Rectangle((xe[i], ye[j]), xe[i + 1] - xe[i], ye[j + 1] - ye[j]) for j, i in zip(iy, ix)]
+                ax.add_collection(PatchCollection(cells, match_original=False, **CONSTANT_STYLE))
+            vals = z_all[c] if const is None else z_all[c][~const]
+            mean = np.nanmean(vals)
             ax.set_title(f"{_range_text(ds, p)}\n{SHORT[var]}, mean {mean:.2g}", fontsize=9)
             if r == 1:
                 ax.set_xlabel(LABELS.get(xname, f"{xname} (deg)"), fontsize=8)
@@ -158,6 +217,8 @@ def _maps(plt, ds, rows, geo):
         label = NAMES[var] + ("" if sobol else _units(ds, var))
         cb = fig.colorbar(mesh, ax=list(axs[r]), shrink=0.9, extend="both" if sobol else "neither")
         cb.set_label(label)
+    if const is not None:
+        fig.legend(handles=[_constant_legend(ds)], loc="outside lower center", fontsize=8, frameon=False)
     return fig
 
 
@@ -166,6 +227,8 @@ def _lines(plt, ds, rows, xname):
     x = ds[xname].values
     fig, axs = plt.subplots(1, 2, figsize=(11.0, 4.6), sharex=True, layout="constrained")
     sobol = rows[0] == "S1"
+    const = _constant_cells(ds, (xname,))
+    xe = _edges(x)
     for ax, var in zip(axs, rows):
         for i, p in enumerate(params):
             v = ds[var].sel(parameter=p).values
@@ -174,6 +237,9 @@ def _lines(plt, ds, rows, xname):
             if conf in ds:
                 half = ds[conf].sel(parameter=p).values
                 ax.fill_between(x, v - half, v + half, color=f"C{i}", alpha=0.2, lw=0)
+        if const is not None:
+            for i in np.nonzero(const)[0]:
+                ax.axvspan(xe[i], xe[i + 1], zorder=0, **CONSTANT_STYLE)
         ax.set_xlabel(LABELS.get(xname, f"{xname} (deg)"))
         ax.set_ylabel(NAMES[var] + ("" if sobol else _units(ds, var)))
         if sobol:
@@ -183,5 +249,8 @@ def _lines(plt, ds, rows, xname):
         band = " (bands: 95% bootstrap intervals)" if CONF.get(var) in ds else ""
         ax.set_title(f"{NAMES[var]}{band}", fontsize=9)
         ax.grid(alpha=0.3)
-    axs[0].legend(fontsize=8)
+    handles, labels = axs[0].get_legend_handles_labels()
+    if const is not None:
+        handles.append(_constant_legend(ds))
+    axs[0].legend(handles=handles, fontsize=8)
     return fig

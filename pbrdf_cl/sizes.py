@@ -1,7 +1,8 @@
 """Sizes checked before any work: what an output needs against what the machine has.
 
 Every public call that allocates its result (:func:`pbrdf_cl.dop` and the other per-point
-functions, :func:`pbrdf_cl.grid`, maps, ``pbrdf-cl eval``, ``pbrdf-cl reproduce``) estimates it
+functions, :func:`pbrdf_cl.grid`, maps, ``pbrdf-cl eval``, ``pbrdf-cl reproduce``, synthetic image
+stacks) estimates it
 first and refuses, with a one-line ``MemoryError`` subclass naming the size, what is available and
 what to do, a result that cannot fit in memory; a sweep compares its store with the free disk.
 """

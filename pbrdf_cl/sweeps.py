@@ -213,6 +213,7 @@ class SweepSpec:
             self.plan = dense.GridPlan(axes, fixed)
         except ValueError as exc:  # a required input given nowhere
             raise SpecError(f"fixed: {exc}") from None
+        self.plan.check_degrees("spec: ")
         self.axes = {n: self.plan.values[n] for n in self.plan.axis_names}
         self.fixed = self.plan.fixed_values()
 

@@ -6,6 +6,7 @@ standard errors.  Example: ``python scripts/make_image_stack.py --size 256 --out
 import argparse
 import sys
 import time
+from pathlib import Path
 
 from pbrdf_cl import imagestack
 
@@ -20,6 +21,9 @@ def main(argv=None):
     ap.add_argument("--check", action="store_true",
                     help="fit a few pixels with pbrdf_cl.fit and print truth, fit, stderr and 95%% interval")
     args = ap.parse_args(argv)
+    if Path(args.out).suffix not in (".nc", ".npz"):  # refused before the rendering, not after it
+        print(f"make_image_stack: --out {args.out}: write the stack as .nc (NetCDF) or .npz", file=sys.stderr)
+        return 2
     try:
         t0 = time.perf_counter()
         ds = imagestack.synthetic_stack(args.size, n_lights=args.lights, noise=args.noise, seed=args.seed)

@@ -51,6 +51,18 @@ def test_bad_frames_are_refused_before_polanalyser(monkeypatch):
         camera.dop_from_frames(np.zeros((4, 4)))
     with pytest.raises(ValueError, match="demosaic must be one of"):
         camera.dop_from_frames([np.zeros((4, 4))], demosaic="nearest")
+    # one 3-D array whose measurement axis both readings fit, (M, H, W) and (H, W, M): refused in one line
+    for shape in ((16, 30, 16), (4, 48, 64)):
+        with pytest.raises(ValueError) as err:
+            camera.dop_from_frames(np.zeros(shape, np.uint16))
+        text = str(err.value)
+        assert f"shape {shape}" in text and "ambiguous" in text and "axis=" in text and "\n" not in text
+    with pytest.raises(ValueError, match=r"fits neither .* with 5 measurements"):   # the geometry's count
+        camera.camera_dataset(np.zeros((4, 48, 64), np.uint16), [30, 40, 50, 60, 70], 45)
+    with pytest.raises(ValueError, match="ambiguous"):                               # 4 frames either way
+        camera.camera_dataset(np.zeros((4, 48, 4), np.uint16), [30, 40, 50, 60], 45)
+    with pytest.raises(ValueError, match="axis: only for frames given as one 3-D array"):
+        camera.dop_from_frames([np.zeros((4, 4))], axis=0)
 
 
 @pytest.fixture(scope="module")
@@ -81,6 +93,24 @@ def test_dolp_and_s0_from_a_stack_of_mosaics(pa):
         assert np.max(np.abs(interior(dop[..., j] - want[j]))) < 1e-4
     assert np.max(np.abs(interior(intensity[..., 1] / (0.6 * s0) - 1))) < 1e-4
     assert np.isfinite(dop).all()
+
+
+def test_one_3d_array_of_frames_by_its_measurement_axis(pa):
+    """Frames stacked in one array, first or last: the reading under which every frame is whole
+    super-pixels (or that matches the geometry's count, or axis=) gives the list's result."""
+    s0, s1, s2, _ = stokes_fields()
+    frames = [mosaic(s0 * f, s1 * f, s2 * f) for f in (1.0, 0.6, 0.3)]
+    want = camera.dop_from_frames(frames)[0]
+    for stacked in (np.stack(frames), np.stack(frames, axis=-1)):   # (3, H, W) and (H, W, 3)
+        np.testing.assert_array_equal(camera.dop_from_frames(stacked)[0], want)
+    four = frames + [frames[0]]
+    want4 = camera.dop_from_frames(four)[0]
+    np.testing.assert_array_equal(camera.dop_from_frames(np.stack(four), axis=0)[0], want4)
+    np.testing.assert_array_equal(camera.dop_from_frames(np.stack(four, axis=-1), axis=-1)[0], want4)
+    ds = camera.camera_dataset(np.stack(four, axis=-1), [30, 40, 50, 60], 45)   # (H, W, 4): 4 measurements
+    assert ds.dop.shape == (H, W, 4)
+    np.testing.assert_array_equal(ds.dop.values, want4)
+    assert camera.camera_dataset(np.stack(four), [30, 40, 50, 60], 45).dop.shape == (H, W, 4)
 
 
 def test_float_frames_and_constant_regions(pa):

@@ -77,8 +77,9 @@ def test_jacobian_opencl_equals_finite_differences_of_the_reference(engine):
     _check_jacobian(engine)
 
 
-def _fit_widths(geo, free, intensity, noise=0.005, rel=inversion.F00_REL_STD):
-    """Predicted widths computed independently with inversion's Residuals and fd_jacobian."""
+def _fit_widths(geo, free, intensity, noise=0.005, rel=inversion.F00_REL_STD, ks_fixed=False):
+    """Predicted widths computed independently with inversion's Residuals and fd_jacobian
+    (``ks_fixed``: ks held at the material's value, kd absolute, as fit with fixed ks or kd)."""
     geo = {k: np.asarray(v, float) for k, v in geo.items()}
     dop = reference.evaluate("dop", geo["theta_i"], geo["theta_r"], geo["phi"],
                              *(STEEL[m] for m in ("n", "k", "sigma", "ks", "kd", "c")))
@@ -87,12 +88,15 @@ def _fit_widths(geo, free, intensity, noise=0.005, rel=inversion.F00_REL_STD):
     meas = as_measurements(dict(geo, dop=dop, dop_std=np.full(dop.shape, noise)))
     model = inversion._Model(meas, "paper")
     base = dict(STEEL)
+    ratio = not ks_fixed
     if intensity:
         res = inversion.Residuals(model, free, base, dop, meas.dop_std, f00, rel * f00)
+    elif ks_fixed:
+        res = inversion.Residuals(model, free, base, dop, meas.dop_std)
     else:
         base["ks"], base["kd"] = 1.0, STEEL["kd"] / STEEL["ks"]
         res = inversion.Residuals(model, free, base, dop, meas.dop_std)
-    x = np.array([STEEL["kd"] / STEEL["ks"] if n == "kd" else STEEL[n] for n in free])
+    x = np.array([STEEL["kd"] / STEEL["ks"] if n == "kd" and ratio else STEEL[n] for n in free])
     lo, hi = _bounds(free)
     _, J = inversion.fd_jacobian(res.rows, x[None], lo, hi, "central")
     cov = np.linalg.pinv(J[0] @ J[0].T, rcond=1e-15)
@@ -111,6 +115,102 @@ def test_predicted_widths_equal_an_independent_computation(steel):
     assert set(got) == set(want)
     for n in want:
         assert got[n] == pytest.approx(want[n], rel=1e-5), n
+
+
+def test_fixing_ks_or_kd_gives_the_fits_design(steel, capsys):
+    """fixed={"ks": 1} is what DOP-only work does: the same design as leaving ks to its default;
+    with ks or kd fixed at the material's value the widths are those of fit with it fixed (kd
+    absolute), and the comparisons with an F00 column, which such a fit ignores, are left out
+    with a note."""
+    five = {n: v for n, v in STEEL.items() if n != "ks"}
+    kw = dict(candidates=SMALL, noise=0.005, n_measurements=12, backend="numpy")
+    free = dz.design(five, **kw)
+    one = dz.design(five, fixed={"ks": 1.0}, **kw)
+    np.testing.assert_array_equal(one.theta_i, free.theta_i)
+    np.testing.assert_array_equal(one.theta_r, free.theta_r)
+    assert one.free == ["n", "k", "sigma", "kd", "c"] and one.ci95_width == pytest.approx(free.ci95_width, rel=1e-9)
+    assert "chosen_other" not in one.comparisons and "reference_other" not in one.comparisons
+    assert any("no comparison with an F00 column" in n and "ks fixed" in n for n in one.notes)
+    assert "no comparison with an F00 column" in one.summary() and "kd is absolute, ks fixed at 1" in one.summary()
+    for fixed, names in (({"ks": 0.9}, ["n", "k", "sigma", "kd", "c"]), ({"kd": 0.15}, ["n", "k", "sigma", "c"])):
+        r = dz.design(STEEL, fixed=fixed, **kw)
+        assert r.free == names and "chosen_other" not in r.comparisons
+        want = _fit_widths(dict(theta_i=r.theta_i, theta_r=r.theta_r, phi=r.phi), names, False, ks_fixed=True)
+        for n in names:
+            assert r.ci95_width[n] == pytest.approx(want[n], rel=1e-5), (fixed, n)
+    rc = cli.main(["design", "--params", "n=1.6,k=2.139,sigma=0.5,kd=0.15,c=-0.3", "--fix", "ks=1",
+                   "--candidates", "theta_i=10:80:10", "theta_r=0:85:5", "--n", "12", "--backend", "numpy"])
+    out = capsys.readouterr().out
+    assert rc == 0 and "measurement design: 12 measurements" in out and "no comparison with an F00" in out
+
+
+def test_predicted_widths_report_the_null_space_as_undetermined():
+    """A parameter whose scaled Jacobian column is zero, or lies in the span of the others (relative
+    to each one's bound range, not in raw units), is undetermined: its interval spans the bounds,
+    never a tiny width; the others keep the pseudo-inverse's widths."""
+    rng = np.random.default_rng(4)
+    lo, hi = np.array([0.0, 1e-3, -1.0, 0.0]), np.array([5.0, 1e3, 0.0, 10.0])
+    span = hi - lo
+    x = lo + 0.4 * span
+    J = 20 * rng.standard_normal((40, 4)) / span  # every parameter determined, to a few % of its range
+    w, se, und = dz.predicted_widths(J, x, lo, hi)
+    cov = np.linalg.inv(J.T @ J)
+    np.testing.assert_allclose(w, 2 * 1.959963984540054 * np.sqrt(np.diag(cov)), rtol=1e-9)
+    assert not und.any() and np.all(w < 0.5 * span)
+    zero = J.copy()
+    zero[:, 2] = 0.0
+    w, se, und = dz.predicted_widths(zero, x, lo, hi)
+    assert und.tolist() == [False, False, True, False] and w[2] == span[2] and np.isinf(se[2])
+    keep = [0, 1, 3]
+    np.testing.assert_allclose(w[keep], 2 * 1.959963984540054 * np.sqrt(np.diag(np.linalg.inv(
+        J[:, keep].T @ J[:, keep]))), rtol=1e-9)
+    span_of = J.copy()  # column 3 in the span of columns 0 and 1, in scaled units (raw scales 1e4 apart)
+    span_of[:, 3] = (0.7 * span_of[:, 0] * span[0] - 0.3 * span_of[:, 1] * span[1]) / span[3]
+    w, se, und = dz.predicted_widths(span_of, x, lo, hi)
+    # the null direction (0.7, -0.3, 0, -1) / 1.257 in scaled parameters: each moves by its share of
+    # its range (0.56, 0.24, 0, 0.80) unseen by the data; x lies at 0.4 of each range
+    assert und[3] and w[3] == span[3] and np.isinf(se[[0, 1, 3]]).all()
+    assert w[0] >= 0.95 * span[0] and w[1] >= 0.47 * span[1]
+    assert not und[2] and np.isfinite(se[2]) and w[2] < 0.2 * span[2]
+    tiny = J.copy()  # a genuine but weak column (1e-4 of the others): wide, not part of the null space
+    tiny[:, 1] *= 1e-4
+    w, se, und = dz.predicted_widths(tiny, x, lo, hi)
+    assert np.isfinite(se).all() and se[1] > 100 * se[0] / span[0] * span[1]
+
+
+def test_design_reports_undetermined_parameters(tmp_path, capsys):
+    """At kd = 0 the DOP does not depend on sigma or c: the design reports them undetermined (their
+    whole bound range, flagged, in the result, the summary, the Dataset, the CLI and the figure's
+    hatched bars with a legend), where the pseudo-inverse alone gave widths of 1e-8; F00 rows do
+    determine sigma."""
+    kw = dict(candidates=SMALL, noise=0.005, n_measurements=12, backend="numpy")
+    r = dz.design(dict(STEEL, kd=0.0), **kw)
+    bounds = inversion.DEFAULT_BOUNDS
+    assert r.undetermined == ["sigma", "c"] and set(r.undetermined_reference) >= {"sigma", "c"}
+    for n in ("sigma", "c"):
+        assert r.ci95_width[n] == pytest.approx(bounds[n][1] - bounds[n][0], rel=1e-12), n
+    for n in ("n", "k", "kd"):
+        assert r.ci95_width[n] < 0.5 * (bounds[n][1] - bounds[n][0]), n
+    assert "sigma" not in r.comparisons["chosen_other"]["undetermined"]  # F00 depends on sigma
+    assert "c" in r.comparisons["chosen_other"]["undetermined"]
+    text = r.summary()
+    assert "undet." in text and any("sigma, c" in n and "kd = 0" in n for n in r.notes)
+    ds = r.to_dataset()
+    assert ds.undetermined.sel(parameter="sigma").item() == 1 and ds.undetermined.sel(parameter="n").item() == 0
+    fig = dz.plot_design(r, tmp_path / "d.png")
+    ax, axb = fig.axes[0], next(a for a in fig.axes if a.get_xlabel() == "parameter")
+    assert ax.get_xlabel().startswith("theta_i") and ax.get_ylabel().startswith("theta_r")
+    hatched = [p for p in axb.patches if p.get_hatch()]
+    cells = sum(len(c["undetermined"]) for k, c in r.comparisons.items()
+                if k in ("chosen", "chosen_other", "reference", "reference_other"))
+    assert len(hatched) == cells > 0
+    assert any("undetermined" in t.get_text() for t in axb.get_legend().get_texts())
+    t = dz.design(dict(STEEL, kd=0.0), target=("sigma",), **kw)
+    assert any("target sigma cannot be determined" in n for n in t.notes)
+    rc = cli.main(["design", "--params", "n=1.6,k=2.139,sigma=0.5,kd=0,c=-0.3", "--candidates",
+                   "theta_i=10:80:10", "theta_r=0:85:5", "--n", "12", "--backend", "numpy"])
+    out = capsys.readouterr().out
+    assert rc == 0 and "undet." in out and "undetermined by the chosen set: sigma, c" in out
 
 
 @pytest.mark.parametrize("r", [1, 2])

@@ -78,6 +78,24 @@ def test_dop_maps_use_constrained_layout_and_label_contours_inside(tmp_path, der
     assert all(abs(v * 20 - round(v * 20)) < 1e-9 for v in values), values
 
 
+def test_dop_map_colours_span_the_data_and_the_derivative_has_no_false_zero_line(tmp_path):
+    """The DOP's colour bar runs over the data (0 .. 0.43 here), not to 1; the derivative's zero
+    line is where dDOP/dsigma changes sign, not along the first row (sigma = 0.05, where the DOP
+    rises by decades from row to row)."""
+    ds = maps.make_map("theta_r=0:85@128", "sigma=0.05:1@128", dict(theta_i=40, **STEEL), derivative="sigma",
+                       backend="numpy")
+    z = ds["dop"].values
+    fig = maps.plot_map(ds, tmp_path / "m.png")
+    norm = fig.axes[0].collections[0].norm
+    assert norm.vmin == pytest.approx(z.min()) and norm.vmax == pytest.approx(z.max()) and z.max() < 0.45
+    d = ds["ddop_dsigma"].values
+    first = d[0]
+    with np.errstate(all="ignore"):
+        rising = ds["dop"].values[1] > ds["dop"].values[0] * (1 + 1e-3)
+    assert rising.sum() > 80 and (first[rising] > 0).all()
+    assert_nothing_clipped(fig)
+
+
 def test_a_long_title_is_wrapped_not_clipped(tmp_path):
     ds = dop_map()
     fig = maps.plot_map(ds, tmp_path / "m.png")

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 import pbrdf_cl
+from pbrdf_cl import cli
 from pbrdf_cl import inversion as F
 from pbrdf_cl.data import from_arrays, read_csv
 
@@ -36,6 +37,8 @@ def test_noise_free_recovers_truth_exactly():
         assert r.x[name] == pytest.approx(v, rel=1e-5, abs=1e-6)
     assert r.x["ks"] == 1.0 and "ks" not in r.free
     assert any("kd/ks" in note for note in r.notes)
+    kd_line = next(ln for ln in r.summary().splitlines() if ln.split()[:1] == ["kd"])
+    assert kd_line.endswith("(= kd/ks: ks fixed at 1)") and r.kd_ratio == r.x["kd"]
     assert set(r.nfev) >= {"grid", "direct", "bobyqa"} and r.nfev["grid"] == 24 * 32 * 16 * 16 * 8
     assert set(r.seconds) == set(r.nfev) and all(t > 0 for k, t in r.seconds.items() if r.nfev[k] > 0)
 
@@ -97,6 +100,8 @@ def test_fixing_ks_makes_kd_absolute():
     r = pbrdf_cl.fit(synthetic(), fixed=dict(ks=0.9))
     assert r.x["ks"] == 0.9 and r.x["kd"] == pytest.approx(0.15, rel=1e-5)
     assert any("ks is fixed at 0.9" in n for n in r.notes)
+    kd_line = next(ln for ln in r.summary().splitlines() if ln.split()[:1] == ["kd"])
+    assert kd_line.endswith("(absolute, with ks fixed at 0.9)") and r.kd_ratio == pytest.approx(0.15 / 0.9, rel=1e-5)
     with pytest.raises(ValueError, match="fixed: sigma is not a parameter of the specular model"):
         pbrdf_cl.fit(synthetic(), model="specular", fixed=dict(sigma=0.3))
 
@@ -104,10 +109,23 @@ def test_fixing_ks_makes_kd_absolute():
 def test_intensities_separate_ks_and_kd():
     r = pbrdf_cl.fit(ROOT / "examples" / "steel_435nm_with_f00.csv")
     assert "ks" in r.free
-    for name, v in dict(ks=0.9, kd=0.15, n=1.6, k=2.139).items():
+    for name, v in dict(ks=0.9, kd=0.15 / 0.9, n=1.6, k=2.139).items():  # the interval under "kd" is kd/ks's
         lo, hi = r.ci95[name]
         assert lo <= v <= hi, (name, v, lo, hi)
     assert not any("kd/ks" in n and "fixed at 1" in n for n in r.notes)
+    # which kd is which: x holds the model's absolute kd, kd_ratio the fitted ratio, and the summary,
+    # the --quiet lines and the JSON say so beside the ratio's interval
+    assert r.kd_ratio == pytest.approx(r.x["kd"] / r.x["ks"], rel=1e-12)
+    lines = r.summary().splitlines()
+    ratio = next(ln for ln in lines if ln.split()[:1] == ["kd/ks"])
+    lo, hi = r.ci95["kd"]
+    assert f"{r.kd_ratio:10.5g}" in ratio and f"[{lo:.4g}, {hi:.4g}]" in ratio
+    absolute = next(ln for ln in lines if ln.split()[:1] == ["kd"])
+    assert f"{r.x['kd']:10.5g}" in absolute and "absolute" in absolute and "interval" not in absolute
+    brief = cli._fit_brief(r)
+    assert f"kd/ks = {r.kd_ratio:.5g}  [{lo:.4g}, {hi:.4g}]" in brief and f"kd = {r.x['kd']:.5g}" in brief
+    record = cli._fit_json(r)
+    assert record["kd_ratio"] == r.kd_ratio and record["kd_fitted_as"] == "kd/ks"
 
 
 def test_identifiability_notes_name_the_weak_direction():

@@ -148,6 +148,34 @@ def test_refusals():
         imagestack.synthetic_stack(4, lights=[[0.0, 1.0]])
 
 
+def test_a_stack_too_large_for_memory_is_refused_before_any_work(monkeypatch):
+    """The estimate (stack_bytes) lies above the measured peak; a stack above the available memory
+    is one line naming its size, before any geometry is computed."""
+    import tracemalloc
+    tracemalloc.start()
+    try:
+        imagestack.synthetic_stack(96, n_lights=12)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak <= imagestack.stack_bytes(96, 12)
+    monkeypatch.setattr(pbrdf_cl.sizes, "available_memory", lambda: 8 << 30)
+
+    def no_work(*a, **k):
+        raise AssertionError("the geometry was computed before the size check")
+    monkeypatch.setattr(imagestack, "angles_from_positions", no_work)
+    with pytest.raises(pbrdf_cl.sizes.TooLargeError) as err:
+        imagestack.synthetic_stack(20000)
+    text = str(err.value)
+    assert "20000 x 20000 pixels x 30 lights" in text and "8 GiB" in text and "\n" not in text
+    assert isinstance(err.value, ValueError) and isinstance(err.value, MemoryError)
+    monkeypatch.setattr(imagestack, "light_positions", no_work)  # many lights: refused before they are placed
+    with pytest.raises(pbrdf_cl.sizes.TooLargeError, match="64 x 64 pixels x 1000000000 lights"):
+        imagestack.synthetic_stack(64, n_lights=10 ** 9)
+    with pytest.raises(pbrdf_cl.sizes.TooLargeError, match="^truth maps of 200000 x 200000 pixels needs"):
+        imagestack.truth_maps(200000)
+
+
 @pytest.mark.parametrize("suffix", [".npz", ".nc"])
 def test_save_and_load(tmp_path, suffix):
     ds = imagestack.synthetic_stack(4, n_lights=3)
@@ -161,7 +189,7 @@ def test_save_and_load(tmp_path, suffix):
         imagestack.save_stack(ds, tmp_path / "s.h5")
 
 
-def test_script(tmp_path, capsys):
+def test_script(tmp_path, capsys, monkeypatch):
     spec = importlib.util.spec_from_file_location(
         "make_image_stack", Path(__file__).resolve().parent.parent / "scripts" / "make_image_stack.py")
     script = importlib.util.module_from_spec(spec)
@@ -173,6 +201,17 @@ def test_script(tmp_path, capsys):
     assert "stack.npz" in capsys.readouterr().out
     assert script.main(["--size", "1", "--out", str(out)]) == 2
     assert "size must be" in capsys.readouterr().err
+    monkeypatch.setattr(pbrdf_cl.sizes, "available_memory", lambda: 8 << 30)
+    assert script.main(["--size", "20000", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("make_image_stack: a synthetic stack of 20000 x 20000") and err.count("\n") == 1
+
+    def no_work(*a, **k):
+        raise AssertionError("rendered before the output was checked")
+    monkeypatch.setattr(imagestack, "synthetic_stack", no_work)
+    assert script.main(["--size", "6", "--out", str(tmp_path / "stack.txt")]) == 2
+    err = capsys.readouterr().err
+    assert "--out" in err and "stack.txt" in err and ".npz" in err and err.count("\n") == 1
 
 
 def test_check_pixels_fits_one_pixel():

@@ -35,6 +35,49 @@ def test_angles_in_radians_are_flagged():
         "radians? pbrdf-cl takes degrees (np.degrees(...) converts)"]
 
 
+def test_radians_are_flagged_on_the_grid_paths_too(tmp_path):
+    """grid, reduce_grid, objective, map (once, though its derivative runs more grids) and sweep specs
+    warn as eval and fit (once, though its grid stage runs objective) do, whether the zenith angles
+    are axes or fixed values; degrees stay silent."""
+    rad = np.radians(np.linspace(0, 85, 8))
+    for call in (lambda: pbrdf_cl.grid({"theta_r": rad}, dict(theta_i=0.7, **STEEL), backend="numpy"),
+                 lambda: pbrdf_cl.grid({"theta_i": rad, "theta_r": rad}, STEEL, backend="numpy"),
+                 lambda: pbrdf_cl.reduce_grid({"theta_r": rad, "sigma": [0.3, 0.5]}, dict(theta_i=0.7, n=1.6, k=2.1),
+                                              over="theta_r", backend="numpy"),
+                 lambda: pbrdf_cl.objective(dict(theta_i=[0.5, 0.7, 0.9], theta_r=[0.3, 0.8, 1.1], dop=[0.1, 0.2, 0.3]),
+                                            grid=dict(n=[1.5, 2.0], k=2.0, sigma=0.5), backend="numpy")):
+        with pytest.warns(api.UnitsWarning, match=r"all lie below 1.6 degrees .*are they in radians\?"):
+            call()
+    fixed = {k: v for k, v in STEEL.items() if k != "sigma"}
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        maps.make_map(("theta_r", rad), ("sigma", np.linspace(0.1, 1, 5)), dict(theta_i=0.7, **fixed),
+                      derivative="sigma", backend="numpy")
+    assert [str(w.message)[:40] for w in seen if issubclass(w.category, api.UnitsWarning)] == [
+        "theta_i and theta_r all lie below 1.6 de"]
+    with pytest.warns(api.UnitsWarning, match="spec: theta_i and theta_r all lie below 1.6 degrees"):
+        sweeps.load_spec(dict(axes=dict(theta_r=rad.tolist()), fixed=dict(theta_i=0.7, **STEEL)))
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        pbrdf_cl.fit(dict(theta_i=np.radians([30.0, 40, 50, 30, 40, 50]),
+                          theta_r=np.radians([20.0, 45, 65, 40, 60, 30]), dop=[0.05, 0.17, 0.34, 0.1, 0.2, 0.3]),
+                     backend="numpy")
+    assert sum(issubclass(w.category, api.UnitsWarning) for w in seen) == 1
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", api.UnitsWarning)
+        pbrdf_cl.grid({"theta_r": np.linspace(0, 85, 8)}, dict(theta_i=40, **STEEL), backend="numpy")
+        pbrdf_cl.grid({"theta_r": rad}, dict(theta_i=40, **STEEL), backend="numpy")  # theta_i in degrees
+        sweeps.load_spec(dict(axes=dict(theta_r=np.linspace(0, 85, 8).tolist()), fixed=dict(theta_i=40, **STEEL)))
+    proc = run_cli("map", "--x", "theta_r=0:1.4@8", "--y", "sigma=0.1:1@4", "--fix", "theta_i=0.7", "n=1.6", "k=2",
+                   "kd=0.1", "--derivative", "sigma", "--backend", "numpy", "--out", str(tmp_path / "m.png"))
+    assert proc.returncode == 0 and proc.stderr.count("are they in radians?") == 1, proc.stderr
+    spec = tmp_path / "s.toml"
+    spec.write_text('quantity = "dop"\n[axes]\ntheta_r = "0:1.4@8"\n[fixed]\ntheta_i = 0.7\nn = 1.6\nk = 2.0\n'
+                    'sigma = 0.3\n')
+    proc = run_cli("sweep", str(spec), "--out", str(tmp_path / "s.zarr"), "--quiet", "--backend", "numpy")
+    assert proc.returncode == 0 and "pbrdf-cl: warning: spec: theta_i and theta_r all lie below" in proc.stderr
+
+
 def test_a_map_axis_the_quantity_does_not_depend_on_is_noted(tmp_path):
     x, y = ("theta_r", np.linspace(0, 85, 20)), ("sigma", np.linspace(0.05, 1, 12))
     ds = maps.make_map(x, y, dict(theta_i=40, n=1.6, k=2.1), backend="numpy")  # kd = 0
@@ -75,11 +118,69 @@ def test_outputs_that_cannot_fit_are_refused_first(monkeypatch):
     (["reproduce", "--resolution", "100000"], "pbrdf-cl: error: --resolution 100000: a map of 100000 x 300000 points"),
 ])
 def test_cli_sizes_refused_in_one_line_before_any_work(tmp_path, args, start):
-    proc = run_cli(*args, *(["--out", str(tmp_path / "o")] if args[0] != "eval" else []))
+    out = {"map": ["--out", str(tmp_path / "o.png")], "reproduce": ["--out", str(tmp_path / "o")]}
+    proc = run_cli(*args, *out.get(args[0], []))
     assert proc.returncode == 1 and proc.stdout == ""
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith(start) and "memory is available" in lines[0]
-    assert not (tmp_path / "o").exists()
+    assert not (tmp_path / "o").exists() and not (tmp_path / "o.png").exists()
+
+
+@pytest.mark.parametrize("script", ["bench_fit", "bench_sobol", "check_design"])
+def test_scripts_check_their_json_before_the_work(script, tmp_path):
+    root = __import__("pathlib").Path(__file__).resolve().parents[1]
+    proc = subprocess.run([sys.executable, str(root / "scripts" / f"{script}.py"), "--json", str(tmp_path / "o.txt")],
+                          capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert proc.returncode == 1 and proc.stdout == "" and proc.stderr.count("\n") == 1
+    assert proc.stderr.startswith(f"{script}: error: --json ") and "'.txt'" in proc.stderr
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_save_npz_writes_the_file_it_names(tmp_path):
+    ds = maps.make_map("theta_r=0:85@4", "sigma=0.1:1@3", dict(theta_i=40, n=1.6, k=2.0), backend="numpy")
+    with pytest.raises(ValueError, match=r"m.txt: numpy's archive is named .npz; write e.g. .*m.npz"):
+        maps.save_npz(ds, tmp_path / "m.txt")
+    assert not list(tmp_path.iterdir())  # not m.txt.npz
+    maps.save_npz(ds, tmp_path / "m.npz")
+    assert [p.name for p in tmp_path.iterdir()] == ["m.npz"]
+
+
+@pytest.mark.parametrize("argv, option, suffix", [
+    (["fit-image", "stack.npz", "--out", "params.npz"], "--out", "'.npz'"),
+    (["fit-image", "stack.npz", "--out", "params.zarr", "--png", "maps.txt"], "--png", "'.txt'"),
+    (["sweep", "examples/sweep_sigma_theta.toml", "--out", "sweep.nc"], "--out", "'.nc'"),
+    (["map", "--x", "theta_r=0:85@8", "--y", "sigma=0.1:1@4", "--fix", "theta_i=40", "n=1.6", "k=2", "--out", "m.txt"],
+     "--out", "'.txt'"),
+    (["map", "--x", "theta_r=0:85@8", "--y", "sigma=0.1:1@4", "--fix", "theta_i=40", "n=1.6", "k=2", "--out", "m"],
+     "--out", "without one"),
+    (["map", "--x", "theta_r=0:85@8", "--y", "sigma=0.1:1@4", "--fix", "theta_i=40", "n=1.6", "k=2", "--out", "m.png",
+      "--npz", "m.txt"], "--npz", "'.txt'"),
+    (["fit", "examples/steel_435nm.csv", "--json", "fit.csv"], "--json", "'.csv'"),
+    (["fit", "examples/steel_435nm.csv", "--plot", "fit.txt"], "--plot", "'.txt'"),
+    (["sobol", "examples/sobol.toml", "--png", "sobol.txt"], "--png", "'.txt'"),
+    (["design", "--params", "n=1.6,k=2.139,sigma=0.5", "--png", "design.nc"], "--png", "'.nc'"),
+    (["bench", "--quick", "--json", "bench.txt"], "--json", "'.txt'"),
+])
+def test_every_output_suffix_is_checked_before_the_work(argv, option, suffix, capsys, monkeypatch):
+    """An output whose suffix names another format (a Zarr store called params.npz, a figure called
+    m.txt) is refused in one line naming the option, the suffix and a name that works, before any
+    work: the functions that would do it fail the test if called."""
+    import os
+    from pbrdf_cl import batch_store, designs, engine, inversion, sensitivity
+    root = __import__("pathlib").Path(__file__).resolve().parents[1]
+    monkeypatch.chdir(root)
+
+    def no_work(*a, **k):
+        raise AssertionError("the work started before the output was checked")
+    for module, name in ((batch_store, "fit_batch_to_store"), (sweeps, "sweep"), (maps, "make_map"),
+                         (inversion, "fit"), (sensitivity, "sobol"), (designs, "design"), (engine, "resolve_engine")):
+        monkeypatch.setattr(module, name, no_work)
+    rc = cli.main(argv)
+    err = capsys.readouterr().err
+    assert rc == 1 and err.count("\n") == 1 and err.startswith(f"pbrdf-cl: error: {option} "), err
+    assert suffix in err and "write e.g." in err
+    assert not any(os.path.exists(a) for a in argv if a.endswith((".zarr", ".nc", ".txt", ".csv")) and a != "stack.npz"
+                   and not a.startswith("examples"))
 
 
 def test_sweep_checks_disk_and_extras_before_creating_the_store(tmp_path, monkeypatch, capsys):

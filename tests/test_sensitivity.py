@@ -78,8 +78,10 @@ def test_morris_equals_salib(engine):
             y = reference_outputs(ds, ti, tr)
             want = salib_morris.analyze(salib_problem(ds, log_space=True), X, y, seed=seed)
             got = ds.sel(theta_i=ti, theta_r=tr)
-            for key in ("mu", "mu_star", "sigma", "mu_star_conf"):
-                np.testing.assert_allclose(got[key].values, np.asarray(want[key]), rtol=0, atol=1e-9, err_msg=key)
+            for key, salib in (("mu", "mu"), ("mu_star", "mu_star"), ("ee_std", "sigma"),
+                               ("mu_star_conf", "mu_star_conf")):
+                np.testing.assert_allclose(got[key].values, np.asarray(want[salib]), rtol=0, atol=1e-9, err_msg=key)
+    assert "sigma" not in ds.data_vars  # SALib's sigma is ee_std: sigma is the roughness
 
 
 def test_blocks_of_geometries_give_the_same_maps(engine):
@@ -136,6 +138,41 @@ def test_constant_output_gives_zero_indices_like_salib(engine):
     for key in ("S1", "ST", "S1_conf", "ST_conf"):
         assert np.all(ds[key].values == 0.0), key
         assert float(np.asarray(want[key])[0]) == 0.0
+    assert ds.constant.dims == ("theta_r",) and ds.constant.values.tolist() == [1, 1]  # marked as meaning nothing
+
+
+def test_constant_geometries_are_flagged_and_only_those(engine):
+    """At theta_i = theta_r = 0 the DOP is 0 for every material: flagged `constant` (Sobol' and
+    Morris), while every other geometry varies; the summary counts the flagged ones."""
+    geometry = {"theta_i": [0.0, 40.0], "theta_r": [0.0, 30.0]}
+    for method in ("sobol", "morris"):
+        ds = pbrdf_cl.sobol(RANGES, geometry, N=32, seed=1, method=method, engine=engine)
+        assert ds.constant.dims == ("theta_i", "theta_r")
+        assert ds.constant.values.tolist() == [[1, 0], [0, 0]], method
+        assert "1 geometries where dop does not vary" in sensitivity.summary(ds)
+
+
+def test_ks_and_kd_both_ranged_for_the_dop_and_options_of_the_other_method(engine):
+    """ks and kd both ranged: the DOP sees only kd/ks; one warning line naming them and the fix, kept
+    in the result's notes and printed by the summary; not for F00, which separates them.  Morris
+    with second_order, Sobol' with num_levels: refused in one line (they were ignored)."""
+    ranges = {"n": (1.2, 2.5), "sigma": (0.1, 0.6), "ks": (0.5, 2.0), "kd": (0.0, 0.5)}
+    kw = dict(fixed={"k": 2.0}, N=16, seed=1, engine=engine)
+    for method in ("sobol", "morris"):
+        with pytest.warns(sensitivity.SensitivityWarning, match=r"ks and kd both have a range.*kd/ks.*fixed=") as rec:
+            ds = pbrdf_cl.sobol(ranges, {"theta_i": 40, "theta_r": [20.0, 50.0]}, method=method, **kw)
+        assert len(rec) == 1 and "\n" not in str(rec[0].message)
+        assert "ks and kd both have a range" in ds.attrs["notes"]
+        assert "note: ks and kd both have a range" in sensitivity.summary(ds)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", sensitivity.SensitivityWarning)
+        ds = pbrdf_cl.sobol(ranges, {"theta_i": 40, "theta_r": [20.0, 50.0]}, quantity="f00", **kw)
+        assert ds.attrs["notes"] == ""
+        pbrdf_cl.sobol({k: v for k, v in ranges.items() if k != "ks"}, {"theta_i": 40, "theta_r": 20.0}, **kw)
+    with pytest.raises(ValueError, match="^second_order: Morris screening has no second-order indices"):
+        pbrdf_cl.morris(ranges, {"theta_i": 40, "theta_r": 20.0}, second_order=True, **kw)
+    with pytest.raises(ValueError, match="^num_levels = 6: only Morris screening has levels"):
+        pbrdf_cl.sobol(ranges, {"theta_i": 40, "theta_r": 20.0}, num_levels=6, **kw)
 
 
 def test_brdf_quantity_and_attrs(engine):

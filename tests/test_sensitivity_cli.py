@@ -176,7 +176,7 @@ def test_morris_through_the_spec(tmp_path, capsys):
     got = xr.load_dataset(nc)
     want = sobol(**{**TINY_SETTINGS, "N": 16}, method="morris", num_levels=6)
     assert got.attrs["num_levels"] == 6 and got.attrs["method"] == "morris"
-    for var in ("mu", "mu_star", "sigma", "mu_star_conf"):
+    for var in ("mu", "mu_star", "ee_std", "mu_star_conf", "constant"):
         np.testing.assert_array_equal(got[var].values, want[var].values)
     assert (got.mu_star.values >= np.abs(got.mu.values) - 1e-12).all()
 
@@ -257,9 +257,57 @@ def test_figures_of_one_and_two_axes_and_refusals(tmp_path, tiny):
     assert_png(plot_sensitivity(three.sel(phi=180.0), tmp_path / "selected.png"))
     with pytest.raises(ValueError, match="got 0"):
         plot_sensitivity(tiny.isel(theta_i=0, theta_r=1), tmp_path / "zero.png")
-    with pytest.raises(ValueError, match="neither S1/ST nor mu_star/sigma"):
+    with pytest.raises(ValueError, match="neither S1/ST nor mu_star/ee_std"):
         plot_sensitivity(tiny[["samples"]], tmp_path / "none.png")
     assert not (tmp_path / "three.png").exists() and not (tmp_path / "zero.png").exists()
+
+
+def test_figures_mark_constant_geometries_and_name_kd_as_the_ratio(tmp_path, capsys):
+    """A geometry where the DOP does not vary over the box (theta_i = theta_r = 0) is hatched in every
+    panel and named in a legend (2-d maps and 1-d lines); kd is labelled kd/ks with ks fixed at 1,
+    and with its kd/ks range for another ks; a Morris result of the old layout (sigma) still draws."""
+    settings = {**TINY_SETTINGS, "N": 16, "geometry": {"theta_i": "0:80@4", "theta_r": "0:85@5"}}
+    ds = sobol(**settings)
+    assert ds.constant.sel(theta_i=0, theta_r=0).item() == 1 and int(ds.constant.sum()) == 1
+    fig_path = tmp_path / "s.png"
+    import matplotlib
+    from matplotlib.collections import PatchCollection
+    captured = {}
+    real = matplotlib.figure.Figure.savefig
+
+    def keep(self, *a, **k):
+        captured["fig"] = self
+        return real(self, *a, **k)
+    matplotlib.figure.Figure.savefig = keep
+    try:
+        plot_sensitivity(ds, fig_path)
+        fig = captured["fig"]
+        panels = [ax for ax in fig.axes if ax.get_title()]
+        assert len(panels) == 8
+        for ax in panels:
+            hatched = [c for c in ax.collections if isinstance(c, PatchCollection) and c.get_hatch()]
+            assert len(hatched) == 1 and len(hatched[0].get_paths()) == 1, ax.get_title()
+        assert any("constant over the box" in t.get_text() for leg in fig.legends for t in leg.get_texts())
+        assert [ax.get_title().split("\n")[0] for ax in panels if "kd" in ax.get_title()] == [
+            "kd/ks in [0, 0.5] (ks = 1)"] * 2
+        ks2 = sobol(**{**settings, "fixed": {"ks": 2.0, "c": -0.3}})
+        plot_sensitivity(ks2, tmp_path / "ks2.png")
+        assert any("kd in [0, 0.5]: kd/ks in [0, 0.25]" in ax.get_title() for ax in captured["fig"].axes)
+        m = sobol(**{**settings, "geometry": {"theta_i": 0, "theta_r": "0:85@6"}}, method="morris")
+        plot_sensitivity(m, tmp_path / "m.png")
+        left = captured["fig"].axes[0]
+        assert any("constant over the box" in t.get_text() for t in left.get_legend().get_texts())
+        assert any(p.get_hatch() for p in left.patches)
+        plot_sensitivity(m.rename({"ee_std": "sigma"}), tmp_path / "old.png")  # a file of the old layout
+    finally:
+        matplotlib.figure.Figure.savefig = real
+    assert_png(fig_path)
+    spec = tmp_path / "both.toml"
+    spec.write_text(TINY.replace("ks = 1.0\n", "").replace("kd = [0.0, 0.5]", "kd = [0.0, 0.5]\nks = [0.5, 2.0]")
+                    .replace("N = 64", "N = 8"))
+    assert cli.main(["sobol", str(spec), "--no-progress"]) == 0
+    out = capsys.readouterr()
+    assert "note: ks and kd both have a range" in out.out and "warning" not in out.err
 
 
 def test_summary_names_the_dominant_parameter(tiny):
