@@ -1199,7 +1199,9 @@ def _towards_bounds(x, lo, hi):
     """Candidates (K, p, D) from the points ``x`` (p, D): the coordinates on a bound moved off it
     by 0.1% and 1% of the range, and those within SNAP of the range from a bound moved 10, 100
     and 1000 times closer to it, each alone and all together (None where no coordinate of any
-    point is near a bound)."""
+    point is near a bound).  The same K candidates for every point (a candidate that moves
+    nothing of a point is that point), so that a pixel's candidates, and the one it keeps, do
+    not depend on the other pixels of its block."""
     span = hi - lo
     near_lo, near_hi = x - lo < SNAP * span, hi - x < SNAP * span
     near = near_lo | near_hi
@@ -1210,17 +1212,14 @@ def _towards_bounds(x, lo, hi):
     # so a descent that reached kd = 0 cannot move them; off the bound by 0.1% and 1% it can
     on_lo, on_hi = x - lo <= 1e-9 * span, hi - x <= 1e-9 * span
     for f in (1e-3, 1e-2):
-        off = np.where(on_lo, lo + f * span, np.where(on_hi, hi - f * span, x))
-        if (off != x).any():
-            out.append(off)
+        out.append(np.where(on_lo, lo + f * span, np.where(on_hi, hi - f * span, x)))
     for f in (1e-1, 1e-2, 1e-3):
         closer = np.where(near_lo, lo + (x - lo) * f, np.where(near_hi, hi - (hi - x) * f, x))
         out.append(closer)
         for j in range(x.shape[1]):
-            if near[:, j].any():
-                one = x.copy()
-                one[:, j] = closer[:, j]
-                out.append(one)
+            one = x.copy()
+            one[:, j] = closer[:, j]
+            out.append(one)
     return np.stack(out)
 
 
