@@ -191,10 +191,13 @@ def _fit_json(r):
 
 def _fit_brief(r):
     """One line per fitted parameter and a first line with the model, for --quiet."""
+    from .data import PHI_DEFAULT_NOTE
     lines = [f"{r.model}: SSE {r.sse:.4g}" + ("" if r.fits_data else " (the model does not describe these data)")]
     for name in r.free:
         lo, hi = r.ci95[name]
         lines.append(f"  {name} = {r.x[name]:.5g}  [{lo:.4g}, {hi:.4g}]")
+    if PHI_DEFAULT_NOTE in r.notes:
+        lines.append(f"  note: {PHI_DEFAULT_NOTE}")
     return "\n".join(lines)
 
 

@@ -1287,6 +1287,9 @@ def _convention_notes(meas):
     if hi is not None:
         notes.append(f"every theta_i and theta_r lies below {api.RADIANS_HINT} degrees (the largest is {hi:.4g}): "
                      "radians? pbrdf-cl takes degrees")
+    if not meas.phi_given:
+        from .data import PHI_DEFAULT_NOTE
+        notes.append(PHI_DEFAULT_NOTE)
     if np.all(meas.phi == 0.0):
         notes.append("phi = 0 for every point: that is the plane of incidence on the source's side (back-"
                      "scattering); in-plane specular data have phi = 180 here (SCATMECH's phi = 0 is our 180)")
