@@ -306,6 +306,12 @@ def cmd_fit_image(args) -> int:
     print(f"fit-image: {px} of {total} pixels fitted in {fit_s:.3g} s{rate} ({total - px} already in the store; "
           f"{seconds:.3g} s in all)")
     print("status: " + ", ".join(f"{n} {c}" for n, c in counts.items()))
+    if "goodness" in ds.attrs:
+        print(ds.attrs["goodness"])
+    if "goodness_warning" in ds.attrs:
+        print(ds.attrs["goodness_warning"])
+    for note in str(ds.attrs.get("data_notes", "")).splitlines():
+        print(f"note: {note}")
     print(f"store: {ds.attrs['store']}" + (f"; maps: {args.png}" if args.png else ""))
     return 0
 
