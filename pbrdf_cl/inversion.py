@@ -417,8 +417,13 @@ def _lm_batch(resid_rows, X0, lo, hi, iterations):
         with np.errstate(all="ignore"):
             try:
                 du = -np.linalg.solve(A, g[:, :, None])[:, :, 0]
-            except np.linalg.LinAlgError:  # an overflowing Jacobian: no step, more damping
-                du = np.zeros_like(X)
+            except np.linalg.LinAlgError:  # a singular problem (an overflowing or vanishing Jacobian):
+                du = np.zeros_like(X)     # no step for it, more damping; the others step as alone
+                for i in range(P):
+                    try:
+                        du[i] = -np.linalg.solve(A[i], g[i])
+                    except np.linalg.LinAlgError:
+                        pass
         du = np.where(np.isfinite(du), du, 0.0)
         Xt = np.clip(X + du * span, lo, hi)
         rt, Jt, sset = evaluate(Xt)
