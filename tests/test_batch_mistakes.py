@@ -215,7 +215,8 @@ def test_phi_left_out_of_fit_is_said(dev, tmp_path):
     res = pbrdf_cl.fit(dict(theta_i=TI, theta_r=TR, dop=d), engine=dev)
     assert PHI_DEFAULT_NOTE in res.notes and f"note: {PHI_DEFAULT_NOTE}" in res.summary()
     assert PHI_DEFAULT_NOTE not in pbrdf_cl.fit(dict(theta_i=TI, theta_r=TR, phi=180.0, dop=d), engine=dev).notes
-    (tmp_path / "nophi.csv").write_text("theta_i,theta_r,dop\n" + "".join(f"{a},{b},{c}\n" for a, b, c in zip(TI, TR, d)))
+    (tmp_path / "nophi.csv").write_text("theta_i,theta_r,dop\n" + "".join(f"{a},{b},{c}\n"
+                                                                       for a, b, c in zip(TI, TR, d)))
     (tmp_path / "phi.csv").write_text("theta_i,theta_r,phi,dop\n" + "".join(f"{a},{b},180,{c}\n"
                                                                           for a, b, c in zip(TI, TR, d)))
     for quiet in ([], ["--quiet"]):
