@@ -442,9 +442,16 @@ __kernel void batch_lm(__global scalar *X, __global scalar *sse_out, __global sc
     pb_evaluate(x, h, base, geo, obs, w, fobs, fw, P, M, p0, &sse, A, gr, cur, Q, q0);
     real lam = (real)1e-3 * pb_scaled_trace(A, span) / (real)PB_D;
     lam = isfinite(lam) && lam > (real)0 ? lam : (real)1e-3;
+    /* 1 while this lane descends, 0 once it has settled or its damping saturated: a lane stops
+     * on its own account, whatever the work-item's other lanes do, so that a problem's result
+     * does not depend on which problems share its vector (fit_batch's blocks, _polish's
+     * compaction) */
+    real active = (real)1;
     for (int it = 0; it < iterations; it++) {
-        /* every lane settled: nothing left to gain (the work-item's other lanes are done too) */
-        if (it > 0 && all(pb_settled(x, A, gr, sse, span, tol, lo, hi) > (real)0))
+        if (it > 0)
+            active *= (real)1 - pb_settled(x, A, gr, sse, span, tol, lo, hi);
+        /* every lane stopped: nothing left to gain */
+        if (all(active == (real)0))
             break;
         real g[PB_D], Mx[PB_D * PB_D], du[PB_D], held[PB_D];
         pb_held(x, gr, span, tol, lo, hi, held, g);
@@ -504,8 +511,8 @@ __kernel void batch_lm(__global scalar *X, __global scalar *sse_out, __global sc
             xt[i] = clamp(x[i] + du[i] * span[i], (real)lo[i], (real)hi[i]);
         pb_steps(xt, hi, ht);
         pb_evaluate(xt, ht, base, geo, obs, w, fobs, fw, P, M, p0, &sset, At, grt, trial, Q, q0);
-        const real better = sset < sse ? (real)1 : (real)0;
-        const int any_better = any(sset < sse);
+        const real better = (sset < sse ? (real)1 : (real)0) * active;
+        const int any_better = any(better > (real)0);
         if (any_better) {
             for (int i = 0; i < PB_D; i++) {
                 x[i] = better > (real)0 ? xt[i] : x[i];
@@ -522,10 +529,9 @@ __kernel void batch_lm(__global scalar *X, __global scalar *sse_out, __global sc
             }
 #endif
         }
-        lam = clamp(better > (real)0 ? lam * (real)0.3 : lam * (real)6, PB_TINY, PB_HUGE);
-        /* every lane's damping saturated: no step can improve any of them */
-        if (all(lam >= PB_HUGE))
-            break;
+        lam = active > (real)0 ? clamp(better > (real)0 ? lam * (real)0.3 : lam * (real)6, PB_TINY, PB_HUGE) : lam;
+        /* a lane whose damping saturated: no step can improve it */
+        active *= lam < PB_HUGE ? (real)1 : (real)0;
     }
     const real done = pb_settled(x, A, gr, sse, span, tol, lo, hi);
     for (int i = 0; i < PB_D; i++) {

@@ -31,8 +31,8 @@ import numpy as np
 from . import api, dense, reference
 from . import engine as _engine
 from .engine import DTYPES, resolve_engine
-from .inversion import (DEFAULT_BOUNDS, DOP_NOISE_FLOOR, MODEL_FIXED, MODEL_PARAMS, X_RESOLUTION, _check_bounds,
-                        _grid_axis, _lm_batch, dop_resolution, fd_jacobian)
+from .inversion import (DEFAULT_BOUNDS, DOP_NOISE_FLOOR, GOODNESS_P, GOODNESS_R2, MODEL_FIXED, MODEL_PARAMS,
+                        X_RESOLUTION, _check_bounds, _grid_axis, _lm_batch, dop_resolution, fd_jacobian)
 
 #: Grid nodes per free parameter of the batched grid stage (coarser than :func:`fit`'s: the
 #: regions' minima only seed the descents).
@@ -89,17 +89,92 @@ def _status_attrs():
 
 VARIABLES = ("dop", "theta_i", "theta_r", "phi", "dop_std", "f00", "s0", "f00_std", "mask")
 ANGLES = ("theta_i", "theta_r", "phi")
+#: Variables over the measurements that fit_batch does not read and accepts without a warning:
+#: :func:`pbrdf_cl.camera.camera_dataset`'s raw S0 (``intensity``; the fit reads ``s0``, S0 /
+#: irradiance, which is proportional to F00).
+ACCEPTED = ("intensity",)
+#: Names of the measurement dimension in the stacks pbrdf-cl makes (``open_stack``,
+#: ``imagestack.synthetic_stack``, ``camera.camera_dataset``; a dict's default ``mdim``).
+MEASUREMENT_DIMS = ("m", "measurement")
+#: An image's measurement axis, found without a shared angle to show it, is refused when the
+#: per-pixel angles change between neighbours along another axis at least AXIS_STEP_RATIO times
+#: more (and by AXIS_STEP_MIN degrees or more) than along it: neighbouring pixels see nearly the
+#: same geometry, successive measurements do not (:func:`_check_measurement_axis`).
+AXIS_STEP_RATIO = 10.0
+AXIS_STEP_MIN = 1.0
+#: Neighbours per axis of the corner of the stack that check reads.
+AXIS_SAMPLE = 9
+
+
+def _axis_of_lengths(shape, lengths, dims=None):
+    """The axis of ``shape`` (dop's) holding the measurements, from the lengths of the shared
+    (1-d) angles ``lengths`` (name -> length); None without any.  The last axis when its length
+    matches (the documented layout), else the one axis that does; one-line errors for lengths
+    that differ, match no axis, or match several (ambiguous)."""
+    if not lengths:
+        return None
+    if len(set(lengths.values())) > 1:
+        given = ", ".join(f"{n} {m}" for n, m in lengths.items())
+        raise ValueError(f"data: the shared angles differ in length ({given}); give each one value per measurement")
+    (name, m), = list(lengths.items())[:1]
+    axes = [a for a, size in enumerate(shape) if size == m]
+    named = (lambda a: f"{dims[a]!r}") if dims else (lambda a: str(a))
+    if not axes:
+        raise ValueError(f"data: {name} has {m} values (one per measurement) but no axis of dop {tuple(shape)} has "
+                         f"{m}; give dop's measurements along one axis (last: shape (..., {m}))")
+    if len(shape) - 1 in axes:
+        return len(shape) - 1
+    if len(axes) > 1:
+        which = ", ".join(map(named, axes))
+        raise ValueError(f"data: dop {tuple(shape)} has {len(axes)} axes of length {m} ({which}), the number of "
+                         f"{name} values: which holds the measurements is ambiguous; put them last (dop of shape "
+                         f"(..., {m}))")
+    return axes[0]
+
+
+def _check_measurement_axis(samples, axis, dims, shape):
+    """Refuse a measurement axis (``axis`` of dop's ``dims``/``shape``) that the per-pixel angles
+    contradict: ``samples`` maps each angle to a corner of it (up to AXIS_SAMPLE values per
+    axis, dop's axes in order, size 1 where the angle does not vary).  Only for images (two or
+    more pixel axes), whose neighbouring pixels see nearly the same geometry."""
+    if len(shape) < 3:
+        return
+    steps = np.zeros(len(shape))
+    for name, a in samples.items():
+        for ax in range(a.ndim):
+            if a.shape[ax] < 2:
+                continue
+            d = np.abs(np.diff(a, axis=ax))
+            if name == "phi":
+                d = np.minimum(d % 360.0, 360.0 - d % 360.0)
+            steps[ax] = max(steps[ax], float(np.median(d)))
+    worst = max((ax for ax in range(len(shape)) if ax != axis), key=lambda ax: steps[ax])
+    if steps[worst] >= AXIS_STEP_MIN and steps[worst] >= AXIS_STEP_RATIO * steps[axis]:
+        def name(ax):
+            return f"axis {ax} ({f'{dims[ax]!r}, ' if dims else ''}{shape[ax]} values)"
+        fix = f"np.moveaxis(a, {worst}, -1)" + (f" (ds.transpose(..., {dims[worst]!r}) for a Dataset)" if dims else "")
+        raise ValueError(
+            f"data: dop's {name(axis)} is taken for the measurements, but the per-pixel angles change along it as "
+            f"across an image's pixels (neighbours differ by {steps[axis]:.2g} degrees, median) and along "
+            f"{name(worst)} as between measurements ({steps[worst]:.3g} degrees); put the measurements last: "
+            f"{fix} for dop and the per-pixel angles (or give the angles shared, shape (M,))")
 
 
 class _Source:
     """The input stack: variables as arrays (numpy or lazy xarray/dask) of the shape of ``dop``
-    (leading pixel dimensions, then M measurements) or, for the angles, shared (M,)."""
+    (leading pixel dimensions, then M measurements) or, for the angles, shared (M,).
+
+    The measurement axis of ``dop`` is the one the shared (1-d) angles run along (a Dataset's
+    dimension, or an array's axis of their length: the last when it has it); without shared
+    angles, a Dataset's dimension named ``m`` or ``measurement``, else the last; images whose
+    per-pixel angles contradict it are refused (:func:`_check_measurement_axis`).  It is moved
+    last; the pixel dimensions keep their order."""
 
     def __init__(self, data):
         import xarray as xr
         if isinstance(data, (str,)) or hasattr(data, "__fspath__"):
             data = open_stack(data)
-        self.coords = {}
+        self.coords = {}  # name -> (dims, values, attrs): the coordinates over pixel dimensions only
         if isinstance(data, xr.Dataset):
             if "dop" not in data:
                 raise ValueError(f"data: no 'dop' variable; the dataset has {', '.join(map(str, data.data_vars))}")
@@ -107,17 +182,42 @@ class _Source:
             if dop.ndim < 2:
                 raise ValueError(f"data: dop must have pixel dimensions and a measurement dimension, got dims "
                                  f"{dop.dims}")
+            for name in VARIABLES[1:]:
+                if name in data:
+                    extra = set(data[name].dims) - set(dop.dims)
+                    if extra:
+                        raise ValueError(f"data: {name} has dimensions {sorted(extra)} that dop does not have")
+            shared = {a: str(data[a].dims[0]) for a in ANGLES if a in data and data[a].ndim == 1
+                      and data[a].size > 1}
+            if len(set(shared.values())) > 1:
+                given = ", ".join(f"{a} over {d!r}" for a, d in shared.items())
+                raise ValueError(f"data: the shared angles lie along different dimensions ({given}); give them "
+                                 "along the one measurement dimension")
+            dims = tuple(map(str, dop.dims))
+            if shared:
+                mdim = next(iter(shared.values()))
+            else:
+                named = [d for d in dims if d in MEASUREMENT_DIMS]
+                mdim = named[0] if len(named) == 1 else dims[-1]
+                samples = {}
+                for a in ANGLES:
+                    if a in data and data[a].ndim >= 1:
+                        v = data[a].isel({d: slice(0, AXIS_SAMPLE) for d in data[a].dims})
+                        v = v.transpose(*[d for d in dims if d in v.dims])
+                        samples[a] = np.asarray(v.values, float).reshape([v.sizes.get(d, 1) for d in dims])
+                _check_measurement_axis(samples, dims.index(mdim), dims, tuple(dop.shape))
+            if mdim != dims[-1]:
+                dop = dop.transpose(*[d for d in dims if d != mdim], mdim)
             self.dims = tuple(map(str, dop.dims[:-1]))
             self.mdim = str(dop.dims[-1])
-            self.coords = {d: data[d].values for d in self.dims if d in data.coords}
+            for cname, c in data.coords.items():
+                if c.ndim and set(c.dims) <= set(self.dims):
+                    self.coords[str(cname)] = (tuple(map(str, c.dims)), np.asarray(c.values), dict(c.attrs))
             vars_ = {}
             for name in VARIABLES:
                 if name not in data:
                     continue
-                v = data[name]
-                extra = set(v.dims) - set(dop.dims)
-                if extra:
-                    raise ValueError(f"data: {name} has dimensions {sorted(extra)} that dop does not have")
+                v = dop if name == "dop" else data[name]
                 if name != "mask" and v.dims == (self.mdim,):
                     vars_[name] = v.values
                 else:  # kept lazy: rows() reads a block of rows at a time
@@ -125,7 +225,8 @@ class _Source:
             self._full_dims = {"mask": self.dims}
             self._dop_dims = tuple(map(str, dop.dims))
             self.vars = vars_
-            unread = [str(n) for n, v in data.data_vars.items() if n not in VARIABLES and self.mdim in v.dims]
+            unread = [str(n) for n, v in data.data_vars.items()
+                      if n not in VARIABLES and n not in ACCEPTED and self.mdim in v.dims]
             if unread:
                 import warnings
                 from .data import DataWarning
@@ -135,17 +236,40 @@ class _Source:
             self.shape = tuple(dop.shape[:-1])
             self.M = int(dop.shape[-1])
         elif isinstance(data, dict):
-            unknown = set(data) - set(VARIABLES) - {"mdim", "dims"}
+            unknown = set(data) - set(VARIABLES) - set(ACCEPTED) - {"mdim", "dims"}
             if unknown:
                 raise ValueError(f"data: unknown variable {sorted(unknown)[0]!r}; variables are {', '.join(VARIABLES)}")
             if "dop" not in data:
                 raise ValueError("data: no 'dop' array")
-            dop = data["dop"]
-            if not hasattr(dop, "shape"):
-                dop = np.asarray(dop, float)
+            arrays = {}
+            for name in VARIABLES:
+                v = data.get(name)
+                if v is not None:
+                    arrays[name] = v if hasattr(v, "shape") else np.asarray(v, float)
+            dop = arrays["dop"]
             if len(dop.shape) < 2:
                 raise ValueError(f"data: dop must have shape (..., M): pixel dimensions then M measurements, "
                                  f"got shape {tuple(dop.shape)}")
+            nd = len(dop.shape)
+            lengths = {a: int(arrays[a].shape[0]) for a in ANGLES
+                       if a in arrays and len(arrays[a].shape) == 1 and arrays[a].shape[0] > 1}
+            axis = _axis_of_lengths(tuple(dop.shape), lengths)
+            if axis is None:
+                axis = nd - 1
+                samples = {a: np.asarray(arrays[a][(slice(0, AXIS_SAMPLE),) * len(arrays[a].shape)], float)
+                           .reshape((1,) * (nd - len(arrays[a].shape)) + tuple(min(s, AXIS_SAMPLE)
+                                                                               for s in arrays[a].shape))
+                           for a in ANGLES if a in arrays and 1 < len(arrays[a].shape) <= nd}
+                _check_measurement_axis(samples, axis, None, tuple(dop.shape))
+            if axis != nd - 1:  # the measurements last; every array over dop's axes moved alike
+                for name, v in list(arrays.items()):
+                    if name == "mask" or (name in ANGLES and len(v.shape) == 1) or len(v.shape) == 0:
+                        continue
+                    if len(v.shape) > nd:
+                        continue  # refused below, with its shape
+                    v = v.reshape((1,) * (nd - len(v.shape)) + tuple(v.shape))
+                    arrays[name] = np.moveaxis(v, axis, -1)
+                dop = arrays["dop"]
             self.shape, self.M = tuple(dop.shape[:-1]), int(dop.shape[-1])
             nd = len(self.shape)
             self.dims = tuple(data.get("dims") or (("y", "x") if nd == 2 else ("pixel",) if nd == 1
@@ -153,11 +277,9 @@ class _Source:
             self.mdim = data.get("mdim", "measurement")
             self.vars = {"dop": dop}
             for name in VARIABLES[1:]:
-                v = data.get(name)
+                v = arrays.get(name)
                 if v is None:
                     continue
-                if not hasattr(v, "shape"):
-                    v = np.asarray(v, float)
                 full = self.shape if name == "mask" else tuple(dop.shape)
                 if name != "mask" and tuple(v.shape) in ((self.M,), ()) and name in ANGLES:
                     v = np.broadcast_to(np.asarray(v, float), (self.M,))
@@ -174,7 +296,9 @@ class _Source:
         for a in ANGLES[:2]:
             if a not in self.vars:
                 raise ValueError(f"data: no {a!r} (degrees): give it shared, shape ({self.M},), or per pixel")
-        if "phi" not in self.vars:
+        #: whether phi was given (without it every measurement is taken in plane, phi = 180)
+        self.phi_given = "phi" in self.vars
+        if not self.phi_given:
             self.vars["phi"] = np.full(self.M, 180.0)
         if "s0" in self.vars:
             if "f00" in self.vars:
@@ -182,6 +306,12 @@ class _Source:
             self.vars["f00"] = self.vars.pop("s0")
         if "f00_std" in self.vars and "f00" not in self.vars:
             raise ValueError("data: f00_std is given without f00")
+        for name in ("dop_std", "f00_std"):
+            v = self.vars.get(name)
+            if v is not None and np.ndim(v) == 0 and np.isnan(float(np.asarray(v))):
+                raise ValueError(f"data: {name} is NaN (one value for every measurement): give the noise std (> 0)"
+                                 + (", or leave dop_std out to estimate each pixel's noise from its residuals"
+                                    if name == "dop_std" else ""))
         if len(self.dims) != len(self.shape):
             raise ValueError(f"data: dims {self.dims} do not match dop's pixel dimensions {self.shape}")
         self.shared = all(np.ndim(self.vars[a]) == 1 for a in ANGLES)
@@ -224,8 +354,10 @@ def open_stack(path):
     ----------
     path : str or path
         ``.npz`` (arrays named as :func:`fit_batch`'s variables: ``dop`` of shape (y, x, M), the
-        angles of shape (M,) or dop's, scalars or pixel maps for the rest), ``.nc`` (netCDF,
-        opened lazily) or ``.zarr`` (opened lazily: blocks of rows are read one at a time).
+        angles of shape (M,) or dop's, scalars or pixel maps for the rest; with shared angles of
+        shape (M,) the measurements may lie along any one axis of dop of length M, which is
+        named ``m``), ``.nc`` (netCDF, opened lazily) or ``.zarr`` (opened lazily: blocks of
+        rows are read one at a time).
 
     Returns
     -------
@@ -259,16 +391,25 @@ def open_stack(path):
             return load_stack(p)
         if "dop" not in arrays:
             raise ValueError(f"{p}: no 'dop' array (found {', '.join(arrays)})")
-        nd = arrays["dop"].ndim
+        shape = arrays["dop"].shape
+        nd = len(shape)
+        if nd < 2:
+            raise ValueError(f"{p}: dop must have pixel axes and a measurement axis, got shape {shape}")
+        # the measurement axis: the one the shared angles' length names (the last by default)
+        axis = _axis_of_lengths(shape, {a: arrays[a].size for a in ANGLES
+                                        if a in arrays and arrays[a].ndim == 1 and arrays[a].size > 1})
+        axis = nd - 1 if axis is None else axis
         lead = ("y", "x") if nd == 3 else tuple(f"dim_{i}" for i in range(nd - 1))
+        dims = lead[:axis] + ("m",) + lead[axis:]
+        pixels = tuple(n for i, n in enumerate(shape) if i != axis)
         ds = xr.Dataset()
         skipped = []
         for k, a in arrays.items():
-            if a.shape == arrays["dop"].shape:
-                ds[k] = (lead + ("m",), a)
-            elif a.ndim == 1 and a.size == arrays["dop"].shape[-1]:
+            if a.shape == shape:
+                ds[k] = (dims, a)
+            elif a.ndim == 1 and a.size == shape[axis]:
                 ds[k] = (("m",), a)
-            elif a.shape == arrays["dop"].shape[:-1]:
+            elif a.shape == pixels:
                 ds[k] = (lead, a)
             elif a.ndim == 0:
                 ds[k] = ((), a)
@@ -277,7 +418,7 @@ def open_stack(path):
         if skipped:  # coordinates, light positions, ...: not inputs of the fit
             import warnings
             from .data import DataWarning
-            warnings.warn(f"{p}: arrays not read (their shapes fit neither dop {arrays['dop'].shape}, its pixels "
+            warnings.warn(f"{p}: arrays not read (their shapes fit neither dop {shape}, its pixels "
                           f"nor its measurements): {', '.join(skipped)}", DataWarning, stacklevel=2)
         return ds
     if suffix in (".nc", ".h5", ".netcdf"):
@@ -324,6 +465,16 @@ def _check_block(block, r0, source):
             bad = ~ok(block[name])
             if bad.any():
                 raise ValueError(f"{name} must be {rule}, got {first(name, bad)}")
+    # a NaN std marks a missing measurement only where the value is missing too: a measured value
+    # without its std is refused (as pbrdf_cl.fit refuses it), not silently left out
+    for name, value in (("dop_std", "dop"), ("f00_std", "f00")):
+        if name in block and value in block:
+            bad = np.isnan(block[name]) & ~np.isnan(block[value])
+            if bad.any():
+                i = int(np.argmax(bad.reshape(-1)))
+                raise ValueError(f"{name} is NaN at index {where(name, i)} where {value} is "
+                                 f"{float(block[value].reshape(-1)[i])!r}: give that measurement's std (> 0), or "
+                                 f"NaN in {value} too to leave it out as missing")
 
 
 @dataclass
@@ -918,10 +1069,13 @@ def fit_batch(data, model="six-param", bounds=None, fixed=None, shadowing="paper
         ``dop`` of shape ``(..., M)`` (pixel dimensions, then M measurements; NaN marks a missing
         measurement of that pixel); ``theta_i``, ``theta_r`` and optionally ``phi`` (degrees,
         default 180) shared, shape ``(M,)``, or per pixel, broadcastable to ``dop``; optional
-        ``dop_std`` (broadcastable), ``f00`` or ``s0`` intensities (then ks and kd are
-        separated, as in :func:`pbrdf_cl.fit`), ``f00_std`` and a boolean ``mask`` over the
-        pixel dimensions (False: skip the pixel).  A path to a ``.npz``, ``.nc`` or ``.zarr``
-        stack with those variables.
+        ``dop_std`` (broadcastable; NaN only where ``dop`` is NaN), ``f00`` or ``s0``
+        intensities (then ks and kd are separated, as in :func:`pbrdf_cl.fit`), ``f00_std`` and
+        a boolean ``mask`` over the pixel dimensions (False: skip the pixel).  A path to a
+        ``.npz``, ``.nc`` or ``.zarr`` stack with those variables.  The measurements may lie
+        along another axis where the geometry says which (the shared angles' axis or
+        dimension, or a Dataset dimension named ``m``; see :class:`_Source`); ambiguous layouts
+        are refused.  Without ``phi`` every measurement is in plane (``attrs["data_notes"]``).
     model, bounds, fixed, shadowing
         As for :func:`pbrdf_cl.fit`.
     memory_budget : int or str, default "512 MiB"
@@ -951,8 +1105,12 @@ def fit_batch(data, model="six-param", bounds=None, fixed=None, shadowing="paper
         ``kd``, ``c``, and ``ks`` with intensities; kd is kd/ks without them), ``sse`` (sum of
         squared DOP residuals), ``chi2`` (weighted), ``<name>_stderr``, ``<name>_ci95`` (a
         trailing ``bound`` dimension: low, high), ``determined`` (per parameter: the 95%
-        interval is narrower than half the bounds), ``n_valid`` (measurements used), ``nfev``
-        and ``status`` (codes in ``attrs["status_codes"]``); units and settings in ``attrs``.
+        interval is narrower than half the bounds), ``r2``, ``p_value`` and ``fits_data`` (the
+        goodness-of-fit test of each pixel, as :func:`pbrdf_cl.fit`'s), ``n_valid``
+        (measurements used), ``nfev`` and ``status`` (codes in ``attrs["status_codes"]``); the
+        stack's coordinates over the pixels; units, settings and the image's goodness of fit
+        (:func:`goodness_summary`: ``attrs["goodness"]``, and ``attrs["goodness_warning"]``
+        where too many pixels fail) in ``attrs``.
 
     Raises
     ------
@@ -990,7 +1148,107 @@ def fit_batch(data, model="six-param", bounds=None, fixed=None, shadowing="paper
     if bar is not None:
         bar.close()
     out = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
-    return job.dataset(out, seconds=time.perf_counter() - t0)
+    ds = job.dataset(out, seconds=time.perf_counter() - t0)
+    ds.attrs.update(goodness_summary(ds))
+    return ds
+
+
+#: fit-image warns that the model does not describe the data when more than this share of the
+#: fitted pixels fails the goodness-of-fit test (``fits_data`` 0): the chi2 test with dop_std;
+#: the R^2 test without, which also fails pixels whose DOP hardly varies beyond its noise (a
+#: third of random pixels in the paper's geometry at DOP noise 0.002, most of them nearly
+#: unpolarised light), so there only when most pixels fail it.
+GOODNESS_SHARE = {"chi2": 0.1, "r2": 0.5}
+#: At most this many pixels' statistics are read for the medians of :func:`goodness_summary`
+#: (every s-th pixel of a larger result).
+GOODNESS_SAMPLE = 2 ** 22
+
+
+def goodness_summary(ds):
+    """Whether the model describes an image fit's data, over all its fitted pixels, as
+    :func:`pbrdf_cl.fit` says it of one fit: the attributes :func:`fit_batch` and
+    ``fit_batch_to_store`` add to their result (read block by block from a store).
+
+    Parameters
+    ----------
+    ds : xarray.Dataset
+        A result of :func:`fit_batch` (its ``fits_data``, ``chi2``, ``r2`` and ``n_valid``).
+
+    Returns
+    -------
+    dict
+        ``goodness_test`` ("chi2": the p-value of each pixel's chi2 below GOODNESS_P fails, with
+        dop_std; "r2": R^2 below GOODNESS_R2 fails, without), ``goodness_tested`` (fitted
+        pixels), ``goodness_failed``, ``goodness_share_failed``, ``goodness_fits_data`` (1
+        unless more than GOODNESS_SHARE of the tested pixels fail: 10% of the chi2 test, 50% of
+        the R^2 test), ``goodness`` (a line saying so, with the median and the worst pixel, by
+        its indices) and, where ``goodness_fits_data`` is 0, ``goodness_warning`` (a WARNING
+        line with the usual causes and the notes the data show).
+
+    Examples
+    --------
+    >>> res = fit_batch(stack)  # doctest: +SKIP
+    >>> res.attrs["goodness"].split("; ")[:2]  # doctest: +SKIP
+    ['goodness of fit: 0 of 576 fitted pixels (0.0%) fail the chi2 test (p < 0.001 with dop_std)',
+     'median chi2 22.8 for 25 degrees of freedom']
+    """
+    from .inversion import _CAUSES
+    chi2_test = bool(ds.attrs.get("sigma_known", 0))
+    free = len(str(ds.attrs.get("free", "")).split())
+    intensity = "ks" in str(ds.attrs.get("free", "")).split()
+    fits = ds["fits_data"]
+    shape = fits.shape
+    n_total = int(np.prod(shape, dtype=np.int64))
+    step = max(1, -(-n_total // GOODNESS_SAMPLE))
+    rows = fits.chunks[0] if fits.chunks else (shape[0],) if shape else (1,)
+    tested = failed = 0
+    sample, dofs = [], []
+    worst = (None, None)  # (flat index, value): the largest reduced chi2 or the lowest R^2
+    r = 0
+    flat0 = 0
+    for size in rows:
+        part = {k: np.asarray(ds[k][r:r + size].values).ravel() for k in ("fits_data", "chi2", "r2", "n_valid")}
+        r += size
+        ok = part["fits_data"] >= 0
+        tested += int(ok.sum())
+        failed += int((part["fits_data"] == 0).sum())
+        dof = np.maximum(part["n_valid"] * (2 if intensity else 1) - free, 1)
+        value = part["chi2"] / dof if chi2_test else part["r2"]
+        value = np.where(ok & np.isfinite(value), value, np.nan)
+        if np.isfinite(value).any():
+            i = int(np.nanargmax(value) if chi2_test else np.nanargmin(value))
+            if worst[1] is None or (value[i] > worst[1] if chi2_test else value[i] < worst[1]):
+                worst = (flat0 + i, float(value[i]))
+        keep = np.arange(value.size)[(flat0 + np.arange(value.size)) % step == 0]
+        keep = keep[np.isfinite(value[keep])]
+        sample.append((part["chi2"] if chi2_test else value)[keep])
+        dofs.append(dof[keep])
+        flat0 += value.size
+    out = {"goodness_test": "chi2" if chi2_test else "r2", "goodness_tested": tested, "goodness_failed": failed,
+           "goodness_share_failed": failed / tested if tested else 0.0}
+    share = out["goodness_share_failed"]
+    out["goodness_fits_data"] = int(share <= GOODNESS_SHARE[out["goodness_test"]])
+    test = (f"the chi2 test (p < {GOODNESS_P:g} with dop_std)" if chi2_test else
+            f"the R^2 test (the fit explains less than {GOODNESS_R2:.0%} of the DOP's variance; no dop_std)")
+    text = f"goodness of fit: {failed} of {tested} fitted pixels ({share:.1%}) fail {test}"
+    sample = np.concatenate(sample) if sample else np.zeros(0)
+    if sample.size:
+        if chi2_test:
+            text += (f"; median chi2 {np.median(sample):.3g} for {np.median(np.concatenate(dofs)):g} degrees of "
+                     "freedom")
+        else:
+            text += f"; median R^2 {np.median(sample):.3g}"
+    if worst[0] is not None:
+        idx = np.unravel_index(worst[0], shape)
+        where = ", ".join(f"{d}={i}" for d, i in zip(fits.dims, idx))
+        text += (f"; worst at {where}: " + (f"reduced chi2 {worst[1]:.3g}" if chi2_test else f"R^2 {worst[1]:.3g}"))
+    out["goodness"] = text
+    if not out["goodness_fits_data"]:
+        notes = "; ".join(str(ds.attrs.get("data_notes", "")).splitlines())
+        out["goodness_warning"] = (f"WARNING: the model does not describe the data of {share:.0%} of the fitted "
+                                   "pixels (fits_data = 0 there); their values and intervals are not to be trusted; "
+                                   f"usual causes: {_CAUSES}" + (f"; the data show: {notes}" if notes else ""))
+    return out
 
 
 def _bar(total, enabled):
@@ -1036,6 +1294,9 @@ class BatchJob:
                             np.array([bnds[n][1] for n in free]), base, fx, axes, use_f00,
                             tuple(bnds.get("ks", DEFAULT_BOUNDS["ks"])), n_starts, sigma_known, floor)
         self.order, self.rstart = _regions(_grid_values(self.setup), free)
+        #: What the data show of the usual mistakes (phi not given, phi = 0, radians), from the
+        #: first row of pixels: the result's ``attrs["data_notes"]`` and the goodness summary's causes.
+        self.notes = _data_notes(self.source)
 
     @property
     def names(self):
@@ -1093,6 +1354,24 @@ class BatchJob:
         return _dataset(self, out, seconds)
 
 
+def _data_notes(source):
+    """Notes on the conventions the stack shows by itself: phi not given (every measurement in
+    plane), phi = 0 and angles below 1.6 degrees in the first row of pixels (as
+    :func:`pbrdf_cl.fit`'s notes)."""
+    from .data import PHI_DEFAULT_NOTE
+    notes = [] if source.phi_given else [PHI_DEFAULT_NOTE]
+    raw = source.rows(0, 1)
+    hi = api.radians_suspect(raw["theta_i"], raw["theta_r"])
+    if hi is not None:
+        notes.append(f"every theta_i and theta_r of the first row lies below {api.RADIANS_HINT} degrees (the largest "
+                     f"is {hi:.4g}): radians? pbrdf-cl takes degrees")
+    if source.phi_given and np.all(np.asarray(raw["phi"]) == 0.0):
+        notes.append("phi = 0 for every measurement of the first row: that is the plane of incidence on the source's "
+                     "side (back-scattering); in-plane specular data have phi = 180 here (SCATMECH's phi = 0 is our "
+                     "180)")
+    return notes
+
+
 @_engine.falls_back
 def _fit_block(eng, setup, raw, order, rstart, names):
     """The flat per-pixel results of one block of pixels (``raw``: :meth:`_Source.rows`): the
@@ -1105,15 +1384,23 @@ def _fit_block(eng, setup, raw, order, rstart, names):
     status[(blk.count < D + 1) | (blk.distinct < D)] = -2
     status[~blk.mask] = -1
     todo = np.flatnonzero(status > 0)
-    out = {"x": np.full((p, n_out), np.nan), "stderr": np.full((p, n_out), np.nan),
-           "ci95": np.full((p, n_out, 2), np.nan), "determined": np.zeros((p, n_out), bool),
-           "chi2": np.full(p, np.nan), "sse": np.full(p, np.nan), "nfev": np.zeros(p, np.int64),
-           "status": status, "n_valid": blk.count}
+    out = _empty_outputs(p, n_out)
+    out["status"], out["n_valid"] = status, blk.count.astype(np.int64)
     if todo.size:
         done = _fit_pixels(eng, setup, blk if todo.size == p else blk.subset(todo), order, rstart, names)
         for k, v in done.items():
             out[k][todo] = v
     return out
+
+
+def _empty_outputs(p, n_out):
+    """The per-pixel outputs of :meth:`BatchJob.fit_rows` for ``p`` pixels not fitted (keys,
+    shapes and dtypes; status 0)."""
+    return {"x": np.full((p, n_out), np.nan), "stderr": np.full((p, n_out), np.nan),
+            "ci95": np.full((p, n_out, 2), np.nan), "determined": np.zeros((p, n_out), bool),
+            "chi2": np.full(p, np.nan), "sse": np.full(p, np.nan), "r2": np.full(p, np.nan),
+            "p_value": np.full(p, np.nan), "fits_data": np.full(p, -1, np.int8), "nfev": np.zeros(p, np.int64),
+            "status": np.zeros(p, np.int8), "n_valid": np.zeros(p, np.int64)}
 
 
 def _fit_pixels(eng, setup, blk, order, rstart, names):
@@ -1199,7 +1486,9 @@ def _towards_bounds(x, lo, hi):
     """Candidates (K, p, D) from the points ``x`` (p, D): the coordinates on a bound moved off it
     by 0.1% and 1% of the range, and those within SNAP of the range from a bound moved 10, 100
     and 1000 times closer to it, each alone and all together (None where no coordinate of any
-    point is near a bound)."""
+    point is near a bound).  The same K candidates for every point (a candidate that moves
+    nothing of a point is that point), so that a pixel's candidates, and the one it keeps, do
+    not depend on the other pixels of its block."""
     span = hi - lo
     near_lo, near_hi = x - lo < SNAP * span, hi - x < SNAP * span
     near = near_lo | near_hi
@@ -1210,17 +1499,14 @@ def _towards_bounds(x, lo, hi):
     # so a descent that reached kd = 0 cannot move them; off the bound by 0.1% and 1% it can
     on_lo, on_hi = x - lo <= 1e-9 * span, hi - x <= 1e-9 * span
     for f in (1e-3, 1e-2):
-        off = np.where(on_lo, lo + f * span, np.where(on_hi, hi - f * span, x))
-        if (off != x).any():
-            out.append(off)
+        out.append(np.where(on_lo, lo + f * span, np.where(on_hi, hi - f * span, x)))
     for f in (1e-1, 1e-2, 1e-3):
         closer = np.where(near_lo, lo + (x - lo) * f, np.where(near_hi, hi - (hi - x) * f, x))
         out.append(closer)
         for j in range(x.shape[1]):
-            if near[:, j].any():
-                one = x.copy()
-                one[:, j] = closer[:, j]
-                out.append(one)
+            one = x.copy()
+            one[:, j] = closer[:, j]
+            out.append(one)
     return np.stack(out)
 
 
@@ -1343,11 +1629,34 @@ def _statistics(setup, blk, names, xb, chi2, jtj, settled, X_all, sse_all, nfev)
     status[~settled] = 0
     status[~np.isfinite(best)] = -3
     failed = status == -3
+    r2, p_value, fits = _goodness(setup, blk, dop_sse, chi2, n_valid - D)
     out = {"x": xb, "stderr": se, "ci95": ci, "determined": determined & ~failed[:, None], "chi2": chi2,
-           "sse": dop_sse, "nfev": nfev, "status": status}
-    for k in ("x", "stderr", "ci95", "chi2", "sse"):
+           "sse": dop_sse, "r2": r2, "p_value": p_value, "fits_data": np.where(failed, -1, fits).astype(np.int8),
+           "nfev": nfev, "status": status}
+    for k in ("x", "stderr", "ci95", "chi2", "sse", "r2", "p_value"):
         out[k] = np.where(failed.reshape((-1,) + (1,) * (out[k].ndim - 1)), np.nan, out[k]).astype(float)
     return out
+
+
+def _goodness(setup, blk, dop_sse, chi2, dof):
+    """Per pixel, as :func:`pbrdf_cl.fit` tests a fit: (R^2 of the DOP, the p-value of chi2 with
+    ``dof`` degrees of freedom (NaN without dop_std), 1 where the model describes the pixel's
+    data else 0): with dop_std the p-value must reach GOODNESS_P, without it R^2 GOODNESS_R2
+    (a pixel whose DOP does not vary passes)."""
+    from scipy.stats import chi2 as chi2_dist
+    n = np.maximum(blk.count, 1)
+    mean = (blk.obs * blk.valid).sum(axis=1) / n
+    sst = np.where(blk.valid, blk.obs - mean[:, None], 0.0)
+    sst = np.einsum("pm,pm->p", sst, sst)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r2 = np.where(sst > 0, 1.0 - dop_sse / sst, np.nan)
+    if setup.sigma_known:
+        p_value = np.where(dof > 0, chi2_dist.sf(chi2, np.maximum(dof, 1)), np.nan)
+        fits = ~(p_value < GOODNESS_P)
+    else:
+        p_value = np.full(blk.p, np.nan)
+        fits = ~(r2 < GOODNESS_R2)
+    return r2, p_value, fits.astype(np.int8)
 
 
 def _dop_sse(setup, blk, names, xb):
@@ -1363,7 +1672,7 @@ def _dataset(job, out, seconds):
     src, setup = job.source, job.setup
     shape, dims = src.shape, src.dims
     names = job.names
-    ds = xr.Dataset(coords={d: src.coords[d] for d in dims if d in src.coords})
+    ds = xr.Dataset(coords=dict(src.coords))  # the stack's coordinates over pixel dimensions (x_mm, y_mm, ...)
     units = {"n": "1", "k": "1", "sigma": "1", "kd": "1", "c": "1", "ks": "1"}
     long = {"n": "refractive index (real part)", "k": "extinction coefficient", "sigma": "slope std per axis",
             "kd": "diffuse coefficient" + ("" if setup.use_f00 else " relative to ks (kd/ks)"),
@@ -1381,6 +1690,16 @@ def _dataset(job, out, seconds):
     ds["determined"] = (dims + ("param",), out["determined"].reshape(shape + (len(names),)),
                         {"long_name": "the 95% interval is narrower than "
                                       f"{DETERMINED_FRACTION:g} of the parameter's bounds"})
+    ds["r2"] = (dims, out["r2"].reshape(shape), {"units": "1", "long_name": "share of the DOP's variance the fit "
+                                                                            "explains (R^2)"})
+    ds["p_value"] = (dims, out["p_value"].reshape(shape),
+                     {"units": "1", "long_name": "p-value of chi2 for its degrees of freedom (n_valid minus the "
+                                                 "free parameters; NaN without dop_std)"})
+    ds["fits_data"] = (dims, out["fits_data"].reshape(shape),
+                       {"long_name": "whether the model describes the pixel's data: "
+                                     + (f"p_value >= {GOODNESS_P:g}" if setup.sigma_known else f"r2 >= {GOODNESS_R2:g}")
+                                     + " (as pbrdf_cl.fit tests a fit)",
+                        "flag_values": [1, 0, -1], "flag_meanings": "fits does_not_fit not_fitted"})
     ds["n_valid"] = (dims, out["n_valid"].reshape(shape), {"long_name": "valid DOP measurements"})
     ds["nfev"] = (dims, out["nfev"].reshape(shape), {"long_name": "model evaluations per measurement"})
     ds["status"] = (dims, out["status"].reshape(shape), {"long_name": "fit status", **_status_attrs()})
@@ -1396,6 +1715,9 @@ def _dataset(job, out, seconds):
     if setup.model == "six-param" and not setup.use_f00:
         ds.attrs["note"] = ("DOP depends on ks and kd only through kd/ks: ks is fixed at "
                             f"{setup.base['ks']:g} and kd is the ratio kd/ks")
+    ds.attrs["phi_given"] = int(src.phi_given)
+    if job.notes:
+        ds.attrs["data_notes"] = "\n".join(job.notes)  # one note a line
     if seconds is not None:
         ds.attrs["seconds"] = float(seconds)
     return ds

@@ -1,5 +1,7 @@
 """Figures of per-pixel fits (:func:`pbrdf_cl.batch.fit_batch`, ``pbrdf-cl fit-image --png``):
-the parameter maps with the widths of their 95% intervals, and the fit status of every pixel."""
+the parameter maps with the widths of their 95% intervals, and the fit status of every pixel;
+in the stack's coordinates, robust colour scales, undetermined, not-converged and missing pixels
+marked (:func:`plot_batch_maps`)."""
 from __future__ import annotations
 
 import numpy as np
@@ -17,6 +19,23 @@ def _units(attrs):
     return "dimensionless" if u in ("", "1") else u
 
 
+#: Colour scales of the maps run over these percentiles of the values drawn (with arrows where
+#: values lie beyond), so that one outlier does not flatten a map.
+PERCENTILES = (2.0, 98.0)
+#: Fill of the pixels a map has no value for (not fitted: masked, too few measurements, failed).
+MISSING_COLOUR = "#d0d0d0"
+#: Hatching of the value maps: (status code or "undetermined", hatch, legend label).
+MARKS = (("undetermined", "///", "this parameter undetermined (95% interval over half its bounds)"),
+         (0, "xxx", "not converged (status 0)"))
+#: Characters of a panel title per line (titles are wrapped to their panel, not cut by its colour bar).
+TITLE_WIDTH = 34
+
+
+def _ordinal(x):
+    n = int(round(x))
+    return f"{x:g}" + ("th" if 10 <= n % 100 <= 20 else {1: "st", 2: "nd", 3: "rd"}.get(n % 10, "th"))
+
+
 def _image(da, step):
     """A 2-d numpy image of a (y, x) or (pixel,) variable, every ``step``-th pixel (read lazily)."""
     if da.ndim == 1:
@@ -24,11 +43,89 @@ def _image(da, step):
     return np.asarray(da[::step, ::step].values)
 
 
+def _axis_coordinate(ds, dim, step):
+    """(label, values) of the coordinate to draw pixel dimension ``dim`` in: a numeric, evenly
+    spaced 1-d coordinate over it (the dimension's own, else one such as ``x_mm``, units in the
+    label); (dim, None) for pixel indices."""
+    names = [dim] + sorted(str(c) for c in ds.coords if str(c) != dim)
+    for name in names:
+        if name not in ds.coords or ds[name].dims != (dim,):
+            continue
+        v = np.asarray(ds[name].values)
+        if not np.issubdtype(v.dtype, np.number) or v.size < 1 or not np.all(np.isfinite(v)):
+            continue
+        v = v[::step].astype(float)
+        d = np.diff(v)
+        if v.size > 1 and (d[0] == 0 or not np.allclose(d, d[0], rtol=1e-6, atol=0)):
+            continue
+        units = ds[name].attrs.get("units")
+        return (f"{name} ({units})" if units else name), v
+    return f"{dim} (index)", None
+
+
+def _extent(cx, cy, shape):
+    """imshow's extent for pixel centres at the coordinates ``cx``, ``cy`` (None: indices)."""
+    def edges(c, n):
+        if c is None:
+            return -0.5, n - 0.5
+        h = (c[1] - c[0]) / 2 if c.size > 1 else 0.5
+        return c[0] - h, c[-1] + h
+    x0, x1 = edges(cx, shape[1])
+    y0, y1 = edges(cy, shape[0])
+    return (x0, x1, y1, y0)  # row 0 at the top, at the first y value
+
+
+def _limits(values):
+    """(vmin, vmax, extend, robust): the PERCENTILES of the finite ``values`` (a list of arrays),
+    the colour bar's arrows for values beyond them, and whether any value lies beyond."""
+    finite = np.concatenate([np.asarray(a, float)[np.isfinite(a)].ravel() for a in values])
+    if not finite.size:
+        return 0.0, 1.0, "neither", False
+    lo, hi = (float(v) for v in np.percentile(finite, PERCENTILES))
+    if hi <= lo:
+        lo, hi = float(finite.min()), float(finite.max())
+    if hi - lo <= 1e-9 * max(abs(lo), abs(hi)) or hi <= lo:  # a flat map (to rounding): 1% either side
+        mid = (lo + hi) / 2
+        lo, hi = mid - max(abs(mid) * 0.01, 1e-12), mid + max(abs(mid) * 0.01, 1e-12)
+    below, above = bool((finite < lo).any()), bool((finite > hi).any())
+    extend = {(False, False): "neither", (True, False): "min", (False, True): "max", (True, True): "both"}
+    return lo, hi, extend[(below, above)], below or above
+
+
+def _hatch(ax, mask, extent, hatch):
+    """Hatch the pixels of ``mask`` (2-d bool) over an image drawn with ``extent``: one
+    rectangle per run of marked pixels along a row, so that the pattern follows pixel edges."""
+    from matplotlib.collections import PatchCollection
+    from matplotlib.patches import Rectangle
+    ny, nx = mask.shape
+    x0, x1, y1, y0 = extent
+    dx, dy = (x1 - x0) / nx, (y1 - y0) / ny
+    rects = []
+    for r in range(ny):
+        row = np.concatenate([[False], mask[r], [False]])
+        starts = np.flatnonzero(row[1:] & ~row[:-1])
+        ends = np.flatnonzero(~row[1:] & row[:-1])
+        for a, b in zip(starts, ends):
+            rects.append(Rectangle((x0 + a * dx, y0 + r * dy), (b - a) * dx, dy))
+    if rects:  # black hatching over a white veil: visible on light and dark colours alike
+        ax.add_collection(PatchCollection(rects, facecolor=(1.0, 1.0, 1.0, 0.3), edgecolor="black", hatch=hatch,
+                                          linewidth=0.0))
+
+
 def plot_batch_maps(ds, path, *, truth=None, max_side=MAX_SIDE):
     """Draw the maps of a per-pixel fit into a PNG: per fitted parameter, its value and the width
     of its 95% interval (and, given the truth, the true map beside the fitted one on the same
     colour scale, with the share of pixels whose interval covers it), and a panel of the fit
     status.
+
+    The maps are drawn in the stack's coordinates where the result has evenly spaced numeric
+    ones over its pixel dimensions (``x_mm``, ``y_mm``: equal units, equal scales), else in
+    pixel indices.  Each colour scale runs over the 2nd to 98th percentile of the values drawn
+    (widened to the truth's range beside it), said on its colour bar, with arrows where values
+    lie beyond.  On the value and width maps, pixels where that parameter is undetermined
+    (``determined`` False) are hatched ``///``, pixels whose descent did not converge (status 0)
+    ``xxx``, and pixels without a value (not fitted) are grey; a legend beside the status panel
+    says so.
 
     Parameters
     ----------
@@ -68,6 +165,17 @@ def plot_batch_maps(ds, path, *, truth=None, max_side=MAX_SIDE):
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    fig = _figure(ds, truth, max_side)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return str(path)
+
+
+def _figure(ds, truth, max_side):
+    """The matplotlib figure of :func:`plot_batch_maps`."""
+    import textwrap
+
+    import matplotlib.pyplot as plt
     from matplotlib.colors import BoundaryNorm, ListedColormap
     from matplotlib.patches import Patch
 
@@ -86,71 +194,149 @@ def plot_batch_maps(ds, path, *, truth=None, max_side=MAX_SIDE):
     step = max(1, -(-side // int(max_side)))
     sub = "" if step == 1 else f" (every {step}th pixel)"
     shape = ds["status"].shape
-    aspect = (shape[0] / shape[1]) if len(shape) == 2 else 0.2
-    w = 4.2
-    h = max(1.2, min(4.2, w * aspect)) + 0.6
+    status = _image(ds["status"], step).astype(int)
+    if len(dims) == 2:
+        (ylab, cy), (xlab, cx) = _axis_coordinate(ds, dims[0], step), _axis_coordinate(ds, dims[1], step)
+    else:
+        (ylab, cy), (xlab, cx) = ("", None), _axis_coordinate(ds, dims[0], step)
+    extent = _extent(cx, cy, status.shape)
+    same_units = len(dims) == 2 and (cx is None) == (cy is None) and (
+        cx is None or ds[xlab.split(" (")[0]].attrs.get("units") == ds[ylab.split(" (")[0]].attrs.get("units"))
+    aspect = "equal" if same_units else "auto"
+    # the layout, in inches: each panel an image (its aspect that of the map when drawn in equal
+    # units), its colour bar against it, the bar's labels, and room for the title and axis labels
+    if aspect == "equal":
+        ratio = abs((extent[2] - extent[3]) / (extent[1] - extent[0]))
+    else:
+        ratio = (shape[0] / shape[1]) if len(shape) == 2 else 0.25
+    # images 3 inches wide, 2 to 4 high (a colour bar shorter than 2 inches has no room for its
+    # label), up to 6 wide where the map is wide; beyond that (and for one pixel dimension) stretched
+    img_w = 3.0
+    img_h = img_w * ratio
+    if img_h < 2.0:
+        img_w = min(6.0, 2.0 / ratio) if aspect == "equal" else img_w
+        img_h = max(2.0, img_w * ratio) if aspect == "equal" else 2.0
+    if img_h > 4.0:
+        img_h, img_w = 4.0, (4.0 / ratio if aspect == "equal" else img_w)
+    left, gap, bar, right, top, bottom = 0.95, 0.08, 0.14, 1.15, 0.62, 0.58
+    panel_w, panel_h = left + img_w + gap + bar + right, top + img_h + bottom
     ncol = 3 if truth is not None else 2
-    fig, axes = plt.subplots(len(names) + 1, ncol, figsize=(ncol * w + 1.2, h * (len(names) + 1)), squeeze=False,
-                             constrained_layout=True)
-    ylab, xlab = (dims if len(dims) == 2 else ("", dims[0]))
+    nrow = len(names) + 1
+    legend_h = 2.9  # the status row holds the legends (of the statuses and of the marks on the maps)
+    heights = [panel_h] * (nrow - 1) + [max(panel_h, top + legend_h + bottom)]
+    fig_w, fig_h = ncol * panel_w + 0.2, sum(heights) + 0.45
+    fig = plt.figure(figsize=(fig_w, fig_h))
+    axes = np.empty((nrow, ncol), object)
+    caxes = np.empty((nrow, ncol), object)
+    for r in range(nrow):
+        for c in range(ncol):
+            x0, y0 = 0.1 + c * panel_w + left, fig_h - 0.45 - sum(heights[:r]) - top - img_h
+            axes[r, c] = fig.add_axes([x0 / fig_w, y0 / fig_h, img_w / fig_w, img_h / fig_h])
+            caxes[r, c] = fig.add_axes([(x0 + img_w + gap) / fig_w, y0 / fig_h, bar / fig_w, img_h / fig_h])
+            caxes[r, c].set_axis_off()
+    not_converged = status == 0
+    marked = {"undetermined": False, 0: bool(not_converged.any())}
+    missing = False
+
+    def draw(at, img, title, cmap, label, limits, marks=None):
+        nonlocal missing
+        ax, cax = axes[at], caxes[at]
+        lo, hi, extend, robust = limits[:4]
+        cm = plt.get_cmap(cmap).with_extremes(bad=MISSING_COLOUR)
+        im = ax.imshow(np.ma.masked_invalid(img), cmap=cm, vmin=lo, vmax=hi, interpolation="nearest", aspect="auto",
+                       extent=extent)
+        missing = missing or bool(np.isnan(img).any())
+        for mask, hatch in marks or ():
+            _hatch(ax, mask, extent, hatch)
+        ax.set_title(textwrap.fill(title, TITLE_WIDTH), fontsize=9)
+        ax.set_xlabel(xlab)
+        ax.set_ylabel(ylab)
+        if len(dims) == 1:
+            ax.set_yticks([])
+        if robust:  # (short: the label must not run past the bar into the title)
+            label += f"\nscale: {_ordinal(PERCENTILES[0])}-{_ordinal(PERCENTILES[1])} percentile" + (
+                ", truth" if len(limits) > 4 else "")
+        cax.set_axis_on()
+        cb = fig.colorbar(im, cax=cax, extend=extend)
+        cb.set_label(label, fontsize=8)
+        if hasattr(cb.formatter, "set_useOffset"):
+            cb.formatter.set_useOffset(False)  # no "1e-8+5e-2" above the bar, into the title
+
     for row, n in enumerate(names):
         value = _image(ds[n], step)
         ci = ds[f"{n}_ci95"] if f"{n}_ci95" in ds else None
         long = ds[n].attrs.get("long_name", "")
-        panels = [(value, f"{n}: {long}{sub}" if long else f"{n}{sub}", "viridis", f"{n} ({_units(ds[n].attrs)})")]
+        label = f"{n} ({_units(ds[n].attrs)})"
+        undetermined = np.zeros(value.shape, bool)
+        if "determined" in ds and "param" in ds["determined"].dims and n in list(ds["determined"].param.values):
+            undetermined = ~_image(ds["determined"].sel(param=n), step).astype(bool) & (status >= 0) & (status != 0) \
+                & np.isfinite(value)
+        marked["undetermined"] |= bool(undetermined.any())
+        marks = [(undetermined, MARKS[0][1]), (not_converged, MARKS[1][1])]
+        lo, hi, _, _ = limits = _limits([value])
+        true = None
         if truth is not None and f"true_{n}" in truth:
             true = _image(truth[f"true_{n}"], step)
-            cover = ""
-            if ci is not None:
-                lo, hi = _image(ci.isel(bound=0), step), _image(ci.isel(bound=1), step)
-                fitted = np.isfinite(lo)
-                cover = f"; 95% intervals cover it in {np.mean(((lo <= true) & (true <= hi))[fitted]):.1%} of pixels"
-            panels.insert(0, (true, f"{n}: truth{cover}{sub}", "viridis", f"{n} ({_units(ds[n].attrs)})"))
+            finite = true[np.isfinite(true)]
+            if finite.size:  # the truth drawn whole on the fitted map's scale
+                lo, hi = min(lo, float(finite.min())), max(hi, float(finite.max()))
+                below, above = bool((value < lo).any()), bool((value > hi).any())
+                extend = {(False, False): "neither", (True, False): "min", (False, True): "max"}.get((below, above),
+                                                                                                   "both")
+                limits = (lo, hi, extend, below or above, "truth")
+        col = 0
+        if truth is not None:
+            if true is not None:
+                cover = ""
+                if ci is not None:
+                    l_, h_ = _image(ci.isel(bound=0), step), _image(ci.isel(bound=1), step)
+                    fitted = np.isfinite(l_)
+                    cover = (f"; 95% intervals cover it in {np.mean(((l_ <= true) & (true <= h_))[fitted]):.1%} "
+                             "of pixels")
+                draw((row, 0), true, f"{n}: truth{cover}{sub}", "viridis", label, limits)
+            else:
+                axes[row, 0].set_axis_off()
+            col = 1
+        draw((row, col), value, f"{n}: {long}{sub}" if long else f"{n}{sub}", "viridis", label, limits, marks)
         if ci is not None:
-            lo, hi = _image(ci.isel(bound=0), step), _image(ci.isel(bound=1), step)
-            panels.append((hi - lo, f"{n}: width of the 95% interval (high - low){sub}", "magma",
-                           f"width of {n} ({_units(ds[n].attrs)})"))
-        shared_scale = [p[0] for p in panels[:-1]] if len(panels) == 3 else [panels[0][0]]
-        both = np.concatenate([a[np.isfinite(a)].ravel() for a in shared_scale])
-        for col in range(ncol):
-            ax = axes[row, col]
-            if col >= len(panels):
-                ax.set_axis_off()
-                continue
-            img, title, cmap, label = panels[col]
-            finite = both if col < len(shared_scale) else img[np.isfinite(img)]  # truth and value share a scale
-            kw = {}
-            if finite.size:
-                kw = dict(vmin=float(finite.min()), vmax=float(finite.max()) if finite.max() > finite.min()
-                          else float(finite.min()) + 1e-12)
-            im = ax.imshow(img, cmap=cmap, interpolation="nearest", aspect="auto" if len(dims) == 1 else "equal", **kw)
-            ax.set_title(title, fontsize=9)
-            ax.set_xlabel(xlab)
-            ax.set_ylabel(ylab)
-            fig.colorbar(im, ax=ax, label=label, shrink=0.9)
+            width = _image(ci.isel(bound=1), step) - _image(ci.isel(bound=0), step)
+            draw((row, col + 1), width, f"{n}: width of the 95% interval (high - low){sub}", "magma",
+                 f"width of {n} ({_units(ds[n].attrs)})", _limits([width]), marks)
+        else:
+            axes[row, col + 1].set_axis_off()
     # status: one colour per code, a legend with each code's name and its pixels
-    status = _image(ds["status"], step).astype(int)
     codes = sorted(STATUS)
     colours = [STATUS_COLOURS.get(c, "#ffffff") for c in codes]
     cmap = ListedColormap(colours)
     norm = BoundaryNorm([c - 0.5 for c in codes] + [codes[-1] + 0.5], cmap.N)
     ax = axes[-1, 0]
-    ax.imshow(status, cmap=cmap, norm=norm, interpolation="nearest", aspect="auto" if len(dims) == 1 else "equal")
+    ax.imshow(status, cmap=cmap, norm=norm, interpolation="nearest", aspect="auto", extent=extent)
     ax.set_title(f"fit status{sub}", fontsize=9)
     ax.set_xlabel(xlab)
     ax.set_ylabel(ylab)
+    if len(dims) == 1:
+        ax.set_yticks([])
     counts = {c: int((status == c).sum()) for c in codes}
     handles = [Patch(color=STATUS_COLOURS.get(c, "#ffffff"), label=f"{c}: {STATUS[c][0]} ({counts[c]})")
                for c in codes if counts[c]]
-    legend_ax = axes[-1, 1]
-    legend_ax.set_axis_off()
-    for ax in axes[-1, 2:]:
+    for ax in axes[-1, 1:]:
         ax.set_axis_off()
-    legend_ax.legend(handles=handles, loc="center left", title="status (pixels drawn)", fontsize=8,
-                     title_fontsize=9, frameon=False)
+    # the legends in the rest of the last row
+    x0 = (0.1 + panel_w) / fig_w
+    legend_ax = fig.add_axes([x0, (fig_h - 0.45 - sum(heights[:-1]) - top - legend_h) / fig_h, 0.98 - x0,
+                              legend_h / fig_h])
+    legend_ax.set_axis_off()
+    legend_ax.legend(handles=handles, loc="upper left", title="status (pixels drawn)", fontsize=9,
+                     title_fontsize=10, frameon=False, alignment="left")
+    maps = [Patch(facecolor=(1.0, 1.0, 1.0, 0.3), edgecolor="black", hatch=hatch, linewidth=0.0, label=text)
+            for key, hatch, text in MARKS if marked[key]]
+    if missing:
+        maps.append(Patch(facecolor=MISSING_COLOUR, label="no value: not fitted (see the status)"))
+    if maps:
+        legend_ax.add_artist(legend_ax.get_legend())
+        legend_ax.legend(handles=maps, loc="lower left", title="on the maps", fontsize=9, title_fontsize=10,
+                         frameon=False, alignment="left", handleheight=1.6, handlelength=2.4)
     model = ds.attrs.get("model", "")
     fig.suptitle(f"per-pixel fit{f' ({model} model)' if model else ''}: {' x '.join(map(str, shape))} pixels",
-                 fontsize=11)
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return str(path)
+                 fontsize=11, y=1 - 0.12 / fig_h, va="top")
+    return fig

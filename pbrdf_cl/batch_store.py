@@ -47,7 +47,7 @@ from . import sizes, sweeps
 from .engine import kernels_sha256, resolve_engine
 
 #: Version of the canonical settings (part of their hash).
-SETTINGS_VERSION = 1
+SETTINGS_VERSION = 2  # 2: the goodness-of-fit variables (r2, p_value, fits_data)
 DELAY_ENV = "PBRDF_BATCH_BLOCK_DELAY"
 DONE = sweeps.DONE
 HASHES = "_sweep/input_sha256"
@@ -169,18 +169,16 @@ def _block_dataset(job, out, r0, r1):
     src = part.source = copy.copy(job.source)
     src.shape = (r1 - r0,) + tuple(job.source.shape[1:])
     first = src.dims[0]
-    src.coords = {d: (v[r0:r1] if d == first else v) for d, v in job.source.coords.items()}
+    src.coords = {name: (cd, (v[(slice(None),) * cd.index(first) + (slice(r0, r1),)] if first in cd else v), attrs)
+                  for name, (cd, v, attrs) in job.source.coords.items()}
     return part.dataset(out)
 
 
 def _placeholder(job, rows):
     """Outputs of :meth:`~pbrdf_cl.batch.BatchJob.fit_rows` for ``rows`` rows with the right keys,
     shapes and dtypes (the store's template)."""
-    p = rows * int(np.prod(job.source.shape[1:], dtype=np.int64))
-    D = len(job.names)
-    return {"x": np.full((p, D), np.nan), "stderr": np.full((p, D), np.nan), "ci95": np.full((p, D, 2), np.nan),
-            "determined": np.zeros((p, D), bool), "chi2": np.full(p, np.nan), "sse": np.full(p, np.nan),
-            "nfev": np.zeros(p, np.int64), "status": np.zeros(p, np.int8), "n_valid": np.zeros(p, np.int64)}
+    from .batch import _empty_outputs
+    return _empty_outputs(rows * int(np.prod(job.source.shape[1:], dtype=np.int64)), len(job.names))
 
 
 class _Writer:
@@ -273,17 +271,23 @@ def _write_skeleton(job, blocks, block_rows, the_settings, memory_budget, store)
     first = job.source.dims[0]
     n0 = job.source.shape[0]
     for cname, c in template.coords.items():
-        values = np.asarray(job.source.coords[cname]) if cname == first else np.asarray(c.values)
+        full = job.source.coords.get(cname)  # the stack's own coordinates, whole (the template has one row)
+        values = np.asarray(full[1]) if full is not None else np.asarray(c.values)
         arr = sweeps._create_array(g, cname, values.shape, values.shape or (1,), values.dtype, None, None,
                                    {"_ARRAY_DIMENSIONS": list(c.dims), **c.attrs})
         arr[...] = values
     variables = list(template.data_vars)
+    # the stack's coordinates that are not dimensions (x_mm, y_mm, ...): named in each variable's
+    # "coordinates" attribute (CF), as xarray writes them, so that open_zarr reads them as coordinates
+    aux = [str(c) for c in template.coords if c not in template.dims]
     for v in variables:
         var = template[v]
         shape = (n0,) + var.shape[1:]
         fill = np.nan if var.dtype.kind == "f" else None  # no _FillValue on integers: 0 is a status
+        mine = [c for c in aux if set(template[c].dims) <= set(var.dims)]
         sweeps._create_array(g, v, shape, (block_rows,) + var.shape[1:], var.dtype, fill, sweeps._compressor(),
-                             {"_ARRAY_DIMENSIONS": list(var.dims), **var.attrs})
+                             {"_ARRAY_DIMENSIONS": list(var.dims), **var.attrs,
+                              **({"coordinates": " ".join(mine)} if mine else {})})
     sub = g.require_group("_sweep")
     sub.attrs.update(description=f"done[i] = 1 once block i (rows i*{block_rows} to (i+1)*{block_rows} of "
                                  f"{first}) is in the store; input_sha256[i]: SHA-256 of those rows of the input",
@@ -372,6 +376,17 @@ def _mark_complete(name, n_blocks):
             return
         g.attrs["batch_complete"] = True
     sweeps._zarr().consolidate_metadata(name)
+
+
+def _add_goodness(name, ds):
+    """The goodness-of-fit summary of a complete store (:func:`pbrdf_cl.batch.goodness_summary`,
+    read block by block) written into its attrs; returns it."""
+    from .batch import goodness_summary
+    summary = goodness_summary(ds)
+    g = sweeps._open_group(name, "r+")
+    g.attrs.update(summary)
+    sweeps._zarr().consolidate_metadata(name)
+    return summary
 
 
 def _add_devices(name, found):
@@ -626,6 +641,8 @@ def fit_batch_to_store(data, store, *, model="six-param", bounds=None, fixed=Non
     _mark_complete(name, len(blocks))
     ds = xr.open_zarr(name)
     ds = ds[[v for v in json.loads(ds.attrs["batch_variables"]) if v in ds]]  # fit_batch's order
+    if ds.attrs.get("batch_complete") and "goodness" not in ds.attrs:
+        ds.attrs.update(_add_goodness(name, ds))
     ds.attrs.update(seconds=seconds, blocks_computed=stats["blocks"], blocks_skipped=int(len(blocks) - todo.size),
                     pixels_computed=stats["pixels"], store=name)
     return ds

@@ -269,6 +269,7 @@ def _fit_json(r):
 
 def _fit_brief(r):
     """One line per fitted parameter and a first line with the model, for --quiet."""
+    from .data import PHI_DEFAULT_NOTE
     lines = [f"{r.model}: SSE {r.sse:.4g}" + ("" if r.fits_data else " (the model does not describe these data)")]
     ratio = "ks" in r.free and "kd" in r.free  # intensities: the interval under "kd" is that of kd/ks
     for name in r.free:
@@ -277,6 +278,8 @@ def _fit_brief(r):
             lines.append(f"  kd/ks = {r.kd_ratio:.5g}  [{lo:.4g}, {hi:.4g}]  (kd = {r.x['kd']:.5g})")
         else:
             lines.append(f"  {name} = {r.x[name]:.5g}  [{lo:.4g}, {hi:.4g}]")
+    if PHI_DEFAULT_NOTE in r.notes:
+        lines.append(f"  note: {PHI_DEFAULT_NOTE}")
     return "\n".join(lines)
 
 
@@ -390,6 +393,12 @@ def cmd_fit_image(args) -> int:
     print(f"fit-image: {px} of {total} pixels fitted in {fit_s:.3g} s{rate} ({total - px} already in the store; "
           f"{seconds:.3g} s in all)")
     print("status: " + ", ".join(f"{n} {c}" for n, c in counts.items()))
+    if "goodness" in ds.attrs:
+        print(ds.attrs["goodness"])
+    if "goodness_warning" in ds.attrs:
+        print(ds.attrs["goodness_warning"])
+    for note in str(ds.attrs.get("data_notes", "")).splitlines():
+        print(f"note: {note}")
     print(f"store: {ds.attrs['store']}" + (f"; maps: {args.png}" if args.png else ""))
     return 0
 

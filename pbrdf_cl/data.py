@@ -49,6 +49,11 @@ _SEP_LINE = re.compile(r"sep=([,;\t])")
 _DECIMAL_COMMA = re.compile(r"[+-]?[0-9]*,[0-9]+(?:[eE][+-]?[0-9]+)?")
 
 
+#: The note of a fit whose data do not give phi (:func:`pbrdf_cl.fit`, :func:`pbrdf_cl.fit_batch`).
+PHI_DEFAULT_NOTE = ("phi was not given: every measurement is taken in the plane of incidence (phi = 180, the paper's "
+                    "geometry); for out-of-plane measurements give phi (phi_i - phi_r, degrees)")
+
+
 class DataWarning(UserWarning):
     """Part of the measurements was ignored (columns that are not inputs of the model); the
     message names what and where."""
@@ -70,6 +75,8 @@ class Measurements:
     source: str = "arrays"
     lines: np.ndarray | None = field(default=None, repr=False)
     ignored: tuple = ()
+    #: False where the input had no phi (every point is then taken in plane, phi = 180)
+    phi_given: bool = True
 
     def __len__(self):
         return self.dop.size
@@ -114,10 +121,13 @@ def _validate(cols, source, locate):
         raise ValueError(f"{source}: no measurements")
 
 
-def from_arrays(theta_i, theta_r, dop, phi=180.0, dop_std=None, f00=None, f00_std=None, source="arrays",
+def from_arrays(theta_i, theta_r, dop, phi=None, dop_std=None, f00=None, f00_std=None, source="arrays",
                 _lines=None, _locate=None):
-    """Validated :class:`Measurements` from arrays (broadcast to a common length)."""
-    named = dict(theta_i=theta_i, theta_r=theta_r, dop=dop, phi=phi, dop_std=dop_std, f00=f00, f00_std=f00_std)
+    """Validated :class:`Measurements` from arrays (broadcast to a common length); without
+    ``phi`` every point is in plane (phi = 180) and ``phi_given`` is False."""
+    phi_given = phi is not None
+    named = dict(theta_i=theta_i, theta_r=theta_r, dop=dop, phi=180.0 if phi is None else phi, dop_std=dop_std,
+                 f00=f00, f00_std=f00_std)
     cols = {}
     for name, v in named.items():
         if v is None:
@@ -139,7 +149,7 @@ def from_arrays(theta_i, theta_r, dop, phi=180.0, dop_std=None, f00=None, f00_st
         raise ValueError(f"{source}: f00_std is given without f00")
     return Measurements(theta_i=cols["theta_i"], theta_r=cols["theta_r"], dop=cols["dop"], phi=cols["phi"],
                         dop_std=cols.get("dop_std"), f00=cols.get("f00"), f00_std=cols.get("f00_std"),
-                        source=source, lines=_lines)
+                        source=source, lines=_lines, phi_given=phi_given)
 
 
 def _short(v):
@@ -312,7 +322,7 @@ def read_csv(path) -> Measurements:
     cols = {name: table[:, j] for j, name in enumerate(used)}
     if "s0" in cols:
         cols["f00"] = cols.pop("s0")
-    meas = from_arrays(cols["theta_i"], cols["theta_r"], cols["dop"], cols.get("phi", 180.0), cols.get("dop_std"),
+    meas = from_arrays(cols["theta_i"], cols["theta_r"], cols["dop"], cols.get("phi"), cols.get("dop_std"),
                        cols.get("f00"), cols.get("f00_std"), source=path, _lines=np.array(lines))
     meas.ignored = tuple(names)
     return meas
@@ -434,7 +444,7 @@ def as_measurements(data) -> "Measurements":
         values["f00"] = values.pop("s0")
     shown = [str(names[i]) for i in ignored]
     _warn_ignored("data", shown, used)
-    meas = from_arrays(values["theta_i"], values["theta_r"], values["dop"], values.get("phi", 180.0),
+    meas = from_arrays(values["theta_i"], values["theta_r"], values["dop"], values.get("phi"),
                        values.get("dop_std"), values.get("f00"), values.get("f00_std"), source="data", _locate=locate)
     meas.ignored = tuple(shown)
     return meas

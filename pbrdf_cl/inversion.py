@@ -438,8 +438,13 @@ def _lm_batch(resid_rows, X0, lo, hi, iterations):
         with np.errstate(all="ignore"):
             try:
                 du = -np.linalg.solve(A, g[:, :, None])[:, :, 0]
-            except np.linalg.LinAlgError:  # an overflowing Jacobian: no step, more damping
-                du = np.zeros_like(X)
+            except np.linalg.LinAlgError:  # a singular problem (an overflowing or vanishing Jacobian):
+                du = np.zeros_like(X)     # no step for it, more damping; the others step as alone
+                for i in range(P):
+                    try:
+                        du[i] = -np.linalg.solve(A[i], g[i])
+                    except np.linalg.LinAlgError:
+                        pass
         du = np.where(np.isfinite(du), du, 0.0)
         Xt = np.clip(X + du * span, lo, hi)
         rt, Jt, sset = evaluate(Xt)
@@ -1313,6 +1318,9 @@ def _convention_notes(meas):
     if hi is not None:
         notes.append(f"every theta_i and theta_r lies below {api.RADIANS_HINT} degrees (the largest is {hi:.4g}): "
                      "radians? pbrdf-cl takes degrees")
+    if not meas.phi_given:
+        from .data import PHI_DEFAULT_NOTE
+        notes.append(PHI_DEFAULT_NOTE)
     if np.all(meas.phi == 0.0):
         notes.append("phi = 0 for every point: that is the plane of incidence on the source's side (back-"
                      "scattering); in-plane specular data have phi = 180 here (SCATMECH's phi = 0 is our 180)")

@@ -89,7 +89,7 @@ def fig2_data(sample, seed=SEED):
     clean = api.dop(ti, ti, 180.0, backend="numpy", **p)
     rng = np.random.default_rng([seed, sorted(FIG2_SAMPLES).index(sample)])
     noisy = np.clip(clean + rng.normal(0.0, FIG2_NOISE, ti.size), 0.0, 1.0)
-    meas = from_arrays(ti, ti, noisy, dop_std=np.full(ti.size, FIG2_NOISE), source=f"synthetic {sample}")
+    meas = from_arrays(ti, ti, noisy, 180.0, dop_std=np.full(ti.size, FIG2_NOISE), source=f"synthetic {sample}")
     return meas, clean
 
 

@@ -339,7 +339,10 @@ def test_cli_fit_image_writes_the_store_and_the_png(stack, tmp_path):
     ds = xr.open_zarr(tmp_path / "p.zarr")
     counts = status_counts(ds)
     assert lines[1] == "status: " + ", ".join(f"{n} {c}" for n, c in counts.items()) and "too_few 1" in lines[1]
-    assert lines[2] == f"store: {tmp_path / 'p.zarr'}; maps: {tmp_path / 'maps.png'}"
+    assert lines[2] == ds.attrs["goodness"] and lines[2].startswith("goodness of fit: 0 of 255 fitted pixels (0.0%)")
+    from pbrdf_cl.data import PHI_DEFAULT_NOTE
+    assert lines[3] == f"note: {PHI_DEFAULT_NOTE}"  # the stack has no phi
+    assert lines[4] == f"store: {tmp_path / 'p.zarr'}; maps: {tmp_path / 'maps.png'}"
     assert ds.attrs["free"] == "n k sigma c" and ds.attrs["fixed_kd"] == 0.15 and ds.attrs["batch_complete"]
     assert float(ds.n_ci95.max()) <= 3.0
     assert ds.attrs["batch_blocks"] == 2
