@@ -12,7 +12,7 @@ import pytest
 import pbrdf_cl
 from pbrdf_cl import cli
 from pbrdf_cl import inversion as F
-from pbrdf_cl.data import from_arrays, read_csv
+from pbrdf_cl.data import PHI_DEFAULT_NOTE, from_arrays, read_csv
 
 ROOT = Path(__file__).resolve().parent.parent
 TI = np.repeat([30.0, 40.0, 50.0], 10)
@@ -351,8 +351,10 @@ def test_cli_fit_one_model_and_quiet(tmp_path):
                           capture_output=True, text=True, timeout=600, env=env)
     assert proc.returncode == 0, proc.stderr
     lines = proc.stdout.strip().splitlines()
-    assert lines[0].startswith("specular: SSE") and [ln.split()[0] for ln in lines[1:]] == ["n", "k"]
+    notes = [ln.strip() for ln in lines[1:] if ln.strip().startswith("note:")]
+    assert lines[0].startswith("specular: SSE") and [ln.split()[0] for ln in lines[1:3]] == ["n", "k"]
     assert float(lines[1].split()[2]) == pytest.approx(1.6, rel=1e-4)
+    assert len(lines) == 3 + len(notes) and notes == [f"note: {PHI_DEFAULT_NOTE}"]  # the CSV has no phi column
     assert "six-param" not in proc.stdout and "preferred" not in proc.stdout
 
 
