@@ -182,7 +182,7 @@ def cmd_devices(args) -> int:
         when = "probe cached" if r["probe_cached"] else f"probe {r['probe_seconds']:.2f} s"
         print(f"        {state}: {r['probe']} ({when}{extra})")
         if r["narrow_vectors"]:
-            print(f"        256-bit vectors in the row and batch programs: {r['narrow_vectors']}")
+            print(f"        256-bit vectors in every vector program: {r['narrow_vectors']}")
         for line in _verdict_lines(trials.stored_verdicts(dev_of[r['id']])):
             print(f"        {line}")
     if _engine.DRIVER_MESSAGES:
