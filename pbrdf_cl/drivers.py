@@ -19,9 +19,12 @@ Set ``PBRDF_CL_NO_DRIVER_REGISTRATION=1`` to leave the loader's environment alon
 from __future__ import annotations
 
 import ctypes
+import dataclasses
 import hashlib
+import json
 import os
 import tempfile
+import threading
 from pathlib import Path
 
 #: The remedies named wherever no OpenCL device can be used.
@@ -183,3 +186,96 @@ def pocl_cache_problem() -> str | None:
     var = "POCL_CACHE_DIR" if os.environ.get("POCL_CACHE_DIR") else "PoCL's default cache folder"
     return (f"{var} {str(folder)!r} cannot be written ({why}), and PoCL then lists no devices; point "
             f"POCL_CACHE_DIR at a writable folder (e.g. POCL_CACHE_DIR=$PWD/.pocl-cache)")
+
+
+class RecordStore:
+    """A JSON file of records (dataclass instances by key) in :func:`cache_dir`: the device probe's
+    results and the trial builds' verdicts.  Read again only when the file changed; written
+    whole, atomically (a temporary file renamed over it), under an advisory lock on
+    ``<name>.lock``, so that processes of one machine (pytest-xdist or dask workers) add records
+    side by side.  A record that cannot be read back as ``cls`` is ignored; the store only saves
+    work, so a folder that cannot be written is harmless."""
+
+    def __init__(self, name, cls):
+        self.name, self.cls = name, cls
+        self._seen = {}  # path -> ((mtime_ns, size), entries)
+
+    @property
+    def path(self) -> Path:
+        return cache_dir() / self.name
+
+    def entries(self):
+        """key -> the record's fields, as stored."""
+        path = self.path
+        try:
+            st = path.stat()
+            stamp = (st.st_mtime_ns, st.st_size)
+            seen = self._seen.get(path)
+            if seen is not None and seen[0] == stamp:
+                return seen[1]
+            data = json.loads(path.read_text())
+        except (OSError, ValueError):
+            return {}
+        data = data if isinstance(data, dict) else {}
+        self._seen[path] = (stamp, data)
+        return data
+
+    def get(self, key, **extra):
+        """The record under ``key`` (with the fields ``extra`` set, e.g. ``cached=True``), or None."""
+        entry = self.entries().get(key)
+        if entry is None:
+            return None
+        try:
+            return self.cls(**{**entry, **extra})
+        except TypeError:
+            return None
+
+    def records(self, **extra):
+        """Every record that reads back as ``cls``."""
+        return [r for r in (self.get(k, **extra) for k in self.entries()) if r is not None]
+
+    def put(self, key, record, skip=()):
+        """Store ``record`` under ``key`` (without the fields ``skip``)."""
+        path = self.path
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            with _FileLock(path.with_name(path.name + ".lock")):
+                entries = dict(self.entries())
+                entries[key] = {k: v for k, v in dataclasses.asdict(record).items() if k not in skip}
+                tmp = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}")
+                tmp.write_text(json.dumps(entries, indent=1))
+                os.replace(tmp, path)
+        except OSError:
+            pass
+
+    def clear(self):
+        """Delete the file (and forget what was read)."""
+        self._seen.clear()
+        try:
+            self.path.unlink()
+        except OSError:
+            pass
+
+
+class _FileLock:
+    """An advisory lock on a file (``fcntl.flock``); a no-op where locking is unavailable."""
+
+    def __init__(self, path):
+        self.path = path
+
+    def __enter__(self):
+        self.fd = None
+        try:
+            import fcntl
+            self.fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+            fcntl.flock(self.fd, fcntl.LOCK_EX)
+        except (OSError, ImportError):
+            if self.fd is not None:
+                os.close(self.fd)
+            self.fd = None
+        return self
+
+    def __exit__(self, *exc):
+        if self.fd is not None:
+            os.close(self.fd)  # releases the lock
+        return False

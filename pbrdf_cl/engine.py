@@ -411,28 +411,11 @@ _PROBES = {}
 _PROBE_LOCK = threading.Lock()
 
 
+PROBE_STORE = drivers.RecordStore(f"probe-v{PROBE_CACHE_VERSION}.json", ProbeResult)
+
+
 def _probe_file():
-    return drivers.cache_dir() / f"probe-v{PROBE_CACHE_VERSION}.json"
-
-
-def _disk_cache_read():
-    try:
-        return json.loads(_probe_file().read_text())
-    except (OSError, ValueError):
-        return {}
-
-
-def _disk_cache_write(key, result):
-    path = _probe_file()
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        entries = _disk_cache_read()
-        entries[key] = dataclasses.asdict(result)
-        tmp = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}")
-        tmp.write_text(json.dumps(entries, indent=1))
-        os.replace(tmp, path)
-    except OSError:
-        pass  # the disk cache is an optimisation only
+    return PROBE_STORE.path
 
 
 def _run_probe(dev) -> ProbeResult:
@@ -547,18 +530,13 @@ def probe(dev, *, use_cache=True) -> ProbeResult:
     with _PROBE_LOCK:
         if use_cache and key in _PROBES:
             return _PROBES[key]
-        hit = _disk_cache_read().get(key) if use_cache else None
+        hit = PROBE_STORE.get(key, cached=True) if use_cache else None
         if hit is not None:
-            try:
-                result = ProbeResult(**{**hit, "cached": True})
-            except TypeError:
-                result = None
-            if result is not None:
-                _PROBES[key] = result
-                return result
+            _PROBES[key] = hit
+            return hit
         result = _run_probe(dev)
         _PROBES[key] = result
-        _disk_cache_write(key, result)
+        PROBE_STORE.put(key, result)
         return result
 
 
@@ -567,10 +545,7 @@ def clear_probe_cache(disk=False):
     with _PROBE_LOCK:
         _PROBES.clear()
         if disk:
-            try:
-                _probe_file().unlink()
-            except OSError:
-                pass
+            PROBE_STORE.clear()
 
 
 # ---------------------------------------------------------------------------------------------

@@ -196,85 +196,21 @@ def verdict_key(dev, kernels_sha, filename, source, options, prefix, fake):
 
 
 # ---------------------------------------------------------------------------------------------
-# the store on disk (beside the probe cache): one JSON object, rewritten atomically under a lock
+# the store on disk (beside the probe cache)
 
 _MEMORY = {}
 _STORE_LOCK = threading.Lock()
+STORE = drivers.RecordStore(f"verdicts-v{VERDICT_CACHE_VERSION}.json", Verdict)
 
 
 def store_file() -> Path:
-    return drivers.cache_dir() / f"verdicts-v{VERDICT_CACHE_VERSION}.json"
-
-
-_STORE_SEEN = {}  # path -> ((mtime_ns, size), entries): the store is parsed again only when it changed
-
-
-def _read_store():
-    path = store_file()
-    try:
-        st = path.stat()
-        stamp = (st.st_mtime_ns, st.st_size)
-        seen = _STORE_SEEN.get(path)
-        if seen is not None and seen[0] == stamp:
-            return seen[1]
-        data = json.loads(path.read_text())
-    except (OSError, ValueError):
-        return {}
-    data = data if isinstance(data, dict) else {}
-    _STORE_SEEN[path] = (stamp, data)
-    return data
-
-
-class _FileLock:
-    """An advisory lock on ``<store>.lock`` around read-modify-write of the store (processes of one
-    machine share it: pytest-xdist workers, dask workers); a no-op where locking is unavailable."""
-
-    def __init__(self, path):
-        self.path = path
-
-    def __enter__(self):
-        self.fd = None
-        try:
-            import fcntl
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            self.fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
-            fcntl.flock(self.fd, fcntl.LOCK_EX)
-        except (OSError, ImportError):
-            if self.fd is not None:
-                os.close(self.fd)
-            self.fd = None
-        return self
-
-    def __exit__(self, *exc):
-        if self.fd is not None:
-            os.close(self.fd)  # releases the lock
-        return False
-
-
-def _write_store(key, verdict):
-    path = store_file()
-    try:
-        with _FileLock(path.with_name(path.name + ".lock")):
-            entries = dict(_read_store())
-            entries[key] = {k: v for k, v in dataclasses.asdict(verdict).items() if k != "cached"}
-            tmp = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}")
-            tmp.write_text(json.dumps(entries, indent=1))
-            os.replace(tmp, path)
-    except OSError:
-        pass  # the store only saves later processes a trial
+    return STORE.path
 
 
 def stored_verdicts(dev=None):
     """The verdicts on disk (of device ``dev`` only, if given), as a list of :class:`Verdict`, oldest first."""
     want = device_key(dev) if dev is not None else None
-    out = []
-    for entry in _read_store().values():
-        try:
-            v = Verdict(**{**entry, "cached": True})
-        except TypeError:
-            continue
-        if want is None or v.device_key == want:
-            out.append(v)
+    out = [v for v in STORE.records(cached=True) if want is None or v.device_key == want]
     return sorted(out, key=lambda v: v.when)
 
 
@@ -282,12 +218,8 @@ def forget(disk=False):
     """Forget this process's verdicts (and, with ``disk``, the stored ones)."""
     with _STORE_LOCK:
         _MEMORY.clear()
-        _STORE_SEEN.clear()
         if disk:
-            try:
-                store_file().unlink()
-            except OSError:
-                pass
+            STORE.clear()
 
 
 # ---------------------------------------------------------------------------------------------
@@ -479,15 +411,10 @@ def check_program(dev, index, kernels_sha, filename, dtype, source, options, pre
     with _STORE_LOCK:
         if key in _MEMORY:
             return _MEMORY[key]
-        entry = _read_store().get(key)
-        if entry is not None:
-            try:
-                verdict = Verdict(**{**entry, "cached": True})
-            except TypeError:
-                verdict = None
-            if verdict is not None:
-                _MEMORY[key] = verdict
-                return verdict
+        verdict = STORE.get(key, cached=True)
+        if verdict is not None:
+            _MEMORY[key] = verdict
+            return verdict
     with _CHILD_LOCK:
         with _STORE_LOCK:  # another thread may have tried it meanwhile
             if key in _MEMORY:
@@ -508,7 +435,7 @@ def check_program(dev, index, kernels_sha, filename, dtype, source, options, pre
         verdict.device_key = device_key(dev)
         with _STORE_LOCK:
             _MEMORY[key] = verdict
-        _write_store(key, verdict)
+        STORE.put(key, verdict, skip=("cached",))
         return verdict
 
 

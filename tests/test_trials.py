@@ -56,7 +56,6 @@ def store(tmp_path, monkeypatch):
     """A fresh verdict store and probe cache for this process and its children."""
     monkeypatch.setenv("PBRDF_CL_CACHE_DIR", str(tmp_path / "cache"))
     monkeypatch.setattr(trials, "_MEMORY", {})
-    monkeypatch.setattr(trials, "_STORE_SEEN", {})
     trials._close_child()  # a child of this process compiles into the PoCL cache of its start
     yield tmp_path / "cache"
     trials._close_child()
