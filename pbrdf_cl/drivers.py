@@ -23,6 +23,7 @@ import dataclasses
 import hashlib
 import json
 import os
+import re
 import tempfile
 import threading
 from pathlib import Path
@@ -279,3 +280,21 @@ class _FileLock:
         if self.fd is not None:
             os.close(self.fd)  # releases the lock
         return False
+
+
+def first_error_line(text) -> str:
+    """The line of a build log or driver message that says what went wrong (one line)."""
+    # source locations ("/.../kcache/tempfile_x.cl:1:2: " from PoCL, "77:1:2: " from Intel's compiler)
+    lines = [re.sub(r"(?:\S+\.cl|(?<!\S)\d+):\d+:\d+:\s*", "", ln.strip()) for ln in str(text).splitlines()
+             if ln.strip()]
+    noise = re.compile(r"clBuildProgram failed|^Build on <|^\(options:|^\(source saved|^=+$", re.I)
+    useful = [ln for ln in lines if not noise.search(ln)]
+    for ln in useful:
+        if re.search(r"\berror\b", ln, re.I):
+            return ln[:300]
+    return (useful or lines or ["unknown error"])[0][:300]
+
+
+def describe(dev) -> str:
+    """``"platform / device"`` of a ``cl.Device``."""
+    return f"{dev.platform.name.strip()} / {dev.name.strip()}"

@@ -59,6 +59,7 @@ from pathlib import Path
 import numpy as np
 
 from . import drivers, quantities, reference, trials
+from .drivers import describe, first_error_line  # noqa: F401 (engine.describe, engine.first_error_line stay)
 
 drivers.register_pip_drivers()  # before the first OpenCL call of this process
 
@@ -171,19 +172,6 @@ def build_options(dtype, defines=None, width=None):
     return opts
 
 
-def first_error_line(text) -> str:
-    """The line of a build log or driver message that says what went wrong (one line)."""
-    # source locations ("/.../kcache/tempfile_x.cl:1:2: " from PoCL, "77:1:2: " from Intel's compiler)
-    lines = [re.sub(r"(?:\S+\.cl|(?<!\S)\d+):\d+:\d+:\s*", "", ln.strip()) for ln in str(text).splitlines()
-             if ln.strip()]
-    noise = re.compile(r"clBuildProgram failed|^Build on <|^\(options:|^\(source saved|^=+$", re.I)
-    useful = [ln for ln in lines if not noise.search(ln)]
-    for ln in useful:
-        if re.search(r"\berror\b", ln, re.I):
-            return ln[:300]
-    return (useful or lines or ["unknown error"])[0][:300]
-
-
 def _build(context, source, options):
     """``cl.Program(context, source).build(options)``, compiler warnings silenced."""
     with warnings.catch_warnings():
@@ -282,11 +270,6 @@ def _is_simulator(plat) -> bool:
 
 def _is_pocl(plat) -> bool:
     return "portable computing language" in plat.name.lower()
-
-
-def describe(dev) -> str:
-    """``"platform / device"`` of a ``cl.Device``."""
-    return f"{dev.platform.name.strip()} / {dev.name.strip()}"
 
 
 def _pocl_version(plat):

@@ -403,8 +403,7 @@ def _now():
 def check_program(dev, index, kernels_sha, filename, dtype, source, options, prefix=""):
     """The verdict on building ``prefix + source`` with ``options`` on ``dev``: from this process's
     memory, else the disk store, else a trial in the child (stored afterwards)."""
-    from .engine import describe
-    name = describe(dev)
+    name = drivers.describe(dev)
     what = label(filename, dtype, options)
     fake = fake_way(name, what)
     key = verdict_key(dev, kernels_sha, filename, source, options, prefix, fake)
@@ -441,8 +440,7 @@ def check_program(dev, index, kernels_sha, filename, dtype, source, options, pre
 
 def run_probe(dev, index, source, options_by_dtype, dtypes, points):
     """Build and run the device probe in the child: (values per dtype or None, why not)."""
-    from .engine import describe
-    name = describe(dev)
+    name = drivers.describe(dev)
     fake = fake_way(name, "pbrdf_probe.cl")
     request = dict(op="probe", label=f"pbrdf_probe.cl on {name}", device=device_spec(dev, index), source=source,
                    options=options_by_dtype, dtypes=list(dtypes), points=[list(map(float, p)) for p in points],
@@ -458,6 +456,5 @@ def run_probe(dev, index, source, options_by_dtype, dtypes, points):
 
 def _answer_error(answer):
     """One line from a failed answer: its error, and the first line of the driver's log that says why."""
-    from .engine import first_error_line
     error = answer.get("error", "failed")
-    return f"{error}: {first_error_line(answer['log'])}" if answer.get("log") else error
+    return f"{error}: {drivers.first_error_line(answer['log'])}" if answer.get("log") else error
