@@ -7,19 +7,19 @@ Quick start::
 
 Angles are in degrees; phi = 180 (the default) is the in-plane geometry.  Computation runs on
 the first usable OpenCL device, or on the float64 numpy reference where none is usable
-(``backend="auto"``, the default; see :mod:`pbrdf_cl.engine`).
+(``backend="auto"``, the default; see :mod:`pbrdf_cl.device.engine`).
 """
-from . import quantities
-from .api import MODELS, aop, brdf, dop, evaluate, mueller, stokes, validate
-from .data import DataWarning, Measurements, as_measurements, read_csv
-from .dense import ObjectiveResult, grid, objective, reduce_grid
-from .sweeps import SpecError, SweepResult, SweepSpec, load_spec, sweep
-from .inversion import FitResult, compare_models, fit
-from .batch import fit_batch
-from .sensitivity import morris, sobol
-from .designs import DesignResult, design
-from .engine import (DeviceUnusableError, DeviceWarning, Engine, NumpyEngine, OpenCLUnavailableError,
-                     get_default_engine, list_devices, probe, select_device, set_default_engine)
+from .model import quantities
+from .compute.pointwise import MODELS, aop, brdf, dop, evaluate, mueller, stokes, validate
+from .io.measurements import DataWarning, Measurements, as_measurements, read_csv
+from .compute.dense import ObjectiveResult, grid, objective, reduce_grid
+from .explore.sweeps import SpecError, SweepResult, SweepSpec, load_spec, sweep
+from .fitting.inversion import FitResult, compare_models, fit
+from .fitting.batch import fit_batch
+from .explore.sensitivity import morris, sobol
+from .explore.designs import DesignResult, design
+from .device.engine import (DeviceUnusableError, DeviceWarning, Engine, NumpyEngine, OpenCLUnavailableError,
+                            get_default_engine, list_devices, probe, select_device, set_default_engine)
 
 __version__ = "0.1.0"
 

@@ -32,8 +32,10 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from . import dense, engine as _engine, reference
-from .api import dop as api_dop
+from .compute import dense
+from .device import engine as _engine
+from .model import reference
+from .compute.pointwise import dop as api_dop
 
 INPUTS = _engine.POINT_INPUTS
 
@@ -344,7 +346,7 @@ def bench_sweep(eng, device, rows, rng, scale, repeats, workers=2, backend="auto
 
     import xarray as xr
 
-    from .sweeps import SweepSpec, sweep
+    from .explore.sweeps import SweepSpec, sweep
     axes, budget = dict(SWEEP_AXES), 4 << 20
     if scale < 1:
         axes["theta_r"], axes["sigma"], budget = axes["theta_r"][::4], axes["sigma"][::4], 256 << 10

@@ -15,8 +15,14 @@ from pathlib import Path
 
 import numpy as np
 
-from . import api, drivers, engine as _engine, quantities, ranges, sizes, trials
-from .reference import SHADOWING
+from .compute import pointwise
+from .device import drivers
+from .device import engine as _engine
+from .model import quantities
+from . import ranges
+from . import sizes
+from .device import trials
+from .model.reference import SHADOWING
 
 PARAMS = (("theta_i", None), ("theta_r", None), ("phi", "180"), ("n", None), ("k", None),
           ("sigma", None), ("ks", "1"), ("kd", "0"), ("c", "0"))
@@ -229,7 +235,7 @@ def cmd_eval(args) -> int:
     par = {n: cols[n] for n in ("n", "k", "sigma", "ks", "kd", "c") if n in cols}
     try:
         q = quantities.get(args.quantity, "points", "--quantity")
-        result = api.evaluate(q.name, pos["theta_i"], pos["theta_r"], pos["phi"], **par, **kw)
+        result = pointwise.evaluate(q.name, pos["theta_i"], pos["theta_r"], pos["phi"], **par, **kw)
     except (ValueError, FloatingPointError, _engine.OpenCLUnavailableError) as exc:
         return _error(exc)
     out_name = q.name
@@ -269,7 +275,7 @@ def _fit_json(r):
 
 def _fit_brief(r):
     """One line per fitted parameter and a first line with the model, for --quiet."""
-    from .data import PHI_DEFAULT_NOTE
+    from .io.measurements import PHI_DEFAULT_NOTE
     lines = [f"{r.model}: SSE {r.sse:.4g}" + ("" if r.fits_data else " (the model does not describe these data)")]
     ratio = "ks" in r.free and "kd" in r.free  # intensities: the interval under "kd" is that of kd/ks
     for name in r.free:
@@ -285,14 +291,14 @@ def _fit_brief(r):
 
 def _fit_assignments(args):
     """(fixed, bounds) from --fix and --bounds (_fit_settings), checked against the parameters."""
-    from .inversion import DEFAULT_BOUNDS
+    from .fitting.inversion import DEFAULT_BOUNDS
     return (ranges.parse_assignments(args.fix, tuple(DEFAULT_BOUNDS), "value", "--fix", check=True),
             ranges.parse_assignments(args.bounds, tuple(DEFAULT_BOUNDS), "bounds", "--bounds"))
 
 
 def cmd_fit(args) -> int:
-    from . import inversion as _fit
-    from .data import read_csv
+    from .fitting import inversion as _fit
+    from .io.measurements import read_csv
     fixed, bounds = _fit_assignments(args)
     check_suffix("--json", args.json, (".json",), "JSON is written here", allow_none=True)
     check_figure("--plot", args.plot)
@@ -327,14 +333,14 @@ def cmd_fit(args) -> int:
                            preferred=best), fh, indent=2)
         print(f"wrote {args.json}")
     if args.plot:
-        from .plots import plot_fit
+        from .plots.fit import plot_fit
         plot_fit(meas, fits, args.plot)
         print(f"wrote {args.plot}")
     return 0
 
 
 def cmd_sweep(args) -> int:
-    from .sweeps import load_spec, read_done, sweep
+    from .explore.sweeps import load_spec, read_done, sweep
     check_store("--out", args.out)
     _check_output("--out", str(Path(args.out).parent), folder=True)
     try:
@@ -358,7 +364,7 @@ def cmd_sweep(args) -> int:
 
 def cmd_fit_image(args) -> int:
     import time
-    from . import batch_store
+    from .fitting import batch_store
     fixed, bounds = _fit_assignments(args)
     check_store("--out", args.out)
     check_figure("--png", args.png)
@@ -374,7 +380,7 @@ def cmd_fit_image(args) -> int:
             device=args.device, workers=args.workers, scheduler=args.scheduler, allow_large=args.allow_large)
         counts = batch_store.status_counts(ds)
         if args.png:
-            from .batch_plots import plot_batch_maps
+            from .plots.images import plot_batch_maps
             plot_batch_maps(ds, args.png)
     except KeyboardInterrupt:
         try:
@@ -415,12 +421,12 @@ def _check_result_outputs(args):
 
 def cmd_sobol(args) -> int:
     """`pbrdf-cl sobol SPEC.toml`: a Sobol' (or Morris) sensitivity map, its file, figure and summary."""
-    from . import sensitivity
+    from .explore import sensitivity
     _check_result_outputs(args)
     try:
         settings = sensitivity.load_sobol_spec(args.spec)
         if args.png:  # refused before the work, not after it
-            from .sensitivity_plots import check_axes
+            from .plots.sensitivity import check_axes
             check_axes(sensitivity.check_geometry(settings["geometry"])[0], "--png")
         with warnings.catch_warnings():  # the summary below prints the result's notes
             warnings.simplefilter("ignore", sensitivity.SensitivityWarning)
@@ -428,7 +434,7 @@ def cmd_sobol(args) -> int:
         if args.out:
             sensitivity.write_result(ds, args.out)
         if args.png:
-            from .sensitivity_plots import plot_sensitivity
+            from .plots.sensitivity import plot_sensitivity
             plot_sensitivity(ds, args.png)
     except (OSError, ValueError, _engine.OpenCLUnavailableError) as exc:
         return _error(exc)
@@ -445,7 +451,7 @@ def cmd_bench(args) -> int:
 
 
 def cmd_reproduce(args) -> int:
-    from . import paper
+    from .explore import paper
     try:
         paper.check_resolution(args.resolution)
     except ValueError as exc:
@@ -464,7 +470,7 @@ def cmd_reproduce(args) -> int:
 
 
 def cmd_map(args) -> int:
-    from . import maps
+    from .explore import maps
     try:
         x = maps.parse_axis("--x", args.x)
         y = maps.parse_axis("--y", args.y)
@@ -499,10 +505,10 @@ def _items(values):
 
 
 def cmd_design(args) -> int:
-    from .designs import GEOMETRY, design, plot_design
-    from .dense import PARAMETERS
-    from .sensitivity import write_result
-    from .inversion import DEFAULT_BOUNDS
+    from .explore.designs import GEOMETRY, design, plot_design
+    from .compute.dense import PARAMETERS
+    from .explore.sensitivity import write_result
+    from .fitting.inversion import DEFAULT_BOUNDS
     params = ranges.parse_assignments(_items(args.params), PARAMETERS, "value", "--params", check=True)
     box = ranges.parse_assignments(_items(args.box), PARAMETERS, "bounds", "--box")
     both = sorted(set(params) & set(box))
@@ -625,7 +631,7 @@ def _eval_parser(sub):
     e.add_argument("--quantity", choices=_quantity_choices("points"), default="dop", type=str.lower,
                    help="AoP in degrees (NaN where undefined), F00 and Stokes in 1/sr")
     e.add_argument("--shadowing", choices=sorted(SHADOWING), default="paper", help=_SHADOWING_HELP)
-    e.add_argument("--model", choices=api.MODELS, default="six-param",
+    e.add_argument("--model", choices=pointwise.MODELS, default="six-param",
                    help="six-param, or specular: the ref. [7] model (kd = 0; the DOP then needs no --sigma)")
     e.add_argument("--dtype", choices=("float32", "float64"), default="float64", help="precision")
     _device_options(e)
@@ -686,7 +692,7 @@ def _fit_parser(sub):
 
 def _fit_image_parser(sub):
     """The `pbrdf-cl fit-image` sub-command."""
-    from .batch import DEFAULT_BUDGET
+    from .fitting.batch import DEFAULT_BUDGET
     f = sub.add_parser("fit-image", help="fit every pixel of a DOP image stack into a Zarr store (resumable; dask)",
                        description="Fit the model to every pixel of a polarization image stack (.npz, .nc or "
                        ".zarr with dop (y, x, m), theta_i, theta_r[, phi, dop_std, f00|s0, f00_std, mask]; angles "
@@ -764,7 +770,7 @@ def _sobol_parser(sub):
 
 def _design_parser(sub):
     """The `pbrdf-cl design` sub-command."""
-    from .inversion import F00_REL_STD
+    from .fitting.inversion import F00_REL_STD
     d = sub.add_parser("design", help="choose measurement geometries from the Fisher information (predicted "
                        "95%% interval widths)",
                        description="For a hypothesised material (--params) or a box of materials (--box), "

@@ -1,5 +1,5 @@
 """The one grammar of values, ranges and ``name=value`` items: the command line (``pbrdf-cl
-eval``, ``fit``, ``map``), sweep spec files and :func:`pbrdf_cl.maps.make_map` all parse with it.
+eval``, ``fit``, ``map``), sweep spec files and :func:`pbrdf_cl.explore.maps.make_map` all parse with it.
 
 Values (README, section "Ranges and name=value"):
 
@@ -244,7 +244,7 @@ def parse_assignment(item, names, kind="value", where=None, check=False):
     ``kind``: ``"value"`` (one number), ``"values"`` (the whole grammar: a 1-d array) or
     ``"bounds"`` (``low:high``: a pair).  ``names``: the names allowed (an unknown one is refused
     with the nearest known one suggested).  ``check``: also check the numbers against the model's
-    domain (:data:`pbrdf_cl.api.RULES`)."""
+    domain (:data:`pbrdf_cl.compute.pointwise.RULES`)."""
     if kind not in KINDS:
         raise ValueError(f"kind must be one of {', '.join(KINDS)}, got {kind!r}")
     name, sep, text = item.partition("=")
@@ -271,9 +271,9 @@ def parse_assignment(item, names, kind="value", where=None, check=False):
     except _Bad as bad:
         _raise(where, item, bad)
     if check:
-        from . import api
+        from .compute import pointwise
         try:
-            api.check_values(name, out)
+            pointwise.check_values(name, out)
         except ValueError as exc:
             _raise(where, item, exc)
     return name, out

@@ -7,7 +7,7 @@ One run prints, on the default device (or --backend numpy):
    parameters uniform in the default bounds, DOP noise 0.002 given as dop_std): end-to-end
    pixels/s of fit_batch (input arrays to result Dataset), its stages' shares, and the rate of
    pbrdf_cl.fit looped over --loop-pixels of the same pixels in the same run, and the ratio.
-2. Rate with per-pixel geometry: the synthetic camera stack of pbrdf_cl.imagestack
+2. Rate with per-pixel geometry: the synthetic camera stack of pbrdf_cl.io.imagestack
    (--stack-size squared pixels, 30 light positions).
 3. SSE agreement: on --match random pixels in each of two geometries (the paper's; one incidence
    angle, 45 degrees, theta_r 5..80 in 30 steps), the share of pixels where fit_batch's SSE
@@ -28,9 +28,9 @@ import tracemalloc
 import numpy as np
 
 import pbrdf_cl
-from pbrdf_cl import batch as B
-from pbrdf_cl import imagestack
-from pbrdf_cl.inversion import DEFAULT_BOUNDS
+from pbrdf_cl.fitting import batch as B
+from pbrdf_cl.io import imagestack
+from pbrdf_cl.fitting.inversion import DEFAULT_BOUNDS
 
 NAMES = ("n", "k", "sigma", "kd", "c")
 LO = np.array([DEFAULT_BOUNDS[n][0] for n in NAMES])
@@ -51,7 +51,7 @@ def pixels(n, ti, tr, seed):
 
 
 class StageClock:
-    """Wall time spent in the stage functions of pbrdf_cl.batch (wrapped for the run)."""
+    """Wall time spent in the stage functions of pbrdf_cl.fitting.batch (wrapped for the run)."""
 
     STAGES = {"grid": ("_device_grid", "_numpy_grid"), "descent": ("_device_lm", "_numpy_lm"),
               "statistics": ("_statistics",)}
@@ -167,7 +167,7 @@ def main():
     ap.add_argument("--budget", default="32 MiB")
     ap.add_argument("--backend", default="auto")
     args = ap.parse_args()
-    eng = pbrdf_cl.engine.resolve_engine(None, args.backend)
+    eng = pbrdf_cl.device.engine.resolve_engine(None, args.backend)
     print("device:", getattr(eng, "description", "numpy"))
     rate(args, eng)
     per_pixel_rate(args, eng)

@@ -20,8 +20,8 @@ import time
 import numpy as np
 
 import pbrdf_cl
-from pbrdf_cl import inversion as F
-from pbrdf_cl.data import from_arrays
+from pbrdf_cl.fitting import inversion as F
+from pbrdf_cl.io.measurements import from_arrays
 
 GEOMETRIES = {
     "paper (theta_i 30/40/50 x theta_r 20..65, 30 points)":

@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 
 import pbrdf_cl
-from pbrdf_cl.data import from_arrays, write_csv
+from pbrdf_cl.io.measurements import from_arrays, write_csv
 
 OUT = Path(__file__).resolve().parent.parent / "examples"
 STEEL = dict(n=1.6, k=2.139, sigma=0.5, ks=0.9, kd=0.15, c=-0.3)  # the paper's 45# steel fit, 435 nm
@@ -36,7 +36,7 @@ def main():
               "cannot.\n"
               "Written by scripts/make_examples.py.")
     # a small camera stack (per-pixel geometry, two materials, a roughness gradient) for fit-image
-    from pbrdf_cl import imagestack
+    from pbrdf_cl.io import imagestack
     imagestack.save_stack(imagestack.synthetic_stack(size=16, seed=0), OUT / "camera_stack_16.npz")
 
 

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Write a synthetic DOP image stack (pbrdf_cl.imagestack.synthetic_stack) to NetCDF or .npz:
+"""Write a synthetic DOP image stack (pbrdf_cl.io.imagestack.synthetic_stack) to NetCDF or .npz:
 two materials, a roughness gradient, a fixed camera and a point light over M positions, with
 the truth maps in the file.  ``--check`` also fits a few pixels one by one and prints the
 standard errors.  Example: ``python scripts/make_image_stack.py --size 256 --out stack.nc``."""
@@ -8,7 +8,7 @@ import sys
 import time
 from pathlib import Path
 
-from pbrdf_cl import imagestack
+from pbrdf_cl.io import imagestack
 
 
 def main(argv=None):

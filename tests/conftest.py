@@ -19,7 +19,7 @@ import pytest
 os.environ.setdefault("POCL_CACHE_DIR", os.path.join(tempfile.gettempdir(), "pbrdf-cl-pocl-cache"))
 
 import pbrdf_cl  # noqa: E402
-from pbrdf_cl import engine as engine_mod  # noqa: E402
+from pbrdf_cl.device import engine as engine_mod  # noqa: E402
 
 
 def _test_devices():

@@ -9,7 +9,7 @@ import sys
 import numpy as np
 
 import pbrdf_cl
-from pbrdf_cl import engine as engine_mod
+from pbrdf_cl.device import engine as engine_mod
 
 
 def main():
@@ -66,7 +66,7 @@ def main():
                     raise SystemExit(f"broadcast {func.__name__} {dtype} {shape}: Oclgrind result differs from the reference")
                 bcasts += 1
     # grid kernels: every row level and the one-point-per-work-item path, reductions, objective
-    from pbrdf_cl import dense as G
+    from pbrdf_cl.compute import dense as G
     fixed = dict(theta_i=40.0, theta_r=30.0, n=1.6, k=2.0, sigma=0.4, kd=0.2, c=-0.3)
     cases = [dict(theta_r=np.linspace(0, 80, 9), kd=np.linspace(0, 1, 17)),        # level 1 + tail
              dict(theta_r=np.linspace(0, 80, 9), sigma=np.linspace(0.1, 1, 5), kd=[0.0, 0.5, 1.0]),  # level 2
@@ -90,7 +90,7 @@ def main():
         configs += 1
     # the batch kernels (pbrdf_batch.cl): grid stages with shared and per-pixel geometry, the
     # descent in float32 and float64, with and without intensities; few pixels, short runs
-    from pbrdf_cl import batch as Bt
+    from pbrdf_cl.fitting import batch as Bt
     Bt.SCREEN_SCHEDULE, Bt.POLISH_ITERATIONS, Bt.EXTRA_ROUNDS, Bt.INTENSITY_ITERATIONS = ((2, 2), (1, 2)), 2, 1, 2
     m_ti, m_tr = np.repeat([30.0, 50.0], 4), np.tile([20.0, 35.0, 50.0, 65.0], 2)
     truth = dict(n=1.6, k=2.139, sigma=0.5, ks=0.9, kd=0.15, c=-0.3)

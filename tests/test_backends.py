@@ -14,9 +14,10 @@ import numpy as np
 import pytest
 
 import pbrdf_cl
-from pbrdf_cl import dense as G
-from pbrdf_cl import drivers, reference
-from pbrdf_cl import engine as E
+from pbrdf_cl.compute import dense as G
+from pbrdf_cl.device import drivers
+from pbrdf_cl.model import reference
+from pbrdf_cl.device import engine as E
 from conftest import DEVICES, requires_opencl
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -266,7 +267,7 @@ def test_numpy_grid_stays_within_its_memory_budget():
 
 
 def test_fit_and_map_run_on_the_numpy_backend():
-    from pbrdf_cl import maps
+    from pbrdf_cl.explore import maps
     res = pbrdf_cl.fit(ROOT / "examples" / "steel_435nm.csv", backend="numpy")
     ref = pbrdf_cl.fit(ROOT / "examples" / "steel_435nm.csv") if DEVICES else res
     assert res.chi2 == pytest.approx(ref.chi2, rel=1e-3, abs=1e-6)
@@ -316,7 +317,7 @@ def test_intel_runtime_is_registered_beside_the_other_drivers(monkeypatch, tmp_p
 
 @pytest.mark.skipif(drivers.find_intel_runtime() is None, reason="Intel's CPU runtime (pbrdf-cl[intel-cpu]) is not installed")
 def test_installed_intel_runtime_is_found_usable_and_matches_the_reference():
-    code = ("import pbrdf_cl, pbrdf_cl.engine as e, numpy as np\n"
+    code = ("import pbrdf_cl, pbrdf_cl.device.engine as e, numpy as np\n"
             "devs = [d for *_, d in e.list_devices() if 'Intel' in d.platform.name]\n"
             "assert devs, e.list_devices()\n"
             "r = e.probe(devs[0]); assert r.usable, r.reason\n"

@@ -1,11 +1,11 @@
-"""Per-pixel inversion of image stacks (pbrdf_cl.fit_batch): agreement with pbrdf_cl.fit, both
+"""Per-pixel inversion of image stacks (pbrdf_cl.fit_batch): agreement with pbrdf_cl.fitting, both
 geometry paths and both backends, missing data and masks, intensities, fixed parameters, the
 result's layout, honest intervals, and one-line errors naming the variable and index."""
 import numpy as np
 import pytest
 
 import pbrdf_cl
-from pbrdf_cl import batch as B
+from pbrdf_cl.fitting import batch as B
 
 TI = np.repeat([30.0, 40.0, 50.0], 10)            # the paper's geometry
 TR = np.tile(np.arange(20.0, 66.0, 5.0), 3)
@@ -198,7 +198,7 @@ def test_memory_budget_splits_the_image_into_blocks(dev):
 def bench_pixels(which):
     """Pixels ``which`` of scripts/bench_batch.py's 500 random pixels in the paper's geometry
     (parameters uniform in the fit's bounds, DOP noise 0.002)."""
-    from pbrdf_cl.inversion import DEFAULT_BOUNDS
+    from pbrdf_cl.fitting.inversion import DEFAULT_BOUNDS
     names = ("n", "k", "sigma", "kd", "c")
     lo, hi = (np.array([DEFAULT_BOUNDS[n][i] for n in names]) for i in (0, 1))
     rng = np.random.default_rng(2)
@@ -277,7 +277,7 @@ def test_blocks_do_not_change_the_answers(dev):
     geometry (random pixels, the corner tables).  Blocks changed them before: the descents'
     lanes went on stepping while another pixel of their vector had not settled, and the
     candidates towards the bounds were those of the block's pixels together."""
-    from pbrdf_cl import imagestack
+    from pbrdf_cl.io import imagestack
     dop, _ = random_pixels(96, seed=3, noise=0.002)
     for data in (imagestack.synthetic_stack(16, seed=1), dict(dop=dop.reshape(12, 8, 30), theta_i=TI, theta_r=TR)):
         job = B.BatchJob(data)

@@ -12,9 +12,9 @@ import pytest
 import xarray as xr
 
 import pbrdf_cl
-from pbrdf_cl import batch as B
-from pbrdf_cl import imagestack
-from pbrdf_cl.data import PHI_DEFAULT_NOTE, DataWarning
+from pbrdf_cl.fitting import batch as B
+from pbrdf_cl.io import imagestack
+from pbrdf_cl.io.measurements import PHI_DEFAULT_NOTE, DataWarning
 
 TI = np.repeat([30.0, 40.0, 50.0], 10)
 TR = np.tile(np.arange(20.0, 66.0, 5.0), 3)
@@ -145,7 +145,7 @@ def test_a_nan_std_is_refused_unless_its_measurement_is_missing_too(dev):
 
 def test_the_camera_datasets_own_variables_are_read_without_a_warning(dev):
     pytest.importorskip("polanalyser")
-    from pbrdf_cl import camera
+    from pbrdf_cl.io import camera
     ti, tr = TI[::3], TR[::3]  # 10 geometries
     d = pbrdf_cl.dop(ti, tr, **STEEL, backend="numpy")
     a = np.radians(np.tile(np.array(camera.SUPERPIXEL, float), (4, 4)))
@@ -261,7 +261,7 @@ def test_a_singular_problem_does_not_stop_the_others_of_its_batch():
     """The numpy backend's descent (inversion._lm_batch, every pixel x start of a block at once):
     a problem whose Jacobian vanishes made the batched solve raise, and every problem of the
     batch lost its step, so a pixel's answer depended on its block."""
-    from pbrdf_cl.inversion import _lm_batch
+    from pbrdf_cl.fitting.inversion import _lm_batch
 
     def rows(flat):
         """Problems ``flat`` (bool each) flat (a vanishing Jacobian), the others a valley with its

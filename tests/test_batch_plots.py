@@ -1,4 +1,4 @@
-"""The figure of a per-pixel fit (pbrdf_cl.batch_plots, pbrdf-cl fit-image --png; issue #26 item
+"""The figure of a per-pixel fit (pbrdf_cl.plots.images, pbrdf-cl fit-image --png; issue #26 item
 15): drawn in the stack's coordinates, undetermined and not-converged pixels marked, missing
 pixels in the legend, colour scales that one outlier does not set, titles not cut."""
 import matplotlib
@@ -10,7 +10,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 from matplotlib.collections import PatchCollection  # noqa: E402
 
-from pbrdf_cl import batch_plots, imagestack  # noqa: E402
+from pbrdf_cl.plots import images as batch_plots  # noqa: E402
+from pbrdf_cl.io import imagestack  # noqa: E402
 
 
 @pytest.fixture(scope="module")

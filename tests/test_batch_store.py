@@ -1,4 +1,4 @@
-"""Per-pixel fits into Zarr stores (pbrdf_cl.batch_store, pbrdf-cl fit-image): equal to fit_batch in
+"""Per-pixel fits into Zarr stores (pbrdf_cl.fitting.batch_store, pbrdf-cl fit-image): equal to fit_batch in
 memory, resumable after Ctrl-C and kill -9 with a byte-identical store, the same store from a dask
 LocalCluster, refused when the settings or the input differ, a lazy stack read block by block,
 and the command line (store, PNG, one-line errors)."""
@@ -16,11 +16,12 @@ import pytest
 import xarray as xr
 
 import pbrdf_cl
-from pbrdf_cl import batch, cli
-from pbrdf_cl.batch_store import StoreError, fit_batch_to_store, read_progress, status_counts
+from pbrdf_cl import cli
+from pbrdf_cl.fitting import batch
+from pbrdf_cl.fitting.batch_store import StoreError, fit_batch_to_store, read_progress, status_counts
 from test_sweep import files, n_done  # the sweep store's helpers: the fit store has its layout
 
-BS = importlib.import_module("pbrdf_cl.batch_store")
+BS = importlib.import_module("pbrdf_cl.fitting.batch_store")
 PACKAGE_ROOT = str(Path(pbrdf_cl.__file__).resolve().parent.parent)
 STEEL = dict(k=2.139, sigma=0.5, kd=0.15, c=-0.3)
 TI, TR = np.repeat([30.0, 40, 50], 10), np.tile(np.arange(20.0, 66, 5), 3)
@@ -97,7 +98,7 @@ def test_store_equals_fit_batch_in_memory(stack, reference):
     assert {k: v for k, v in ds.attrs.items() if k in mem.attrs} == {k: v for k, v in mem.attrs.items()
                                                                        if k != "seconds"}
     assert ds.attrs["batch_blocks"] == 4 and ds.attrs["batch_block_rows"] == 4 and ds.attrs["batch_complete"] is True
-    assert ds.attrs["sweep_kernels_sha256"] == pbrdf_cl.engine.kernels_sha256()
+    assert ds.attrs["sweep_kernels_sha256"] == pbrdf_cl.device.engine.kernels_sha256()
     assert read_progress(reference) == (4, 4)
     assert "_sweep" not in ds.variables
     # the returned Dataset is the store's, in fit_batch's order of variables
@@ -111,7 +112,7 @@ def test_store_equals_fit_batch_in_memory(stack, reference):
 def test_lazy_zarr_and_netcdf_stacks_with_per_pixel_geometry(tmp_path):
     """synthetic_stack (angles per pixel, dop_std) from .zarr and .nc files, read lazily: the same
     values as fit_batch of the stack in memory."""
-    from pbrdf_cl.imagestack import synthetic_stack
+    from pbrdf_cl.io.imagestack import synthetic_stack
     stack = synthetic_stack(size=8, n_lights=30, seed=0)
     stack.to_zarr(tmp_path / "s.zarr", zarr_format=2)
     stack.to_netcdf(tmp_path / "s.nc")
@@ -272,7 +273,7 @@ def test_other_stores_are_refused(stack, reference, tmp_path, monkeypatch):
     pbrdf_cl.sweep(dict(axes=dict(theta_r="0:80:20"), fixed=dict(theta_i=40, n=1.6, k=2.1, sigma=0.3)), sweep,
                    progress=False)
     assert "exists and is a pbrdf-cl sweep store" in _refusal(sweep, stack)
-    monkeypatch.setattr(pbrdf_cl.sweeps, "kernels_sha256", lambda: "0" * 64)
+    monkeypatch.setattr(pbrdf_cl.explore.sweeps, "kernels_sha256", lambda: "0" * 64)
     assert "was started with other OpenCL kernel sources" in _refusal(reference, stack)
 
 
@@ -340,7 +341,7 @@ def test_cli_fit_image_writes_the_store_and_the_png(stack, tmp_path):
     counts = status_counts(ds)
     assert lines[1] == "status: " + ", ".join(f"{n} {c}" for n, c in counts.items()) and "too_few 1" in lines[1]
     assert lines[2] == ds.attrs["goodness"] and lines[2].startswith("goodness of fit: 0 of 255 fitted pixels (0.0%)")
-    from pbrdf_cl.data import PHI_DEFAULT_NOTE
+    from pbrdf_cl.io.measurements import PHI_DEFAULT_NOTE
     assert lines[3] == f"note: {PHI_DEFAULT_NOTE}"  # the stack has no phi
     assert lines[4] == f"store: {tmp_path / 'p.zarr'}; maps: {tmp_path / 'maps.png'}"
     assert ds.attrs["free"] == "n k sigma c" and ds.attrs["fixed_kd"] == 0.15 and ds.attrs["batch_complete"]

@@ -1,11 +1,11 @@
-"""The polarization-camera path (pbrdf_cl.camera): raw DoFP mosaics in the IMX250MZR layout built
+"""The polarization-camera path (pbrdf_cl.io.camera): raw DoFP mosaics in the IMX250MZR layout built
 from known Stokes images with Malus' law, demosaiced by polanalyser, back to DoLP and S0."""
 import sys
 
 import numpy as np
 import pytest
 
-from pbrdf_cl import camera
+from pbrdf_cl.io import camera
 
 H, W = 48, 64
 

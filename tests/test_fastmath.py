@@ -9,8 +9,8 @@ import pyopencl as cl
 import pytest
 from scipy.special import erfc, erfcx
 
-from pbrdf_cl import engine as engine_mod
-from pbrdf_cl import reference
+from pbrdf_cl.device import engine as engine_mod
+from pbrdf_cl.model import reference
 
 FUNCS = {"exp": 0, "log": 1, "erfc": 2, "hypot": 3, "sincos_pi4": 4, "sincosd": 5, "sqrt": 6}
 

@@ -11,8 +11,8 @@ import pytest
 
 import pbrdf_cl
 from pbrdf_cl import cli
-from pbrdf_cl import inversion as F
-from pbrdf_cl.data import PHI_DEFAULT_NOTE, from_arrays, read_csv
+from pbrdf_cl.fitting import inversion as F
+from pbrdf_cl.io.measurements import PHI_DEFAULT_NOTE, from_arrays, read_csv
 
 ROOT = Path(__file__).resolve().parent.parent
 TI = np.repeat([30.0, 40.0, 50.0], 10)

@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 
 import pbrdf_cl
-from pbrdf_cl import api, inversion
-from pbrdf_cl.data import read_csv
+from pbrdf_cl.compute import pointwise as api
+from pbrdf_cl.fitting import inversion
+from pbrdf_cl.io.measurements import read_csv
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -6,9 +6,10 @@ import numpy as np
 import pytest
 
 import pbrdf_cl
-from pbrdf_cl import cli, dense, results
-from pbrdf_cl import inversion as F
-from pbrdf_cl.data import from_arrays
+from pbrdf_cl import cli, results
+from pbrdf_cl.compute import dense
+from pbrdf_cl.fitting import inversion as F
+from pbrdf_cl.io.measurements import from_arrays
 
 TI = np.repeat([30.0, 40.0, 50.0], 10)
 TR = np.tile(np.arange(20.0, 66.0, 5.0), 3)

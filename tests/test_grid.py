@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 import pbrdf_cl
-from pbrdf_cl import dense as G
+from pbrdf_cl.compute import dense as G
 
 pytestmark = pytest.mark.usefixtures("each_device")
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import pbrdf_cl
-from pbrdf_cl import engine as E
+from pbrdf_cl.device import engine as E
 from pbrdf_cl.bench import traced
 from conftest import PARAMS, call, random_inputs
 
@@ -112,7 +112,7 @@ def test_the_transfer_pipeline_of_gpus_gives_the_same_values(engine, monkeypatch
     queue overlapping the kernels, two slots; grids read back chunk k while chunk k + 1 computes),
     forced on this device: bit-identical to the in-place path, over many launches and chunks."""
     import pbrdf_cl
-    from pbrdf_cl import engine as E
+    from pbrdf_cl.device import engine as E
     rng = np.random.default_rng(9)
     n = 20011  # with LAUNCH_POINTS = 4096: five launches, slots reused, a padded tail
     inp = dict(theta_i=rng.uniform(0, 89, n), theta_r=rng.uniform(0, 89, n).astype(np.float32),

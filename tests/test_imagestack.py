@@ -1,4 +1,4 @@
-"""The synthetic image stack (pbrdf_cl.imagestack, scripts/make_image_stack.py): shapes, the truth
+"""The synthetic image stack (pbrdf_cl.io.imagestack, scripts/make_image_stack.py): shapes, the truth
 maps, the noise, the geometry and its convention (SPEC.md: phi = 180 is the mirror plane), the seed."""
 import importlib.util
 from pathlib import Path
@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 import pbrdf_cl
-from pbrdf_cl import imagestack, reference
+from pbrdf_cl.io import imagestack
+from pbrdf_cl.model import reference
 
 SIZE, M = 16, 8
 

@@ -27,7 +27,7 @@ def test_wheel_ships_kernels_and_evaluates_outside_the_source_tree(tmp_path):
                     str(wheel)], check=True, timeout=300)
     work = tmp_path / "elsewhere"
     work.mkdir()
-    code = ("import pbrdf_cl, pbrdf_cl.engine as e; "
+    code = ("import pbrdf_cl, pbrdf_cl.device.engine as e; "
             "print(pbrdf_cl.__file__); print(e.kernel_dir()); "
             "print(repr(float(pbrdf_cl.dop(40, 45, n=1.6, k=2.139, sigma=0.5, ks=0.9, kd=0.15, c=-0.3))))")
     env = dict(os.environ, PYTHONPATH=str(target), PYTHONWARNINGS="ignore")

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import pbrdf_cl
-from pbrdf_cl import dense as G
+from pbrdf_cl.compute import dense as G
 from conftest import call, random_inputs
 from test_kernels import f32_tolerance
 from test_variants import OBJECTIVE_GRIDS, axis_sets

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 import pbrdf_cl
-from pbrdf_cl import reference
+from pbrdf_cl.model import reference
 from conftest import call, edge_inputs, random_inputs
 
 pytestmark = pytest.mark.usefixtures("each_device")
@@ -94,7 +94,7 @@ def test_broadcasting_and_scalars(rng):
 
 
 def test_launches_larger_than_one_chunk(monkeypatch, rng):
-    from pbrdf_cl import engine as eng
+    from pbrdf_cl.device import engine as eng
     inp = random_inputs(rng, 3000)
     whole = call(pbrdf_cl.dop, inp)
     monkeypatch.setattr(eng, "LAUNCH_POINTS", 1000)

@@ -8,7 +8,10 @@ import numpy as np
 import pytest
 
 import pbrdf_cl
-from pbrdf_cl import api, cli, maps, sizes, sweeps
+from pbrdf_cl import cli, sizes
+from pbrdf_cl.compute import pointwise as api
+from pbrdf_cl.explore import maps
+from pbrdf_cl.explore import sweeps
 
 STEEL = dict(n=1.6, k=2.139, sigma=0.5, ks=0.9, kd=0.15, c=-0.3)
 
@@ -166,7 +169,11 @@ def test_every_output_suffix_is_checked_before_the_work(argv, option, suffix, ca
     m.txt) is refused in one line naming the option, the suffix and a name that works, before any
     work: the functions that would do it fail the test if called."""
     import os
-    from pbrdf_cl import batch_store, designs, engine, inversion, sensitivity
+    from pbrdf_cl.fitting import batch_store
+    from pbrdf_cl.explore import designs
+    from pbrdf_cl.device import engine
+    from pbrdf_cl.fitting import inversion
+    from pbrdf_cl.explore import sensitivity
     root = __import__("pathlib").Path(__file__).resolve().parents[1]
     monkeypatch.chdir(root)
 

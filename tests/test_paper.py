@@ -8,7 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pbrdf_cl import cli, maps, paper, reference
+from pbrdf_cl import cli
+from pbrdf_cl.explore import maps
+from pbrdf_cl.explore import paper
+from pbrdf_cl.model import reference
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 

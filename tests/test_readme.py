@@ -19,7 +19,7 @@ from pathlib import Path
 import pytest
 
 from pbrdf_cl import cli
-from pbrdf_cl.sweeps import load_spec
+from pbrdf_cl.explore.sweeps import load_spec
 
 ROOT = Path(__file__).resolve().parent.parent
 README = (ROOT / "README.md").read_text()

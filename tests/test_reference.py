@@ -3,7 +3,7 @@ an independent Jones-matrix construction of the Mueller matrix, and physics prop
 import numpy as np
 import pytest
 
-from pbrdf_cl import reference as ref
+from pbrdf_cl.model import reference as ref
 from conftest import call, random_inputs, requires_opencl
 import pbrdf_cl
 

@@ -8,7 +8,7 @@ import pytest
 
 import pbrdf_cl
 from conftest import requires_opencl
-from pbrdf_cl import reference
+from pbrdf_cl.model import reference
 
 import pySCATMECH.brdf as scatmech  # a test extra: pip install '.[test]'
 

@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 import pbrdf_cl
-from pbrdf_cl import reference, sensitivity
+from pbrdf_cl.model import reference
+from pbrdf_cl.explore import sensitivity
 
 SALib = pytest.importorskip("SALib")
 from SALib.analyze import morris as salib_morris  # noqa: E402
@@ -218,7 +219,7 @@ def test_bad_input_names_the_field(kwargs, match):
 def test_outer_equals_the_reference_pair_by_pair(engine, quantity, dtype, monkeypatch):
     """dense.outer: every (geometry, parameter set) pair equals reference.evaluate at that pair,
     with parameter sets that are not a multiple of the vector width and several launches."""
-    from pbrdf_cl import dense
+    from pbrdf_cl.compute import dense
     monkeypatch.setattr(dense, "OUTER_LAUNCH_PAIRS", 3 * 37)
     rng = np.random.default_rng(7)
     G, S = 9, 37

@@ -16,9 +16,9 @@ import xarray as xr
 
 import pbrdf_cl
 from pbrdf_cl import cli
-from pbrdf_cl.sweeps import SpecError, SweepSpec, load_spec, read_done
+from pbrdf_cl.explore.sweeps import SpecError, SweepSpec, load_spec, read_done
 
-S = importlib.import_module("pbrdf_cl.sweeps")
+S = importlib.import_module("pbrdf_cl.explore.sweeps")
 ROOT = Path(__file__).resolve().parent.parent
 PACKAGE_ROOT = str(Path(pbrdf_cl.__file__).resolve().parent.parent)
 STEEL = dict(n=1.6, k=2.139, ks=0.9, kd=0.15, c=-0.3)
@@ -264,8 +264,8 @@ def test_local_cluster_gives_the_same_store(spec_file, reference, tmp_path, monk
         cluster = distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None)
         client = distributed.Client(cluster)
         res = pbrdf_cl.sweep(spec_file, store, client=client, progress=False)
-        engines = client.run(lambda: len(sys.modules["pbrdf_cl.sweeps"]._ENGINES))
-        runners = client.run(lambda: len(sys.modules["pbrdf_cl.sweeps"]._RUNNERS))
+        engines = client.run(lambda: len(sys.modules["pbrdf_cl.explore.sweeps"]._ENGINES))
+        runners = client.run(lambda: len(sys.modules["pbrdf_cl.explore.sweeps"]._RUNNERS))
     finally:
         signal.alarm(0)
         signal.signal(signal.SIGALRM, old)
@@ -349,7 +349,7 @@ def test_store_of_another_spec_or_kernels_or_a_foreign_folder_is_refused(spec_fi
     assert "was started with a different spec" in msg and "choose another --out, or delete" in msg
     assert 'dtype: "float32" in the store, "float64" now' in msg and "axes.sigma: 24 values" in msg
     assert files(reference) == before  # untouched
-    monkeypatch.setattr(pbrdf_cl.engine, "_KERNELS_SHA256", "0" * 64)  # as if another pbrdf-cl ran it
+    monkeypatch.setattr(pbrdf_cl.device.engine, "_KERNELS_SHA256", "0" * 64)  # as if another pbrdf-cl ran it
     with pytest.raises(SpecError, match="was started with other OpenCL kernel sources"):
         pbrdf_cl.sweep(spec_file, reference, progress=False)
     with pytest.raises(SpecError, match="other OpenCL kernel sources"):  # what a cluster worker checks

@@ -10,7 +10,7 @@ import time
 import pytest
 
 import pbrdf_cl
-from pbrdf_cl import sweeps as S
+from pbrdf_cl.explore import sweeps as S
 from test_sweep import PACKAGE_ROOT, files, n_done
 from test_sweep import reference, spec_file  # noqa: F401 - the fixtures: SPEC_TOML and its uninterrupted store
 

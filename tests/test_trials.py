@@ -14,8 +14,9 @@ import numpy as np
 import pytest
 
 import pbrdf_cl
-from pbrdf_cl import dense, trials
-from pbrdf_cl import engine as E
+from pbrdf_cl.compute import dense
+from pbrdf_cl.device import trials
+from pbrdf_cl.device import engine as E
 from conftest import DEVICES, requires_opencl
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -29,7 +30,7 @@ SCRIPT = f"""
 import json, warnings
 import numpy as np
 import pbrdf_cl
-from pbrdf_cl import trials
+from pbrdf_cl.device import trials
 with warnings.catch_warnings(record=True) as caught:
     warnings.simplefilter("always")
     r = pbrdf_cl.objective({CSV!r}, grid=dict(n=np.linspace(1, 4, 12), k=np.linspace(0, 5, 12), sigma=0.5,
@@ -139,7 +140,7 @@ def test_a_program_that_kills_its_trial_falls_back_to_numpy_with_one_warning_per
     assert out["stats"]["children"] == len(DEVICES)  # one child at a time, each killed by one device's trial
     # the verdicts are stored, and a second process trusts them without a child
     with_store = dict(os.environ, PBRDF_CL_CACHE_DIR=env["PBRDF_CL_CACHE_DIR"])
-    stored = run(["-c", "import json; from pbrdf_cl import trials; print(json.dumps([v.__dict__ for v in "
+    stored = run(["-c", "import json; from pbrdf_cl.device import trials; print(json.dumps([v.__dict__ for v in "
                   "trials.stored_verdicts()]))"], with_store)
     bad = [v for v in json.loads(stored.stdout) if not v["usable"]]
     assert len(bad) == len(DEVICES) and all(all(w in v["reason"] for w in words) for v in bad)

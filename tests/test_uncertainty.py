@@ -13,7 +13,8 @@ import pytest
 from scipy.optimize import curve_fit
 
 import pbrdf_cl
-from pbrdf_cl import inversion, reference
+from pbrdf_cl.fitting import inversion
+from pbrdf_cl.model import reference
 
 TI = np.repeat([20.0, 35.0, 50.0, 65.0], 10)
 TR = np.tile(np.linspace(5, 80, 10), 4)

@@ -4,7 +4,7 @@ import pytest
 
 import pbrdf_cl
 from conftest import requires_opencl
-from pbrdf_cl import engine as engine_mod
+from pbrdf_cl.device import engine as engine_mod
 
 GOOD = dict(n=1.6, k=2.1, sigma=0.5, ks=0.9, kd=0.15, c=-0.3)
 
@@ -94,7 +94,7 @@ def _layouts(values):
 
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
 def test_min_and_max_of_every_layout_in_one_pass(dtype):
-    from pbrdf_cl import api
+    from pbrdf_cl.compute import pointwise as api
     rng = np.random.default_rng(4)
     values = rng.uniform(0.1, 1, (300, 1001)).astype(dtype)  # 4.6 blocks of CHECK_BLOCK
     assert values.size > 4 * api.CHECK_BLOCK
@@ -120,4 +120,4 @@ def test_a_bad_value_in_any_block_of_any_layout_is_named_as_before(layout):
         with pytest.raises(ValueError, match=pattern.format(row)):
             pbrdf_cl.aop(40.0, 30.0, 120.0, n=1.6, k=2.1, sigma=sigma, backend="numpy")
         with pytest.raises(ValueError, match=pattern.format(row)):
-            pbrdf_cl.api.check_values("sigma", sigma)
+            pbrdf_cl.compute.pointwise.check_values("sigma", sigma)

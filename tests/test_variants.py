@@ -14,10 +14,10 @@ import pytest
 
 import pbrdf_cl
 from pbrdf_cl import cli, quantities
-from pbrdf_cl import dense as G
-from pbrdf_cl import inversion as F
-from pbrdf_cl.data import read_csv
-from pbrdf_cl.sweeps import SweepSpec
+from pbrdf_cl.compute import dense as G
+from pbrdf_cl.fitting import inversion as F
+from pbrdf_cl.io.measurements import read_csv
+from pbrdf_cl.explore.sweeps import SweepSpec
 from test_kernels import f32_tolerance
 
 SHADOWINGS = ["paper", "smith", "none"]
@@ -150,7 +150,7 @@ def test_tables_of_every_variant_equal_the_reference_tables(engine, shadowing, d
             np.testing.assert_allclose(read(getattr(dev, name), getattr(ref, name)), getattr(ref, name),
                                        rtol=rtol, atol=rtol * np.abs(getattr(ref, name)).max(), err_msg=name)
         # the scale exp(+-log K): float32 carries log K's absolute error into a relative one
-        g = pbrdf_cl.reference.geometry(ti[:, None], tr[:, None], ph[:, None])
+        g = pbrdf_cl.model.reference.geometry(ti[:, None], tr[:, None], ph[:, None])
         e = g.tan2a / (2 * np.repeat(v["sigma"], v["ks"].size)[None, :] ** 2)
         scale = read(dev.scale, ref.scale)
         if dtype == "float32":  # beyond float32's range (1/K at grazing angles): inf, as the grid expects

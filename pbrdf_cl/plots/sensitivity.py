@@ -15,8 +15,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .maps import LABELS
-from .plots import _pyplot
+from ..explore.maps import LABELS
+from .fit import _pyplot
 
 #: What each drawn variable is called on a figure.
 NAMES = {"S1": "first-order index S1", "ST": "total index ST", "mu_star": "mu* (mean |elementary effect|)",

@@ -1,4 +1,4 @@
-"""The child process of :mod:`pbrdf_cl.trials`: builds OpenCL programs and launches each kernel once,
+"""The child process of :mod:`pbrdf_cl.device.trials`: builds OpenCL programs and launches each kernel once,
 so that a driver that crashes, aborts or hangs takes this process down instead of the user's.
 
 Run as a script (``python _trial_child.py``), never imported by the package: it imports only the
@@ -133,7 +133,7 @@ def main():
     os.dup2(2, 1)  # whatever a driver prints goes to stderr, never into the answers
     import ctypes
     for lib in json.loads(os.environ.get("PBRDF_CL_TRIAL_PRELOAD", "[]")):
-        try:  # the libraries pbrdf_cl.drivers loaded for Intel's runtime, in the same order
+        try:  # the libraries pbrdf_cl.device.drivers loaded for Intel's runtime, in the same order
             ctypes.CDLL(lib, mode=ctypes.RTLD_GLOBAL)
         except OSError:
             pass

@@ -30,10 +30,12 @@ from pathlib import Path
 
 import numpy as np
 
-from . import api, dense, maps
-from .data import from_arrays
-from .engine import resolve_engine
-from .plots import _pyplot
+from ..compute import pointwise
+from ..compute import dense
+from . import maps
+from ..io.measurements import from_arrays
+from ..device.engine import resolve_engine
+from ..plots.fit import _pyplot
 
 #: The paper's fit to 45# steel at 435 nm, theta_i = 40 deg (SPEC).
 STEEL = dict(n=1.6, k=2.139, sigma=0.5, ks=0.9, kd=0.15, c=-0.3)
@@ -86,7 +88,7 @@ def fig2_data(sample, seed=SEED):
     """The synthetic measurements of one Fig. 2 sample: (Measurements, noise-free DOP)."""
     p = FIG2_SAMPLES[sample]
     ti = FIG2_ANGLES
-    clean = api.dop(ti, ti, 180.0, backend="numpy", **p)
+    clean = pointwise.dop(ti, ti, 180.0, backend="numpy", **p)
     rng = np.random.default_rng([seed, sorted(FIG2_SAMPLES).index(sample)])
     noisy = np.clip(clean + rng.normal(0.0, FIG2_NOISE, ti.size), 0.0, 1.0)
     meas = from_arrays(ti, ti, noisy, 180.0, dop_std=np.full(ti.size, FIG2_NOISE), source=f"synthetic {sample}")
@@ -95,14 +97,14 @@ def fig2_data(sample, seed=SEED):
 
 def fig2(sample, out, engine=None, seed=SEED):
     """Fit both models to one synthetic Fig. 2 sample, plot and save; returns the fits."""
-    from .inversion import compare_models
+    from ..fitting.inversion import compare_models
     meas, clean = fig2_data(sample, seed)
     both = compare_models(meas, engine=engine)
     six, spec = both["six-param"], both["specular"]
     angle = np.linspace(0.0, 85.0, 171)
-    curve_six = api.dop(angle, angle, 180.0, backend="numpy", shadowing=six.shadowing, **six.x)
-    curve_spec = api.dop(angle, angle, 180.0, backend="numpy", model="specular", **spec.x)
-    curve_true = api.dop(angle, angle, 180.0, backend="numpy", **FIG2_SAMPLES[sample])
+    curve_six = pointwise.dop(angle, angle, 180.0, backend="numpy", shadowing=six.shadowing, **six.x)
+    curve_spec = pointwise.dop(angle, angle, 180.0, backend="numpy", model="specular", **spec.x)
+    curve_true = pointwise.dop(angle, angle, 180.0, backend="numpy", **FIG2_SAMPLES[sample])
     slug = sample.replace(" ", "_")
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(7.5, 5.2), layout="constrained")
@@ -177,9 +179,9 @@ def fig4(out):
     fig, ax = plt.subplots(figsize=(7.5, 5.2), layout="constrained")
     curves = {}
     for i, ti in enumerate(STEEL_THETA_I):
-        curves[ti] = api.dop(ti, tr, 180.0, backend="numpy", **STEEL)
+        curves[ti] = pointwise.dop(ti, tr, 180.0, backend="numpy", **STEEL)
         ax.plot(tr, curves[ti], "-", color=f"C{i}", label=f"model, theta_i = {ti:g} deg")
-        ax.plot(STEEL_THETA_R, api.dop(ti, STEEL_THETA_R, 180.0, backend="numpy", **STEEL), "o", color=f"C{i}",
+        ax.plot(STEEL_THETA_R, pointwise.dop(ti, STEEL_THETA_R, 180.0, backend="numpy", **STEEL), "o", color=f"C{i}",
                 ms=4)
     step = STEEL_THETA_R[1] - STEEL_THETA_R[0]
     handles, _ = ax.get_legend_handles_labels()
@@ -206,7 +208,7 @@ def fig5(out):
     fig, ax = plt.subplots(figsize=(7.5, 5.2), layout="constrained")
     rows = []
     for i, s in enumerate(SIGMAS):
-        rows.append(api.dop(40.0, tr, 180.0, backend="numpy", **{**STEEL, "sigma": s}))
+        rows.append(pointwise.dop(40.0, tr, 180.0, backend="numpy", **{**STEEL, "sigma": s}))
         ax.plot(tr, rows[-1], "-", color=f"C{i}", label=f"model, sigma = {s:g}")
     ax.set_xlabel("reflection zenith angle theta_r (deg), in plane")
     ax.set_ylabel("degree of polarization")
@@ -269,7 +271,7 @@ def sobol_map(out, resolution=256, engine=None, seed=SEED):
     """Sobol' indices of the DOP over (theta_i, theta_r) for :data:`SOBOL_RANGES` (ks = 1): the
     figure and the result (netCDF).  Returns the Dataset."""
     from .sensitivity import sobol, write_result
-    from .sensitivity_plots import plot_sensitivity
+    from ..plots.sensitivity import plot_sensitivity
     side = sobol_side(resolution)
     ds = sobol(SOBOL_RANGES, {"theta_i": np.linspace(0.0, 80.0, side), "theta_r": np.linspace(0.0, 85.0, side)},
                {"ks": 1.0}, N=SOBOL_N, seed=seed, engine=engine)
@@ -283,7 +285,7 @@ def sobol_map(out, resolution=256, engine=None, seed=SEED):
 
 def design_map(out, engine=None):
     """The measurement design for the steel (:data:`STEEL`): the figure and the result (netCDF).
-    Returns the :class:`pbrdf_cl.designs.DesignResult`."""
+    Returns the :class:`pbrdf_cl.explore.designs.DesignResult`."""
     from .designs import design, plot_design
     from .sensitivity import write_result
     r = design(STEEL, {"theta_i": "10:80:5", "theta_r": "0:85:5"}, noise=DESIGN_NOISE,
@@ -368,7 +370,7 @@ def reproduce(out="paper-figures", *, resolution=256, engine=None, backend="auto
         files[data_file(png)] = f"the arrays drawn in {png}."
     files["summary.md"] = "this list."
     lines = ["# Reproduction of Zhu et al. (2020) and roughness maps", "",
-             f"Written by `pbrdf-cl reproduce` (pbrdf_cl.paper.reproduce, seed {seed}, maps at {resolution} "
+             f"Written by `pbrdf-cl reproduce` (pbrdf_cl.explore.paper.reproduce, seed {seed}, maps at {resolution} "
              f"points per axis, float64, shadowing `paper`; computed on {engine.description}).", "",
              "Fig. 2 data are synthetic (the paper's measured points are not published): the six-parameter "
              f"model in the specular geometry theta_r = theta_i = {FIG2_ANGLES[0]:g}..{FIG2_ANGLES[-1]:g} deg "

@@ -1,4 +1,4 @@
-"""Figures of per-pixel fits (:func:`pbrdf_cl.batch.fit_batch`, ``pbrdf-cl fit-image --png``):
+"""Figures of per-pixel fits (:func:`pbrdf_cl.fitting.batch.fit_batch`, ``pbrdf-cl fit-image --png``):
 the parameter maps with the widths of their 95% intervals, and the fit status of every pixel;
 in the stack's coordinates, robust colour scales, undetermined, not-converged and missing pixels
 marked (:func:`plot_batch_maps`)."""
@@ -9,7 +9,7 @@ import numpy as np
 #: Largest side, in pixels, of a map drawn (larger images are drawn every s-th pixel).
 MAX_SIDE = 1024
 
-#: Colours of the status codes (``pbrdf_cl.batch.STATUS``).
+#: Colours of the status codes (``pbrdf_cl.fitting.batch.STATUS``).
 STATUS_COLOURS = {1: "#2ca02c", 2: "#bcbd22", 3: "#ff7f0e", 4: "#9467bd", 0: "#d62728", -1: "#7f7f7f",
                   -2: "#c7c7c7", -3: "#000000"}
 
@@ -130,13 +130,13 @@ def plot_batch_maps(ds, path, *, truth=None, max_side=MAX_SIDE):
     Parameters
     ----------
     ds : xarray.Dataset
-        A result of :func:`pbrdf_cl.batch.fit_batch` or :func:`pbrdf_cl.batch_store.fit_batch_to_store`
+        A result of :func:`pbrdf_cl.fitting.batch.fit_batch` or :func:`pbrdf_cl.fitting.batch_store.fit_batch_to_store`
         over one or two pixel dimensions (``attrs["free"]`` names the fitted parameters).
     path : str or path
         The PNG to write (matplotlib's Agg backend).
     truth : xarray.Dataset, optional
         Maps ``true_<name>`` over the same pixels (a synthetic stack of
-        :func:`pbrdf_cl.imagestack.synthetic_stack`).
+        :func:`pbrdf_cl.io.imagestack.synthetic_stack`).
     max_side : int, default 1024
         Images with more pixels along a side are drawn every s-th pixel (said in the title), so
         that a store of any size is read only in part.
@@ -154,7 +154,7 @@ def plot_batch_maps(ds, path, *, truth=None, max_side=MAX_SIDE):
     Examples
     --------
     >>> import numpy as np, pbrdf_cl, tempfile, os
-    >>> from pbrdf_cl.batch import fit_batch
+    >>> from pbrdf_cl.fitting.batch import fit_batch
     >>> ti, tr = np.repeat([30.0, 40, 50], 10), np.tile(np.arange(20.0, 66, 5), 3)
     >>> dop = np.broadcast_to(pbrdf_cl.dop(ti, tr, n=1.6, k=2.139, sigma=0.5, kd=0.15, c=-0.3), (2, 3, 30))
     >>> res = fit_batch(dict(dop=dop, theta_i=ti, theta_r=tr))
@@ -179,7 +179,7 @@ def _figure(ds, truth, max_side):
     from matplotlib.colors import BoundaryNorm, ListedColormap
     from matplotlib.patches import Patch
 
-    from .batch import STATUS
+    from ..fitting.batch import STATUS
 
     if "status" not in ds:
         raise ValueError("plot_batch_maps: the dataset has no 'status': not a result of fit_batch")

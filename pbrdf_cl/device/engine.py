@@ -4,7 +4,7 @@ probe; the choice of device; and the numpy engine every function falls back to.
 **Probe.**  A device is *usable* only when it builds ``kernels/pbrdf_probe.cl`` (which includes
 ``pbrdf.h``) in float32, and in float64 where the device claims it, and returns SPEC's check
 values (DOP of the paper's steel at three geometries).  Results are cached per process and on
-disk (``~/.cache/pbrdf-cl/probe-v1.json``, see :func:`pbrdf_cl.drivers.cache_dir`), keyed by the
+disk (``~/.cache/pbrdf-cl/probe-v1.json``, see :func:`pbrdf_cl.device.drivers.cache_dir`), keyed by the
 platform, the device, its driver version and the SHA-256 of the kernel sources.
 
 **Choice**, in order: an explicit ``device`` argument, then the ``PYOPENCL_CTX`` environment
@@ -23,7 +23,7 @@ error; ``"numpy"`` always uses the reference.  :func:`resolve_engine` implements
 Programs are built once per (precision, shadowing variant) with ``-D`` options and kept, with
 their ``cl.Kernel`` objects, for the life of the engine.  Before a process first builds a program on
 a device (and before it probes one), the build and one launch of each kernel are tried in a child
-process (:mod:`pbrdf_cl.trials`), whose verdict is stored on disk: a driver that crashes, aborts or
+process (:mod:`pbrdf_cl.device.trials`), whose verdict is stored on disk: a driver that crashes, aborts or
 hangs there takes the child down, not this process.  A program the trial found unusable raises
 :class:`ProgramUnusableError`; the functions marked :func:`falls_back` then compute on the next
 usable device, else on the numpy backend, with one :class:`DeviceWarning` line (an explicitly
@@ -58,7 +58,10 @@ from pathlib import Path
 
 import numpy as np
 
-from . import drivers, quantities, reference, trials
+from . import drivers
+from ..model import quantities
+from ..model import reference
+from . import trials
 from .drivers import describe, first_error_line  # noqa: F401 (engine.describe, engine.first_error_line stay)
 
 drivers.register_pip_drivers()  # before the first OpenCL call of this process
@@ -116,7 +119,7 @@ class KernelBuildError(OpenCLUnavailableError):
 
 class ProgramUnusableError(KernelBuildError):
     """A device cannot run one program: its trial build in a child process failed, crashed, aborted
-    or timed out (:mod:`pbrdf_cl.trials`).  ``engine``: where; ``verdict``: the trial's finding;
+    or timed out (:mod:`pbrdf_cl.device.trials`).  ``engine``: where; ``verdict``: the trial's finding;
     ``program``: a key of the program that does not depend on the device."""
 
     def __init__(self, message, engine=None, verdict=None, program=None):
@@ -139,7 +142,7 @@ def kernel_dir() -> Path:
             return Path(str(folder))
     except ModuleNotFoundError:
         pass
-    folder = Path(__file__).resolve().parent.parent / "kernels"
+    folder = Path(__file__).resolve().parents[2] / "kernels"
     if (folder / "pbrdf.h").is_file():
         return folder
     raise FileNotFoundError("the OpenCL sources of pbrdf_cl (pbrdf_cl/kernels/pbrdf.h) are missing "
@@ -644,7 +647,7 @@ def select_device(device=None):
 
 
 class NumpyEngine:
-    """The numpy backend: the float64 reference of :mod:`pbrdf_cl.reference`, as an engine.
+    """The numpy backend: the float64 reference of :mod:`pbrdf_cl.model.reference`, as an engine.
 
     Every function that takes ``engine=`` accepts one; the dense grids, reductions and the
     objective build the same factor tables with ``reference.py`` and combine them in chunks

@@ -16,8 +16,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import sizes
-from .api import dop as _dop
+from .. import sizes
+from ..compute.pointwise import dop as _dop
 
 #: The two materials of :func:`synthetic_stack`: name -> n, k, kd (= kd/ks with ks = 1), c.
 MATERIALS = {
@@ -341,7 +341,7 @@ def synthetic_stack(size=256, n_lights=30, noise=0.005, seed=0, *, sample_mm=100
         coords={"x_mm": ("x", x_mm, {"units": "mm"}), "y_mm": ("y", y_mm, {"units": "mm"}),
                 "light_x": ("m", lights[:, 0], {"units": "mm"}), "light_y": ("m", lights[:, 1], {"units": "mm"}),
                 "light_z": ("m", lights[:, 2], {"units": "mm"})},
-        attrs={"title": "synthetic pBRDF DOP image stack (pbrdf_cl.imagestack.synthetic_stack)",
+        attrs={"title": "synthetic pBRDF DOP image stack (pbrdf_cl.io.imagestack.synthetic_stack)",
                "angles": "degrees; phi = phi_i - phi_r in [0, 360), 180 = in-plane (mirror) geometry",
                "geometry": (f"flat sample, side {sample_mm} mm, in the plane z = 0, normal +z, centred at the "
                             f"origin; rectified pixels (x right, y up, row 0 at the top); pinhole camera at "
@@ -495,7 +495,7 @@ def check_pixels(ds, pixels=None, **fit_kw):
     import time
     import warnings
 
-    from .inversion import fit
+    from ..fitting.inversion import fit
 
     pixels = default_check_pixels(ds.sizes["x"]) if pixels is None else pixels
     rows = []

@@ -22,7 +22,7 @@ def plot_fit(meas, fits, path):
     marker per model and the data's error bars.  Returns the (closed) matplotlib Figure."""
     from matplotlib.lines import Line2D
 
-    from . import api
+    from ..compute import pointwise
     plt = _pyplot()
     fig, (ax, axr) = plt.subplots(2, 1, figsize=(8, 7.5), sharex=True, layout="constrained",
                                   gridspec_kw=dict(height_ratios=[3, 1.5]))
@@ -41,13 +41,13 @@ def plot_fit(meas, fits, path):
         for si, (name, r) in enumerate(fits.items()):
             x = dict(r.x)
             if name == "specular":
-                curve = api.dop(ti, tr, phi, n=x["n"], k=x["k"], model="specular", shadowing=r.shadowing,
+                curve = pointwise.dop(ti, tr, phi, n=x["n"], k=x["k"], model="specular", shadowing=r.shadowing,
                                 backend="numpy")
-                res = api.dop(meas.theta_i[sel], meas.theta_r[sel], meas.phi[sel], n=x["n"], k=x["k"],
+                res = pointwise.dop(meas.theta_i[sel], meas.theta_r[sel], meas.phi[sel], n=x["n"], k=x["k"],
                               model="specular", backend="numpy") - meas.dop[sel]
             else:
-                curve = api.dop(ti, tr, phi, shadowing=r.shadowing, backend="numpy", **x)
-                res = api.dop(meas.theta_i[sel], meas.theta_r[sel], meas.phi[sel], shadowing=r.shadowing,
+                curve = pointwise.dop(ti, tr, phi, shadowing=r.shadowing, backend="numpy", **x)
+                res = pointwise.dop(meas.theta_i[sel], meas.theta_r[sel], meas.phi[sel], shadowing=r.shadowing,
                               backend="numpy", **x) - meas.dop[sel]
             ax.plot(tr, curve, FIT_STYLES[si % 3], color=col, lw=1.2)
             offset = (si - (len(fits) - 1) / 2) * shift  # side by side, not on top of each other

@@ -8,9 +8,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import quantities, reference, sizes
-from . import engine as _engine
-from .engine import BACKENDS, DTYPES, POINT_INPUTS, check_backend, compact_values, resolve_engine  # noqa: F401 (api.BACKENDS stays)
+from ..model import quantities
+from ..model import reference
+from .. import sizes
+from ..device import engine as _engine
+from ..device.engine import BACKENDS, DTYPES, POINT_INPUTS, check_backend, compact_values, resolve_engine  # noqa: F401 (api.BACKENDS stays)
 
 MODELS = ("six-param", "specular")
 #: The quantities with a per-point path (the registry, :mod:`pbrdf_cl.quantities`, says more).

@@ -5,7 +5,7 @@ where": at every geometry of a grid, the share of the variance of the DOP (or F0
 materials that each parameter explains alone (first order, ``S1``) and with all its
 interactions (total, ``ST``).  The model runs are what SALib leaves to its user; here they are
 one dense evaluation on the device, the sample sets times the geometries
-(:func:`pbrdf_cl.dense.outer`), and the estimators are those of ``SALib.analyze.sobol`` and
+(:func:`pbrdf_cl.compute.dense.outer`), and the estimators are those of ``SALib.analyze.sobol`` and
 ``SALib.analyze.morris``, vectorised over the geometries: the bootstrap's resamples become one
 matrix product (the resample counts times the per-sample terms of every geometry).
 
@@ -25,9 +25,10 @@ import time
 
 import numpy as np
 
-from . import api, quantities
-from .dense import DEFAULTS, LONG_NAMES, PARAMETERS, _progress, outer
-from .engine import DTYPES, resolve_engine
+from ..compute import pointwise
+from ..model import quantities
+from ..compute.dense import DEFAULTS, LONG_NAMES, PARAMETERS, _progress, outer
+from ..device.engine import DTYPES, resolve_engine
 
 GEOMETRY = ("theta_i", "theta_r", "phi")
 #: Bootstrap resamples and confidence level of the intervals (SALib's defaults).
@@ -61,7 +62,7 @@ class Range:
 
 def _hint(name, names):
     """``"; did you mean 'sigma'?"`` for a near miss of one of ``names``, else ``""``."""
-    from .ranges import _did_you_mean
+    from ..ranges import _did_you_mean
     near = _did_you_mean(str(name), [n.lower() for n in names])
     near = next((n for n in names if n.lower() == near), None) if near else None
     return f" (did you mean {near!r}?)" if near else ""
@@ -79,7 +80,7 @@ def _number(where, v):
 def check_ranges(ranges, where="ranges"):
     """``{name: (low, high)}`` (or ``(low, high, "log")``, or ``{"low", "high", "scale"}``) ->
     a tuple of :class:`Range` in the model's parameter order, each checked against the model's
-    domain (``api.RULES``); a ``ValueError`` naming the parameter and the value otherwise."""
+    domain (``pointwise.RULES``); a ``ValueError`` naming the parameter and the value otherwise."""
     if not isinstance(ranges, dict) or not ranges:
         raise ValueError(f"{where}: give a dict of parameter -> (low, high), e.g. "
                          "{'n': (1.2, 2.5), 'k': (0.01, 3, 'log')}")
@@ -104,7 +105,7 @@ def check_ranges(ranges, where="ranges"):
             raise ValueError(f"{field}: scale must be 'linear' or 'log', got {scale!r}")
         if not low < high:
             raise ValueError(f"{field}: low must be below high, got ({low:g}, {high:g})")
-        api.check_values(name, np.array([low, high]))
+        pointwise.check_values(name, np.array([low, high]))
         if scale == "log" and low <= 0:
             raise ValueError(f"{field}: a log-uniform range needs low > 0, got {low:g}")
         out[name] = Range(name, low, high, scale)
@@ -134,7 +135,7 @@ def check_fixed(fixed, ranged, where="fixed"):
             if a.ndim:
                 raise ValueError(f"{where}[{name!r}] must be a single value, got shape {a.shape}")
             v = _number(f"{where}[{name!r}]", fixed[name])
-            api.check_values(name, v)
+            pointwise.check_values(name, v)
             out[name] = v
         else:
             out[name] = float(DEFAULTS[name])
@@ -146,7 +147,7 @@ def check_geometry(geometry, where="geometry", defaults=(("phi", 180.0),)):
     ``"0:85@64"``) -> ``(axes, scalars)``: the axes with more than one value (name -> float64
     array, in the order theta_i, theta_r, phi) and the single values.  theta_i and theta_r are
     required; phi defaults to 180 (in plane)."""
-    from . import ranges as rg
+    from .. import ranges as rg
     if not isinstance(geometry, dict):
         raise ValueError(f"{where}: give a dict of theta_i, theta_r (and phi) -> angles in degrees")
     values = dict(defaults)
@@ -173,8 +174,8 @@ def check_geometry(geometry, where="geometry", defaults=(("phi", 180.0),)):
                 raise ValueError(f"{where}[{name!r}] is empty")
             a = np.array([_number(f"{where}[{name!r}][{i}]" if a.ndim else f"{where}[{name!r}]", x)
                           for i, x in enumerate(a.reshape(-1))])
-        api.check_values(name, a)
-        api.check_degrees(a if name == "theta_i" else 0.0, a if name == "theta_r" else 0.0, where=f"{where}: ")
+        pointwise.check_values(name, a)
+        pointwise.check_degrees(a if name == "theta_i" else 0.0, a if name == "theta_r" else 0.0, where=f"{where}: ")
         if a.size == 1 and (isinstance(v, numbers.Real) or np.ndim(v) == 0):
             scalars[name] = float(a[0])
         else:
@@ -405,7 +406,7 @@ def sobol(ranges, geometry, fixed=None, quantity="dop", N=4096, seed=None, dtype
         Host memory of one block of geometries (the outputs and the estimators' terms).
     progress : bool
         A progress bar over the geometries (when the work takes more than a second).
-    engine, backend : where the model runs (see :func:`pbrdf_cl.engine.resolve_engine`)
+    engine, backend : where the model runs (see :func:`pbrdf_cl.device.engine.resolve_engine`)
 
     Returns
     -------
@@ -425,7 +426,7 @@ def sobol(ranges, geometry, fixed=None, quantity="dop", N=4096, seed=None, dtype
     >>> ds.S1.dims
     ('parameter', 'theta_r')
     """
-    from .ranges import parse_bytes
+    from ..ranges import parse_bytes
     t0 = time.perf_counter()
     if method not in METHODS:
         raise ValueError(f"method must be one of {', '.join(map(repr, METHODS))}, got {method!r}")
@@ -434,7 +435,7 @@ def sobol(ranges, geometry, fixed=None, quantity="dop", N=4096, seed=None, dtype
         raise ValueError(f"quantity: {q.name!r} has no sensitivity map ("
                          + ("an angle modulo its period: its variance is not meaningful" if q.period else
                             "not one value per point") + f"); available: {', '.join(SCALAR)}")
-    dtype = api.check_options(shadowing, dtype)
+    dtype = pointwise.check_options(shadowing, dtype)
     if isinstance(N, bool) or not isinstance(N, (int, np.integer)) or N < 2:
         raise ValueError(f"N must be an integer >= 2, got {N!r}")
     if method == "morris" and second_order:
@@ -603,7 +604,7 @@ SPEC_KEYS = ("title", "quantity", "method", "N", "seed", "dtype", "shadowing", "
 
 
 def _spec_error(field, exc):
-    """``exc``'s message as a :class:`pbrdf_cl.sweeps.SpecError` that starts with ``field``; the
+    """``exc``'s message as a :class:`pbrdf_cl.explore.sweeps.SpecError` that starts with ``field``; the
     ``ranges['k']`` of :func:`check_ranges` and friends spelt as in TOML, ``ranges.k``."""
     import re
 
@@ -637,8 +638,8 @@ def _spec_settings(data):
 def _spec_options(data):
     """The spec's top-level settings (method, quantity, N, seed, dtype, shadowing, second_order,
     num_levels, memory_budget), checked."""
-    from .engine import DTYPES
-    from .reference import SHADOWING
+    from ..device.engine import DTYPES
+    from ..model.reference import SHADOWING
     from .sweeps import SpecError
     out = {}
     method = data.get("method", "sobol")
@@ -677,7 +678,7 @@ def _spec_options(data):
         if method != "morris":
             raise SpecError("num_levels: only with method = \"morris\" (the levels of its grid)")
         out["num_levels"] = _integer("num_levels", data["num_levels"], 2)
-    from .ranges import RangeError, parse_bytes
+    from ..ranges import RangeError, parse_bytes
     budget = data.get("memory_budget", DEFAULT_BUDGET)
     try:
         parse_bytes("memory_budget", budget)
@@ -743,7 +744,7 @@ def _spec_geometry(data):
         raise SpecError("geometry: a table of theta_i, theta_r (and phi) = angles in degrees, e.g. "
                         "[geometry] theta_i = \"0:80@64\"")
     with warnings.catch_warnings():  # a radians warning is sobol's to give, once, when it runs
-        warnings.simplefilter("ignore", api.UnitsWarning)
+        warnings.simplefilter("ignore", pointwise.UnitsWarning)
         for name, v in geometry.items():
             if name not in GEOMETRY:
                 raise SpecError(f"geometry.{name}: unknown axis{_hint(name, GEOMETRY)}; valid names are "
@@ -780,7 +781,7 @@ def load_sobol_spec(spec):
 
     Raises
     ------
-    pbrdf_cl.sweeps.SpecError
+    pbrdf_cl.explore.sweeps.SpecError
         A ``ValueError`` of one line naming the field (``ranges.k: ...``), an unknown key with the
         nearest valid one, a TOML syntax error with its line.
 
@@ -873,7 +874,7 @@ def summary(ds):
     """A few lines on a result of :func:`sobol`: the work done, and per parameter its mean indices
     over the geometries and where it dominates (the share of geometries where its total index, or
     mu*, is the largest)."""
-    from .sensitivity_plots import _compatible
+    from ..plots.sensitivity import _compatible
     ds = _compatible(ds)
     first, second = _indices(ds)
     geo = [d for d in ds[first].dims if d != "parameter"]

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import api
+from ..compute import pointwise
 
 #: Polarizer angles (degrees) of the four images ``polanalyser.demosaicing`` returns, in order.
 POLARIZER_ANGLES = (0.0, 45.0, 90.0, 135.0)
@@ -228,7 +228,7 @@ def _darks(pa, dark, shape, m, method):
 
 def _angle(name, value, shape):
     """A geometry array: (M,) shared, or broadcastable to (H, W, M); with its dims."""
-    a = api.check_values(name, value)
+    a = pointwise.check_values(name, value)
     if a.size == 1 and a.ndim <= 1:
         a = np.full(shape[-1:], float(a.flat[0]))
     if a.ndim == 1:
@@ -256,7 +256,7 @@ def camera_dataset(frames, theta_i, theta_r, phi=180.0, *, dop_std=None, mask=No
     theta_i, theta_r, phi : float or array_like
         Degrees, as everywhere in pbrdf-cl (phi = phi_i - phi_r, 180 = the mirror plane): one
         value per frame, shape (M,), or per pixel, broadcastable to (H, W, M);
-        :func:`pbrdf_cl.imagestack.angles_from_positions` computes them from the positions of
+        :func:`pbrdf_cl.io.imagestack.angles_from_positions` computes them from the positions of
         the light, the camera and each pixel's surface point.
     dop_std : float or array_like, optional
         The DOP's standard deviation, broadcastable to (H, W, M) (the fit's weights).

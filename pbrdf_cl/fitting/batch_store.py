@@ -1,13 +1,13 @@
 """Per-pixel fits of image stacks of any size into a Zarr store, block by block, resumable, on one
 machine or a ``dask.distributed`` cluster: :func:`fit_batch_to_store` (``pbrdf-cl fit-image``,
-``pbrdf_cl.batch.fit_batch(..., store=...)``).
+``pbrdf_cl.fitting.batch.fit_batch(..., store=...)``).
 
-The unit of work is :class:`pbrdf_cl.batch.BatchJob`'s block of rows of the first pixel
+The unit of work is :class:`pbrdf_cl.fitting.batch.BatchJob`'s block of rows of the first pixel
 dimension (sized by ``memory_budget``); each block is read from the stack on its own, fitted,
-written, and marked done, as :mod:`pbrdf_cl.sweeps` does with its chunks.
+written, and marked done, as :mod:`pbrdf_cl.explore.sweeps` does with its chunks.
 
 Layout of the store (Zarr format 2, consolidated metadata; ``xarray.open_zarr`` reads it as the
-Dataset :func:`pbrdf_cl.batch.fit_batch` returns):
+Dataset :func:`pbrdf_cl.fitting.batch.fit_batch` returns):
 
 - the variables of that Dataset (``n``, ``n_stderr``, ``n_ci95``, ..., ``sse``, ``chi2``,
   ``determined``, ``n_valid``, ``nfev``, ``status``) with their attrs, and its coordinates
@@ -15,7 +15,7 @@ Dataset :func:`pbrdf_cl.batch.fit_batch` returns):
   rows (the whole of the other dimensions), so no two writers ever share a Zarr chunk;
 - ``_sweep/done``: one uint8 per block, set (1) only after that block's values are in the store
   (write-then-mark: a block without its mark is computed again), the record of a sweep store,
-  read by :func:`pbrdf_cl.sweeps.read_done`; ``_sweep/input_sha256``: per block, the SHA-256 of
+  read by :func:`pbrdf_cl.explore.sweeps.read_done`; ``_sweep/input_sha256``: per block, the SHA-256 of
   the input rows it was fitted from (written before the mark);
 - root attrs: the Dataset's attrs (model, bounds, grid, ...), the canonical job settings as JSON
   (``batch_settings``) and their SHA-256 (``batch_settings_sha256``), the SHA-256 of the OpenCL
@@ -43,8 +43,9 @@ from pathlib import Path
 
 import numpy as np
 
-from . import sizes, sweeps
-from .engine import kernels_sha256, resolve_engine
+from .. import sizes
+from ..explore import sweeps
+from ..device.engine import kernels_sha256, resolve_engine
 
 #: Version of the canonical settings (part of their hash).
 SETTINGS_VERSION = 2  # 2: the goodness-of-fit variables (r2, p_value, fits_data)
@@ -61,7 +62,7 @@ class StoreError(ValueError):
 
 
 class _Layout:
-    """What :func:`pbrdf_cl.sweeps.read_done` needs to know of a store: its number of blocks."""
+    """What :func:`pbrdf_cl.explore.sweeps.read_done` needs to know of a store: its number of blocks."""
 
     def __init__(self, n_chunks):
         self.n_chunks = int(n_chunks)
@@ -71,7 +72,7 @@ class _Layout:
 # identity: the job's settings and its input
 
 def _rows_sha256(raw):
-    """SHA-256 of the arrays :meth:`pbrdf_cl.batch._Source.rows` returns (names, shapes, dtypes,
+    """SHA-256 of the arrays :meth:`pbrdf_cl.fitting.batch._Source.rows` returns (names, shapes, dtypes,
     bytes)."""
     h = hashlib.sha256()
     for name in sorted(raw):
@@ -97,7 +98,7 @@ def settings(job, block_rows):
 
     Parameters
     ----------
-    job : pbrdf_cl.batch.BatchJob
+    job : pbrdf_cl.fitting.batch.BatchJob
         The checked job.
     block_rows : int
         Rows of the first pixel dimension per block (one Zarr chunk).
@@ -114,7 +115,7 @@ def settings(job, block_rows):
     Examples
     --------
     >>> import numpy as np, pbrdf_cl
-    >>> from pbrdf_cl.batch import BatchJob
+    >>> from pbrdf_cl.fitting.batch import BatchJob
     >>> ti, tr = np.repeat([30.0, 40, 50], 10), np.tile(np.arange(20.0, 66, 5), 3)
     >>> dop = np.broadcast_to(pbrdf_cl.dop(ti, tr, n=1.6, k=2.139, sigma=0.5, kd=0.15, c=-0.3), (2, 3, 30))
     >>> s = settings(BatchJob(dict(dop=dop, theta_i=ti, theta_r=tr)), 1)
@@ -175,7 +176,7 @@ def _block_dataset(job, out, r0, r1):
 
 
 def _placeholder(job, rows):
-    """Outputs of :meth:`~pbrdf_cl.batch.BatchJob.fit_rows` for ``rows`` rows with the right keys,
+    """Outputs of :meth:`~pbrdf_cl.fitting.batch.BatchJob.fit_rows` for ``rows`` rows with the right keys,
     shapes and dtypes (the store's template)."""
     from .batch import _empty_outputs
     return _empty_outputs(rows * int(np.prod(job.source.shape[1:], dtype=np.int64)), len(job.names))
@@ -233,7 +234,7 @@ def run_block(job, name, digest, i, r0, r1, device=None, backend="auto"):
 
     Parameters
     ----------
-    job : pbrdf_cl.batch.BatchJob
+    job : pbrdf_cl.fitting.batch.BatchJob
         The job (scattered to every worker).
     name : str
         The store (a path every worker sees, or a URL).
@@ -242,7 +243,7 @@ def run_block(job, name, digest, i, r0, r1, device=None, backend="auto"):
     i, r0, r1 : int
         The block and its rows.
     device, backend
-        The engine each worker builds once (:func:`pbrdf_cl.sweeps.worker_engine`).
+        The engine each worker builds once (:func:`pbrdf_cl.explore.sweeps.worker_engine`).
 
     Returns
     -------
@@ -294,7 +295,7 @@ def _write_skeleton(job, blocks, block_rows, the_settings, memory_budget, store)
                      block_rows=int(block_rows))
     sweeps._create_array(sub, "done", (len(blocks),), (1,), "u1", 0, None, {})
     sweeps._create_array(sub, "input_sha256", (len(blocks), 32), (1, 32), "u1", 0, None, {})
-    from . import __version__
+    from .. import __version__
     text, digest = _canonical(the_settings)
     g.attrs.update({**template.attrs, "title": "pbrdf-cl per-pixel fit", "pbrdf_cl_version": __version__,
                     "batch_settings": text, "batch_settings_sha256": digest, "sweep_kernels_sha256": kernels_sha256(),
@@ -347,7 +348,7 @@ def _open_store(job, blocks, block_rows, the_settings, memory_budget, store):
 
 
 def _check_kernels(name, attrs):
-    """:func:`pbrdf_cl.sweeps._check_kernels`, refusing with a :class:`StoreError`."""
+    """:func:`pbrdf_cl.explore.sweeps._check_kernels`, refusing with a :class:`StoreError`."""
     try:
         sweeps._check_kernels(name, attrs)
     except sweeps.SpecError as exc:
@@ -379,7 +380,7 @@ def _mark_complete(name, n_blocks):
 
 
 def _add_goodness(name, ds):
-    """The goodness-of-fit summary of a complete store (:func:`pbrdf_cl.batch.goodness_summary`,
+    """The goodness-of-fit summary of a complete store (:func:`pbrdf_cl.fitting.batch.goodness_summary`,
     read block by block) written into its attrs; returns it."""
     from .batch import goodness_summary
     summary = goodness_summary(ds)
@@ -426,7 +427,7 @@ def store_bytes(job):
 
     Parameters
     ----------
-    job : pbrdf_cl.batch.BatchJob
+    job : pbrdf_cl.fitting.batch.BatchJob
         The job.
 
     Returns
@@ -450,12 +451,12 @@ def status_counts(ds):
     Parameters
     ----------
     ds : xarray.Dataset
-        A result of :func:`fit_batch_to_store` or :func:`pbrdf_cl.batch.fit_batch`.
+        A result of :func:`fit_batch_to_store` or :func:`pbrdf_cl.fitting.batch.fit_batch`.
 
     Returns
     -------
     dict
-        Status name (``pbrdf_cl.batch.STATUS``) -> pixels, for the codes present, in the order of
+        Status name (``pbrdf_cl.fitting.batch.STATUS``) -> pixels, for the codes present, in the order of
         ``STATUS``.
 
     Examples
@@ -503,7 +504,7 @@ def fit_batch_to_store(data, store, *, model="six-param", bounds=None, fixed=Non
 
     Memory: one block in flight per engine, sized by ``memory_budget``: the input is read a block
     of rows at a time (with the chunks of a lazy stack that hold them), the outputs written a
-    block at a time.  Nothing here reads the whole stack; :class:`~pbrdf_cl.batch.BatchJob`'s
+    block at a time.  Nothing here reads the whole stack; :class:`~pbrdf_cl.fitting.batch.BatchJob`'s
     check of the angles reads the first measurement of per-pixel ``theta_i`` and ``theta_r`` of
     every pixel (1/M of those variables), and a block is never smaller than one row.  (How much
     one block takes is BatchJob's estimate.)  With a cluster the job is sent to each worker
@@ -513,17 +514,17 @@ def fit_batch_to_store(data, store, *, model="six-param", bounds=None, fixed=Non
     Parameters
     ----------
     data : xarray.Dataset, dict of arrays or path
-        The stack, as for :func:`pbrdf_cl.batch.fit_batch`; a path to a ``.nc`` stack is opened
+        The stack, as for :func:`pbrdf_cl.fitting.batch.fit_batch`; a path to a ``.nc`` stack is opened
         lazily (dask) here, so that it is read a block at a time.
     store : str or path
         The Zarr store (a local path, or the URL of an fsspec store that every worker reaches);
         created if absent, resumed if it holds this job, refused otherwise.
     model, bounds, fixed, shadowing, memory_budget, n_starts, grid_shape
-        As for :func:`pbrdf_cl.batch.fit_batch` (None: its defaults).
+        As for :func:`pbrdf_cl.fitting.batch.fit_batch` (None: its defaults).
     progress : bool, default False
         A tqdm bar in pixels (pixels/s, the time left) on stderr.
     engine, backend
-        Where a local run computes (as for :func:`pbrdf_cl.batch.fit_batch`); ``backend`` (and
+        Where a local run computes (as for :func:`pbrdf_cl.fitting.batch.fit_batch`); ``backend`` (and
         ``device``) is also what every cluster worker builds its own engine for.
     workers : int, optional
         Fit on a local ``dask.distributed`` cluster of this many processes (1 thread each).
@@ -542,7 +543,7 @@ def fit_batch_to_store(data, store, *, model="six-param", bounds=None, fixed=Non
     -------
     xarray.Dataset
         The result opened from the store (``xarray.open_zarr``: lazy), with the variables of
-        :func:`pbrdf_cl.batch.fit_batch`; ``attrs`` add ``seconds`` (this run), ``blocks_computed``
+        :func:`pbrdf_cl.fitting.batch.fit_batch`; ``attrs`` add ``seconds`` (this run), ``blocks_computed``
         and ``blocks_skipped`` (this run) to the store's.
 
     Raises
@@ -550,7 +551,7 @@ def fit_batch_to_store(data, store, *, model="six-param", bounds=None, fixed=Non
     StoreError
         The store holds another job, or another input; a ``ValueError``.
     ValueError
-        Bad input (as :func:`pbrdf_cl.batch.fit_batch`), or more than one of ``workers``,
+        Bad input (as :func:`pbrdf_cl.fitting.batch.fit_batch`), or more than one of ``workers``,
         ``scheduler`` and ``client``.
     RuntimeError
         A cluster without ``dask.distributed`` installed.
@@ -558,7 +559,7 @@ def fit_batch_to_store(data, store, *, model="six-param", bounds=None, fixed=Non
     Examples
     --------
     >>> import numpy as np, pbrdf_cl, tempfile, os
-    >>> from pbrdf_cl.batch_store import fit_batch_to_store
+    >>> from pbrdf_cl.fitting.batch_store import fit_batch_to_store
     >>> ti, tr = np.repeat([30.0, 40, 50], 10), np.tile(np.arange(20.0, 66, 5), 3)
     >>> dop = np.broadcast_to(pbrdf_cl.dop(ti, tr, n=1.6, k=2.139, sigma=0.5, kd=0.15, c=-0.3), (2, 3, 30))
     >>> out = os.path.join(tempfile.mkdtemp(), "fit.zarr")

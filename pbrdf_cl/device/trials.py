@@ -5,10 +5,10 @@ LLVM 14 aborts with ``LLVM ERROR: Do not know how to scalarize this operator's o
 segfaults on 512-bit vector code on AVX-512 hosts; see the README's "Choosing a device").  Such a
 failure cannot be caught in the process that suffers it.  So before a process first builds a
 program on a device, the program is built there, and each of its kernels launched once, in a child
-process (:mod:`pbrdf_cl._trial_child`), with a time limit.  The child's answer is a *verdict*:
+process (:mod:`pbrdf_cl.device._trial_child`), with a time limit.  The child's answer is a *verdict*:
 usable, or not and why (the build log's first error line, the child's last line and the signal
 that killed it, or "timed out after 120 s").  Verdicts are stored on disk beside the probe cache
-(``verdicts-v1.json`` in :func:`pbrdf_cl.drivers.cache_dir`), keyed by the driver, the device, the
+(``verdicts-v1.json`` in :func:`pbrdf_cl.device.drivers.cache_dir`), keyed by the driver, the device, the
 kernel sources, the program and its build options, so a later process trusts them without a
 child.  One verdict stands for a family of builds that differ only in sizes (``-DPB_NNK=...``,
 see :func:`family`).  The device probe runs in the same child.

@@ -14,10 +14,12 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from . import api, dense, reference
-from .api import RULES
-from .data import as_measurements
-from .results import Result
+from ..compute import pointwise
+from ..compute import dense
+from ..model import reference
+from ..compute.pointwise import RULES
+from ..io.measurements import as_measurements
+from ..results import Result
 
 MODEL_PARAMS = {"six-param": ("n", "k", "sigma", "kd", "c"), "specular": ("n", "k")}
 DEFAULT_BOUNDS = {"n": (1.0, 5.0), "k": (0.0, 10.0), "sigma": (0.05, 1.0), "kd": (0.0, 5.0), "c": (-1.0, 0.0),
@@ -532,7 +534,7 @@ def run_stage(resid_rows, jobs):
 
 def _check_bounds(model, bounds, fixed):
     """Bounds (name -> (lo, hi)) of the model's parameters and the fixed values, checked against
-    the domain rules of :data:`pbrdf_cl.api.RULES`."""
+    the domain rules of :data:`pbrdf_cl.compute.pointwise.RULES`."""
     names = MODEL_PARAMS[model]
     b = {n: DEFAULT_BOUNDS[n] for n in names}
     for name, v in (bounds or {}).items():
@@ -571,7 +573,7 @@ def _check_fit_args(data, model, bounds, fixed, shadowing):
     if shadowing not in reference.SHADOWING:
         raise ValueError(f"shadowing must be one of {sorted(reference.SHADOWING)}, got {shadowing!r}")
     meas = as_measurements(data)
-    api.check_degrees(meas.theta_i, meas.theta_r, f"{meas.source}: ")
+    pointwise.check_degrees(meas.theta_i, meas.theta_r, f"{meas.source}: ")
     bnds, fx = _check_bounds(model, bounds, fixed)
     free = [n for n in MODEL_PARAMS[model] if n not in fx]
     if not free:
@@ -617,7 +619,7 @@ def grid_stage(meas, free, axes, base, shadowing="paper", *, engine=None, backen
     import warnings
     t0 = time.perf_counter()
     with warnings.catch_warnings():  # fit's argument check gives the radians warning, once
-        warnings.simplefilter("ignore", api.UnitsWarning)
+        warnings.simplefilter("ignore", pointwise.UnitsWarning)
         obj = dense.objective(meas.as_dict(), grid={**base, **axes}, k_best=1, dtype="float32", shadowing=shadowing,
                               engine=engine, backend=backend, progress=progress)
     sse = obj.sse.transpose(*free).values
@@ -1314,12 +1316,12 @@ def _goodness(meas, dop_resid, unc, sigma_known):
 def _convention_notes(meas):
     """The unit and convention mistakes the data show by themselves."""
     notes = []
-    hi = api.radians_suspect(meas.theta_i, meas.theta_r)
+    hi = pointwise.radians_suspect(meas.theta_i, meas.theta_r)
     if hi is not None:
-        notes.append(f"every theta_i and theta_r lies below {api.RADIANS_HINT} degrees (the largest is {hi:.4g}): "
+        notes.append(f"every theta_i and theta_r lies below {pointwise.RADIANS_HINT} degrees (the largest is {hi:.4g}): "
                      "radians? pbrdf-cl takes degrees")
     if not meas.phi_given:
-        from .data import PHI_DEFAULT_NOTE
+        from ..io.measurements import PHI_DEFAULT_NOTE
         notes.append(PHI_DEFAULT_NOTE)
     if np.all(meas.phi == 0.0):
         notes.append("phi = 0 for every point: that is the plane of incidence on the source's side (back-"

@@ -9,7 +9,7 @@ fitted on its own, by the stages of :func:`pbrdf_cl.fit` reshaped for many pixel
     the pixel's data; with per-pixel geometry the factor tables of ``pbrdf_tables.cl`` are built
     per pixel and combined (``kernels/pbrdf_batch.cl``);
 (b) a bounded Levenberg-Marquardt run on the device from each pixel's best region minima, the
-    algorithm of :func:`pbrdf_cl.inversion._lm_batch` (float32), the best of them polished in
+    algorithm of :func:`pbrdf_cl.fitting.inversion._lm_batch` (float32), the best of them polished in
     float64, derivatives by forward differences of the device functions of ``kernels/pbrdf.h``;
     with intensities (``f00``/``s0``) a last float64 run adds ks (as log ks) and the intensity
     residuals, as :func:`pbrdf_cl.fit`'s intensity stage;
@@ -28,9 +28,11 @@ from typing import NamedTuple
 
 import numpy as np
 
-from . import api, dense, reference
-from . import engine as _engine
-from .engine import DTYPES, resolve_engine
+from ..compute import pointwise
+from ..compute import dense
+from ..model import reference
+from ..device import engine as _engine
+from ..device.engine import DTYPES, resolve_engine
 from .inversion import (DEFAULT_BOUNDS, DOP_NOISE_FLOOR, GOODNESS_P, GOODNESS_R2, MODEL_FIXED, MODEL_PARAMS,
                         X_RESOLUTION, _check_bounds, _grid_axis, _lm_batch, dop_resolution, fd_jacobian)
 
@@ -90,7 +92,7 @@ def _status_attrs():
 VARIABLES = ("dop", "theta_i", "theta_r", "phi", "dop_std", "f00", "s0", "f00_std", "mask")
 ANGLES = ("theta_i", "theta_r", "phi")
 #: Variables over the measurements that fit_batch does not read and accepts without a warning:
-#: :func:`pbrdf_cl.camera.camera_dataset`'s raw S0 (``intensity``; the fit reads ``s0``, S0 /
+#: :func:`pbrdf_cl.io.camera.camera_dataset`'s raw S0 (``intensity``; the fit reads ``s0``, S0 /
 #: irradiance, which is proportional to F00).
 ACCEPTED = ("intensity",)
 #: Names of the measurement dimension in the stacks pbrdf-cl makes (``open_stack``,
@@ -229,7 +231,7 @@ class _Source:
                       if n not in VARIABLES and n not in ACCEPTED and self.mdim in v.dims]
             if unread:
                 import warnings
-                from .data import DataWarning
+                from ..io.measurements import DataWarning
                 warnings.warn(f"data: variable{'s' if len(unread) > 1 else ''} {', '.join(unread)} "
                               f"over the measurements not read (fit_batch reads {', '.join(VARIABLES)})",
                               DataWarning, stacklevel=4)
@@ -374,7 +376,7 @@ def open_stack(path):
     >>> import numpy as np, pbrdf_cl, tempfile, os
     >>> path = os.path.join(tempfile.mkdtemp(), "stack.npz")
     >>> np.savez(path, dop=np.full((4, 5, 30), 0.2), theta_i=np.full(30, 40.0), theta_r=np.linspace(5, 80, 30))
-    >>> pbrdf_cl.batch.open_stack(path).dop.dims
+    >>> pbrdf_cl.fitting.batch.open_stack(path).dop.dims
     ('y', 'x', 'm')
     """
     import pathlib
@@ -386,8 +388,8 @@ def open_stack(path):
     if suffix == ".npz":
         with np.load(p) as z:
             arrays = {k: z[k] for k in z.files}
-        if any(k.endswith(".dims") for k in arrays):  # written by pbrdf_cl.imagestack.save_stack
-            from .imagestack import load_stack
+        if any(k.endswith(".dims") for k in arrays):  # written by pbrdf_cl.io.imagestack.save_stack
+            from ..io.imagestack import load_stack
             return load_stack(p)
         if "dop" not in arrays:
             raise ValueError(f"{p}: no 'dop' array (found {', '.join(arrays)})")
@@ -417,7 +419,7 @@ def open_stack(path):
                 skipped.append(f"{k} {a.shape}")
         if skipped:  # coordinates, light positions, ...: not inputs of the fit
             import warnings
-            from .data import DataWarning
+            from ..io.measurements import DataWarning
             warnings.warn(f"{p}: arrays not read (their shapes fit neither dop {shape}, its pixels "
                           f"nor its measurements): {', '.join(skipped)}", DataWarning, stacklevel=2)
         return ds
@@ -566,7 +568,7 @@ class _Block:
 
     def _noise_floor(self, floor):
         """Each pixel's floor of the noise estimate without dop_std, as :func:`pbrdf_cl.fit`'s
-        (:func:`pbrdf_cl.inversion.dop_noise_floor`): the rounding error of the DOP resolution
+        (:func:`pbrdf_cl.fitting.inversion.dop_noise_floor`): the rounding error of the DOP resolution
         of its valid values (invalid ones are 0 in ``obs``, exact at any resolution), at least
         ``floor``."""
         return np.maximum(floor, dop_resolution(self.obs, axis=1) / np.sqrt(12.0))
@@ -677,14 +679,14 @@ def _table_dop(eng, setup, angles, v, order):
     sizes = [v[n].size for n in ("n", "k", "sigma", "ks", "kd", "c")]
     unr = np.unravel_index(order, sizes)
     p = {n: v[n][unr[i]][:, None] for i, n in enumerate(("n", "k", "sigma", "ks", "kd", "c"))}
-    out = api.dop(ti[None, :], tr[None, :], ph[None, :], shadowing=setup.shadowing, dtype="float32", engine=eng,
+    out = pointwise.dop(ti[None, :], tr[None, :], ph[None, :], shadowing=setup.shadowing, dtype="float32", engine=eng,
                   **p)
     return np.ascontiguousarray(out, np.float32)
 
 
 def _numpy_grid(setup, blk, order, rstart):
     """:func:`_device_grid` with ``reference.py`` (dense._NumpyTables, float64), pixel by pixel."""
-    from .dense import _NumpyTables
+    from ..compute.dense import _NumpyTables
     v = _grid_values(setup)
     R = rstart.size - 1
     sizes = [v[n].size for n in ("n", "k", "sigma", "ks", "kd", "c")]
@@ -1105,7 +1107,7 @@ def fit_batch(data, model="six-param", bounds=None, fixed=None, shadowing="paper
         with the float64 reference, much slower.
     store : str or path, optional
         Write the result to this Zarr store block by block, resumable (see
-        :func:`pbrdf_cl.batch_store.fit_batch_to_store`); the result is then opened from it.
+        :func:`pbrdf_cl.fitting.batch_store.fit_batch_to_store`); the result is then opened from it.
     workers, scheduler, client : optional, with ``store`` only
         Fit the blocks on a local ``dask.distributed`` cluster of this many processes, on the
         cluster of this scheduler address, or through this client (each worker builds its own
@@ -1278,7 +1280,7 @@ class BatchJob:
 
     def __init__(self, data, model="six-param", bounds=None, fixed=None, shadowing="paper", *,
                  memory_budget=DEFAULT_BUDGET, n_starts=N_STARTS, grid_shape=None):
-        from .ranges import parse_bytes
+        from ..ranges import parse_bytes
         if model not in MODEL_PARAMS:
             raise ValueError(f"model must be one of {sorted(MODEL_PARAMS)}, got {model!r}")
         if shadowing not in reference.SHADOWING:
@@ -1359,7 +1361,7 @@ class BatchJob:
         raw = self.source.rows(r0, r1)
         _check_block(raw, r0, self.source)
         if r0 == 0:  # angles in radians? (the first block stands for the stack: no extra read)
-            api.check_degrees(raw["theta_i"], raw["theta_r"], "data: ")
+            pointwise.check_degrees(raw["theta_i"], raw["theta_r"], "data: ")
         return _fit_block(eng, self.setup, raw, self.order, self.rstart, self.names)
 
     def dataset(self, out, seconds=None):
@@ -1371,12 +1373,12 @@ def _data_notes(source):
     """Notes on the conventions the stack shows by itself: phi not given (every measurement in
     plane), phi = 0 and angles below 1.6 degrees in the first row of pixels (as
     :func:`pbrdf_cl.fit`'s notes)."""
-    from .data import PHI_DEFAULT_NOTE
+    from ..io.measurements import PHI_DEFAULT_NOTE
     notes = [] if source.phi_given else [PHI_DEFAULT_NOTE]
     raw = source.rows(0, 1)
-    hi = api.radians_suspect(raw["theta_i"], raw["theta_r"])
+    hi = pointwise.radians_suspect(raw["theta_i"], raw["theta_r"])
     if hi is not None:
-        notes.append(f"every theta_i and theta_r of the first row lies below {api.RADIANS_HINT} degrees (the largest "
+        notes.append(f"every theta_i and theta_r of the first row lies below {pointwise.RADIANS_HINT} degrees (the largest "
                      f"is {hi:.4g}): radians? pbrdf-cl takes degrees")
     if source.phi_given and np.all(np.asarray(raw["phi"]) == 0.0):
         notes.append("phi = 0 for every measurement of the first row: that is the plane of incidence on the source's "
@@ -1569,7 +1571,7 @@ def _ks_start(eng, setup, blk, xb):
         p[n] = xb[:, j:j + 1]
     p["ks"] = 1.0
     ang = [a[None, :] if blk.shared else a for a in blk.angles]
-    m1 = api.brdf(*ang, shadowing=setup.shadowing, engine=eng,
+    m1 = pointwise.brdf(*ang, shadowing=setup.shadowing, engine=eng,
                   **{n: p[n] for n in ("n", "k", "sigma", "ks", "kd", "c")})
     w = blk.fw
     num = (w * blk.fobs * m1).sum(axis=1)

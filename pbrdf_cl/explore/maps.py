@@ -15,9 +15,13 @@ import json
 
 import numpy as np
 
-from . import api, dense, quantities, ranges, sizes
-from .engine import resolve_engine
-from .plots import _pyplot
+from ..compute import pointwise
+from ..compute import dense
+from ..model import quantities
+from .. import ranges
+from .. import sizes
+from ..device.engine import resolve_engine
+from ..plots.fit import _pyplot
 
 #: Axis labels with units for figures.
 LABELS = {"theta_i": "incidence zenith angle theta_i (deg)", "theta_r": "reflection zenith angle theta_r (deg)",
@@ -128,7 +132,7 @@ _SCALE_TEXT = {"angle": "1 deg", "positive": "|{name}|", "other": "max(1, |{name
 def _scale_kind(name):
     if name in ("theta_i", "theta_r", "phi"):
         return "angle"
-    return "positive" if not bool(api.RULES[name][0](np.array(0.0))) else "other"
+    return "positive" if not bool(pointwise.RULES[name][0](np.array(0.0))) else "other"
 
 
 def step_scale(name, values):
@@ -147,11 +151,11 @@ def stencil(name, nodes, step=None):
     The step is h = ``step`` (default :data:`FD_STEP`) times :func:`step_scale`, and at most a
     tenth of the distance to an open bound of the domain (theta < 90, where the model may be
     singular).  Central, (f(v + h) -
-    f(v - h)) / 2h, where both points lie in the model's domain (``api.RULES``); at a bound of the
+    f(v - h)) / 2h, where both points lie in the model's domain (``pointwise.RULES``); at a bound of the
     domain (theta = 0, k = 0, kd = 0; theta below 90) the second-order one-sided form, (-3 f(v) +
     4 f(v + h) - f(v + 2h)) / 2h forward or its mirror backward, whose error is O(h^2) as the
     central one's.  A central stencil's third point repeats its first with weight 0."""
-    ok = api.RULES[name][0]
+    ok = pointwise.RULES[name][0]
     v = np.asarray(nodes, dtype=np.float64).reshape(-1)
     h = (FD_STEP if step is None else step) * step_scale(name, v)
     # an open bound of the domain (theta < 90, sigma > 0) may be singular: keep 10 steps from it
@@ -171,7 +175,7 @@ def stencil(name, nodes, step=None):
     if not np.all(ok(pts)):
         bad = v[~np.all(ok(pts), axis=1)][0]
         raise ValueError(f"derivative: {name} = {bad:g} leaves no finite-difference step of {FD_STEP:g} inside "
-                         f"the model's domain ({name} must be {api.RULES[name][1]})")
+                         f"the model's domain ({name} must be {pointwise.RULES[name][1]})")
     return pts, w
 
 
@@ -188,7 +192,7 @@ def _derivative(name, nodes, axes, fixed, kw, dims, period):
     grid_axes[name] = values
     others = tuple(d for d in dims if d != name)
     with warnings.catch_warnings():  # the map's own grid has given any radians warning already
-        warnings.simplefilter("ignore", api.UnitsWarning)
+        warnings.simplefilter("ignore", pointwise.UnitsWarning)
         dtype = "float64" if getattr(kw["engine"], "fp64", True) else kw["dtype"]  # float64 where the device has it
         g = dense.grid(grid_axes, {n: v for n, v in fixed.items() if n != name}, **{**kw, "dtype": dtype})
     g = g.transpose(name, *others).values.astype(np.float64)  # (points, others...)

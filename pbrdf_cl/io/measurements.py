@@ -38,7 +38,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .api import RULES
+from ..compute.pointwise import RULES
 
 REQUIRED = ("theta_i", "theta_r", "dop")
 OPTIONAL = ("phi", "dop_std", "f00", "s0", "f00_std")

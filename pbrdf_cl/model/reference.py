@@ -245,7 +245,7 @@ def aop_combine(diff, K, fd, C, S):
     return aop_of(on * C, -on * S)
 
 
-# ---- The output quantities: for each registry name (pbrdf_cl/quantities.py) ``point_<name>(g, f,
+# ---- The output quantities: for each registry name (pbrdf_cl/model/quantities.py) ``point_<name>(g, f,
 # phi, logK, fd)`` (the values of points, a trailing axis for a width above 1) and, where the grid
 # supports it, ``grid_<name>(sum, diff, fdx, scale, C, S)`` (from the tables; every component).
 # They mirror ``pb_point_<name>`` and ``pb_grid_<name>`` of pbrdf.h.
@@ -301,7 +301,7 @@ def evaluate(quantity, theta_i, theta_r, phi, n, k, sigma, ks, kd, c, shadowing=
     "dop", "brdf", "mueller", "aop", "stokes") in float64; angles in degrees.
 
     Mirrors the body shared by the kernels of ``kernels/pbrdf_points.cl``.  No input validation:
-    the public API (:mod:`pbrdf_cl.api`) validates before calling this.
+    the public API (:mod:`pbrdf_cl.compute.pointwise`) validates before calling this.
     """
     point = globals().get(f"point_{quantity}")
     if point is None:

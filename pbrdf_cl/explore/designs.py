@@ -12,8 +12,8 @@ How the widths are predicted (the local linearisation :func:`pbrdf_cl.fit` itsel
   derivative of the DOP with respect to the free parameters divided by the DOP noise (one
   row), and with ``intensity`` also that of F00 divided by its standard deviation,
   ``intensity_noise`` times F00 (a second row).  The derivatives come from the device
-  (:func:`pbrdf_cl.dense.outer`, float64): the material and its +-h steps (h = 1e-6 of each
-  bound range, one-sided at a bound, as :func:`pbrdf_cl.inversion.fd_jacobian`) are extra
+  (:func:`pbrdf_cl.compute.dense.outer`, float64): the material and its +-h steps (h = 1e-6 of each
+  bound range, one-sided at a bound, as :func:`pbrdf_cl.fitting.inversion.fd_jacobian`) are extra
   parameter sets of ONE evaluation over every candidate geometry.
 * The Fisher information of a set is the sum of its rows' J^T J; the covariance its
   pseudo-inverse (as ``inversion._covariance``); the predicted interval of parameter j is
@@ -43,11 +43,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import inversion
-from . import reference as _reference
-from .dense import PARAMETERS, outer
-from .engine import resolve_engine
-from .results import Result
+from ..fitting import inversion
+from ..model import reference as _reference
+from ..compute.dense import PARAMETERS, outer
+from ..device.engine import resolve_engine
+from ..results import Result
 from .sensitivity import check_fixed, check_geometry, check_ranges, geometry_list
 
 GEOMETRY = ("theta_i", "theta_r", "phi")
@@ -195,10 +195,10 @@ def _positive(name, v):
 
 def check_points(where, spec, default_phi=180.0):
     """A candidate or reference set: a geometry dict (the product grid of
-    :func:`pbrdf_cl.sensitivity.check_geometry`) or explicit points, a sequence of
+    :func:`pbrdf_cl.explore.sensitivity.check_geometry`) or explicit points, a sequence of
     (theta_i, theta_r) or (theta_i, theta_r, phi) or an (N, 2|3) array.  Returns
     (dict theta_i/theta_r/phi -> 1-d arrays, grid axes dict or None)."""
-    from . import api
+    from ..compute import pointwise
     if isinstance(spec, dict):
         axes, scalars = check_geometry(spec, where)
         geo, shape = geometry_list(axes, scalars)
@@ -217,10 +217,10 @@ def check_points(where, spec, default_phi=180.0):
            "phi": a[:, 2].copy() if a.shape[1] == 3 else np.full(a.shape[0], default_phi)}
     for n in GEOMETRY:
         try:
-            api.check_values(n, geo[n])
+            pointwise.check_values(n, geo[n])
         except ValueError as exc:
             raise ValueError(f"{where}: {exc}") from None
-    api.check_degrees(geo["theta_i"], geo["theta_r"], where=f"{where}: ")
+    pointwise.check_degrees(geo["theta_i"], geo["theta_r"], where=f"{where}: ")
     return geo, None
 
 
@@ -287,7 +287,7 @@ def jacobians(eng, geometry, mat, names, lo, hi, shadowing="paper"):
     """Central-difference derivatives of DOP and F00 at every geometry for every material, in the
     fit's coordinates ``names`` (any of n, k, sigma, kd = kd/ks, c, ks): ``inversion.fd_jacobian``'s
     central scheme, the materials and all their steps the parameter sets of one
-    :func:`pbrdf_cl.dense.outer` call per quantity (float64).
+    :func:`pbrdf_cl.compute.dense.outer` call per quantity (float64).
 
     Returns (dop, f00, J_dop, J_f00): values (M, G) and derivatives (M, G, d)."""
     X = _x_of(mat, names)  # (M, d)
@@ -959,7 +959,7 @@ def plot_design(result, path):
     parameter a set leaves undetermined (its interval spans the whole bounds) is drawn as a
     hatched, unfilled bar of its bound range, named in the legend.  Returns the (closed) Figure."""
     from matplotlib.patches import Patch
-    from .plots import _pyplot
+    from ..plots.fit import _pyplot
     plt = _pyplot()
     fig, (ax, axb) = plt.subplots(1, 2, figsize=(13, 5.6), layout="constrained",
                                   gridspec_kw=dict(width_ratios=[1.1, 1]))

@@ -1,4 +1,4 @@
-"""Sweeps larger than memory and larger than one machine: the grid engine of :mod:`pbrdf_cl.dense`
+"""Sweeps larger than memory and larger than one machine: the grid engine of :mod:`pbrdf_cl.compute.dense`
 chunk by chunk into a Zarr store, resumable, optionally over a ``dask.distributed`` cluster.
 
 A sweep is described by a spec (TOML, see ``examples/sweep_sigma_theta.toml``)::
@@ -8,7 +8,7 @@ A sweep is described by a spec (TOML, see ``examples/sweep_sigma_theta.toml``)::
     shadowing = "paper"              # paper | smith | none
     memory_budget = "256 MiB"        # one chunk in flight: its values + the device's working memory
 
-    [axes]                           # canonical names of pbrdf_cl.dense.AXES; angles in degrees
+    [axes]                           # canonical names of pbrdf_cl.compute.dense.AXES; angles in degrees
     theta_i = "10:80:10"             # start:stop:step, ends included (README: Ranges and name=value)
     theta_r = "0:85@256"             # start:stop@count; = {start = 0, stop = 85, num = 256}
     sigma = [0.1, 0.2, 0.5]
@@ -57,10 +57,14 @@ from pathlib import Path
 
 import numpy as np
 
-from . import api, dense, quantities, ranges, sizes
-from .engine import DTYPES, kernels_sha256, resolve_engine
-from .results import Result
-from .reference import SHADOWING
+from ..compute import pointwise
+from ..compute import dense
+from ..model import quantities
+from .. import ranges
+from .. import sizes
+from ..device.engine import DTYPES, kernels_sha256, resolve_engine
+from ..results import Result
+from ..model.reference import SHADOWING
 
 try:
     import tomllib
@@ -193,7 +197,7 @@ class SweepSpec:
             field = f"axes.{name}"
             a = _axis_values(field, axes_in[name])
             try:
-                a = api.check_values(name, a)
+                a = pointwise.check_values(name, a)
             except ValueError as exc:
                 raise SpecError(f"{field}: {exc}") from None
             d = np.diff(a)
@@ -205,7 +209,7 @@ class SweepSpec:
         for name, v in fixed_in.items():
             v = _number(f"fixed.{name}", v)
             try:
-                api.check_values(name, v)
+                pointwise.check_values(name, v)
             except ValueError as exc:
                 raise SpecError(f"fixed.{name}: {exc}") from None
             fixed[name] = v
@@ -484,7 +488,7 @@ def _check_kernels(name, attrs):
 
 
 def _root_attrs(spec, complete=False):
-    from . import __version__
+    from .. import __version__
     q = quantities.get(spec.quantity)
     attrs = dict(title=spec.title or f"pbrdf-cl sweep of {spec.quantity}", quantity=spec.quantity,
                  long_name=q.long_name, units=q.units,
@@ -621,7 +625,7 @@ _CACHE_LOCK = threading.Lock()
 
 def worker_engine(device=None, backend="auto"):
     """This process's engine for ``device`` and ``backend`` (built once, then reused by every
-    chunk; see :func:`pbrdf_cl.engine.resolve_engine`)."""
+    chunk; see :func:`pbrdf_cl.device.engine.resolve_engine`)."""
     key = (device, backend)
     with _CACHE_LOCK:
         if key not in _ENGINES:
@@ -629,7 +633,7 @@ def worker_engine(device=None, backend="auto"):
             if device is None or backend == "numpy":
                 _ENGINES[key] = resolve_engine(None, backend)
             else:
-                from .engine import Engine
+                from ..device.engine import Engine
                 _ENGINES[key] = Engine(device)
         return _ENGINES[key]
 
@@ -865,7 +869,7 @@ def run_on_cluster(task, shared, items, args_of, key, finished, *, workers=None,
     are in flight, the next submitted as one finishes; ``finished(result)`` is called on the
     driver as the results arrive (in any order).  On an error (or Ctrl-C) the tasks not yet done
     are cancelled and the error is raised.  Used by :func:`sweep` and
-    :func:`pbrdf_cl.batch_store.fit_batch_to_store`.
+    :func:`pbrdf_cl.fitting.batch_store.fit_batch_to_store`.
     """
     try:
         from distributed import Client, LocalCluster, as_completed

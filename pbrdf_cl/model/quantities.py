@@ -1,7 +1,7 @@
 """The registry of output quantities: one record per quantity, read by every path.
 
 A quantity's physics is two functions in ``kernels/pbrdf.h`` and their mirrors in
-``pbrdf_cl/reference.py``, named after it: ``pb_point_<name>`` / ``point_<name>`` (one point, from
+``pbrdf_cl/model/reference.py``, named after it: ``pb_point_<name>`` / ``point_<name>`` (one point, from
 the geometry, Fresnel factors, log K and the diffuse term) and, for the dense grids,
 ``pb_grid_<name>`` / ``grid_<name>`` (from the factor tables).  The record below says everything
 else: how to build the kernels (``-DPB_QUANTITY=<name>``, its width, which tables and factors),

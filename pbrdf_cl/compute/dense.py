@@ -14,7 +14,7 @@ What each quantity needs (which tables, its width, units) is its record in
 :mod:`pbrdf_cl.quantities`.  Grids whose device memory would exceed
 ``memory_budget`` bytes run in chunks.
 
-On the numpy backend (:class:`pbrdf_cl.engine.NumpyEngine`) the same tables are built with the
+On the numpy backend (:class:`pbrdf_cl.device.engine.NumpyEngine`) the same tables are built with the
 functions of ``reference.py`` (:class:`_NumpyTables`, the mirror of ``pbrdf_tables.cl``) and
 combined with ``reference.grid_<quantity>`` over boxes of the grid, each within
 the same ``memory_budget``; values are float64 whatever ``dtype`` asks for, then cast to it.
@@ -27,9 +27,12 @@ import time
 
 import numpy as np
 
-from . import api, quantities, reference, sizes
-from . import engine as _engine
-from .engine import DTYPES, aligned_empty, resolve_engine
+from . import pointwise
+from ..model import quantities
+from ..model import reference
+from .. import sizes
+from ..device import engine as _engine
+from ..device.engine import DTYPES, aligned_empty, resolve_engine
 
 AXES = ("theta_i", "theta_r", "phi", "n", "k", "sigma", "ks", "kd", "c")
 PARAMETERS = AXES[3:]
@@ -70,14 +73,14 @@ class GridPlan:
                     raise ValueError(f"axis {name} must be a 1-d array, got shape {a.shape}")
                 if a.size == 0:
                     raise ValueError(f"axis {name} is empty")
-                a = api.check_values(name, axes[name])
+                a = pointwise.check_values(name, axes[name])
                 d = np.diff(a)
                 if a.size > 1 and not (np.all(d > 0) or np.all(d < 0)):
                     bad = int(np.argmax(d <= 0) if d[0] > 0 else np.argmax(d >= 0)) + 1
                     raise ValueError(f"axis {name} must be strictly increasing or decreasing; "
                                      f"value {float(a[bad])!r} at index {bad} breaks it")
             elif name in fixed:
-                a = api.check_values(name, fixed[name])
+                a = pointwise.check_values(name, fixed[name])
                 if a.ndim != 0:
                     raise ValueError(f"fixed value {name} must be a scalar, got shape {a.shape}; "
                                      f"give it as an axis instead")
@@ -90,10 +93,10 @@ class GridPlan:
         self.sizes = {name: self.values[name].size for name in names}
 
     def check_degrees(self, where=""):
-        """Warn (:class:`pbrdf_cl.api.UnitsWarning`) when the zenith angles, axes or fixed values,
-        all look like radians (:func:`pbrdf_cl.api.check_degrees`)."""
+        """Warn (:class:`pbrdf_cl.compute.pointwise.UnitsWarning`) when the zenith angles, axes or fixed values,
+        all look like radians (:func:`pbrdf_cl.compute.pointwise.check_degrees`)."""
         if "theta_i" in self.values and "theta_r" in self.values:
-            api.check_degrees(self.values["theta_i"], self.values["theta_r"], where)
+            pointwise.check_degrees(self.values["theta_i"], self.values["theta_r"], where)
 
     @property
     def shape(self):
@@ -123,7 +126,7 @@ class Tables:
         """Tables laid out geometry by geometry: table[g * n_params + param]; the factors and
         the frame table as the registry's record of ``quantity`` says."""
         q = quantities.get(quantity)
-        kern = engine.program("pbrdf_tables.cl", dtype, {"PBRDF_SHADOWING": api.reference.SHADOWING[shadowing]})
+        kern = engine.program("pbrdf_tables.cl", dtype, {"PBRDF_SHADOWING": pointwise.reference.SHADOWING[shadowing]})
         npdt = DTYPES[dtype]
         ng = ti.size
         geo = [engine.to_device(a, dtype) for a in (ti, tr, ph)]
@@ -342,7 +345,7 @@ def grid(axes, fixed=None, quantity="dop", dtype="float32", shadowing="paper", *
     memory_budget : int or str
         Bytes of device memory a chunk may use (tables plus output), or a size such as "64 MiB"
         or "1 GB" (:func:`pbrdf_cl.ranges.parse_bytes`); larger grids run in chunks.
-    engine, backend : the engine, or "auto" / "opencl" / "numpy" (see :func:`pbrdf_cl.engine.resolve_engine`)
+    engine, backend : the engine, or "auto" / "opencl" / "numpy" (see :func:`pbrdf_cl.device.engine.resolve_engine`)
     quantity : {"dop", "brdf", "aop", "stokes"}, default "dop"
         See :mod:`pbrdf_cl.quantities` ("f00" is "brdf").
     dtype : {"float32", "float64"}, default "float32"
@@ -364,7 +367,7 @@ def grid(axes, fixed=None, quantity="dop", dtype="float32", shadowing="paper", *
 
     Warns
     -----
-    pbrdf_cl.api.UnitsWarning
+    pbrdf_cl.compute.pointwise.UnitsWarning
         When theta_i and theta_r all lie below 1.6 degrees: radians, most likely.
 
     Examples
@@ -377,10 +380,10 @@ def grid(axes, fixed=None, quantity="dop", dtype="float32", shadowing="paper", *
     """
     import xarray as xr
 
-    from .ranges import parse_bytes
+    from ..ranges import parse_bytes
     memory_budget = parse_bytes("memory_budget", memory_budget)
     q = _check_quantity(quantity)
-    dtype = api.check_options(shadowing, dtype)
+    dtype = pointwise.check_options(shadowing, dtype)
     plan = GridPlan(axes, fixed)
     plan.check_degrees()
     sizes.check_memory(plan.size * q.width * np.dtype(DTYPES[dtype]).itemsize,
@@ -511,10 +514,10 @@ def reduce_grid(axes, fixed=None, over=(), quantity="dop", dtype="float32", shad
     >>> sorted(ds.data_vars)
     ['argmin_theta_r', 'mean', 'min']
     """
-    from .ranges import parse_bytes
+    from ..ranges import parse_bytes
     memory_budget = parse_bytes("memory_budget", memory_budget)
     quantity = _check_quantity(quantity, "reduce").name
-    dtype = api.check_options(shadowing, dtype)
+    dtype = pointwise.check_options(shadowing, dtype)
     plan = GridPlan(axes, fixed)
     plan.check_degrees()
     over = (over,) if isinstance(over, str) else tuple(over)
@@ -622,7 +625,7 @@ def _reduce_result(plan, over, kept, red, vmin, vmean, varg, quantity, shadowing
     return xr.Dataset(data, coords=coords, attrs=attrs)
 
 
-from .results import Result  # noqa: E402 (moved; dense.Result stays importable)
+from ..results import Result  # noqa: E402 (moved; dense.Result stays importable)
 
 
 class ObjectiveResult(Result):
@@ -686,14 +689,14 @@ def objective(data, grid=None, points=None, *, k_best=10, dtype="float32", shado
     10
     """
     t0 = time.perf_counter()
-    from .ranges import parse_bytes
+    from ..ranges import parse_bytes
     memory_budget = parse_bytes("memory_budget", memory_budget)
     if (grid is None) == (points is None):
         raise ValueError("give exactly one of grid= (parameter axes) or points= (explicit parameter vectors)")
-    dtype = api.check_options(shadowing, dtype)
-    from .data import as_measurements
+    dtype = pointwise.check_options(shadowing, dtype)
+    from ..io.measurements import as_measurements
     meas = as_measurements(data)
-    api.check_degrees(meas.theta_i, meas.theta_r, f"{meas.source}: ")
+    pointwise.check_degrees(meas.theta_i, meas.theta_r, f"{meas.source}: ")
     ti, tr, ph, obs = meas.theta_i, meas.theta_r, meas.phi, meas.dop
     w = meas.weights if meas.dop_std is not None else np.ones(len(meas))
     eng = resolve_engine(engine, backend)
@@ -804,7 +807,7 @@ def _objective_points(eng, points, meas, k_best, dtype, shadowing, return_sse, t
     for n in PARAMETERS:
         if n not in points and n not in defaults:
             raise ValueError(f"points: {n} is required")
-        vals[n] = np.atleast_1d(api.check_values(n, points.get(n, defaults.get(n))))
+        vals[n] = np.atleast_1d(pointwise.check_values(n, points.get(n, defaults.get(n))))
     try:
         arrays = np.broadcast_arrays(*(vals[n] for n in PARAMETERS))
     except ValueError:
@@ -870,7 +873,7 @@ def outer(eng, quantity, geometry, params, dtype="float64", shadowing="paper", o
                                    shadowing=shadowing)
             flat[a - g0:b - g0] = np.asarray(v).reshape(b - a, -1)
         return out
-    from .engine import VECTOR_LOCAL_SIZE
+    from ..device.engine import VECTOR_LOCAL_SIZE
     vec = q.vector and eng.vectorise  # N parameter sets per work-item, the sets padded to a multiple of N
     lanes = eng.vector_width[dtype] if vec else 1
     Sp = -(-S // lanes) * lanes

@@ -1,0 +1,1 @@
+"""Exploring the parameter space: global sensitivity, measurement design, maps, sweeps, the paper's figures."""

@@ -1,0 +1,1 @@
+"""Data in: measurements (CSV, dicts, DataFrames, Datasets), polarization-camera frames, synthetic image stacks."""

@@ -1,0 +1,1 @@
+"""Every figure: fits, image-fit maps, sensitivity maps."""
