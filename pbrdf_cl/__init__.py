@@ -11,20 +11,25 @@ the first usable OpenCL device, or on the float64 numpy reference where none is 
 """
 from .model import quantities
 from .compute.pointwise import MODELS, aop, brdf, dop, evaluate, mueller, stokes, validate
-from .io.measurements import DataWarning, Measurements, as_measurements, read_csv
+from .io.measurements import Measurements, as_measurements, read_csv
 from .compute.dense import ObjectiveResult, grid, objective, reduce_grid
-from .explore.sweeps import SpecError, SweepResult, SweepSpec, load_spec, sweep
+from .explore.sweeps import SweepResult, SweepSpec, load_spec, sweep
 from .fitting.inversion import FitResult, compare_models, fit
 from .fitting.batch import fit_batch
 from .explore.sensitivity import morris, sobol
 from .explore.designs import DesignResult, design
-from .device.engine import (DeviceUnusableError, DeviceWarning, Engine, NumpyEngine, OpenCLUnavailableError,
-                            get_default_engine, list_devices, probe, select_device, set_default_engine)
+from .device.engine import (Engine, NumpyEngine, get_default_engine, list_devices, probe, select_device,
+                            set_default_engine)
+from .errors import (CommandError, DataWarning, DeviceUnusableError, DeviceWarning, KernelBuildError,
+                     OpenCLUnavailableError, ProgramUnusableError, RangeError, SensitivityWarning, SpecError,
+                     StoreError, TooLargeError, TrialError, UnitsWarning)
 
 __version__ = "0.1.0"
 
 __all__ = ["dop", "brdf", "aop", "stokes", "mueller", "evaluate", "quantities", "validate", "MODELS", "grid", "reduce_grid", "objective", "ObjectiveResult",
            "sweep", "load_spec", "SweepSpec", "SweepResult", "SpecError",
            "fit", "fit_batch", "sobol", "morris", "design", "DesignResult", "compare_models", "FitResult", "read_csv", "as_measurements", "Measurements", "DataWarning", "Engine", "NumpyEngine", "probe",
-           "OpenCLUnavailableError", "DeviceUnusableError", "DeviceWarning",
+           "OpenCLUnavailableError", "DeviceUnusableError", "DeviceWarning", "KernelBuildError", "ProgramUnusableError",
+           "TrialError", "UnitsWarning", "RangeError", "TooLargeError", "StoreError", "CommandError",
+           "SensitivityWarning",
            "get_default_engine", "set_default_engine", "list_devices", "select_device", "__version__"]

@@ -417,11 +417,11 @@ def main(argv=None):
                    help="run only these sections (default: all): points (the per-point and broadcast rows), grid, "
                         "objective, sweep")
     args = p.parse_args(argv)
-    from .cli import _Refused, _check_output, check_suffix
+    from .cli import CommandError, _check_output, check_suffix
     try:  # the report's file, checked before the work rather than after it
         check_suffix("--json", args.json, (".json",), "JSON is written here", allow_none=True)
         _check_output("--json", args.json)
-    except _Refused as exc:
+    except CommandError as exc:
         print(f"pbrdf-cl: error: {exc}", file=sys.stderr)
         return 1
     size, repeats, scale = args.points, args.repeats, 1.0

@@ -23,6 +23,7 @@ from . import ranges
 from . import sizes
 from .device import trials
 from .model.reference import SHADOWING
+from .errors import CommandError
 
 PARAMS = (("theta_i", None), ("theta_r", None), ("phi", "180"), ("n", None), ("k", None),
           ("sigma", None), ("ks", "1"), ("kd", "0"), ("c", "0"))
@@ -39,14 +40,10 @@ def _error(exc) -> int:
     return 1
 
 
-class _Refused(Exception):
-    """An environment problem found before any work: the message is the whole report."""
-
-
 def _engine_for(args):
     """The engine of a subcommand from its ``--backend`` and ``--device``; an unusable explicit
     device, ``--backend opencl`` without a usable device, or a fallback to numpy caused by an
-    unwritable PoCL cache raise :class:`_Refused`."""
+    unwritable PoCL cache raise :class:`CommandError`."""
     backend = getattr(args, "backend", "auto")
     device = getattr(args, "device", None)
     try:
@@ -56,24 +53,24 @@ def _engine_for(args):
             return _engine.Engine(device)
         eng = _engine.get_default_engine(backend)
     except (ValueError, _engine.OpenCLUnavailableError) as exc:
-        raise _Refused(str(exc)) from None
+        raise CommandError(str(exc)) from None
     if eng.is_numpy:
         problem = drivers.pocl_cache_problem()
         if problem:
-            raise _Refused(f"{problem}; or pass --backend numpy")
+            raise CommandError(f"{problem}; or pass --backend numpy")
     return eng
 
 
 def _check_output(option, path, folder=False):
-    """Refuse an output that cannot be written before any work is done (:class:`_Refused`)."""
+    """Refuse an output that cannot be written before any work is done (:class:`CommandError`)."""
     if path is None or "://" in str(path):
         return
     target = Path(path) if folder else (Path(path).parent if str(Path(path).parent) else Path("."))
     if target.exists() and not target.is_dir():
-        raise _Refused(f"{option} {path}: {target} is a file, not a folder; choose another {option}")
+        raise CommandError(f"{option} {path}: {target} is a file, not a folder; choose another {option}")
     why = drivers.writable_dir(target)
     if why is not None:
-        raise _Refused(f"{option} {path}: cannot write into {target} ({why}); choose a writable {option}")
+        raise CommandError(f"{option} {path}: cannot write into {target} ({why}); choose a writable {option}")
 
 
 def _suffix(path):
@@ -88,7 +85,7 @@ def figure_formats():
 
 
 def check_suffix(option, path, suffixes, what, allow_none=False):
-    """Refuse before any work (:class:`_Refused`) an output whose suffix is not one of ``suffixes``
+    """Refuse before any work (:class:`CommandError`) an output whose suffix is not one of ``suffixes``
     (the format it will be written in): ``--out params.npz`` for a Zarr store, ``--out m.txt`` for
     a figure.  ``what`` says what is written there.  ``allow_none``: a path without a suffix is
     written as that format (a store's folder, a JSON file); where a writer would append a suffix of
@@ -101,7 +98,7 @@ def check_suffix(option, path, suffixes, what, allow_none=False):
     name = Path(str(path).split("://", 1)[-1]).name
     stem = name[: len(name) - len(suffix)] if suffix else name
     names = ", ".join(suffixes[:3]) + (", ..." if len(suffixes) > 3 else "") + (" or none" if allow_none else "")
-    raise _Refused(f"{option} {path}: {what}, named with the suffix {names}, not "
+    raise CommandError(f"{option} {path}: {what}, named with the suffix {names}, not "
                    f"{repr(suffix) if suffix else 'without one'}; write e.g. {option} {stem}{suffixes[0]}")
 
 
@@ -119,7 +116,7 @@ def check_json(option, path, prog="pbrdf-cl"):
     try:
         check_suffix(option, path, (".json",), "JSON is written here", allow_none=True)
         _check_output(option, path)
-    except _Refused as exc:
+    except CommandError as exc:
         raise SystemExit(f"{prog}: error: {exc}") from None
 
 
@@ -410,10 +407,10 @@ def cmd_fit_image(args) -> int:
 
 
 def _check_result_outputs(args):
-    """Refuse before any work (:class:`_Refused`) a ``--out`` that is neither .nc nor .zarr, and an
+    """Refuse before any work (:class:`CommandError`) a ``--out`` that is neither .nc nor .zarr, and an
     ``--out`` or ``--png`` that cannot be written (the sobol and design commands)."""
     if args.out and Path(args.out).suffix.lower() not in (".nc", ".zarr"):
-        raise _Refused(f"--out {args.out}: write the result as .nc (netCDF) or .zarr (a Zarr store)")
+        raise CommandError(f"--out {args.out}: write the result as .nc (netCDF) or .zarr (a Zarr store)")
     check_figure("--png", args.png)
     _check_output("--out", args.out)
     _check_output("--png", args.png)
@@ -870,7 +867,7 @@ def main(argv=None) -> int:
     warnings.showwarning = _show_warning
     try:
         return args.func(args)
-    except (_Refused, ranges.RangeError) as exc:
+    except (CommandError, ranges.RangeError) as exc:
         return _error(exc)
     except KeyboardInterrupt:
         print("pbrdf-cl: interrupted", file=sys.stderr)

@@ -21,6 +21,7 @@ import numbers
 import re
 
 import numpy as np
+from .errors import RangeError
 
 #: The grammar in a few words, for ``--help`` texts (the README's section has the whole of it).
 GRAMMAR = ("a number (40), a list (20,30,45), start:stop:step (20:65:5, ends included) or "
@@ -29,15 +30,6 @@ GRAMMAR = ("a number (40), a list (20,30,45), start:stop:step (20:65:5, ends inc
 STOP_TOLERANCE = 1e-9
 _HINT = "write a number (40), a list (20,30,45), start:stop:step (20:65:5) or start:stop@count (0:85@256)"
 _COUNT = re.compile(r"[0-9]+")
-
-
-class RangeError(ValueError):
-    """A value, range, bounds or ``name=value`` text that the grammar refuses; the message is one
-    line naming where it was given, the text, the reason and the right spelling."""
-
-
-class _Bad(Exception):
-    """The reason for a refusal, before the caller's label is put in front of it."""
 
 
 def fmt(v):
@@ -51,9 +43,9 @@ def _number(token, what="value"):
     try:
         v = float(token)
     except ValueError:
-        raise _Bad(f"{what} {token!r} is not a number; {_HINT}" if token else f"empty {what}; {_HINT}") from None
+        raise RangeError(f"{what} {token!r} is not a number; {_HINT}" if token else f"empty {what}; {_HINT}") from None
     if not np.isfinite(v):
-        raise _Bad(f"{what} {token!r} is not a finite number; write a finite number such as 40")
+        raise RangeError(f"{what} {token!r} is not a finite number; write a finite number such as 40")
     return v
 
 
@@ -68,27 +60,27 @@ def _raise(where, text, bad):
 def _step_values(start, stop, step, s0, s1):
     """start:stop:step (``s0``, ``s1``: start and stop as the user wrote them)."""
     if step == 0:
-        raise _Bad(f"the step must not be 0; write {s0}:{s1}:STEP, or {s0}:{s1}@N for N values")
+        raise RangeError(f"the step must not be 0; write {s0}:{s1}:STEP, or {s0}:{s1}@N for N values")
     if start == stop:
-        raise _Bad(f"start and stop are both {s0}; for the single value write {s0}")
+        raise RangeError(f"start and stop are both {s0}; for the single value write {s0}")
     if (stop - start) * step < 0:
         if step > 0:
-            raise _Bad(f"the step {fmt(step)} goes up from {s0} but the stop {s1} is below it; write "
+            raise RangeError(f"the step {fmt(step)} goes up from {s0} but the stop {s1} is below it; write "
                        f"{s0}:{s1}:{fmt(-step)} to count down, or {s1}:{s0}:{fmt(step)}")
-        raise _Bad(f"the step {fmt(step)} goes down from {s0} but the stop {s1} is above it; write "
+        raise RangeError(f"the step {fmt(step)} goes down from {s0} but the stop {s1} is above it; write "
                    f"{s0}:{s1}:{fmt(-step)}")
     span = abs(stop - start)
     whole = float(step).is_integer() and abs(step) >= 2
     if abs(step) > span * (1 + STOP_TOLERANCE):
         count = f"for {int(abs(step))} values write {s0}:{s1}@{int(abs(step))}" if whole else \
             f"write a step of at most {fmt(span)}, or {s0}:{s1}@N for N values"
-        raise _Bad(f"step {fmt(step)} is larger than the range {s0}..{s1}; {count}")
+        raise RangeError(f"step {fmt(step)} is larger than the range {s0}..{s1}; {count}")
     n = (stop - start) / step
     k = round(n)
     if abs(n - k) > STOP_TOLERANCE * max(1.0, abs(n)):
         last = fmt(start + np.floor(n) * step)
         count = int(abs(step)) if whole else int(np.floor(n)) + 1
-        raise _Bad(f"steps of {fmt(step)} from {s0} miss the stop {s1} (the last is {last}); write "
+        raise RangeError(f"steps of {fmt(step)} from {s0} miss the stop {s1} (the last is {last}); write "
                    f"{s0}:{last}:{fmt(step)}, or {s0}:{s1}@{count} for {count} values from {s0} to {s1}")
     return np.linspace(start, stop, int(k) + 1)
 
@@ -97,45 +89,45 @@ def _count_values(start, stop, count, s0, s1, c):
     """start:stop@count (``s0``, ``s1``, ``c``: as the user wrote them)."""
     if not isinstance(count, int) or count < 2:
         single = f"; for one value write {s0}" if isinstance(count, int) and count == 1 else ""
-        raise _Bad(f"count {c} is not an integer >= 2; write {s0}:{s1}@N with N >= 2{single}")
+        raise RangeError(f"count {c} is not an integer >= 2; write {s0}:{s1}@N with N >= 2{single}")
     if start == stop:
-        raise _Bad(f"start and stop are both {s0}; for the single value write {s0}")
+        raise RangeError(f"start and stop are both {s0}; for the single value write {s0}")
     return np.linspace(start, stop, count)
 
 
 def _values(text):
     text = text.strip()
     if not text:
-        raise _Bad(f"empty; {_HINT}")
+        raise RangeError(f"empty; {_HINT}")
     if "," in text and (":" in text or "@" in text):
-        raise _Bad("a list holds numbers only and a range stands alone; write a list (20,30,45) or one range "
+        raise RangeError("a list holds numbers only and a range stands alone; write a list (20,30,45) or one range "
                    "(20:65:5, 0:85@256)")
     if "@" in text:
         head, _, c = text.partition("@")
         parts = head.split(":")
         if len(parts) == 3:
-            raise _Bad(f"give a step ({head}) or a count ({parts[0]}:{parts[1]}@{c}), not both")
+            raise RangeError(f"give a step ({head}) or a count ({parts[0]}:{parts[1]}@{c}), not both")
         if len(parts) != 2 or "@" in c:
-            raise _Bad("a count range is start:stop@count, e.g. 0:85@256")
+            raise RangeError("a count range is start:stop@count, e.g. 0:85@256")
         start, stop = _number(parts[0], "start"), _number(parts[1], "stop")
         c = c.strip()
         if not c:
-            raise _Bad(f"no count after '@'; write {parts[0].strip()}:{parts[1].strip()}@N with N >= 2")
+            raise RangeError(f"no count after '@'; write {parts[0].strip()}:{parts[1].strip()}@N with N >= 2")
         count = int(c) if _COUNT.fullmatch(c) else None
         return _count_values(start, stop, count, parts[0].strip(), parts[1].strip(), c)
     if ":" in text:
         parts = text.split(":")
         if len(parts) == 2:
             s0, s1 = parts[0].strip(), parts[1].strip()
-            raise _Bad(f"a range needs a step or a count; write {s0}:{s1}:STEP (ends included) "
+            raise RangeError(f"a range needs a step or a count; write {s0}:{s1}:STEP (ends included) "
                        f"or {s0}:{s1}@N for N values")
         if len(parts) != 3:
-            raise _Bad("too many ':'; write start:stop:step (20:65:5) or start:stop@count (0:85@256)")
+            raise RangeError("too many ':'; write start:stop:step (20:65:5) or start:stop@count (0:85@256)")
         start, stop, step = (_number(p, w) for p, w in zip(parts, ("start", "stop", "step")))
         return _step_values(start, stop, step, parts[0].strip(), parts[1].strip())
     items = text.split(",")
     if len(items) > 1 and any(not i.strip() for i in items):
-        raise _Bad(f"empty item in the list; write {','.join(i.strip() for i in items if i.strip())}")
+        raise RangeError(f"empty item in the list; write {','.join(i.strip() for i in items if i.strip())}")
     return np.array([_number(i, "list item" if len(items) > 1 else "value") for i in items])
 
 
@@ -148,7 +140,7 @@ def parse_values(text, where=None, label=None):
         raise RangeError(f"{label or _label(where, repr(text))}: not a text; {_HINT}")
     try:
         return _values(text)
-    except _Bad as bad:
+    except RangeError as bad:
         raise RangeError(f"{label or _label(where, text)}: {bad}") from None
 
 
@@ -156,7 +148,7 @@ def step_values(start, stop, step, where):
     """start:stop:step given as numbers (a sweep spec's ``{start, stop, step}`` table)."""
     try:
         return _step_values(float(start), float(stop), float(step), fmt(start), fmt(stop))
-    except _Bad as bad:
+    except RangeError as bad:
         raise RangeError(f"{where}: {bad}") from None
 
 
@@ -166,7 +158,7 @@ def count_values(start, stop, count, where):
     try:
         return _count_values(float(start), float(stop), int(count) if ok else None, fmt(start), fmt(stop),
                              repr(count))
-    except _Bad as bad:
+    except RangeError as bad:
         raise RangeError(f"{where}: {bad}") from None
 
 
@@ -179,14 +171,14 @@ def _bounds(text, name):
             spell = f"{name}={dash.group(1)}:{dash.group(2)}" if name else f"{dash.group(1)}:{dash.group(2)}"
         elif len(parts) == 3:
             spell = f"{name}={parts[0].strip()}:{parts[1].strip()}" if name else f"{parts[0].strip()}:{parts[1].strip()}"
-        raise _Bad(f"bounds are low:high, two numbers; write {spell}")
+        raise RangeError(f"bounds are low:high, two numbers; write {spell}")
     lo, hi = _number(parts[0], "low"), _number(parts[1], "high")
     pre = f"{name}=" if name else ""
     if lo > hi:
-        raise _Bad(f"low {parts[0].strip()} is above high {parts[1].strip()}; write "
+        raise RangeError(f"low {parts[0].strip()} is above high {parts[1].strip()}; write "
                    f"{pre}{parts[1].strip()}:{parts[0].strip()}")
     if lo == hi:
-        raise _Bad(f"low and high are both {parts[0].strip()}; give low < high, or hold {name or 'it'} fixed")
+        raise RangeError(f"low and high are both {parts[0].strip()}; give low < high, or hold {name or 'it'} fixed")
     return lo, hi
 
 
@@ -194,7 +186,7 @@ def parse_bounds(text, where=None, name=None):
     """``"1:3"`` -> (1.0, 3.0), low < high, both finite."""
     try:
         return _bounds(text.strip(), name)
-    except _Bad as bad:
+    except RangeError as bad:
         _raise(where, text, bad)
 
 
@@ -266,9 +258,9 @@ def parse_assignment(item, names, kind="value", where=None, check=False):
             out = _values(text)
         else:
             if ":" in text or "," in text or "@" in text:
-                raise _Bad(f"one number is expected here; write {name}={re.split('[:,@]', text)[0].strip() or 'VALUE'}")
+                raise RangeError(f"one number is expected here; write {name}={re.split('[:,@]', text)[0].strip() or 'VALUE'}")
             out = _number(text)
-    except _Bad as bad:
+    except RangeError as bad:
         _raise(where, item, bad)
     if check:
         from .compute import pointwise

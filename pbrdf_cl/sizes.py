@@ -10,11 +10,7 @@ from __future__ import annotations
 
 import os
 import shutil
-
-
-class TooLargeError(MemoryError, ValueError):
-    """An output that cannot fit, found before any work (a ``MemoryError`` and a ``ValueError``,
-    so that both ``except`` clauses a caller may have catch it)."""
+from .errors import TooLargeError
 
 
 def human(nbytes) -> str:

@@ -13,6 +13,7 @@ from ..model import reference
 from .. import sizes
 from ..device import engine as _engine
 from ..device.engine import BACKENDS, DTYPES, POINT_INPUTS, check_backend, compact_values, resolve_engine  # noqa: F401 (api.BACKENDS stays)
+from ..errors import UnitsWarning  # noqa: F401 (pointwise.UnitsWarning stays)
 
 MODELS = ("six-param", "specular")
 #: The quantities with a per-point path (the registry, :mod:`pbrdf_cl.quantities`, says more).
@@ -117,10 +118,6 @@ def _check_domain(name, a):
         if bad.any():
             raise ValueError(f"{name} must be finite, got {float(a[bad].flat[0])!r}{_where(a, bad)}")
         _check(name, a, ok, rule)
-
-
-class UnitsWarning(UserWarning):
-    """Inputs that look like a unit or convention mistake (angles in radians, DOP in percent, ...)."""
 
 
 #: Zenith angles that all lie below this many degrees (and are not all 0) look like radians.

@@ -58,11 +58,13 @@ from pathlib import Path
 
 import numpy as np
 
-from . import drivers
+from . import drivers, ops
 from ..model import quantities
 from ..model import reference
 from . import trials
 from .drivers import describe, first_error_line  # noqa: F401 (engine.describe, engine.first_error_line stay)
+from ..errors import (DeviceUnusableError, DeviceWarning, KernelBuildError, OpenCLUnavailableError,  # noqa: F401
+                      ProgramUnusableError)
 
 drivers.register_pip_drivers()  # before the first OpenCL call of this process
 
@@ -103,34 +105,6 @@ FAKE_FAILURE_ENV = "PBRDF_CL_FAKE_BUILD_FAILURE"
 NARROW_ENV = "PBRDF_CL_NARROW_VECTORS"
 
 _HOW_TO_GET_ONE = "remedies: " + drivers.REMEDIES
-
-
-class OpenCLUnavailableError(RuntimeError):
-    """No usable OpenCL platform or device."""
-
-
-class DeviceUnusableError(OpenCLUnavailableError):
-    """An explicitly chosen OpenCL device cannot build or run pbrdf-cl's kernels."""
-
-
-class KernelBuildError(OpenCLUnavailableError):
-    """A driver failed to build one of pbrdf-cl's programs (the first line of its log says why)."""
-
-
-class ProgramUnusableError(KernelBuildError):
-    """A device cannot run one program: its trial build in a child process failed, crashed, aborted
-    or timed out (:mod:`pbrdf_cl.device.trials`).  ``engine``: where; ``verdict``: the trial's finding;
-    ``program``: a key of the program that does not depend on the device."""
-
-    def __init__(self, message, engine=None, verdict=None, program=None):
-        super().__init__(message)
-        self.engine = engine
-        self.verdict = verdict
-        self.program = program
-
-
-class DeviceWarning(UserWarning):
-    """An OpenCL device was skipped, or the computation fell back to the numpy backend."""
 
 
 def kernel_dir() -> Path:
@@ -655,6 +629,7 @@ class NumpyEngine:
     returns that dtype.  ``reason``: why it is in use (empty when asked for by name)."""
 
     is_numpy = True
+    backend = "numpy"
     fp64 = True
     profiling = False
     last_event_seconds = None
@@ -666,6 +641,11 @@ class NumpyEngine:
 
     def __repr__(self):
         return "NumpyEngine(float64 reference" + (f"; {self.reason}" if self.reason else "") + ")"
+
+    def call(self, operation, *args, **kwargs):
+        """Run ``operation`` (:mod:`pbrdf_cl.device.ops`) on this engine."""
+        func, _ = ops.implementation(operation, self.backend)
+        return func(self, *args, **kwargs)
 
     @property
     def description(self):
@@ -700,6 +680,7 @@ class Engine:
     """
 
     is_numpy = False
+    backend = "opencl"
 
     def __init__(self, device=None, *, profiling=False):
         #: chosen by the caller (``device``, ``PYOPENCL_CTX``): a program it cannot run is an error,
@@ -734,6 +715,13 @@ class Engine:
         #: (a cl.Kernel holds its arguments, and the kernels are shared); re-entrant, so a caller may
         #: hold it across a whole computation
         self.lock = threading.RLock()
+
+    def call(self, operation, *args, **kwargs):
+        """Run ``operation`` (:mod:`pbrdf_cl.device.ops`) on this engine: the device's implementation,
+        or the numpy backend's where it has none (on a :class:`NumpyEngine`, with one warning)."""
+        func, backend = ops.implementation(operation, self.backend)
+        return func(self if backend == self.backend else NumpyEngine(f"{operation} has no OpenCL implementation"),
+                    *args, **kwargs)
 
     def __repr__(self):
         return (f"Engine(device={self.device.name.strip()!r}, "

@@ -48,6 +48,7 @@ import time
 from pathlib import Path
 
 from . import drivers
+from ..errors import TrialError
 
 TIMEOUT_ENV = "PBRDF_CL_TRIAL_TIMEOUT"
 ENABLE_ENV = "PBRDF_CL_TRIALS"
@@ -61,10 +62,6 @@ FAKE_WAYS = ("segv", "abort", "llvm", "hang", "exit")
 
 #: What this process did, for tests and ``pbrdf-cl devices``: children started, trials run.
 STATS = {"children": 0, "trials": 0}
-
-
-class TrialError(RuntimeError):
-    """The trial machinery itself failed (the child could not be started)."""
 
 
 @dataclasses.dataclass

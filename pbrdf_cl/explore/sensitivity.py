@@ -29,6 +29,7 @@ from ..compute import pointwise
 from ..model import quantities
 from ..compute.dense import DEFAULTS, LONG_NAMES, PARAMETERS, _progress, outer
 from ..device.engine import DTYPES, resolve_engine
+from ..errors import SensitivityWarning
 
 GEOMETRY = ("theta_i", "theta_r", "phi")
 #: Bootstrap resamples and confidence level of the intervals (SALib's defaults).
@@ -482,10 +483,6 @@ def sobol(ranges, geometry, fixed=None, quantity="dop", N=4096, seed=None, dtype
         ds.attrs[f"fixed_{n}"] = v
     ds.attrs["notes"] = " | ".join(notes)
     return ds
-
-
-class SensitivityWarning(UserWarning):
-    """Settings whose indices cannot mean what they seem (ks and kd both ranged for the DOP)."""
 
 
 def _notes(quantity, rngs):

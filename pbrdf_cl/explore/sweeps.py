@@ -65,6 +65,7 @@ from .. import sizes
 from ..device.engine import DTYPES, kernels_sha256, resolve_engine
 from ..results import Result
 from ..model.reference import SHADOWING
+from ..errors import SpecError
 
 try:
     import tomllib
@@ -81,10 +82,6 @@ MAX_CHUNK_BYTES = (1 << 31) - 1024
 DELAY_ENV = "PBRDF_SWEEP_CHUNK_DELAY"
 KEYS = ("title", "quantity", "dtype", "shadowing", "memory_budget", "axes", "fixed", "chunks", "reduce")
 DONE = "_sweep/done"
-
-
-class SpecError(ValueError):
-    """A sweep spec (or the store it is resumed into) is not valid; the message names the field."""
 
 
 # ---------------------------------------------------------------------------------------------

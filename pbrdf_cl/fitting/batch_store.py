@@ -46,6 +46,7 @@ import numpy as np
 from .. import sizes
 from ..explore import sweeps
 from ..device.engine import kernels_sha256, resolve_engine
+from ..errors import StoreError
 
 #: Version of the canonical settings (part of their hash).
 SETTINGS_VERSION = 2  # 2: the goodness-of-fit variables (r2, p_value, fits_data)
@@ -54,11 +55,6 @@ DONE = sweeps.DONE
 HASHES = "_sweep/input_sha256"
 #: Rows of the stack read for the settings' sample hash (spread evenly, first and last included).
 SAMPLE_ROWS = 5
-
-
-class StoreError(ValueError):
-    """The store cannot take this job (another job's store, other settings, another input, other
-    kernels); the message names what differs."""
 
 
 class _Layout:

@@ -39,6 +39,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..compute.pointwise import RULES
+from ..errors import DataWarning
 
 REQUIRED = ("theta_i", "theta_r", "dop")
 OPTIONAL = ("phi", "dop_std", "f00", "s0", "f00_std")
@@ -52,11 +53,6 @@ _DECIMAL_COMMA = re.compile(r"[+-]?[0-9]*,[0-9]+(?:[eE][+-]?[0-9]+)?")
 #: The note of a fit whose data do not give phi (:func:`pbrdf_cl.fit`, :func:`pbrdf_cl.fit_batch`).
 PHI_DEFAULT_NOTE = ("phi was not given: every measurement is taken in the plane of incidence (phi = 180, the paper's "
                     "geometry); for out-of-plane measurements give phi (phi_i - phi_r, degrees)")
-
-
-class DataWarning(UserWarning):
-    """Part of the measurements was ignored (columns that are not inputs of the model); the
-    message names what and where."""
 
 
 @dataclass

@@ -1,0 +1,159 @@
+"""The house rules of the package's layout (issue #27), measured on the source: no module over
+700 code lines and no function over 90 (code lines: neither blank, comment nor docstring); no
+import circle between modules; no module using another's private name (``from .x import _y`` or
+``x._y``); callers outside the device layer branching on the backend (``is_numpy``) 5 times at
+most; every exception and warning class defined in ``pbrdf_cl/errors.py`` and exported."""
+import ast
+import io
+import tokenize
+from pathlib import Path
+
+import pytest
+
+import pbrdf_cl
+from pbrdf_cl import errors
+
+PKG = Path(pbrdf_cl.__file__).resolve().parent
+MODULES = sorted(p for p in PKG.rglob("*.py") if "kernels" not in p.parts)
+MAX_MODULE, MAX_FUNCTION, MAX_BACKEND_BRANCHES = 700, 90, 5
+
+
+def dotted(path):
+    rel = path.relative_to(PKG.parent).with_suffix("")
+    parts = list(rel.parts)
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def code_lines(source):
+    """The line numbers that hold code: not blank, not only a comment, not in a docstring."""
+    tree = ast.parse(source)
+    doc = set()
+    for node in ast.walk(tree):
+        if isinstance(node, (ast.Module, ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)) and node.body:
+            first = node.body[0]
+            if isinstance(first, ast.Expr) and isinstance(first.value, ast.Constant) and \
+                    isinstance(first.value.value, str):
+                doc.update(range(first.lineno, first.end_lineno + 1))
+    lines = set()
+    for tok in tokenize.generate_tokens(io.StringIO(source).readline):
+        if tok.type in (tokenize.COMMENT, tokenize.NL, tokenize.NEWLINE, tokenize.INDENT, tokenize.DEDENT,
+                        tokenize.ENDMARKER):
+            continue
+        lines.update(range(tok.start[0], tok.end[0] + 1))
+    return lines - doc
+
+
+SOURCES = {p: p.read_text() for p in MODULES}
+TREES = {p: ast.parse(s) for p, s in SOURCES.items()}
+
+
+@pytest.mark.parametrize("path", MODULES, ids=lambda p: str(p.relative_to(PKG)))
+def test_module_and_function_sizes(path):
+    lines = code_lines(SOURCES[path])
+    assert len(lines) <= MAX_MODULE, f"{path.relative_to(PKG)}: {len(lines)} code lines (at most {MAX_MODULE})"
+    long = []
+    for node in ast.walk(TREES[path]):
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            n = len([ln for ln in lines if node.lineno <= ln <= node.end_lineno])
+            if n > MAX_FUNCTION:
+                long.append(f"{node.name} ({n})")
+    assert not long, f"{path.relative_to(PKG)}: functions over {MAX_FUNCTION} code lines: {', '.join(long)}"
+
+
+def imports(path):
+    """(module imported, names taken from it, line) for every import of the package's own modules."""
+    me = dotted(path)
+    package = me if path.name == "__init__.py" else me.rsplit(".", 1)[0]
+    out = []
+    for node in ast.walk(TREES[path]):
+        if isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.split(".")
+                base = base[:len(base) - (node.level - 1)]
+                mod = ".".join(base + ([node.module] if node.module else []))
+            else:
+                mod = node.module or ""
+            if not mod.startswith("pbrdf_cl"):
+                continue
+            for alias in node.names:
+                sub = f"{mod}.{alias.name}"
+                if any(dotted(p) == sub for p in MODULES):
+                    out.append((sub, [], node.lineno))
+                else:
+                    out.append((mod, [alias.name], node.lineno))
+        elif isinstance(node, ast.Import):
+            for alias in node.names:
+                if alias.name.startswith("pbrdf_cl"):
+                    out.append((alias.name, [], node.lineno))
+    return out
+
+
+def test_no_import_circle():
+    graph = {dotted(p): {m for m, _, _ in imports(p) if m != dotted(p)} for p in MODULES}
+    packages = {dotted(p) for p in MODULES if p.name == "__init__.py"}
+    # a package's face imports its modules, and a module its package's face for __version__: not circles
+    graph = {m: {t for t in ts if t not in packages} for m, ts in graph.items() if m not in packages}
+    circles, state = [], {}
+
+    def visit(m, stack):
+        state[m] = "open"
+        for t in sorted(graph.get(m, ())):
+            if state.get(t) == "open":
+                circles.append(" -> ".join(stack[stack.index(t):] + [t]))
+            elif t not in state:
+                visit(t, stack + [t])
+        state[m] = "done"
+    for m in sorted(graph):
+        if m not in state:
+            visit(m, [m])
+    assert not circles, "import circles:\n" + "\n".join(circles)
+
+
+def test_no_private_name_of_another_module():
+    found = []
+    for path in MODULES:
+        me = dotted(path)
+        module_aliases = {}
+        for mod, names, line in imports(path):
+            for n in names:
+                if n.startswith("_") and not n.startswith("__") and mod != me:
+                    found.append(f"{path.relative_to(PKG)}:{line}: from {mod} import {n}")
+        for node in ast.walk(TREES[path]):
+            if isinstance(node, ast.ImportFrom) and node.module is not None or isinstance(node, ast.ImportFrom):
+                for alias in node.names:
+                    module_aliases[alias.asname or alias.name] = alias.name
+        modules = {a for a, n in module_aliases.items()
+                   if any(dotted(p).endswith("." + n) for p in MODULES)}
+        for node in ast.walk(TREES[path]):
+            if (isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) and node.value.id in modules
+                    and node.attr.startswith("_") and not node.attr.startswith("__")):
+                found.append(f"{path.relative_to(PKG)}:{node.lineno}: {node.value.id}.{node.attr}")
+    assert not found, f"{len(found)} uses of another module's private names:\n" + "\n".join(found)
+
+
+def test_backend_branches_outside_the_device_layer():
+    found = []
+    for path in MODULES:
+        if "device" in path.relative_to(PKG).parts:
+            continue
+        for node in ast.walk(TREES[path]):
+            if isinstance(node, ast.Attribute) and node.attr == "is_numpy":
+                found.append(f"{path.relative_to(PKG)}:{node.lineno}")
+    assert len(found) <= MAX_BACKEND_BRANCHES, f"{len(found)} branches on the backend:\n" + "\n".join(found)
+
+
+def test_every_exception_is_defined_in_errors_and_exported():
+    for path in MODULES:
+        if path.name == "errors.py":
+            continue
+        for node in ast.walk(TREES[path]):
+            if isinstance(node, ast.ClassDef):
+                bases = {getattr(b, "id", getattr(b, "attr", "")) for b in node.bases}
+                assert not (bases & {"Exception", "ValueError", "RuntimeError", "UserWarning", "Warning",
+                                     "OSError", "MemoryError", "KeyError", "TypeError"}) and \
+                    not node.name.endswith(("Error", "Warning")), \
+                    f"{path.relative_to(PKG)}:{node.lineno}: exception {node.name} outside pbrdf_cl/errors.py"
+    for name in dir(errors):
+        obj = getattr(errors, name)
+        if isinstance(obj, type) and issubclass(obj, BaseException) and obj.__module__ == errors.__name__:
+            assert name in pbrdf_cl.__all__ and getattr(pbrdf_cl, name) is obj, f"{name} is not exported"
