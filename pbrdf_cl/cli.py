@@ -167,7 +167,7 @@ def cmd_devices(args) -> int:
                          compute_units=dev.max_compute_units, version=dev.version.strip(),
                          driver=dev.driver_version.strip(), usable=result.usable, probe=result.reason,
                          probe_seconds=round(result.seconds, 4), probe_cached=result.cached,
-                         simulator=_engine._is_simulator(plat),
+                         simulator=_engine.is_simulator(plat),
                          default=default is not None and dev.int_ptr == default.int_ptr,
                          vector_width=_engine.vector_widths(dev)[0], narrow_vectors=_engine.narrow_reason(dev),
                          trials=[dict(program=v.program, usable=v.usable, reason=v.reason,

@@ -11,7 +11,7 @@ implementation is registered under one operation name::
     def _outer_opencl(eng, quantity, geometry, params, dtype, shadowing, out, rows): ...
 
 and callers run ``eng.call("outer", ...)`` without testing which engine they hold
-(:meth:`pbrdf_cl.device.engine.Engine.call`, :meth:`pbrdf_cl.device.engine.NumpyEngine.call`).
+(:meth:`pbrdf_cl.device.opencl.Engine.call`, :meth:`pbrdf_cl.device.numpy_engine.NumpyEngine.call`).
 An operation without an implementation for the engine's backend runs on the numpy backend's,
 with one :class:`pbrdf_cl.DeviceWarning` saying so (pyFAI's degraded method: opencl -> numpy).
 """
