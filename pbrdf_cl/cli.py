@@ -54,7 +54,7 @@ def _engine_for(args):
         eng = _engine.get_default_engine(backend)
     except (ValueError, _engine.OpenCLUnavailableError) as exc:
         raise CommandError(str(exc)) from None
-    if eng.is_numpy:
+    if eng.reason:  # a fallback (the numpy backend, no device being usable): perhaps for want of PoCL's cache
         problem = drivers.pocl_cache_problem()
         if problem:
             raise CommandError(f"{problem}; or pass --backend numpy")
@@ -241,7 +241,7 @@ def cmd_eval(args) -> int:
                     out_name: result[i].tolist() if q.trailing else float(result[i])}
                    for i in range(len(rows))]
         print(json.dumps(dict(quantity=out_name, shadowing=args.shadowing, dtype=args.dtype,
-                              backend="numpy" if kw["engine"].is_numpy else "opencl",
+                              backend=kw["engine"].backend,
                               device=kw["engine"].description, model=args.model, rows=records), indent=2))
         return 0
     header = [n for n in names]
