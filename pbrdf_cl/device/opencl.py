@@ -72,8 +72,8 @@ class Engine:
         #: evaluate through the transfer pipeline of GPUs (pinned staging, copies overlapped with
         #: compute) even on a CPU device; for tests of that path where no GPU is present
         self.force_transfers = False
-        #: send a broadcast input once with its index rule (:func:`pbrdf_cl.device.transfers.input_plan`); False gathers it
-        #: launch by launch on the host, as before issue #12 (for comparisons: tests, the bench)
+        #: send a broadcast input once with its index rule (:func:`pbrdf_cl.device.transfers.input_plan`);
+        #: False gathers it launch by launch on the host, as before issue #12 (for comparisons: tests, the bench)
         self.index_rules = True
         self._copy_queue = None
         self._kernels = {}
