@@ -138,8 +138,8 @@ def bench_points(eng, rows, rng, size, repeats, sample):
     rate, sec = median_rate(lambda: reference_dop(pts), size, max(1, repeats - 2))
     rows.append(dict(path="numpy reference (32K chunks, 2 threads)", dtype="float64", rate=rate, unit="evals/s",
                      seconds=sec, max_abs_err=0.0, n=size))
-    if eng.is_numpy:
-        return  # no kernel to time
+    if not eng.has_kernels:
+        return  # no kernel to time, nor end-to-end rows worth comparing with the C loop
     for dtype in ("float32", "float64"):
         npdt = _engine.DTYPES[dtype]
         lanes = eng.vector_width[dtype]
@@ -259,43 +259,53 @@ def _grid_sample_error(da, axes, rng, count=2000):
     return float(np.max(np.abs(got - want)))
 
 
+def _dtypes(eng):
+    """The precisions worth a row on ``eng``: float32 and float64, or float64 alone where the engine
+    computes in float64 whatever is asked (the numpy backend)."""
+    return list(dict.fromkeys(eng.compute_dtype(d) for d in ("float32", "float64")))
+
+
+def _backend_label(eng):
+    """What a row's path says of the backend it ran on: nothing for an OpenCL device."""
+    return ", numpy backend" if eng.is_numpy else ""
+
+
+def _grid_kernel_rate(eng, plan, dtype, repeats):
+    """``(grid points per second, seconds)`` of the ``grid_rows`` kernel over ``plan``, the outputs
+    left on the device."""
+    ng, nnk, nm, ni = dense.family_sizes(plan)
+    npdt = _engine.DTYPES[dtype]
+    level, row_len = dense.row_level(nnk, nm, ni, ng, 1 << 30)
+    prog = dense.grid_program(eng, dtype, (nnk, nm, ni), "uint", "dop", PB_ROW_LEVEL=level, PB_ROW_LEN=row_len)
+    tables = dense.Tables(eng, dtype, "paper", "dop", *dense.geometry_list(plan, 0, ng), plan.values)
+    chunk_rows = max(1, (1 << 24) // row_len)
+    total_rows = plan.size // row_len
+    out = eng.empty(chunk_rows * row_len * np.dtype(npdt).itemsize)
+
+    def run():
+        for r0 in range(0, total_rows, chunk_rows):
+            cnt = min(chunk_rows, total_rows - r0)
+            eng.launch(prog["grid_rows"], (cnt,), out, np.uint32(r0), np.uint32(cnt), np.uint32(0), *tables.args())
+        eng.queue.finish()
+    run()
+    return median_rate(run, plan.size, repeats)
+
+
 def bench_grid(eng, rows, rng, scale, repeats):
     axes = dict(GRID_AXES)
     if scale < 1:
         axes["theta_r"] = axes["theta_r"][::4]
         axes["sigma"] = axes["sigma"][::4]
     plan = dense.GridPlan(axes, {})
-    ng, nnk, nm, ni = dense.family_sizes(plan)
-    if eng.is_numpy:  # the reference computes in float64 whatever the dtype
-        da = dense.grid(axes, {}, dtype="float64", engine=eng)
-        err = _grid_sample_error(da, axes, rng)
-        rate, sec = median_rate(lambda: dense.grid(axes, {}, dtype="float64", engine=eng), plan.size,
-                                max(1, repeats - 2))
-        rows.append(dict(path="pbrdf_cl.grid -> host DataArray (end-to-end, numpy backend)", dtype="float64",
-                         rate=rate, unit="grid points/s", seconds=sec, max_abs_err=err, n=plan.size))
-        return
-    for dtype in ("float32", "float64"):
-        npdt = _engine.DTYPES[dtype]
-        level, row_len = dense.row_level(nnk, nm, ni, ng, 1 << 30)
-        prog = dense.grid_program(eng, dtype, (nnk, nm, ni), "uint", "dop", PB_ROW_LEVEL=level, PB_ROW_LEN=row_len)
-        tables = dense.Tables(eng, dtype, "paper", "dop", *dense.geometry_list(plan, 0, ng), plan.values)
-        chunk_rows = max(1, (1 << 24) // row_len)
-        total_rows = plan.size // row_len
-        out = eng.empty(chunk_rows * row_len * np.dtype(npdt).itemsize)
-
-        def run():
-            for r0 in range(0, total_rows, chunk_rows):
-                cnt = min(chunk_rows, total_rows - r0)
-                eng.launch(prog["grid_rows"], (cnt,), out, np.uint32(r0), np.uint32(cnt), np.uint32(0), *tables.args())
-            eng.queue.finish()
-        run()
-        rate, sec = median_rate(run, plan.size, repeats)
+    for dtype in _dtypes(eng):
+        kernel = _grid_kernel_rate(eng, plan, dtype, repeats) if eng.has_kernels else None
         da = dense.grid(axes, {}, dtype=dtype, engine=eng)
         err = _grid_sample_error(da, axes, rng)
-        rows.append(dict(path="factorised grid (kernel)", dtype=dtype, rate=rate, unit="grid points/s", seconds=sec,
-                         max_abs_err=err, n=plan.size))
+        if kernel is not None:
+            rows.append(dict(path="factorised grid (kernel)", dtype=dtype, rate=kernel[0], unit="grid points/s",
+                             seconds=kernel[1], max_abs_err=err, n=plan.size))
         rate, sec = median_rate(lambda: dense.grid(axes, {}, dtype=dtype, engine=eng), plan.size, max(1, repeats - 2))
-        row = dict(path="pbrdf_cl.grid -> host DataArray (end-to-end)", dtype=dtype, rate=rate,
+        row = dict(path=f"pbrdf_cl.grid -> host DataArray (end-to-end{_backend_label(eng)})", dtype=dtype, rate=rate,
                    unit="grid points/s", seconds=sec, max_abs_err=err, n=plan.size,
                    peak_extra_mb=traced(lambda: dense.grid(axes, {}, dtype=dtype, engine=eng))[1] / 1e6,
                    output_mb=da.values.nbytes / 1e6)
@@ -314,7 +324,7 @@ def bench_objective(eng, rows, rng, scale, repeats):
                 kd=np.linspace(0, 5, 32), c=np.linspace(-1, 0, 16))
     if scale < 1:
         grid["n"], grid["k"] = grid["n"][::4], grid["k"][::4]
-    for dtype in ("float64",) if eng.is_numpy else ("float32", "float64"):
+    for dtype in _dtypes(eng):
         res = dense.objective(data, grid=grid, dtype=dtype, engine=eng)
         # error: the objective of a sample of parameter vectors against numpy
         idx = rng.integers(0, res.sse.size, 500)
@@ -325,9 +335,8 @@ def bench_objective(eng, rows, rng, scale, repeats):
         err = float(np.max(np.abs(res.sse.values.ravel()[idx] - want)))
         rate, sec = median_rate(lambda: dense.objective(data, grid=grid, dtype=dtype, engine=eng, return_sse=False),
                                 res.n_pairs, repeats)
-        label = ", numpy backend" if eng.is_numpy else ""
-        row = dict(path=f"objective, grid x 30 measurements (end-to-end, top-10{label})", dtype=dtype, rate=rate,
-                   unit="pairs/s", seconds=sec, max_abs_err=err, n=res.n_pairs)
+        row = dict(path=f"objective, grid x 30 measurements (end-to-end, top-10{_backend_label(eng)})", dtype=dtype,
+                   rate=rate, unit="pairs/s", seconds=sec, max_abs_err=err, n=res.n_pairs)
         rows.append(row)
         # a pair is one DOP (the C loop's unit); with the whole SSE kept it writes one value per 30 pairs
         _fractions_of_earlier_limits(rows, row, dtype, np.dtype(_engine.DTYPES[dtype]).itemsize / ti.size)
@@ -374,7 +383,7 @@ def bench_sweep(eng, device, rows, rng, scale, repeats, workers=2, backend="auto
         def timed():
             shutil.rmtree(run(**kw))
         rate, sec = median_rate(timed, spec.points, max(1, repeats - 2))
-        label += ", numpy backend" if eng.is_numpy else ""
+        label += _backend_label(eng)
         row = dict(path=f"sweep -> Zarr store, {label} (end-to-end)", dtype=spec.dtype, rate=rate,
                    unit="grid points/s", seconds=sec, max_abs_err=err, n=spec.points,
                    memory_budget=spec.memory_budget, chunks=spec.n_chunks)
@@ -430,8 +439,8 @@ def main(argv=None):
     eng = _engine.resolve_engine(_engine.Engine(args.device) if args.device and args.backend != "numpy" else None,
                                  args.backend)
     sweep_scale = scale
-    if eng.is_numpy:
-        scale = min(scale, 0.25)  # the per-point reference is ~100x slower than a device: smaller grids
+    if not eng.has_kernels:
+        scale = min(scale, 0.25)  # the reference, without kernels, is ~100x slower than a device: smaller grids
     rng = np.random.default_rng(2020)
     rows = []
     t0 = time.perf_counter()

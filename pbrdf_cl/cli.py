@@ -54,7 +54,7 @@ def _engine_for(args):
         eng = _engine.get_default_engine(backend)
     except (ValueError, _engine.OpenCLUnavailableError) as exc:
         raise CommandError(str(exc)) from None
-    if eng.is_numpy:
+    if eng.reason:  # a fallback (the numpy backend, no device being usable): perhaps for want of PoCL's cache
         problem = drivers.pocl_cache_problem()
         if problem:
             raise CommandError(f"{problem}; or pass --backend numpy")
@@ -167,7 +167,7 @@ def cmd_devices(args) -> int:
                          compute_units=dev.max_compute_units, version=dev.version.strip(),
                          driver=dev.driver_version.strip(), usable=result.usable, probe=result.reason,
                          probe_seconds=round(result.seconds, 4), probe_cached=result.cached,
-                         simulator=_engine._is_simulator(plat),
+                         simulator=_engine.is_simulator(plat),
                          default=default is not None and dev.int_ptr == default.int_ptr,
                          vector_width=_engine.vector_widths(dev)[0], narrow_vectors=_engine.narrow_reason(dev),
                          trials=[dict(program=v.program, usable=v.usable, reason=v.reason,
@@ -241,7 +241,7 @@ def cmd_eval(args) -> int:
                     out_name: result[i].tolist() if q.trailing else float(result[i])}
                    for i in range(len(rows))]
         print(json.dumps(dict(quantity=out_name, shadowing=args.shadowing, dtype=args.dtype,
-                              backend="numpy" if kw["engine"].is_numpy else "opencl",
+                              backend=kw["engine"].backend,
                               device=kw["engine"].description, model=args.model, rows=records), indent=2))
         return 0
     header = [n for n in names]

@@ -20,6 +20,7 @@ os.environ.setdefault("POCL_CACHE_DIR", os.path.join(tempfile.gettempdir(), "pbr
 
 import pbrdf_cl  # noqa: E402
 from pbrdf_cl.device import engine as engine_mod  # noqa: E402
+from pbrdf_cl.device import fallback  # noqa: E402
 
 
 def _test_devices():
@@ -142,7 +143,7 @@ def engine(request):
 @pytest.fixture
 def each_device(engine):
     """Make ``engine`` (each usable device in turn) the default engine for one test."""
-    saved = engine_mod._default_engine
+    saved = fallback._default_engine
     pbrdf_cl.set_default_engine(engine)
     yield engine
     pbrdf_cl.set_default_engine(saved)

@@ -10,6 +10,7 @@ import numpy as np
 
 import pbrdf_cl
 from pbrdf_cl.device import engine as engine_mod
+from pbrdf_cl.device import transfers
 
 
 def main():
@@ -30,7 +31,7 @@ def main():
     k = rng.uniform(0, 8, size)
     k[:2] = 0.0
     kw = dict(n=1.6, k=k, sigma=0.3, ks=0.9, kd=rng.uniform(0, 1, size), c=-0.3)
-    engine_mod.LAUNCH_POINTS = 16  # exercise the chunked launches too
+    transfers.LAUNCH_POINTS = 16  # exercise the chunked launches too
     for dtype in ("float32", "float64"):
         for shadowing in ("paper", "smith", "none"):
             for func in (pbrdf_cl.dop, pbrdf_cl.brdf, pbrdf_cl.mueller, pbrdf_cl.aop, pbrdf_cl.stokes):
@@ -55,7 +56,7 @@ def main():
         for given, shape in cases:
             inp = dict(theta_i=40.0, theta_r=30.0, phi=150.0, n=1.6, k=2.1, sigma=0.3, ks=1.0, kd=0.2, c=-0.3)
             inp.update(given)
-            assert any(r.kind == engine_mod.BROADCAST for r in engine_mod.input_plan(shape, inp).values())
+            assert any(r.kind == transfers.BROADCAST for r in transfers.input_plan(shape, inp).values())
             for func in (pbrdf_cl.dop, pbrdf_cl.brdf, pbrdf_cl.aop, pbrdf_cl.mueller):
                 args = [inp[n] for n in ("theta_i", "theta_r", "phi")]
                 kw = {n: inp[n] for n in ("n", "k", "sigma", "kd", "c")}

@@ -17,7 +17,9 @@ import pbrdf_cl
 from pbrdf_cl.compute import dense as G
 from pbrdf_cl.device import drivers
 from pbrdf_cl.model import reference
+from pbrdf_cl.device import choice as C
 from pbrdf_cl.device import engine as E
+from pbrdf_cl.device import fallback, sources
 from conftest import DEVICES, requires_opencl
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -30,9 +32,9 @@ EVERY_DEVICE = "/"  # a substring of every "platform / device": the fake failure
 def fresh(monkeypatch, tmp_path):
     """Empty probe caches (process and disk), no warnings given yet, no default engine."""
     monkeypatch.setenv("PBRDF_CL_CACHE_DIR", str(tmp_path / "cache"))
-    monkeypatch.setattr(E, "_PROBES", {})
-    monkeypatch.setattr(E, "_WARNED", set())
-    monkeypatch.setattr(E, "_default_engine", None)
+    monkeypatch.setattr(C, "_PROBES", {})
+    monkeypatch.setattr(C, "_WARNED", set())
+    monkeypatch.setattr(fallback, "_default_engine", None)
     monkeypatch.delenv("PYOPENCL_CTX", raising=False)
     return tmp_path / "cache"
 
@@ -50,32 +52,32 @@ def test_probe_returns_specs_check_values(engine, fresh):
     assert set(r.values) == ({"float32", "float64"} if E.has_fp64(engine.device) else {"float32"})
     for dtype, values in r.values.items():
         # SPEC's table is rounded to 6 decimals; the kernels agree with the reference to 2e-5 / 1e-10
-        np.testing.assert_allclose(values, E.PROBE_SPEC, atol=5e-7 + E.PROBE_TOLERANCE[dtype])
-    np.testing.assert_allclose(reference.evaluate("dop", *E.PROBE_POINTS.T), E.PROBE_SPEC, atol=5e-7)
+        np.testing.assert_allclose(values, C.PROBE_SPEC, atol=5e-7 + C.PROBE_TOLERANCE[dtype])
+    np.testing.assert_allclose(reference.evaluate("dop", *C.PROBE_POINTS.T), C.PROBE_SPEC, atol=5e-7)
 
 
 def test_probe_is_cached_in_the_process_and_on_disk(engine, fresh):
     first = E.probe(engine.device)
     assert not first.cached and first.seconds > 0
     assert E.probe(engine.device) is first  # the process cache
-    entries = json.loads((fresh / f"probe-v{E.PROBE_CACHE_VERSION}.json").read_text())
-    assert list(entries) == [E._probe_key(engine.device)]
+    entries = json.loads((fresh / f"probe-v{C.PROBE_CACHE_VERSION}.json").read_text())
+    assert list(entries) == [C._probe_key(engine.device)]
     E.clear_probe_cache()
     again = E.probe(engine.device)  # a new process would read this from disk
     assert again.cached and again.usable == first.usable and again.reason == first.reason
     assert again.values == first.values
     # the key changes with the kernel sources: other kernels are probed afresh
-    key = E._probe_key(engine.device)
-    E._KERNELS_SHA256, saved = "0" * 64, E.kernels_sha256()
+    key = C._probe_key(engine.device)
+    sources._KERNELS_SHA256, saved = "0" * 64, E.kernels_sha256()
     try:
-        assert E._probe_key(engine.device) != key
+        assert C._probe_key(engine.device) != key
     finally:
-        E._KERNELS_SHA256 = saved
+        sources._KERNELS_SHA256 = saved
 
 
 def test_probe_cache_folder_that_cannot_be_written_is_harmless(engine, monkeypatch):
     monkeypatch.setenv("PBRDF_CL_CACHE_DIR", "/dev/null/pbrdf-cl")
-    monkeypatch.setattr(E, "_PROBES", {})
+    monkeypatch.setattr(C, "_PROBES", {})
     assert E.probe(engine.device).usable
 
 
@@ -106,11 +108,11 @@ def test_default_order_gpu_then_pocl_then_other_cpus_never_the_simulator():
         Plat("Portable Computing Language", "OpenCL 3.0 PoCL 3.1+debian")
     rows = [(Plat("Intel(R) OpenCL"), Dev(dt.CPU)), (pocl30, Dev(dt.CPU)), (Plat("Other"), Dev(dt.ACCELERATOR)),
             (pocl31, Dev(dt.CPU)), (Plat("NVIDIA CUDA"), Dev(dt.GPU))]
-    order = sorted(rows, key=lambda pd: E._rank(*pd))
+    order = sorted(rows, key=lambda pd: C._rank(*pd))
     assert [(p.name, p.version) for p, _ in order] == [
         ("NVIDIA CUDA", ""), ("Portable Computing Language", "OpenCL 3.0 PoCL 3.1+debian"),
         ("Portable Computing Language", "OpenCL 3.0 PoCL 3.0"), ("Intel(R) OpenCL", ""), ("Other", "")]
-    assert E._is_simulator(Plat("Oclgrind")) and not E._is_simulator(pocl30)
+    assert E.is_simulator(Plat("Oclgrind")) and not E.is_simulator(pocl30)
 
 
 @requires_opencl
@@ -118,13 +120,13 @@ def test_default_device_is_the_first_usable_candidate(fresh):
     first = E.candidates()[0]
     if E.probe(first).usable:
         assert E.select_device().int_ptr == first.int_ptr
-    assert not E._is_simulator(E.select_device().platform)
+    assert not E.is_simulator(E.select_device().platform)
 
 
 @requires_opencl
 def test_unusable_device_is_skipped_with_one_warning_and_refused_when_chosen(engine, fresh, monkeypatch):
     dev = engine.device
-    monkeypatch.setenv(E.FAKE_FAILURE_ENV, dev.name.strip())
+    monkeypatch.setenv(C.FAKE_FAILURE_ENV, dev.name.strip())
     r = E.probe(dev)
     assert not r.usable and "\n" not in r.reason
     assert r.reason.startswith("float32 build failed: error: unknown target CPU 'generic'")
@@ -156,7 +158,7 @@ def test_unusable_device_is_skipped_with_one_warning_and_refused_when_chosen(eng
 
 
 def test_no_usable_device_falls_back_to_numpy_once_and_opencl_refuses(fresh, monkeypatch):
-    monkeypatch.setenv(E.FAKE_FAILURE_ENV, EVERY_DEVICE)
+    monkeypatch.setenv(C.FAKE_FAILURE_ENV, EVERY_DEVICE)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         d = pbrdf_cl.dop(40, [20.0, 45.0], **STEEL)
@@ -359,7 +361,7 @@ EVAL = ["eval", "--theta-i", "40", "--theta-r", "20:65:5", "--n", "1.6", "--k", 
 
 
 def test_every_command_runs_on_the_numpy_backend_when_no_device_is_usable(tmp_path):
-    env = {E.FAKE_FAILURE_ENV: EVERY_DEVICE, "PBRDF_CL_CACHE_DIR": str(tmp_path / "cache")}
+    env = {C.FAKE_FAILURE_ENV: EVERY_DEVICE, "PBRDF_CL_CACHE_DIR": str(tmp_path / "cache")}
     spec = tmp_path / "spec.toml"
     spec.write_text('[axes]\ntheta_r = "0:80:20"\nsigma = [0.2, 0.5]\n[fixed]\ntheta_i = 40\nn = 1.6\nk = 2.1\n')
     runs = {
@@ -400,7 +402,7 @@ def test_cli_reports_environment_problems_in_one_line(tmp_path):
                    "no OpenCL platform found", "remedies")
     # an explicit device that is unusable, or absent
     if DEVICES:
-        one_line_error(run_cli(*EVAL, "--device", _id(DEVICES[0]), env={**env, E.FAKE_FAILURE_ENV: EVERY_DEVICE}),
+        one_line_error(run_cli(*EVAL, "--device", _id(DEVICES[0]), env={**env, C.FAKE_FAILURE_ENV: EVERY_DEVICE}),
                        "cannot run pbrdf-cl", "unknown target CPU")
     one_line_error(run_cli(*EVAL, "--device", "99:0", env=env), "no OpenCL device 99:0")
     # outputs that cannot be written: refused before any work
@@ -416,7 +418,7 @@ def test_cli_reports_environment_problems_in_one_line(tmp_path):
 
 def _default_device_is_pocl():
     try:
-        return E._is_pocl(E.select_device().platform)
+        return E.is_pocl(E.select_device().platform)
     except (E.OpenCLUnavailableError, ValueError):
         return False
 
@@ -443,8 +445,8 @@ SHARED_NAME = _platform_name_of_two_devices()
 def test_a_name_matching_several_devices_picks_the_first_usable_one(fresh, monkeypatch):
     matching = [d for d in E.candidates() if d.platform.name.strip().lower() == SHARED_NAME and E.probe(d).usable]
     first, second = matching[:2]
-    monkeypatch.setenv(E.FAKE_FAILURE_ENV, E.describe(first))
+    monkeypatch.setenv(C.FAKE_FAILURE_ENV, E.describe(first))
     assert pbrdf_cl.Engine(SHARED_NAME).device.int_ptr == second.int_ptr
-    monkeypatch.setenv(E.FAKE_FAILURE_ENV, SHARED_NAME)
+    monkeypatch.setenv(C.FAKE_FAILURE_ENV, SHARED_NAME)
     with pytest.raises(E.DeviceUnusableError, match=rf"device='{SHARED_NAME}'.*cannot run pbrdf-cl"):
         pbrdf_cl.Engine(SHARED_NAME)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import pbrdf_cl
-from pbrdf_cl.device import engine as E
+from pbrdf_cl.device import transfers as T
 from pbrdf_cl.bench import traced
 from conftest import PARAMS, call, random_inputs
 
@@ -21,16 +21,16 @@ def test_flat_ranges_of_any_array_are_gathered_without_temporaries():
             for s in range(flat.size):
                 for e in range(s, flat.size + 1):
                     d = np.empty(e - s, np.float32)
-                    E._gather(d, a, s, e)
+                    T._gather(d, a, s, e)
                     np.testing.assert_array_equal(d, flat[s:e].astype(np.float32))
-                    assert len(list(E._flat_boxes(a.shape, s, e))) <= 2 * len(shape)
+                    assert len(list(T._flat_boxes(a.shape, s, e))) <= 2 * len(shape)
 
 
 @pytest.mark.parametrize("src,dtype", [("float32", "float32"), ("float64", "float32"), ("float32", "float64"),
                                        ("float64", "float64")])
 def test_any_input_dtype_and_layout_gives_the_reference(rng, monkeypatch, src, dtype):
-    monkeypatch.setattr(E, "LAUNCH_POINTS", 4096)  # several launches, and a padded tail
-    monkeypatch.setattr(E, "CONVERT_POINTS", 1024)
+    monkeypatch.setattr(T, "LAUNCH_POINTS", 4096)  # several launches, and a padded tail
+    monkeypatch.setattr(T, "CONVERT_POINTS", 1024)
     inp = {k: v.astype(src) for k, v in random_inputs(rng, 9000).items()}
     want = call(pbrdf_cl.dop, inp, backend="numpy")
     tol = 2e-5 if dtype == "float32" or src == "float32" else 1e-12
@@ -50,7 +50,7 @@ def test_any_input_dtype_and_layout_gives_the_reference(rng, monkeypatch, src, d
 
 
 def _aligned(a):
-    out = E.aligned_empty(a.size, a.dtype)
+    out = T.aligned_empty(a.size, a.dtype)
     out[...] = a
     return out
 
@@ -77,7 +77,7 @@ def test_staged_inputs_take_a_launch_of_memory_beyond_the_output(rng, each_devic
     device, per ``zero_copy_alignment``: PoCL takes any address, others page-aligned ones) are
     staged, and so is a broadcast axis, never expanded: the output plus a launch's staging."""
     inp = _big_float32_inputs(rng)
-    staging = len(E.POINT_INPUTS) * E.CONVERT_POINTS * 4
+    staging = len(T.POINT_INPUTS) * T.CONVERT_POINTS * 4
     if not each_device.host_memory:  # even page-aligned inputs are staged
         assert not any(each_device.can_use_in_place(v, np.float32) for v in inp.values())
         out, peak = traced(lambda: call(pbrdf_cl.dop, inp, dtype="float32"))
@@ -92,7 +92,7 @@ def test_staged_inputs_take_a_launch_of_memory_beyond_the_output(rng, each_devic
 @pytest.mark.parametrize("dtype", ["float32", "float64"])
 @pytest.mark.parametrize("func", [pbrdf_cl.dop, pbrdf_cl.brdf])
 def test_the_kernel_marks_bad_values_and_the_offender_is_named(rng, monkeypatch, func, dtype):
-    monkeypatch.setattr(E, "LAUNCH_POINTS", 2048)
+    monkeypatch.setattr(T, "LAUNCH_POINTS", 2048)
     base = {k: v.astype(np.float32) for k, v in random_inputs(rng, 5000).items()}
     cases = [("theta_r", 4321, 90.0, r"theta_r must be in \[0, 90\) degrees, got 90\.0 at index \[4321\]"),
              ("sigma", 4999, 0.0, r"sigma must be > 0, got 0\.0 at index \[4999\]"),
@@ -112,12 +112,12 @@ def test_the_transfer_pipeline_of_gpus_gives_the_same_values(engine, monkeypatch
     queue overlapping the kernels, two slots; grids read back chunk k while chunk k + 1 computes),
     forced on this device: bit-identical to the in-place path, over many launches and chunks."""
     import pbrdf_cl
-    from pbrdf_cl.device import engine as E
+    from pbrdf_cl.device import transfers as T
     rng = np.random.default_rng(9)
     n = 20011  # with LAUNCH_POINTS = 4096: five launches, slots reused, a padded tail
     inp = dict(theta_i=rng.uniform(0, 89, n), theta_r=rng.uniform(0, 89, n).astype(np.float32),
                phi=np.broadcast_to(rng.uniform(0, 360, (n, 1)), (n, 3))[:, 1], sigma=rng.uniform(0.05, 1, n))
-    monkeypatch.setattr(E, "LAUNCH_POINTS", 4096)
+    monkeypatch.setattr(T, "LAUNCH_POINTS", 4096)
     cases = [(q, d) for d in ("float32", "float64") for q in ("dop", "brdf", "aop", "stokes", "mueller")]
     axes = dict(theta_r=np.linspace(0, 85, 40), phi=[60.0, 180.0], sigma=np.linspace(0.1, 1, 9), kd=[0.0, 0.5])
     fixed = dict(theta_i=40, n=1.6, k=2.1)
@@ -139,26 +139,26 @@ def test_the_transfer_pipeline_of_gpus_gives_the_same_values(engine, monkeypatch
 
 def test_the_plan_classifies_each_input_by_its_axes():
     S = (4, 5, 6, 7)
-    shapes = {(): (E.SINGLE,), (1, 1, 1, 1): (E.SINGLE,), S: (E.PER_POINT,), (5, 6, 7): (E.BROADCAST, 1, 210, (1, 4)),
-              (7,): (E.BROADCAST, 1, 7, (3, 4)), (4, 1, 1, 1): (E.BROADCAST, 210, 4, (0, 1)),
-              (5, 6, 1): (E.BROADCAST, 7, 30, (1, 3)), (1, 5, 1, 1): (E.BROADCAST, 42, 5, (1, 2)),
-              (4, 5, 6, 1): (E.BROADCAST, 7, 120, (0, 3)), (6, 7): (E.BROADCAST, 1, 42, (2, 4)),
-              (4, 1, 6, 1): (E.PER_POINT,), (5, 1, 7): (E.PER_POINT,), (4, 1, 1, 7): (E.PER_POINT,)}
-    plan = E.input_plan(S, {str(s): np.ones(s) for s in shapes})
+    shapes = {(): (T.SINGLE,), (1, 1, 1, 1): (T.SINGLE,), S: (T.PER_POINT,), (5, 6, 7): (T.BROADCAST, 1, 210, (1, 4)),
+              (7,): (T.BROADCAST, 1, 7, (3, 4)), (4, 1, 1, 1): (T.BROADCAST, 210, 4, (0, 1)),
+              (5, 6, 1): (T.BROADCAST, 7, 30, (1, 3)), (1, 5, 1, 1): (T.BROADCAST, 42, 5, (1, 2)),
+              (4, 5, 6, 1): (T.BROADCAST, 7, 120, (0, 3)), (6, 7): (T.BROADCAST, 1, 42, (2, 4)),
+              (4, 1, 6, 1): (T.PER_POINT,), (5, 1, 7): (T.PER_POINT,), (4, 1, 1, 7): (T.PER_POINT,)}
+    plan = T.input_plan(S, {str(s): np.ones(s) for s in shapes})
     for s, want in shapes.items():
         r = plan[str(s)]
-        assert (r.kind,) + ((r.div, r.mod, r.axes) if r.kind == E.BROADCAST else ()) == want, (s, r)
+        assert (r.kind,) + ((r.div, r.mod, r.axes) if r.kind == T.BROADCAST else ()) == want, (s, r)
     # an axis of length 1 in the output is no break in the run; broadcast views count by their strides
-    assert E.input_plan((3, 1, 4, 2), dict(a=np.ones((3, 1, 4, 1))))["a"] == E.IndexRule(E.BROADCAST, 2, 12, (0, 3))
+    assert T.input_plan((3, 1, 4, 2), dict(a=np.ones((3, 1, 4, 1))))["a"] == T.IndexRule(T.BROADCAST, 2, 12, (0, 3))
     views = dict(row=np.broadcast_to(np.arange(6.0), (5, 6)), col=np.broadcast_to(np.ones((5, 1)), (5, 6)),
                  one=np.broadcast_to(2.0, (5, 6)), strided=np.ones((5, 12))[:, ::2])
-    plan = E.input_plan((5, 6), views)
-    assert [plan[n].kind for n in views] == [E.BROADCAST, E.BROADCAST, E.SINGLE, E.PER_POINT]
+    plan = T.input_plan((5, 6), views)
+    assert [plan[n].kind for n in views] == [T.BROADCAST, T.BROADCAST, T.SINGLE, T.PER_POINT]
     assert (plan["row"].div, plan["row"].mod, plan["col"].div, plan["col"].mod) == (1, 6, 6, 5)
-    np.testing.assert_array_equal(E.compact_values(views["row"], 2).reshape(-1), np.arange(6.0))
+    np.testing.assert_array_equal(T.compact_values(views["row"], 2).reshape(-1), np.arange(6.0))
     # a rule whose block would need more than 32-bit kernel arithmetic stays per point
     huge = np.broadcast_to(np.ones((2, 1)), (2, 1 << 31))
-    assert E.input_plan((2, 1 << 31), dict(a=huge))["a"].kind == E.PER_POINT
+    assert T.input_plan((2, 1 << 31), dict(a=huge))["a"].kind == T.PER_POINT
 
 
 def test_the_division_by_multiplier_is_exact_for_every_31_bit_numerator():
@@ -167,7 +167,7 @@ def test_the_division_by_multiplier_is_exact_for_every_31_bit_numerator():
                  (1 << 31) - 1, 1 << 31} | set(rng.integers(1, 1 << 31, 200).tolist()))
     top = (1 << 31) - 1
     for d in ds:
-        m, s = E.udiv_magic(d)
+        m, s = T.udiv_magic(d)
         assert 0 < m < 1 << 32
         n = np.concatenate([np.arange(0, 40), top - np.arange(40), rng.integers(0, 1 << 31, 4000),
                             np.clip(np.arange(-3, 4)[None, :] + d * np.arange(0, 64)[:, None], 0, top).ravel()])
@@ -193,15 +193,15 @@ def test_the_rule_table_keeps_32_bit_arithmetic_exact_at_any_start():
     """Launches start anywhere (beyond 2^32 points too): the host's r0 and q0 make the kernels'
     32-bit index equal ``((start + l) // div) % mod`` for every offset of a launch, across period
     boundaries."""
-    l = np.arange(E.LAUNCH_POINTS + 16, dtype=np.uint64)
+    l = np.arange(T.LAUNCH_POINTS + 16, dtype=np.uint64)
     for div, mod in ((1, 7), (1, 4096), (3, 5), (4095, 2048), (4096, 2048), (1 << 30, 3), (17, (1 << 30) - 1)):
-        plan = {n: E.IndexRule(E.SINGLE) for n in E.POINT_INPUTS}
-        plan["sigma"] = E.IndexRule(E.BROADCAST, div, mod, (0, 1))
+        plan = {n: T.IndexRule(T.SINGLE) for n in T.POINT_INPUTS}
+        plan["sigma"] = T.IndexRule(T.BROADCAST, div, mod, (0, 1))
         for start in (0, div * mod - 5, 3 * div * mod + div - 1, (1 << 32) + 12345, (1 << 40) + 7):
-            table = E.rule_table(plan, start)
-            assert table.dtype == np.uint32 and table.shape == (9, len(E.RULE_FIELDS))
+            table = T.rule_table(plan, start)
+            assert table.dtype == np.uint32 and table.shape == (9, len(T.RULE_FIELDS))
             want = ((np.uint64(start) + l) // np.uint64(div)) % np.uint64(mod)
-            np.testing.assert_array_equal(_kernel_index(table, E.POINT_INPUTS.index("sigma"), l), want,
+            np.testing.assert_array_equal(_kernel_index(table, T.POINT_INPUTS.index("sigma"), l), want,
                                           err_msg=str((div, mod, start)))
 
 
@@ -232,8 +232,8 @@ def test_broadcast_inputs_give_the_expanded_call_bit_for_bit(each_device, monkey
     """Sent once with their rules (several launches, so launches start inside periods, and padded
     tails), broadcast inputs give exactly what the same call with every input expanded gives, on
     the same device and dtype; so does the gathered path of before (``index_rules = False``)."""
-    monkeypatch.setattr(E, "LAUNCH_POINTS", 4096)
-    monkeypatch.setattr(E, "CONVERT_POINTS", 1024)
+    monkeypatch.setattr(T, "LAUNCH_POINTS", 4096)
+    monkeypatch.setattr(T, "CONVERT_POINTS", 1024)
     monkeypatch.setattr(each_device, "force_transfers", transfers)
     asked = []
     kernel = each_device.kernel
@@ -241,8 +241,8 @@ def test_broadcast_inputs_give_the_expanded_call_bit_for_bit(each_device, monkey
     fixed = dict(theta_i=40.0, theta_r=30.0, phi=150.0, n=1.6, k=2.1, sigma=0.4, ks=0.9, kd=0.2, c=-0.3)
     for shape, given in _broadcast_cases(rng):
         inp = {**fixed, **given}
-        plan = E.input_plan(shape, inp)
-        assert any(r.kind == E.BROADCAST for r in plan.values()), shape
+        plan = T.input_plan(shape, inp)
+        assert any(r.kind == T.BROADCAST for r in plan.values()), shape
         full = _expanded(inp, shape)
         for dtype in ("float32", "float64"):
             for q in ("dop", "brdf", "aop", "mueller"):
@@ -263,23 +263,23 @@ def test_a_launch_far_into_the_array_reads_the_right_values(each_device, monkeyp
     """The twin kernels at a start beyond 2^32 points (launched directly: no such array is made):
     the values at flat points start .. start + 5000 of a (2^21 x 4093)-point broadcast, where
     theta_r changes every 4093 points and sigma repeats every 4093."""
-    monkeypatch.setattr(E, "TABLE_POINTS", 1 << 22)  # theta_r's 2^21 values sent as a table
+    monkeypatch.setattr(T, "TABLE_POINTS", 1 << 22)  # theta_r's 2^21 values sent as a table
     div = 4093
     th, sg = rng.uniform(0, 89.9, 1 << 21), rng.uniform(0.05, 1, div)
     shape = (th.size, div)
     start = (1 << 32) + 3 * div - 7
     t = start + np.arange(5000)
     for dtype in ("float32", "float64"):
-        npdt = np.dtype(E.DTYPES[dtype])
+        npdt = np.dtype(T.DTYPES[dtype])
         lanes = each_device.vector_width[dtype]
         inp = dict(theta_i=40.0, theta_r=th[:, None], phi=150.0, n=1.6, k=2.1, sigma=sg[None, :], ks=1.0, kd=0.2, c=-0.3)
-        plan, flat, values = each_device._inputs(inp, shape, npdt, lanes)
-        assert plan["theta_r"].kind == plan["sigma"].kind == E.BROADCAST
+        plan, flat, values = T.point_inputs(each_device, inp, shape, npdt, lanes)
+        assert plan["theta_r"].kind == plan["sigma"].kind == T.BROADCAST
         parts = {**flat, **values}
         out = np.empty(5000, npdt)
         kern = each_device.kernel("dop_bcast_points_vec", dtype, "paper")
-        each_device._launch_points(kern, parts, 5000 // lanes * lanes, out[:5000 // lanes * lanes], npdt, lanes, True,
-                                   each_device.host_memory, E.rule_table(plan, start))
+        T.launch_points(each_device, kern, parts, 5000 // lanes * lanes, out[:5000 // lanes * lanes], npdt, lanes,
+                        True, each_device.host_memory, T.rule_table(plan, start))
         want = pbrdf_cl.dop(40.0, th[t // div], 150.0, n=1.6, k=2.1, sigma=sg[t % div], kd=0.2, c=-0.3, dtype=dtype)
         np.testing.assert_array_equal(out[:5000 // lanes * lanes], want[:5000 // lanes * lanes])
 
@@ -295,9 +295,9 @@ def test_broadcast_inputs_take_no_memory_beyond_the_output(each_device, rng):
 
 @pytest.mark.parametrize("func", [pbrdf_cl.dop, pbrdf_cl.brdf, pbrdf_cl.aop])
 def test_a_bad_value_in_a_broadcast_input_is_named_with_its_index(each_device, monkeypatch, func):
-    monkeypatch.setattr(E, "LAUNCH_POINTS", 4096)
+    monkeypatch.setattr(T, "LAUNCH_POINTS", 4096)
     th, sg = np.linspace(0, 89, 300)[:, None], np.linspace(0.05, 1, 45)[None, :].copy()
-    assert E.input_plan((300, 45), dict(theta_r=th, sigma=sg))["sigma"].kind == E.BROADCAST
+    assert T.input_plan((300, 45), dict(theta_r=th, sigma=sg))["sigma"].kind == T.BROADCAST
     sg[0, 44] = 0.0
     with pytest.raises(ValueError, match=r"sigma must be > 0, got 0\.0 at index \[0, 44\]"):
         func(40, th, n=1.6, k=2.1, sigma=sg, kd=0.2, dtype="float32")

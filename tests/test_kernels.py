@@ -94,16 +94,16 @@ def test_broadcasting_and_scalars(rng):
 
 
 def test_launches_larger_than_one_chunk(monkeypatch, rng):
-    from pbrdf_cl.device import engine as eng
+    from pbrdf_cl.device import transfers
     inp = random_inputs(rng, 3000)
     whole = call(pbrdf_cl.dop, inp)
-    monkeypatch.setattr(eng, "LAUNCH_POINTS", 1000)
+    monkeypatch.setattr(transfers, "LAUNCH_POINTS", 1000)
     np.testing.assert_array_equal(call(pbrdf_cl.dop, inp), whole)
     m = call(pbrdf_cl.mueller, inp)
-    monkeypatch.setattr(eng, "LAUNCH_POINTS", 1 << 22)
+    monkeypatch.setattr(transfers, "LAUNCH_POINTS", 1 << 22)
     np.testing.assert_array_equal(call(pbrdf_cl.mueller, inp), m)
     # a last chunk of a single point still gets whole vectors of its full-array inputs
-    monkeypatch.setattr(eng, "LAUNCH_POINTS", 32)
+    monkeypatch.setattr(transfers, "LAUNCH_POINTS", 32)
     few = {name: v[:33] for name, v in inp.items()}
     for dtype, tol in (("float64", 1e-12), ("float32", 2e-5)):
         got = call(pbrdf_cl.dop, few, dtype=dtype)

@@ -42,3 +42,23 @@ def test_unknown_operations_and_double_registrations_are_refused(registry):
         ops.implements("one", "numpy")(lambda eng: 2)
     with pytest.raises(ValueError, match=r"^backend must be one of"):
         ops.implements("one", "cuda")
+
+
+def test_both_engines_offer_the_same_interface(engine):
+    numpy = pbrdf_cl.NumpyEngine()
+    for name in ("backend", "call", "evaluate", "checks_domain", "compute_dtype", "has_kernels", "reason",
+                 "description", "lock", "fp64", "profiling", "last_event_seconds", "vector_width", "lm_lanes"):
+        assert hasattr(numpy, name) and hasattr(engine, name), name
+    assert [numpy.compute_dtype(d) for d in ("float32", "float64")] == ["float64", "float64"]
+    assert [engine.compute_dtype(d) for d in ("float32", "float64")] == ["float32", "float64"]
+    assert engine.has_kernels and not numpy.has_kernels
+    assert engine.reason == numpy.reason == "" and pbrdf_cl.NumpyEngine("no device").reason == "no device"
+    assert set(numpy.vector_width.values()) == set(numpy.lm_lanes.values()) == {1}
+    assert set(engine.vector_width) == set(engine.lm_lanes) == {"float32", "float64"}
+
+
+def test_the_dense_operations_have_both_implementations():
+    from pbrdf_cl.compute import dense  # noqa: F401 (registers them)
+    found = ops.operations()
+    for name in ("grid_blocks", "reduce_grid", "objective_blocks", "objective_points", "outer"):
+        assert found[name] == ["numpy", "opencl"], name

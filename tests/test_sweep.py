@@ -349,7 +349,7 @@ def test_store_of_another_spec_or_kernels_or_a_foreign_folder_is_refused(spec_fi
     assert "was started with a different spec" in msg and "choose another --out, or delete" in msg
     assert 'dtype: "float32" in the store, "float64" now' in msg and "axes.sigma: 24 values" in msg
     assert files(reference) == before  # untouched
-    monkeypatch.setattr(pbrdf_cl.device.engine, "_KERNELS_SHA256", "0" * 64)  # as if another pbrdf-cl ran it
+    monkeypatch.setattr(pbrdf_cl.device.sources, "_KERNELS_SHA256", "0" * 64)  # as if another pbrdf-cl ran it
     with pytest.raises(SpecError, match="was started with other OpenCL kernel sources"):
         pbrdf_cl.sweep(spec_file, reference, progress=False)
     with pytest.raises(SpecError, match="other OpenCL kernel sources"):  # what a cluster worker checks

@@ -16,6 +16,7 @@ import pytest
 import pbrdf_cl
 from pbrdf_cl.compute import dense
 from pbrdf_cl.device import trials
+from pbrdf_cl.device import choice, sources
 from pbrdf_cl.device import engine as E
 from conftest import DEVICES, requires_opencl
 
@@ -105,17 +106,17 @@ def _fake_device(pocl, llvm, cpu=True):
 
 
 def test_vector_widths_are_256_bit_only_where_llvm_14_meets_avx512(monkeypatch):
-    monkeypatch.delenv(E.NARROW_ENV, raising=False)
-    monkeypatch.setattr(E, "cpu_flags", lambda: frozenset({"avx2", "avx512f"}))
+    monkeypatch.delenv(choice.NARROW_ENV, raising=False)
+    monkeypatch.setattr(choice, "cpu_flags", lambda: frozenset({"avx2", "avx512f"}))
     assert E.vector_widths(_fake_device(True, 14)) == ({"float32": 8, "float64": 4}, {"float32": 8, "float64": 4})
     assert "LLVM 14 on an AVX-512 CPU" in E.narrow_reason(_fake_device(True, 14))
     for dev in (_fake_device(True, 15), _fake_device(False, 14), _fake_device(True, 14, cpu=False)):
         assert E.narrow_reason(dev) is None
-        assert E.vector_widths(dev) == (E.VECTOR_WIDTH, E.LM_LANES)
-    monkeypatch.setattr(E, "cpu_flags", lambda: frozenset({"avx2"}))  # an AVX2 host: 512-bit code is split
+        assert E.vector_widths(dev) == (sources.VECTOR_WIDTH, sources.LM_LANES)
+    monkeypatch.setattr(choice, "cpu_flags", lambda: frozenset({"avx2"}))  # an AVX2 host: 512-bit code is split
     assert E.narrow_reason(_fake_device(True, 14)) is None
-    monkeypatch.setenv(E.NARROW_ENV, "1")
-    assert E.vector_widths(_fake_device(True, 15))[0] == E.NARROW_VECTOR_WIDTH
+    monkeypatch.setenv(choice.NARROW_ENV, "1")
+    assert E.vector_widths(_fake_device(True, 15))[0] == sources.NARROW_VECTOR_WIDTH
 
 
 # ---------------------------------------------------------------------------------------------
@@ -220,7 +221,7 @@ def test_a_crashed_trial_leaves_nothing_in_the_shared_cache(store, monkeypatch, 
     monkeypatch.delenv(trials.FAKE_ENV)
     verdict = check()
     assert verdict.usable and verdict.reason == "built and launched 4 kernels"
-    if E._is_pocl(dev.platform):  # what the trial compiled is the parent's now
+    if E.is_pocl(dev.platform):  # what the trial compiled is the parent's now
         assert len(entries()) == 1 and not list(shared.glob("pbrdf-trial-*/??"))
     assert check() is verdict  # this process's memory
     monkeypatch.setattr(trials, "_MEMORY", {})
@@ -251,7 +252,7 @@ def test_narrow_vectors_change_no_value(engine):
     if E.narrow_reason(engine.device):
         pytest.skip(f"this device builds 256-bit vectors only: {E.narrow_reason(engine.device)}")
     narrow = E.Engine(engine.device)
-    narrow.vector_width, narrow.lm_lanes = dict(E.NARROW_VECTOR_WIDTH), dict(E.NARROW_LM_LANES)
+    narrow.vector_width, narrow.lm_lanes = dict(sources.NARROW_VECTOR_WIDTH), dict(sources.NARROW_LM_LANES)
     rng = np.random.default_rng(3)
     ti, tr, ph, sg = (rng.uniform(0, 89, 301), rng.uniform(0, 89, 301), rng.uniform(0, 360, 301),
                       rng.uniform(0.05, 1, 301))

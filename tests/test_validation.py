@@ -4,6 +4,7 @@ import pytest
 
 import pbrdf_cl
 from conftest import requires_opencl
+from pbrdf_cl.device import choice, fallback
 from pbrdf_cl.device import engine as engine_mod
 
 GOOD = dict(n=1.6, k=2.1, sigma=0.5, ks=0.9, kd=0.15, c=-0.3)
@@ -55,19 +56,19 @@ def test_no_platform_gives_an_error_that_says_how_to_get_one(monkeypatch):
         @staticmethod
         def get_platforms():
             raise Exception("clGetPlatformIDs failed: PLATFORM_NOT_FOUND_KHR")
-    monkeypatch.setattr(engine_mod, "cl", NoPlatforms)
+    monkeypatch.setattr(choice, "cl", NoPlatforms)
     with pytest.raises(pbrdf_cl.OpenCLUnavailableError,
                        match=r"pip install pocl-binary-distribution.*pocl-opencl-icd.*intel-cpu.*backend=\"numpy\""):
         engine_mod.Engine()
     # ... and backend="auto" computes on the numpy reference instead
-    monkeypatch.setattr(engine_mod, "_default_engine", None)
-    monkeypatch.setattr(engine_mod, "_WARNED", set())
+    monkeypatch.setattr(fallback, "_default_engine", None)
+    monkeypatch.setattr(choice, "_WARNED", set())
     with pytest.warns(engine_mod.DeviceWarning, match="computing on the numpy backend.*no OpenCL platform found"):
         assert pbrdf_cl.get_default_engine().is_numpy
     assert abs(float(pbrdf_cl.dop(40, 45, **GOOD)) - float(pbrdf_cl.dop(40, 45, **GOOD, backend="numpy"))) == 0
     with pytest.raises(pbrdf_cl.OpenCLUnavailableError, match="backend='opencl': no OpenCL platform found"):
         pbrdf_cl.dop(40, 45, **GOOD, backend="opencl")
-    monkeypatch.setattr(engine_mod, "cl", None)
+    monkeypatch.setattr(choice, "cl", None)
     with pytest.raises(pbrdf_cl.OpenCLUnavailableError, match="pocl-binary-distribution"):
         engine_mod.select_device()
 

@@ -128,7 +128,7 @@ def test_stokes_and_aop_grids_of_every_variant_equal_the_reference(engine, shado
 @pytest.mark.parametrize("shadowing", SHADOWINGS)
 def test_tables_of_every_variant_equal_the_reference_tables(engine, shadowing, dtype):
     """dense.Tables (kernels/pbrdf_tables.cl) entry by entry against the reference's tables
-    (dense._NumpyTables, built with reference.py in float64), for in-plane and out-of-plane geometries."""
+    (dense.NumpyTables, built with reference.py in float64), for in-plane and out-of-plane geometries."""
     ti = np.array([0.0, 30.0, 52.0, 70.0, 85.0, 40.0, 60.0])
     tr = np.array([10.0, 30.0, 20.0, 75.0, 60.0, 45.0, 88.0])
     ph = np.array([180.0, 180.0, 180.0, 180.0, 35.0, 125.0, 290.0])
@@ -138,10 +138,10 @@ def test_tables_of_every_variant_equal_the_reference_tables(engine, shadowing, d
     if dtype == "float32":  # the reference at the inputs the device sees
         ti, tr, ph = (a.astype(np.float32).astype(float) for a in (ti, tr, ph))
         v = {n: a.astype(np.float32).astype(float) for n, a in v.items()}
-    other = G._NumpyTables(OTHER[shadowing], "dop", ti, tr, ph, v)
+    other = G.NumpyTables(OTHER[shadowing], "dop", ti, tr, ph, v)
     for quantity in ("dop", "stokes"):  # 1/K and fd2 (the DOP), K, fd and the frame (the Stokes vector)
         dev = G.Tables(engine, dtype, shadowing, quantity, ti, tr, ph, v)
-        ref = G._NumpyTables(shadowing, quantity, ti, tr, ph, v)
+        ref = G.NumpyTables(shadowing, quantity, ti, tr, ph, v)
 
         def read(buf, like):
             return engine.read(buf, np.empty(np.shape(like), npdt)).astype(np.float64)

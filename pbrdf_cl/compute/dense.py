@@ -15,9 +15,12 @@ What each quantity needs (which tables, its width, units) is its record in
 ``memory_budget`` bytes run in chunks.
 
 On the numpy backend (:class:`pbrdf_cl.device.engine.NumpyEngine`) the same tables are built with the
-functions of ``reference.py`` (:class:`_NumpyTables`, the mirror of ``pbrdf_tables.cl``) and
+functions of ``reference.py`` (:class:`NumpyTables`, the mirror of ``pbrdf_tables.cl``) and
 combined with ``reference.grid_<quantity>`` over boxes of the grid, each within
 the same ``memory_budget``; values are float64 whatever ``dtype`` asks for, then cast to it.
+Each computation that differs between the backends is an operation with one implementation per
+backend (:mod:`pbrdf_cl.device.ops`: ``grid_blocks``, ``reduce_grid``, ``objective_blocks``,
+``objective_points``, ``outer``), which the public functions run with ``eng.call``.
 
 Axes are ordered canonically: theta_i, theta_r, phi, n, k, sigma, ks, kd, c.
 """
@@ -32,7 +35,8 @@ from ..model import quantities
 from ..model import reference
 from .. import sizes
 from ..device import engine as _engine
-from ..device.engine import DTYPES, aligned_empty, resolve_engine
+from ..device import ops
+from ..device.engine import DTYPES, VECTOR_LOCAL_SIZE, aligned_empty, resolve_engine
 
 AXES = ("theta_i", "theta_r", "phi", "n", "k", "sigma", "ks", "kd", "c")
 PARAMETERS = AXES[3:]
@@ -149,10 +153,15 @@ class Tables:
         return self.sum, self.diff, self.scale, self.dif, self.frame
 
 
-class _NumpyTables:
+class NumpyTables:
     """The tables of :class:`Tables` computed with ``reference.py`` in float64 (the mirror of
     ``kernels/pbrdf_tables.cl``): ``sum``, ``diff`` (ng, n_n * n_k), ``scale`` (ng, n_sigma * n_ks),
-    ``dif`` (ng, n_kd * n_c), and :meth:`combine`, the per-point step of ``pbrdf_grid.cl``."""
+    ``dif`` (ng, n_kd * n_c), and :meth:`combine`, the per-point step of ``pbrdf_grid.cl``.
+
+    Package-internal interface (the numpy backend's grids here, and the per-pixel fit's grid
+    stage): ``NumpyTables(shadowing, quantity, ti, tr, ph, values)`` over the geometry list
+    ``ti, tr, ph`` and the parameter axes ``values`` (name -> 1-d array), then :meth:`box` or
+    :meth:`combine` of the tables reshaped as the caller needs."""
 
     #: float64 bytes per table entry and per grid point of a box (the values and ~3 temporaries)
     BYTES_PER_POINT = 32
@@ -233,19 +242,20 @@ def _param_sizes(plan):
     return tuple(plan.sizes.get(n, 1) for n in PARAMETERS)
 
 
-def _numpy_grid_blocks(plan, quantity, dtype, shadowing, memory_budget, progress, out):
+@ops.implements("grid_blocks", "numpy")
+def _numpy_grid_blocks(eng, plan, quantity, dtype, shadowing, memory_budget, progress, out):
     """:func:`grid_blocks` on the numpy backend: geometry rows in blocks whose float64 tables
     take at most half of ``memory_budget``, each block's grid in boxes within the other half."""
     ng, nnk, nm, ni = family_sizes(plan)
     sizes = _param_sizes(plan)
     per_g = nnk * nm * ni
-    table_row, rows = _geometry_rows(plan, memory_budget, 8, _NumpyTables.BYTES_PER_POINT)
-    bar = _progress(plan.size, progress, f"grid {quantity} (numpy)")
+    table_row, rows = _geometry_rows(plan, memory_budget, 8, NumpyTables.BYTES_PER_POINT)
+    bar = progress_bar(plan.size, progress, f"grid {quantity} (numpy)")
     width = quantities.get(quantity).width
     for g0 in range(0, ng, rows):
         g1 = min(ng, g0 + rows)
-        tables = _NumpyTables(shadowing, quantity, *geometry_list(plan, g0, g1), plan.values)
-        room = (memory_budget - (g1 - g0) * table_row) // (_NumpyTables.BYTES_PER_POINT * width)
+        tables = NumpyTables(shadowing, quantity, *geometry_list(plan, g0, g1), plan.values)
+        room = (memory_budget - (g1 - g0) * table_row) // (NumpyTables.BYTES_PER_POINT * width)
         for start, box in _boxes((g1 - g0,) + sizes, room):
             values = tables.box((g1 - g0,), sizes, box)
             count = values.size // width
@@ -278,9 +288,10 @@ def table_bytes(n_geometries, nnk, nm, ni, itemsize):
     return int(n_geometries) * (2 * nnk + nm + ni + 2) * int(itemsize)
 
 
-def _table_itemsize(eng, npdt):
-    """Bytes per table entry: the dtype's on a device, float64's on the numpy backend."""
-    return 8 if eng.is_numpy else np.dtype(npdt).itemsize
+def _table_itemsize(eng, dtype):
+    """Bytes per table entry: those of the precision the engine computes ``dtype`` in (float64 on
+    the numpy backend)."""
+    return np.dtype(DTYPES[eng.compute_dtype(dtype)]).itemsize
 
 
 def geometry_list(plan, g0, g1):
@@ -319,7 +330,10 @@ def _check_quantity(quantity, path="grid"):
     return quantities.get(quantity, path)
 
 
-def _progress(total, enabled, desc, unit="pt"):
+def progress_bar(total, enabled, desc, unit="pt"):
+    """A tqdm progress bar of ``total`` units, shown once the work takes more than a second, or
+    None when not ``enabled`` (or without tqdm).  Package-internal: the grids here, the sensitivity
+    analyses."""
     if not enabled:
         return None
     try:
@@ -423,10 +437,17 @@ def row_level(nnk, nm, ni, ng, chunk, max_level=3):
 @_engine.falls_back
 def grid_blocks(eng, plan, quantity, dtype, shadowing, memory_budget, progress=False, out=None):
     """Yield (flat start, values) chunks of the grid in order, each within ``memory_budget``;
-    with ``out`` (the whole flat grid) the values land in, and are views of, its slices."""
-    if eng.is_numpy:
-        yield from _numpy_grid_blocks(plan, quantity, dtype, shadowing, memory_budget, progress, out)
-        return
+    with ``out`` (the whole flat grid) the values land in, and are views of, its slices.  The
+    engine's operation ``"grid_blocks"``: the factor tables and ``pbrdf_grid.cl`` on a device, the
+    same tables with ``reference.py`` on the numpy backend."""
+    yield from eng.call("grid_blocks", plan, quantity, dtype, shadowing, memory_budget, progress, out)
+
+
+@ops.implements("grid_blocks", "opencl")
+def _device_grid_blocks(eng, plan, quantity, dtype, shadowing, memory_budget, progress, out):
+    """:func:`grid_blocks` on an OpenCL device: geometry rows in blocks whose tables take at most
+    half of ``memory_budget``, their grid in chunks of the rest (two, read back in turn, on a
+    device with its own memory)."""
     width = quantities.get(quantity).width
     itemsize = np.dtype(DTYPES[dtype]).itemsize
     ng, nnk, nm, ni = family_sizes(plan)
@@ -442,7 +463,7 @@ def grid_blocks(eng, plan, quantity, dtype, shadowing, memory_budget, progress=F
         chunk = max(row_len, chunk // 2)
     chunk = chunk // row_len * row_len
     bufs = [eng.empty(chunk * width * itemsize) for _ in range(2)] if overlap else None
-    bar = _progress(plan.size, progress, f"grid {quantity}")
+    bar = progress_bar(plan.size, progress, f"grid {quantity}")
     pending, k = None, 0
     for g0 in range(0, ng, rows):
         g1 = min(ng, g0 + rows)
@@ -527,23 +548,32 @@ def reduce_grid(axes, fixed=None, over=(), quantity="dop", dtype="float32", shad
         if name not in plan.axis_names:
             raise ValueError(f"over: {name!r} is not one of the grid's axes {plan.axis_names}")
     eng = resolve_engine(engine, backend)
-    npdt = DTYPES[dtype]
-    itemsize = _table_itemsize(eng, npdt)
+    itemsize = _table_itemsize(eng, dtype)
     ng, nnk, nm, ni = family_sizes(plan)
     tables_size = table_bytes(ng, nnk, nm, ni, itemsize)
     if tables_size > memory_budget // 2:
         raise ValueError(f"the model's tables for this grid need {tables_size} bytes, more than half of "
                          f"memory_budget={memory_budget}; raise the budget or split the geometry axes")
+    kept = [n for n in AXES if n not in over]
+    red = [n for n in AXES if n in over]
+    vmin, vmean, varg = eng.call("reduce_grid", plan, kept, red, quantity, dtype, shadowing, memory_budget,
+                                 tables_size)
+    return _reduce_result(plan, over, kept, red, vmin, vmean, varg, quantity, shadowing, dtype)
+
+
+@ops.implements("reduce_grid", "opencl")
+def _device_reduce(eng, plan, kept, red, quantity, dtype, shadowing, memory_budget, tables_size):
+    """min (of ``dtype``), mean (float64) and flat argmin over the axes ``red`` on an OpenCL device
+    (the ``grid_reduce`` kernel over the whole grid's tables, the kept points in chunks within
+    half of ``memory_budget``), as flat arrays over the ``kept`` axes (canonical order)."""
+    npdt = DTYPES[dtype]
+    itemsize = np.dtype(npdt).itemsize
+    ng, nnk, nm, ni = family_sizes(plan)
     s = plan.sizes
     coef = {"theta_i": s["theta_r"] * s["phi"], "theta_r": s["phi"], "phi": 1, "n": s["k"], "k": 1,
             "sigma": s["ks"], "ks": 1, "kd": s["c"], "c": 1}
-    kept = [n for n in AXES if n not in over]
-    red = [n for n in AXES if n in over]
     red_total = int(np.prod([s[n] for n in red], dtype=np.int64))
     out_total = int(np.prod([s[n] for n in kept], dtype=np.int64))
-    if eng.is_numpy:
-        vmin, vmean, varg = _numpy_reduce(plan, red, quantity, shadowing, memory_budget - tables_size)
-        return _reduce_result(plan, over, kept, red, vmin.astype(npdt), vmean, varg, quantity, shadowing, dtype)
     idx_name, idx_np = _index_type(max(plan.size, red_total))
 
     def arr(name, vals):
@@ -574,24 +604,27 @@ def reduce_grid(axes, fixed=None, over=(), quantity="dop", dtype="float32", shad
         vmin[o0:o0 + cnt] = hmin[rows, best]
         varg[o0:o0 + cnt] = harg[rows, best]
         vmean[o0:o0 + cnt] = hsum.astype(np.float64).sum(axis=1) / red_total
-    return _reduce_result(plan, over, kept, red, vmin, vmean, varg, quantity, shadowing, dtype)
+    return vmin, vmean, varg
 
 
-def _numpy_reduce(plan, red, quantity, shadowing, room):
-    """min, mean (float64) and flat argmin over the axes ``red`` on the numpy backend, as flat
-    arrays over the kept axes (canonical order): the grid in boxes of the 9-d canonical layout,
-    each reduced and merged."""
+@ops.implements("reduce_grid", "numpy")
+def _numpy_reduce(eng, plan, kept, red, quantity, dtype, shadowing, memory_budget, tables_size):
+    """min (computed in float64, returned as ``dtype``), mean (float64) and flat argmin over the
+    axes ``red`` on the numpy backend, as flat arrays over the kept axes (canonical order): the
+    grid in boxes of the 9-d canonical layout within ``memory_budget - tables_size``, each reduced
+    and merged."""
+    room = memory_budget - tables_size
     s = plan.sizes
     shape = tuple(s[n] for n in AXES)
     red_ax = tuple(AXES.index(n) for n in red)
     kept_ax = tuple(i for i in range(len(AXES)) if i not in red_ax)
     red_shape = tuple(shape[i] for i in red_ax)
-    tables = _NumpyTables(shadowing, quantity, *geometry_list(plan, 0, family_sizes(plan)[0]), plan.values)
+    tables = NumpyTables(shadowing, quantity, *geometry_list(plan, 0, family_sizes(plan)[0]), plan.values)
     kept_shape = tuple(shape[i] for i in kept_ax)
     vmin = np.full(kept_shape, np.inf)
     vsum = np.zeros(kept_shape)
     varg = np.zeros(kept_shape, np.int64)
-    for _, box in _boxes(shape, max(64, room // _NumpyTables.BYTES_PER_POINT)):
+    for _, box in _boxes(shape, max(64, room // NumpyTables.BYTES_PER_POINT)):
         v = tables.box(shape[:3], shape[3:], box)
         moved = np.moveaxis(v, red_ax, tuple(range(len(kept_ax), len(shape))))
         flat = moved.reshape(moved.shape[:len(kept_ax)] + (-1,))
@@ -606,7 +639,7 @@ def _numpy_reduce(plan, red, quantity, shadowing, room):
         varg[ksl] = np.where(better, glob, varg[ksl])
         vsum[ksl] += flat.sum(axis=-1)
     total = int(np.prod(red_shape, dtype=np.int64))
-    return vmin.reshape(-1), vsum.reshape(-1) / total, varg.reshape(-1)
+    return vmin.reshape(-1).astype(DTYPES[dtype]), vsum.reshape(-1) / total, varg.reshape(-1)
 
 
 def _reduce_result(plan, over, kept, red, vmin, vmean, varg, quantity, shadowing, dtype):
@@ -701,7 +734,7 @@ def objective(data, grid=None, points=None, *, k_best=10, dtype="float32", shado
     w = meas.weights if meas.dop_std is not None else np.ones(len(meas))
     eng = resolve_engine(engine, backend)
     npdt = DTYPES[dtype]
-    itemsize = _table_itemsize(eng, npdt)
+    itemsize = _table_itemsize(eng, dtype)
     M = ti.size
     if points is not None:
         return _objective_points(eng, points, (ti, tr, ph, obs, w), k_best, dtype, shadowing, return_sse, t0,
@@ -718,13 +751,9 @@ def objective(data, grid=None, points=None, *, k_best=10, dtype="float32", shado
     P = plan.size
     sse = np.empty(P, npdt) if return_sse else None
     best_idx, best_sse = np.empty(0, np.int64), np.empty(0, npdt)
-    bar = _progress(P, progress, "objective")
-    if eng.is_numpy:
-        blocks = _numpy_objective_blocks(plan, (ti, tr, ph, obs, w), shadowing, memory_budget - tables_size,
-                                         sse, npdt)
-    else:
-        blocks = _device_objective_blocks(eng, plan, (ti, tr, ph, obs, w), dtype, shadowing,
-                                          memory_budget - tables_size, sse)
+    bar = progress_bar(P, progress, "objective")
+    blocks = eng.call("objective_blocks", plan, (ti, tr, ph, obs, w), dtype, shadowing, memory_budget - tables_size,
+                      sse)
     for start, host in blocks:  # host: the block's slice of sse (or a temporary without it)
         count = host.size
         best_idx, best_sse = _update_best(best_idx, best_sse, np.arange(start, start + count), host, k_best)
@@ -747,17 +776,19 @@ def objective(data, grid=None, points=None, *, k_best=10, dtype="float32", shado
     return ObjectiveResult(sse=sse_da, best=best, n_pairs=P * M, seconds=time.perf_counter() - t0)
 
 
-def _numpy_objective_blocks(plan, meas, shadowing, room, out, npdt):
+@ops.implements("objective_blocks", "numpy")
+def _numpy_objective_blocks(eng, plan, meas, dtype, shadowing, room, out):
     """(flat start, SSE) of the parameter grid in boxes, on the numpy backend, written into
     ``out`` when given: the measurements are the tables' geometry list, and a box holds every
     measurement of its parameter vectors."""
+    npdt = DTYPES[dtype]
     ti, tr, ph, obs, w = meas
     M = ti.size
-    tables = _NumpyTables(shadowing, "dop", ti, tr, ph, plan.values)
+    tables = NumpyTables(shadowing, "dop", ti, tr, ph, plan.values)
     sizes = _param_sizes(plan)
     obs = obs.reshape((M,) + (1,) * 6)
     w = w.reshape((M,) + (1,) * 6)
-    for start, box in _boxes(sizes, max(1, room // (M * _NumpyTables.BYTES_PER_POINT))):
+    for start, box in _boxes(sizes, max(1, room // (M * NumpyTables.BYTES_PER_POINT))):
         r = tables.box((M,), sizes, (slice(None),) + box) - obs
         values = np.sum(w * r * r, axis=0).reshape(-1)
         host = out[start:start + values.size] if out is not None else np.empty(values.size, npdt)
@@ -765,6 +796,7 @@ def _numpy_objective_blocks(plan, meas, shadowing, room, out, npdt):
         yield start, host
 
 
+@ops.implements("objective_blocks", "opencl")
 def _device_objective_blocks(eng, plan, meas, dtype, shadowing, room, out):
     """(flat start, SSE) of the parameter grid in chunks, on the device, read straight into
     ``out`` when given."""
@@ -814,25 +846,42 @@ def _objective_points(eng, points, meas, k_best, dtype, shadowing, return_sse, t
         raise ValueError("points: parameter arrays differ in length") from None
     arrays = [a.reshape(-1) for a in arrays]
     P = arrays[0].size
-    if eng.is_numpy:  # the reference over (vectors, measurements), a bounded number of rows at a time
-        sse = np.empty(P, DTYPES[dtype])
-        step = max(1, memory_budget // (ti.size * 8 * 16))
-        for a in range(0, P, step):
-            par = [x[a:a + step, None] for x in arrays]
-            r = reference.evaluate("dop", ti, tr, ph, *par, shadowing=shadowing) - obs
-            sse[a:a + step] = np.sum(w * r * r, axis=1)
-    else:
-        kern = eng.kernel("objective_points", dtype, shadowing)
-        buf = eng.empty(P * np.dtype(DTYPES[dtype]).itemsize)
-        eng.launch(kern, (P,), buf, np.int32(P), *(eng.to_device(a, dtype) for a in arrays),
-                   *(eng.to_device(a, dtype) for a in (ti, tr, ph, obs, w)), np.int32(ti.size))
-        sse = eng.read(buf, np.empty(P, DTYPES[dtype]))
+    sse = eng.call("objective_points", arrays, meas, dtype, shadowing, memory_budget)
     order = np.argsort(sse, kind="stable")[:k_best]
     best = {n: a[order] for n, a in zip(PARAMETERS, arrays)}
     best["sse"] = sse[order]
     best["index"] = order
     return ObjectiveResult(sse=sse if return_sse else None, best=best, n_pairs=P * ti.size,
                            seconds=time.perf_counter() - t0)
+
+
+@ops.implements("objective_points", "numpy")
+def _numpy_objective_points(eng, arrays, meas, dtype, shadowing, memory_budget):
+    """The SSE of each parameter vector (``arrays``: n, k, sigma, ks, kd, c, each of P values) over
+    the measurements ``meas``: the reference over (vectors, measurements), a bounded number of rows
+    at a time."""
+    ti, tr, ph, obs, w = meas
+    P = arrays[0].size
+    sse = np.empty(P, DTYPES[dtype])
+    step = max(1, memory_budget // (ti.size * 8 * 16))
+    for a in range(0, P, step):
+        par = [x[a:a + step, None] for x in arrays]
+        r = reference.evaluate("dop", ti, tr, ph, *par, shadowing=shadowing) - obs
+        sse[a:a + step] = np.sum(w * r * r, axis=1)
+    return sse
+
+
+@ops.implements("objective_points", "opencl")
+def _device_objective_points(eng, arrays, meas, dtype, shadowing, memory_budget):
+    """As the numpy backend's, in one launch of the ``objective_points`` kernel (a parameter vector per
+    work-item)."""
+    ti, tr, ph, obs, w = meas
+    P = arrays[0].size
+    kern = eng.kernel("objective_points", dtype, shadowing)
+    buf = eng.empty(P * np.dtype(DTYPES[dtype]).itemsize)
+    eng.launch(kern, (P,), buf, np.int32(P), *(eng.to_device(a, dtype) for a in arrays),
+               *(eng.to_device(a, dtype) for a in (ti, tr, ph, obs, w)), np.int32(ti.size))
+    return eng.read(buf, np.empty(P, DTYPES[dtype]))
 
 
 #: Geometry x parameter-set pairs per launch of ``quantity_outer`` (one launch's output at most).
@@ -864,16 +913,32 @@ def outer(eng, quantity, geometry, params, dtype="float64", shadowing="paper", o
         out = aligned_empty((g1 - g0) * S * q.width, npdt).reshape((g1 - g0, S) + q.trailing)
     if g1 <= g0 or S == 0:
         return out
-    flat = out.reshape(g1 - g0, S * q.width)
-    if eng.is_numpy:
-        per = max(1, int(DEFAULT_BUDGET // 4 // (OUTER_NUMPY_BYTES * S * q.width)))
-        for a in range(g0, g1, per):
-            b = min(g1, a + per)
-            v = reference.evaluate(q.name, *(x[a:b, None] for x in geo), *(p[None, :] for p in par),
-                                   shadowing=shadowing)
-            flat[a - g0:b - g0] = np.asarray(v).reshape(b - a, -1)
-        return out
-    from ..device.engine import VECTOR_LOCAL_SIZE
+    eng.call("outer", q, geo, par, (g0, g1), dtype, shadowing, out.reshape(g1 - g0, S * q.width))
+    return out
+
+
+@ops.implements("outer", "numpy")
+def _numpy_outer(eng, q, geo, par, rows, dtype, shadowing, flat):
+    """:func:`outer`'s values, with the reference, into ``flat`` (rows g0..g1 of the geometries,
+    each the S parameter sets' values side by side): a bounded number of geometries at a time."""
+    g0, g1 = rows
+    S = par[0].size
+    per = max(1, int(DEFAULT_BUDGET // 4 // (OUTER_NUMPY_BYTES * S * q.width)))
+    for a in range(g0, g1, per):
+        b = min(g1, a + per)
+        v = reference.evaluate(q.name, *(x[a:b, None] for x in geo), *(p[None, :] for p in par),
+                               shadowing=shadowing)
+        flat[a - g0:b - g0] = np.asarray(v).reshape(b - a, -1)
+
+
+@ops.implements("outer", "opencl")
+def _device_outer(eng, q, geo, par, rows, dtype, shadowing, flat):
+    """:func:`outer`'s values on an OpenCL device: the ``*_outer_vec`` kernels (N parameter sets per
+    work-item) or ``quantity_outer``, launch by launch, written straight into ``flat`` on a CPU
+    device."""
+    g0, g1 = rows
+    S = par[0].size
+    npdt = np.dtype(DTYPES[dtype])
     vec = q.vector and eng.vectorise  # N parameter sets per work-item, the sets padded to a multiple of N
     lanes = eng.vector_width[dtype] if vec else 1
     Sp = -(-S // lanes) * lanes
@@ -897,4 +962,3 @@ def outer(eng, quantity, geometry, params, dtype="float64", shadowing="paper", o
         done()
         if tmp is not None:  # the padded sets dropped
             flat[a - g0:b - g0] = view.reshape(b - a, Sp * q.width)[:, :S * q.width]
-    return out

@@ -5,13 +5,13 @@ and their combination, the objective's blocks, the per-pixel descents, ...), eac
 implementation is registered under one operation name::
 
     @ops.implements("outer", "numpy")
-    def _outer_numpy(eng, quantity, geometry, params, dtype, shadowing, out, rows): ...
+    def _numpy_outer(eng, q, geo, par, rows, dtype, shadowing, flat): ...
 
     @ops.implements("outer", "opencl")
-    def _outer_opencl(eng, quantity, geometry, params, dtype, shadowing, out, rows): ...
+    def _device_outer(eng, q, geo, par, rows, dtype, shadowing, flat): ...
 
 and callers run ``eng.call("outer", ...)`` without testing which engine they hold
-(:meth:`pbrdf_cl.device.engine.Engine.call`, :meth:`pbrdf_cl.device.engine.NumpyEngine.call`).
+(:meth:`pbrdf_cl.device.opencl.Engine.call`, :meth:`pbrdf_cl.device.numpy_engine.NumpyEngine.call`).
 An operation without an implementation for the engine's backend runs on the numpy backend's,
 with one :class:`pbrdf_cl.DeviceWarning` saying so (pyFAI's degraded method: opencl -> numpy).
 """

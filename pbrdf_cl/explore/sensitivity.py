@@ -27,7 +27,7 @@ import numpy as np
 
 from ..compute import pointwise
 from ..model import quantities
-from ..compute.dense import DEFAULTS, LONG_NAMES, PARAMETERS, _progress, outer
+from ..compute.dense import DEFAULTS, LONG_NAMES, PARAMETERS, outer, progress_bar
 from ..device.engine import DTYPES, resolve_engine
 from ..errors import SensitivityWarning
 
@@ -522,7 +522,7 @@ def _run_blocks(eng, quantity, geo, params, dtype, shadowing, terms, memory_budg
     per_geometry = runs * itemsize + terms.block_bytes(runs, itemsize)
     block = int(max(1, min(G, memory_budget // per_geometry)))
     results = {}
-    bar = _progress(G, progress, "sensitivity", unit="geometry")
+    bar = progress_bar(G, progress, "sensitivity", unit="geometry")
     for g0 in range(0, G, block):
         g1 = min(G, g0 + block)
         Y = outer(eng, quantity, geo, params, dtype, shadowing, rows=(g0, g1))

@@ -686,7 +686,7 @@ def _table_dop(eng, setup, angles, v, order):
 
 def _numpy_grid(setup, blk, order, rstart):
     """:func:`_device_grid` with ``reference.py`` (dense._NumpyTables, float64), pixel by pixel."""
-    from ..compute.dense import _NumpyTables
+    from ..compute.dense import NumpyTables as _NumpyTables
     v = _grid_values(setup)
     R = rstart.size - 1
     sizes = [v[n].size for n in ("n", "k", "sigma", "ks", "kd", "c")]
