@@ -288,7 +288,7 @@ def _fit_brief(r):
 
 def _fit_assignments(args):
     """(fixed, bounds) from --fix and --bounds (_fit_settings), checked against the parameters."""
-    from .fitting.inversion import DEFAULT_BOUNDS
+    from .fitting.setup import DEFAULT_BOUNDS
     return (ranges.parse_assignments(args.fix, tuple(DEFAULT_BOUNDS), "value", "--fix", check=True),
             ranges.parse_assignments(args.bounds, tuple(DEFAULT_BOUNDS), "bounds", "--bounds"))
 
@@ -505,7 +505,7 @@ def cmd_design(args) -> int:
     from .explore.designs import GEOMETRY, design, plot_design
     from .compute.dense import PARAMETERS
     from .explore.sensitivity import write_result
-    from .fitting.inversion import DEFAULT_BOUNDS
+    from .fitting.setup import DEFAULT_BOUNDS
     params = ranges.parse_assignments(_items(args.params), PARAMETERS, "value", "--params", check=True)
     box = ranges.parse_assignments(_items(args.box), PARAMETERS, "bounds", "--box")
     both = sorted(set(params) & set(box))
@@ -767,7 +767,7 @@ def _sobol_parser(sub):
 
 def _design_parser(sub):
     """The `pbrdf-cl design` sub-command."""
-    from .fitting.inversion import F00_REL_STD
+    from .fitting.setup import F00_REL_STD
     d = sub.add_parser("design", help="choose measurement geometries from the Fisher information (predicted "
                        "95%% interval widths)",
                        description="For a hypothesised material (--params) or a box of materials (--box), "

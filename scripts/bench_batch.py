@@ -30,7 +30,7 @@ import numpy as np
 import pbrdf_cl
 from pbrdf_cl.fitting import batch as B
 from pbrdf_cl.io import imagestack
-from pbrdf_cl.fitting.inversion import DEFAULT_BOUNDS
+from pbrdf_cl.fitting.setup import DEFAULT_BOUNDS
 
 NAMES = ("n", "k", "sigma", "kd", "c")
 LO = np.array([DEFAULT_BOUNDS[n][0] for n in NAMES])

@@ -198,7 +198,7 @@ def test_memory_budget_splits_the_image_into_blocks(dev):
 def bench_pixels(which):
     """Pixels ``which`` of scripts/bench_batch.py's 500 random pixels in the paper's geometry
     (parameters uniform in the fit's bounds, DOP noise 0.002)."""
-    from pbrdf_cl.fitting.inversion import DEFAULT_BOUNDS
+    from pbrdf_cl.fitting.setup import DEFAULT_BOUNDS
     names = ("n", "k", "sigma", "kd", "c")
     lo, hi = (np.array([DEFAULT_BOUNDS[n][i] for n in names]) for i in (0, 1))
     rng = np.random.default_rng(2)

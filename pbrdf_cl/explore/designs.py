@@ -13,14 +13,14 @@ How the widths are predicted (the local linearisation :func:`pbrdf_cl.fit` itsel
   row), and with ``intensity`` also that of F00 divided by its standard deviation,
   ``intensity_noise`` times F00 (a second row).  The derivatives come from the device
   (:func:`pbrdf_cl.compute.dense.outer`, float64): the material and its +-h steps (h = 1e-6 of each
-  bound range, one-sided at a bound, as :func:`pbrdf_cl.fitting.inversion.fd_jacobian`) are extra
+  bound range, one-sided at a bound, as :func:`pbrdf_cl.fitting.common.fd_jacobian`) are extra
   parameter sets of ONE evaluation over every candidate geometry.
 * The Fisher information of a set is the sum of its rows' J^T J; the covariance its
-  pseudo-inverse (as ``inversion._covariance``); the predicted interval of parameter j is
+  pseudo-inverse (as ``fitting.uncertainty._covariance``); the predicted interval of parameter j is
   ``x_j +- 1.96 se_j`` clipped to the bounds, and its width is reported.
 * Without intensities the DOP depends on kd and ks only through kd/ks: ks is held at 1 and the
   ``kd`` reported is the ratio kd/ks (as :func:`pbrdf_cl.fit` does).  With intensities ks is
-  free and ``kd`` is still the ratio kd/ks (``inversion.Residuals._with``).  With ks fixed
+  free and ``kd`` is still the ratio kd/ks (``fitting.stages.Residuals._with``).  With ks fixed
   (``fixed={"ks": v}``) ``kd`` is the absolute kd, as in :func:`pbrdf_cl.fit`.
 
 How the geometries are chosen: greedy forward selection (a weak Gaussian prior of standard
@@ -43,7 +43,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..fitting import inversion
+from ..fitting.common import X_RESOLUTION, fd_jacobian
+from ..fitting.setup import F00_REL_STD, FitSetup
 from ..model import reference as _reference
 from ..compute.dense import PARAMETERS, outer
 from ..device.engine import resolve_engine
@@ -285,7 +286,7 @@ def _model_of(X, names, base):
 
 def jacobians(eng, geometry, mat, names, lo, hi, shadowing="paper"):
     """Central-difference derivatives of DOP and F00 at every geometry for every material, in the
-    fit's coordinates ``names`` (any of n, k, sigma, kd = kd/ks, c, ks): ``inversion.fd_jacobian``'s
+    fit's coordinates ``names`` (any of n, k, sigma, kd = kd/ks, c, ks): ``fitting.common.fd_jacobian``'s
     central scheme, the materials and all their steps the parameter sets of one
     :func:`pbrdf_cl.compute.dense.outer` call per quantity (float64).
 
@@ -300,7 +301,7 @@ def jacobians(eng, geometry, mat, names, lo, hi, shadowing="paper"):
         return rows
     out = []
     for quantity in ("dop", "brdf"):
-        Y, J = inversion.fd_jacobian(rows_of(quantity), X, lo, hi, "central")  # (M, G), (M, d, G)
+        Y, J = fd_jacobian(rows_of(quantity), X, lo, hi, "central")  # (M, G), (M, d, G)
         out += [Y, J.transpose(0, 2, 1)]
     return out[0], out[2], out[1], out[3]
 
@@ -316,7 +317,7 @@ def whitened_rows(dop_J, f00, f00_J, noise, intensity_noise, intensity):
 def predicted_widths(rows, x, lo, hi):
     """Predicted 95% interval widths of one material from its rows (K, d) at the measurements.
 
-    The covariance is the pseudo-inverse of J^T J (as ``inversion._covariance``), taken in
+    The covariance is the pseudo-inverse of J^T J (as ``fitting.uncertainty._covariance``), taken in
     parameters scaled by their bound ranges, where the directions whose information is below
     1/:data:`SINGULAR_COND` of the largest are the data's null space: combinations of the
     parameters that the measurements do not constrain at all (a Jacobian column that is zero,
@@ -337,7 +338,7 @@ def predicted_widths(rows, x, lo, hi):
     share = np.sqrt(np.sum(V[:, null] ** 2, axis=1))  # |projection of each parameter's axis on the null space|
     se = np.sqrt(np.clip(np.diag(cov), 0, None))
     se = np.where(share > NULL_SHARE_NEGLIGIBLE, np.inf, se)
-    half = np.maximum(Z95 * np.sqrt(np.clip(np.diag(cov), 0, None)), inversion.X_RESOLUTION * span) + share * span
+    half = np.maximum(Z95 * np.sqrt(np.clip(np.diag(cov), 0, None)), X_RESOLUTION * span) + share * span
     widths = np.minimum(hi, x + half) - np.maximum(lo, x - half)
     undetermined = widths >= span * (1.0 - UNDETERMINED_RTOL)
     return np.where(undetermined, span, widths), se, undetermined
@@ -617,20 +618,19 @@ def _check_options(criterion, noise, intensity_noise, intensity, materials, shad
 
 
 def _free_parameters(bounds, fixed, intensity):
-    """The fit's fixed values and free parameters: (fx, free5 (of the five besides ks), names
-    (the Jacobians' coordinates: free5 and ks unless fixed), free (the fit's: ks only with
-    intensities), lo, hi (the bounds of ``names``))."""
-    bnds, fx = inversion._check_bounds("six-param", {k: v for k, v in (bounds or {}).items() if k != "ks"}, fixed)
-    ks_bounds = tuple(map(float, (bounds or {}).get("ks", inversion.DEFAULT_BOUNDS["ks"])))
+    """The fit's fixed values and free parameters (:class:`~pbrdf_cl.fitting.setup.FitSetup` of
+    the six-parameter model): (fx, free5 (of the five besides ks), names (the Jacobians'
+    coordinates: free5 and ks unless fixed), free (the fit's: ks only with intensities), lo, hi
+    (the bounds of ``names``))."""
+    setup = FitSetup.check("six-param", bounds, fixed, need_free=False)
+    fx = setup.fixed
     if intensity and ("ks" in fx or "kd" in fx):
         raise ValueError(f"intensity: with {'ks' if 'ks' in fx else 'kd'} fixed the fit ignores intensities "
                          "(it separates ks and kd only with both free); drop it from fixed or intensity=False")
-    free5 = [n for n in inversion.MODEL_PARAMS["six-param"] if n not in fx]
+    free5 = setup.free
     names = free5 + (["ks"] if "ks" not in fx else [])
     free = free5 + (["ks"] if intensity else [])
-    pairs = [ks_bounds if x == "ks" else bnds[x] for x in names]
-    lo = np.array([b[0] for b in pairs])
-    hi = np.array([b[1] for b in pairs])
+    lo, hi = setup.bounds_of(names)
     return fx, free5, names, free, lo, hi
 
 
@@ -855,7 +855,7 @@ def _subset(geo, idx):
 
 
 def design(params, candidates=None, noise=0.005, n_measurements=30, target=("n", "k"), intensity=False, fixed=None,
-           *, criterion="A", reference=None, intensity_noise=inversion.F00_REL_STD, bounds=None, materials=16,
+           *, criterion="A", reference=None, intensity_noise=F00_REL_STD, bounds=None, materials=16,
            repeats=False, seed=0, shadowing="paper", engine=None, backend="auto"):
     """Choose the measurement geometries that best determine the target parameters.
 

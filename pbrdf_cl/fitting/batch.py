@@ -33,8 +33,9 @@ from ..compute import dense
 from ..model import reference
 from ..device import engine as _engine
 from ..device.engine import DTYPES, resolve_engine
-from .inversion import (DEFAULT_BOUNDS, DOP_NOISE_FLOOR, GOODNESS_P, GOODNESS_R2, MODEL_FIXED, MODEL_PARAMS,
-                        X_RESOLUTION, _check_bounds, _grid_axis, _lm_batch, dop_resolution, fd_jacobian)
+from .common import (DOP_NOISE_FLOOR, GOODNESS_P, GOODNESS_R2, MISTAKE_CAUSES, X_RESOLUTION, dop_resolution,
+                     fd_jacobian, lm_batch)
+from .setup import DEFAULT_BOUNDS, MODEL_FIXED, FitSetup, check_model
 
 #: Grid nodes per free parameter of the batched grid stage (coarser than :func:`fit`'s: the
 #: regions' minima only seed the descents).
@@ -840,7 +841,7 @@ def _numpy_lm(setup, blk, X0, names, iterations, intensity):
     pix = np.tile(np.arange(p), S)
     res = _PixelResiduals(setup, blk, names, pix, intensity)
     Xi = _internal(X0, names).reshape(S * p, D)
-    X, sse, _ = _lm_batch(res.rows, Xi, lo, hi, iterations)
+    X, sse, _ = lm_batch(res.rows, Xi, lo, hi, iterations)
     r, J = fd_jacobian(res.rows, X, lo, hi)
     sse = np.einsum("pm,pm->p", r, r)
     jtj = np.einsum("pim,pjm->pij", J, J)
@@ -995,7 +996,7 @@ def _descend_corner(eng, setup, blk, names, corner, xb, sb, jb, nfev):
         res = _PixelResiduals(setup, blk, names, pix, False)
         U, sse = _to_corner(X0, names, corner), np.full(pix.size, np.inf)
         for _ in range(NUMPY_CORNER_ROUNDS):  # rounds while an objective still falls (see NUMPY_CORNER_ROUNDS)
-            U, new, evals = _lm_batch(lambda V: res.rows(_from_corner(V, names, corner)), U, ulo, uhi,
+            U, new, evals = lm_batch(lambda V: res.rows(_from_corner(V, names, corner)), U, ulo, uhi,
                                       corner.iterations)
             nfev[pix] += evals // pix.size
             falling = np.any(new < sse * (1 - NUMPY_CORNER_RTOL))
@@ -1207,7 +1208,6 @@ def goodness_summary(ds):
     ['goodness of fit: 0 of 576 fitted pixels (0.0%) fail the chi2 test (p < 0.001 with dop_std)',
      'median chi2 22.8 for 25 degrees of freedom']
     """
-    from .inversion import _CAUSES
     chi2_test = bool(ds.attrs.get("sigma_known", 0))
     free = len(str(ds.attrs.get("free", "")).split())
     intensity = "ks" in str(ds.attrs.get("free", "")).split()
@@ -1262,7 +1262,7 @@ def goodness_summary(ds):
         notes = "; ".join(str(ds.attrs.get("data_notes", "")).splitlines())
         out["goodness_warning"] = (f"WARNING: the model does not describe the data of {share:.0%} of the fitted "
                                    "pixels (fits_data = 0 there); their values and intervals are not to be trusted; "
-                                   f"usual causes: {_CAUSES}" + (f"; the data show: {notes}" if notes else ""))
+                                   f"usual causes: {MISTAKE_CAUSES}" + (f"; the data show: {notes}" if notes else ""))
     return out
 
 
@@ -1281,26 +1281,21 @@ class BatchJob:
     def __init__(self, data, model="six-param", bounds=None, fixed=None, shadowing="paper", *,
                  memory_budget=DEFAULT_BUDGET, n_starts=N_STARTS, grid_shape=None):
         from ..ranges import parse_bytes
-        if model not in MODEL_PARAMS:
-            raise ValueError(f"model must be one of {sorted(MODEL_PARAMS)}, got {model!r}")
-        if shadowing not in reference.SHADOWING:
-            raise ValueError(f"shadowing must be one of {sorted(reference.SHADOWING)}, got {shadowing!r}")
+        check_model(model, shadowing)
         n_starts = int(n_starts)
         if n_starts < 1:
             raise ValueError(f"n_starts must be >= 1, got {n_starts}")
         self.memory_budget = parse_bytes("memory_budget", memory_budget)
         self.source = _Source(data)
-        bnds, fx = _check_bounds(model, bounds, fixed)
-        free = [n for n in MODEL_PARAMS[model] if n not in fx]
-        if not free:
-            raise ValueError("every parameter is fixed: nothing to fit")
+        fs = FitSetup.check(model, bounds, fixed, shadowing)
+        bnds, fx, free = fs.bounds, fs.fixed, fs.free
         base = {**{n: 0.0 for n in ("n", "k", "sigma", "kd", "c")}, **MODEL_FIXED[model], **fx}
         use_f00 = "f00" in self.source.vars and model == "six-param" and "ks" not in fx and "kd" not in fx
         shape = {**(BATCH_SPECULAR_GRID if model == "specular" else BATCH_GRID), **(grid_shape or {})}
         unknown = set(grid_shape or {}) - set(free)
         if unknown:
             raise ValueError(f"grid_shape: {sorted(unknown)[0]!r} is not a free parameter ({', '.join(free)})")
-        axes = {n: _grid_axis(n, bnds[n], int(shape[n])) for n in free}
+        axes = fs.grid_axes(shape)
         if int(np.prod([a.size for a in axes.values()])) >= 2 ** 24:
             raise ValueError("grid_shape: at most 2**24 grid points")
         sigma_known = "dop_std" in self.source.vars
