@@ -272,8 +272,8 @@ def _convention_notes(meas):
     notes = []
     hi = pointwise.radians_suspect(meas.theta_i, meas.theta_r)
     if hi is not None:
-        notes.append(f"every theta_i and theta_r lies below {pointwise.RADIANS_HINT} degrees (the largest is {hi:.4g}): "
-                     "radians? pbrdf-cl takes degrees")
+        notes.append(f"every theta_i and theta_r lies below {pointwise.RADIANS_HINT} degrees (the largest is "
+                     f"{hi:.4g}): radians? pbrdf-cl takes degrees")
     if not meas.phi_given:
         from ..io.measurements import PHI_DEFAULT_NOTE
         notes.append(PHI_DEFAULT_NOTE)
