@@ -502,7 +502,8 @@ def _items(values):
 
 
 def cmd_design(args) -> int:
-    from .explore.designs import GEOMETRY, design, plot_design
+    from .explore.designs import GEOMETRY, design
+    from .plots.design import plot_design
     from .compute.dense import PARAMETERS
     from .explore.sensitivity import write_result
     from .fitting.setup import DEFAULT_BOUNDS

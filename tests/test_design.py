@@ -13,6 +13,7 @@ from pbrdf_cl.io.measurements import as_measurements
 from conftest import requires_opencl
 
 from pbrdf_cl.explore import designs as dz  # the module (pbrdf_cl.design is the function)
+from pbrdf_cl.plots.design import plot_design
 
 STEEL = dict(n=1.6, k=2.139, sigma=0.5, ks=0.9, kd=0.15, c=-0.3)
 NAMES = ["n", "k", "sigma", "kd", "c", "ks"]
@@ -200,7 +201,7 @@ def test_design_reports_undetermined_parameters(tmp_path, capsys):
     assert "undet." in text and any("sigma, c" in n and "kd = 0" in n for n in r.notes)
     ds = r.to_dataset()
     assert ds.undetermined.sel(parameter="sigma").item() == 1 and ds.undetermined.sel(parameter="n").item() == 0
-    fig = dz.plot_design(r, tmp_path / "d.png")
+    fig = plot_design(r, tmp_path / "d.png")
     ax, axb = fig.axes[0], next(a for a in fig.axes if a.get_xlabel() == "parameter")
     assert ax.get_xlabel().startswith("theta_i") and ax.get_ylabel().startswith("theta_r")
     hatched = [p for p in axb.patches if p.get_hatch()]
@@ -319,7 +320,7 @@ def test_box_of_materials():
 
 def test_figure_and_dataset(steel, tmp_path):
     png = tmp_path / "design.png"
-    dz.plot_design(steel, png)
+    plot_design(steel, png)
     assert png.stat().st_size > 10_000
     nc = tmp_path / "design.nc"
     steel.to_dataset().to_netcdf(nc)
