@@ -12,6 +12,7 @@ from ..device import ops
 from .common import lm_batch
 from .pixel_stages import device_lm
 from .pixels import BATCH_GRID, PixelResiduals, descent_bounds
+from .setup import PARAMETERS
 
 #: Two corners of the model where a descent in the parameters crawls along a valley onto bounds:
 #:
@@ -102,7 +103,7 @@ def _corner_table_starts(eng, setup, blk, names, corner, sb):
         return np.empty(0, int), np.empty((0, len(names)))
     pts = _corner_table(setup, names, corner)
     q = next(iter(pts.values())).size
-    par = {n: pts[n] if n in pts else np.full(q, setup.base[n]) for n in ("n", "k", "sigma", "ks", "kd", "c")}
+    par = {n: pts[n] if n in pts else np.full(q, setup.base[n]) for n in PARAMETERS}
     # float32 as the grid stage's table (on a device): it only ranks starts for the float64 descent
     T = eng.call("batch_ranking_table", blk, par, setup.shadowing)
     T = np.where(np.isfinite(T), T, 1e3)

@@ -16,6 +16,7 @@ from .corners import corner_polish
 from .dataset import empty_outputs
 from .pixel_stages import device_lm
 from .pixels import Block, Descent, grid_points
+from .setup import PARAMETERS
 from .statistics import statistics
 
 #: The float32 descents: (how many of the best starts, iterations), in turn, each continuing the
@@ -224,7 +225,7 @@ def _ks_start(eng, setup, blk, xb):
     p["ks"] = 1.0
     ang = [a[None, :] if blk.shared else a for a in blk.angles]
     m1 = pointwise.brdf(*ang, shadowing=setup.shadowing, engine=eng,
-                        **{n: p[n] for n in ("n", "k", "sigma", "ks", "kd", "c")})
+                        **{n: p[n] for n in PARAMETERS})
     w = blk.fw
     num = (w * blk.fobs * m1).sum(axis=1)
     den = np.maximum((w * m1 * m1).sum(axis=1), 1e-300)

@@ -23,6 +23,7 @@ from ..device.engine import DTYPES
 from ..model import reference
 from .common import fd_jacobian, lm_batch
 from .pixels import Descent, LogKs, PixelResiduals, descent_bounds, external, grid_values, internal
+from .setup import PARAMETERS
 from .source import ANGLES
 
 #: Geodesic acceleration of the descents (Transtrum and Sethna 2012) without intensities.
@@ -94,7 +95,7 @@ def _grid_numpy(eng, setup, blk, order, rstart):
     from ..compute.dense import _NumpyTables
     v = grid_values(setup)
     R = rstart.size - 1
-    sizes = [v[n].size for n in ("n", "k", "sigma", "ks", "kd", "c")]
+    sizes = [v[n].size for n in PARAMETERS]
     nnk, nm, ni = sizes[0] * sizes[1], sizes[2] * sizes[3], sizes[4] * sizes[5]
     best = np.full((R, blk.p), np.inf)
     arg = np.zeros((R, blk.p), np.int64)
@@ -159,9 +160,9 @@ def _table_dop(eng, setup, angles, v, order):
     """DOP of every grid point at the shared geometry, (G, M) in region order (the engine's
     per-point path: pbrdf.h)."""
     ti, tr, ph = angles
-    sizes = [v[n].size for n in ("n", "k", "sigma", "ks", "kd", "c")]
+    sizes = [v[n].size for n in PARAMETERS]
     unr = np.unravel_index(order, sizes)
-    p = {n: v[n][unr[i]][:, None] for i, n in enumerate(("n", "k", "sigma", "ks", "kd", "c"))}
+    p = {n: v[n][unr[i]][:, None] for i, n in enumerate(PARAMETERS)}
     out = pointwise.dop(ti[None, :], tr[None, :], ph[None, :], shadowing=setup.shadowing, dtype="float32", engine=eng,
                   **p)
     return np.ascontiguousarray(out, np.float32)
@@ -211,7 +212,7 @@ def device_lm(eng, setup, blk, X0, names, dtype, iterations, intensity, coords=L
     Xi[:, :, :p] = np.moveaxis(coords.to_internal(X0, names), -1, 0)
     Xi[:, :, p:] = ((lo + hi) / 2)[:, None, None]
     Xi = np.ascontiguousarray(Xi.reshape(D, Q), npdt)
-    base = np.array([setup.base.get(n, 0.0) for n in ("n", "k", "sigma", "ks", "kd", "c")], npdt)
+    base = np.array([setup.base.get(n, 0.0) for n in PARAMETERS], npdt)
     import pyopencl as cl
     bX = cl.Buffer(eng.context, cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR, hostbuf=Xi)  # in and out
     sse, jtj, settled = np.empty(Q, npdt), np.empty((D * D, Q), npdt), np.empty(Q, npdt)

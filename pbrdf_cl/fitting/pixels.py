@@ -13,7 +13,7 @@ import numpy as np
 
 from ..model import reference
 from .common import dop_resolution
-from .setup import F00_REL_STD, FitSetup
+from .setup import F00_REL_STD, PARAMETERS, FitSetup
 from .source import ANGLES
 
 #: Grid nodes per free parameter of the batched grid stage (coarser than :func:`fit`'s: the
@@ -55,7 +55,7 @@ def regions(axes, free):
     """The grid points (flat index over (n, k, sigma, ks, kd, c) of ``axes``, ks of size 1) ordered
     region by region, a region being one half of every free axis (2^d boxes); returns (order,
     rstart), region r holding order[rstart[r]:rstart[r + 1]]."""
-    names = ("n", "k", "sigma", "ks", "kd", "c")
+    names = PARAMETERS
     sizes = [axes[n].size for n in names]
     idx = np.indices(sizes).reshape(6, -1)
     region = np.zeros(idx.shape[1], np.int64)
@@ -71,7 +71,7 @@ def grid_values(setup):
     """The grid's parameter values (every parameter: free on its axis, the others fixed) as arrays
     for the tables: dict name -> 1-d array."""
     v = {}
-    for name in ("n", "k", "sigma", "ks", "kd", "c"):
+    for name in PARAMETERS:
         v[name] = setup.axes[name] if name in setup.axes else np.array([setup.base[name]], float)
     return v
 
@@ -79,9 +79,9 @@ def grid_values(setup):
 def grid_points(setup, order, flat):
     """Parameter vectors (over ``setup.free``) of region-ordered grid indices ``flat``."""
     v = grid_values(setup)
-    sizes = [v[n].size for n in ("n", "k", "sigma", "ks", "kd", "c")]
+    sizes = [v[n].size for n in PARAMETERS]
     unr = np.unravel_index(order[flat], sizes)
-    names = ("n", "k", "sigma", "ks", "kd", "c")
+    names = PARAMETERS
     return np.stack([v[n][unr[names.index(n)]] for n in setup.free], axis=-1)
 
 

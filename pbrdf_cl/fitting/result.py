@@ -8,7 +8,7 @@ import numpy as np
 from ..compute import pointwise
 from ..results import Result
 from .common import DOP_NOISE_FLOOR, GOODNESS_P, GOODNESS_R2, MISTAKE_CAUSES, dop_resolution
-from .setup import F00_REL_STD
+from .setup import F00_REL_STD, PARAMETERS
 
 #: FitResult.status -> message (scipy's convention: success is status > 0).
 FIT_STATUS = {
@@ -173,7 +173,7 @@ def fit_result(meas, model, shadowing, resid, x, lo, hi, unc, cands, grid, stage
                      f"squares the local stages minimise, is {ambiguous[0]['sse']:.4g} against the best's "
                      f"{cands[0].sse:.4g}, within one unit of chi2, {unc.unit:.3g}); the data cannot decide "
                      "between them")
-    x_out = {n: float(p[n]) for n in ("n", "k", "sigma", "ks", "kd", "c")}
+    x_out = {n: float(p[n]) for n in PARAMETERS}
     kd_ratio = x_out["kd"] / x_out["ks"]
     if model == "specular":
         x_out = {n: x_out[n] for n in ("n", "k")}
