@@ -16,7 +16,7 @@ from .common import dop_resolution
 from .setup import F00_REL_STD, PARAMETERS, FitSetup
 from .source import ANGLES
 
-#: Grid nodes per free parameter of the batched grid stage (coarser than :func:`fit`'s: the
+#: Grid nodes per free parameter of the batched grid stage (coarser than :func:`pbrdf_cl.fit`'s: the
 #: regions' minima only seed the descents).
 BATCH_GRID = {"n": 12, "k": 12, "sigma": 8, "kd": 8, "c": 4}
 BATCH_SPECULAR_GRID = {"n": 48, "k": 48}
@@ -174,8 +174,9 @@ def external(X, names):
 
 def descent_bounds(setup, names):
     """(lo, hi) of the descent's coordinates ``names`` (ks as log ks)."""
-    lo = [np.log(setup.ks_bounds[0]) if n == "ks" else setup.lo[setup.free.index(n)] for n in names]
-    hi = [np.log(setup.ks_bounds[1]) if n == "ks" else setup.hi[setup.free.index(n)] for n in names]
+    free, flo, fhi, ks = setup.free, setup.lo, setup.hi, setup.ks_bounds
+    lo = [np.log(ks[0]) if n == "ks" else flo[free.index(n)] for n in names]
+    hi = [np.log(ks[1]) if n == "ks" else fhi[free.index(n)] for n in names]
     return np.array(lo), np.array(hi)
 
 
