@@ -717,8 +717,8 @@ def _problem(params, candidates, noise, n_measurements, target, intensity, fixed
              intensity_noise, bounds, materials, repeats, seed, shadowing):
     """Check every input of :func:`design` (in the order its errors are reported) into a :class:`_Problem`."""
     noise, intensity_noise = _check_options(criterion, noise, intensity_noise, intensity, materials, shadowing)
+    setup = _fit_setup(bounds, dict(fixed or {}), intensity)  # first: the same refusals as fit's
     mat, rngs = _materials(params, fixed, int(materials), seed)
-    setup = _fit_setup(bounds, dict(fixed or {}), intensity)
     fx = setup.fixed
     names, free = _coordinates(setup, intensity)
     target = _check_target(target, free, fx)
