@@ -14,7 +14,8 @@ from .compute.pointwise import MODELS, aop, brdf, dop, evaluate, mueller, stokes
 from .io.measurements import Measurements, as_measurements, read_csv
 from .compute.dense import ObjectiveResult, grid, objective, reduce_grid
 from .explore.sweeps import SweepResult, SweepSpec, load_spec, sweep
-from .fitting.inversion import FitResult, compare_models, fit
+from .fitting.inversion import compare_models, fit
+from .fitting.result import FitResult
 from .fitting.batch import fit_batch
 from .explore.sensitivity import morris, sobol
 from .explore.designs import DesignResult, design

@@ -288,7 +288,7 @@ def _fit_brief(r):
 
 def _fit_assignments(args):
     """(fixed, bounds) from --fix and --bounds (_fit_settings), checked against the parameters."""
-    from .fitting.inversion import DEFAULT_BOUNDS
+    from .fitting.setup import DEFAULT_BOUNDS
     return (ranges.parse_assignments(args.fix, tuple(DEFAULT_BOUNDS), "value", "--fix", check=True),
             ranges.parse_assignments(args.bounds, tuple(DEFAULT_BOUNDS), "bounds", "--bounds"))
 
@@ -361,7 +361,7 @@ def cmd_sweep(args) -> int:
 
 def cmd_fit_image(args) -> int:
     import time
-    from .fitting import batch_store
+    from .fitting import batch, batch_store
     fixed, bounds = _fit_assignments(args)
     check_store("--out", args.out)
     check_figure("--png", args.png)
@@ -371,8 +371,8 @@ def cmd_fit_image(args) -> int:
     t0 = time.perf_counter()
     try:
         engine = _engine_for(args) if not cluster else None
-        ds = batch_store.fit_batch_to_store(
-            args.stack, args.out, model=args.model, bounds=bounds or None, fixed=fixed or None,
+        ds = batch.fit_batch(
+            args.stack, store=args.out, model=args.model, bounds=bounds or None, fixed=fixed or None,
             shadowing=args.shadowing, memory_budget=args.memory_budget, progress=not args.no_progress, engine=engine, backend=args.backend,
             device=args.device, workers=args.workers, scheduler=args.scheduler, allow_large=args.allow_large)
         counts = batch_store.status_counts(ds)
@@ -502,10 +502,11 @@ def _items(values):
 
 
 def cmd_design(args) -> int:
-    from .explore.designs import GEOMETRY, design, plot_design
+    from .explore.designs import GEOMETRY, design
+    from .plots.design import plot_design
     from .compute.dense import PARAMETERS
     from .explore.sensitivity import write_result
-    from .fitting.inversion import DEFAULT_BOUNDS
+    from .fitting.setup import DEFAULT_BOUNDS
     params = ranges.parse_assignments(_items(args.params), PARAMETERS, "value", "--params", check=True)
     box = ranges.parse_assignments(_items(args.box), PARAMETERS, "bounds", "--box")
     both = sorted(set(params) & set(box))
@@ -689,7 +690,7 @@ def _fit_parser(sub):
 
 def _fit_image_parser(sub):
     """The `pbrdf-cl fit-image` sub-command."""
-    from .fitting.batch import DEFAULT_BUDGET
+    from .fitting.job import BLOCK_BUDGET as DEFAULT_BUDGET
     f = sub.add_parser("fit-image", help="fit every pixel of a DOP image stack into a Zarr store (resumable; dask)",
                        description="Fit the model to every pixel of a polarization image stack (.npz, .nc or "
                        ".zarr with dop (y, x, m), theta_i, theta_r[, phi, dop_std, f00|s0, f00_std, mask]; angles "
@@ -767,7 +768,7 @@ def _sobol_parser(sub):
 
 def _design_parser(sub):
     """The `pbrdf-cl design` sub-command."""
-    from .fitting.inversion import F00_REL_STD
+    from .fitting.setup import F00_REL_STD
     d = sub.add_parser("design", help="choose measurement geometries from the Fisher information (predicted "
                        "95%% interval widths)",
                        description="For a hypothesised material (--params) or a box of materials (--box), "

@@ -28,9 +28,11 @@ import tracemalloc
 import numpy as np
 
 import pbrdf_cl
-from pbrdf_cl.fitting import batch as B
+from pbrdf_cl.device.engine import Engine, NumpyEngine
+from pbrdf_cl.fitting import corners, pixel_fit
+from pbrdf_cl.fitting.dataset import PIXEL_STATUS
 from pbrdf_cl.io import imagestack
-from pbrdf_cl.fitting.inversion import DEFAULT_BOUNDS
+from pbrdf_cl.fitting.setup import DEFAULT_BOUNDS
 
 NAMES = ("n", "k", "sigma", "kd", "c")
 LO = np.array([DEFAULT_BOUNDS[n][0] for n in NAMES])
@@ -51,33 +53,46 @@ def pixels(n, ti, tr, seed):
 
 
 class StageClock:
-    """Wall time spent in the stage functions of pbrdf_cl.fitting.batch (wrapped for the run)."""
+    """Wall time spent in the stages of an image fit (wrapped for the run): the grid and the descents
+    run through the engine (the operations ``batch_grid`` and ``batch_lm``) or the device's descent
+    called directly (``device_lm`` in pbrdf_cl.fitting.pixel_fit and .corners), and the statistics."""
 
-    STAGES = {"grid": ("_device_grid", "_numpy_grid"), "descent": ("_device_lm", "_numpy_lm"),
-              "statistics": ("_statistics",)}
+    OPERATIONS = {"batch_grid": "grid", "batch_lm": "descent"}
+    FUNCTIONS = {(pixel_fit, "device_lm"): "descent", (corners, "device_lm"): "descent",
+                 (pixel_fit, "statistics"): "statistics"}
 
     def __init__(self):
-        self.seconds = dict.fromkeys(self.STAGES, 0.0)
-        self.saved = {}
+        self.seconds = dict.fromkeys(("grid", "descent", "statistics"), 0.0)
+        self.saved = []
+
+    def _timed(self, func, stage):
+        def timed(*a, **k):
+            t0 = time.perf_counter()
+            try:
+                return func(*a, **k)
+            finally:
+                self.seconds[stage] += time.perf_counter() - t0
+        return timed
 
     def __enter__(self):
-        for stage, names in self.STAGES.items():
-            for name in names:
-                func = getattr(B, name)
-                self.saved[name] = func
+        for (module, name), stage in self.FUNCTIONS.items():
+            func = getattr(module, name)
+            self.saved.append((module, name, func))
+            setattr(module, name, self._timed(func, stage))
+        for cls in (Engine, NumpyEngine):
+            self.saved.append((cls, "call", cls.call))
 
-                def timed(*a, _f=func, _s=stage, **k):
-                    t0 = time.perf_counter()
-                    try:
-                        return _f(*a, **k)
-                    finally:
-                        self.seconds[_s] += time.perf_counter() - t0
-                setattr(B, name, timed)
+            def call(eng, operation, *a, _call=cls.call, **k):
+                stage = self.OPERATIONS.get(operation)
+                if stage is None:
+                    return _call(eng, operation, *a, **k)
+                return self._timed(_call, stage)(eng, operation, *a, **k)
+            cls.call = call
         return self
 
     def __exit__(self, *exc):
-        for name, func in self.saved.items():
-            setattr(B, name, func)
+        for owner, name, func in reversed(self.saved):
+            setattr(owner, name, func)
 
 
 def rate(args, eng):
@@ -99,7 +114,7 @@ def rate(args, eng):
           f"end to end (stages: {shares}); pbrdf_cl.fit looped over {args.loop_pixels} px: {rate_loop:.2f} px/s; "
           f"ratio {rate_batch / rate_loop:.0f}x")
     codes = dict(zip(*np.unique(res.status.values, return_counts=True)))
-    print("  status counts:", ", ".join(f"{B.STATUS[int(c)][0]} {n}" for c, n in codes.items()))
+    print("  status counts:", ", ".join(f"{PIXEL_STATUS[int(c)][0]} {n}" for c, n in codes.items()))
 
 
 def per_pixel_rate(args, eng):

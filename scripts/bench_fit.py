@@ -20,7 +20,8 @@ import time
 import numpy as np
 
 import pbrdf_cl
-from pbrdf_cl.fitting import inversion as F
+from pbrdf_cl.fitting import stages
+from pbrdf_cl.fitting import setup as fit_setup
 from pbrdf_cl.io.measurements import from_arrays
 
 GEOMETRIES = {
@@ -30,8 +31,8 @@ GEOMETRIES = {
         (np.full(10, 40.0), np.arange(20.0, 66.0, 5.0)),
 }
 NAMES = ("n", "k", "sigma", "kd", "c")
-LO = np.array([F.DEFAULT_BOUNDS[n][0] for n in NAMES])
-HI = np.array([F.DEFAULT_BOUNDS[n][1] for n in NAMES])
+LO = np.array([fit_setup.DEFAULT_BOUNDS[n][0] for n in NAMES])
+HI = np.array([fit_setup.DEFAULT_BOUNDS[n][1] for n in NAMES])
 NOISE = 0.002
 ORACLE = "oracle: least_squares from the truth"
 
@@ -44,7 +45,7 @@ def problem(rng, ti, tr):
 
 
 def residual(meas):
-    mdl = F._Model(meas, "paper")
+    mdl = stages.Model(meas, "paper")
 
     def resid(x):
         return (mdl.dop(dict(zip(NAMES, x), ks=1.0)) - meas.dop) / meas.dop_std

@@ -91,7 +91,7 @@ def main():
         configs += 1
     # the batch kernels (pbrdf_batch.cl): grid stages with shared and per-pixel geometry, the
     # descent in float32 and float64, with and without intensities; few pixels, short runs
-    from pbrdf_cl.fitting import batch as Bt
+    from pbrdf_cl.fitting import corners as Bc, pixel_fit as Bt
     Bt.SCREEN_SCHEDULE, Bt.POLISH_ITERATIONS, Bt.EXTRA_ROUNDS, Bt.INTENSITY_ITERATIONS = ((2, 2), (1, 2)), 2, 1, 2
     m_ti, m_tr = np.repeat([30.0, 50.0], 4), np.tile([20.0, 35.0, 50.0, 65.0], 2)
     truth = dict(n=1.6, k=2.139, sigma=0.5, ks=0.9, kd=0.15, c=-0.3)
@@ -108,7 +108,7 @@ def main():
         batches += 1
     # the corner stage's builds of the descent (PB_LOG_N/K/KD at the index corner, PB_LOG_KD at the
     # mirror corner), every pixel sent to both by an infinite trigger
-    Bt.CORNER_TRIGGER, Bt.CORNERS = np.inf, tuple(c._replace(iterations=2) for c in Bt.CORNERS)
+    Bc.CORNER_TRIGGER, Bc.CORNERS = np.inf, tuple(c._replace(iterations=2) for c in Bc.CORNERS)
     res = pbrdf_cl.fit_batch(dict(dop=d, theta_i=m_ti, theta_r=m_tr), engine=eng, grid_shape=shape, n_starts=2)
     if not np.isfinite(res.sse.values).all():
         raise SystemExit("fit_batch's corner stage under Oclgrind: non-finite results")

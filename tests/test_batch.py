@@ -6,6 +6,10 @@ import pytest
 
 import pbrdf_cl
 from pbrdf_cl.fitting import batch as B
+from pbrdf_cl.fitting import corners
+from pbrdf_cl.fitting.dataset import PIXEL_STATUS
+from pbrdf_cl.fitting.job import BLOCK_BUDGET
+from pbrdf_cl.fitting.setup import DEFAULT_BOUNDS
 
 TI = np.repeat([30.0, 40.0, 50.0], 10)            # the paper's geometry
 TR = np.tile(np.arange(20.0, 66.0, 5.0), 3)
@@ -138,11 +142,11 @@ def test_result_layout_follows_the_input_dataset(dev):
         lo, hi = res[f"{name}_ci95"].sel(bound="low"), res[f"{name}_ci95"].sel(bound="high")
         # inside the bounds, and (the central 95% of a posterior truncated to them) not always
         # around the value: a best fit on a bound with a wide interval lies outside its interval
-        assert bool((hi >= lo).all()) and float(lo.min()) >= B.DEFAULT_BOUNDS[name][0]
-        assert float(hi.max()) <= B.DEFAULT_BOUNDS[name][1]
+        assert bool((hi >= lo).all()) and float(lo.min()) >= DEFAULT_BOUNDS[name][0]
+        assert float(hi.max()) <= DEFAULT_BOUNDS[name][1]
         assert res[f"{name}_stderr"].attrs["long_name"].startswith("standard error")
     assert res.attrs["sigma_known"] == 1 and "kd/ks" in res.attrs["note"]
-    assert set(res.status.attrs["flag_values"]) == set(B.STATUS)
+    assert set(res.status.attrs["flag_values"]) == set(PIXEL_STATUS)
 
 
 def test_intervals_cover_the_truth(dev):
@@ -198,7 +202,7 @@ def test_memory_budget_splits_the_image_into_blocks(dev):
 def bench_pixels(which):
     """Pixels ``which`` of scripts/bench_batch.py's 500 random pixels in the paper's geometry
     (parameters uniform in the fit's bounds, DOP noise 0.002)."""
-    from pbrdf_cl.fitting.inversion import DEFAULT_BOUNDS
+    from pbrdf_cl.fitting.setup import DEFAULT_BOUNDS
     names = ("n", "k", "sigma", "kd", "c")
     lo, hi = (np.array([DEFAULT_BOUNDS[n][i] for n in names]) for i in (0, 1))
     rng = np.random.default_rng(2)
@@ -233,17 +237,17 @@ def check_corner_pixels(eng, monkeypatch, corner):
     data = dict(dop=dop, theta_i=TI, theta_r=TR, dop_std=0.002)
     res = pbrdf_cl.fit_batch(data, engine=eng)
     with monkeypatch.context() as mp:  # this corner's stage switched off
-        mp.setattr(B, "CORNERS", tuple(c for c in B.CORNERS if c.name != corner))
+        mp.setattr(corners, "CORNERS", tuple(c for c in corners.CORNERS if c.name != corner))
         off = pbrdf_cl.fit_batch(data, engine=eng)
     single = np.array([pbrdf_cl.fit(dict(theta_i=TI, theta_r=TR, dop=d, dop_std=np.full(d.size, 0.002)),
                                     engine=None if eng.is_numpy else eng).chi2 for d in dop])
     rel, rel_off = ((r.chi2.values - single) / single for r in (res, off))
     assert np.all(rel <= 1e-6), rel
     assert np.any(rel_off > 1e-6), rel_off
-    (at,) = [c.at for c in B.CORNERS if c.name == corner]
+    (at,) = [c.at for c in corners.CORNERS if c.name == corner]
     for n in at:  # every parameter of the corner within CORNER of its range from its lower bound
-        lo, hi = B.DEFAULT_BOUNDS[n]
-        assert np.all(res[n].values - lo < B.CORNER * (hi - lo)), (n, res[n].values)
+        lo, hi = DEFAULT_BOUNDS[n]
+        assert np.all(res[n].values - lo < corners.CORNER * (hi - lo)), (n, res[n].values)
 
 
 def test_corner_stage_with_sigma_and_c_fixed(dev):
@@ -262,12 +266,13 @@ def test_corner_stage_with_sigma_and_c_fixed(dev):
 def test_corner_coordinates_round_trip():
     names = ["n", "k", "sigma", "kd", "c"]
     X = np.array([[1.0 + 3e-4, 2e-5, 0.4, 7e-6, -0.5], [1.2, 0.3, 0.8, 0.01, -0.1]])
-    index, mirror = B.CORNERS
-    for corner in B.CORNERS:
-        np.testing.assert_allclose(B._from_corner(B._to_corner(X, names, corner), names, corner), X, rtol=1e-14)
-    U = B._to_corner(X, names, index)
+    index, mirror = corners.CORNERS
+    for corner in corners.CORNERS:
+        U = corners._to_corner(X, names, corner)
+        np.testing.assert_allclose(corners._from_corner(U, names, corner), X, rtol=1e-14)
+    U = corners._to_corner(X, names, index)
     assert U[0, 0] == np.log(3e-4 + 1.0 - 1.0) and U[0, 2] == 0.4  # sigma and c untouched
-    V = B._to_corner(X, names, mirror)
+    V = corners._to_corner(X, names, mirror)
     assert V[0, 3] == np.log(7e-6) and np.array_equal(V[:, :3], X[:, :3])  # only kd logged
 
 
@@ -284,7 +289,7 @@ def test_blocks_do_not_change_the_answers(dev):
         row = int(np.prod(job.source.shape[1:]))
         budget = job.fixed_bytes() + job.pixel_bytes() * row
         assert len(B.BatchJob(data, memory_budget=budget).blocks()) == job.source.shape[0]
-        whole, rows = (pbrdf_cl.fit_batch(data, memory_budget=b, engine=dev) for b in (B.DEFAULT_BUDGET, budget))
+        whole, rows = (pbrdf_cl.fit_batch(data, memory_budget=b, engine=dev) for b in (BLOCK_BUDGET, budget))
         np.testing.assert_array_equal(rows.status.values, whole.status.values)
         for name in ("n", "k", "sigma", "kd", "c", "sse", "chi2", "n_stderr", "kd_ci95"):
             np.testing.assert_allclose(rows[name].values, whole[name].values, rtol=1e-12, atol=0, err_msg=name)

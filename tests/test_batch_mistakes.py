@@ -258,10 +258,10 @@ def test_the_stacks_pixel_coordinates_are_kept(dev, tmp_path):
 # ---- blocks do not change answers (item 12; the device path: test_batch.py)
 
 def test_a_singular_problem_does_not_stop_the_others_of_its_batch():
-    """The numpy backend's descent (inversion._lm_batch, every pixel x start of a block at once):
+    """The numpy backend's descent (pbrdf_cl.fitting.common.lm_batch, every pixel x start of a block at once):
     a problem whose Jacobian vanishes made the batched solve raise, and every problem of the
     batch lost its step, so a pixel's answer depended on its block."""
-    from pbrdf_cl.fitting.inversion import _lm_batch
+    from pbrdf_cl.fitting.common import lm_batch
 
     def rows(flat):
         """Problems ``flat`` (bool each) flat (a vanishing Jacobian), the others a valley with its
@@ -274,8 +274,8 @@ def test_a_singular_problem_does_not_stop_the_others_of_its_batch():
     lo, hi = np.array([0.0, 0.0]), np.array([1.0, 1.0])
     X0 = np.array([[0.5, 0.5], [0.9, 0.1]])
     for iterations in (1, 3, 30):
-        X, sse, _ = _lm_batch(rows(np.array([True, False])), X0, lo, hi, iterations)
-        Xs, sses, _ = _lm_batch(rows(np.array([False])), X0[1:], lo, hi, iterations)
+        X, sse, _ = lm_batch(rows(np.array([True, False])), X0, lo, hi, iterations)
+        Xs, sses, _ = lm_batch(rows(np.array([False])), X0[1:], lo, hi, iterations)
         np.testing.assert_array_equal(X[1], Xs[0])
         assert sse[1] == sses[0]
     assert abs(X[1, 0] - 0.3) < 1e-6 and np.array_equal(X[0], X0[0])

@@ -18,7 +18,7 @@ import xarray as xr
 import pbrdf_cl
 from pbrdf_cl import cli
 from pbrdf_cl.fitting import batch
-from pbrdf_cl.fitting.batch_store import StoreError, fit_batch_to_store, read_progress, status_counts
+from pbrdf_cl.fitting.batch_store import StoreError, read_progress, status_counts
 from test_sweep import files, n_done  # the sweep store's helpers: the fit store has its layout
 
 BS = importlib.import_module("pbrdf_cl.fitting.batch_store")
@@ -102,7 +102,7 @@ def test_store_equals_fit_batch_in_memory(stack, reference):
     assert read_progress(reference) == (4, 4)
     assert "_sweep" not in ds.variables
     # the returned Dataset is the store's, in fit_batch's order of variables
-    again = fit_batch_to_store(stack, reference, memory_budget=BUDGET)
+    again = batch.fit_batch(stack, store=reference, memory_budget=BUDGET)
     assert list(again.data_vars) == list(mem.data_vars)
     assert again.attrs["blocks_computed"] == 0 and again.attrs["blocks_skipped"] == 4
     counts = status_counts(again)
@@ -119,7 +119,7 @@ def test_lazy_zarr_and_netcdf_stacks_with_per_pixel_geometry(tmp_path):
     budget = budget_for(stack, 2)
     mem = batch.fit_batch(stack, memory_budget=budget)
     for path in ("s.zarr", "s.nc"):
-        ds = fit_batch_to_store(str(tmp_path / path), tmp_path / f"{path}.out.zarr", memory_budget=budget)
+        ds = batch.fit_batch(str(tmp_path / path), store=tmp_path / f"{path}.out.zarr", memory_budget=budget)
         assert ds.attrs["batch_blocks"] == 4 and ds.attrs["geometry"] == "per pixel"
         assert_same_values(mem, ds)
 
@@ -136,12 +136,12 @@ def test_ctrl_c_then_resume_is_byte_identical(stack, reference, tmp_path, monkey
     monkeypatch.setattr(batch.BatchJob, "fit_rows", interrupted)
     store = tmp_path / "s.zarr"
     with pytest.raises(KeyboardInterrupt):
-        fit_batch_to_store(stack, store, memory_budget=BUDGET)
+        batch.fit_batch(stack, store=store, memory_budget=BUDGET)
     assert read_progress(store) == (2, 4) and not xr.open_zarr(store).attrs["batch_complete"]
     calls.clear()
     monkeypatch.setattr(batch.BatchJob, "fit_rows", lambda self, eng, r0, r1: calls.append((r0, r1))
                         or fit_rows(self, eng, r0, r1))
-    ds = fit_batch_to_store(stack, store, memory_budget=BUDGET)
+    ds = batch.fit_batch(stack, store=store, memory_budget=BUDGET)
     assert calls == [(8, 12), (12, 16)]  # only the blocks not marked done (the interrupted one included)
     assert ds.attrs["blocks_computed"] == 2 and ds.attrs["blocks_skipped"] == 2 and ds.attrs["batch_complete"]
     assert_same_values(ds, xr.open_zarr(reference))
@@ -151,12 +151,12 @@ def test_ctrl_c_then_resume_is_byte_identical(stack, reference, tmp_path, monkey
 def test_written_but_unmarked_block_is_recomputed(stack, reference, tmp_path):
     """Write-then-mark: a block without its done mark counts as missing, whatever its chunks hold."""
     store = tmp_path / "s.zarr"
-    fit_batch_to_store(stack, store, memory_budget=BUDGET)
+    batch.fit_batch(stack, store=store, memory_budget=BUDGET)
     (store / "n" / "1.0").write_bytes(b"torn write")
     (store / "status" / "1.0").unlink()
     (store / "_sweep" / "done" / "1").unlink()
     (store / "sigma" / "0.0.1f2e3d4c.partial").write_bytes(b"left by a kill")
-    ds = fit_batch_to_store(stack, store, memory_budget=BUDGET)
+    ds = batch.fit_batch(stack, store=store, memory_budget=BUDGET)
     assert ds.attrs["blocks_computed"] == 1 and ds.attrs["blocks_skipped"] == 3
     assert files(store) == files(reference)
 
@@ -205,7 +205,7 @@ def test_local_cluster_gives_the_same_store(stack, reference, tmp_path, monkeypa
         return fit_rows(self, eng, r0, r1)
     monkeypatch.setattr(batch.BatchJob, "fit_rows", interrupted)
     with pytest.raises(KeyboardInterrupt):
-        fit_batch_to_store(stack, store, memory_budget=BUDGET)
+        batch.fit_batch(stack, store=store, memory_budget=BUDGET)
     monkeypatch.undo()
 
     def timeout(*_):
@@ -224,7 +224,7 @@ def test_local_cluster_gives_the_same_store(stack, reference, tmp_path, monkeypa
 
 def _refusal(store, data, **kw):
     with pytest.raises(StoreError) as info:
-        fit_batch_to_store(data, store, **{"memory_budget": BUDGET, **kw})
+        batch.fit_batch(data, store=store, **{"memory_budget": BUDGET, **kw})
     text = str(info.value)
     assert "\n" not in text
     return text
@@ -281,9 +281,9 @@ def test_cluster_arguments(stack, tmp_path):
     with pytest.raises(ValueError, match="need store="):
         batch.fit_batch(stack, workers=2)
     with pytest.raises(ValueError, match="at most one of workers=, scheduler= and client="):
-        fit_batch_to_store(stack, tmp_path / "x.zarr", workers=2, scheduler="tcp://nowhere:1")
+        batch.fit_batch(stack, store=tmp_path / "x.zarr", workers=2, scheduler="tcp://nowhere:1")
     with pytest.raises(ValueError, match="workers must be a positive integer"):
-        fit_batch_to_store(stack, tmp_path / "x.zarr", workers=0)
+        batch.fit_batch(stack, store=tmp_path / "x.zarr", workers=0)
     assert not (tmp_path / "x.zarr").exists()
 
 
@@ -304,7 +304,7 @@ def test_lazy_stack_is_read_block_by_block(tmp_path, monkeypatch):
     def stand_in(self, eng, r0, r1):
         raw = self.source.rows(r0, r1)
         rows.append(r1 - r0)
-        out = BS._placeholder(self, r1 - r0)
+        out = self.empty_outputs(r1 - r0)
         out["x"][:] = np.nansum(raw["dop"], axis=1)[:, None]
         out["n_valid"][:] = np.isfinite(raw["dop"]).sum(axis=1)
         out["status"][:] = 1
@@ -313,14 +313,14 @@ def test_lazy_stack_is_read_block_by_block(tmp_path, monkeypatch):
     job = batch.BatchJob(xr.open_zarr(tmp_path / "in.zarr"), **kw)
     n_blocks = len(job.blocks())
     assert n_blocks >= 10
-    ds, peak = traced_peak(lambda: fit_batch_to_store(xr.open_zarr(tmp_path / "in.zarr"), tmp_path / "m.zarr", **kw))
+    ds, peak = traced_peak(lambda: batch.fit_batch(xr.open_zarr(tmp_path / "in.zarr"), store=tmp_path / "m.zarr", **kw))
     assert ds.attrs["blocks_computed"] == n_blocks and max(rows) == job.rows_per_block()
     block_input = input_bytes // 512 * job.rows_per_block()
     assert peak < 4 * block_input < input_bytes / 4, (peak, block_input, input_bytes)
     assert np.array_equal(ds.n_valid.values[1:], np.full((511, 64), 30))
     # resuming re-reads the done blocks' input to check it, one block at a time too
     (tmp_path / "m.zarr" / "_sweep" / "done" / str(n_blocks - 1)).unlink()
-    ds, peak = traced_peak(lambda: fit_batch_to_store(xr.open_zarr(tmp_path / "in.zarr"), tmp_path / "m.zarr", **kw))
+    ds, peak = traced_peak(lambda: batch.fit_batch(xr.open_zarr(tmp_path / "in.zarr"), store=tmp_path / "m.zarr", **kw))
     assert ds.attrs["blocks_computed"] == 1 and peak < 4 * block_input, (peak, block_input)
 
 

@@ -6,12 +6,14 @@ import pytest
 
 import pbrdf_cl
 from pbrdf_cl import cli
-from pbrdf_cl.fitting import inversion
+from pbrdf_cl.fitting import common, stages
+from pbrdf_cl.fitting import setup as fit_setup
 from pbrdf_cl.model import reference
 from pbrdf_cl.io.measurements import as_measurements
 from conftest import requires_opencl
 
 from pbrdf_cl.explore import designs as dz  # the module (pbrdf_cl.design is the function)
+from pbrdf_cl.plots.design import plot_design
 
 STEEL = dict(n=1.6, k=2.139, sigma=0.5, ks=0.9, kd=0.15, c=-0.3)
 NAMES = ["n", "k", "sigma", "kd", "c", "ks"]
@@ -24,7 +26,7 @@ def steel():
 
 
 def _bounds(names):
-    b = {**inversion.DEFAULT_BOUNDS}
+    b = {**fit_setup.DEFAULT_BOUNDS}
     return np.array([b[n][0] for n in names]), np.array([b[n][1] for n in names])
 
 
@@ -79,7 +81,7 @@ def test_jacobian_opencl_equals_finite_differences_of_the_reference(engine):
     _check_jacobian(engine)
 
 
-def _fit_widths(geo, free, intensity, noise=0.005, rel=inversion.F00_REL_STD, ks_fixed=False):
+def _fit_widths(geo, free, intensity, noise=0.005, rel=fit_setup.F00_REL_STD, ks_fixed=False):
     """Predicted widths computed independently with inversion's Residuals and fd_jacobian
     (``ks_fixed``: ks held at the material's value, kd absolute, as fit with fixed ks or kd)."""
     geo = {k: np.asarray(v, float) for k, v in geo.items()}
@@ -88,19 +90,19 @@ def _fit_widths(geo, free, intensity, noise=0.005, rel=inversion.F00_REL_STD, ks
     f00 = reference.evaluate("brdf", geo["theta_i"], geo["theta_r"], geo["phi"],
                              *(STEEL[m] for m in ("n", "k", "sigma", "ks", "kd", "c")))
     meas = as_measurements(dict(geo, dop=dop, dop_std=np.full(dop.shape, noise)))
-    model = inversion._Model(meas, "paper")
+    model = stages.Model(meas, "paper")
     base = dict(STEEL)
     ratio = not ks_fixed
     if intensity:
-        res = inversion.Residuals(model, free, base, dop, meas.dop_std, f00, rel * f00)
+        res = stages.Residuals(model, free, base, dop, meas.dop_std, f00, rel * f00)
     elif ks_fixed:
-        res = inversion.Residuals(model, free, base, dop, meas.dop_std)
+        res = stages.Residuals(model, free, base, dop, meas.dop_std)
     else:
         base["ks"], base["kd"] = 1.0, STEEL["kd"] / STEEL["ks"]
-        res = inversion.Residuals(model, free, base, dop, meas.dop_std)
+        res = stages.Residuals(model, free, base, dop, meas.dop_std)
     x = np.array([STEEL["kd"] / STEEL["ks"] if n == "kd" and ratio else STEEL[n] for n in free])
     lo, hi = _bounds(free)
-    _, J = inversion.fd_jacobian(res.rows, x[None], lo, hi, "central")
+    _, J = common.fd_jacobian(res.rows, x[None], lo, hi, "central")
     cov = np.linalg.pinv(J[0] @ J[0].T, rcond=1e-15)
     half = 1.959963984540054 * np.sqrt(np.diag(cov))
     return dict(zip(free, np.minimum(hi, x + half) - np.maximum(lo, x - half)))
@@ -187,7 +189,7 @@ def test_design_reports_undetermined_parameters(tmp_path, capsys):
     determine sigma."""
     kw = dict(candidates=SMALL, noise=0.005, n_measurements=12, backend="numpy")
     r = dz.design(dict(STEEL, kd=0.0), **kw)
-    bounds = inversion.DEFAULT_BOUNDS
+    bounds = fit_setup.DEFAULT_BOUNDS
     assert r.undetermined == ["sigma", "c"] and set(r.undetermined_reference) >= {"sigma", "c"}
     for n in ("sigma", "c"):
         assert r.ci95_width[n] == pytest.approx(bounds[n][1] - bounds[n][0], rel=1e-12), n
@@ -199,7 +201,7 @@ def test_design_reports_undetermined_parameters(tmp_path, capsys):
     assert "undet." in text and any("sigma, c" in n and "kd = 0" in n for n in r.notes)
     ds = r.to_dataset()
     assert ds.undetermined.sel(parameter="sigma").item() == 1 and ds.undetermined.sel(parameter="n").item() == 0
-    fig = dz.plot_design(r, tmp_path / "d.png")
+    fig = plot_design(r, tmp_path / "d.png")
     ax, axb = fig.axes[0], next(a for a in fig.axes if a.get_xlabel() == "parameter")
     assert ax.get_xlabel().startswith("theta_i") and ax.get_ylabel().startswith("theta_r")
     hatched = [p for p in axb.patches if p.get_hatch()]
@@ -318,7 +320,7 @@ def test_box_of_materials():
 
 def test_figure_and_dataset(steel, tmp_path):
     png = tmp_path / "design.png"
-    dz.plot_design(steel, png)
+    plot_design(steel, png)
     assert png.stat().st_size > 10_000
     nc = tmp_path / "design.nc"
     steel.to_dataset().to_netcdf(nc)

@@ -11,7 +11,8 @@ import pytest
 
 import pbrdf_cl
 from pbrdf_cl import cli
-from pbrdf_cl.fitting import inversion as F
+from pbrdf_cl.fitting import basins, common, inversion, stages, uncertainty
+from pbrdf_cl.fitting import setup as fit_setup
 from pbrdf_cl.io.measurements import PHI_DEFAULT_NOTE, from_arrays, read_csv
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -63,15 +64,15 @@ def test_grid_seed_beats_a_single_local_start_on_a_false_minimum():
                  c=-0.31037739981093404)
     data = synthetic(truth, ti=ti, tr=tr)
     meas = from_arrays(data["theta_i"], data["theta_r"], data["dop"])
-    mdl = F._Model(meas, "paper")
+    mdl = stages.Model(meas, "paper")
     names = ("n", "k", "sigma", "kd", "c")
-    lo = np.array([F.DEFAULT_BOUNDS[n][0] for n in names])
-    hi = np.array([F.DEFAULT_BOUNDS[n][1] for n in names])
+    lo = np.array([fit_setup.DEFAULT_BOUNDS[n][0] for n in names])
+    hi = np.array([fit_setup.DEFAULT_BOUNDS[n][1] for n in names])
 
     def sse(x):
         r = mdl.dop(dict(zip(names, x), ks=1.0)) - meas.dop
         return float(r @ r)
-    _, local, _ = F._nlopt_min(nlopt.LN_BOBYQA, sse, lo, hi, (lo + hi) / 2, maxeval=4000, step=(hi - lo) / 10)
+    _, local, _ = stages._nlopt_min(nlopt.LN_BOBYQA, sse, lo, hi, (lo + hi) / 2, maxeval=4000, step=(hi - lo) / 10)
     r = pbrdf_cl.fit(data)
     assert local > 1e-7          # the single start from the centre stops in a false minimum
     assert r.sse <= 1e-12        # the grid-seeded search finds the truth
@@ -154,21 +155,21 @@ VALLEY_DOP = [
 def test_profile_valleys_and_bound_slices_seed_a_distant_basin(monkeypatch):
     from scipy.optimize import least_squares
     meas = from_arrays(TI, TR, np.array(VALLEY_DOP), 180.0, np.full(30, 0.002))
-    mdl = F._Model(meas, "paper")
+    mdl = stages.Model(meas, "paper")
     names = ("n", "k", "sigma", "kd", "c")
-    lo = np.array([F.DEFAULT_BOUNDS[n][0] for n in names])
-    hi = np.array([F.DEFAULT_BOUNDS[n][1] for n in names])
+    lo = np.array([fit_setup.DEFAULT_BOUNDS[n][0] for n in names])
+    hi = np.array([fit_setup.DEFAULT_BOUNDS[n][1] for n in names])
     ref = least_squares(lambda x: (mdl.dop(dict(zip(names, x), ks=1.0)) - meas.dop) / 0.002, [1, 0.44, 1, 5, -1],
                         bounds=(lo, hi), x_scale=hi - lo, ftol=1e-15, xtol=1e-15, gtol=1e-15)
     best = 2 * ref.cost
     r = pbrdf_cl.fit(meas)
     assert r.chi2 <= best * (1 + 1e-9) and r.x["k"] < 1
     # each kind of extra seed finds it alone; the grid's local minima alone lead elsewhere
-    monkeypatch.setattr(F, "PROFILE_SEEDS", 0)
+    monkeypatch.setattr(inversion, "PROFILE_SEEDS", 0)
     assert pbrdf_cl.fit(meas).chi2 <= best * (1 + 1e-9)
-    monkeypatch.setattr(F, "_bound_seeds", lambda sse, basins: [])
+    monkeypatch.setattr(inversion, "bound_seeds", lambda sse, basins: [])
     assert pbrdf_cl.fit(meas).chi2 > best + 0.01
-    monkeypatch.setattr(F, "PROFILE_SEEDS", 2)
+    monkeypatch.setattr(inversion, "PROFILE_SEEDS", 2)
     assert pbrdf_cl.fit(meas).chi2 <= best * (1 + 1e-9)
 
 
@@ -177,7 +178,7 @@ def test_grid_profiles_are_the_minima_over_the_other_axes():
     for shape in [(7,), (6, 5), (4, 5, 6), (5, 4, 3, 6, 2)]:
         sse = rng.random(shape, dtype=np.float32)
         names = list("abcde")[:len(shape)]
-        prof = F._grid_profiles(sse, names)
+        prof = basins.grid_profiles(sse, names)
         for i, n in enumerate(names):
             others = tuple(j for j in range(len(shape)) if j != i)
             np.testing.assert_array_equal(prof[n], sse.min(axis=others) if others else sse)
@@ -188,11 +189,11 @@ def test_profile_seeds_find_valleys_behind_a_ridge():
     x = np.linspace(0, 1, 21)
     # two valleys along axis 0 (floors at x = 0.2 and 0.8, the second 2 higher, a ridge 34 above it)
     sse = (np.minimum((x - 0.2) ** 2, (x - 0.8) ** 2 + 0.005) * 400)[:, None] + np.linspace(0, 1, 9)[None, :]
-    prof = F._grid_profiles(sse, ["a", "b"])
-    assert F._profile_seeds(sse, prof, ["a", "b"], [(4, 0)], 2, rise=1.0) == [(16, 0)]
-    assert F._profile_seeds(sse, prof, ["a", "b"], [(4, 0)], 2, rise=40.0) == []  # ridge too low
-    assert F._profile_seeds(sse, prof, ["a", "b"], [(4, 0), (15, 2)], 2, rise=1.0) == []  # already a basin
-    assert F._profile_seeds(sse, prof, ["a", "b"], [(4, 0)], 0, rise=1.0) == []
+    prof = basins.grid_profiles(sse, ["a", "b"])
+    assert basins.profile_seeds(sse, prof, ["a", "b"], [(4, 0)], 2, rise=1.0) == [(16, 0)]
+    assert basins.profile_seeds(sse, prof, ["a", "b"], [(4, 0)], 2, rise=40.0) == []  # ridge too low
+    assert basins.profile_seeds(sse, prof, ["a", "b"], [(4, 0), (15, 2)], 2, rise=1.0) == []  # already a basin
+    assert basins.profile_seeds(sse, prof, ["a", "b"], [(4, 0)], 0, rise=1.0) == []
 
 
 def test_batched_levenberg_marquardt():
@@ -200,60 +201,61 @@ def test_batched_levenberg_marquardt():
         return np.stack([1 - X[:, 0], 10 * (X[:, 1] - X[:, 0] ** 2), np.zeros(len(X))], axis=1)
     lo, hi = np.array([-2.0, -2.0, 0.0]), np.array([2.0, 2.0, 1.0])
     starts = np.array([[-1.2, 1.0, 0.4], [1.5, -1.5, 0.0], [0.0, 0.0, 1.0]])
-    X, sse, rows = F._lm_batch(rosenbrock, starts, lo, hi, 100)
+    X, sse, rows = common.lm_batch(rosenbrock, starts, lo, hi, 100)
     np.testing.assert_allclose(X[:, :2], 1.0, atol=1e-7)
     np.testing.assert_array_equal(X[:, 2], starts[:, 2])  # no runaway step along the flat direction
     assert np.all(sse < 1e-14) and rows == 3 * 4 * 101
     # each problem sees the numbers it would see alone
     for i in range(3):
-        Xi, si, _ = F._lm_batch(rosenbrock, starts[i:i + 1], lo, hi, 100)
+        Xi, si, _ = common.lm_batch(rosenbrock, starts[i:i + 1], lo, hi, 100)
         np.testing.assert_allclose(Xi[0], X[i], rtol=0, atol=1e-12)
     # the optimum on a bound: x0 <= 0.5 holds x0 there, x1 = x0^2
-    X, sse, _ = F._lm_batch(rosenbrock, starts, lo, np.array([0.5, 2.0, 1.0]), 100)
+    X, sse, _ = common.lm_batch(rosenbrock, starts, lo, np.array([0.5, 2.0, 1.0]), 100)
     np.testing.assert_allclose(X[:, :2], [[0.5, 0.25]] * 3, atol=1e-7)
     np.testing.assert_allclose(sse, 0.25, rtol=1e-9)
 
 
 def test_bound_seeds_are_the_best_points_of_the_bound_slices():
     sse = np.arange(48.0).reshape(6, 8)[::-1] % 7  # some landscape
-    seeds = F._bound_seeds(sse, [])
+    seeds = inversion.bound_seeds(sse, [])
     for idx in seeds:
         assert any(idx[j] in (0, sse.shape[j] - 1) for j in range(2))
         j = 0 if idx[0] in (0, 5) else 1
         assert sse[idx] == np.take(sse, idx[j], axis=j).min()
     assert len(seeds) == len(set(seeds)) and len(seeds) >= 2
-    assert F._bound_seeds(sse, [(a, b) for a in range(6) for b in range(8)]) == []  # all taken
+    assert inversion.bound_seeds(sse, [(a, b) for a in range(6) for b in range(8)]) == []  # all taken
 
 
 def test_interval_pieces_interpolate_between_sharp_and_flat():
     from scipy.stats import norm, t as student_t
 
     def central(cdfs, x=2.0, se=np.inf, lo=1.0, hi=5.0, nodes=()):
-        return F._central_interval(cdfs, x, se, lo, hi, nodes)
+        return uncertainty._central_interval(cdfs, x, se, lo, hi, nodes)
     # the local (Laplace) piece: +-1.96 se when se is small, the middle 95% of the bounds when huge
-    a, b = central([F._truncated_cdf(norm, 2.0, 0.01, 1.0, 5.0)], se=0.01)
+    a, b = central([uncertainty._truncated_cdf(norm, 2.0, 0.01, 1.0, 5.0)], se=0.01)
     assert a == pytest.approx(2 - 1.959964 * 0.01, abs=2e-5) and b == pytest.approx(2 + 1.959964 * 0.01, abs=2e-5)
-    a, b = central([F._truncated_cdf(norm, 2.0, 1e-9, 1.0, 5.0)], se=1e-9)
+    a, b = central([uncertainty._truncated_cdf(norm, 2.0, 1e-9, 1.0, 5.0)], se=1e-9)
     assert a < 2 < b and b - a == pytest.approx(2 * 1.959964e-9, rel=1e-3)
     for se in (1e6, np.inf):  # a direction the data do not constrain: the uniform prior
-        a, b = central([F._truncated_cdf(norm, 2.0, se, 1.0, 5.0)], se=se)
+        a, b = central([uncertainty._truncated_cdf(norm, 2.0, se, 1.0, 5.0)], se=se)
         assert a == pytest.approx(1.1, abs=1e-4) and b == pytest.approx(4.9, abs=1e-4)
-    a, b = central([F._truncated_cdf(student_t(5), 2.0, 0.01, 1.0, 5.0)], se=0.01)
+    a, b = central([uncertainty._truncated_cdf(student_t(5), 2.0, 0.01, 1.0, 5.0)], se=0.01)
     assert b - 2 == pytest.approx(2.570582 * 0.01, rel=1e-3)
     # the grid piece: a flat profile gives the middle 95% of the bounds (also on uneven nodes) ...
     vals = 1 + 4 * np.linspace(0, 1, 24) ** 2
-    a, b = central([F._grid_cdf(np.full(24, 7.0), vals, 30, True)], nodes=vals)
+    a, b = central([uncertainty._grid_cdf(np.full(24, 7.0), vals, 30, True)], nodes=vals)
     assert a == pytest.approx(1.1, abs=1e-6) and b == pytest.approx(4.9, abs=1e-6)
     # ... a parabola in chi^2 with curvature 1/se^2 gives +-1.96 se, and the SSE form (unknown noise)
     # with SSE = s2 * chi2 behaves alike for many points
     vals = np.linspace(0, 10, 2001)
-    a, b = central([F._grid_cdf(3.0 + ((vals - 4) / 0.5) ** 2, vals, 30, True)], lo=0, hi=10, nodes=vals)
+    a, b = central([uncertainty._grid_cdf(3.0 + ((vals - 4) / 0.5) ** 2, vals, 30, True)], lo=0, hi=10, nodes=vals)
     assert a == pytest.approx(4 - 1.96 * 0.5, abs=0.01) and b == pytest.approx(4 + 1.96 * 0.5, abs=0.01)
     s2, m = 1e-6, 10000
-    a, b = central([F._grid_cdf(s2 * (m + ((vals - 4) / 0.5) ** 2), vals, m, False)], lo=0, hi=10, nodes=vals)
+    a, b = central([uncertainty._grid_cdf(s2 * (m + ((vals - 4) / 0.5) ** 2), vals, m, False)], lo=0, hi=10, nodes=vals)
     assert a == pytest.approx(4 - 1.96 * 0.5, abs=0.02) and b == pytest.approx(4 + 1.96 * 0.5, abs=0.02)
     # the mixture of the two: halfway where they disagree (sharp at 2, flat over [1, 5])
-    a, b = central([F._truncated_cdf(norm, 2.0, 1e-6, 1.0, 5.0), lambda t: np.clip((t - 1) / 4, 0, 1)], se=1e-6)
+    a, b = central([uncertainty._truncated_cdf(norm, 2.0, 1e-6, 1.0, 5.0), lambda t: np.clip((t - 1) / 4, 0, 1)],
+                   se=1e-6)
     assert a == pytest.approx(1.2, abs=1e-6) and b == pytest.approx(4.8, abs=1e-6)
 
 
@@ -367,12 +369,12 @@ def test_lockstep_batching_gives_each_optimiser_its_own_numbers():
     def job(x0, algorithm):
         def run(rows):
             sse = lambda x: float(np.sum(rows(x)[0] ** 2))  # noqa: E731
-            return F._nlopt_min(algorithm, sse, lo, hi, x0, maxeval=300, step=np.full(3, 0.3))
+            return stages._nlopt_min(algorithm, sse, lo, hi, x0, maxeval=300, step=np.full(3, 0.3))
         return run
     jobs = [job(np.array([a, b, 0.5]), alg) for a, b in ((-1.5, 2.0), (0.5, -0.5), (1.8, 2.9), (0.0, 0.0))
             for alg in (nlopt.LN_BOBYQA, nlopt.GN_DIRECT_L)]
-    alone = [F._Lockstep(rosen_rows).run([j])[0] for j in jobs]
-    runner = F._Lockstep(rosen_rows)
+    alone = [stages._Lockstep(rosen_rows).run([j])[0] for j in jobs]
+    runner = stages._Lockstep(rosen_rows)
     together = runner.run(jobs)
     for (xa, fa, na), (xt, ft, nt) in zip(alone, together):
         assert na == nt and fa == ft and np.array_equal(xa, xt)
@@ -387,7 +389,7 @@ def test_lockstep_reraises_a_job_error():
     def good(rows):
         return [rows(np.full(2, i)) for i in range(5)]
     with pytest.raises(ZeroDivisionError, match="inside the job"):
-        F._Lockstep(lambda X: X * 2).run([good, bad, good])
+        stages._Lockstep(lambda X: X * 2).run([good, bad, good])
 
 
 def test_batched_jacobian_equals_scipy_two_point():
@@ -397,7 +399,7 @@ def test_batched_jacobian_equals_scipy_two_point():
     fun = lambda x: np.sin(A @ x) + x.sum()  # noqa: E731
     lo, hi = np.zeros(4), np.ones(4)
     for x in (rng.random(4), np.array([0.0, 1.0, 0.5, 1.0 - 1e-12])):
-        r, J = F.fd_jacobian(lambda X: np.array([fun(r) for r in X]), x[None], lo, hi)
+        r, J = common.fd_jacobian(lambda X: np.array([fun(r) for r in X]), x[None], lo, hi)
         np.testing.assert_array_equal(J[0].T, approx_derivative(fun, x, method="2-point", bounds=(lo, hi)))
         np.testing.assert_array_equal(r[0], fun(x))
 
@@ -407,8 +409,8 @@ def test_grid_basins_from_a_pool_equal_the_whole_grid_search():
     axes = np.meshgrid(*[np.linspace(0, 1, n) for n in (24, 32, 16, 16, 8)], indexing="ij")
     for trial in range(3):
         sse = sum(np.sin(3 * (i + 1) * a + trial) ** 2 for i, a in enumerate(axes)) + 0.01 * rng.random(axes[0].shape)
-        pooled = F._grid_basins(sse, 6)
-        whole = [tuple(int(v) for v in c) for c in F._grid_minima(sse, np.arange(sse.size), 6)]
+        pooled = basins.grid_basins(sse, 6)
+        whole = [tuple(int(v) for v in c) for c in basins._grid_minima(sse, np.arange(sse.size), 6)]
         assert pooled == whole and len(pooled) == 6
         for idx in pooled:  # each is a local minimum of the grid
             for ax in range(sse.ndim):

@@ -8,7 +8,7 @@ import pytest
 
 import pbrdf_cl
 from pbrdf_cl.compute import pointwise as api
-from pbrdf_cl.fitting import inversion
+from pbrdf_cl.fitting import result
 from pbrdf_cl.io.measurements import read_csv
 from pathlib import Path
 
@@ -71,7 +71,7 @@ def test_a_parameter_on_its_bound_is_noted():
 
 
 def test_best_value_outside_its_interval_is_explained():
-    notes = inversion._bound_notes(["k"], np.array([10.0]), np.array([0.0]), np.array([10.0]),
+    notes = result._bound_notes(["k"], np.array([10.0]), np.array([0.0]), np.array([10.0]),
                                    {"k": (0.254, 9.75)})
     assert notes[0].startswith("k = 10 is on its upper bound")
     assert notes[1].startswith("k's best value 10 lies outside its 95% interval [0.254, 9.75]")
@@ -82,7 +82,7 @@ def test_correlations_are_summarised(good):
     corr = np.full((5, 5), 0.99)
     np.fill_diagonal(corr, 1)
     eig = (np.ones(5), np.eye(5))
-    notes = inversion._identifiability_notes(names, np.eye(5), 10.0, eig, np.ones(5), np.full(5, 0.01), corr,
+    notes = result._identifiability_notes(names, np.eye(5), 10.0, eig, np.ones(5), np.full(5, 0.01), corr,
                                              np.ones(5))
     strong = [n for n in notes if n.startswith("strongly correlated")]
     assert strong == ["strongly correlated: a-b (r = +0.990), a-c (r = +0.990), a-d (r = +0.990), and 7 more "
@@ -99,7 +99,7 @@ def test_matrices_are_labelled(good):
 
 def test_compare_models_returns_a_result():
     both = pbrdf_cl.compare_models(STEEL)
-    assert isinstance(both, inversion.ComparisonResult)
+    assert isinstance(both, result.ComparisonResult)
     assert set(both.fits) == {"six-param", "specular"} and both["six-param"] is both.fits["six-param"]
     assert both.preferred == ("six-param" if both.fits["six-param"].bic <= both.fits["specular"].bic else "specular")
     assert both.summary().splitlines()[-1] == f"  preferred by BIC: {both.preferred}"

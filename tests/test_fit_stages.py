@@ -8,15 +8,16 @@ import pytest
 import pbrdf_cl
 from pbrdf_cl import cli, results
 from pbrdf_cl.compute import dense
-from pbrdf_cl.fitting import inversion as F
+from pbrdf_cl.fitting import basins, common, inversion, result, stages, uncertainty
+from pbrdf_cl.fitting import setup as fit_setup
 from pbrdf_cl.io.measurements import from_arrays
 
 TI = np.repeat([30.0, 40.0, 50.0], 10)
 TR = np.tile(np.arange(20.0, 66.0, 5.0), 3)
 STEEL = dict(n=1.6, k=2.139, sigma=0.5, kd=0.15 / 0.9, c=-0.3)  # kd as kd/ks
 NAMES = ("n", "k", "sigma", "kd", "c")
-LO = np.array([F.DEFAULT_BOUNDS[n][0] for n in NAMES])
-HI = np.array([F.DEFAULT_BOUNDS[n][1] for n in NAMES])
+LO = np.array([fit_setup.DEFAULT_BOUNDS[n][0] for n in NAMES])
+HI = np.array([fit_setup.DEFAULT_BOUNDS[n][1] for n in NAMES])
 
 
 def steel_residuals(noise=0.0, seed=0, with_std=True):
@@ -25,7 +26,7 @@ def steel_residuals(noise=0.0, seed=0, with_std=True):
         dop = np.clip(dop + np.random.default_rng(seed).normal(0, noise, dop.size), 0, 1)
     std = np.full(dop.size, noise if noise and with_std else 1.0)
     meas = from_arrays(TI, TR, dop, 180.0, std if noise and with_std else None)
-    return meas, F.Residuals(F._Model(meas, "paper"), NAMES, {"ks": 1.0}, meas.dop, std)
+    return meas, stages.Residuals(stages.Model(meas, "paper"), NAMES, {"ks": 1.0}, meas.dop, std)
 
 
 def sse_at(resid, x):
@@ -37,19 +38,19 @@ def sse_at(resid, x):
 
 def test_candidate_is_frozen_and_moves_only_downhill():
     seed = np.array([1.0, 2.0])
-    c = F.Candidate(3.0, np.array([1.5, 2.5]), seed)
+    c = stages.Candidate(3.0, np.array([1.5, 2.5]), seed)
     assert c.converged is None
     with pytest.raises(dataclasses.FrozenInstanceError):
         c.sse = 1.0
     assert c.better(3.0, np.zeros(2)) is c and c.better(4.0, np.zeros(2)) is c  # not lower: itself
     d = c.better(np.float64(2.5), np.zeros(2))
     assert d.sse == 2.5 and type(d.sse) is float and d.seed is seed and np.array_equal(d.x, [0, 0])
-    ranked = F._ranked([c, d, F.Candidate(2.5, np.ones(2), seed)])
+    ranked = stages.ranked([c, d, stages.Candidate(2.5, np.ones(2), seed)])
     assert [r.sse for r in ranked] == [2.5, 2.5, 3.0] and ranked[0] is d  # stable on ties
 
 
 def test_result_attributes_can_be_assigned_and_dense_result_is_the_same_class():
-    assert dense.Result is results.Result and issubclass(F.FitResult, results.Result)
+    assert dense.Result is results.Result and issubclass(result.FitResult, results.Result)
     r = results.Result(a=1)
     r.b = 2
     assert r["b"] == 2 and r.a == 1 and sorted(dir(r)) == ["a", "b"]
@@ -83,25 +84,25 @@ def test_fd_jacobian_batches_points_and_agrees_with_the_derivative(scheme, rtol,
     rows, jac = cubic_rows(calls)
     lo, hi = np.full(3, -1.0), np.full(3, 1.0)
     X = np.array([[0.2, -0.3, 0.5], [0.9, 0.1, -0.7], [1.0, -1.0, 0.0]])  # the last on two bounds
-    R, J = F.fd_jacobian(rows, X, lo, hi, scheme)
+    R, J = common.fd_jacobian(rows, X, lo, hi, scheme)
     assert len(calls) == 1 and len(calls[0]) == 3 * (4 if scheme == "2-point" else 7)
     assert np.all(calls[0] >= lo) and np.all(calls[0] <= hi)  # steps never leave the bounds
     np.testing.assert_array_equal(R, rows(X))
     for p in range(3):
         tol = rtol_bound if p == 2 else rtol
         np.testing.assert_allclose(J[p], jac(X[p]), rtol=tol, atol=tol)
-        R1, J1 = F.fd_jacobian(rows, X[p:p + 1], lo, hi, scheme)  # alone: the same numbers
+        R1, J1 = common.fd_jacobian(rows, X[p:p + 1], lo, hi, scheme)  # alone: the same numbers
         np.testing.assert_array_equal(J1[0], J[p])
     with pytest.raises(ValueError, match="scheme must be '2-point' or 'central', got 'five-point'"):
-        F.fd_jacobian(rows, X, lo, hi, "five-point")
+        common.fd_jacobian(rows, X, lo, hi, "five-point")
 
 
 # --- each stage alone ----------------------------------------------------------------------
 
 def test_grid_stage_is_the_objective_on_the_grid_and_its_profiles():
     meas, resid = steel_residuals(noise=0.002, seed=1)
-    axes = {n: F._grid_axis(n, F.DEFAULT_BOUNDS[n], count) for n, count in zip(NAMES, (5, 4, 3, 3, 2))}
-    st = F.grid_stage(meas, list(NAMES), axes, {"ks": 1.0}, backend="numpy")
+    axes = {n: fit_setup.grid_axis(n, fit_setup.DEFAULT_BOUNDS[n], count) for n, count in zip(NAMES, (5, 4, 3, 3, 2))}
+    st = stages.grid_stage(meas, list(NAMES), axes, {"ks": 1.0}, backend="numpy")
     grid = st.value
     assert grid.sse.shape == (5, 4, 3, 3, 2) and st.nfev == 360 and st.seconds >= 0
     X = np.stack(np.meshgrid(*axes.values(), indexing="ij"), axis=-1).reshape(-1, 5)
@@ -113,8 +114,8 @@ def test_grid_stage_is_the_objective_on_the_grid_and_its_profiles():
 def test_basin_stage_seeds_at_the_grid_minima_with_their_steps():
     a, b = np.linspace(0, 1, 11), np.array([0.0, 0.1, 0.3, 0.6, 1.0])
     sse = np.minimum((a[:, None] - 0.2) ** 2, (a[:, None] - 0.9) ** 2 + 0.01) + (b[None, :] - 0.3) ** 2
-    grid = F.GridStage(sse, {"a": a, "b": b}, F._grid_profiles(sse, ["a", "b"]))
-    st = F.basin_stage(grid, ["a", "b"], n_basins=2, rise=1.0, profile_seeds=0)
+    grid = stages.GridStage(sse, {"a": a, "b": b}, basins.grid_profiles(sse, ["a", "b"]))
+    st = stages.basin_stage(grid, ["a", "b"], n_basins=2, rise=1.0, profile_seeds=0)
     assert st.value.indices == [(2, 2), (9, 2)] and st.nfev == 0
     np.testing.assert_allclose(st.value.seeds[0], [0.2, 0.3])
     np.testing.assert_allclose(st.value.steps[1], [0.1, 0.3])  # the larger step on either side
@@ -125,21 +126,21 @@ def test_local_stages_alone_descend_from_a_seed_to_the_truth():
     truth = np.array([STEEL[n] for n in NAMES])
     seed = truth + np.array([0.15, -0.2, 0.03, 0.02, 0.05])
     step = np.array([0.2, 0.3, 0.05, 0.05, 0.1])
-    d = F.direct_stage(resid.rows, LO, HI, [seed], [step], evals=20)
+    d = stages.direct_stage(resid.rows, LO, HI, [seed], [step], evals=20)
     (cd,) = d.value
     assert d.nfev == 20 * 5 + 1 and cd.sse <= sse_at(resid, seed) and np.array_equal(cd.seed, seed)
     assert np.all(np.abs(cd.x - seed) <= 1.5 * step + 1e-12)  # inside its box
-    b = F.bobyqa_stage(resid.rows, LO, HI, [cd], [step], evals=20)
+    b = stages.bobyqa_stage(resid.rows, LO, HI, [cd], [step], evals=20)
     assert b.value[0].sse <= cd.sse and b.nfev <= 100 and b.value[0].seed is seed
-    s = F.screen_stage(resid.rows, LO, HI, b.value, iterations=30)
+    s = stages.screen_stage(resid.rows, LO, HI, b.value, iterations=30)
     assert s.value[0].sse <= b.value[0].sse and s.nfev == 6 * 31
-    ls = F.least_squares_stage(resid.rows, LO, HI, s.value)
+    ls = stages.least_squares_stage(resid.rows, LO, HI, s.value)
     (best,) = ls.value
     assert best.converged is True and best.sse < 1e-20
     np.testing.assert_allclose(best.x, truth, rtol=1e-7)
-    starved = F.least_squares_stage(resid.rows, LO, HI, [F.Candidate(np.inf, seed, seed)], max_nfev=0.4)
+    starved = stages.least_squares_stage(resid.rows, LO, HI, [stages.Candidate(np.inf, seed, seed)], max_nfev=0.4)
     assert starved.value[0].converged is False and starved.nfev <= 3 * 6
-    fb = F.final_bobyqa_stage(resid.rows, LO, HI, starved.value[0], evals=200)
+    fb = stages.final_bobyqa_stage(resid.rows, LO, HI, starved.value[0], evals=200)
     assert fb.value.sse < starved.value[0].sse and fb.nfev <= 200 * 5 + 1
 
 
@@ -148,18 +149,18 @@ def test_intensity_stage_alone_separates_ks_and_kd():
     dop = pbrdf_cl.dop(TI, TR, 180.0, backend="numpy", **truth, ks=0.9)
     f00 = pbrdf_cl.brdf(TI, TR, 180.0, backend="numpy", **truth, ks=0.9)
     meas = from_arrays(TI, TR, dop, 180.0, None, f00)
-    mdl, std = F._Model(meas, "paper"), np.ones(30)
+    mdl, std = stages.Model(meas, "paper"), np.ones(30)
     ratio = np.array([STEEL[n] for n in NAMES])  # kd as kd/ks
-    ks0 = F.intensity_start(mdl, dict(zip(NAMES, ratio), ks=1.0), f00, 0.05 * f00, F.DEFAULT_BOUNDS["ks"])
+    ks0 = stages.intensity_start(mdl, dict(zip(NAMES, ratio), ks=1.0), f00, 0.05 * f00, fit_setup.DEFAULT_BOUNDS["ks"])
     assert ks0 == pytest.approx(0.9, rel=1e-12)  # the exact scale: DOP fixes kd/ks
-    resid = F.Residuals(mdl, NAMES + ("ks",), {}, dop, std, f00, 0.05 * f00)
+    resid = stages.Residuals(mdl, NAMES + ("ks",), {}, dop, std, f00, 0.05 * f00)
     lo, hi = np.append(LO, 1e-3), np.append(HI, 1e3)
     x0 = np.append(ratio, ks0 * 1.1)  # from the DOP optimum, ks 10% off
-    st = F.intensity_stage(resid, lo, hi, x0, np.full(6, 0.01))
-    assert st.value.converged is True and st.nfev < F.INTENSITY_MAXEVAL and st.value.sse < 1e-12
+    st = stages.intensity_stage(resid, lo, hi, x0, np.full(6, 0.01))
+    assert st.value.converged is True and st.nfev < stages.INTENSITY_MAXEVAL and st.value.sse < 1e-12
     p = resid.params(st.value.x)
     assert p["ks"] == pytest.approx(0.9, rel=1e-4) and p["kd"] == pytest.approx(0.15, rel=1e-4)
-    starved = F.intensity_stage(resid, lo, hi, x0, np.full(6, 0.01), maxeval=20)
+    starved = stages.intensity_stage(resid, lo, hi, x0, np.full(6, 0.01), maxeval=20)
     assert starved.value.converged is False and starved.nfev == 20
 
 
@@ -182,8 +183,8 @@ def test_uncertainty_stage_alone_gives_the_linear_covariance():
     resid, A, b = linear_problem(1.0)
     x = np.linalg.lstsq(A, b, rcond=None)[0]
     lo, hi = np.full(3, -50.0), np.full(3, 50.0)
-    empty = F.GridStage(None, {}, {})
-    st = F.uncertainty_stage(resid, x, lo, hi, empty, float(np.sum((A @ x - b) ** 2)), 40, sigma_known=True)
+    empty = stages.GridStage(None, {}, {})
+    st = uncertainty.uncertainty_stage(resid, x, lo, hi, empty, float(np.sum((A @ x - b) ** 2)), 40, sigma_known=True)
     u = st.value
     se = np.sqrt(np.diag(np.linalg.inv(A.T @ A)))
     np.testing.assert_allclose(u.stderr, se, rtol=1e-6)
@@ -198,10 +199,10 @@ def test_uncertainty_stage_floors_the_noise_of_an_exact_fit():
     resid, A, b = linear_problem(0.0)
     x = np.linalg.lstsq(A, b, rcond=None)[0]
     lo, hi = np.full(3, -50.0), np.full(3, 50.0)
-    empty = F.GridStage(None, {}, {})
-    bare = F.uncertainty_stage(resid, x, lo, hi, empty, 0.0, 40, sigma_known=False).value
+    empty = stages.GridStage(None, {}, {})
+    bare = uncertainty.uncertainty_stage(resid, x, lo, hi, empty, 0.0, 40, sigma_known=False).value
     assert np.all(bare.stderr < 1e-12)  # without a floor an exact fit collapses the intervals
-    u = F.uncertainty_stage(resid, x, lo, hi, empty, 0.0, 40, sigma_known=False, noise_floor=0.01).value
+    u = uncertainty.uncertainty_stage(resid, x, lo, hi, empty, 0.0, 40, sigma_known=False, noise_floor=0.01).value
     se = 0.01 * np.sqrt(np.diag(np.linalg.inv(A.T @ A)))
     assert u.noise_floor == 0.01
     np.testing.assert_allclose(u.stderr, se, rtol=1e-6)
@@ -215,25 +216,25 @@ def test_uncertainty_stage_floors_the_noise_of_an_exact_fit():
 def test_fit_status_of_a_converged_fit_and_of_a_starved_one(monkeypatch):
     meas, _ = steel_residuals(noise=0.002, seed=2)
     r = pbrdf_cl.fit(meas)
-    assert r.success is True and r.status in (1, 2) and r.message == F.FIT_STATUS[r.status]
+    assert r.success is True and r.status in (1, 2) and r.message == result.FIT_STATUS[r.status]
     assert "status" not in r.summary()
     r.label = "steel"  # attribute assignment
     assert r["label"] == "steel"
-    monkeypatch.setattr(F, "SCREEN_ITERATIONS", 0)  # no descent of the candidates
-    monkeypatch.setattr(F, "LS_MAX_NFEV", 0.4)      # least squares: 2 evaluations
-    monkeypatch.setattr(F, "FINAL_BOBYQA", 2)       # the final BOBYQA: 10
+    monkeypatch.setattr(inversion, "SCREEN_ITERATIONS", 0)  # no descent of the candidates
+    monkeypatch.setattr(inversion, "LS_MAX_NFEV", 0.4)      # least squares: 2 evaluations
+    monkeypatch.setattr(inversion, "FINAL_BOBYQA", 2)       # the final BOBYQA: 10
     starved = pbrdf_cl.fit(meas)
     assert starved.nfev["final_bobyqa"] > 0
     assert starved.success is False and starved.status == 0 and starved.message.startswith("stopped:")
-    assert f"status 0: {F.FIT_STATUS[0]}" in starved.summary()
+    assert f"status 0: {result.FIT_STATUS[0]}" in starved.summary()
 
 
 def test_fit_status_rules():
-    good, bad = F.Candidate(1.0, np.zeros(2), np.zeros(2), True), F.Candidate(1e300, np.zeros(2), np.zeros(2))
-    assert F._fit_status(good, False, None) == 1 and F._fit_status(good, True, None) == 2
-    assert F._fit_status(bad, False, None) == -1
-    assert F._fit_status(good, False, F.Candidate(1.0, np.zeros(3), np.zeros(3), False)) == 0
-    assert F._fit_status(dataclasses.replace(good, converged=False), True, None) == 0
+    good, bad = stages.Candidate(1.0, np.zeros(2), np.zeros(2), True), stages.Candidate(1e300, np.zeros(2), np.zeros(2))
+    assert result.fit_status(good, False, None) == 1 and result.fit_status(good, True, None) == 2
+    assert result.fit_status(bad, False, None) == -1
+    assert result.fit_status(good, False, stages.Candidate(1.0, np.zeros(3), np.zeros(3), False)) == 0
+    assert result.fit_status(dataclasses.replace(good, converged=False), True, None) == 0
 
 
 # --- degenerate data -----------------------------------------------------------------------
@@ -250,7 +251,7 @@ def test_fewer_distinct_geometries_than_free_parameters_is_refused(tmp_path, cap
     # three geometries, each measured three times: enough for two free parameters
     ti, tr = np.repeat([30.0, 40.0, 50.0], 3), np.repeat([25.0, 40.0, 55.0], 3)
     dop = pbrdf_cl.dop(ti, tr, 180.0, backend="numpy", **STEEL)
-    assert F.distinct_geometries(from_arrays(ti, tr, dop)) == 3
+    assert inversion.distinct_geometries(from_arrays(ti, tr, dop)) == 3
     with pytest.raises(ValueError, match="3 distinct geometries .* for 4 free parameters"):
         pbrdf_cl.fit(dict(theta_i=ti, theta_r=tr, dop=dop), fixed=dict(c=-0.3))
     r = pbrdf_cl.fit(dict(theta_i=ti, theta_r=tr, dop=dop), fixed=dict(sigma=0.5, kd=STEEL["kd"], c=-0.3))
@@ -262,7 +263,7 @@ def test_exact_fit_without_uncertainties_uses_the_stated_noise_floor():
     r = pbrdf_cl.fit(dict(theta_i=TI, theta_r=TR, dop=dop))
     assert r.sse < 1e-20 and r.success
     floor_notes = [n for n in r.notes if "noise floor" in n]
-    assert len(floor_notes) == 1 and f"DOP noise of std {F.DOP_NOISE_FLOOR:.2g}" in floor_notes[0]
+    assert len(floor_notes) == 1 and f"DOP noise of std {common.DOP_NOISE_FLOOR:.2g}" in floor_notes[0]
     for name in NAMES:
         lo, hi = r.ci95[name]
         assert lo <= STEEL[name] <= hi and hi - lo > 0.01 * (HI - LO)[NAMES.index(name)], (name, lo, hi)
@@ -270,18 +271,18 @@ def test_exact_fit_without_uncertainties_uses_the_stated_noise_floor():
         assert j_hi - j_lo > 1e-4 and r.stderr[name] > 0
     # the same data written with 3 decimals: the floor is still the default (0.001 / sqrt(12) is
     # smaller), and with 1 decimal it is the rounding error's
-    assert F.dop_noise_floor(np.round(dop, 3)) == F.DOP_NOISE_FLOOR
-    assert F.dop_noise_floor(np.round(dop, 1)) == pytest.approx(0.1 / np.sqrt(12), rel=1e-12)
+    assert common.dop_noise_floor(np.round(dop, 3)) == common.DOP_NOISE_FLOOR
+    assert common.dop_noise_floor(np.round(dop, 1)) == pytest.approx(0.1 / np.sqrt(12), rel=1e-12)
     # given uncertainties, no floor: they say what the noise is
     known = pbrdf_cl.fit(dict(theta_i=TI, theta_r=TR, dop=dop, dop_std=np.full(30, 1e-4)))
     assert not any("noise floor" in n for n in known.notes)
 
 
 def test_dop_resolution_reads_the_decimals():
-    assert F.dop_resolution([0.1, 0.25, 0.3]) == 0.01
-    assert F.dop_resolution([0.0, 1.0]) == 1.0
-    assert F.dop_resolution([0.1234, 0.5]) == pytest.approx(1e-4)
-    assert F.dop_resolution(np.random.default_rng(0).random(20)) == 0.0
+    assert common.dop_resolution([0.1, 0.25, 0.3]) == 0.01
+    assert common.dop_resolution([0.0, 1.0]) == 1.0
+    assert common.dop_resolution([0.1234, 0.5]) == pytest.approx(1e-4)
+    assert common.dop_resolution(np.random.default_rng(0).random(20)) == 0.0
 
 
 def test_bounds_and_fixed_values_follow_the_api_domain_rules():

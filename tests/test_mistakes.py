@@ -169,7 +169,7 @@ def test_every_output_suffix_is_checked_before_the_work(argv, option, suffix, ca
     m.txt) is refused in one line naming the option, the suffix and a name that works, before any
     work: the functions that would do it fail the test if called."""
     import os
-    from pbrdf_cl.fitting import batch_store
+    from pbrdf_cl.fitting import batch
     from pbrdf_cl.explore import designs
     from pbrdf_cl.device import engine
     from pbrdf_cl.fitting import inversion
@@ -179,7 +179,7 @@ def test_every_output_suffix_is_checked_before_the_work(argv, option, suffix, ca
 
     def no_work(*a, **k):
         raise AssertionError("the work started before the output was checked")
-    for module, name in ((batch_store, "fit_batch_to_store"), (sweeps, "sweep"), (maps, "make_map"),
+    for module, name in ((batch, "fit_batch"), (sweeps, "sweep"), (maps, "make_map"),
                          (inversion, "fit"), (sensitivity, "sobol"), (designs, "design"), (engine, "resolve_engine")):
         monkeypatch.setattr(module, name, no_work)
     rc = cli.main(argv)

@@ -13,7 +13,7 @@ import pytest
 from scipy.optimize import curve_fit
 
 import pbrdf_cl
-from pbrdf_cl.fitting import inversion
+from pbrdf_cl.fitting import result, stages
 from pbrdf_cl.model import reference
 
 TI = np.repeat([20.0, 35.0, 50.0, 65.0], 10)
@@ -98,16 +98,16 @@ def test_preferred_model_on_known_cases():
 
 
 def test_ambiguous_on_constructed_candidates():
-    cand = inversion.Candidate
+    cand = stages.Candidate
     free = ["n", "k"]
     best = cand(1.0, np.array([1.5, 2.0]), np.array([1.5, 2.0]))
     twin = cand(1.3, np.array([3.0, 0.5]), np.array([3.0, 0.5]))  # as good (within 1 unit), far away
     near = cand(1.2, np.array([1.501, 2.001]), np.array([1.5, 2.0]))  # as good, but the same basin
     worse = cand(5.0, np.array([4.0, 6.0]), np.array([4.0, 6.0]))  # far away, but 4 units worse
     se = np.array([0.01, 0.01])
-    got = inversion._ambiguous_basins([best, twin, near, worse], free, 1.0, se)
+    got = result._ambiguous_basins([best, twin, near, worse], free, 1.0, se)
     assert got == [dict(n=3.0, k=0.5, sse=1.3)]
-    assert inversion._ambiguous_basins([best, near, worse], free, 1.0, se) == []
+    assert result._ambiguous_basins([best, near, worse], free, 1.0, se) == []
 
 
 def test_out_of_plane_data_recover_the_truth():

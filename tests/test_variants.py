@@ -15,7 +15,7 @@ import pytest
 import pbrdf_cl
 from pbrdf_cl import cli, quantities
 from pbrdf_cl.compute import dense as G
-from pbrdf_cl.fitting import inversion as F
+from pbrdf_cl.fitting import inversion
 from pbrdf_cl.io.measurements import read_csv
 from pbrdf_cl.explore.sweeps import SweepSpec
 from test_kernels import f32_tolerance
@@ -334,8 +334,8 @@ def test_cli_fit_with_none_gives_the_api_numbers(each_device, tmp_path, capsys):
     assert cli.main(["fit", str(csv), "--shadowing", "none", "--fix", "sigma=0.5", "c=-0.3", "--json", str(out),
                      "--quiet", "--compare"]) == 0
     fits = json.loads(out.read_text())["fits"]
-    api = F.compare_models(read_csv(csv), shadowing="none", fixed=dict(sigma=0.5, c=-0.3), engine=each_device)
-    paper = F.fit(read_csv(csv), shadowing="paper", fixed=dict(sigma=0.5, c=-0.3), engine=each_device)
+    api = inversion.compare_models(read_csv(csv), shadowing="none", fixed=dict(sigma=0.5, c=-0.3), engine=each_device)
+    paper = inversion.fit(read_csv(csv), shadowing="paper", fixed=dict(sigma=0.5, c=-0.3), engine=each_device)
     for model in ("six-param", "specular"):
         got, want = fits[model], api[model]
         assert got["shadowing"] == want.shadowing == "none"

@@ -13,14 +13,14 @@ How the widths are predicted (the local linearisation :func:`pbrdf_cl.fit` itsel
   row), and with ``intensity`` also that of F00 divided by its standard deviation,
   ``intensity_noise`` times F00 (a second row).  The derivatives come from the device
   (:func:`pbrdf_cl.compute.dense.outer`, float64): the material and its +-h steps (h = 1e-6 of each
-  bound range, one-sided at a bound, as :func:`pbrdf_cl.fitting.inversion.fd_jacobian`) are extra
+  bound range, one-sided at a bound, as :func:`pbrdf_cl.fitting.common.fd_jacobian`) are extra
   parameter sets of ONE evaluation over every candidate geometry.
 * The Fisher information of a set is the sum of its rows' J^T J; the covariance its
-  pseudo-inverse (as ``inversion._covariance``); the predicted interval of parameter j is
+  pseudo-inverse (as ``fitting.uncertainty._covariance``); the predicted interval of parameter j is
   ``x_j +- 1.96 se_j`` clipped to the bounds, and its width is reported.
 * Without intensities the DOP depends on kd and ks only through kd/ks: ks is held at 1 and the
   ``kd`` reported is the ratio kd/ks (as :func:`pbrdf_cl.fit` does).  With intensities ks is
-  free and ``kd`` is still the ratio kd/ks (``inversion.Residuals._with``).  With ks fixed
+  free and ``kd`` is still the ratio kd/ks (``fitting.stages.Residuals._with``).  With ks fixed
   (``fixed={"ks": v}``) ``kd`` is the absolute kd, as in :func:`pbrdf_cl.fit`.
 
 How the geometries are chosen: greedy forward selection (a weak Gaussian prior of standard
@@ -43,7 +43,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..fitting import inversion
+from ..fitting.common import X_RESOLUTION, fd_jacobian
+from ..fitting.setup import F00_REL_STD, FitSetup
 from ..model import reference as _reference
 from ..compute.dense import PARAMETERS, outer
 from ..device.engine import resolve_engine
@@ -80,8 +81,9 @@ def _kd_meaning(result):
     return f"kd is absolute, ks fixed at {fx['ks']:g}" if "ks" in fx else "kd is kd/ks"
 
 
-def _with_ks(free):
-    """The free parameters and ks after them (where ks is not free): the columns of the comparisons."""
+def with_ks(free):
+    """The free parameters and ks after them (where ks is not free): the columns of the comparisons
+    (of :meth:`DesignResult.summary` and the figure, :func:`pbrdf_cl.plots.design.plot_design`)."""
     return list(free) + ([] if "ks" in free else ["ks"])
 
 
@@ -96,12 +98,13 @@ class DesignResult(Result):
     ``information_axes``); ``undetermined`` (``undetermined_reference``): the free parameters the
     chosen (reference) set does not determine, whose predicted interval spans their whole bounds
     (their width is then the bound range); ``notes``: sentences on what the design cannot do;
-    ``criterion``, ``criterion_value``, ``criterion_greedy``, ``free``, ``target``, ``noise``, ...
+    ``criterion``, ``criterion_value``, ``criterion_greedy``, ``free``, ``target``, ``noise``, ...;
+    :func:`pbrdf_cl.plots.design.plot_design` draws it.
     """
 
     def summary(self):
         """A readable text table of the predicted widths."""
-        names = _with_ks(self.free)
+        names = with_ks(self.free)
         lines = [f"measurement design: {len(self.theta_i)} measurements, criterion {self.criterion} on "
                  f"{', '.join(self.target)}; DOP noise {self.noise:g}"
                  + (f", F00 relative noise {self.intensity_noise:g}" if self.intensity else "")
@@ -147,7 +150,7 @@ class DesignResult(Result):
                 {"long_name": "1 where the reference set does not determine the parameter"}),
         })
         comp = list(self.comparisons)
-        allp = _with_ks(self.free)
+        allp = with_ks(self.free)
         data["comparison_width"] = xr.Variable(
             ("comparison", "parameter_all"),
             [[self.comparisons[c]["widths"].get(n, np.nan) for n in allp] for c in comp],
@@ -285,7 +288,7 @@ def _model_of(X, names, base):
 
 def jacobians(eng, geometry, mat, names, lo, hi, shadowing="paper"):
     """Central-difference derivatives of DOP and F00 at every geometry for every material, in the
-    fit's coordinates ``names`` (any of n, k, sigma, kd = kd/ks, c, ks): ``inversion.fd_jacobian``'s
+    fit's coordinates ``names`` (any of n, k, sigma, kd = kd/ks, c, ks): ``fitting.common.fd_jacobian``'s
     central scheme, the materials and all their steps the parameter sets of one
     :func:`pbrdf_cl.compute.dense.outer` call per quantity (float64).
 
@@ -300,7 +303,7 @@ def jacobians(eng, geometry, mat, names, lo, hi, shadowing="paper"):
         return rows
     out = []
     for quantity in ("dop", "brdf"):
-        Y, J = inversion.fd_jacobian(rows_of(quantity), X, lo, hi, "central")  # (M, G), (M, d, G)
+        Y, J = fd_jacobian(rows_of(quantity), X, lo, hi, "central")  # (M, G), (M, d, G)
         out += [Y, J.transpose(0, 2, 1)]
     return out[0], out[2], out[1], out[3]
 
@@ -316,7 +319,7 @@ def whitened_rows(dop_J, f00, f00_J, noise, intensity_noise, intensity):
 def predicted_widths(rows, x, lo, hi):
     """Predicted 95% interval widths of one material from its rows (K, d) at the measurements.
 
-    The covariance is the pseudo-inverse of J^T J (as ``inversion._covariance``), taken in
+    The covariance is the pseudo-inverse of J^T J (as ``fitting.uncertainty._covariance``), taken in
     parameters scaled by their bound ranges, where the directions whose information is below
     1/:data:`SINGULAR_COND` of the largest are the data's null space: combinations of the
     parameters that the measurements do not constrain at all (a Jacobian column that is zero,
@@ -337,7 +340,7 @@ def predicted_widths(rows, x, lo, hi):
     share = np.sqrt(np.sum(V[:, null] ** 2, axis=1))  # |projection of each parameter's axis on the null space|
     se = np.sqrt(np.clip(np.diag(cov), 0, None))
     se = np.where(share > NULL_SHARE_NEGLIGIBLE, np.inf, se)
-    half = np.maximum(Z95 * np.sqrt(np.clip(np.diag(cov), 0, None)), inversion.X_RESOLUTION * span) + share * span
+    half = np.maximum(Z95 * np.sqrt(np.clip(np.diag(cov), 0, None)), X_RESOLUTION * span) + share * span
     widths = np.minimum(hi, x + half) - np.maximum(lo, x - half)
     undetermined = widths >= span * (1.0 - UNDETERMINED_RTOL)
     return np.where(undetermined, span, widths), se, undetermined
@@ -574,10 +577,10 @@ def _singular(Minfo):
 
 @dataclass
 class _Problem:
-    """The checked inputs of :func:`design`: the options, the free parameters (``names``: those of
-    the Jacobians, ks included unless fixed; ``free``: the fit's, ks only with intensities), their
-    bounds ``lo``, ``hi``, the material(s) ``mat`` and their fit coordinates ``X`` (M, len(names)),
-    and the candidate and reference geometries."""
+    """The checked inputs of :func:`design`: the options, the fit's ``setup`` (the
+    :class:`~pbrdf_cl.fitting.setup.FitSetup` of the six-parameter model: bounds, fixed values,
+    free parameters), the material(s) ``mat`` and their fit coordinates ``X`` (M, len(names)), and
+    the candidate and reference geometries."""
     criterion: str
     noise: float
     intensity_noise: float
@@ -585,12 +588,7 @@ class _Problem:
     n: int
     repeats: bool
     target: tuple
-    fx: dict
-    free5: list
-    names: list
-    free: list
-    lo: np.ndarray
-    hi: np.ndarray
+    setup: FitSetup
     mat: dict
     rngs: tuple
     X: np.ndarray
@@ -598,7 +596,41 @@ class _Problem:
     cand_axes: dict | None
     ref: dict
     ref_given: bool
-    f00_usable: bool
+
+    @property
+    def fx(self):
+        """The fixed values."""
+        return self.setup.fixed
+
+    @property
+    def free5(self):
+        """The free parameters besides ks."""
+        return self.setup.free
+
+    @property
+    def names(self):
+        """The Jacobians' coordinates (:func:`_coordinates`)."""
+        return _coordinates(self.setup, self.intensity)[0]
+
+    @property
+    def free(self):
+        """The fit's free parameters (:func:`_coordinates`)."""
+        return _coordinates(self.setup, self.intensity)[1]
+
+    @property
+    def lo(self):
+        """Lower bounds of :attr:`names`."""
+        return self.setup.bounds_of(self.names)[0]
+
+    @property
+    def hi(self):
+        """Upper bounds of :attr:`names`."""
+        return self.setup.bounds_of(self.names)[1]
+
+    @property
+    def f00_usable(self):
+        """Whether the fit would use an intensity column (neither ks nor kd fixed)."""
+        return self.setup.fits_intensity(True)
 
 
 def _check_options(criterion, noise, intensity_noise, intensity, materials, shadowing):
@@ -616,22 +648,22 @@ def _check_options(criterion, noise, intensity_noise, intensity, materials, shad
     return noise, intensity_noise
 
 
-def _free_parameters(bounds, fixed, intensity):
-    """The fit's fixed values and free parameters: (fx, free5 (of the five besides ks), names
-    (the Jacobians' coordinates: free5 and ks unless fixed), free (the fit's: ks only with
-    intensities), lo, hi (the bounds of ``names``))."""
-    bnds, fx = inversion._check_bounds("six-param", {k: v for k, v in (bounds or {}).items() if k != "ks"}, fixed)
-    ks_bounds = tuple(map(float, (bounds or {}).get("ks", inversion.DEFAULT_BOUNDS["ks"])))
+def _coordinates(setup, intensity):
+    """(names, free): the Jacobians' coordinates (the setup's free parameters and ks unless it is
+    fixed: kd is then kd/ks) and the fit's free parameters (ks only with intensities)."""
+    free5 = setup.free
+    return free5 + (["ks"] if "ks" not in setup.fixed else []), free5 + (["ks"] if intensity else [])
+
+
+def _fit_setup(bounds, fixed, intensity):
+    """The fit's setup (:class:`~pbrdf_cl.fitting.setup.FitSetup` of the six-parameter model, ks's
+    bounds checked too), refusing intensities where a fixed ks or kd makes the fit ignore them."""
+    setup = FitSetup.check("six-param", bounds, fixed, need_free=False)
+    fx = setup.fixed
     if intensity and ("ks" in fx or "kd" in fx):
         raise ValueError(f"intensity: with {'ks' if 'ks' in fx else 'kd'} fixed the fit ignores intensities "
                          "(it separates ks and kd only with both free); drop it from fixed or intensity=False")
-    free5 = [n for n in inversion.MODEL_PARAMS["six-param"] if n not in fx]
-    names = free5 + (["ks"] if "ks" not in fx else [])
-    free = free5 + (["ks"] if intensity else [])
-    pairs = [ks_bounds if x == "ks" else bnds[x] for x in names]
-    lo = np.array([b[0] for b in pairs])
-    hi = np.array([b[1] for b in pairs])
-    return fx, free5, names, free, lo, hi
+    return setup
 
 
 def _check_target(target, free, fx):
@@ -685,8 +717,10 @@ def _problem(params, candidates, noise, n_measurements, target, intensity, fixed
              intensity_noise, bounds, materials, repeats, seed, shadowing):
     """Check every input of :func:`design` (in the order its errors are reported) into a :class:`_Problem`."""
     noise, intensity_noise = _check_options(criterion, noise, intensity_noise, intensity, materials, shadowing)
+    setup = _fit_setup(bounds, dict(fixed or {}), intensity)  # first: the same refusals as fit's
     mat, rngs = _materials(params, fixed, int(materials), seed)
-    fx, free5, names, free, lo, hi = _free_parameters(bounds, dict(fixed or {}), intensity)
+    fx = setup.fixed
+    names, free = _coordinates(setup, intensity)
     target = _check_target(target, free, fx)
     n = _check_count(n_measurements, free)
     cand, cand_axes = check_points("candidates", DEFAULT_CANDIDATES if candidates is None else candidates)
@@ -694,10 +728,9 @@ def _problem(params, candidates, noise, n_measurements, target, intensity, fixed
     N = cand["theta_i"].size
     if not repeats and n > N:
         raise ValueError(f"n_measurements: {n} is more than the {N} candidate geometries (repeats=False)")
-    X = _fix_materials(mat, fx, names, lo, hi)
-    return _Problem(criterion, noise, intensity_noise, intensity, n, repeats, target, fx, free5, names, free,
-                    lo, hi, mat, rngs, X, cand, cand_axes, ref, reference is not None,
-                    "ks" not in fx and "kd" not in fx)
+    X = _fix_materials(mat, fx, names, *setup.bounds_of(names))
+    return _Problem(criterion, noise, intensity_noise, intensity, n, repeats, target, setup, mat, rngs, X, cand,
+                    cand_axes, ref, reference is not None)
 
 
 class _Linearisation:
@@ -855,7 +888,7 @@ def _subset(geo, idx):
 
 
 def design(params, candidates=None, noise=0.005, n_measurements=30, target=("n", "k"), intensity=False, fixed=None,
-           *, criterion="A", reference=None, intensity_noise=inversion.F00_REL_STD, bounds=None, materials=16,
+           *, criterion="A", reference=None, intensity_noise=F00_REL_STD, bounds=None, materials=16,
            repeats=False, seed=0, shadowing="paper", engine=None, backend="auto"):
     """Choose the measurement geometries that best determine the target parameters.
 
@@ -945,91 +978,3 @@ def design(params, candidates=None, noise=0.005, n_measurements=30, target=("n",
         material={k: float(np.median(v)) for k, v in p.mat.items()}, ranges={r.name: (r.low, r.high) for r in p.rngs},
         bounds={x: (float(p.lo[j]), float(p.hi[j])) for j, x in enumerate(p.names) if x in p.free},
         fixed=p.fx, shadowing=shadowing, engine=eng.description, seconds=time.perf_counter() - t0)
-
-
-
-# ----------------------------------------------------------------------------------- figure
-
-def plot_design(result, path):
-    """Draw a design into a PNG (matplotlib Agg): left, the information map over (theta_i,
-    theta_r), theta_i on the horizontal axis as in the Sobol' maps (the maximum over phi where
-    phi is an axis; explicit candidates as coloured points) with the chosen geometries (circles)
-    and the reference's (crosses); right, the predicted 95% interval widths per parameter,
-    chosen against reference, each with and without an intensity column (log scale).  A
-    parameter a set leaves undetermined (its interval spans the whole bounds) is drawn as a
-    hatched, unfilled bar of its bound range, named in the legend.  Returns the (closed) Figure."""
-    from matplotlib.patches import Patch
-    from ..plots.fit import _pyplot
-    plt = _pyplot()
-    fig, (ax, axb) = plt.subplots(1, 2, figsize=(13, 5.6), layout="constrained",
-                                  gridspec_kw=dict(width_ratios=[1.1, 1]))
-    info = np.asarray(result.information, float)
-    axes = result.information_axes
-    label = ("relative reduction of the A criterion\nby one more measurement (1)" if result.criterion == "A"
-             else "reduction of log det of the target\ncovariance by one more measurement (1)")
-    if "theta_i" in axes and "theta_r" in axes:
-        names = list(axes)
-        img = info
-        if "phi" in axes:
-            with np.errstate(all="ignore"):
-                img = np.nanmax(img, axis=names.index("phi"))
-            names.remove("phi")
-        if names.index("theta_r") > names.index("theta_i"):
-            img = img.T  # rows theta_r, columns theta_i
-        ti, tr = axes["theta_i"], axes["theta_r"]
-        pos = img[np.isfinite(img) & (img > 0)]
-        norm = None
-        if pos.size and pos.max() / max(pos.min(), 1e-300) > 100:
-            from matplotlib.colors import LogNorm
-            norm = LogNorm(vmin=max(pos.min(), pos.max() * 1e-6), vmax=pos.max())
-        mesh = ax.pcolormesh(ti, tr, np.where(img > 0, img, np.nan) if norm else img, shading="nearest",
-                             cmap="viridis", norm=norm)
-    else:
-        c = result.candidates
-        mesh = ax.scatter(c["theta_i"], c["theta_r"], c=info.reshape(-1), s=18, cmap="viridis")
-    fig.colorbar(mesh, ax=ax, label=label)
-    ax.plot(result.reference["theta_i"], result.reference["theta_r"], "x", color="tab:red", ms=7, mew=1.5,
-            label="paper's geometry" if result.reference_is_paper else "reference")
-    ax.plot(result.theta_i, result.theta_r, "o", mfc="none", mec="white", ms=9, mew=1.8,
-            label=f"chosen ({len(result.theta_i)})")
-    ax.set_xlabel("theta_i (deg)")
-    ax.set_ylabel("theta_r (deg)")
-    ax.set_title(f"information for {', '.join(result.target)} at the final design (criterion {result.criterion})")
-    ax.legend(loc="lower left", fontsize=8, framealpha=0.8)
-    comp = result.comparisons
-    keys = [k for k in ("chosen", "chosen_other", "reference", "reference_other") if k in comp]
-    colours = {"chosen": "tab:blue", "chosen_other": "tab:cyan", "reference": "tab:red",
-               "reference_other": "tab:orange"}
-    params = _with_ks(result.free)
-    span = {n: hi - lo for n, (lo, hi) in result.bounds.items()}
-    width = 0.8 / len(keys)
-    handles, any_undetermined = [], False
-    for i, key in enumerate(keys):
-        w, und = comp[key]["widths"], set(comp[key].get("undetermined", ()))
-        where = [(j, p) for j, p in enumerate(params) if p in w]
-        xs = np.array([j + (i - (len(keys) - 1) / 2) * width for j, _ in where])
-        ok = np.array([p not in und for _, p in where], bool)
-        heights = np.array([w[p] for _, p in where])
-        axb.bar(xs[ok], heights[ok], width, color=colours[key])
-        if (~ok).any():
-            any_undetermined = True
-            axb.bar(xs[~ok], [span.get(p, w[p]) for (_, p), o in zip(where, ok) if not o], width, fill=False,
-                    hatch="///", edgecolor=colours[key], linewidth=1.0)
-        handles.append(Patch(color=colours[key], label=f"{comp[key]['description']} ({comp[key]['n_points']} points)"))
-    if any_undetermined:
-        handles.append(Patch(fill=False, hatch="///", edgecolor="0.3",
-                             label="hatched: undetermined\n(interval spans the bounds;\nbar = bound range)"))
-    axb.set_yscale("log")
-    kd_label = "kd" if "ks" in result.get("fixed", {}) else "kd/ks"
-    axb.set_xticks(range(len(params)), [(kd_label if p == "kd" else p) for p in params])
-    axb.set_xlabel("parameter")
-    axb.set_ylabel("predicted 95% interval width (parameter units; dimensionless)")
-    axb.set_title(f"DOP noise {result.noise:g}" + (f", F00 relative noise {result.intensity_noise:g}"
-                                                    if any(k.endswith("_other") for k in keys) or result.intensity
-                                                    else ""))
-    lo_y, hi_y = axb.get_ylim()
-    axb.set_ylim(lo_y, hi_y * (hi_y / lo_y) ** 0.45)  # room above the bars for the legend
-    axb.legend(handles=handles, fontsize=8, loc="upper left", ncol=2)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return fig

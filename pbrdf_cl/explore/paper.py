@@ -286,7 +286,8 @@ def sobol_map(out, resolution=256, engine=None, seed=SEED):
 def design_map(out, engine=None):
     """The measurement design for the steel (:data:`STEEL`): the figure and the result (netCDF).
     Returns the :class:`pbrdf_cl.explore.designs.DesignResult`."""
-    from .designs import design, plot_design
+    from .designs import design
+    from ..plots.design import plot_design
     from .sensitivity import write_result
     r = design(STEEL, {"theta_i": "10:80:5", "theta_r": "0:85:5"}, noise=DESIGN_NOISE,
                n_measurements=DESIGN_MEASUREMENTS, target=("n", "k"), engine=engine)

@@ -1,13 +1,14 @@
 """Per-pixel fits of image stacks of any size into a Zarr store, block by block, resumable, on one
-machine or a ``dask.distributed`` cluster: :func:`fit_batch_to_store` (``pbrdf-cl fit-image``,
-``pbrdf_cl.fitting.batch.fit_batch(..., store=...)``).
+machine or a ``dask.distributed`` cluster: :func:`write_store`, what ``pbrdf_cl.fit_batch(...,
+store=...)`` (``pbrdf-cl fit-image``) runs.  It takes a checked job and never imports the front
+door (:mod:`pbrdf_cl.fitting.batch`).
 
-The unit of work is :class:`pbrdf_cl.fitting.batch.BatchJob`'s block of rows of the first pixel
+The unit of work is :class:`pbrdf_cl.fitting.job.BatchJob`'s block of rows of the first pixel
 dimension (sized by ``memory_budget``); each block is read from the stack on its own, fitted,
 written, and marked done, as :mod:`pbrdf_cl.explore.sweeps` does with its chunks.
 
 Layout of the store (Zarr format 2, consolidated metadata; ``xarray.open_zarr`` reads it as the
-Dataset :func:`pbrdf_cl.fitting.batch.fit_batch` returns):
+Dataset :func:`pbrdf_cl.fit_batch` returns in memory):
 
 - the variables of that Dataset (``n``, ``n_stderr``, ``n_ci95``, ..., ``sse``, ``chi2``,
   ``determined``, ``n_valid``, ``nfev``, ``status``) with their attrs, and its coordinates
@@ -47,6 +48,7 @@ from .. import sizes
 from ..explore import sweeps
 from ..device.engine import kernels_sha256, resolve_engine
 from ..errors import StoreError
+from .dataset import PIXEL_STATUS, goodness_summary
 
 #: Version of the canonical settings (part of their hash).
 SETTINGS_VERSION = 2  # 2: the goodness-of-fit variables (r2, p_value, fits_data)
@@ -68,8 +70,8 @@ class _Layout:
 # identity: the job's settings and its input
 
 def _rows_sha256(raw):
-    """SHA-256 of the arrays :meth:`pbrdf_cl.fitting.batch._Source.rows` returns (names, shapes, dtypes,
-    bytes)."""
+    """SHA-256 of the arrays :meth:`pbrdf_cl.fitting.source.Source.rows` returns (names, shapes,
+    dtypes, bytes)."""
     h = hashlib.sha256()
     for name in sorted(raw):
         a = np.ascontiguousarray(raw[name])
@@ -94,7 +96,7 @@ def settings(job, block_rows):
 
     Parameters
     ----------
-    job : pbrdf_cl.fitting.batch.BatchJob
+    job : pbrdf_cl.fitting.job.BatchJob
         The checked job.
     block_rows : int
         Rows of the first pixel dimension per block (one Zarr chunk).
@@ -106,12 +108,12 @@ def settings(job, block_rows):
         axes' values), ``intensity``, ``sigma_known``, ``noise_floor``, ``block_rows``, the
         kernels' SHA-256 is not in it (stored beside), and ``stack``: shape, dims, measurements,
         variables, geometry and ``sample_sha256`` (SHA-256 of SAMPLE_ROWS rows of every
-        variable; the whole input is checked block by block, see :func:`fit_batch_to_store`).
+        variable; the whole input is checked block by block, see :func:`write_store`).
 
     Examples
     --------
     >>> import numpy as np, pbrdf_cl
-    >>> from pbrdf_cl.fitting.batch import BatchJob
+    >>> from pbrdf_cl.fitting.job import BatchJob
     >>> ti, tr = np.repeat([30.0, 40, 50], 10), np.tile(np.arange(20.0, 66, 5), 3)
     >>> dop = np.broadcast_to(pbrdf_cl.dop(ti, tr, n=1.6, k=2.139, sigma=0.5, kd=0.15, c=-0.3), (2, 3, 30))
     >>> s = settings(BatchJob(dict(dop=dop, theta_i=ti, theta_r=tr)), 1)
@@ -171,13 +173,6 @@ def _block_dataset(job, out, r0, r1):
     return part.dataset(out)
 
 
-def _placeholder(job, rows):
-    """Outputs of :meth:`~pbrdf_cl.fitting.batch.BatchJob.fit_rows` for ``rows`` rows with the right keys,
-    shapes and dtypes (the store's template)."""
-    from .batch import _empty_outputs
-    return _empty_outputs(rows * int(np.prod(job.source.shape[1:], dtype=np.int64)), len(job.names))
-
-
 class _Writer:
     """Writes blocks of one job into one store (opened once per process)."""
 
@@ -230,7 +225,7 @@ def run_block(job, name, digest, i, r0, r1, device=None, backend="auto"):
 
     Parameters
     ----------
-    job : pbrdf_cl.fitting.batch.BatchJob
+    job : pbrdf_cl.fitting.job.BatchJob
         The job (scattered to every worker).
     name : str
         The store (a path every worker sees, or a URL).
@@ -263,7 +258,7 @@ def run_block(job, name, digest, i, r0, r1, device=None, backend="auto"):
 
 def _write_skeleton(job, blocks, block_rows, the_settings, memory_budget, store):
     """Coordinates, empty variables, the done record, then (last: the commit point) the root attrs."""
-    template = _block_dataset(job, _placeholder(job, 1), 0, 1)
+    template = _block_dataset(job, job.empty_outputs(1), 0, 1)
     g = sweeps._open_group(store, "w")
     first = job.source.dims[0]
     n0 = job.source.shape[0]
@@ -376,9 +371,8 @@ def _mark_complete(name, n_blocks):
 
 
 def _add_goodness(name, ds):
-    """The goodness-of-fit summary of a complete store (:func:`pbrdf_cl.fitting.batch.goodness_summary`,
+    """The goodness-of-fit summary of a complete store (:func:`pbrdf_cl.fitting.dataset.goodness_summary`,
     read block by block) written into its attrs; returns it."""
-    from .batch import goodness_summary
     summary = goodness_summary(ds)
     g = sweeps._open_group(name, "r+")
     g.attrs.update(summary)
@@ -401,7 +395,7 @@ def read_progress(store):
     Parameters
     ----------
     store : str or path
-        A store of :func:`fit_batch_to_store`.
+        A store of :func:`pbrdf_cl.fit_batch` (``store=``).
 
     Returns
     -------
@@ -423,7 +417,7 @@ def store_bytes(job):
 
     Parameters
     ----------
-    job : pbrdf_cl.fitting.batch.BatchJob
+    job : pbrdf_cl.fitting.job.BatchJob
         The job.
 
     Returns
@@ -447,20 +441,19 @@ def status_counts(ds):
     Parameters
     ----------
     ds : xarray.Dataset
-        A result of :func:`fit_batch_to_store` or :func:`pbrdf_cl.fitting.batch.fit_batch`.
+        A result of :func:`pbrdf_cl.fit_batch` (in memory or from a store).
 
     Returns
     -------
     dict
-        Status name (``pbrdf_cl.fitting.batch.STATUS``) -> pixels, for the codes present, in the order of
-        ``STATUS``.
+        Status name (:data:`pbrdf_cl.fitting.dataset.PIXEL_STATUS`) -> pixels, for the codes present, in
+        the order of ``PIXEL_STATUS``.
 
     Examples
     --------
     >>> status_counts(ds)  # doctest: +SKIP
     {'converged': 200, 'underdetermined': 56}
     """
-    from .batch import STATUS
     st = ds["status"]
     counts = np.zeros(256, np.int64)
     if st.chunks:
@@ -471,17 +464,88 @@ def status_counts(ds):
             r += size
     else:
         counts += np.bincount(np.asarray(st.values, np.int64).ravel() + 128, minlength=256)
-    out = {STATUS[c][0]: int(counts[c + 128]) for c in STATUS if counts[c + 128]}
+    out = {PIXEL_STATUS[c][0]: int(counts[c + 128]) for c in PIXEL_STATUS if counts[c + 128]}
     other = int(counts.sum()) - sum(out.values())
     if other:
         out["unknown"] = other
     return out
 
 
-def fit_batch_to_store(data, store, *, model="six-param", bounds=None, fixed=None, shadowing="paper",
-                       memory_budget=None, progress=False, n_starts=None, grid_shape=None, engine=None,
-                       backend="auto", workers=None, scheduler=None, client=None, device=None, allow_large=False):
-    """Fit every pixel of an image stack into a Zarr store, block by block; resumable.
+def check_cluster(workers=None, scheduler=None, client=None, engine=None):
+    """Check the cluster options of a store's fit before any work; returns how many were given.
+
+    Parameters
+    ----------
+    workers, scheduler, client : optional
+        As for :func:`write_store`: at most one of them.
+    engine : pbrdf_cl.Engine, optional
+        A local run's engine: refused with a cluster (every worker builds its own).
+
+    Returns
+    -------
+    int
+        0 (a local run) or 1.
+
+    Raises
+    ------
+    ValueError
+        More than one of them, ``workers`` not a positive integer, or ``engine`` with a cluster.
+    RuntimeError
+        A cluster without ``dask.distributed`` installed.
+
+    Examples
+    --------
+    >>> check_cluster(workers=2)  # doctest: +SKIP
+    1
+    """
+    given = sum(x is not None for x in (workers, scheduler, client))
+    if given > 1:
+        raise ValueError("give at most one of workers=, scheduler= and client=")
+    if workers is not None and (isinstance(workers, bool) or not isinstance(workers, (int, np.integer))
+                                or workers < 1):
+        raise ValueError(f"workers must be a positive integer, got {workers!r}")
+    if given and engine is not None:
+        raise ValueError("engine= is for a local run; every cluster worker builds its own (device=, backend=)")
+    if given:
+        import importlib.util
+        if importlib.util.find_spec("distributed") is None:
+            raise RuntimeError("a cluster fit needs dask.distributed: pip install 'pbrdf-cl[cluster]' "
+                               "(or run without --workers/--scheduler)")
+    return given
+
+
+def local_engine(engine=None, backend="auto", device=None):
+    """The engine a local run computes with: ``engine`` if given, else this process's engine for
+    ``device`` (built once, :func:`pbrdf_cl.explore.sweeps.worker_engine`), else the default for
+    ``backend``.
+
+    Parameters
+    ----------
+    engine : pbrdf_cl.Engine or NumpyEngine, optional
+        The caller's.
+    backend : {"auto", "opencl", "numpy"}, default "auto"
+        As for :func:`pbrdf_cl.dop`.
+    device : str, optional
+        An OpenCL device (see :func:`pbrdf_cl.select_device`).
+
+    Returns
+    -------
+    pbrdf_cl.Engine or pbrdf_cl.NumpyEngine
+
+    Examples
+    --------
+    >>> local_engine(backend="numpy")
+    NumpyEngine(float64 reference)
+    """
+    if engine is not None or device is None:
+        return resolve_engine(engine, backend)
+    return sweeps.worker_engine(device, backend)
+
+
+def write_store(job, store, *, progress=False, engine=None, backend="auto", device=None, workers=None, scheduler=None,
+                client=None, allow_large=False):
+    """Fit every pixel of a checked job into a Zarr store, block by block; resumable (what
+    ``pbrdf_cl.fit_batch(..., store=...)`` runs).
 
     A store that already holds this job (same settings, input and kernels) is resumed: only the
     blocks not marked done are fitted, and the finished store is byte for byte the store of an
@@ -500,7 +564,7 @@ def fit_batch_to_store(data, store, *, model="six-param", bounds=None, fixed=Non
 
     Memory: one block in flight per engine, sized by ``memory_budget``: the input is read a block
     of rows at a time (with the chunks of a lazy stack that hold them), the outputs written a
-    block at a time.  Nothing here reads the whole stack; :class:`~pbrdf_cl.fitting.batch.BatchJob`'s
+    block at a time.  Nothing here reads the whole stack; :class:`~pbrdf_cl.fitting.job.BatchJob`'s
     check of the angles reads the first measurement of per-pixel ``theta_i`` and ``theta_r`` of
     every pixel (1/M of those variables), and a block is never smaller than one row.  (How much
     one block takes is BatchJob's estimate.)  With a cluster the job is sent to each worker
@@ -509,19 +573,21 @@ def fit_batch_to_store(data, store, *, model="six-param", bounds=None, fixed=Non
 
     Parameters
     ----------
-    data : xarray.Dataset, dict of arrays or path
-        The stack, as for :func:`pbrdf_cl.fitting.batch.fit_batch`; a path to a ``.nc`` stack is opened
-        lazily (dask) here, so that it is read a block at a time.
+    job : pbrdf_cl.fitting.job.BatchJob
+        The checked job (the stack, its settings and blocks); with a path to a ``.nc`` stack,
+        opened by :func:`pbrdf_cl.fitting.source.open_stack_lazily` so that it is read a block at
+        a time.
     store : str or path
         The Zarr store (a local path, or the URL of an fsspec store that every worker reaches);
         created if absent, resumed if it holds this job, refused otherwise.
-    model, bounds, fixed, shadowing, memory_budget, n_starts, grid_shape
-        As for :func:`pbrdf_cl.fitting.batch.fit_batch` (None: its defaults).
     progress : bool, default False
         A tqdm bar in pixels (pixels/s, the time left) on stderr.
     engine, backend
-        Where a local run computes (as for :func:`pbrdf_cl.fitting.batch.fit_batch`); ``backend`` (and
+        Where a local run computes (as for :func:`pbrdf_cl.fit_batch`); ``backend`` (and
         ``device``) is also what every cluster worker builds its own engine for.
+    device : str, optional
+        The OpenCL device (see :func:`pbrdf_cl.select_device`) for a local run without
+        ``engine``, and for every worker.
     workers : int, optional
         Fit on a local ``dask.distributed`` cluster of this many processes (1 thread each).
     scheduler : str, optional
@@ -529,9 +595,6 @@ def fit_batch_to_store(data, store, *, model="six-param", bounds=None, fixed=Non
     client : distributed.Client, optional
         A client of a running cluster.  The workers write their blocks into the store
         themselves (as sweep workers do): it must be a path or URL they all reach.
-    device : str, optional
-        The OpenCL device (see :func:`pbrdf_cl.select_device`) for a local run without
-        ``engine``, and for every worker.
     allow_large : bool, default False
         Start even if the store (uncompressed) would not fit on the free disk.
 
@@ -539,7 +602,7 @@ def fit_batch_to_store(data, store, *, model="six-param", bounds=None, fixed=Non
     -------
     xarray.Dataset
         The result opened from the store (``xarray.open_zarr``: lazy), with the variables of
-        :func:`pbrdf_cl.fitting.batch.fit_batch`; ``attrs`` add ``seconds`` (this run), ``blocks_computed``
+        :func:`pbrdf_cl.fit_batch`; ``attrs`` add ``seconds`` (this run), ``blocks_computed``
         and ``blocks_skipped`` (this run) to the store's.
 
     Raises
@@ -547,42 +610,23 @@ def fit_batch_to_store(data, store, *, model="six-param", bounds=None, fixed=Non
     StoreError
         The store holds another job, or another input; a ``ValueError``.
     ValueError
-        Bad input (as :func:`pbrdf_cl.fitting.batch.fit_batch`), or more than one of ``workers``,
-        ``scheduler`` and ``client``.
+        More than one of ``workers``, ``scheduler`` and ``client`` (:func:`check_cluster`).
     RuntimeError
         A cluster without ``dask.distributed`` installed.
 
     Examples
     --------
     >>> import numpy as np, pbrdf_cl, tempfile, os
-    >>> from pbrdf_cl.fitting.batch_store import fit_batch_to_store
+    >>> from pbrdf_cl.fitting.job import BatchJob
     >>> ti, tr = np.repeat([30.0, 40, 50], 10), np.tile(np.arange(20.0, 66, 5), 3)
     >>> dop = np.broadcast_to(pbrdf_cl.dop(ti, tr, n=1.6, k=2.139, sigma=0.5, kd=0.15, c=-0.3), (2, 3, 30))
     >>> out = os.path.join(tempfile.mkdtemp(), "fit.zarr")
-    >>> ds = fit_batch_to_store(dict(dop=dop, theta_i=ti, theta_r=tr), out)
+    >>> ds = write_store(BatchJob(dict(dop=dop, theta_i=ti, theta_r=tr)), out)
     >>> ds.n.shape, ds.attrs["batch_complete"], bool(abs(ds.n - 1.6).max() < 1e-3)
     ((2, 3), True, True)
     """
     import xarray as xr
-    from . import batch
-    given = sum(x is not None for x in (workers, scheduler, client))
-    if given > 1:
-        raise ValueError("give at most one of workers=, scheduler= and client=")
-    if workers is not None and (isinstance(workers, bool) or not isinstance(workers, (int, np.integer))
-                                or workers < 1):
-        raise ValueError(f"workers must be a positive integer, got {workers!r}")
-    if given and engine is not None:
-        raise ValueError("engine= is for a local run; every cluster worker builds its own (device=, backend=)")
-    if given:
-        import importlib.util
-        if importlib.util.find_spec("distributed") is None:
-            raise RuntimeError("a cluster fit needs dask.distributed: pip install 'pbrdf-cl[cluster]' "
-                               "(or run without --workers/--scheduler)")
-    if isinstance(data, (str, os.PathLike)):
-        data = _open_lazily(data)
-    job = batch.BatchJob(data, model, bounds, fixed, shadowing,
-                         memory_budget=batch.DEFAULT_BUDGET if memory_budget is None else memory_budget,
-                         n_starts=batch.N_STARTS if n_starts is None else n_starts, grid_shape=grid_shape)
+    given = check_cluster(workers, scheduler, client, engine)
     blocks = job.blocks()
     block_rows = blocks[0][1] - blocks[0][0]
     need, free = store_bytes(job), sizes.free_disk(store)
@@ -619,8 +663,7 @@ def fit_batch_to_store(data, store, *, model="six-param", bounds=None, fixed=Non
             bar.update(pixels)
     try:
         if todo.size and not given:
-            eng = resolve_engine(engine, backend) if engine is not None or device is None else \
-                sweeps.worker_engine(device, backend)
+            eng = local_engine(engine, backend, device)
             writer = _Writer(name, digest)
             _add_devices(name, [eng.description])
             for i in todo:
@@ -647,16 +690,3 @@ def fit_batch_to_store(data, store, *, model="six-param", bounds=None, fixed=Non
 
 def _pixels(job, r0, r1):
     return (r1 - r0) * int(np.prod(job.source.shape[1:], dtype=np.int64))
-
-
-def _open_lazily(path):
-    """A stack path as a Dataset read a block at a time: ``.nc`` through dask (``open_stack``
-    reads it lazily, but the fit would load the whole of it); the others as ``open_stack``."""
-    from .batch import open_stack
-    ds = open_stack(path)
-    if Path(path).suffix.lower() in (".nc", ".h5", ".netcdf"):
-        try:
-            ds = ds.chunk()
-        except (ImportError, ValueError):  # pragma: no cover - no dask: read it whole
-            pass
-    return ds

@@ -179,7 +179,7 @@ def _figure(ds, truth, max_side):
     from matplotlib.colors import BoundaryNorm, ListedColormap
     from matplotlib.patches import Patch
 
-    from ..fitting.batch import STATUS
+    from ..fitting.dataset import PIXEL_STATUS as STATUS
 
     if "status" not in ds:
         raise ValueError("plot_batch_maps: the dataset has no 'status': not a result of fit_batch")

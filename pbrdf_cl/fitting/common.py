@@ -1,0 +1,135 @@
+"""The internal interface the modules of :mod:`pbrdf_cl.fitting` share (scipy's ``_lsq/common.py``
+in spirit), and :func:`pbrdf_cl.design` with them:
+
+- finite differences and the batched descent: :func:`fd_jacobian` (forward, scipy's steps, or
+  central), :func:`lm_batch` (bounded Levenberg-Marquardt from many starts at once; the numpy
+  backend's per-pixel descent and :func:`pbrdf_cl.fit`'s screen stage);
+- the noise floor of fits without given uncertainties: :data:`DOP_NOISE_FLOOR`,
+  :func:`dop_resolution`, :func:`dop_noise_floor`; the resolution of a located optimum
+  (:data:`X_RESOLUTION`);
+- the goodness-of-fit test of a fit and of each pixel of an image fit: :data:`GOODNESS_P`,
+  :data:`GOODNESS_R2` and the usual causes of a failure named in their notes
+  (:data:`MISTAKE_CAUSES`).
+"""
+import numpy as np
+
+#: Resolution of the located optimum, as a fraction of each parameter's bound range: the
+#: smallest half-width a 95% interval is given.
+X_RESOLUTION = 1e-8
+#: Without given uncertainties (no dop_std) the DOP noise is estimated from the residuals, and an
+#: exact fit (noise-free synthetic data; as many distinct geometries as free parameters) would make
+#: it zero and every interval a point.  The estimate is never taken below a floor: the standard
+#: deviation of the rounding error of the data's DOP resolution (step / sqrt(12), the step read
+#: from the decimals of the values, e.g. 0.01 for "0.25, 0.31, ..."), and at least this value, a
+#: conservative precision of DOP measurement (polarimeters resolve DOP to about 1e-3 to 1e-2).
+DOP_NOISE_FLOOR = 1e-3
+#: The most decimals :func:`dop_resolution` looks for (more: no resolution is read from the values).
+DOP_MAX_DECIMALS = 8
+#: With given uncertainties, a chi2 whose p-value is below this says the model does not fit.
+GOODNESS_P = 1e-3
+#: Without them, a fit that explains less than this fraction of the DOP's variance does not fit.
+GOODNESS_R2 = 0.9
+#: What usually makes a fit fail the goodness-of-fit test (named in its note and warning).
+MISTAKE_CAUSES = ("angles in radians (pbrdf-cl takes degrees), the phi convention (180 is in plane, the specular "
+                  "side; SCATMECH's 0), another shadowing variant (shadowing=), DOP in percent or dop_std too small")
+
+
+def _fd_steps(x, hi):
+    """scipy's '2-point' steps for ``x`` (any shape): relative step sqrt(eps), inwards at an
+    upper bound, as actually taken (exactly representable)."""
+    h = np.sqrt(np.finfo(float).eps) * np.maximum(1.0, np.abs(x))
+    h = np.where(x + h > hi, -h, h)
+    return (x + h) - x
+
+
+#: Step of the central differences of :func:`fd_jacobian`, as a fraction of each bound range.
+CENTRAL_STEP = 1e-6
+
+
+def fd_jacobian(rows, X, lo, hi, scheme="2-point"):
+    """Finite-difference Jacobians of a batched residual function at P points at once, the points
+    and all their steps in one call of ``rows`` ((B, d) parameter vectors -> (B, M) residuals).
+
+    ``scheme`` "2-point": scipy's forward differences (:func:`_fd_steps`: relative step sqrt(eps),
+    inwards at an upper bound); "central": steps of ``CENTRAL_STEP`` of each bound range either
+    side, cut (one-sided) at a bound.  Returns (R, J): the residuals at ``X`` (P, M) and the
+    Jacobians (P, d, M), ``J[p, j]`` the derivative along parameter j."""
+    X = np.asarray(X, float)
+    P, d = X.shape
+    base = X[:, None, :]
+    if scheme == "2-point":
+        h = _fd_steps(X, hi)
+        pts = np.concatenate([base, base + h[:, :, None] * np.eye(d)[None]], axis=1)
+        R = rows(pts.reshape(-1, d)).reshape(P, d + 1, -1)
+        return R[:, 0], (R[:, 1:] - R[:, :1]) / h[:, :, None]
+    if scheme != "central":
+        raise ValueError(f"scheme must be '2-point' or 'central', got {scheme!r}")
+    h = CENTRAL_STEP * (hi - lo)
+    up, dn = np.minimum(X + h, hi), np.maximum(X - h, lo)
+    eye = np.eye(d, dtype=bool)[None]
+    pts = np.concatenate([base, np.where(eye, up[:, None, :], base), np.where(eye, dn[:, None, :], base)], axis=1)
+    R = rows(pts.reshape(-1, d)).reshape(P, 2 * d + 1, -1)
+    return R[:, 0], (R[:, 1:d + 1] - R[:, d + 1:]) / (up - dn)[:, :, None]
+
+
+def lm_batch(resid_rows, X0, lo, hi, iterations):
+    """Bounded Levenberg-Marquardt from P starts at once, every problem's trial point and its
+    forward-difference Jacobian (:func:`fd_jacobian`, "2-point") in one batched call per
+    iteration.  Levenberg damping in coordinates scaled to the bounds (a coordinate whose
+    column vanishes, as k does at k = 0, gets no runaway step); a coordinate on a bound whose
+    descent direction points outwards is held there, the others' steps are projected onto the
+    bounds.  Returns (X, sse, row evaluations)."""
+    X = np.clip(np.array(X0, float), lo, hi)
+    P, d = X.shape
+    span = hi - lo
+    eye = np.eye(d)
+    tol = 1e-12 * span
+
+    def evaluate(X):
+        r, J = fd_jacobian(resid_rows, X, lo, hi)
+        J = J * span[None, :, None]  # in coordinates scaled to the bounds
+        return r, J, np.einsum("pm,pm->p", r, r)
+
+    r, J, sse = evaluate(X)
+    lam = 1e-3 * np.einsum("pim,pim->p", J, J) / d
+    for _ in range(iterations):
+        g = np.einsum("pim,pm->pi", J, r)
+        held = ((X <= lo + tol) & (g > 0)) | ((X >= hi - tol) & (g < 0))
+        Jf = np.where(held[:, :, None], 0.0, J)
+        g = np.where(held, 0.0, g)
+        A = np.einsum("pim,pjm->pij", Jf, Jf) + (lam[:, None] + held)[:, :, None] * eye[None]
+        with np.errstate(all="ignore"):
+            try:
+                du = -np.linalg.solve(A, g[:, :, None])[:, :, 0]
+            except np.linalg.LinAlgError:  # a singular problem (an overflowing or vanishing Jacobian):
+                du = np.zeros_like(X)     # no step for it, more damping; the others step as alone
+                for i in range(P):
+                    try:
+                        du[i] = -np.linalg.solve(A[i], g[i])
+                    except np.linalg.LinAlgError:
+                        pass
+        du = np.where(np.isfinite(du), du, 0.0)
+        Xt = np.clip(X + du * span, lo, hi)
+        rt, Jt, sset = evaluate(Xt)
+        ok = sset < sse
+        X[ok], r[ok], J[ok], sse[ok] = Xt[ok], rt[ok], Jt[ok], sset[ok]
+        lam = np.clip(np.where(ok, lam * 0.3, lam * 6.0), 1e-300, 1e300)
+    return X, sse, P * (d + 1) * (iterations + 1)
+
+
+def dop_resolution(dop, max_decimals=DOP_MAX_DECIMALS, axis=None):
+    """The DOP resolution of the values: 10 ** -d for the fewest decimals d (at most
+    ``max_decimals``) that write every value exactly, or 0.0 where none does; with ``axis``, of
+    each slice along it (an array)."""
+    dop = np.asarray(dop, float)
+    res = 0.0
+    for d in range(max_decimals, -1, -1):  # the fewest decimals that write every value win
+        step = 10.0 ** -d
+        res = np.where(np.all(np.abs(np.round(dop / step) * step - dop) <= 1e-9 * step, axis=axis), step, res)
+    return res if axis is not None else float(res)
+
+
+def dop_noise_floor(dop):
+    """The smallest DOP noise standard deviation assumed without given uncertainties
+    (:data:`DOP_NOISE_FLOOR`): the rounding error of the data's resolution, at least the default."""
+    return max(DOP_NOISE_FLOOR, dop_resolution(dop) / np.sqrt(12.0))

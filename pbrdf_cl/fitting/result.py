@@ -1,0 +1,307 @@
+"""What :func:`pbrdf_cl.fit` returns: :class:`FitResult` (with :data:`FIT_STATUS`, its status
+table), :class:`ComparisonResult`, and the notes a fit carries (the model's conventions, the
+data's mistakes, bounds, identifiability, goodness of fit, ambiguous basins)."""
+from __future__ import annotations
+
+import numpy as np
+
+from ..compute import pointwise
+from ..results import Result
+from .common import DOP_NOISE_FLOOR, GOODNESS_P, GOODNESS_R2, MISTAKE_CAUSES, dop_resolution
+from .setup import F00_REL_STD, PARAMETERS
+
+#: FitResult.status -> message (scipy's convention: success is status > 0).
+FIT_STATUS = {
+    1: "converged: the local stages met their tolerances",
+    2: "converged: least squares ran out of evaluations along a flat valley and BOBYQA finished (it stopped "
+       "improving)",
+    0: "stopped: an evaluation budget ran out while the objective was still falling; the result is the best "
+       "point found",
+    -1: "failed: the model's residuals are not finite at any candidate",
+}
+#: How many of the strongest correlations the notes name.
+MAX_CORR_NOTES = 3
+
+
+class FitResult(Result):
+    """Result of :func:`fit`; keys are also attributes, which may be assigned (like scipy's
+    ``OptimizeResult``).
+
+    success, status, message
+        like scipy's: ``status`` is one of :data:`FIT_STATUS` (1: the local stages converged; 2:
+        least squares ran out of evaluations along a flat valley and the final BOBYQA finished;
+        0: an evaluation budget ran out while the objective was still falling (see ``SETTLED_REL``
+        in :mod:`pbrdf_cl.fitting.stages`), the result is the best point found; -1: the residuals
+        are not finite at any candidate), ``success`` is ``status > 0`` and ``message`` says which.
+
+    Without given uncertainties (no dop_std) the noise is estimated from the residuals, never
+    below :func:`dop_noise_floor` (an exact fit would make every interval a point); a note says
+    when the floor was used.  Fewer distinct geometries than free parameters are refused.
+
+    x (dict: every model parameter, fitted and fixed, as the model takes them: ``x["kd"]`` is
+    the absolute kd, so that ``pbrdf_cl.dop(..., **res.x)`` evaluates the fit), kd_ratio (kd/ks),
+    free (names fitted), sse, chi2, reduced_chi2, rmse, residuals, stderr, corr (matrix over
+    ``free``), condition_number, aic, bic, dof, nfev and seconds per stage, basins (candidates
+    with their SSE), ambiguous, notes (list of sentences), and three kinds of 95% interval (dicts
+    name -> (lo, hi)).
+
+    Which kd: without intensities the DOP sees kd/ks only, ks is fixed (at 1 unless ``fixed``
+    says otherwise) and kd is fitted as itself (equal to kd/ks at ks = 1).  With an intensity
+    column (``f00``/``s0``) ks is fitted too and the fitted coordinate is the ratio: ``stderr``,
+    the intervals, ``corr`` and ``profiles`` under "kd" are those of kd/ks (``kd_ratio``), while
+    ``x["kd"]`` is kd/ks x ks.  ``summary()`` prints both rows, kd/ks and kd, saying which is which.
+
+    ci95
+        the central 95% of the parameter's posterior under a uniform prior over the bounds,
+        approximated as the equal mixture of two approximations: the local (Laplace) one,
+        x +- stderr * (Gaussian, or Student's t without given uncertainties) truncated to the
+        bounds, and the device grid's profile likelihood normalised over the bounds (where the
+        grid resolves it: its own interval spans at least ``GRID_RESOLVED_CELLS`` cells, of
+        :mod:`pbrdf_cl.fitting.uncertainty`).  Where the data determine a parameter this is
+        about x +- 1.96 stderr; where they do not, it is the middle 95% of its bounds (not all of
+        them), so it covers the truth about 95% of the time in both cases (``scripts/bench_fit.py``
+        measures it).  It need not contain x: the best fit of a parameter the data do not
+        determine is arbitrary and often sits on a bound.
+    ci95_jacobian
+        x +- 1.96 stderr (Student's t without given uncertainties, unless the noise floor was
+        used), clipped to the bounds.
+    ci95_profile
+        likelihood ratio: the grid nodes whose profile is within 3.84 units of chi^2 of the
+        optimum, widened to the next node (None where no node is).
+
+    profiles maps each free parameter to the grid's profile: ``values`` (nodes) and ``sse``
+    (minimum of the objective over the other parameters at each node).
+    """
+
+    def summary(self):
+        lines = [f"model: {self['model']}  (shadowing {self['shadowing']}, {self['n_points']} points, "
+                 f"{len(self['free'])} free parameters)"]
+        if not self.get("fits_data", True):
+            lines.append("  WARNING: the model does not describe these data (see the first note); the "
+                         "values and intervals below are not to be trusted")
+        ratio = "ks" in self["free"] and "kd" in self["free"]  # intensities: kd/ks and ks were fitted
+        for name in self["x"]:
+            if name == "kd" and ratio:
+                lo, hi = self["ci95"][name]
+                lines.append(f"  {'kd/ks':6s} = {self['kd_ratio']:10.5g}  +- {self['stderr'][name]:.3g}   "
+                             f"95% interval [{lo:.4g}, {hi:.4g}]  (fitted: stderr, ci95, corr of 'kd')")
+                lines.append(f"  {'kd':6s} = {self['x'][name]:10.5g}  (absolute, kd/ks x ks: x['kd'])")
+            elif name in self["free"]:
+                lo, hi = self["ci95"][name]
+                lines.append(f"  {name:6s} = {self['x'][name]:10.5g}  +- {self['stderr'][name]:.3g}   "
+                             f"95% interval [{lo:.4g}, {hi:.4g}]" + self._kd_tag(name))
+            else:
+                lines.append(f"  {name:6s} = {self['x'][name]:10.5g}  (fixed)" + self._kd_tag(name))
+        fit_line = f"  SSE {self['sse']:.4g} (DOP), RMSE {self['rmse']:.4g}"
+        if self.get("sigma_known"):  # chi2 means something only with given uncertainties
+            fit_line += (f", chi2 {self['chi2']:.4g} for {self['dof']} dof (reduced {self['reduced_chi2']:.3g}, "
+                         f"p = {self['p_value']:.3g})")
+        lines.append(fit_line + f", AIC {self['aic']:.2f}, BIC {self['bic']:.2f}")
+        lines.append("  stages: " + ", ".join(f"{k} {self['nfev'][k]} evals / {self['seconds'][k]:.3f} s"
+                                               for k in self["nfev"]))
+        if not self.get("success", True):
+            lines.append(f"  status {self['status']}: {self['message']}")
+        for note in self["notes"]:
+            lines.append(f"  note: {note}")
+        return "\n".join(lines)
+
+    def _kd_tag(self, name):
+        """What a DOP-only fit's kd is: the ratio kd/ks where ks is 1, else absolute at the fixed ks."""
+        if name != "kd" or "ks" not in self["x"] or "ks" in self["free"]:
+            return ""
+        ks = self["x"]["ks"]
+        return "  (= kd/ks: ks fixed at 1)" if ks == 1.0 else f"  (absolute, with ks fixed at {ks:g})"
+
+    def __repr__(self):
+        values = ", ".join(f"{n}={v:.4g}" for n, v in self["x"].items())
+        return (f"FitResult(model={self['model']!r}, success={self['success']}, {values}, "
+                f"sse={self['sse']:.4g}, notes={len(self['notes'])}; .summary() for the report)")
+
+
+class ComparisonResult(Result):
+    """Result of :func:`compare_models`: ``fits`` (model name -> :class:`FitResult`, also the keys
+    "six-param" and "specular"), ``preferred`` (the lower BIC), ``table`` (Markdown) and
+    :meth:`summary`."""
+
+    def summary(self):
+        lines = ["model comparison (lower AIC/BIC is better):"]
+        for name, r in self["fits"].items():
+            lines.append(f"  {name:10s} SSE {r.sse:10.4g}  AIC {r.aic:9.2f}  BIC {r.bic:9.2f}  ({len(r.free)} free)")
+        lines.append(f"  preferred by BIC: {self['preferred']}")
+        return "\n".join(lines)
+
+    def __repr__(self):
+        return (f"ComparisonResult(preferred={self['preferred']!r}, "
+                + ", ".join(f"{k}: BIC {r.bic:.2f}" for k, r in self["fits"].items()) + ")")
+
+
+def fit_status(best, final_ran, intensity):
+    """FitResult.status from the best candidate, whether the final BOBYQA ran, and the intensity
+    stage's candidate (or None)."""
+    last = intensity if intensity is not None else best
+    if not last.sse < 1e300:
+        return -1
+    if last.converged is False:
+        return 0
+    return 2 if final_ran else 1
+
+
+def fit_result(meas, model, shadowing, resid, x, lo, hi, unc, cands, grid, stages, status, notes):
+    """The :class:`FitResult` of :func:`fit` from its stages' outputs."""
+    names, free = list(resid.free), list(grid.axes)
+    sigma_known = meas.dop_std is not None
+    p = resid.params(x)
+    dop_resid = resid.model.dop(p) - meas.dop
+    m_obs, n_free = unc.residuals.size, len(names)
+    # -2 log-likelihood up to a constant: chi^2 with known sigmas, else m log(SSE / m)
+    neg2ll = unc.chi2 if sigma_known else m_obs * np.log(max(unc.chi2, 1e-300) / m_obs)
+    aic, bic = neg2ll + 2 * n_free, neg2ll + n_free * np.log(m_obs)
+    fits_data, p_value, r2, first = _goodness(meas, dop_resid, unc, sigma_known)
+    notes = first + _convention_notes(meas) + notes + _bound_notes(names, x, lo, hi, unc.ci95)
+    notes += _identifiability_notes(names, unc.jacobian, unc.condition_number, unc.eig, x, unc.stderr, unc.corr,
+                                    hi - lo)
+    if unc.noise_floor is not None:
+        notes.append(f"the fit is (nearly) exact: the noise estimated from the residuals (std "
+                     f"{np.sqrt(unc.chi2 / unc.dof):.2g}) is below the noise floor, so the uncertainties assume "
+                     f"DOP noise of std {unc.noise_floor:.2g} (the larger of the data's DOP resolution "
+                     f"{dop_resolution(meas.dop):g} / sqrt(12) and {DOP_NOISE_FLOOR:g}); give a dop_std column "
+                     "to set it")
+    ambiguous = _ambiguous_basins(cands, free, unc.unit, unc.stderr)
+    if ambiguous:
+        alt = ", ".join(f"{n}={ambiguous[0][n]:.4g}" for n in free)
+        notes.append(f"ambiguous: another basin fits equally well ({alt}: its objective, the weighted sum of "
+                     f"squares the local stages minimise, is {ambiguous[0]['sse']:.4g} against the best's "
+                     f"{cands[0].sse:.4g}, within one unit of chi2, {unc.unit:.3g}); the data cannot decide "
+                     "between them")
+    x_out = {n: float(p[n]) for n in PARAMETERS}
+    kd_ratio = x_out["kd"] / x_out["ks"]
+    if model == "specular":
+        x_out = {n: x_out[n] for n in ("n", "k")}
+    return FitResult(
+        model=model, shadowing=shadowing, x=x_out, kd_ratio=float(kd_ratio) if model == "six-param" else None,
+        free=names, sse=float(dop_resid @ dop_resid), chi2=unc.chi2,
+        reduced_chi2=unc.chi2 / unc.dof, rmse=float(np.sqrt(np.mean(dop_resid ** 2))), residuals=dop_resid,
+        dof=unc.dof, n_points=len(meas), stderr=dict(zip(names, map(float, unc.stderr))), ci95=unc.ci95,
+        ci95_jacobian=unc.ci95_jacobian, ci95_profile=unc.ci95_profile,
+        profiles={n: dict(values=grid.axes[n], sse=grid.profiles[n]) for n in free},
+        corr=_labelled(unc.corr, names, "correlation"), cov=_labelled(unc.cov, names, "covariance"),
+        fits_data=fits_data, p_value=p_value, r2=r2,
+        condition_number=unc.condition_number, aic=float(aic), bic=float(bic),
+        nfev={k: s.nfev for k, s in stages.items()}, seconds={k: s.seconds for k, s in stages.items()},
+        basins=[dict(zip(free, map(float, c.x)), sse=float(c.sse), seed=dict(zip(free, map(float, c.seed))))
+                for c in cands],
+        ambiguous=ambiguous, notes=notes, sigma_known=sigma_known,
+        success=status > 0, status=status, message=FIT_STATUS[status])
+
+
+def model_notes(model, fx, use_f00, meas):
+    notes = []
+    if model == "six-param" and not use_f00:
+        if "ks" in fx:
+            notes.append(f"ks is fixed at {fx['ks']:g} by the caller; DOP depends on ks and kd only through "
+                         "kd/ks, so kd is determined only relative to that choice")
+        else:
+            notes.append("DOP depends on ks and kd only through kd/ks: ks is fixed at 1 and kd is the ratio "
+                         "kd/ks (add an f00 or s0 intensity column to separate them)")
+    if model == "specular" and meas.f00 is not None:
+        notes.append("the specular model is fitted to the DOP only; the intensity column was not used")
+    if use_f00 and meas.f00_std is None:
+        notes.append(f"intensities weighted with an assumed {F00_REL_STD:.0%} relative uncertainty "
+                     "(give an f00_std column to set it)")
+    return notes
+
+
+def _ambiguous_basins(cands, free, unit, se):
+    """The other candidates within one unit of chi^2 of the best and more than 2 standard errors
+    away from it in some parameter (dicts of their parameters and SSE)."""
+    best = cands[0]
+    out = []
+    for c in cands[1:]:
+        if c.sse - best.sse <= unit and np.any(np.abs(c.x - best.x) > 2 * np.maximum(se[:len(free)], 1e-12)):
+            out.append(dict(zip(free, map(float, c.x)), sse=float(c.sse)))
+    return out
+
+
+def _identifiability_notes(names, J, cond, eig, x, se, corr, scale):
+    notes = []
+    w, v = eig
+    if not np.isfinite(cond) or cond > 1e4:
+        weak = v[:, 0]
+        order = np.argsort(-np.abs(weak))
+        terms = " ".join(f"{'+' if weak[i] >= 0 else '-'} {abs(weak[i]):.2f} d{names[i]}" for i in order[:3]
+                         if abs(weak[i]) > 0.1)
+        notes.append(f"near-degenerate direction (condition number {cond:.2g} in parameters scaled to their "
+                     f"bounds): the data barely constrain the combination {terms.lstrip('+ ')}")
+    col = np.linalg.norm(J, axis=0) * scale
+    for i, n in enumerate(names):
+        if col[i] < 1e-8 * max(col.max(), 1e-300):
+            notes.append(f"{n} is not determined by these data (the DOP does not change with it here"
+                         + ("; with kd = 0 the DOP does not depend on sigma or c" if n in ("sigma", "c") else "")
+                         + ")")
+        elif abs(x[i]) > 0 and se[i] > 0.5 * abs(x[i]):
+            notes.append(f"{n} is poorly determined: standard error {se[i]:.3g} on {x[i]:.4g}")
+    pairs = sorted(((abs(corr[i, j]), i, j) for i in range(len(names)) for j in range(i + 1, len(names))
+                    if np.isfinite(corr[i, j]) and abs(corr[i, j]) > 0.95), key=lambda t: -t[0])
+    if pairs:
+        shown = ", ".join(f"{names[i]}-{names[j]} (r = {corr[i, j]:+.3f})" for _, i, j in pairs[:MAX_CORR_NOTES])
+        more = f", and {len(pairs) - MAX_CORR_NOTES} more (see .corr)" if len(pairs) > MAX_CORR_NOTES else ""
+        notes.append(f"strongly correlated: {shown}{more}")
+    return notes
+
+
+def _goodness(meas, dop_resid, unc, sigma_known):
+    """(fits, p-value or None, R^2 or None, notes): whether the model describes the data, by chi2
+    against its degrees of freedom with given uncertainties, else by the residuals against the
+    data's spread."""
+    from scipy.stats import chi2 as chi2_dist
+    sst = float(np.sum((meas.dop - meas.dop.mean()) ** 2))
+    r2 = 1.0 - float(dop_resid @ dop_resid) / sst if sst > 0 else None
+    p = float(chi2_dist.sf(unc.chi2, unc.dof)) if sigma_known and unc.dof > 0 else None
+    if p is not None and p < GOODNESS_P:
+        return False, p, r2, [f"the model does not describe these data: chi2 = {unc.chi2:.4g} for {unc.dof} degrees "
+                              f"of freedom (p = {p:.2g}); usual causes: {MISTAKE_CAUSES}"]
+    if p is None and r2 is not None and r2 < GOODNESS_R2:
+        return False, p, r2, [f"the model does not describe these data: it explains {max(r2, 0):.0%} of the DOP's "
+                              f"variance (RMSE {np.sqrt(np.mean(dop_resid ** 2)):.3g} against the data's spread "
+                              f"{np.sqrt(sst / len(meas)):.3g}); usual causes: {MISTAKE_CAUSES}"]
+    return True, p, r2, []
+
+
+def _convention_notes(meas):
+    """The unit and convention mistakes the data show by themselves."""
+    notes = []
+    hi = pointwise.radians_suspect(meas.theta_i, meas.theta_r)
+    if hi is not None:
+        notes.append(f"every theta_i and theta_r lies below {pointwise.RADIANS_HINT} degrees (the largest is "
+                     f"{hi:.4g}): radians? pbrdf-cl takes degrees")
+    if not meas.phi_given:
+        from ..io.measurements import PHI_DEFAULT_NOTE
+        notes.append(PHI_DEFAULT_NOTE)
+    if np.all(meas.phi == 0.0):
+        notes.append("phi = 0 for every point: that is the plane of incidence on the source's side (back-"
+                     "scattering); in-plane specular data have phi = 180 here (SCATMECH's phi = 0 is our 180)")
+    return notes
+
+
+def _bound_notes(names, x, lo, hi, ci95):
+    """A note for each parameter on a bound, and for a best value outside its own 95% interval."""
+    notes = []
+    for i, n in enumerate(names):
+        tol = 1e-6 * (hi[i] - lo[i])
+        side = "lower" if x[i] <= lo[i] + tol else ("upper" if x[i] >= hi[i] - tol else None)
+        a, b = ci95[n]
+        if side:
+            notes.append(f"{n} = {x[i]:.4g} is on its {side} bound: the data push it there (the optimum may lie "
+                         "beyond; widen the bounds if that is physical)")
+        if not a <= x[i] <= b:
+            notes.append(f"{n}'s best value {x[i]:.4g} lies outside its 95% interval [{a:.4g}, {b:.4g}]: the "
+                         "interval is the central 95% of the posterior over the bounds, and where the data barely "
+                         "determine a parameter its best fit is arbitrary and often at an edge; quote the interval")
+    return notes
+
+
+def _labelled(matrix, names, what):
+    """``matrix`` over the free parameters as an ``xarray.DataArray`` with their names on both axes."""
+    import xarray as xr
+    return xr.DataArray(np.asarray(matrix), dims=("param", "param_2"), coords={"param": list(names),
+                        "param_2": list(names)}, name=what)

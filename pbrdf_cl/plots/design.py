@@ -1,0 +1,91 @@
+"""The figure of a measurement design (:func:`plot_design`, ``pbrdf-cl design --png``): the
+information map over the candidates with the chosen and the reference geometries, and the
+predicted 95% interval widths."""
+import numpy as np
+
+from ..explore.designs import with_ks
+from .fit import _pyplot
+
+
+def plot_design(result, path):
+    """Draw a design into a PNG (matplotlib Agg): left, the information map over (theta_i,
+    theta_r), theta_i on the horizontal axis as in the Sobol' maps (the maximum over phi where
+    phi is an axis; explicit candidates as coloured points) with the chosen geometries (circles)
+    and the reference's (crosses); right, the predicted 95% interval widths per parameter,
+    chosen against reference, each with and without an intensity column (log scale).  A
+    parameter a set leaves undetermined (its interval spans the whole bounds) is drawn as a
+    hatched, unfilled bar of its bound range, named in the legend.  Returns the (closed) Figure."""
+    from matplotlib.patches import Patch
+    plt = _pyplot()
+    fig, (ax, axb) = plt.subplots(1, 2, figsize=(13, 5.6), layout="constrained",
+                                  gridspec_kw=dict(width_ratios=[1.1, 1]))
+    info = np.asarray(result.information, float)
+    axes = result.information_axes
+    label = ("relative reduction of the A criterion\nby one more measurement (1)" if result.criterion == "A"
+             else "reduction of log det of the target\ncovariance by one more measurement (1)")
+    if "theta_i" in axes and "theta_r" in axes:
+        names = list(axes)
+        img = info
+        if "phi" in axes:
+            with np.errstate(all="ignore"):
+                img = np.nanmax(img, axis=names.index("phi"))
+            names.remove("phi")
+        if names.index("theta_r") > names.index("theta_i"):
+            img = img.T  # rows theta_r, columns theta_i
+        ti, tr = axes["theta_i"], axes["theta_r"]
+        pos = img[np.isfinite(img) & (img > 0)]
+        norm = None
+        if pos.size and pos.max() / max(pos.min(), 1e-300) > 100:
+            from matplotlib.colors import LogNorm
+            norm = LogNorm(vmin=max(pos.min(), pos.max() * 1e-6), vmax=pos.max())
+        mesh = ax.pcolormesh(ti, tr, np.where(img > 0, img, np.nan) if norm else img, shading="nearest",
+                             cmap="viridis", norm=norm)
+    else:
+        c = result.candidates
+        mesh = ax.scatter(c["theta_i"], c["theta_r"], c=info.reshape(-1), s=18, cmap="viridis")
+    fig.colorbar(mesh, ax=ax, label=label)
+    ax.plot(result.reference["theta_i"], result.reference["theta_r"], "x", color="tab:red", ms=7, mew=1.5,
+            label="paper's geometry" if result.reference_is_paper else "reference")
+    ax.plot(result.theta_i, result.theta_r, "o", mfc="none", mec="white", ms=9, mew=1.8,
+            label=f"chosen ({len(result.theta_i)})")
+    ax.set_xlabel("theta_i (deg)")
+    ax.set_ylabel("theta_r (deg)")
+    ax.set_title(f"information for {', '.join(result.target)} at the final design (criterion {result.criterion})")
+    ax.legend(loc="lower left", fontsize=8, framealpha=0.8)
+    comp = result.comparisons
+    keys = [k for k in ("chosen", "chosen_other", "reference", "reference_other") if k in comp]
+    colours = {"chosen": "tab:blue", "chosen_other": "tab:cyan", "reference": "tab:red",
+               "reference_other": "tab:orange"}
+    params = with_ks(result.free)
+    span = {n: hi - lo for n, (lo, hi) in result.bounds.items()}
+    width = 0.8 / len(keys)
+    handles, any_undetermined = [], False
+    for i, key in enumerate(keys):
+        w, und = comp[key]["widths"], set(comp[key].get("undetermined", ()))
+        where = [(j, p) for j, p in enumerate(params) if p in w]
+        xs = np.array([j + (i - (len(keys) - 1) / 2) * width for j, _ in where])
+        ok = np.array([p not in und for _, p in where], bool)
+        heights = np.array([w[p] for _, p in where])
+        axb.bar(xs[ok], heights[ok], width, color=colours[key])
+        if (~ok).any():
+            any_undetermined = True
+            axb.bar(xs[~ok], [span.get(p, w[p]) for (_, p), o in zip(where, ok) if not o], width, fill=False,
+                    hatch="///", edgecolor=colours[key], linewidth=1.0)
+        handles.append(Patch(color=colours[key], label=f"{comp[key]['description']} ({comp[key]['n_points']} points)"))
+    if any_undetermined:
+        handles.append(Patch(fill=False, hatch="///", edgecolor="0.3",
+                             label="hatched: undetermined\n(interval spans the bounds;\nbar = bound range)"))
+    axb.set_yscale("log")
+    kd_label = "kd" if "ks" in result.get("fixed", {}) else "kd/ks"
+    axb.set_xticks(range(len(params)), [(kd_label if p == "kd" else p) for p in params])
+    axb.set_xlabel("parameter")
+    axb.set_ylabel("predicted 95% interval width (parameter units; dimensionless)")
+    axb.set_title(f"DOP noise {result.noise:g}" + (f", F00 relative noise {result.intensity_noise:g}"
+                                                    if any(k.endswith("_other") for k in keys) or result.intensity
+                                                    else ""))
+    lo_y, hi_y = axb.get_ylim()
+    axb.set_ylim(lo_y, hi_y * (hi_y / lo_y) ** 0.45)  # room above the bars for the legend
+    axb.legend(handles=handles, fontsize=8, loc="upper left", ncol=2)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return fig
