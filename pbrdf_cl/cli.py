@@ -468,6 +468,7 @@ def cmd_reproduce(args) -> int:
 
 def cmd_map(args) -> int:
     from .explore import maps
+    from .plots.maps import plot_map
     try:
         x = maps.parse_axis("--x", args.x)
         y = maps.parse_axis("--y", args.y)
@@ -479,7 +480,7 @@ def cmd_map(args) -> int:
         engine = _engine_for(args)
         ds = maps.make_map(x, y, fixed, quantity=args.quantity, derivative=args.derivative, dtype=args.dtype,
                            shadowing=args.shadowing, engine=engine)
-        maps.plot_map(ds, args.out)
+        plot_map(ds, args.out)
         if args.npz:
             maps.save_npz(ds, args.npz)
     except (OSError, ValueError, _engine.OpenCLUnavailableError) as exc:

@@ -959,7 +959,7 @@ def plot_design(result, path):
     parameter a set leaves undetermined (its interval spans the whole bounds) is drawn as a
     hatched, unfilled bar of its bound range, named in the legend.  Returns the (closed) Figure."""
     from matplotlib.patches import Patch
-    from ..plots.fit import _pyplot
+    from ..plots.common import pyplot as _pyplot
     plt = _pyplot()
     fig, (ax, axb) = plt.subplots(1, 2, figsize=(13, 5.6), layout="constrained",
                                   gridspec_kw=dict(width_ratios=[1.1, 1]))
