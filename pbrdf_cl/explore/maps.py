@@ -1,11 +1,11 @@
 """Two-axis maps of the model from the dense-grid engine: values, derivatives, data (their figures:
 :func:`pbrdf_cl.plots.maps.plot_map`).
 
-A map is the model (any quantity of the registry with a map path: DOP, F00, AoP) over the Cartesian product of two axes ``x`` and ``y`` with
-every other input fixed, computed on the OpenCL device by :func:`pbrdf_cl.grid`.  A derivative,
-along one of the map's axes or along a fixed input, is a finite difference of step h = 1e-4
-deg (angles), 1e-4 |value| (n, sigma, ks) or 1e-4 max(1, |value|) (k, kd, c) at every node
-(:func:`stencil`): central, and second-order one-sided at a bound of
+A map is the model (any quantity of the registry with a map path: DOP, F00, AoP) over the Cartesian
+product of two axes ``x`` and ``y`` with every other input fixed, computed on the OpenCL device by
+:func:`pbrdf_cl.grid`.  A derivative, along one of the map's axes or along a fixed input, is a
+finite difference of step h = 1e-4 deg (angles), 1e-4 |value| (n, sigma, ks) or 1e-4 max(1,
+|value|) (k, kd, c) at every node (:func:`stencil`): central, and second-order one-sided at a bound of
 the model's domain (theta = 0, k = 0, kd = 0), from one float64 device grid over the stencils'
 points.  (Differences on the map's own grid were wrong where the quantity changes by decades
 between nodes: at sigma = 0.05 their one-sided edge form gave dDOP/dsigma < 0 where the DOP rises.)
@@ -157,8 +157,7 @@ def stencil(name, nodes, step=None):
     if getattr(ok, "lo", None) is not None and not ok.lo_included:
         h = np.minimum(h, (v - ok.lo) / 10)
     central = ok(v - h) & ok(v + h)
-    forward = ~central & ok(v + 2 * h)
-    backward = ~central & ~forward
+    forward = ~central & ok(v + 2 * h)  # else backward
     pts = np.where(central[:, None], np.stack([v - h, v + h, v - h], 1),
                    np.where(forward[:, None], np.stack([v, v + h, v + 2 * h], 1),
                             np.stack([v, v - h, v - 2 * h], 1)))

@@ -145,7 +145,8 @@ def plot_map(ds, path, title=None, dpi=120):
     Examples
     --------
     >>> from pbrdf_cl.explore.maps import make_map
-    >>> plot_map(make_map("theta_r=0:85@64", "sigma=0.05:1@32", dict(theta_i=40, n=1.6, k=2.1)), "map.png")  # doctest: +SKIP
+    >>> ds = make_map("theta_r=0:85@64", "sigma=0.05:1@32", dict(theta_i=40, n=1.6, k=2.1))  # doctest: +SKIP
+    >>> plot_map(ds, "map.png")  # doctest: +SKIP
     """
     from matplotlib import colors
     plt = pyplot()
