@@ -426,10 +426,10 @@ def main(argv=None):
                    help="run only these sections (default: all): points (the per-point and broadcast rows), grid, "
                         "objective, sweep")
     args = p.parse_args(argv)
-    from .cli import CommandError, _check_output, check_suffix
+    from .errors import CommandError
+    from .outputs import check_json_output
     try:  # the report's file, checked before the work rather than after it
-        check_suffix("--json", args.json, (".json",), "JSON is written here", allow_none=True)
-        _check_output("--json", args.json)
+        check_json_output("--json", args.json)
     except CommandError as exc:
         print(f"pbrdf-cl: error: {exc}", file=sys.stderr)
         return 1

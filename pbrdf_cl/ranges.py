@@ -222,7 +222,9 @@ def parse_bytes(field, value):
     return n
 
 
-def _did_you_mean(name, names):
+def did_you_mean(name, names):
+    """The one of ``names`` closest to ``name`` (lower case, ``-`` read as ``_``; difflib's ratio at
+    least 0.6), else None: the suggestion of a refusal of an unknown name."""
     near = difflib.get_close_matches(name.lower().replace("-", "_"), names, n=1, cutoff=0.6)
     return near[0] if near else None
 
@@ -246,7 +248,7 @@ def parse_assignment(item, names, kind="value", where=None, check=False):
         spell = f"{name}={value}" if name in names else f"NAME={value} with NAME one of {', '.join(names)}"
         _raise(where, item, f"not of the form name={value.lower()}; write {spell}")
     if name not in names:
-        near = _did_you_mean(name, names)
+        near = did_you_mean(name, names)
         hint = f"did you mean {near}={text}?" if near else f"names are {', '.join(names)}"
         _raise(where, item, f"unknown name {name!r}; {hint}")
     if not text.strip():

@@ -95,7 +95,7 @@ def main(argv=None):
     p.add_argument("--quick", action="store_true",
                    help="smoke run: 4-start least squares and 3 differential_evolution generations as baselines")
     args = p.parse_args(argv)
-    from pbrdf_cl.cli import check_json
+    from pbrdf_cl.outputs import check_json
     check_json("--json", args.json, "bench_fit")  # before the work, not after it
     engine = pbrdf_cl.get_default_engine()
     report = {}

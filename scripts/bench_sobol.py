@@ -35,7 +35,7 @@ def main(argv=None):
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--json", help="write the figures to this JSON file")
     args = ap.parse_args(argv)
-    from pbrdf_cl.cli import check_json
+    from pbrdf_cl.outputs import check_json
     check_json("--json", args.json, "bench_sobol")  # before the work, not after it
 
     import pbrdf_cl

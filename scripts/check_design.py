@@ -46,7 +46,7 @@ def main(argv=None):
     ap.add_argument("--seed", type=int, default=1, help="seed of the simulated noise")
     ap.add_argument("--json", metavar="OUT", help="also write the numbers as JSON")
     args = ap.parse_args(argv)
-    from pbrdf_cl.cli import check_json
+    from pbrdf_cl.outputs import check_json
     check_json("--json", args.json, "check_design")  # before the work, not after it
     t0 = time.perf_counter()
     engine = pbrdf_cl.get_default_engine()

@@ -273,7 +273,7 @@ def test_other_stores_are_refused(stack, reference, tmp_path, monkeypatch):
     pbrdf_cl.sweep(dict(axes=dict(theta_r="0:80:20"), fixed=dict(theta_i=40, n=1.6, k=2.1, sigma=0.3)), sweep,
                    progress=False)
     assert "exists and is a pbrdf-cl sweep store" in _refusal(sweep, stack)
-    monkeypatch.setattr(pbrdf_cl.explore.sweeps, "kernels_sha256", lambda: "0" * 64)
+    monkeypatch.setattr(pbrdf_cl.store.zarr, "kernels_sha256", lambda: "0" * 64)
     assert "was started with other OpenCL kernel sources" in _refusal(reference, stack)
 
 

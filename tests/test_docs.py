@@ -15,11 +15,12 @@ from pbrdf_cl.io import measurements as data
 from pbrdf_cl.compute import dense
 from pbrdf_cl.io import imagestack
 from pbrdf_cl.explore import maps
+from pbrdf_cl.plots import maps as map_plots
 from pbrdf_cl.explore import sensitivity
 from pbrdf_cl.plots import sensitivity as sensitivity_plots
 
 PUBLIC = [getattr(pbrdf_cl, n) for n in pbrdf_cl.__all__ if inspect.isfunction(getattr(pbrdf_cl, n))]
-PUBLIC += [maps.make_map, maps.plot_map, data.as_measurements, sensitivity.load_sobol_spec,
+PUBLIC += [maps.make_map, map_plots.plot_map, data.as_measurements, sensitivity.load_sobol_spec,
            sensitivity_plots.plot_sensitivity, source.open_stack, dataset.goodness_summary]
 PUBLIC += [getattr(m, n) for m in (imagestack, camera, batch, batch_store, batch_plots) for n in dir(m)
            if not n.startswith("_") and inspect.isfunction(getattr(m, n)) and getattr(m, n).__module__ == m.__name__]
@@ -36,8 +37,8 @@ def test_numpydoc_sections(func):
         assert name in params, f"{func.__name__}: parameter {name!r} is not in its Parameters section"
 
 
-@pytest.mark.parametrize("module", [api, dense, data, maps, imagestack, batch, batch_store, source, batch_plots,
-                                    sensitivity, sensitivity_plots],
+@pytest.mark.parametrize("module", [api, dense, data, maps, map_plots, imagestack, batch, batch_store, source,
+                                    batch_plots, sensitivity, sensitivity_plots],
                          ids=lambda m: m.__name__)
 def test_docstring_examples_run(module):
     result = doctest.testmod(module, optionflags=doctest.ELLIPSIS | doctest.NORMALIZE_WHITESPACE,

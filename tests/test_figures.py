@@ -14,6 +14,7 @@ from pbrdf_cl.compute import dense
 from pbrdf_cl.explore import maps
 from pbrdf_cl.explore import paper
 from pbrdf_cl.plots import fit as plots
+from pbrdf_cl.plots import maps as map_plots
 from pbrdf_cl.io.measurements import from_arrays
 
 STEEL = dict(n=1.6, k=2.139, ks=0.9, kd=0.15, c=-0.3)
@@ -65,16 +66,16 @@ def dop_map(derivative=None, quantity="dop", fixed=STEEL, y="sigma=0.02:1@64"):
 
 @pytest.mark.parametrize("derivative", [None, "sigma"])
 def test_dop_maps_use_constrained_layout_and_label_contours_inside(tmp_path, derivative):
-    fig = maps.plot_map(dop_map(derivative), tmp_path / "m.png")
+    fig = map_plots.plot_map(dop_map(derivative), tmp_path / "m.png")
     assert_nothing_clipped(fig)
     labels = assert_labels_readable(fig)
     assert len(labels) >= 3
     # at least LABEL_MARGIN of the axes from every edge, LABEL_SPACING apart
     ax = fig.axes[0]
     frac = np.array([ax.transAxes.inverted().transform(ax.transData.transform(t.get_position())) for t in labels])
-    assert frac.min() >= maps.LABEL_MARGIN - 1e-9 and frac.max() <= 1 - maps.LABEL_MARGIN + 1e-9
+    assert frac.min() >= map_plots.LABEL_MARGIN - 1e-9 and frac.max() <= 1 - map_plots.LABEL_MARGIN + 1e-9
     d = np.hypot(*(frac[:, None, :] - frac[None, :, :]).transpose(2, 0, 1))
-    assert d[np.triu_indices(len(frac), 1)].min() >= maps.LABEL_SPACING - 1e-9
+    assert d[np.triu_indices(len(frac), 1)].min() >= map_plots.LABEL_SPACING - 1e-9
     # one label per level at most, levels round numbers
     values = [float(t.get_text()) for t in labels]
     assert len(set(values)) == len(values)
@@ -88,7 +89,7 @@ def test_dop_map_colours_span_the_data_and_the_derivative_has_no_false_zero_line
     ds = maps.make_map("theta_r=0:85@128", "sigma=0.05:1@128", dict(theta_i=40, **STEEL), derivative="sigma",
                        backend="numpy")
     z = ds["dop"].values
-    fig = maps.plot_map(ds, tmp_path / "m.png")
+    fig = map_plots.plot_map(ds, tmp_path / "m.png")
     norm = fig.axes[0].collections[0].norm
     assert norm.vmin == pytest.approx(z.min()) and norm.vmax == pytest.approx(z.max()) and z.max() < 0.45
     d = ds["ddop_dsigma"].values
@@ -101,7 +102,7 @@ def test_dop_map_colours_span_the_data_and_the_derivative_has_no_false_zero_line
 
 def test_a_long_title_is_wrapped_not_clipped(tmp_path):
     ds = dop_map()
-    fig = maps.plot_map(ds, tmp_path / "m.png")
+    fig = map_plots.plot_map(ds, tmp_path / "m.png")
     assert "\n" in fig.get_suptitle()  # one 6.2-inch panel: the fixed values go on a second line
     assert_nothing_clipped(fig)
 
@@ -110,14 +111,14 @@ def test_brdf_map_with_kd_0_has_a_log_floor(tmp_path):
     ds = dop_map(quantity="brdf", fixed=dict(n=1.6, k=2.139, kd=0.0), derivative="sigma")
     z = ds["brdf"].values
     assert z.min() < z.max() * 1e-10  # the map spans more than ten decades ...
-    fig = maps.plot_map(ds, tmp_path / "b.png")
+    fig = map_plots.plot_map(ds, tmp_path / "b.png")
     mesh = fig.axes[0].collections[0]
     norm = mesh.norm
     assert isinstance(norm, colors.LogNorm)
-    assert norm.vmax == pytest.approx(z.max()) and norm.vmin == pytest.approx(z.max() / 10 ** maps.LOG_DECADES)
+    assert norm.vmax == pytest.approx(z.max()) and norm.vmin == pytest.approx(z.max() / 10 ** map_plots.LOG_DECADES)
     cbar = mesh.colorbar
     assert cbar.extend == "min"  # the clipped values: the triangle below the bar
-    assert f"clipped below max/1e{maps.LOG_DECADES} = {norm.vmin:.2g}" in cbar.ax.get_ylabel()
+    assert f"clipped below max/1e{map_plots.LOG_DECADES} = {norm.vmin:.2g}" in cbar.ax.get_ylabel()
     # contour levels are decades within the shown range, labelled as plain numbers
     levels = fig.axes[0].collections[1].levels
     np.testing.assert_allclose(np.log10(levels), np.round(np.log10(levels)))
@@ -132,17 +133,17 @@ def test_brdf_map_with_kd_0_has_a_log_floor(tmp_path):
 
 
 def test_brdf_map_within_two_decades_stays_linear_and_a_narrow_log_map_is_not_clipped():
-    assert maps._norm_for(np.linspace(1.0, 50.0, 10), "brdf") == (None, "")
-    norm, note = maps._norm_for(np.geomspace(1e-3, 10.0, 10), "brdf")
+    assert map_plots._norm_for(np.linspace(1.0, 50.0, 10), "brdf") == (None, "")
+    norm, note = map_plots._norm_for(np.geomspace(1e-3, 10.0, 10), "brdf")
     assert isinstance(norm, colors.LogNorm) and norm.vmin == pytest.approx(1e-3) and note == "log scale"
-    norm, note = maps._norm_for(np.array([0.0, 1e-9, 1.0, 20.0]), "brdf")
-    assert norm.vmin == pytest.approx(20.0 / 10 ** maps.LOG_DECADES) and "clipped" in note
-    assert maps._norm_for(np.geomspace(1e-9, 1.0, 10), "dop") == (None, "")
+    norm, note = map_plots._norm_for(np.array([0.0, 1e-9, 1.0, 20.0]), "brdf")
+    assert norm.vmin == pytest.approx(20.0 / 10 ** map_plots.LOG_DECADES) and "clipped" in note
+    assert map_plots._norm_for(np.geomspace(1e-9, 1.0, 10), "dop") == (None, "")
 
 
 def test_aop_map(tmp_path):
     ds = dop_map(quantity="aop", fixed=dict(n=1.6, k=2.139, sigma=0.3, kd=0.1), y="phi=0:360@48")
-    fig = maps.plot_map(ds, tmp_path / "a.png")
+    fig = map_plots.plot_map(ds, tmp_path / "a.png")
     assert_nothing_clipped(fig)
     np.testing.assert_array_equal(fig.axes[0].collections[0].colorbar.get_ticks(), [-90, -45, 0, 45, 90])
     assert not contour_labels(fig)  # an angle: no contour lines across its wrap

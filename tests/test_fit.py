@@ -11,6 +11,7 @@ import pytest
 
 import pbrdf_cl
 from pbrdf_cl import cli
+from pbrdf_cl.cli import fit as cli_fit
 from pbrdf_cl.fitting import basins, common, inversion, stages, uncertainty
 from pbrdf_cl.fitting import setup as fit_setup
 from pbrdf_cl.io.measurements import PHI_DEFAULT_NOTE, from_arrays, read_csv
@@ -123,9 +124,9 @@ def test_intensities_separate_ks_and_kd():
     assert f"{r.kd_ratio:10.5g}" in ratio and f"[{lo:.4g}, {hi:.4g}]" in ratio
     absolute = next(ln for ln in lines if ln.split()[:1] == ["kd"])
     assert f"{r.x['kd']:10.5g}" in absolute and "absolute" in absolute and "interval" not in absolute
-    brief = cli._fit_brief(r)
+    brief = cli_fit._fit_brief(r)
     assert f"kd/ks = {r.kd_ratio:.5g}  [{lo:.4g}, {hi:.4g}]" in brief and f"kd = {r.x['kd']:.5g}" in brief
-    record = cli._fit_json(r)
+    record = cli_fit._fit_json(r)
     assert record["kd_ratio"] == r.kd_ratio and record["kd_fitted_as"] == "kd/ks"
 
 

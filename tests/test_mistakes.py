@@ -9,6 +9,7 @@ import pytest
 
 import pbrdf_cl
 from pbrdf_cl import cli, sizes
+from pbrdf_cl.cli import app as cli_app
 from pbrdf_cl.compute import pointwise as api
 from pbrdf_cl.explore import maps
 from pbrdf_cl.explore import sweeps
@@ -234,11 +235,11 @@ def test_cli_basics(capsys):
 
 def test_a_list_option_does_not_swallow_the_data_file():
     parser = cli.build_parser()
-    args = parser.parse_args(cli._positionals_first(["fit", "--fix", "sigma=0.45", "examples/steel_435nm.csv",
+    args = parser.parse_args(cli_app._positionals_first(["fit", "--fix", "sigma=0.45", "examples/steel_435nm.csv",
                                                      "--bounds", "n=1:3", "k=0:5"]))
     assert args.data == "examples/steel_435nm.csv" and args.fix == ["sigma=0.45"] and args.bounds == ["n=1:3", "k=0:5"]
     # a malformed item is not taken for the file: it gets its own message
-    assert cli._positionals_first(["map", "--fix", "k"]) == ["map", "--fix", "k"]
+    assert cli_app._positionals_first(["map", "--fix", "k"]) == ["map", "--fix", "k"]
 
 
 def test_eval_rows_are_the_product_in_order(capsys):

@@ -10,6 +10,7 @@ import pbrdf_cl
 from conftest import call, random_inputs, requires_opencl
 from pbrdf_cl import cli, quantities
 from pbrdf_cl.explore import maps
+from pbrdf_cl.plots import maps as map_plots
 from pbrdf_cl.model import reference
 from pbrdf_cl.device.engine import kernel_dir
 from pbrdf_cl.explore.sweeps import SpecError, SweepSpec
@@ -184,7 +185,7 @@ def test_aop_map_and_sweep(tmp_path):
     ok = np.isfinite(fd)
     np.testing.assert_array_equal(np.isfinite(d), ok)
     np.testing.assert_allclose(d[ok], fd[ok], rtol=1e-4, atol=1e-6 * np.abs(fd[ok]).max())
-    maps.plot_map(ds, tmp_path / "aop.png")
+    map_plots.plot_map(ds, tmp_path / "aop.png")
     assert (tmp_path / "aop.png").stat().st_size > 10000
     spec = SweepSpec(dict(axes=dict(theta_r=list(np.linspace(0, 85, 18)), phi=[0.0, 90.0]), fixed=fixed,
                           quantity="aop", dtype="float64", chunks={"points": 9}))

@@ -9,6 +9,7 @@ against the parser instead; commands that need a dask cluster (``--workers``, ``
 ``dask ...``; tests/test_sweep_faults.py runs ``--workers 2``) or a file named only as an example
 (``spec.toml``, ``data.csv``), which are parsed, not run; ``text`` blocks (sample output).
 """
+import argparse
 import os
 import re
 import shlex
@@ -78,7 +79,7 @@ def test_every_python_block_runs_in_order(scratch):
 
 def _options_of(command):
     parser = cli.build_parser()
-    sub = next(a for a in parser._actions if isinstance(a, cli.argparse._SubParsersAction)).choices[command]
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices[command]
     return {o for a in sub._actions for o in a.option_strings}
 
 

@@ -264,7 +264,7 @@ def test_local_cluster_gives_the_same_store(spec_file, reference, tmp_path, monk
         cluster = distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None)
         client = distributed.Client(cluster)
         res = pbrdf_cl.sweep(spec_file, store, client=client, progress=False)
-        engines = client.run(lambda: len(sys.modules["pbrdf_cl.explore.sweeps"]._ENGINES))
+        engines = client.run(lambda: len(sys.modules["pbrdf_cl.store.cluster"]._ENGINES))
         runners = client.run(lambda: len(sys.modules["pbrdf_cl.explore.sweeps"]._RUNNERS))
     finally:
         signal.alarm(0)

@@ -21,6 +21,10 @@
   5 degree grid that make the predicted 95% intervals of n and k narrowest (:func:`pbrdf_cl.design`,
   DOP noise :data:`DESIGN_NOISE`), against the paper's 30 (theta_i 30/40/50 x theta_r 20..65).
 - one ``.npz`` per other figure with the arrays drawn, and ``summary.md`` listing every file.
+
+The figures are drawn by :mod:`pbrdf_cl.plots.paper` (the map over (theta_r, sigma) by
+:func:`pbrdf_cl.plots.maps.plot_map`, the Sobol' map by :mod:`pbrdf_cl.plots.sensitivity`) from
+the arrays computed here.
 """
 from __future__ import annotations
 
@@ -35,7 +39,8 @@ from ..compute import dense
 from . import maps
 from ..io.measurements import from_arrays
 from ..device.engine import resolve_engine
-from ..plots.fit import _pyplot
+from ..plots import paper as figures
+from ..plots.maps import plot_map
 
 #: The paper's fit to 45# steel at 435 nm, theta_i = 40 deg (SPEC).
 STEEL = dict(n=1.6, k=2.139, sigma=0.5, ks=0.9, kd=0.15, c=-0.3)
@@ -71,17 +76,7 @@ FIG2_NOISE = 0.001
 SEED = 2020
 
 
-def _params_text(p):
-    return ", ".join(f"{k}={v:g}" for k, v in p.items())
-
-
-def _finish(fig, ax, path, legend=True):
-    ax.grid(alpha=0.3)
-    if legend:
-        ax.legend(fontsize=8)
-    fig.savefig(path, dpi=120)  # the figures are made with layout="constrained": nothing clipped
-    _pyplot().close(fig)
-    return fig
+_params_text = figures.params_text
 
 
 def fig2_data(sample, seed=SEED):
@@ -106,21 +101,8 @@ def fig2(sample, out, engine=None, seed=SEED):
     curve_spec = pointwise.dop(angle, angle, 180.0, backend="numpy", model="specular", **spec.x)
     curve_true = pointwise.dop(angle, angle, 180.0, backend="numpy", **FIG2_SAMPLES[sample])
     slug = sample.replace(" ", "_")
-    plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(7.5, 5.2), layout="constrained")
-    ax.errorbar(meas.theta_i, meas.dop, yerr=meas.dop_std, fmt="o", ms=4, color="k", capsize=2,
-                label=f"synthetic data ± 1 sd (noise sd {FIG2_NOISE:g}: bars within the markers)")
-    ax.plot(angle, curve_true, ":", color="0.5", lw=1, label="true model")
-    ax.plot(angle, curve_six, "-", color="C0",
-            label=f"six-param fit: n={six.x['n']:.3f}, k={six.x['k']:.3f} (BIC {six.bic:.1f})")
-    ax.plot(angle, curve_spec, "--", color="C3",
-            label=f"ref. [7] fit: n={spec.x['n']:.3f}, k={spec.x['k']:.3f} (BIC {spec.bic:.1f})")
-    ax.set_xlabel("incidence angle theta_i = theta_r (deg), in plane")
-    ax.set_ylabel("degree of polarization")
-    ax.set_xlim(0, 85)
-    ax.set_title(f"Fig. 2 ({sample}): DOP vs incidence angle, both models\n"
-                 f"data from the six-param model at {_params_text(FIG2_SAMPLES[sample])}", fontsize=9)
-    _finish(fig, ax, out / f"fig2_{slug}.png")
+    figures.plot_fig2(out / f"fig2_{slug}.png", sample, FIG2_SAMPLES[sample], FIG2_NOISE, meas, angle, curve_true,
+                      (six, curve_six), (spec, curve_spec))
     np.savez_compressed(out / f"fig2_{slug}.npz", theta_i=meas.theta_i, theta_r=meas.theta_r, dop=meas.dop,
                         dop_clean=clean, angle=angle, six_param=curve_six, specular=curve_spec, true=curve_true,
                         six_param_x=np.array([six.x[k] for k in ("n", "k", "sigma", "ks", "kd", "c")]),
@@ -173,28 +155,10 @@ def fig4(out):
     """DOP vs theta_r at the three incidence angles with the paper's steel fit: model values only
     (curves, and markers at the measured geometries); no measured data are drawn.  Returns the
     (closed) Figure."""
-    from matplotlib.lines import Line2D
     tr = np.linspace(20.0, 65.0, 181)
-    plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(7.5, 5.2), layout="constrained")
-    curves = {}
-    for i, ti in enumerate(STEEL_THETA_I):
-        curves[ti] = pointwise.dop(ti, tr, 180.0, backend="numpy", **STEEL)
-        ax.plot(tr, curves[ti], "-", color=f"C{i}", label=f"model, theta_i = {ti:g} deg")
-        ax.plot(STEEL_THETA_R, pointwise.dop(ti, STEEL_THETA_R, 180.0, backend="numpy", **STEEL), "o", color=f"C{i}",
-                ms=4)
-    step = STEEL_THETA_R[1] - STEEL_THETA_R[0]
-    handles, _ = ax.get_legend_handles_labels()
-    handles.append(Line2D([], [], ls="none", marker="o", ms=4, color="0.3",
-                          label=f"model at the measured geometries (theta_r {STEEL_THETA_R[0]:g}..{STEEL_THETA_R[-1]:g} "
-                                f"step {step:g}; not data)"))
-    ax.set_xlabel("reflection zenith angle theta_r (deg), in plane")
-    ax.set_ylabel("degree of polarization")
-    ax.set_title(f"Fig. 4: 45# steel, 435 nm: the six-parameter model at the paper's fit\n({_params_text(STEEL)})",
-                 fontsize=9)
-    ax.grid(alpha=0.3)
-    ax.legend(handles=handles, fontsize=8)
-    _finish(fig, ax, out / "fig4_steel.png", legend=False)
+    curves = {ti: pointwise.dop(ti, tr, 180.0, backend="numpy", **STEEL) for ti in STEEL_THETA_I}
+    measured = {ti: pointwise.dop(ti, STEEL_THETA_R, 180.0, backend="numpy", **STEEL) for ti in STEEL_THETA_I}
+    fig = figures.plot_fig4(out / "fig4_steel.png", STEEL, tr, curves, STEEL_THETA_R, measured)
     np.savez_compressed(out / "fig4_steel.npz", theta_r=tr, theta_i=np.array(STEEL_THETA_I),
                         dop=np.stack([curves[t] for t in STEEL_THETA_I]))
     return fig
@@ -204,17 +168,8 @@ def fig5(out):
     """DOP vs theta_r at theta_i = 40 for three roughness values (model curves).  Returns the
     (closed) Figure."""
     tr = np.linspace(20.0, 65.0, 181)
-    plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(7.5, 5.2), layout="constrained")
-    rows = []
-    for i, s in enumerate(SIGMAS):
-        rows.append(pointwise.dop(40.0, tr, 180.0, backend="numpy", **{**STEEL, "sigma": s}))
-        ax.plot(tr, rows[-1], "-", color=f"C{i}", label=f"model, sigma = {s:g}")
-    ax.set_xlabel("reflection zenith angle theta_r (deg), in plane")
-    ax.set_ylabel("degree of polarization")
-    others = {k: v for k, v in STEEL.items() if k != "sigma"}
-    ax.set_title(f"Fig. 5: effect of roughness at theta_i = 40 deg ({_params_text(others)})", fontsize=9)
-    _finish(fig, ax, out / "fig5_sigma.png")
+    rows = [pointwise.dop(40.0, tr, 180.0, backend="numpy", **{**STEEL, "sigma": s}) for s in SIGMAS]
+    fig = figures.plot_fig5(out / "fig5_sigma.png", STEEL, tr, SIGMAS, rows)
     np.savez_compressed(out / "fig5_sigma.npz", theta_r=tr, sigma=np.array(SIGMAS), dop=np.stack(rows))
     return fig
 
@@ -224,39 +179,19 @@ def map_sigma_theta_r(out, resolution=256, engine=None):
     fixed = {"theta_i": 40.0, **{k: v for k, v in STEEL.items() if k != "sigma"}}
     ds = maps.make_map(("theta_r", np.linspace(0.0, 85.0, resolution)),
                        ("sigma", np.linspace(0.05, 1.0, resolution)), fixed, derivative="sigma", engine=engine)
-    maps.plot_map(ds, out / "map_sigma_theta_r.png",
-                  title=f"DOP and dDOP/dsigma over (theta_r, sigma), in plane, {_params_text(fixed)}")
+    plot_map(ds, out / "map_sigma_theta_r.png",
+             title=f"DOP and dDOP/dsigma over (theta_r, sigma), in plane, {_params_text(fixed)}")
     maps.save_npz(ds, out / "map_sigma_theta_r.npz")
     return ds
 
 
 def map_theta_i_theta_r(out, resolution=256, engine=None):
     """DOP over (theta_i, theta_r) for the three roughness values of Fig. 5 (one device grid)."""
-    from matplotlib import colors
     angles = np.linspace(0.0, 85.0, resolution)
     fixed = {k: v for k, v in STEEL.items() if k != "sigma"}
     da = dense.grid({"theta_i": angles, "theta_r": angles, "sigma": np.array(SIGMAS)}, fixed,
                     dtype="float64", engine=engine)
-    plt = _pyplot()
-    fig, axs = plt.subplots(1, len(SIGMAS), figsize=(5.0 * len(SIGMAS), 4.6), sharey=True, layout="constrained")
-    norm = colors.Normalize(0.0, float(da.max()))
-    contours = []
-    for ax, s in zip(axs, SIGMAS):
-        z = da.sel(sigma=s).transpose("theta_r", "theta_i").values
-        mesh = ax.pcolormesh(angles, angles, z, shading="auto", cmap="viridis", norm=norm)
-        cs = ax.contour(angles, angles, z, levels=np.arange(0.1, 1.0, 0.1), colors="white", linewidths=0.7)
-        contours.append((ax, cs))
-        ax.set_title(f"sigma = {s:g}", fontsize=10)
-        ax.set_xlabel(maps.LABELS["theta_i"])
-    axs[0].set_ylabel(maps.LABELS["theta_r"])
-    cb = fig.colorbar(mesh, ax=list(axs), shrink=0.9)
-    cb.set_label("DOP")
-    fig.suptitle(f"DOP over (theta_i, theta_r), in plane, {_params_text(fixed)}", fontsize=10)
-    fig.draw_without_rendering()  # the layout first: labels are placed in the axes' final shape
-    for ax, cs in contours:
-        maps.label_contours(ax, cs, fmt="%.1f")
-    fig.savefig(out / "map_theta_i_theta_r.png", dpi=110)
-    plt.close(fig)
+    figures.plot_dop_maps(out / "map_theta_i_theta_r.png", da, angles, SIGMAS, fixed)
     np.savez_compressed(out / "map_theta_i_theta_r.npz", theta_i=angles, theta_r=angles, sigma=np.array(SIGMAS),
                         dop=da.transpose("sigma", "theta_r", "theta_i").values)
     return da

@@ -63,8 +63,8 @@ class Range:
 
 def _hint(name, names):
     """``"; did you mean 'sigma'?"`` for a near miss of one of ``names``, else ``""``."""
-    from ..ranges import _did_you_mean
-    near = _did_you_mean(str(name), [n.lower() for n in names])
+    from ..ranges import did_you_mean
+    near = did_you_mean(str(name), [n.lower() for n in names])
     near = next((n for n in names if n.lower() == near), None) if near else None
     return f" (did you mean {near!r}?)" if near else ""
 
@@ -867,12 +867,19 @@ def _indices(ds):
     return ("S1", "ST") if "S1" in ds else ("mu_star", "ee_std")
 
 
+def compatible(ds):
+    """A result in the current layout: a Morris result written before ``sigma`` became ``ee_std``
+    (the roughness is sigma) renamed; any other returned as is."""
+    if "mu_star" in ds and "sigma" in ds.data_vars and "ee_std" not in ds:
+        return ds.rename({"sigma": "ee_std"})
+    return ds
+
+
 def summary(ds):
     """A few lines on a result of :func:`sobol`: the work done, and per parameter its mean indices
     over the geometries and where it dominates (the share of geometries where its total index, or
     mu*, is the largest)."""
-    from ..plots.sensitivity import _compatible
-    ds = _compatible(ds)
+    ds = compatible(ds)
     first, second = _indices(ds)
     geo = [d for d in ds[first].dims if d != "parameter"]
     size = " x ".join(f"{d}[{ds.sizes[d]}]" for d in geo) or "one geometry"

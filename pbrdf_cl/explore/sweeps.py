@@ -1,5 +1,6 @@
 """Sweeps larger than memory and larger than one machine: the grid engine of :mod:`pbrdf_cl.compute.dense`
-chunk by chunk into a Zarr store, resumable, optionally over a ``dask.distributed`` cluster.
+chunk by chunk into a Zarr store, resumable, optionally over a ``dask.distributed`` cluster (the
+store and the cluster runs: :mod:`pbrdf_cl.store.zarr`, :mod:`pbrdf_cl.store.cluster`).
 
 A sweep is described by a spec (TOML, see ``examples/sweep_sigma_theta.toml``)::
 
@@ -43,16 +44,12 @@ interruption reliably lands in the middle of a sweep.
 from __future__ import annotations
 
 import hashlib
-import itertools
 import json
 import logging
 import numbers
 import os
 import sys
-import tempfile
-import threading
 import time
-import uuid
 from pathlib import Path
 
 import numpy as np
@@ -66,6 +63,8 @@ from ..device.engine import DTYPES, kernels_sha256, resolve_engine
 from ..results import Result
 from ..model.reference import SHADOWING
 from ..errors import SpecError
+from ..store import cluster
+from ..store import zarr as zarr_store
 
 try:
     import tomllib
@@ -81,7 +80,6 @@ DEFAULT_MEMORY_BUDGET = 256 << 20
 MAX_CHUNK_BYTES = (1 << 31) - 1024
 DELAY_ENV = "PBRDF_SWEEP_CHUNK_DELAY"
 KEYS = ("title", "quantity", "dtype", "shadowing", "memory_budget", "axes", "fixed", "chunks", "reduce")
-DONE = "_sweep/done"
 
 
 # ---------------------------------------------------------------------------------------------
@@ -409,80 +407,8 @@ def load_spec(spec):
     raise SpecError(f"spec must be a TOML file path, a dict or a SweepSpec, got {type(spec).__name__}")
 
 
-def _differences(old, new):
-    """Readable list of what differs between two canonical specs."""
-    def describe(v):
-        if isinstance(v, list) and len(v) > 4 and all(isinstance(x, float) for x in v):
-            return f"{len(v)} values {_fmt(v[0])}..{_fmt(v[-1])}"
-        return json.dumps(v)
-    out = []
-    for key in sorted(set(old) | set(new)):
-        a, b = old.get(key), new.get(key)
-        if isinstance(a, dict) and isinstance(b, dict):
-            for sub in sorted(set(a) | set(b)):
-                if a.get(sub) != b.get(sub):
-                    out.append(f"{key}.{sub}: {describe(a.get(sub)) if sub in a else '(absent)'} in the store, "
-                               f"{describe(b.get(sub)) if sub in b else '(absent)'} now")
-        elif a != b:
-            out.append(f"{key}: {describe(a)} in the store, {describe(b)} now")
-    return out
-
-
 # ---------------------------------------------------------------------------------------------
-# the store
-
-def _zarr():
-    import zarr
-    return zarr
-
-
-def _zarr3():
-    return int(_zarr().__version__.split(".")[0]) >= 3
-
-
-def _is_local(store):
-    return isinstance(store, os.PathLike) or (isinstance(store, str) and ("://" not in store
-                                                                         or store.startswith("file://")))
-
-
-def _store_name(store):
-    """A local store as an absolute path (``file://`` dropped), any other URL unchanged."""
-    if not _is_local(store):
-        return store
-    path = os.fspath(store)
-    return os.path.abspath(path.removeprefix("file://"))
-
-
-def _open_group(store, mode):
-    zarr = _zarr()
-    if _zarr3():
-        return zarr.open_group(store, mode=mode, zarr_format=2)
-    return zarr.open_group(store, mode=mode)
-
-
-def _create_array(group, name, shape, chunks, dtype, fill_value, compressor, attrs):
-    if _zarr3():
-        arr = group.create_array(name, shape=shape, chunks=chunks, dtype=dtype, fill_value=fill_value,
-                                 compressors=compressor, overwrite=True)
-    else:  # pragma: no cover - zarr 2
-        arr = group.create_dataset(name, shape=shape, chunks=chunks, dtype=dtype, fill_value=fill_value,
-                                   compressor=compressor, overwrite=True)
-    arr.attrs.update(attrs)
-    return arr
-
-
-def _compressor():
-    from numcodecs import Blosc
-    return Blosc(cname="lz4", clevel=5, shuffle=Blosc.SHUFFLE)
-
-
-def _check_kernels(name, attrs):
-    stored = attrs.get("sweep_kernels_sha256")
-    if stored != kernels_sha256():
-        raise SpecError(f"{name} was started with other OpenCL kernel sources (sha256 {str(stored)[:12]} in the "
-                        f"store, {kernels_sha256()[:12]} here: another pbrdf-cl version?); its values would not "
-                        f"match; choose another --out, or delete {name} to start over")
-
+# the store (the Zarr layer: pbrdf_cl.store.zarr)
 
 def _root_attrs(spec, complete=False):
     from .. import __version__
@@ -500,10 +426,11 @@ def _root_attrs(spec, complete=False):
 
 def _write_skeleton(spec, store):
     """Coordinates, empty variables, the done record, then (last: the commit point) the root attrs."""
-    g = _open_group(store, "w")
+    g = zarr_store.open_group(store, "w")
     for n, a in spec.axes.items():
-        c = _create_array(g, n, a.shape, a.shape, "f8", None, None,
-                          {"_ARRAY_DIMENSIONS": [n], "units": dense.UNITS[n], "long_name": dense.LONG_NAMES[n]})
+        c = zarr_store.create_array(g, n, a.shape, a.shape, "f8", None, None,
+                                    {"_ARRAY_DIMENSIONS": [n], "units": dense.UNITS[n],
+                                     "long_name": dense.LONG_NAMES[n]})
         c[...] = a
     npdt = np.dtype(DTYPES[spec.dtype])
     dims = list(spec.dims)
@@ -519,120 +446,47 @@ def _write_skeleton(spec, store):
         var_attrs = {spec.quantity: dict(long_name=q.long_name, units=units)}
     for name, attrs in var_attrs.items():
         dt = "f8" if name.startswith("argmin_") else npdt
-        _create_array(g, name, spec.shape, spec.chunks, dt, np.nan, _compressor(),
-                      {"_ARRAY_DIMENSIONS": dims, **attrs})
+        zarr_store.create_array(g, name, spec.shape, spec.chunks, dt, np.nan, zarr_store.compressor(),
+                                {"_ARRAY_DIMENSIONS": dims, **attrs})
     sub = g.require_group("_sweep")
     sub.attrs.update(description="done[i] = 1 once chunk i (C order over the chunk grid) is in the store",
                      chunk_grid=list(spec.chunk_grid))
-    _create_array(sub, "done", (spec.n_chunks,), (1,), "u1", 0, None, {})
+    zarr_store.create_done(g, spec.n_chunks)
     g.attrs.update(_root_attrs(spec))
-    _zarr().consolidate_metadata(store)
-
-
-def _local_is_empty(path):
-    return not path.exists() or (path.is_dir() and not any(path.iterdir()))
-
-
-def create_in_place(path, write):
-    """Create the local store ``path`` (absent or an empty folder) with ``write(folder)``, built
-    beside it and renamed into place, so that a store exists whole or not at all.  True when this
-    call created it; False when another process created it meanwhile (``path`` then holds a Zarr
-    group, for the caller to check)."""
-    tmp = path.with_name(f"{path.name}.creating-{uuid.uuid4().hex[:8]}")
-    try:
-        write(str(tmp))
-        if path.exists():
-            path.rmdir()
-        os.rename(tmp, path)
-        return True
-    except OSError:
-        if not (path / ".zgroup").exists():
-            raise
-        return False
-    finally:
-        if tmp.exists():
-            import shutil
-            shutil.rmtree(tmp, ignore_errors=True)
+    zarr_store.consolidate(store)
 
 
 def open_store(spec, store):
     """Create the store for ``spec``, or check that an existing one was started with the same
     spec (and kernels); returns (absolute store name, whether it existed before)."""
-    name = _store_name(store)
-    if _is_local(store):
-        path = Path(name)
-        if _local_is_empty(path):
-            if create_in_place(path, lambda where: _write_skeleton(spec, where)):
-                return name, False
-            # else another process created it just now: check it below
-        elif not (path / ".zgroup").exists():
-            raise SpecError(f"{name} exists and is not a pbrdf-cl sweep store; choose another --out or delete it")
-    attrs = None
-    try:
-        attrs = dict(_open_group(name, "r").attrs)
-    except Exception:  # noqa: BLE001 - zarr raises various errors for a missing group
-        if not _is_local(store):
-            _write_skeleton(spec, name)
-            return name, False
+    name, attrs = zarr_store.create_or_read(
+        store, lambda where: _write_skeleton(spec, where),
+        not_a_store=lambda name: SpecError(f"{name} exists and is not a pbrdf-cl sweep store; choose another "
+                                           "--out or delete it"))
+    if attrs is None:
+        return name, False
     if not attrs or "sweep_spec_sha256" not in attrs:
         raise SpecError(f"{name} exists and is not a pbrdf-cl sweep store (or its creation was interrupted); "
                         "choose another --out or delete it")
     if attrs["sweep_spec_sha256"] != spec.sha256:
-        try:
-            diffs = _differences(json.loads(attrs.get("sweep_spec", "{}")), spec.canonical())
-        except ValueError:
-            diffs = []
+        diffs = zarr_store.stored_differences(attrs, "sweep_spec", spec.canonical())
         raise SpecError(f"{name} was started with a different spec ({'; '.join(diffs) or 'sha256 differs'}); "
                         f"choose another --out, or delete {name} to start over")
-    _check_kernels(name, attrs)
+    zarr_store.check_kernels(name, attrs)
     return name, True
 
 
-def _clean_partials(name):
-    """Remove the temporary files of writes interrupted by a kill (zarr writes ``*.partial`` then renames)."""
-    for root, _, files in os.walk(name):
-        for f in files:
-            if f.endswith(".partial"):
-                try:
-                    os.unlink(os.path.join(root, f))
-                except OSError:
-                    pass
-
-
 def read_done(spec, store):
-    """Boolean array: which chunks are marked done in the store."""
-    name = _store_name(store)
-    done = np.zeros(spec.n_chunks, bool)
-    folder = Path(name, *DONE.split("/"))
-    if _is_local(store) and folder.is_dir():
-        idx = [int(f) for f in os.listdir(folder) if f.isdigit()]
-        idx = [i for i in idx if i < spec.n_chunks]
-        done[idx] = True
-        return done
-    return _open_group(name, "r")[DONE][:] == 1
+    """Boolean array: which chunks of ``spec`` are marked done in the store
+    (:func:`pbrdf_cl.store.zarr.read_done`)."""
+    return zarr_store.read_done(store, spec.n_chunks)
 
 
 # ---------------------------------------------------------------------------------------------
 # one chunk: compute, write, then mark
 
-_ENGINES = {}
+#: This process's writers, by (store, spec's SHA-256): opened once per worker.
 _RUNNERS = {}
-_CACHE_LOCK = threading.Lock()
-
-
-def worker_engine(device=None, backend="auto"):
-    """This process's engine for ``device`` and ``backend`` (built once, then reused by every
-    chunk; see :func:`pbrdf_cl.device.engine.resolve_engine`)."""
-    key = (device, backend)
-    with _CACHE_LOCK:
-        if key not in _ENGINES:
-            os.environ.setdefault("POCL_CACHE_DIR", os.path.join(tempfile.gettempdir(), "pbrdf-cl-pocl-cache"))
-            if device is None or backend == "numpy":
-                _ENGINES[key] = resolve_engine(None, backend)
-            else:
-                from ..device.engine import Engine
-                _ENGINES[key] = Engine(device)
-        return _ENGINES[key]
 
 
 def compute_chunk(spec, eng, i):
@@ -655,11 +509,11 @@ class _Runner:
     """Writes chunks of one spec into one store."""
 
     def __init__(self, spec, name):
-        g = _open_group(name, "r+")
-        _check_kernels(name, g.attrs)  # a worker with another pbrdf-cl would mix values
+        g = zarr_store.open_group(name, "r+")
+        zarr_store.check_kernels(name, g.attrs)  # a worker with another pbrdf-cl would mix values
         self.spec = spec
         self.arrays = {v: g[v] for v in spec.variables}
-        self.done = g[DONE]
+        self.done = g[zarr_store.DONE]
 
     def run(self, eng, i):
         t0 = time.perf_counter()
@@ -677,17 +531,13 @@ class _Runner:
 
 
 def _runner(spec, name):
-    key = (name, spec.sha256)
-    with _CACHE_LOCK:
-        if key not in _RUNNERS:
-            _RUNNERS[key] = _Runner(spec, name)
-        return _RUNNERS[key]
+    return cluster.per_process(_RUNNERS, (name, spec.sha256), lambda: _Runner(spec, name))
 
 
 def run_chunk(spec, name, i, device=None, backend="auto"):
     """Dask task: compute chunk ``i`` of ``spec`` with this worker's engine and write it into the
     store ``name``; returns (i, points, seconds)."""
-    return _runner(spec, name).run(worker_engine(device, backend), i)
+    return _runner(spec, name).run(cluster.worker_engine(device, backend), i)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -734,10 +584,7 @@ def _check_before_work(spec, store, distributed, allow_large):
     """What can be refused before a store is created: a cluster without dask.distributed, a store
     that would not fit on its disk (unless ``allow_large``)."""
     if distributed:
-        import importlib.util
-        if importlib.util.find_spec("distributed") is None:
-            raise RuntimeError("a cluster sweep needs dask.distributed: pip install 'pbrdf-cl[cluster]' "
-                               "(or run without --workers/--scheduler)")
+        cluster.require_distributed("sweep")
     need, free = store_bytes(spec), sizes.free_disk(store)
     if free is not None and need > free and not allow_large:
         raise sizes.TooLargeError(
@@ -785,9 +632,7 @@ def sweep(spec, store, *, engine=None, device=None, backend="auto", workers=None
         raise ValueError(f"workers must be a positive integer, got {workers!r}")
     _check_before_work(spec, store, given > 0, allow_large)
     name, existed = open_store(spec, store)
-    if existed and _is_local(store):
-        _clean_partials(name)
-    done = read_done(spec, name)
+    done = zarr_store.resume(store, name, spec.n_chunks, existed)
     todo = np.flatnonzero(~done)
     skipped = spec.n_chunks - todo.size
     stats = dict(chunks=0, points=0)
@@ -813,7 +658,7 @@ def sweep(spec, store, *, engine=None, device=None, backend="auto", workers=None
 
     try:
         if todo.size and given == 0:
-            eng = resolve_engine(engine, backend) if engine is not None else worker_engine(device, backend)
+            eng = resolve_engine(engine, backend) if engine is not None else cluster.worker_engine(device, backend)
             runner = _Runner(spec, name)
             for i in todo:
                 _, points, _ = runner.run(eng, i)
@@ -826,7 +671,7 @@ def sweep(spec, store, *, engine=None, device=None, backend="auto", workers=None
     seconds = time.perf_counter() - t0
     complete = skipped + stats["chunks"] == spec.n_chunks
     if complete:
-        _mark_complete(spec, name)
+        zarr_store.mark_complete(name, spec.n_chunks, "sweep_complete")
     res = SweepResult(store=name, spec=spec, chunks_total=spec.n_chunks, chunks_computed=stats["chunks"],
                       chunks_skipped=int(skipped), points_computed=stats["points"], seconds=seconds,
                       points_per_s=stats["points"] / seconds if stats["points"] else 0.0, complete=complete)
@@ -842,69 +687,7 @@ def _eta(seconds):
     return f"{seconds:.3g} s"
 
 
-def _mark_complete(spec, name):
-    g = _open_group(name, "r+")
-    if not g.attrs.get("sweep_complete"):
-        if not read_done(spec, name).all():
-            return
-        g.attrs["sweep_complete"] = True
-    _zarr().consolidate_metadata(name)
-
-
 def _run_distributed(spec, name, todo, device, backend, workers, scheduler, client, finished):
-    run_on_cluster(run_chunk, spec, todo, lambda i: (name, int(i), device, backend), "pbrdf-sweep",
-                   lambda result: finished(result[0], result[1]), workers=workers, scheduler=scheduler,
-                   client=client)
-
-
-def run_on_cluster(task, shared, items, args_of, key, finished, *, workers=None, scheduler=None, client=None):
-    """Run ``task(shared, *args_of(item))`` for every item on a ``dask.distributed`` cluster:
-    ``client``, or a new client of the scheduler at ``scheduler``, or a new local cluster of
-    ``workers`` processes (1 thread each), closed again at the end if made here.
-
-    ``shared`` is scattered to every worker once; at most two tasks per worker thread (plus two)
-    are in flight, the next submitted as one finishes; ``finished(result)`` is called on the
-    driver as the results arrive (in any order).  On an error (or Ctrl-C) the tasks not yet done
-    are cancelled and the error is raised.  Used by :func:`sweep` and
-    :func:`pbrdf_cl.fitting.batch_store.fit_batch_to_store`.
-    """
-    try:
-        from distributed import Client, LocalCluster, as_completed
-    except ImportError:
-        raise RuntimeError("a cluster run needs dask.distributed: pip install 'pbrdf-cl[cluster]'") from None
-    cluster = own_client = None
-    try:
-        if client is None:
-            if workers is not None:
-                os.environ.setdefault("POCL_CACHE_DIR", os.path.join(tempfile.gettempdir(), "pbrdf-cl-pocl-cache"))
-                cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                                       dashboard_address=None, silence_logs=logging.ERROR)
-                own_client = client = Client(cluster)
-            else:
-                own_client = client = Client(scheduler, timeout=60)
-        n_threads = sum(client.nthreads().values()) or 1
-        token = uuid.uuid4().hex[:8]
-        shared_future = client.scatter(shared, broadcast=True)
-        pending = iter(items)
-
-        def submit(item):
-            return client.submit(task, shared_future, *args_of(item), key=f"{key}-{token}-{item}", pure=False,
-                                 retries=1)
-        first = [submit(i) for i in itertools.islice(pending, 2 * n_threads + 2)]
-        queue = as_completed(first)
-        try:
-            for fut in queue:
-                result = fut.result()
-                fut.release()
-                finished(result)
-                nxt = next(pending, None)
-                if nxt is not None:
-                    queue.add(submit(nxt))
-        except BaseException:
-            client.cancel(list(queue.futures))
-            raise
-    finally:
-        if own_client is not None:
-            own_client.close()
-        if cluster is not None:
-            cluster.close()
+    cluster.run_on_cluster(run_chunk, spec, todo, lambda i: (name, int(i), device, backend), "pbrdf-sweep",
+                           lambda result: finished(result[0], result[1]), workers=workers, scheduler=scheduler,
+                           client=client)

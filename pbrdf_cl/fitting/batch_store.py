@@ -16,11 +16,11 @@ Dataset :func:`pbrdf_cl.fit_batch` returns in memory):
   rows (the whole of the other dimensions), so no two writers ever share a Zarr chunk;
 - ``_sweep/done``: one uint8 per block, set (1) only after that block's values are in the store
   (write-then-mark: a block without its mark is computed again), the record of a sweep store,
-  read by :func:`pbrdf_cl.explore.sweeps.read_done`; ``_sweep/input_sha256``: per block, the SHA-256 of
+  read by :func:`pbrdf_cl.store.zarr.read_done`; ``_sweep/input_sha256``: per block, the SHA-256 of
   the input rows it was fitted from (written before the mark);
 - root attrs: the Dataset's attrs (model, bounds, grid, ...), the canonical job settings as JSON
   (``batch_settings``) and their SHA-256 (``batch_settings_sha256``), the SHA-256 of the OpenCL
-  sources (``sweep_kernels_sha256``, checked by the same helper as a sweep's), the memory budget
+  sources (``sweep_kernels_sha256``, checked as a sweep's: :func:`pbrdf_cl.store.zarr.check_kernels`), the memory budget
   that chose the blocks (``batch_memory_budget``, not part of the settings: the block size is),
   the devices that computed blocks (``batch_devices``) and ``batch_complete``.
 
@@ -45,25 +45,19 @@ from pathlib import Path
 import numpy as np
 
 from .. import sizes
-from ..explore import sweeps
 from ..device.engine import kernels_sha256, resolve_engine
+from ..store import cluster
+from ..store import zarr as zarr_store
 from ..errors import StoreError
 from .dataset import PIXEL_STATUS, goodness_summary
 
 #: Version of the canonical settings (part of their hash).
 SETTINGS_VERSION = 2  # 2: the goodness-of-fit variables (r2, p_value, fits_data)
 DELAY_ENV = "PBRDF_BATCH_BLOCK_DELAY"
-DONE = sweeps.DONE
+DONE = zarr_store.DONE
 HASHES = "_sweep/input_sha256"
 #: Rows of the stack read for the settings' sample hash (spread evenly, first and last included).
 SAMPLE_ROWS = 5
-
-
-class _Layout:
-    """What :func:`pbrdf_cl.explore.sweeps.read_done` needs to know of a store: its number of blocks."""
-
-    def __init__(self, n_chunks):
-        self.n_chunks = int(n_chunks)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -177,7 +171,7 @@ class _Writer:
     """Writes blocks of one job into one store (opened once per process)."""
 
     def __init__(self, name, digest):
-        g = sweeps._open_group(name, "r+")
+        g = zarr_store.open_group(name, "r+")
         _check_kernels(name, g.attrs)  # a worker with other kernels would mix values
         if g.attrs.get("batch_settings_sha256") != digest:
             raise StoreError(f"{name} holds another job now (settings sha256 {g.attrs.get('batch_settings_sha256')})")
@@ -234,7 +228,7 @@ def run_block(job, name, digest, i, r0, r1, device=None, backend="auto"):
     i, r0, r1 : int
         The block and its rows.
     device, backend
-        The engine each worker builds once (:func:`pbrdf_cl.explore.sweeps.worker_engine`).
+        The engine each worker builds once (:func:`pbrdf_cl.store.cluster.worker_engine`).
 
     Returns
     -------
@@ -245,12 +239,8 @@ def run_block(job, name, digest, i, r0, r1, device=None, backend="auto"):
     --------
     >>> client.submit(run_block, job_future, "fit.zarr", digest, 0, 0, 8)  # doctest: +SKIP
     """
-    key = (name, digest)
-    with sweeps._CACHE_LOCK:
-        if key not in _WRITERS:
-            _WRITERS[key] = _Writer(name, digest)
-        writer = _WRITERS[key]
-    return writer.run(job, sweeps.worker_engine(device, backend), i, r0, r1)
+    writer = cluster.per_process(_WRITERS, (name, digest), lambda: _Writer(name, digest))
+    return writer.run(job, cluster.worker_engine(device, backend), i, r0, r1)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -259,14 +249,14 @@ def run_block(job, name, digest, i, r0, r1, device=None, backend="auto"):
 def _write_skeleton(job, blocks, block_rows, the_settings, memory_budget, store):
     """Coordinates, empty variables, the done record, then (last: the commit point) the root attrs."""
     template = _block_dataset(job, job.empty_outputs(1), 0, 1)
-    g = sweeps._open_group(store, "w")
+    g = zarr_store.open_group(store, "w")
     first = job.source.dims[0]
     n0 = job.source.shape[0]
     for cname, c in template.coords.items():
         full = job.source.coords.get(cname)  # the stack's own coordinates, whole (the template has one row)
         values = np.asarray(full[1]) if full is not None else np.asarray(c.values)
-        arr = sweeps._create_array(g, cname, values.shape, values.shape or (1,), values.dtype, None, None,
-                                   {"_ARRAY_DIMENSIONS": list(c.dims), **c.attrs})
+        arr = zarr_store.create_array(g, cname, values.shape, values.shape or (1,), values.dtype, None, None,
+                                      {"_ARRAY_DIMENSIONS": list(c.dims), **c.attrs})
         arr[...] = values
     variables = list(template.data_vars)
     # the stack's coordinates that are not dimensions (x_mm, y_mm, ...): named in each variable's
@@ -277,15 +267,15 @@ def _write_skeleton(job, blocks, block_rows, the_settings, memory_budget, store)
         shape = (n0,) + var.shape[1:]
         fill = np.nan if var.dtype.kind == "f" else None  # no _FillValue on integers: 0 is a status
         mine = [c for c in aux if set(template[c].dims) <= set(var.dims)]
-        sweeps._create_array(g, v, shape, (block_rows,) + var.shape[1:], var.dtype, fill, sweeps._compressor(),
+        zarr_store.create_array(g, v, shape, (block_rows,) + var.shape[1:], var.dtype, fill, zarr_store.compressor(),
                              {"_ARRAY_DIMENSIONS": list(var.dims), **var.attrs,
                               **({"coordinates": " ".join(mine)} if mine else {})})
     sub = g.require_group("_sweep")
     sub.attrs.update(description=f"done[i] = 1 once block i (rows i*{block_rows} to (i+1)*{block_rows} of "
                                  f"{first}) is in the store; input_sha256[i]: SHA-256 of those rows of the input",
                      block_rows=int(block_rows))
-    sweeps._create_array(sub, "done", (len(blocks),), (1,), "u1", 0, None, {})
-    sweeps._create_array(sub, "input_sha256", (len(blocks), 32), (1, 32), "u1", 0, None, {})
+    zarr_store.create_done(g, len(blocks))
+    zarr_store.create_array(sub, "input_sha256", (len(blocks), 32), (1, 32), "u1", 0, None, {})
     from .. import __version__
     text, digest = _canonical(the_settings)
     g.attrs.update({**template.attrs, "title": "pbrdf-cl per-pixel fit", "pbrdf_cl_version": __version__,
@@ -293,40 +283,25 @@ def _write_skeleton(job, blocks, block_rows, the_settings, memory_budget, store)
                     "batch_variables": json.dumps(variables), "batch_blocks": len(blocks),
                     "batch_block_rows": int(block_rows), "batch_memory_budget": int(memory_budget),
                     "batch_devices": [], "batch_complete": False})
-    sweeps._zarr().consolidate_metadata(store)
+    zarr_store.consolidate(store)
 
 
 def _open_store(job, blocks, block_rows, the_settings, memory_budget, store):
     """Create the store, or check that an existing one holds this job; returns (name, existed)."""
-    name = sweeps._store_name(store)
     _, digest = _canonical(the_settings)
-
-    def skeleton(where):
-        _write_skeleton(job, blocks, block_rows, the_settings, memory_budget, where)
-    if sweeps._is_local(store):
-        path = Path(name)
-        if sweeps._local_is_empty(path):
-            if sweeps.create_in_place(path, skeleton):
-                return name, False
-            # else another process created it just now: check it below
-        elif not (path / ".zgroup").exists():
-            raise StoreError(f"{name} exists and is not a pbrdf-cl fit store; choose another --out or delete it")
-    try:
-        attrs = dict(sweeps._open_group(name, "r").attrs)
-    except Exception:  # noqa: BLE001 - zarr raises various errors for a missing group
-        if sweeps._is_local(store):
-            raise StoreError(f"{name} exists and is not a readable Zarr store; choose another --out or delete it") \
-                from None
-        skeleton(name)
+    name, attrs = zarr_store.create_or_read(
+        store, lambda where: _write_skeleton(job, blocks, block_rows, the_settings, memory_budget, where),
+        not_a_store=lambda name: StoreError(f"{name} exists and is not a pbrdf-cl fit store; choose another --out "
+                                            "or delete it"),
+        unreadable=lambda name: StoreError(f"{name} exists and is not a readable Zarr store; choose another --out "
+                                           "or delete it"))
+    if attrs is None:
         return name, False
     if "batch_settings_sha256" not in attrs:
         what = "a pbrdf-cl sweep store" if "sweep_spec_sha256" in attrs else "not a pbrdf-cl fit store"
         raise StoreError(f"{name} exists and is {what}; choose another --out or delete it")
     if attrs["batch_settings_sha256"] != digest:
-        try:
-            diffs = sweeps._differences(json.loads(attrs.get("batch_settings", "{}")), the_settings)
-        except ValueError:
-            diffs = []
+        diffs = zarr_store.stored_differences(attrs, "batch_settings", the_settings)
         diffs = [re.sub(r'"([0-9a-f]{12})[0-9a-f]{52}"', r"\1...", d) for d in diffs]  # SHA-256s shortened
         hint = ""
         if any(d.startswith("block_rows") for d in diffs):
@@ -339,17 +314,14 @@ def _open_store(job, blocks, block_rows, the_settings, memory_budget, store):
 
 
 def _check_kernels(name, attrs):
-    """:func:`pbrdf_cl.explore.sweeps._check_kernels`, refusing with a :class:`StoreError`."""
-    try:
-        sweeps._check_kernels(name, attrs)
-    except sweeps.SpecError as exc:
-        raise StoreError(str(exc)) from None
+    """:func:`pbrdf_cl.store.zarr.check_kernels`, refusing with a :class:`StoreError`."""
+    zarr_store.check_kernels(name, attrs, error=StoreError)
 
 
 def _check_inputs(job, name, blocks, done):
     """The blocks marked done were fitted from these rows of the stack: compare each one's
     SHA-256 (read one block at a time)."""
-    hashes = sweeps._open_group(name, "r")[HASHES]
+    hashes = zarr_store.open_group(name, "r")[HASHES]
     first = job.source.dims[0]
     for i in np.flatnonzero(done):
         r0, r1 = blocks[i]
@@ -362,31 +334,26 @@ def _check_inputs(job, name, blocks, done):
 
 
 def _mark_complete(name, n_blocks):
-    g = sweeps._open_group(name, "r+")
-    if not g.attrs.get("batch_complete"):
-        if not sweeps.read_done(_Layout(n_blocks), name).all():
-            return
-        g.attrs["batch_complete"] = True
-    sweeps._zarr().consolidate_metadata(name)
+    zarr_store.mark_complete(name, n_blocks, "batch_complete")
 
 
 def _add_goodness(name, ds):
     """The goodness-of-fit summary of a complete store (:func:`pbrdf_cl.fitting.dataset.goodness_summary`,
     read block by block) written into its attrs; returns it."""
     summary = goodness_summary(ds)
-    g = sweeps._open_group(name, "r+")
+    g = zarr_store.open_group(name, "r+")
     g.attrs.update(summary)
-    sweeps._zarr().consolidate_metadata(name)
+    zarr_store.consolidate(name)
     return summary
 
 
 def _add_devices(name, found):
-    g = sweeps._open_group(name, "r+")
+    g = zarr_store.open_group(name, "r+")
     known = list(g.attrs.get("batch_devices", []))
     new = sorted(set(known) | set(found))
     if new != known:
         g.attrs["batch_devices"] = new
-        sweeps._zarr().consolidate_metadata(name)
+        zarr_store.consolidate(name)
 
 
 def read_progress(store):
@@ -407,9 +374,9 @@ def read_progress(store):
     >>> read_progress("params.zarr")  # doctest: +SKIP
     (3, 8)
     """
-    name = sweeps._store_name(store)
-    total = int(sweeps._open_group(name, "r").attrs["batch_blocks"])
-    return int(sweeps.read_done(_Layout(total), name).sum()), total
+    name = zarr_store.store_name(store)
+    total = int(zarr_store.open_group(name, "r").attrs["batch_blocks"])
+    return int(zarr_store.read_done(name, total).sum()), total
 
 
 def store_bytes(job):
@@ -507,16 +474,13 @@ def check_cluster(workers=None, scheduler=None, client=None, engine=None):
     if given and engine is not None:
         raise ValueError("engine= is for a local run; every cluster worker builds its own (device=, backend=)")
     if given:
-        import importlib.util
-        if importlib.util.find_spec("distributed") is None:
-            raise RuntimeError("a cluster fit needs dask.distributed: pip install 'pbrdf-cl[cluster]' "
-                               "(or run without --workers/--scheduler)")
+        cluster.require_distributed("fit")
     return given
 
 
 def local_engine(engine=None, backend="auto", device=None):
     """The engine a local run computes with: ``engine`` if given, else this process's engine for
-    ``device`` (built once, :func:`pbrdf_cl.explore.sweeps.worker_engine`), else the default for
+    ``device`` (built once, :func:`pbrdf_cl.store.cluster.worker_engine`), else the default for
     ``backend``.
 
     Parameters
@@ -539,7 +503,7 @@ def local_engine(engine=None, backend="auto", device=None):
     """
     if engine is not None or device is None:
         return resolve_engine(engine, backend)
-    return sweeps.worker_engine(device, backend)
+    return cluster.worker_engine(device, backend)
 
 
 def write_store(job, store, *, progress=False, engine=None, backend="auto", device=None, workers=None, scheduler=None,
@@ -638,10 +602,7 @@ def write_store(job, store, *, progress=False, engine=None, backend="auto", devi
     the_settings = settings(job, block_rows)
     digest = _canonical(the_settings)[1]
     name, existed = _open_store(job, blocks, block_rows, the_settings, job.memory_budget, store)
-    layout = _Layout(len(blocks))
-    if existed and sweeps._is_local(store):
-        sweeps._clean_partials(name)
-    done = sweeps.read_done(layout, name)
+    done = zarr_store.resume(store, name, len(blocks), existed)
     if existed and done.any():
         _check_inputs(job, name, blocks, done)
     todo = np.flatnonzero(~done)
@@ -669,9 +630,9 @@ def write_store(job, store, *, progress=False, engine=None, backend="auto", devi
             for i in todo:
                 finished(writer.run(job, eng, i, *blocks[i]))
         elif todo.size:
-            sweeps.run_on_cluster(run_block, job, [int(i) for i in todo],
-                                  lambda i: (name, digest, i, *blocks[i], device, backend), "pbrdf-fit", finished,
-                                  workers=workers, scheduler=scheduler, client=client)
+            cluster.run_on_cluster(run_block, job, [int(i) for i in todo],
+                                   lambda i: (name, digest, i, *blocks[i], device, backend), "pbrdf-fit", finished,
+                                   workers=workers, scheduler=scheduler, client=client)
     finally:
         if bar is not None:
             bar.close()

@@ -1,1 +1,3 @@
-"""Every figure: fits, image-fit maps, sensitivity maps."""
+"""Every figure (matplotlib, Agg backend): fits (``fit``), two-axis maps (``maps``), the paper's
+figures (``paper``), image-fit maps (``images``), sensitivity maps (``sensitivity``); what they
+share (``common``: pyplot, the inputs' axis labels)."""

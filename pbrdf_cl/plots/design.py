@@ -4,7 +4,7 @@ predicted 95% interval widths."""
 import numpy as np
 
 from ..explore.designs import with_ks
-from .fit import _pyplot
+from .common import pyplot
 
 
 def plot_design(result, path):
@@ -16,7 +16,7 @@ def plot_design(result, path):
     parameter a set leaves undetermined (its interval spans the whole bounds) is drawn as a
     hatched, unfilled bar of its bound range, named in the legend.  Returns the (closed) Figure."""
     from matplotlib.patches import Patch
-    plt = _pyplot()
+    plt = pyplot()
     fig, (ax, axb) = plt.subplots(1, 2, figsize=(13, 5.6), layout="constrained",
                                   gridspec_kw=dict(width_ratios=[1.1, 1]))
     info = np.asarray(result.information, float)

@@ -1,14 +1,10 @@
-"""Figures (matplotlib, Agg backend: no display needed)."""
+"""The figure of a fit (``pbrdf-cl fit --plot``): measured DOP and each fitted model's curve per
+incidence angle, and the residuals (matplotlib, Agg backend: no display needed)."""
 from __future__ import annotations
 
 import numpy as np
 
-
-def _pyplot():
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    return plt
+from .common import pyplot
 
 
 #: The fitted models' line styles and residual markers, in the order of ``fits``.
@@ -23,7 +19,7 @@ def plot_fit(meas, fits, path):
     from matplotlib.lines import Line2D
 
     from ..compute import pointwise
-    plt = _pyplot()
+    plt = pyplot()
     fig, (ax, axr) = plt.subplots(2, 1, figsize=(8, 7.5), sharex=True, layout="constrained",
                                   gridspec_kw=dict(height_ratios=[3, 1.5]))
     incid = np.unique(np.round(meas.theta_i, 6))

@@ -4,12 +4,16 @@ in the stack's coordinates, robust colour scales, undetermined, not-converged an
 marked (:func:`plot_batch_maps`)."""
 from __future__ import annotations
 
+import textwrap
+
 import numpy as np
+
+from .common import pyplot
 
 #: Largest side, in pixels, of a map drawn (larger images are drawn every s-th pixel).
 MAX_SIDE = 1024
 
-#: Colours of the status codes (``pbrdf_cl.fitting.batch.STATUS``).
+#: Colours of the status codes (``pbrdf_cl.fitting.dataset.PIXEL_STATUS``).
 STATUS_COLOURS = {1: "#2ca02c", 2: "#bcbd22", 3: "#ff7f0e", 4: "#9467bd", 0: "#d62728", -1: "#7f7f7f",
                   -2: "#c7c7c7", -3: "#000000"}
 
@@ -130,7 +134,7 @@ def plot_batch_maps(ds, path, *, truth=None, max_side=MAX_SIDE):
     Parameters
     ----------
     ds : xarray.Dataset
-        A result of :func:`pbrdf_cl.fitting.batch.fit_batch` or :func:`pbrdf_cl.fitting.batch_store.fit_batch_to_store`
+        A result of :func:`pbrdf_cl.fitting.batch.fit_batch` (in memory or with ``store=``)
         over one or two pixel dimensions (``attrs["free"]`` names the fitted parameters).
     path : str or path
         The PNG to write (matplotlib's Agg backend).
@@ -162,9 +166,7 @@ def plot_batch_maps(ds, path, *, truth=None, max_side=MAX_SIDE):
     >>> out.endswith("maps.png")
     True
     """
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
     fig = _figure(ds, truth, max_side)
     fig.savefig(path, dpi=100)
     plt.close(fig)
@@ -173,14 +175,26 @@ def plot_batch_maps(ds, path, *, truth=None, max_side=MAX_SIDE):
 
 def _figure(ds, truth, max_side):
     """The matplotlib figure of :func:`plot_batch_maps`."""
-    import textwrap
+    names = _check(ds)
+    side = max(ds["status"].shape)
+    step = max(1, -(-side // int(max_side)))
+    sub = "" if step == 1 else f" (every {step}th pixel)"
+    status = _image(ds["status"], step).astype(int)
+    sheet = _Sheet(ds, step, status.shape, 3 if truth is not None else 2, len(names) + 1)
+    not_converged = status == 0
+    marked = {"undetermined": False, 0: bool(not_converged.any())}
+    for row, n in enumerate(names):
+        marked["undetermined"] |= _parameter_row(sheet, ds, truth, n, row, step, sub, status)
+    _status_row(sheet, status, sub, marked)
+    model = ds.attrs.get("model", "")
+    shape = ds["status"].shape
+    sheet.fig.suptitle(f"per-pixel fit{f' ({model} model)' if model else ''}: {' x '.join(map(str, shape))} pixels",
+                       fontsize=11, y=1 - 0.12 / sheet.fig_h, va="top")
+    return sheet.fig
 
-    import matplotlib.pyplot as plt
-    from matplotlib.colors import BoundaryNorm, ListedColormap
-    from matplotlib.patches import Patch
 
-    from ..fitting.dataset import PIXEL_STATUS as STATUS
-
+def _check(ds):
+    """The fitted parameters of a result to draw; a ValueError for what cannot be drawn."""
     if "status" not in ds:
         raise ValueError("plot_batch_maps: the dataset has no 'status': not a result of fit_batch")
     names = str(ds.attrs.get("free", "")).split() or [str(p) for p in ds.coords.get("param", [])]
@@ -190,27 +204,18 @@ def _figure(ds, truth, max_side):
     dims = ds["status"].dims
     if len(dims) > 2:
         raise ValueError(f"plot_batch_maps: maps need one or two pixel dimensions, got {dims}")
-    side = max(ds["status"].shape)
-    step = max(1, -(-side // int(max_side)))
-    sub = "" if step == 1 else f" (every {step}th pixel)"
-    shape = ds["status"].shape
-    status = _image(ds["status"], step).astype(int)
-    if len(dims) == 2:
-        (ylab, cy), (xlab, cx) = _axis_coordinate(ds, dims[0], step), _axis_coordinate(ds, dims[1], step)
-    else:
-        (ylab, cy), (xlab, cx) = ("", None), _axis_coordinate(ds, dims[0], step)
-    extent = _extent(cx, cy, status.shape)
-    same_units = len(dims) == 2 and (cx is None) == (cy is None) and (
-        cx is None or ds[xlab.split(" (")[0]].attrs.get("units") == ds[ylab.split(" (")[0]].attrs.get("units"))
-    aspect = "equal" if same_units else "auto"
-    # the layout, in inches: each panel an image (its aspect that of the map when drawn in equal
-    # units), its colour bar against it, the bar's labels, and room for the title and axis labels
+    return names
+
+
+def _image_size(extent, shape, aspect):
+    """(width, height) in inches of each panel's image: its aspect that of the map when drawn in
+    equal units; 3 inches wide, 2 to 4 high (a colour bar shorter than 2 inches has no room for
+    its label), up to 6 wide where the map is wide; beyond that (and for one pixel dimension)
+    stretched."""
     if aspect == "equal":
         ratio = abs((extent[2] - extent[3]) / (extent[1] - extent[0]))
     else:
         ratio = (shape[0] / shape[1]) if len(shape) == 2 else 0.25
-    # images 3 inches wide, 2 to 4 high (a colour bar shorter than 2 inches has no room for its
-    # label), up to 6 wide where the map is wide; beyond that (and for one pixel dimension) stretched
     img_w = 3.0
     img_h = img_w * ratio
     if img_h < 2.0:
@@ -218,125 +223,163 @@ def _figure(ds, truth, max_side):
         img_h = max(2.0, img_w * ratio) if aspect == "equal" else 2.0
     if img_h > 4.0:
         img_h, img_w = 4.0, (4.0 / ratio if aspect == "equal" else img_w)
-    left, gap, bar, right, top, bottom = 0.95, 0.08, 0.14, 1.15, 0.62, 0.58
-    panel_w, panel_h = left + img_w + gap + bar + right, top + img_h + bottom
-    ncol = 3 if truth is not None else 2
-    nrow = len(names) + 1
-    legend_h = 2.9  # the status row holds the legends (of the statuses and of the marks on the maps)
-    heights = [panel_h] * (nrow - 1) + [max(panel_h, top + legend_h + bottom)]
-    fig_w, fig_h = ncol * panel_w + 0.2, sum(heights) + 0.45
-    fig = plt.figure(figsize=(fig_w, fig_h))
-    axes = np.empty((nrow, ncol), object)
-    caxes = np.empty((nrow, ncol), object)
-    for r in range(nrow):
-        for c in range(ncol):
-            x0, y0 = 0.1 + c * panel_w + left, fig_h - 0.45 - sum(heights[:r]) - top - img_h
-            axes[r, c] = fig.add_axes([x0 / fig_w, y0 / fig_h, img_w / fig_w, img_h / fig_h])
-            caxes[r, c] = fig.add_axes([(x0 + img_w + gap) / fig_w, y0 / fig_h, bar / fig_w, img_h / fig_h])
-            caxes[r, c].set_axis_off()
-    not_converged = status == 0
-    marked = {"undetermined": False, 0: bool(not_converged.any())}
-    missing = False
+    return img_w, img_h
 
-    def draw(at, img, title, cmap, label, limits, marks=None):
-        nonlocal missing
-        ax, cax = axes[at], caxes[at]
+
+class _Sheet:
+    """The figure's grid of panels (an image and its colour bar each), in the stack's coordinates,
+    and the drawing of one map into a panel."""
+
+    #: Margins in inches: left of an image, image to bar, the bar, right of it, above, below.
+    LEFT, GAP, BAR, RIGHT, TOP, BOTTOM = 0.95, 0.08, 0.14, 1.15, 0.62, 0.58
+    #: Height of the legends in the status row (of the statuses and of the marks on the maps).
+    LEGEND_H = 2.9
+
+    def __init__(self, ds, step, image_shape, ncol, nrow):
+        plt = pyplot()
+        dims = self.dims = ds["status"].dims
+        if len(dims) == 2:
+            (ylab, cy), (xlab, cx) = _axis_coordinate(ds, dims[0], step), _axis_coordinate(ds, dims[1], step)
+        else:
+            (ylab, cy), (xlab, cx) = ("", None), _axis_coordinate(ds, dims[0], step)
+        self.xlab, self.ylab = xlab, ylab
+        extent = self.extent = _extent(cx, cy, image_shape)
+        same_units = len(dims) == 2 and (cx is None) == (cy is None) and (
+            cx is None or ds[xlab.split(" (")[0]].attrs.get("units") == ds[ylab.split(" (")[0]].attrs.get("units"))
+        # the layout, in inches: each panel an image, its colour bar against it, the bar's labels,
+        # and room for the title and axis labels
+        img_w, img_h = _image_size(extent, ds["status"].shape, "equal" if same_units else "auto")
+        self.panel_w, panel_h = self.LEFT + img_w + self.GAP + self.BAR + self.RIGHT, self.TOP + img_h + self.BOTTOM
+        self.heights = [panel_h] * (nrow - 1) + [max(panel_h, self.TOP + self.LEGEND_H + self.BOTTOM)]
+        self.fig_w, self.fig_h = ncol * self.panel_w + 0.2, sum(self.heights) + 0.45
+        fig = self.fig = plt.figure(figsize=(self.fig_w, self.fig_h))
+        self.axes = np.empty((nrow, ncol), object)
+        self.caxes = np.empty((nrow, ncol), object)
+        for r in range(nrow):
+            for c in range(ncol):
+                x0 = 0.1 + c * self.panel_w + self.LEFT
+                y0 = self.fig_h - 0.45 - sum(self.heights[:r]) - self.TOP - img_h
+                self.axes[r, c] = fig.add_axes([x0 / self.fig_w, y0 / self.fig_h, img_w / self.fig_w,
+                                                img_h / self.fig_h])
+                self.caxes[r, c] = fig.add_axes([(x0 + img_w + self.GAP) / self.fig_w, y0 / self.fig_h,
+                                                 self.BAR / self.fig_w, img_h / self.fig_h])
+                self.caxes[r, c].set_axis_off()
+        self.missing = False  # a map has pixels without a value
+
+    def label_axes(self, ax):
+        ax.set_xlabel(self.xlab)
+        ax.set_ylabel(self.ylab)
+        if len(self.dims) == 1:
+            ax.set_yticks([])
+
+    def draw(self, at, img, title, cmap, label, limits, marks=None):
+        """Map ``img`` into panel ``at`` on the colour scale ``limits`` (:func:`_limits`, and
+        "truth" fifth where the scale was widened to the truth's), hatched where ``marks`` say."""
+        plt = pyplot()
+        ax, cax = self.axes[at], self.caxes[at]
         lo, hi, extend, robust = limits[:4]
         cm = plt.get_cmap(cmap).with_extremes(bad=MISSING_COLOUR)
         im = ax.imshow(np.ma.masked_invalid(img), cmap=cm, vmin=lo, vmax=hi, interpolation="nearest", aspect="auto",
-                       extent=extent)
-        missing = missing or bool(np.isnan(img).any())
+                       extent=self.extent)
+        self.missing = self.missing or bool(np.isnan(img).any())
         for mask, hatch in marks or ():
-            _hatch(ax, mask, extent, hatch)
+            _hatch(ax, mask, self.extent, hatch)
         ax.set_title(textwrap.fill(title, TITLE_WIDTH), fontsize=9)
-        ax.set_xlabel(xlab)
-        ax.set_ylabel(ylab)
-        if len(dims) == 1:
-            ax.set_yticks([])
+        self.label_axes(ax)
         if robust:  # (short: the label must not run past the bar into the title)
             label += f"\nscale: {_ordinal(PERCENTILES[0])}-{_ordinal(PERCENTILES[1])} percentile" + (
                 ", truth" if len(limits) > 4 else "")
         cax.set_axis_on()
-        cb = fig.colorbar(im, cax=cax, extend=extend)
+        cb = self.fig.colorbar(im, cax=cax, extend=extend)
         cb.set_label(label, fontsize=8)
         if hasattr(cb.formatter, "set_useOffset"):
             cb.formatter.set_useOffset(False)  # no "1e-8+5e-2" above the bar, into the title
 
-    for row, n in enumerate(names):
-        value = _image(ds[n], step)
-        ci = ds[f"{n}_ci95"] if f"{n}_ci95" in ds else None
-        long = ds[n].attrs.get("long_name", "")
-        label = f"{n} ({_units(ds[n].attrs)})"
-        undetermined = np.zeros(value.shape, bool)
-        if "determined" in ds and "param" in ds["determined"].dims and n in list(ds["determined"].param.values):
-            undetermined = ~_image(ds["determined"].sel(param=n), step).astype(bool) & (status >= 0) & (status != 0) \
-                & np.isfinite(value)
-        marked["undetermined"] |= bool(undetermined.any())
-        marks = [(undetermined, MARKS[0][1]), (not_converged, MARKS[1][1])]
-        lo, hi, _, _ = limits = _limits([value])
-        true = None
-        if truth is not None and f"true_{n}" in truth:
-            true = _image(truth[f"true_{n}"], step)
-            finite = true[np.isfinite(true)]
-            if finite.size:  # the truth drawn whole on the fitted map's scale
-                lo, hi = min(lo, float(finite.min())), max(hi, float(finite.max()))
-                below, above = bool((value < lo).any()), bool((value > hi).any())
-                extend = {(False, False): "neither", (True, False): "min", (False, True): "max"}.get((below, above),
-                                                                                                   "both")
-                limits = (lo, hi, extend, below or above, "truth")
-        col = 0
-        if truth is not None:
-            if true is not None:
-                cover = ""
-                if ci is not None:
-                    l_, h_ = _image(ci.isel(bound=0), step), _image(ci.isel(bound=1), step)
-                    fitted = np.isfinite(l_)
-                    cover = (f"; 95% intervals cover it in {np.mean(((l_ <= true) & (true <= h_))[fitted]):.1%} "
-                             "of pixels")
-                draw((row, 0), true, f"{n}: truth{cover}{sub}", "viridis", label, limits)
-            else:
-                axes[row, 0].set_axis_off()
-            col = 1
-        draw((row, col), value, f"{n}: {long}{sub}" if long else f"{n}{sub}", "viridis", label, limits, marks)
-        if ci is not None:
-            width = _image(ci.isel(bound=1), step) - _image(ci.isel(bound=0), step)
-            draw((row, col + 1), width, f"{n}: width of the 95% interval (high - low){sub}", "magma",
-                 f"width of {n} ({_units(ds[n].attrs)})", _limits([width]), marks)
+
+def _truth_limits(value, true, limits):
+    """The value map's colour scale widened to the truth's range (the truth drawn whole on it)."""
+    lo, hi = limits[:2]
+    finite = true[np.isfinite(true)]
+    if not finite.size:
+        return limits
+    lo, hi = min(lo, float(finite.min())), max(hi, float(finite.max()))
+    below, above = bool((value < lo).any()), bool((value > hi).any())
+    extend = {(False, False): "neither", (True, False): "min", (False, True): "max"}.get((below, above), "both")
+    return (lo, hi, extend, below or above, "truth")
+
+
+def _parameter_row(sheet, ds, truth, n, row, step, sub, status):
+    """The row of parameter ``n``: its truth (given one), its value and the width of its 95%
+    interval; returns whether any pixel was hatched as undetermined."""
+    value = _image(ds[n], step)
+    ci = ds[f"{n}_ci95"] if f"{n}_ci95" in ds else None
+    long = ds[n].attrs.get("long_name", "")
+    label = f"{n} ({_units(ds[n].attrs)})"
+    undetermined = np.zeros(value.shape, bool)
+    if "determined" in ds and "param" in ds["determined"].dims and n in list(ds["determined"].param.values):
+        undetermined = ~_image(ds["determined"].sel(param=n), step).astype(bool) & (status >= 0) & (status != 0) \
+            & np.isfinite(value)
+    marks = [(undetermined, MARKS[0][1]), (status == 0, MARKS[1][1])]
+    limits = _limits([value])
+    true = None
+    if truth is not None and f"true_{n}" in truth:
+        true = _image(truth[f"true_{n}"], step)
+        limits = _truth_limits(value, true, limits)
+    col = 0
+    if truth is not None:
+        if true is not None:
+            cover = ""
+            if ci is not None:
+                l_, h_ = _image(ci.isel(bound=0), step), _image(ci.isel(bound=1), step)
+                fitted = np.isfinite(l_)
+                cover = (f"; 95% intervals cover it in {np.mean(((l_ <= true) & (true <= h_))[fitted]):.1%} "
+                         "of pixels")
+            sheet.draw((row, 0), true, f"{n}: truth{cover}{sub}", "viridis", label, limits)
         else:
-            axes[row, col + 1].set_axis_off()
-    # status: one colour per code, a legend with each code's name and its pixels
+            sheet.axes[row, 0].set_axis_off()
+        col = 1
+    sheet.draw((row, col), value, f"{n}: {long}{sub}" if long else f"{n}{sub}", "viridis", label, limits, marks)
+    if ci is not None:
+        width = _image(ci.isel(bound=1), step) - _image(ci.isel(bound=0), step)
+        sheet.draw((row, col + 1), width, f"{n}: width of the 95% interval (high - low){sub}", "magma",
+                   f"width of {n} ({_units(ds[n].attrs)})", _limits([width]), marks)
+    else:
+        sheet.axes[row, col + 1].set_axis_off()
+    return bool(undetermined.any())
+
+
+def _status_row(sheet, status, sub, marked):
+    """The last row: the status of every pixel (one colour per code) and, beside it, the legends of
+    the statuses (with each code's pixels) and of the marks on the maps."""
+    from matplotlib.colors import BoundaryNorm, ListedColormap
+    from matplotlib.patches import Patch
+
+    from ..fitting.dataset import PIXEL_STATUS as STATUS
     codes = sorted(STATUS)
     colours = [STATUS_COLOURS.get(c, "#ffffff") for c in codes]
     cmap = ListedColormap(colours)
     norm = BoundaryNorm([c - 0.5 for c in codes] + [codes[-1] + 0.5], cmap.N)
-    ax = axes[-1, 0]
-    ax.imshow(status, cmap=cmap, norm=norm, interpolation="nearest", aspect="auto", extent=extent)
+    ax = sheet.axes[-1, 0]
+    ax.imshow(status, cmap=cmap, norm=norm, interpolation="nearest", aspect="auto", extent=sheet.extent)
     ax.set_title(f"fit status{sub}", fontsize=9)
-    ax.set_xlabel(xlab)
-    ax.set_ylabel(ylab)
-    if len(dims) == 1:
-        ax.set_yticks([])
+    sheet.label_axes(ax)
     counts = {c: int((status == c).sum()) for c in codes}
     handles = [Patch(color=STATUS_COLOURS.get(c, "#ffffff"), label=f"{c}: {STATUS[c][0]} ({counts[c]})")
                for c in codes if counts[c]]
-    for ax in axes[-1, 1:]:
+    for ax in sheet.axes[-1, 1:]:
         ax.set_axis_off()
     # the legends in the rest of the last row
-    x0 = (0.1 + panel_w) / fig_w
-    legend_ax = fig.add_axes([x0, (fig_h - 0.45 - sum(heights[:-1]) - top - legend_h) / fig_h, 0.98 - x0,
-                              legend_h / fig_h])
+    x0 = (0.1 + sheet.panel_w) / sheet.fig_w
+    legend_ax = sheet.fig.add_axes([x0, (sheet.fig_h - 0.45 - sum(sheet.heights[:-1]) - sheet.TOP - sheet.LEGEND_H)
+                                    / sheet.fig_h, 0.98 - x0, sheet.LEGEND_H / sheet.fig_h])
     legend_ax.set_axis_off()
     legend_ax.legend(handles=handles, loc="upper left", title="status (pixels drawn)", fontsize=9,
                      title_fontsize=10, frameon=False, alignment="left")
     maps = [Patch(facecolor=(1.0, 1.0, 1.0, 0.3), edgecolor="black", hatch=hatch, linewidth=0.0, label=text)
             for key, hatch, text in MARKS if marked[key]]
-    if missing:
+    if sheet.missing:
         maps.append(Patch(facecolor=MISSING_COLOUR, label="no value: not fitted (see the status)"))
     if maps:
         legend_ax.add_artist(legend_ax.get_legend())
         legend_ax.legend(handles=maps, loc="lower left", title="on the maps", fontsize=9, title_fontsize=10,
                          frameon=False, alignment="left", handleheight=1.6, handlelength=2.4)
-    model = ds.attrs.get("model", "")
-    fig.suptitle(f"per-pixel fit{f' ({model} model)' if model else ''}: {' x '.join(map(str, shape))} pixels",
-                 fontsize=11, y=1 - 0.12 / fig_h, va="top")
-    return fig

@@ -15,8 +15,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..explore.maps import LABELS
-from .fit import _pyplot
+from ..explore.sensitivity import compatible
+from .common import LABELS, pyplot
 
 #: What each drawn variable is called on a figure.
 NAMES = {"S1": "first-order index S1", "ST": "total index ST", "mu_star": "mu* (mean |elementary effect|)",
@@ -44,13 +44,6 @@ def _range_text(ds, p):
             return f"kd/ks in [{lo:g}, {hi:g}]{log} (ks = 1)"
         return f"kd in [{lo:g}, {hi:g}]{log}: kd/ks in [{lo / ks:g}, {hi / ks:g}]"
     return f"{p} in [{lo:g}, {hi:g}]{log}"
-
-
-def _compatible(ds):
-    """A Morris result written before ``sigma`` became ``ee_std`` (the roughness is sigma)."""
-    if "mu_star" in ds and "sigma" in ds.data_vars and "ee_std" not in ds:
-        return ds.rename({"sigma": "ee_std"})
-    return ds
 
 
 def _edges(v):
@@ -148,11 +141,11 @@ def plot_sensitivity(ds, path, *, title=None, dpi=110):
     >>> plot_sensitivity(ds, os.path.join(tempfile.mkdtemp(), "s.png")).endswith("s.png")
     True
     """
-    ds = _compatible(ds)
+    ds = compatible(ds)
     rows = _rows(ds)
     geo = [d for d in ds[rows[0]].dims if d != "parameter"]
     check_axes({d: ds[d].values for d in geo})
-    plt = _pyplot()
+    plt = pyplot()
     if len(geo) == 2:
         fig = _maps(plt, ds, rows, geo)
     else:

@@ -1,0 +1,93 @@
+"""What the commands of ``pbrdf-cl`` share: the one-line error, the engine from ``--device`` and
+``--backend``, the options several commands take, the checks of a result's outputs."""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+from .. import ranges
+from ..device import drivers
+from ..device import engine as _engine
+from ..errors import CommandError
+from ..model import quantities
+from ..model.reference import SHADOWING
+from ..outputs import check_figure, check_output
+
+
+def error(exc) -> int:
+    """Report an input or device error the way every subcommand does; exit status 1."""
+    print(f"pbrdf-cl: error: {exc}", file=sys.stderr)
+    return 1
+
+
+def engine_for(args):
+    """The engine of a subcommand from its ``--backend`` and ``--device``; an unusable explicit
+    device, ``--backend opencl`` without a usable device, or a fallback to numpy caused by an
+    unwritable PoCL cache raise :class:`CommandError`."""
+    backend = getattr(args, "backend", "auto")
+    device = getattr(args, "device", None)
+    try:
+        if backend == "numpy":
+            return _engine.NumpyEngine()
+        if device:
+            return _engine.Engine(device)
+        eng = _engine.get_default_engine(backend)
+    except (ValueError, _engine.OpenCLUnavailableError) as exc:
+        raise CommandError(str(exc)) from None
+    if eng.reason:  # a fallback (the numpy backend, no device being usable): perhaps for want of PoCL's cache
+        problem = drivers.pocl_cache_problem()
+        if problem:
+            raise CommandError(f"{problem}; or pass --backend numpy")
+    return eng
+
+
+def check_result_outputs(args):
+    """Refuse before any work (:class:`CommandError`) a ``--out`` that is neither .nc nor .zarr, and an
+    ``--out`` or ``--png`` that cannot be written (the sobol and design commands)."""
+    if args.out and Path(args.out).suffix.lower() not in (".nc", ".zarr"):
+        raise CommandError(f"--out {args.out}: write the result as .nc (netCDF) or .zarr (a Zarr store)")
+    check_figure("--png", args.png)
+    check_output("--out", args.out)
+    check_output("--png", args.png)
+
+
+SHADOWING_HELP = "shadowing function: paper (the paper's eq. 7-9), smith (Smith's), or none"
+
+
+def items(values):
+    """NAME=VALUE items given space- or comma-separated (``n=1.6,k=2.139 sigma=0.5``)."""
+    return [t for v in values or [] for t in v.split(",") if t.strip()]
+
+
+def quantity_choices(path):
+    """The quantity names for ``path``, canonical and aliases (the registry, pbrdf_cl.quantities)."""
+    names = quantities.names(path)
+    return names + tuple(a for a, c in quantities.ALIASES.items() if c in names)
+
+
+def device_options(parser, where=""):
+    parser.add_argument("--device", help=f"OpenCL device{where}: P:D as `pbrdf-cl devices` lists them, or a name "
+                        "substring (default: PYOPENCL_CTX, else the first usable device)")
+    parser.add_argument("--backend", choices=_engine.BACKENDS, default="auto",
+                        help="auto (default): the OpenCL device, or the numpy reference when no device is usable; "
+                        "opencl: the device or an error; numpy: the float64 reference")
+
+
+def model_option(f):
+    """--model of `fit` and `fit-image`."""
+    f.add_argument("--model", choices=("six-param", "specular"), default="six-param",
+                   help="the model to fit (specular: ref. [7], n and k only)")
+
+
+def fit_settings(f):
+    """--fix, --bounds and --shadowing of `fit` and `fit-image`."""
+    f.add_argument("--fix", nargs="*", metavar="NAME=VALUE", help="hold parameters fixed, e.g. sigma=0.45")
+    f.add_argument("--bounds", nargs="*", metavar="NAME=LO:HI", help="search bounds, e.g. n=1:3 k=0:5")
+    f.add_argument("--shadowing", choices=sorted(SHADOWING), default="paper", help=SHADOWING_HELP)
+
+
+def fit_assignments(args):
+    """(fixed, bounds) from --fix and --bounds (fit_settings), checked against the parameters."""
+    from ..fitting.setup import DEFAULT_BOUNDS
+    return (ranges.parse_assignments(args.fix, tuple(DEFAULT_BOUNDS), "value", "--fix", check=True),
+            ranges.parse_assignments(args.bounds, tuple(DEFAULT_BOUNDS), "bounds", "--bounds"))

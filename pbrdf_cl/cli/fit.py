@@ -1,0 +1,186 @@
+"""``pbrdf-cl fit`` (one set of measurements, a CSV) and ``pbrdf-cl fit-image`` (every pixel of an
+image stack, into a Zarr store)."""
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from ..device import engine as _engine
+from ..outputs import check_figure, check_output, check_store, check_suffix
+from .common import (
+    device_options,
+    engine_for,
+    error,
+    fit_assignments,
+    fit_settings,
+    model_option,
+)
+
+
+def _fit_json(r):
+    corr = np.asarray(r.corr, dtype=float)
+    return dict(model=r.model, shadowing=r.shadowing, success=bool(r.success), status=r.status, message=r.message,
+                fits_data=bool(r.fits_data), x=r.x, kd_ratio=r.get("kd_ratio"),
+                kd_fitted_as=("kd/ks" if "ks" in r.free and "kd" in r.free else "kd") if "kd" in r.free else None,
+                free=r.free, stderr=r.stderr,
+                ci95={k: list(v) for k, v in r.ci95.items()}, sse=r.sse, rmse=r.rmse, chi2=r.chi2,
+                reduced_chi2=r.reduced_chi2 if r.sigma_known else None, p_value=r.p_value, r2=r.r2, aic=r.aic,
+                bic=r.bic, dof=r.dof, residuals=r.residuals.tolist(),
+                corr=np.where(np.isfinite(corr), corr, None).tolist(), condition_number=r.condition_number,
+                nfev=r.nfev, seconds=r.seconds, ambiguous=r.ambiguous, notes=r.notes)
+
+
+def _fit_brief(r):
+    """One line per fitted parameter and a first line with the model, for --quiet."""
+    from ..io.measurements import PHI_DEFAULT_NOTE
+    lines = [f"{r.model}: SSE {r.sse:.4g}" + ("" if r.fits_data else " (the model does not describe these data)")]
+    ratio = "ks" in r.free and "kd" in r.free  # intensities: the interval under "kd" is that of kd/ks
+    for name in r.free:
+        lo, hi = r.ci95[name]
+        if name == "kd" and ratio:
+            lines.append(f"  kd/ks = {r.kd_ratio:.5g}  [{lo:.4g}, {hi:.4g}]  (kd = {r.x['kd']:.5g})")
+        else:
+            lines.append(f"  {name} = {r.x[name]:.5g}  [{lo:.4g}, {hi:.4g}]")
+    if PHI_DEFAULT_NOTE in r.notes:
+        lines.append(f"  note: {PHI_DEFAULT_NOTE}")
+    return "\n".join(lines)
+
+
+def cmd_fit(args) -> int:
+    from ..fitting import inversion as _fit
+    from ..io.measurements import read_csv
+    fixed, bounds = fit_assignments(args)
+    check_suffix("--json", args.json, (".json",), "JSON is written here", allow_none=True)
+    check_figure("--plot", args.plot)
+    check_output("--json", args.json)
+    check_output("--plot", args.plot)
+    try:
+        meas = read_csv(args.data)
+        engine = engine_for(args)
+        kw = dict(shadowing=args.shadowing, bounds=bounds, fixed=fixed, engine=engine, progress=not args.quiet)
+        if args.compare:
+            both = _fit.compare_models(meas, **kw)
+            other = "specular" if args.model == "six-param" else "six-param"
+            fits, best = {args.model: both[args.model], other: both[other]}, both["preferred"]
+        else:
+            if args.model == "specular":
+                kw["fixed"] = {k: v for k, v in fixed.items() if k in ("n", "k")}
+                kw["bounds"] = {k: v for k, v in bounds.items() if k in ("n", "k")}
+            fits, best = {args.model: _fit.fit(meas, args.model, **kw)}, None
+    except (OSError, ValueError, _engine.OpenCLUnavailableError) as exc:
+        return error(exc)
+    if not args.quiet:
+        print(f"data: {meas.source} ({len(meas)} points)")
+    for r in fits.values():
+        print(_fit_brief(r) if args.quiet else r.summary())
+        if not args.quiet:
+            print()
+    if best is not None:
+        print(f"preferred by BIC: {best}" if args.quiet else both.summary())
+    if args.json:
+        with open(args.json, "w") as fh:
+            json.dump(dict(data=meas.source, n_points=len(meas), fits={k: _fit_json(v) for k, v in fits.items()},
+                           preferred=best), fh, indent=2)
+        print(f"wrote {args.json}")
+    if args.plot:
+        from ..plots.fit import plot_fit
+        plot_fit(meas, fits, args.plot)
+        print(f"wrote {args.plot}")
+    return 0
+
+
+def cmd_fit_image(args) -> int:
+    import time
+
+    from ..fitting import batch, batch_store
+    fixed, bounds = fit_assignments(args)
+    check_store("--out", args.out)
+    check_figure("--png", args.png)
+    check_output("--out", str(Path(args.out).parent), folder=True)
+    check_output("--png", args.png)
+    cluster = bool(args.workers or args.scheduler)
+    t0 = time.perf_counter()
+    try:
+        engine = engine_for(args) if not cluster else None
+        ds = batch.fit_batch(
+            args.stack, store=args.out, model=args.model, bounds=bounds or None, fixed=fixed or None,
+            shadowing=args.shadowing, memory_budget=args.memory_budget, progress=not args.no_progress, engine=engine,
+            backend=args.backend, device=args.device, workers=args.workers, scheduler=args.scheduler,
+            allow_large=args.allow_large)
+        counts = batch_store.status_counts(ds)
+        if args.png:
+            from ..plots.images import plot_batch_maps
+            plot_batch_maps(ds, args.png)
+    except KeyboardInterrupt:
+        try:
+            done, total = batch_store.read_progress(args.out)
+            where = f"{done} of {total} blocks are in {args.out}"
+        except Exception:  # noqa: BLE001 - the store may not exist yet
+            where = "nothing was written"
+        print(f"pbrdf-cl: interrupted; {where}; run the same command again to resume", file=sys.stderr)
+        return 130
+    except (OSError, ValueError, RuntimeError, _engine.OpenCLUnavailableError) as exc:
+        return error(exc)
+    seconds = time.perf_counter() - t0
+    px, fit_s = ds.attrs["pixels_computed"], ds.attrs["seconds"]
+    total = int(np.prod(ds["status"].shape, dtype=np.int64))
+    rate = f", {px / fit_s:.4g} pixels/s" if px and fit_s > 0 else ""
+    print(f"fit-image: {px} of {total} pixels fitted in {fit_s:.3g} s{rate} ({total - px} already in the store; "
+          f"{seconds:.3g} s in all)")
+    print("status: " + ", ".join(f"{n} {c}" for n, c in counts.items()))
+    if "goodness" in ds.attrs:
+        print(ds.attrs["goodness"])
+    if "goodness_warning" in ds.attrs:
+        print(ds.attrs["goodness_warning"])
+    for note in str(ds.attrs.get("data_notes", "")).splitlines():
+        print(f"note: {note}")
+    print(f"store: {ds.attrs['store']}" + (f"; maps: {args.png}" if args.png else ""))
+    return 0
+
+
+def fit_parser(sub):
+    """The `pbrdf-cl fit` sub-command."""
+    f = sub.add_parser("fit", help="invert n, k, sigma, kd/ks, c from measured DOP (CSV)",
+                       description="Fit the six-parameter model (or, with --model specular, the ref. [7] "
+                       "specular model; --compare: both) to a CSV of measurements (columns theta_i, theta_r, "
+                       "dop[, phi, dop_std, f00|s0, f00_std]).")
+    f.add_argument("data", help="measurement CSV")
+    model_option(f)
+    f.add_argument("--compare", action="store_true",
+                   help="fit both models and compare them by AIC/BIC (--model's is listed first)")
+    fit_settings(f)
+    device_options(f, " for the grid stage")
+    f.add_argument("--json", metavar="OUT", help="write both fits as JSON")
+    f.add_argument("--plot", metavar="PNG", help="plot data, both models and residuals")
+    f.add_argument("--quiet", action="store_true",
+                   help="no progress bar; only each fitted value with its 95%% interval")
+    f.set_defaults(func=cmd_fit)
+
+
+def fit_image_parser(sub):
+    """The `pbrdf-cl fit-image` sub-command."""
+    from ..fitting.job import BLOCK_BUDGET as DEFAULT_BUDGET
+    f = sub.add_parser("fit-image", help="fit every pixel of a DOP image stack into a Zarr store (resumable; dask)",
+                       description="Fit the model to every pixel of a polarization image stack (.npz, .nc or "
+                       ".zarr with dop (y, x, m), theta_i, theta_r[, phi, dop_std, f00|s0, f00_std, mask]; angles "
+                       "shared (m) or per pixel) block by block into a Zarr store. Run the same command again "
+                       "after an interruption: only the missing blocks are fitted.")
+    f.add_argument("stack", help="image stack: .npz, .nc or .zarr")
+    f.add_argument("--out", required=True, metavar="STORE", help="Zarr store to create or resume (e.g. params.zarr)")
+    model_option(f)
+    fit_settings(f)
+    f.add_argument("--memory-budget", default=DEFAULT_BUDGET, metavar="SIZE",
+                   help="memory of one block of pixels in flight (host and device), e.g. 256MiB")
+    where = f.add_mutually_exclusive_group()
+    where.add_argument("--workers", type=int, metavar="N", help="fit on a local dask cluster of N processes")
+    where.add_argument("--scheduler", metavar="ADDR", help="fit on a dask.distributed cluster (tcp://host:8786)")
+    device_options(f, " here or on every worker")
+    f.add_argument("--png", metavar="PNG", help="also draw the parameter maps, their 95%% interval widths and the "
+                   "fit status")
+    f.add_argument("--no-progress", action="store_true", help="no progress bar")
+    f.add_argument("--allow-large", action="store_true",
+                   help="start even when the store (uncompressed) would not fit on the free disk")
+    f.set_defaults(func=cmd_fit_image)

@@ -1,0 +1,110 @@
+"""Runs on a ``dask.distributed`` cluster (sweeps, image fits into a store): the driver's loop
+(:func:`run_on_cluster`) and what each worker process builds once and reuses for every task
+(:func:`worker_engine`, :func:`per_process`).
+
+Every task writes its own unit of work into the store itself (a path or URL every worker
+reaches) and returns a small summary to the driver; nothing large travels back.
+"""
+from __future__ import annotations
+
+import itertools
+import logging
+import os
+import tempfile
+import threading
+import uuid
+
+from ..device.engine import resolve_engine
+
+#: This process's engines, by (device, backend) (:func:`worker_engine`).
+_ENGINES = {}
+#: Held while a per-process object is looked up or built: a worker may run tasks in threads.
+_LOCK = threading.Lock()
+
+
+def _default_pocl_cache():
+    """A cluster's worker processes share one PoCL kernel cache unless ``POCL_CACHE_DIR`` says otherwise."""
+    os.environ.setdefault("POCL_CACHE_DIR", os.path.join(tempfile.gettempdir(), "pbrdf-cl-pocl-cache"))
+
+
+def per_process(cache, key, make):
+    """``cache[key]``, built by ``make()`` the first time in this process (under a lock shared by
+    every worker thread): a store opened once per worker, then reused by each of its tasks."""
+    with _LOCK:
+        if key not in cache:
+            cache[key] = make()
+        return cache[key]
+
+
+def worker_engine(device=None, backend="auto"):
+    """This process's engine for ``device`` and ``backend`` (built once, then reused by every
+    chunk; see :func:`pbrdf_cl.device.engine.resolve_engine`)."""
+    def make():
+        _default_pocl_cache()
+        if device is None or backend == "numpy":
+            return resolve_engine(None, backend)
+        from ..device.engine import Engine
+        return Engine(device)
+    return per_process(_ENGINES, (device, backend), make)
+
+
+def require_distributed(what):
+    """Refuse a cluster run (``what``: "sweep", "fit") where ``dask.distributed`` is not installed,
+    before any work."""
+    import importlib.util
+    if importlib.util.find_spec("distributed") is None:
+        raise RuntimeError(f"a cluster {what} needs dask.distributed: pip install 'pbrdf-cl[cluster]' "
+                           "(or run without --workers/--scheduler)")
+
+
+def run_on_cluster(task, shared, items, args_of, key, finished, *, workers=None, scheduler=None, client=None):
+    """Run ``task(shared, *args_of(item))`` for every item on a ``dask.distributed`` cluster:
+    ``client``, or a new client of the scheduler at ``scheduler``, or a new local cluster of
+    ``workers`` processes (1 thread each), closed again at the end if made here.
+
+    ``shared`` is scattered to every worker once; at most two tasks per worker thread (plus two)
+    are in flight, the next submitted as one finishes; ``finished(result)`` is called on the
+    driver as the results arrive (in any order).  On an error (or Ctrl-C) the tasks not yet done
+    are cancelled and the error is raised.  Used by :func:`pbrdf_cl.explore.sweeps.sweep` and
+    :func:`pbrdf_cl.fitting.batch_store.write_store`.
+    """
+    try:
+        from distributed import Client, LocalCluster, as_completed
+    except ImportError:
+        raise RuntimeError("a cluster run needs dask.distributed: pip install 'pbrdf-cl[cluster]'") from None
+    cluster = own_client = None
+    try:
+        if client is None:
+            if workers is not None:
+                _default_pocl_cache()
+                cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                                       dashboard_address=None, silence_logs=logging.ERROR)
+                own_client = client = Client(cluster)
+            else:
+                own_client = client = Client(scheduler, timeout=60)
+        n_threads = sum(client.nthreads().values()) or 1
+        token = uuid.uuid4().hex[:8]
+        shared_future = client.scatter(shared, broadcast=True)
+        pending = iter(items)
+
+        def submit(item):
+            return client.submit(task, shared_future, *args_of(item), key=f"{key}-{token}-{item}", pure=False,
+                                 retries=1)
+        first = [submit(i) for i in itertools.islice(pending, 2 * n_threads + 2)]
+        queue = as_completed(first)
+        try:
+            for fut in queue:
+                result = fut.result()
+                fut.release()
+                finished(result)
+                nxt = next(pending, None)
+                if nxt is not None:
+                    queue.add(submit(nxt))
+        except BaseException:
+            client.cancel(list(queue.futures))
+            raise
+    finally:
+        if own_client is not None:
+            own_client.close()
+        if cluster is not None:
+            cluster.close()
