@@ -9,21 +9,41 @@ Angles are in degrees; phi = 180 (the default) is the in-plane geometry.  Comput
 the first usable OpenCL device, or on the float64 numpy reference where none is usable
 (``backend="auto"``, the default; see :mod:`pbrdf_cl.device.engine`).
 """
-from .model import quantities
-from .compute.pointwise import MODELS, aop, brdf, dop, evaluate, mueller, stokes, validate
-from .io.measurements import Measurements, as_measurements, read_csv
 from .compute.dense import ObjectiveResult, grid, objective, reduce_grid
+from .compute.pointwise import MODELS, aop, brdf, dop, evaluate, mueller, stokes, validate
+from .device.engine import (
+                            Engine,
+                            NumpyEngine,
+                            get_default_engine,
+                            list_devices,
+                            probe,
+                            select_device,
+                            set_default_engine,
+)
+from .errors import (
+                            CommandError,
+                            DataWarning,
+                            DeviceUnusableError,
+                            DeviceWarning,
+                            KernelBuildError,
+                            OpenCLUnavailableError,
+                            ProgramUnusableError,
+                            RangeError,
+                            SensitivityWarning,
+                            SpecError,
+                            StoreError,
+                            TooLargeError,
+                            TrialError,
+                            UnitsWarning,
+)
+from .explore.designs import DesignResult, design
+from .explore.sensitivity import morris, sobol
 from .explore.sweeps import SweepResult, SweepSpec, load_spec, sweep
+from .fitting.batch import fit_batch
 from .fitting.inversion import compare_models, fit
 from .fitting.result import FitResult
-from .fitting.batch import fit_batch
-from .explore.sensitivity import morris, sobol
-from .explore.designs import DesignResult, design
-from .device.engine import (Engine, NumpyEngine, get_default_engine, list_devices, probe, select_device,
-                            set_default_engine)
-from .errors import (CommandError, DataWarning, DeviceUnusableError, DeviceWarning, KernelBuildError,
-                     OpenCLUnavailableError, ProgramUnusableError, RangeError, SensitivityWarning, SpecError,
-                     StoreError, TooLargeError, TrialError, UnitsWarning)
+from .io.measurements import Measurements, as_measurements, read_csv
+from .model import quantities
 
 __version__ = "0.1.0"
 

@@ -33,9 +33,9 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from .compute import dense
+from .compute.pointwise import dop as api_dop
 from .device import engine as _engine
 from .model import reference
-from .compute.pointwise import dop as api_dop
 
 INPUTS = _engine.POINT_INPUTS
 

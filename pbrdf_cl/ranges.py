@@ -21,6 +21,7 @@ import numbers
 import re
 
 import numpy as np
+
 from .errors import RangeError
 
 #: The grammar in a few words, for ``--help`` texts (the README's section has the whole of it).

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 import shutil
+
 from .errors import TooLargeError
 
 

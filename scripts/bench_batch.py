@@ -31,8 +31,8 @@ import pbrdf_cl
 from pbrdf_cl.device.engine import Engine, NumpyEngine
 from pbrdf_cl.fitting import corners, pixel_fit
 from pbrdf_cl.fitting.dataset import PIXEL_STATUS
-from pbrdf_cl.io import imagestack
 from pbrdf_cl.fitting.setup import DEFAULT_BOUNDS
+from pbrdf_cl.io import imagestack
 
 NAMES = ("n", "k", "sigma", "kd", "c")
 LO = np.array([DEFAULT_BOUNDS[n][0] for n in NAMES])

@@ -40,8 +40,8 @@ def main(argv=None):
 
     import pbrdf_cl
     from pbrdf_cl.compute import dense
-    from pbrdf_cl.model import reference
     from pbrdf_cl.explore import sensitivity
+    from pbrdf_cl.model import reference
     # SALib divides by the outputs' standard deviation, which is 0 where the DOP is (theta_i = theta_r = 0)
     warnings.filterwarnings("ignore", "invalid value encountered in divide", RuntimeWarning)
     from SALib.analyze import sobol as salib_sobol

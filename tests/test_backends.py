@@ -15,11 +15,11 @@ import pytest
 
 import pbrdf_cl
 from pbrdf_cl.compute import dense as G
-from pbrdf_cl.device import drivers
-from pbrdf_cl.model import reference
 from pbrdf_cl.device import choice as C
+from pbrdf_cl.device import drivers, fallback, sources
 from pbrdf_cl.device import engine as E
-from pbrdf_cl.device import fallback, sources
+from pbrdf_cl.model import reference
+
 from conftest import DEVICES, requires_opencl
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -10,8 +10,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 from matplotlib.collections import PatchCollection  # noqa: E402
 
-from pbrdf_cl.plots import images as batch_plots  # noqa: E402
 from pbrdf_cl.io import imagestack  # noqa: E402
+from pbrdf_cl.plots import images as batch_plots  # noqa: E402
 
 
 @pytest.fixture(scope="module")

@@ -19,6 +19,7 @@ import pbrdf_cl
 from pbrdf_cl import cli
 from pbrdf_cl.fitting import batch
 from pbrdf_cl.fitting.batch_store import StoreError, read_progress, status_counts
+
 from test_sweep import files, n_done  # the sweep store's helpers: the fit store has its layout
 
 BS = importlib.import_module("pbrdf_cl.fitting.batch_store")

@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 
 import pbrdf_cl
+
 from conftest import requires_opencl
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -70,6 +71,7 @@ def test_cli_bench_takes_the_documented_options(tmp_path, args):
 
 def test_bench_skips_the_cluster_row_without_dask_distributed(monkeypatch, capsys):
     import numpy as np
+
     from pbrdf_cl import bench
     monkeypatch.setitem(sys.modules, "distributed", None)  # as after a plain `pip install .`
     rows = []

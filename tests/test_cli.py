@@ -10,6 +10,7 @@ import pytest
 
 import pbrdf_cl
 from pbrdf_cl import cli
+
 from conftest import requires_opencl
 
 PACKAGE_ROOT = str(Path(pbrdf_cl.__file__).resolve().parent.parent)  # run the pbrdf_cl under test

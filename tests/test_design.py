@@ -6,14 +6,14 @@ import pytest
 
 import pbrdf_cl
 from pbrdf_cl import cli
+from pbrdf_cl.explore import designs as dz  # the module (pbrdf_cl.design is the function)
 from pbrdf_cl.fitting import common, stages
 from pbrdf_cl.fitting import setup as fit_setup
-from pbrdf_cl.model import reference
 from pbrdf_cl.io.measurements import as_measurements
-from conftest import requires_opencl
-
-from pbrdf_cl.explore import designs as dz  # the module (pbrdf_cl.design is the function)
+from pbrdf_cl.model import reference
 from pbrdf_cl.plots.design import plot_design
+
+from conftest import requires_opencl
 
 STEEL = dict(n=1.6, k=2.139, sigma=0.5, ks=0.9, kd=0.15, c=-0.3)
 NAMES = ["n", "k", "sigma", "kd", "c", "ks"]

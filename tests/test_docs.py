@@ -6,17 +6,14 @@ import inspect
 import pytest
 
 import pbrdf_cl
-from pbrdf_cl.compute import pointwise as api
-from pbrdf_cl.fitting import batch, dataset, source
-from pbrdf_cl.plots import images as batch_plots
-from pbrdf_cl.fitting import batch_store
-from pbrdf_cl.io import camera
-from pbrdf_cl.io import measurements as data
 from pbrdf_cl.compute import dense
-from pbrdf_cl.io import imagestack
-from pbrdf_cl.explore import maps
+from pbrdf_cl.compute import pointwise as api
+from pbrdf_cl.explore import maps, sensitivity
+from pbrdf_cl.fitting import batch, batch_store, dataset, source
+from pbrdf_cl.io import camera, imagestack
+from pbrdf_cl.io import measurements as data
+from pbrdf_cl.plots import images as batch_plots
 from pbrdf_cl.plots import maps as map_plots
-from pbrdf_cl.explore import sensitivity
 from pbrdf_cl.plots import sensitivity as sensitivity_plots
 
 PUBLIC = [getattr(pbrdf_cl, n) for n in pbrdf_cl.__all__ if inspect.isfunction(getattr(pbrdf_cl, n))]

@@ -11,11 +11,10 @@ from matplotlib.layout_engine import ConstrainedLayoutEngine
 
 import pbrdf_cl
 from pbrdf_cl.compute import dense
-from pbrdf_cl.explore import maps
-from pbrdf_cl.explore import paper
+from pbrdf_cl.explore import maps, paper
+from pbrdf_cl.io.measurements import from_arrays
 from pbrdf_cl.plots import fit as plots
 from pbrdf_cl.plots import maps as map_plots
-from pbrdf_cl.io.measurements import from_arrays
 
 STEEL = dict(n=1.6, k=2.139, ks=0.9, kd=0.15, c=-0.3)
 

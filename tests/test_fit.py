@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 
 import pbrdf_cl
-from pbrdf_cl import cli
 from pbrdf_cl.cli import fit as cli_fit
 from pbrdf_cl.fitting import basins, common, inversion, stages, uncertainty
 from pbrdf_cl.fitting import setup as fit_setup
@@ -228,7 +227,8 @@ def test_bound_seeds_are_the_best_points_of_the_bound_slices():
 
 
 def test_interval_pieces_interpolate_between_sharp_and_flat():
-    from scipy.stats import norm, t as student_t
+    from scipy.stats import norm
+    from scipy.stats import t as student_t
 
     def central(cdfs, x=2.0, se=np.inf, lo=1.0, hi=5.0, nodes=()):
         return uncertainty._central_interval(cdfs, x, se, lo, hi, nodes)

@@ -2,6 +2,7 @@
 not), parameters on a bound or outside their own interval, correlations in brief, a short repr,
 labelled matrices, the comparison of models as a result object."""
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -10,7 +11,6 @@ import pbrdf_cl
 from pbrdf_cl.compute import pointwise as api
 from pbrdf_cl.fitting import result
 from pbrdf_cl.io.measurements import read_csv
-from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 STEEL = read_csv(ROOT / "examples" / "steel_435nm.csv")

@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 
 import pbrdf_cl
-from pbrdf_cl.device import transfers as T
 from pbrdf_cl.bench import traced
+from pbrdf_cl.device import transfers as T
+
 from conftest import PARAMS, call, random_inputs
 
 pytestmark = pytest.mark.usefixtures("each_device")

@@ -9,11 +9,12 @@ import pytest
 import xarray as xr
 
 import pbrdf_cl
-from conftest import requires_opencl
 from pbrdf_cl import ranges
 from pbrdf_cl.compute import dense
 from pbrdf_cl.explore import sweeps
 from pbrdf_cl.io.measurements import DataWarning, as_measurements, read_csv
+
+from conftest import requires_opencl
 
 TI = np.repeat([30.0, 40.0, 50.0], 4)
 TR = np.tile([20.0, 30.0, 40.0, 50.0], 3)

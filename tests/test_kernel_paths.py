@@ -4,12 +4,13 @@ bit-identical to the 32-bit ones; and the scalar per-point kernels (``Engine.vec
 against the vector ones."""
 import numpy as np
 import pytest
+from test_kernels import f32_tolerance
+from test_variants import OBJECTIVE_GRIDS, axis_sets
 
 import pbrdf_cl
 from pbrdf_cl.compute import dense as G
+
 from conftest import call, random_inputs
-from test_kernels import f32_tolerance
-from test_variants import OBJECTIVE_GRIDS, axis_sets
 
 
 def test_index_limit_is_the_documented_threshold():

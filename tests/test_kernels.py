@@ -5,6 +5,7 @@ import pytest
 
 import pbrdf_cl
 from pbrdf_cl.model import reference
+
 from conftest import call, edge_inputs, random_inputs
 
 pytestmark = pytest.mark.usefixtures("each_device")

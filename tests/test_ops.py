@@ -5,6 +5,7 @@ import pytest
 
 import pbrdf_cl
 from pbrdf_cl.device import ops
+
 from conftest import requires_opencl
 
 

@@ -9,8 +9,7 @@ import numpy as np
 import pytest
 
 from pbrdf_cl import cli
-from pbrdf_cl.explore import maps
-from pbrdf_cl.explore import paper
+from pbrdf_cl.explore import maps, paper
 from pbrdf_cl.model import reference
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -105,6 +104,7 @@ def test_sobol_map_is_pbrdf_cl_sobol_over_the_stated_box(reproduced):
     """The Sobol' map of reproduce: the indices of pbrdf_cl.sobol for SOBOL_RANGES at the stated N and
     seed (same samples, same numbers), its box spanning the paper's samples, listed in summary.md."""
     import xarray as xr
+
     import pbrdf_cl
     ds = xr.open_dataset(reproduced / f"{paper.SOBOL_FILE}.nc")
     side = paper.sobol_side(48)
@@ -133,6 +133,7 @@ def test_design_is_pbrdf_cl_design_and_beats_the_paper_geometry(reproduced):
     geometries, same widths), narrower predicted n and k intervals than the paper's 30 points, listed
     in summary.md."""
     import xarray as xr
+
     import pbrdf_cl
     ds = xr.open_dataset(reproduced / f"{paper.DESIGN_FILE}.nc")
     assert ds.theta_i.size == paper.DESIGN_MEASUREMENTS == ds.reference_theta_i.size

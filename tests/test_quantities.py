@@ -7,13 +7,14 @@ import pytest
 import xarray as xr
 
 import pbrdf_cl
-from conftest import call, random_inputs, requires_opencl
 from pbrdf_cl import cli, quantities
-from pbrdf_cl.explore import maps
-from pbrdf_cl.plots import maps as map_plots
-from pbrdf_cl.model import reference
 from pbrdf_cl.device.engine import kernel_dir
+from pbrdf_cl.explore import maps
 from pbrdf_cl.explore.sweeps import SpecError, SweepSpec
+from pbrdf_cl.model import reference
+from pbrdf_cl.plots import maps as map_plots
+
+from conftest import call, random_inputs, requires_opencl
 
 STEEL = dict(n=1.6, k=2.139, sigma=0.5, ks=0.9, kd=0.15, c=-0.3)
 BACKENDS = ["numpy", pytest.param("opencl", marks=requires_opencl)]

@@ -3,9 +3,10 @@ an independent Jones-matrix construction of the Mueller matrix, and physics prop
 import numpy as np
 import pytest
 
-from pbrdf_cl.model import reference as ref
-from conftest import call, random_inputs, requires_opencl
 import pbrdf_cl
+from pbrdf_cl.model import reference as ref
+
+from conftest import call, random_inputs, requires_opencl
 
 STEEL = dict(n=1.6, k=2.139, sigma=0.5, ks=0.9, kd=0.15, c=-0.3)
 CHECK = [  # theta_i, theta_r, paper, smith, none (SPEC)

@@ -4,13 +4,13 @@ SCATMECH's Gaussian slope distribution takes the total rms slope s = sqrt(2) sig
 phi_s = 0 is our phi = 180 (phi_s = 180 - phi).  Its closed form loses precision near
 retro-reflection, so geometries with b < 5 degrees are left out (SPEC)."""
 import numpy as np
+import pySCATMECH.brdf as scatmech  # a test extra: pip install '.[test]'
 import pytest
 
 import pbrdf_cl
-from conftest import requires_opencl
 from pbrdf_cl.model import reference
 
-import pySCATMECH.brdf as scatmech  # a test extra: pip install '.[test]'
+from conftest import requires_opencl
 
 
 @pytest.mark.parametrize("backend", ["numpy", pytest.param("opencl", marks=requires_opencl)])

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 import pbrdf_cl
-from pbrdf_cl.model import reference
 from pbrdf_cl.explore import sensitivity
+from pbrdf_cl.model import reference
 
 SALib = pytest.importorskip("SALib")
 from SALib.analyze import morris as salib_morris  # noqa: E402

@@ -15,9 +15,9 @@ import pytest
 
 import pbrdf_cl
 from pbrdf_cl.compute import dense
-from pbrdf_cl.device import trials
-from pbrdf_cl.device import choice, sources
+from pbrdf_cl.device import choice, sources, trials
 from pbrdf_cl.device import engine as E
+
 from conftest import DEVICES, requires_opencl
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -3,9 +3,10 @@ import numpy as np
 import pytest
 
 import pbrdf_cl
-from conftest import requires_opencl
 from pbrdf_cl.device import choice, fallback
 from pbrdf_cl.device import engine as engine_mod
+
+from conftest import requires_opencl
 
 GOOD = dict(n=1.6, k=2.1, sigma=0.5, ks=0.9, kd=0.15, c=-0.3)
 

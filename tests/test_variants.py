@@ -11,14 +11,14 @@ import json
 
 import numpy as np
 import pytest
+from test_kernels import f32_tolerance
 
 import pbrdf_cl
 from pbrdf_cl import cli, quantities
 from pbrdf_cl.compute import dense as G
+from pbrdf_cl.explore.sweeps import SweepSpec
 from pbrdf_cl.fitting import inversion
 from pbrdf_cl.io.measurements import read_csv
-from pbrdf_cl.explore.sweeps import SweepSpec
-from test_kernels import f32_tolerance
 
 SHADOWINGS = ["paper", "smith", "none"]
 OTHER = {"paper": "smith", "smith": "none", "none": "paper"}  # a variant that differs from each

@@ -123,9 +123,9 @@ def cmd_map(args) -> int:
 def cmd_design(args) -> int:
     from ..compute.dense import PARAMETERS
     from ..explore.designs import GEOMETRY, design
-    from ..plots.design import plot_design
     from ..explore.sensitivity import write_result
     from ..fitting.setup import DEFAULT_BOUNDS
+    from ..plots.design import plot_design
     params = ranges.parse_assignments(items(args.params), PARAMETERS, "value", "--params", check=True)
     box = ranges.parse_assignments(items(args.box), PARAMETERS, "bounds", "--box")
     both = sorted(set(params) & set(box))

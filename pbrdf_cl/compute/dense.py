@@ -30,13 +30,12 @@ import time
 
 import numpy as np
 
-from . import pointwise
-from ..model import quantities
-from ..model import reference
 from .. import sizes
 from ..device import engine as _engine
 from ..device import ops
 from ..device.engine import DTYPES, VECTOR_LOCAL_SIZE, aligned_empty, resolve_engine
+from ..model import quantities, reference
+from . import pointwise
 
 AXES = ("theta_i", "theta_r", "phi", "n", "k", "sigma", "ks", "kd", "c")
 PARAMETERS = AXES[3:]

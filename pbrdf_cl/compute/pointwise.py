@@ -8,12 +8,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..model import quantities
-from ..model import reference
 from .. import sizes
 from ..device import engine as _engine
 from ..device.engine import BACKENDS, DTYPES, POINT_INPUTS, check_backend, compact_values, resolve_engine  # noqa: F401 (api.BACKENDS stays)
 from ..errors import UnitsWarning  # noqa: F401 (pointwise.UnitsWarning stays)
+from ..model import quantities, reference
 
 MODELS = ("six-param", "specular")
 #: The quantities with a per-point path (the registry, :mod:`pbrdf_cl.quantities`, says more).

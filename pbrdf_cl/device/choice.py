@@ -41,12 +41,23 @@ from pathlib import Path
 
 import numpy as np
 
-from . import drivers, trials
-from ..model import reference
-from .drivers import describe, first_error_line
-from .sources import (DTYPES, IMPORT_ERROR, LM_LANES, NARROW_LM_LANES, NARROW_VECTOR_WIDTH, VECTOR_WIDTH,
-                      build, build_options, cl, kernel_dir, kernels_sha256)
 from ..errors import DeviceUnusableError, DeviceWarning, OpenCLUnavailableError
+from ..model import reference
+from . import drivers, trials
+from .drivers import describe, first_error_line
+from .sources import (
+    DTYPES,
+    IMPORT_ERROR,
+    LM_LANES,
+    NARROW_LM_LANES,
+    NARROW_VECTOR_WIDTH,
+    VECTOR_WIDTH,
+    build,
+    build_options,
+    cl,
+    kernel_dir,
+    kernels_sha256,
+)
 
 FAKE_FAILURE_ENV = "PBRDF_CL_FAKE_BUILD_FAILURE"
 NARROW_ENV = "PBRDF_CL_NARROW_VECTORS"

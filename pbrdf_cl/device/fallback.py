@@ -17,10 +17,10 @@ import functools
 import inspect
 import threading
 
+from ..errors import DeviceUnusableError, OpenCLUnavailableError, ProgramUnusableError
 from .choice import HOW_TO_GET_ONE, candidates, probe, warn_once
 from .numpy_engine import NumpyEngine
 from .opencl import Engine
-from ..errors import DeviceUnusableError, OpenCLUnavailableError, ProgramUnusableError
 
 BACKENDS = ("auto", "opencl", "numpy")
 

@@ -10,9 +10,8 @@ import threading
 
 import numpy as np
 
+from ..model import quantities, reference
 from . import ops
-from ..model import quantities
-from ..model import reference
 from .sources import DTYPES, POINT_INPUTS
 
 

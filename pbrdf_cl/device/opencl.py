@@ -19,14 +19,13 @@ import threading
 
 import numpy as np
 
+from ..errors import DeviceUnusableError, KernelBuildError, ProgramUnusableError
+from ..model import quantities, reference
 from . import drivers, ops, transfers, trials
-from ..model import quantities
-from ..model import reference
 from .choice import device_index, has_fp64, is_pocl, select_device, vector_widths
 from .drivers import describe, first_error_line
 from .numpy_engine import NumpyEngine
 from .sources import DTYPES, build, build_options, cl, kernel_dir, kernels_sha256
-from ..errors import DeviceUnusableError, KernelBuildError, ProgramUnusableError
 
 
 class Engine:

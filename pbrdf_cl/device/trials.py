@@ -47,8 +47,8 @@ import threading
 import time
 from pathlib import Path
 
-from . import drivers
 from ..errors import TrialError
+from . import drivers
 
 TIMEOUT_ENV = "PBRDF_CL_TRIAL_TIMEOUT"
 ENABLE_ENV = "PBRDF_CL_TRIALS"

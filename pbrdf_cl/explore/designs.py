@@ -43,11 +43,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..compute.dense import PARAMETERS, outer
+from ..device.engine import resolve_engine
 from ..fitting.common import X_RESOLUTION, fd_jacobian
 from ..fitting.setup import F00_REL_STD, FitSetup
 from ..model import reference as _reference
-from ..compute.dense import PARAMETERS, outer
-from ..device.engine import resolve_engine
 from ..results import Result
 from .sensitivity import check_fixed, check_geometry, check_ranges, geometry_list
 

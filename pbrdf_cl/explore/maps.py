@@ -16,12 +16,10 @@ import json
 
 import numpy as np
 
-from ..compute import pointwise
-from ..compute import dense
-from ..model import quantities
-from .. import ranges
-from .. import sizes
+from .. import ranges, sizes
+from ..compute import dense, pointwise
 from ..device.engine import resolve_engine
+from ..model import quantities
 
 #: Relative step of the finite differences of a derivative: h = FD_STEP times 1 degree (angles),
 #: |value| (n, sigma, ks) or max(1, |value|) (k, kd, c) (:func:`step_scale`).

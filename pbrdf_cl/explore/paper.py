@@ -34,13 +34,12 @@ from pathlib import Path
 
 import numpy as np
 
-from ..compute import pointwise
-from ..compute import dense
-from . import maps
-from ..io.measurements import from_arrays
+from ..compute import dense, pointwise
 from ..device.engine import resolve_engine
+from ..io.measurements import from_arrays
 from ..plots import paper as figures
 from ..plots.maps import plot_map
+from . import maps
 
 #: The paper's fit to 45# steel at 435 nm, theta_i = 40 deg (SPEC).
 STEEL = dict(n=1.6, k=2.139, sigma=0.5, ks=0.9, kd=0.15, c=-0.3)
@@ -205,8 +204,8 @@ def sobol_side(resolution):
 def sobol_map(out, resolution=256, engine=None, seed=SEED):
     """Sobol' indices of the DOP over (theta_i, theta_r) for :data:`SOBOL_RANGES` (ks = 1): the
     figure and the result (netCDF).  Returns the Dataset."""
-    from .sensitivity import sobol, write_result
     from ..plots.sensitivity import plot_sensitivity
+    from .sensitivity import sobol, write_result
     side = sobol_side(resolution)
     ds = sobol(SOBOL_RANGES, {"theta_i": np.linspace(0.0, 80.0, side), "theta_r": np.linspace(0.0, 85.0, side)},
                {"ks": 1.0}, N=SOBOL_N, seed=seed, engine=engine)
@@ -221,8 +220,8 @@ def sobol_map(out, resolution=256, engine=None, seed=SEED):
 def design_map(out, engine=None):
     """The measurement design for the steel (:data:`STEEL`): the figure and the result (netCDF).
     Returns the :class:`pbrdf_cl.explore.designs.DesignResult`."""
-    from .designs import design
     from ..plots.design import plot_design
+    from .designs import design
     from .sensitivity import write_result
     r = design(STEEL, {"theta_i": "10:80:5", "theta_r": "0:85:5"}, noise=DESIGN_NOISE,
                n_measurements=DESIGN_MEASUREMENTS, target=("n", "k"), engine=engine)

@@ -26,10 +26,10 @@ import time
 import numpy as np
 
 from ..compute import pointwise
-from ..model import quantities
 from ..compute.dense import DEFAULTS, LONG_NAMES, PARAMETERS, outer, progress_bar
 from ..device.engine import DTYPES, resolve_engine
 from ..errors import SensitivityWarning
+from ..model import quantities
 
 GEOMETRY = ("theta_i", "theta_r", "phi")
 #: Bootstrap resamples and confidence level of the intervals (SALib's defaults).
@@ -735,6 +735,7 @@ def _spec_fixed(data, ranges):
 def _spec_geometry(data):
     """The spec's ``[geometry]`` table, each axis checked (``geometry.<name>: ...``)."""
     import warnings
+
     from .sweeps import SpecError
     geometry = data.get("geometry")
     if not isinstance(geometry, dict) or not geometry:

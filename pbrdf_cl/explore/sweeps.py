@@ -54,15 +54,13 @@ from pathlib import Path
 
 import numpy as np
 
-from ..compute import pointwise
-from ..compute import dense
-from ..model import quantities
-from .. import ranges
-from .. import sizes
+from .. import ranges, sizes
+from ..compute import dense, pointwise
 from ..device.engine import DTYPES, kernels_sha256, resolve_engine
-from ..results import Result
-from ..model.reference import SHADOWING
 from ..errors import SpecError
+from ..model import quantities
+from ..model.reference import SHADOWING
+from ..results import Result
 from ..store import cluster
 from ..store import zarr as zarr_store
 

@@ -40,15 +40,14 @@ import os
 import re
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
 from .. import sizes
 from ..device.engine import kernels_sha256, resolve_engine
+from ..errors import StoreError
 from ..store import cluster
 from ..store import zarr as zarr_store
-from ..errors import StoreError
 from .dataset import PIXEL_STATUS, goodness_summary
 
 #: Version of the canonical settings (part of their hash).

@@ -21,10 +21,29 @@ from .basins import bound_seeds, grid_point
 from .common import dop_noise_floor
 from .result import ComparisonResult, fit_result, fit_status, model_notes
 from .setup import F00_REL_STD, FitSetup, check_model
-from .stages import (BOBYQA_EVALS, DIRECT_EVALS, FINAL_BOBYQA, INTENSITY_MAXEVAL, LS_MAX_NFEV, PROFILE_SEEDS,
-                     SCREEN_ITERATIONS, Candidate, Model, Residuals, StageResult, basin_stage, bobyqa_stage,
-                     direct_stage, final_bobyqa_stage, grid_stage, intensity_stage, intensity_start,
-                     least_squares_stage, ranked, screen_stage)
+from .stages import (
+    BOBYQA_EVALS,
+    DIRECT_EVALS,
+    FINAL_BOBYQA,
+    INTENSITY_MAXEVAL,
+    LS_MAX_NFEV,
+    PROFILE_SEEDS,
+    SCREEN_ITERATIONS,
+    Candidate,
+    Model,
+    Residuals,
+    StageResult,
+    basin_stage,
+    bobyqa_stage,
+    direct_stage,
+    final_bobyqa_stage,
+    grid_stage,
+    intensity_stage,
+    intensity_start,
+    least_squares_stage,
+    ranked,
+    screen_stage,
+)
 from .uncertainty import uncertainty_stage
 
 #: Grid points per free parameter for the device stage.

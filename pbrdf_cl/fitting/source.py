@@ -160,6 +160,7 @@ class Source:
                   if n not in VARIABLES and n not in ACCEPTED and self.mdim in v.dims]
         if unread:
             import warnings
+
             from ..errors import DataWarning
             warnings.warn(f"data: variable{'s' if len(unread) > 1 else ''} {', '.join(unread)} "
                           f"over the measurements not read (fit_batch reads {', '.join(VARIABLES)})",
@@ -311,6 +312,7 @@ def open_stack(path):
     ('y', 'x', 'm')
     """
     import pathlib
+
     import xarray as xr
     p = pathlib.Path(path)
     if not p.exists():
@@ -350,6 +352,7 @@ def open_stack(path):
                 skipped.append(f"{k} {a.shape}")
         if skipped:  # coordinates, light positions, ...: not inputs of the fit
             import warnings
+
             from ..errors import DataWarning
             warnings.warn(f"{p}: arrays not read (their shapes fit neither dop {shape}, its pixels "
                           f"nor its measurements): {', '.join(skipped)}", DataWarning, stacklevel=2)

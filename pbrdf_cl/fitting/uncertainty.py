@@ -45,7 +45,8 @@ def uncertainty_stage(residuals, x, lo, hi, grid, dop_sse, n_points, sigma_known
     Without known uncertainties the noise variance is estimated as chi2 / dof; where that is
     below ``noise_floor ** 2`` (see :data:`DOP_NOISE_FLOOR`) the noise is taken as known, of
     standard deviation ``noise_floor`` (``Uncertainties.noise_floor`` says so)."""
-    from scipy.stats import norm, t as student_t
+    from scipy.stats import norm
+    from scipy.stats import t as student_t
     t0 = time.perf_counter()
     names = residuals.free
     R, J = fd_jacobian(residuals.rows, x[None], lo, hi, "central")

@@ -6,7 +6,6 @@ import numpy as np
 
 from .common import pyplot
 
-
 #: The fitted models' line styles and residual markers, in the order of ``fits``.
 FIT_STYLES = ("-", "--", ":")
 FIT_MARKERS = ("o", "x", "^")
