@@ -47,9 +47,11 @@ from .model import quantities
 
 __version__ = "0.1.0"
 
-__all__ = ["dop", "brdf", "aop", "stokes", "mueller", "evaluate", "quantities", "validate", "MODELS", "grid", "reduce_grid", "objective", "ObjectiveResult",
+__all__ = ["dop", "brdf", "aop", "stokes", "mueller", "evaluate", "quantities", "validate", "MODELS",
+           "grid", "reduce_grid", "objective", "ObjectiveResult",
            "sweep", "load_spec", "SweepSpec", "SweepResult", "SpecError",
-           "fit", "fit_batch", "sobol", "morris", "design", "DesignResult", "compare_models", "FitResult", "read_csv", "as_measurements", "Measurements", "DataWarning", "Engine", "NumpyEngine", "probe",
+           "fit", "fit_batch", "sobol", "morris", "design", "DesignResult", "compare_models", "FitResult",
+           "read_csv", "as_measurements", "Measurements", "DataWarning", "Engine", "NumpyEngine", "probe",
            "OpenCLUnavailableError", "DeviceUnusableError", "DeviceWarning", "KernelBuildError", "ProgramUnusableError",
            "TrialError", "UnitsWarning", "RangeError", "TooLargeError", "StoreError", "CommandError",
            "SensitivityWarning",

@@ -150,7 +150,7 @@ def bench_points(eng, rows, rng, size, repeats, sample):
         for b in bufs:
             args += [b, np.int32(1)]
 
-        def run():
+        def run(kern=kern, lanes=lanes, args=args):  # this iteration's kernel and buffers
             eng.launch(kern, (size // lanes,), *args, local_size=(_engine.VECTOR_LOCAL_SIZE,))
             eng.queue.finish()
         run()
@@ -162,7 +162,7 @@ def bench_points(eng, rows, rng, size, repeats, sample):
     for dtype in ("float32", "float64"):  # what users get, with inputs of that dtype
         arrays = {n: np.ascontiguousarray(pts[n], _engine.DTYPES[dtype]) for n in INPUTS}
 
-        def call():
+        def call(arrays=arrays, dtype=dtype):
             return api_dop(arrays["theta_i"], arrays["theta_r"], arrays["phi"], **{n: arrays[n] for n in INPUTS[3:]},
                            dtype=dtype, engine=eng)
         got = call()
@@ -304,10 +304,11 @@ def bench_grid(eng, rows, rng, scale, repeats):
         if kernel is not None:
             rows.append(dict(path="factorised grid (kernel)", dtype=dtype, rate=kernel[0], unit="grid points/s",
                              seconds=kernel[1], max_abs_err=err, n=plan.size))
-        rate, sec = median_rate(lambda: dense.grid(axes, {}, dtype=dtype, engine=eng), plan.size, max(1, repeats - 2))
+        rate, sec = median_rate(lambda dtype=dtype: dense.grid(axes, {}, dtype=dtype, engine=eng), plan.size,
+                                max(1, repeats - 2))
         row = dict(path=f"pbrdf_cl.grid -> host DataArray (end-to-end{_backend_label(eng)})", dtype=dtype, rate=rate,
                    unit="grid points/s", seconds=sec, max_abs_err=err, n=plan.size,
-                   peak_extra_mb=traced(lambda: dense.grid(axes, {}, dtype=dtype, engine=eng))[1] / 1e6,
+                   peak_extra_mb=traced(lambda dtype=dtype: dense.grid(axes, {}, dtype=dtype, engine=eng))[1] / 1e6,
                    output_mb=da.values.nbytes / 1e6)
         rows.append(row)
         _limits(rows, row, dtype, None, da.values.reshape(-1), max(1, repeats - 2), per_point=False)
@@ -333,7 +334,8 @@ def bench_objective(eng, rows, rng, scale, repeats):
         d = api_dop(ti[:, None], tr[:, None], 180.0, backend="numpy", **{n: v[None, :] for n, v in params.items()})
         want = ((d - data["dop"][:, None]) ** 2).sum(axis=0)
         err = float(np.max(np.abs(res.sse.values.ravel()[idx] - want)))
-        rate, sec = median_rate(lambda: dense.objective(data, grid=grid, dtype=dtype, engine=eng, return_sse=False),
+        rate, sec = median_rate(lambda dtype=dtype: dense.objective(data, grid=grid, dtype=dtype, engine=eng,
+                                                                return_sse=False),
                                 res.n_pairs, repeats)
         row = dict(path=f"objective, grid x 30 measurements (end-to-end, top-10{_backend_label(eng)})", dtype=dtype,
                    rate=rate, unit="pairs/s", seconds=sec, max_abs_err=err, n=res.n_pairs)
@@ -462,9 +464,10 @@ def main(argv=None):
             extra += f"  {r.get('of_c_loop', float('nan')):.2f} / {r.get('of_roofline', float('nan')):.2f}"
         if "peak_extra_mb" in r:
             extra += f", peak +{r['peak_extra_mb']:.0f} MB (output {r['output_mb']:.0f} MB)"
-        print(f"{r['path']:58s} {r['dtype']:8s} {r['rate'] / 1e6:10.1f} M {r['unit']:14s} {r['max_abs_err']:10.2e}{extra}")
-    report = dict(device=device, cpus=os.cpu_count(), pyopencl=_engine.cl.VERSION_TEXT, seconds=time.perf_counter() - t0,
-                  rows=rows)
+        print(f"{r['path']:58s} {r['dtype']:8s} {r['rate'] / 1e6:10.1f} M {r['unit']:14s} "
+              f"{r['max_abs_err']:10.2e}{extra}")
+    report = dict(device=device, cpus=os.cpu_count(), pyopencl=_engine.cl.VERSION_TEXT,
+                  seconds=time.perf_counter() - t0, rows=rows)
     with open(args.json, "w") as fh:
         json.dump(report, fh, indent=2)
     print(f"wrote {args.json}")

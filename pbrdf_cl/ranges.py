@@ -171,7 +171,8 @@ def _bounds(text, name):
         if dash:
             spell = f"{name}={dash.group(1)}:{dash.group(2)}" if name else f"{dash.group(1)}:{dash.group(2)}"
         elif len(parts) == 3:
-            spell = f"{name}={parts[0].strip()}:{parts[1].strip()}" if name else f"{parts[0].strip()}:{parts[1].strip()}"
+            pair = f"{parts[0].strip()}:{parts[1].strip()}"
+            spell = f"{name}={pair}" if name else pair
         raise RangeError(f"bounds are low:high, two numbers; write {spell}")
     lo, hi = _number(parts[0], "low"), _number(parts[1], "high")
     pre = f"{name}=" if name else ""
@@ -261,7 +262,8 @@ def parse_assignment(item, names, kind="value", where=None, check=False):
             out = _values(text)
         else:
             if ":" in text or "," in text or "@" in text:
-                raise RangeError(f"one number is expected here; write {name}={re.split('[:,@]', text)[0].strip() or 'VALUE'}")
+                first = re.split("[:,@]", text)[0].strip() or "VALUE"
+                raise RangeError(f"one number is expected here; write {name}={first}")
             out = _number(text)
     except RangeError as bad:
         _raise(where, item, bad)

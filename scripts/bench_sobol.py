@@ -92,7 +92,8 @@ def main(argv=None):
     ST = ds.ST.values.reshape(len(names), G)
     for i in pick:
         t0 = time.perf_counter()
-        y = reference.evaluate("dop", geo["theta_i"][i], geo["theta_r"][i], geo["phi"][i], *(params[n] for n in dense.PARAMETERS))
+        y = reference.evaluate("dop", geo["theta_i"][i], geo["theta_r"][i], geo["phi"][i],
+                               *(params[n] for n in dense.PARAMETERS))
         t1 = time.perf_counter()
         S = salib_sobol.analyze(problem, y, calc_second_order=False, seed=args.seed)
         t2 = time.perf_counter()
@@ -102,7 +103,8 @@ def main(argv=None):
         worst["ST"] = max(worst["ST"], float(np.max(np.abs(ST[:, i] - S["ST"]))))
     ref = (t_model + t_salib) * G / pick.size
     how = "measured" if pick.size == G else f"extrapolated from {pick.size} of the {G} geometries"
-    out.update(reference_seconds=ref, reference_geometries=int(pick.size), reference_model_seconds=t_model * G / pick.size,
+    out.update(reference_seconds=ref, reference_geometries=int(pick.size),
+               reference_model_seconds=t_model * G / pick.size,
                reference_salib_seconds=t_salib * G / pick.size, max_abs_difference_float32=worst)
     print(f"SALib + numpy reference (float64): {ref:.1f} s ({how}): model {t_model * G / pick.size:.1f} s, "
           f"SALib.analyze.sobol {t_salib * G / pick.size:.1f} s; pbrdf_cl.sobol is {ref / e2e:.0f}x faster")

@@ -5,8 +5,8 @@ fixture) run on every usable OpenCL device present except the Oclgrind simulator
 the same tolerances.  ``PYOPENCL_TEST``, if set, picks the devices as pyopencl's ``ctx_factory`` does
 (``"0:0,1;intel:i5"``: platforms and their devices, by number or name substring), and
 ``PBRDF_TEST_DEVICES`` (comma-separated substrings of "platform / device") restricts them further,
-so that the same suite runs unchanged on whichever device the environment names (a GPU, a CPU).  Without a usable device those
-tests are skipped, saying why, unless ``PBRDF_REQUIRE_OPENCL=1`` (as ``.ci/run`` sets), which
+so that the same suite runs unchanged on whichever device the environment names (a GPU, a CPU).  Without a
+usable device those tests are skipped, saying why, unless ``PBRDF_REQUIRE_OPENCL=1`` (as ``.ci/run`` sets), which
 makes the session fail instead.  The header of the run names the devices.
 """
 import os

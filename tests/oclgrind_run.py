@@ -39,7 +39,8 @@ def main():
                 ref = func(ti, tr, phi, dtype=dtype, shadowing=shadowing, backend="numpy", **kw)
                 scale = np.nanmax(np.abs(ref))
                 if func is pbrdf_cl.aop:  # degrees: where it is defined, and NaN where it is not
-                    ok = np.array_equal(np.isnan(out), np.isnan(ref)) and np.allclose(out, ref, atol=1e-2, equal_nan=True)
+                    ok = np.array_equal(np.isnan(out), np.isnan(ref)) and np.allclose(out, ref, atol=1e-2,
+                                                                                      equal_nan=True)
                 else:
                     ok = np.allclose(out, ref, rtol=1e-4, atol=1e-5 * scale)
                 if not ok:
@@ -51,7 +52,8 @@ def main():
     # is reported by Oclgrind
     bcasts = 0
     cases = [(dict(theta_r=ti[:5, None], sigma=rng.uniform(0.1, 1, 17)), (5, 17)),
-             (dict(theta_r=tr[:7, None, None], kd=rng.uniform(0, 1, (1, 3, 1)), phi=np.array([60.0, 180.0])), (7, 3, 2))]
+             (dict(theta_r=tr[:7, None, None], kd=rng.uniform(0, 1, (1, 3, 1)), phi=np.array([60.0, 180.0])),
+              (7, 3, 2))]
     for dtype in ("float32", "float64"):
         for given, shape in cases:
             inp = dict(theta_i=40.0, theta_r=30.0, phi=150.0, n=1.6, k=2.1, sigma=0.3, ks=1.0, kd=0.2, c=-0.3)
@@ -64,7 +66,8 @@ def main():
                 ref = func(*args, dtype=dtype, backend="numpy", **kw)
                 tol = 1e-2 if func is pbrdf_cl.aop else 1e-5 * np.nanmax(np.abs(ref))
                 if out.shape != ref.shape or not np.allclose(out, ref, rtol=1e-4, atol=tol, equal_nan=True):
-                    raise SystemExit(f"broadcast {func.__name__} {dtype} {shape}: Oclgrind result differs from the reference")
+                    raise SystemExit(f"broadcast {func.__name__} {dtype} {shape}: Oclgrind result differs from "
+                                     "the reference")
                 bcasts += 1
     # grid kernels: every row level and the one-point-per-work-item path, reductions, objective
     from pbrdf_cl.compute import dense as G

@@ -317,7 +317,8 @@ def test_intel_runtime_is_registered_beside_the_other_drivers(monkeypatch, tmp_p
     assert drivers.register_pip_drivers() == {} and os.environ["OCL_ICD_VENDORS"] == str(system)
 
 
-@pytest.mark.skipif(drivers.find_intel_runtime() is None, reason="Intel's CPU runtime (pbrdf-cl[intel-cpu]) is not installed")
+@pytest.mark.skipif(drivers.find_intel_runtime() is None,
+                    reason="Intel's CPU runtime (pbrdf-cl[intel-cpu]) is not installed")
 def test_installed_intel_runtime_is_found_usable_and_matches_the_reference():
     code = ("import pbrdf_cl, pbrdf_cl.device.engine as e, numpy as np\n"
             "devs = [d for *_, d in e.list_devices() if 'Intel' in d.platform.name]\n"

@@ -88,7 +88,7 @@ def test_undetermined_and_not_converged_pixels_are_hatched(figure):
         for coll in ax.collections:
             if isinstance(coll, PatchCollection) and coll.get_hatch() == hatch:
                 for path in coll.get_paths():
-                    (x0, y0), (x1, y1) = path.vertices.min(axis=0), path.vertices.max(axis=0)
+                    x0, x1 = path.vertices[:, 0].min(), path.vertices[:, 0].max()
                     cells += round((x1 - x0) / (100 / 12))  # pixels of 100/12 mm, one row each
         return cells
     k = panel(figure, "k: the parameter k")

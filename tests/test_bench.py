@@ -26,7 +26,8 @@ def test_bench_quick_reports_every_path(tmp_path):
     report = json.loads(out.read_text())
     assert report["device"] == pbrdf_cl.get_default_engine().description
     paths = {(r["path"].split(" (")[0], r["dtype"]) for r in report["rows"]}
-    for path in ("per-point kernel", "factorised grid", "pbrdf_cl.grid -> host DataArray", "objective, grid x 30 measurements"):
+    for path in ("per-point kernel", "factorised grid", "pbrdf_cl.grid -> host DataArray",
+                 "objective, grid x 30 measurements"):
         assert (path, "float32") in paths and (path, "float64") in paths, path
     assert ("numpy reference", "float64") in paths
     assert any(p.startswith("sweep -> Zarr store") for p, _ in paths), paths

@@ -76,8 +76,9 @@ def test_eval_specular_model_needs_no_sigma(capsys):
 @pytest.mark.parametrize("args,message", [
     (["--theta-i", "95", "--theta-r", "20", *STEEL], "theta_i must be in [0, 90) degrees, got 95.0"),
     (["--theta-i", "40", "--theta-r", "20:x:5", *STEEL], "--theta-r 20:x:5: stop 'x' is not a number"),
-    (["--theta-i", "40", "--theta-r", "60:20:5", *STEEL], "--theta-r 60:20:5: the step 5 goes up from 60 but the "
-                                                          "stop 20 is below it; write 60:20:-5 to count down, or 20:60:5"),
+    (["--theta-i", "40", "--theta-r", "60:20:5", *STEEL],
+     "--theta-r 60:20:5: the step 5 goes up from 60 but the stop 20 is below it; write 60:20:-5 to count down, "
+     "or 20:60:5"),
     (["--theta-i", "40", "--theta-r", "20", "--n", "1.6", "--k", "2"], "--sigma is required"),
     (["--theta-i", "40", "--theta-r", "20", *STEEL[:6], "--kd", "-1"], "kd must be >= 0, got -1.0"),
     (["--theta-i", "40", "--theta-r", "20", *STEEL, "--device", "no-such-device"], "matches no OpenCL"),

@@ -175,7 +175,8 @@ def test_sincosd(run, rng, width, dtype):
     """sin and cos of degrees with the exact reduction: relative accuracy near multiples of 90."""
     conv = f32 if dtype == "float32" else np.asarray
     k = np.arange(-8, 9) * 90.0
-    x = conv(np.concatenate([rng.uniform(-720, 720, 100000), (k[:, None] + np.array([-0.1, -1e-3, 0, 1e-3, 0.1, 45])).ravel(),
+    near = (k[:, None] + np.array([-0.1, -1e-3, 0, 1e-3, 0.1, 45])).ravel()
+    x = conv(np.concatenate([rng.uniform(-720, 720, 100000), near,
                              rng.uniform(0, 89.9, 10000), [1e7 + 0.5, -3e6 + 45, 123456.75]]))
     s, c = run("sincosd", x, dtype=dtype, width=width)
     ws, wc = reference.sincosd(x)
@@ -201,7 +202,8 @@ DBL_TINY = float(np.finfo(np.float64).tiny)  # 2^-1022
 
 @pytest.mark.parametrize("width", WIDTHS64)
 def test_exp_float64(run, rng, width):
-    x = np.concatenate([np.linspace(-745, 709.7, 400001), rng.uniform(-20, 20, 200000), rng.uniform(-1e-3, 1e-3, 10000)])
+    x = np.concatenate([np.linspace(-745, 709.7, 400001), rng.uniform(-20, 20, 200000),
+                        rng.uniform(-1e-3, 1e-3, 10000)])
     got, _ = run("exp", x, dtype="float64", width=width)
     want = np.exp(x)
     normal = want >= DBL_TINY

@@ -267,7 +267,8 @@ def test_sharp_parameter_is_not_blurred_to_the_grid_cell():
                                                                  c=TRUTH["c"]))
     a, b = r.ci95["kd"]
     se = r.stderr["kd"]
-    assert se < 0.01 and a == pytest.approx(r.x["kd"] - 1.96 * se, rel=1e-3) and b == pytest.approx(r.x["kd"] + 1.96 * se, rel=1e-3)
+    assert se < 0.01 and a == pytest.approx(r.x["kd"] - 1.96 * se, rel=1e-3)
+    assert b == pytest.approx(r.x["kd"] + 1.96 * se, rel=1e-3)
 
 
 def test_unconstrained_parameters_get_the_middle_of_their_bounds():

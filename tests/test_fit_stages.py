@@ -57,7 +57,7 @@ def test_result_attributes_can_be_assigned_and_dense_result_is_the_same_class():
     del r.a
     assert "a" not in r
     with pytest.raises(AttributeError):
-        r.a
+        r.a  # noqa: B018 - the attribute access is what raises
     with pytest.raises(AttributeError):
         del r.a
 

@@ -108,7 +108,8 @@ def test_grid_larger_than_budget_runs_in_bounded_chunks(monkeypatch):
     idx = np.array(sorted(probe))
     coords = np.unravel_index(idx, plan.shape)
     want = pbrdf_cl.dop(*(axes[n][c] for n, c in zip(("theta_i", "theta_r"), coords[:2])), 180.0, n=1.6, k=2.1,
-                        sigma=axes["sigma"][coords[2]], kd=axes["kd"][coords[3]], c=axes["c"][coords[4]], backend="numpy")
+                        sigma=axes["sigma"][coords[2]], kd=axes["kd"][coords[3]], c=axes["c"][coords[4]],
+                        backend="numpy")
     assert np.max(np.abs(np.array([probe[i] for i in idx]) - want)) <= 2e-5
 
 
@@ -198,10 +199,12 @@ def test_objective_chunked_equals_unchunked(rng):
 @pytest.mark.parametrize("axes,fixed,pattern", [
     (dict(theta_x=[1, 2]), dict(n=1.5, k=0, sigma=0.3, theta_i=40, theta_r=30), "unknown axis 'theta_x'"),
     (dict(theta_r=[]), dict(n=1.5, k=0, sigma=0.3, theta_i=40), "axis theta_r is empty"),
-    (dict(theta_r=[10, 30, 20]), dict(n=1.5, k=0, sigma=0.3, theta_i=40), "strictly increasing or decreasing; value 20.0 at index 2"),
+    (dict(theta_r=[10, 30, 20]), dict(n=1.5, k=0, sigma=0.3, theta_i=40),
+     "strictly increasing or decreasing; value 20.0 at index 2"),
     (dict(theta_r=[10, 10]), dict(n=1.5, k=0, sigma=0.3, theta_i=40), "strictly"),
     (dict(sigma=[0.1, np.nan]), dict(n=1.5, k=0, theta_r=30, theta_i=40), "sigma must be finite, got nan"),
-    (dict(theta_r=[10, 95]), dict(n=1.5, k=0, sigma=0.3, theta_i=40), r"theta_r must be in \[0, 90\) degrees, got 95.0"),
+    (dict(theta_r=[10, 95]), dict(n=1.5, k=0, sigma=0.3, theta_i=40),
+     r"theta_r must be in \[0, 90\) degrees, got 95.0"),
     (dict(theta_r=[[10, 20]]), dict(n=1.5, k=0, sigma=0.3, theta_i=40), "must be a 1-d array"),
     (dict(theta_r=[10, 20]), dict(n=1.5, k=0, theta_i=40), "sigma is required"),
     (dict(theta_r=[10, 20]), dict(n=1.5, k=0, sigma=0.3, theta_i=40, theta_r=3), "both as an axis and as a fixed"),
@@ -247,7 +250,7 @@ def test_grid_engine_interface_used_by_sweep_and_bench(each_device):
         out = np.full(plan.size * width, np.nan, np.float32)
         blocks = list(G.grid_blocks(eng, plan, quantity, "float32", "paper", 1500, out=out))
         assert len(blocks) > 1 and blocks[0][0] == 0
-        for start, host in blocks:
+        for _, host in blocks:
             assert np.shares_memory(host, out) and host.size % width == 0
         np.testing.assert_array_equal(out.reshape(plan.shape + ((width,) if width > 1 else ())),
                                       G.grid(axes, plan.fixed_values(), quantity=quantity, engine=eng).values)

@@ -177,13 +177,13 @@ def test_the_division_by_multiplier_is_exact_for_every_31_bit_numerator():
         np.testing.assert_array_equal(got, n // np.uint64(d), err_msg=str(d))
 
 
-def _kernel_index(table, j, l):
-    """pbrdf_points.cl's pb_rule_index (the scalar kernels' kind-2 index) at launch offsets l, in uint32."""
+def _kernel_index(table, j, offsets):
+    """pbrdf_points.cl's pb_rule_index (the scalar kernels' kind-2 index) at launch offsets, in uint32."""
     kind, div, dm, ds, mod, mm, ms, r0, q0 = (np.uint64(v) for v in table[j])
 
     def udiv(n, m, s):
         return (((n << np.uint64(1)) * m) >> np.uint64(32)) >> s
-    u = r0 + l
+    u = r0 + offsets
     assert (u < 1 << 31).all()
     q = q0 + udiv(u, dm, ds)
     assert (q < 1 << 31).all()
@@ -192,17 +192,17 @@ def _kernel_index(table, j, l):
 
 def test_the_rule_table_keeps_32_bit_arithmetic_exact_at_any_start():
     """Launches start anywhere (beyond 2^32 points too): the host's r0 and q0 make the kernels'
-    32-bit index equal ``((start + l) // div) % mod`` for every offset of a launch, across period
+    32-bit index equal ``((start + offset) // div) % mod`` for every offset of a launch, across period
     boundaries."""
-    l = np.arange(T.LAUNCH_POINTS + 16, dtype=np.uint64)
+    offsets = np.arange(T.LAUNCH_POINTS + 16, dtype=np.uint64)
     for div, mod in ((1, 7), (1, 4096), (3, 5), (4095, 2048), (4096, 2048), (1 << 30, 3), (17, (1 << 30) - 1)):
         plan = {n: T.IndexRule(T.SINGLE) for n in T.POINT_INPUTS}
         plan["sigma"] = T.IndexRule(T.BROADCAST, div, mod, (0, 1))
         for start in (0, div * mod - 5, 3 * div * mod + div - 1, (1 << 32) + 12345, (1 << 40) + 7):
             table = T.rule_table(plan, start)
             assert table.dtype == np.uint32 and table.shape == (9, len(T.RULE_FIELDS))
-            want = ((np.uint64(start) + l) // np.uint64(div)) % np.uint64(mod)
-            np.testing.assert_array_equal(_kernel_index(table, T.POINT_INPUTS.index("sigma"), l), want,
+            want = ((np.uint64(start) + offsets) // np.uint64(div)) % np.uint64(mod)
+            np.testing.assert_array_equal(_kernel_index(table, T.POINT_INPUTS.index("sigma"), offsets), want,
                                           err_msg=str((div, mod, start)))
 
 
@@ -273,7 +273,8 @@ def test_a_launch_far_into_the_array_reads_the_right_values(each_device, monkeyp
     for dtype in ("float32", "float64"):
         npdt = np.dtype(T.DTYPES[dtype])
         lanes = each_device.vector_width[dtype]
-        inp = dict(theta_i=40.0, theta_r=th[:, None], phi=150.0, n=1.6, k=2.1, sigma=sg[None, :], ks=1.0, kd=0.2, c=-0.3)
+        inp = dict(theta_i=40.0, theta_r=th[:, None], phi=150.0, n=1.6, k=2.1, sigma=sg[None, :], ks=1.0, kd=0.2,
+                   c=-0.3)
         plan, flat, values = T.point_inputs(each_device, inp, shape, npdt, lanes)
         assert plan["theta_r"].kind == plan["sigma"].kind == T.BROADCAST
         parts = {**flat, **values}

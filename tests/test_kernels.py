@@ -117,7 +117,8 @@ def test_explicit_engine_and_device_choice(monkeypatch, each_device):
     ip, idev = next((p, i) for p, i, _, d in found if d.int_ptr == dev.int_ptr)
     e = pbrdf_cl.Engine(f"{ip}:{idev}")
     assert e.device.int_ptr == dev.int_ptr
-    assert e.kernel("quantity_points", "float32", "paper", "dop") is e.kernel("quantity_points", "float32", "paper", "dop")
+    key = ("quantity_points", "float32", "paper", "dop")
+    assert e.kernel(*key) is e.kernel(*key)
     d = pbrdf_cl.dop(40, 45, n=1.6, k=2.1, sigma=0.5, engine=e)
     assert d == pytest.approx(pbrdf_cl.dop(40, 45, n=1.6, k=2.1, sigma=0.5, backend="numpy"), abs=1e-12)
     by_name = pbrdf_cl.Engine(dev.name.strip())  # a name substring picks the first device of that name

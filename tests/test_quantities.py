@@ -34,10 +34,12 @@ def test_every_registered_quantity_has_its_physics_in_both_files():
 
 
 def test_names_aliases_and_refusals():
-    assert quantities.canonical("f00") == "brdf" and quantities.canonical("DOP") == quantities.canonical(" Dop") == "dop"
+    assert quantities.canonical("f00") == "brdf"
+    assert quantities.canonical("DOP") == quantities.canonical(" Dop") == "dop"
     assert quantities.names("objective") == ("dop",)
     assert set(quantities.names("grid")) == {"dop", "brdf", "aop", "stokes"}
-    with pytest.raises(ValueError, match=r"^quantity: unknown quantity 'dolp' \(did you mean 'dop'\?\); valid names are dop, brdf"):
+    with pytest.raises(ValueError,
+                       match=r"^quantity: unknown quantity 'dolp' \(did you mean 'dop'\?\); valid names are dop, brdf"):
         quantities.get("dolp")
     with pytest.raises(ValueError, match=r"'aop' is not available for reduce: an angle.*available there: dop, brdf$"):
         quantities.get("aop", "reduce")
@@ -110,7 +112,8 @@ def test_aop_matches_scatmech_out_of_plane(backend):
     compared = 0
     for i in range(len(rows)):
         model.setParameters({"lambda": 0.5, "substrate": f"({float(n[i])!r},{float(k[i])!r})",
-                             "sdf": "Gaussian_Slope_Distribution_Function", "sdf.s": repr(float(np.sqrt(2) * sigma[i]))})
+                             "sdf": "Gaussian_Slope_Distribution_Function",
+                             "sdf.s": repr(float(np.sqrt(2) * sigma[i]))})
         M = np.array(model.MuellerBRDF(np.radians(ti[i]), np.radians(tr[i]), np.radians(180 - phi[i]), 0, "psps"))
         if np.hypot(M[1, 0], M[2, 0]) <= 1e-3 * M[0, 0]:
             continue

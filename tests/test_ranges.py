@@ -116,7 +116,8 @@ def test_every_suggested_spelling_is_accepted(text):
     with pytest.raises(RangeError) as err:
         ranges.parse_values(text)
     tail = str(err.value).split("write ", 1)[1]
-    suggested = [w.strip(",;") for w in tail.split() if any(c.isdigit() for c in w) and "N" not in w and "STEP" not in w]
+    suggested = [w.strip(",;") for w in tail.split()
+                 if any(c.isdigit() for c in w) and "N" not in w and "STEP" not in w]
     assert suggested
     for s in suggested:
         assert ranges.parse_values(s).size >= 1

@@ -106,9 +106,13 @@ def jones_mueller(ti, tr, phi, n, k):
     kin, kout = -wi, wr
     h = (wi + wr) / np.linalg.norm(wi + wr)
     unit = lambda v: v / np.linalg.norm(v)  # noqa: E731
-    s_in = unit(np.cross(kin, z)); p_in = np.cross(kin, s_in)
-    s_out = unit(np.cross(kout, z)); p_out = np.cross(kout, s_out)
-    s_f = unit(np.cross(kin, h)); pf_in = np.cross(kin, s_f); pf_out = np.cross(kout, s_f)
+    s_in = unit(np.cross(kin, z))
+    p_in = np.cross(kin, s_in)
+    s_out = unit(np.cross(kout, z))
+    p_out = np.cross(kout, s_out)
+    s_f = unit(np.cross(kin, h))
+    pf_in = np.cross(kin, s_f)
+    pf_out = np.cross(kout, s_f)
     b = np.arccos(np.clip(wi @ h, -1, 1))
     rs, rp = complex_fresnel(n, k, b)
     B_in = np.array([[s_f @ s_in, s_f @ p_in], [pf_in @ s_in, pf_in @ p_in]])

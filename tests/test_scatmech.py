@@ -33,7 +33,8 @@ def test_specular_mueller_matches_scatmech(backend, dtype="float64", tol=1e-12):
                             backend=backend, dtype=dtype)
     for i in range(len(rows)):
         model.setParameters({"lambda": 0.5, "substrate": f"({float(n[i])!r},{float(k[i])!r})",
-                             "sdf": "Gaussian_Slope_Distribution_Function", "sdf.s": repr(float(np.sqrt(2) * sigma[i]))})
+                             "sdf": "Gaussian_Slope_Distribution_Function",
+                             "sdf.s": repr(float(np.sqrt(2) * sigma[i]))})
         theirs = np.array(model.MuellerBRDF(np.radians(ti[i]), np.radians(tr[i]), np.radians(180 - phi[i]),
                                             0, "psps"))
         scale = abs(theirs[0, 0])

@@ -92,7 +92,8 @@ def test_blocks_of_geometries_give_the_same_maps(engine):
     geometry = {"theta_i": "20:60@5", "theta_r": "0:80@7"}
     whole = pbrdf_cl.sobol(RANGES, geometry, **kw)
     runs = whole.attrs["runs_per_geometry"]
-    per_geometry = runs * 8 + sensitivity._SobolTerms(len(RANGES), 64, False, np.ones((100, 64)), 1.96).block_bytes(runs)
+    terms = sensitivity._SobolTerms(len(RANGES), 64, False, np.ones((100, 64)), 1.96)
+    per_geometry = runs * 8 + terms.block_bytes(runs)
     blocks = pbrdf_cl.sobol(RANGES, geometry, memory_budget=3 * per_geometry, **kw)
     assert whole.attrs["blocks"] == 1 and blocks.attrs["blocks"] == 12  # 35 geometries, 3 per block
     for key in ("S1", "ST", "S1_conf", "ST_conf"):

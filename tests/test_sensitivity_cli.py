@@ -252,7 +252,8 @@ def test_figures_of_one_and_two_axes_and_refusals(tmp_path, tiny):
     m = sobol(**{**TINY_SETTINGS, "N": 8, "geometry": {"theta_i": 40, "theta_r": "0:85@6"}}, method="morris")
     assert_png(plot_sensitivity(m, tmp_path / "morris.png"))
     three = xr.concat([tiny.assign_coords(phi=p) for p in (170.0, 180.0)], dim="phi")
-    with pytest.raises(ValueError, match=r"got 3 \(phi, theta_i, theta_r\); select a value of phi first, e.g. ds.sel\(phi=170\)"):
+    with pytest.raises(ValueError,
+                       match=r"got 3 \(phi, theta_i, theta_r\); select a value of phi first, e.g. ds.sel\(phi=170\)"):
         plot_sensitivity(three, tmp_path / "three.png")
     assert_png(plot_sensitivity(three.sel(phi=180.0), tmp_path / "selected.png"))
     with pytest.raises(ValueError, match="got 0"):

@@ -12,7 +12,7 @@ import pytest
 import pbrdf_cl
 from pbrdf_cl.explore import sweeps as S
 
-from test_sweep import PACKAGE_ROOT, files, n_done, reference, spec_file  # noqa: F401 - the fixtures: SPEC_TOML and its uninterrupted store
+from test_sweep import PACKAGE_ROOT, files, n_done, reference, spec_file  # noqa: F401 - fixtures
 
 ENV = dict(os.environ, PYTHONPATH=PACKAGE_ROOT, PYTHONWARNINGS="ignore")
 

@@ -67,7 +67,8 @@ def store(tmp_path, monkeypatch):
 # verdict keys and the switches (no device needed)
 
 def test_a_verdict_stands_for_builds_that_differ_only_in_sizes():
-    opts = lambda **d: ["-I", "/anywhere/kernels", "-w", "-DPB_VW=16"] + [f"-D{k}={v}" for k, v in d.items()]
+    def opts(**d):
+        return ["-I", "/anywhere/kernels", "-w", "-DPB_VW=16"] + [f"-D{k}={v}" for k, v in d.items()]
     same = [opts(PB_NNK=256, PB_NM=40, PB_NI=3), opts(PB_NNK=512, PB_NM=44, PB_NI=5)]
     assert trials.family(same[0]) == trials.family(same[1])
     assert trials.family(same[0])[0] == ["-w", "-DPB_VW=16", "-DPB_NNK=n*vw", "-DPB_NM=>vw", "-DPB_NI=<vw"]
@@ -197,7 +198,8 @@ def test_a_hanging_trial_is_killed_at_the_time_limit(store, monkeypatch):
     monkeypatch.setenv(trials.TIMEOUT_ENV, "2")
     eng = E.Engine(dev)  # explicit: the error, not a fallback
     t0 = time.monotonic()
-    with pytest.raises(E.ProgramUnusableError, match=r"cannot run pbrdf_grid\.cl \(float32, .*\): timed out after 2 s$"):
+    with pytest.raises(E.ProgramUnusableError,
+                       match=r"cannot run pbrdf_grid\.cl \(float32, .*\): timed out after 2 s$"):
         dense.objective(CSV, grid=GRID, engine=eng)
     assert time.monotonic() - t0 < 60
     assert not any(p.name.startswith("pbrdf-trial-") for p in Path(os.environ["POCL_CACHE_DIR"]).glob("*")
@@ -211,9 +213,11 @@ def test_a_crashed_trial_leaves_nothing_in_the_shared_cache(store, monkeypatch, 
     dev = DEVICES[0]
     source = (E.kernel_dir() / "pbrdf_tables.cl").read_text()
     options = E.build_options("float32", {"PBRDF_SHADOWING": 1})
-    check = lambda: trials.check_program(dev, None, E.kernels_sha256(), "pbrdf_tables.cl", "float32", source,
-                                         options)
-    entries = lambda: sorted(p.relative_to(shared) for p in shared.glob("??/*"))
+    def check():
+        return trials.check_program(dev, None, E.kernels_sha256(), "pbrdf_tables.cl", "float32", source,
+                                             options)
+    def entries():
+        return sorted(p.relative_to(shared) for p in shared.glob("??/*"))
     monkeypatch.setenv(trials.FAKE_ENV, ":pbrdf_tables.cl:abort")  # dies after the build, which PoCL cached
     verdict = check()
     assert not verdict.usable and verdict.reason.endswith("signal 6 (SIGABRT)")

@@ -199,7 +199,8 @@ def test_reductions_of_every_variant_equal_the_reference(engine, shadowing, plan
                 ds = G.reduce_grid(axes, fixed, over=over, quantity=quantity, dtype=dtype, shadowing=shadowing, **kw)
                 assert list(ds["min"].dims) == kept and ds.attrs["shadowing"] == shadowing
                 assert np.all(np.abs(ds["min"].values - ref.min(axis=-1)) <= tol.max(axis=-1)), (where, quantity, dtype)
-                assert np.all(np.abs(ds["mean"].values - ref.mean(axis=-1)) <= tol.mean(axis=-1)), (where, quantity, dtype)
+                assert np.all(np.abs(ds["mean"].values - ref.mean(axis=-1)) <= tol.mean(axis=-1)), \
+                    (where, quantity, dtype)
                 ix = np.ravel_multi_index([np.searchsorted(axes[n], ds[f"argmin_{n}"].values) for n in over],
                                           [axes[n].size for n in over])
                 at = np.take_along_axis(ref, ix[..., None], axis=-1)[..., 0]

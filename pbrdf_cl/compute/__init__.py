@@ -1,1 +1,2 @@
-"""Evaluating the model on an engine: per-point functions and their validation, dense grids, reductions, the objective."""
+"""Evaluating the model on an engine: per-point functions and their validation, dense grids, reductions,
+the objective."""

@@ -112,15 +112,14 @@ class DesignResult(Result):
                  f"  criterion: greedy {self.criterion_greedy:.6g} -> exchange {self.criterion_value:.6g} "
                  f"({self.swaps} swaps; reference {self.criterion_reference:.6g}); {self.seconds:.2f} s",
                  "", f"predicted 95% interval widths ({_kd_meaning(self)})"]
-        rows = [(k, v) for k, v in self.comparisons.items()]
         head = f"  {'measurement set':<44s}{'points':>7s}" + "".join(f"{n:>10s}" for n in names)
         lines.append(head)
-        for key, c in rows:
+        for c in self.comparisons.values():
             w, u = c["widths"], c.get("undetermined", ())
             lines.append(f"  {c['description'][:43]:<44s}{c['n_points']:>7d}"
                          + "".join(f"{'undet.':>10s}" if n in u else f"{w[n]:>10.4g}" if n in w else f"{'-':>10s}"
                                    for n in names))
-        if any(c.get("undetermined") for _, c in rows):
+        if any(c.get("undetermined") for c in self.comparisons.values()):
             lines.append("  undet.: undetermined, the predicted interval spans the whole bounds (the data do not "
                          "determine the parameter)")
         lines += [f"note: {n}" for n in self.get("notes", ())]

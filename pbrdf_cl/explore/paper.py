@@ -309,7 +309,8 @@ def reproduce(out="paper-figures", *, resolution=256, engine=None, backend="auto
              f"points per axis, float64, shadowing `paper`; computed on {engine.description}).", "",
              "Fig. 2 data are synthetic (the paper's measured points are not published): the six-parameter "
              f"model in the specular geometry theta_r = theta_i = {FIG2_ANGLES[0]:g}..{FIG2_ANGLES[-1]:g} deg "
-             f"(step {FIG2_ANGLES[1] - FIG2_ANGLES[0]:g}), phi = 180, Gaussian DOP noise sd {FIG2_NOISE:g}, clipped to [0, 1], with"]
+             f"(step {FIG2_ANGLES[1] - FIG2_ANGLES[0]:g}), phi = 180, Gaussian DOP noise sd {FIG2_NOISE:g}, "
+             "clipped to [0, 1], with"]
     for sample, p in FIG2_SAMPLES.items():
         lines.append(f"- {sample}: {_params_text(p)}")
     side = sobol_side(resolution)

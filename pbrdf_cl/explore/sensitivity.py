@@ -117,7 +117,7 @@ def check_fixed(fixed, ranged, where="fixed"):
     """The values of the parameters without a range: ``fixed``, else the defaults (ks 1, kd 0,
     c 0); n, k and sigma have none.  A ``ValueError`` for a parameter given twice or missing."""
     fixed = dict(fixed or {})
-    for name, v in fixed.items():
+    for name in fixed:
         if name not in PARAMETERS:
             raise ValueError(f"{where}: unknown parameter {name!r}{_hint(name, PARAMETERS)}; "
                              f"valid names are {', '.join(PARAMETERS)}")
@@ -276,7 +276,8 @@ class _SobolTerms:
         Tb = T.reshape(G * self.C, N)
         if Y.dtype == np.float32:
             Tb = Tb.astype(np.float32)
-        boot = np.moveaxis((Tb @ self.W.T.astype(Tb.dtype)).reshape(G, self.C, -1), 2, 0).astype(np.float64)  # (R, G, C)
+        boot = np.moveaxis((Tb @ self.W.T.astype(Tb.dtype)).reshape(G, self.C, -1), 2, 0)
+        boot = boot.astype(np.float64)  # (R, G, C)
         del Tb
         del T
         est = [self._indices(x, varies, scale) for x in (full, boot)]
@@ -641,7 +642,8 @@ def _spec_options(data):
     out = {}
     method = data.get("method", "sobol")
     if method not in METHODS:
-        raise SpecError(f"method: must be one of {', '.join(map(repr, METHODS))}, got {method!r}{_hint(method, METHODS)}")
+        raise SpecError(f"method: must be one of {', '.join(map(repr, METHODS))}, "
+                        f"got {method!r}{_hint(method, METHODS)}")
     out["method"] = method
     quantity = data.get("quantity", "dop")
     try:
@@ -859,7 +861,8 @@ def write_result(ds, path):
             warnings.filterwarnings("ignore", message=".*(fixed-length|FixedLengthUTF32|unstable).*")
             ds.to_zarr(path, mode="w", zarr_format=2, consolidated=True)
     else:
-        raise ValueError(f"{path}: write a result as .nc (netCDF) or .zarr (a Zarr store), not {suffix or 'no suffix'!r}")
+        raise ValueError(f"{path}: write a result as .nc (netCDF) or .zarr (a Zarr store), "
+                         f"not {suffix or 'no suffix'!r}")
     return str(path)
 
 
@@ -885,7 +888,8 @@ def summary(ds):
     geo = [d for d in ds[first].dims if d != "parameter"]
     size = " x ".join(f"{d}[{ds.sizes[d]}]" for d in geo) or "one geometry"
     a = ds.attrs
-    lines = [f"{a.get('method', 'sobol')}: {ds.sizes['parameter']} parameters ({', '.join(map(str, ds.parameter.values))}) "
+    names = ", ".join(map(str, ds.parameter.values))
+    lines = [f"{a.get('method', 'sobol')}: {ds.sizes['parameter']} parameters ({names}) "
              f"of {a.get('quantity', '?')} over {size}: {a.get('runs_per_geometry')} runs per geometry, "
              f"{a.get('model_runs')} model runs in {float(a.get('seconds', 0)):.3g} s on {a.get('engine', '?')}"]
     key = "ST" if first == "S1" else "mu_star"

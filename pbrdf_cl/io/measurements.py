@@ -295,7 +295,7 @@ def read_csv(path) -> Measurements:
             raise ValueError(f"{path}, line {lineno}: {n} value{'s' if n != 1 else ''} for {len(header)} "
                              f"columns{hint}")
         row = []
-        for name, i in used.items():
+        for i in used.values():
             f = fields[i]
             if sep != "," and _DECIMAL_COMMA.fullmatch(f):
                 f = f.replace(",", ".")

@@ -86,7 +86,8 @@ _ANGLE = "an angle: its mean and minimum are not meaningful; reduce a grid of it
 _VECTOR = "a vector per point: reduce or map one component yourself from pbrdf_cl.grid(..., quantity='stokes')"
 
 REGISTRY = {q.name: q for q in (
-    Quantity("dop", "degree of polarization", "1", "DOP", scale_sign=-1.0, diffuse_factor=2.0, vector=True, grid_vector=True,
+    Quantity("dop", "degree of polarization", "1", "DOP", scale_sign=-1.0, diffuse_factor=2.0, vector=True,
+             grid_vector=True,
              paths=("points", "grid", "reduce", "objective", "sweep", "map")),  # colours over the data's range
     Quantity("brdf", "BRDF F00", "1/sr", "F00", vector=True, aliases=("f00",)),
     Quantity("aop", "angle of linear polarization (psps frame of the reflected beam)", "deg", "AoP",
