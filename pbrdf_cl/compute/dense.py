@@ -11,7 +11,7 @@ depends on the geometry alone.  These tables are computed once by ``kernels/pbrd
 (with the device functions of ``pbrdf.h``) and combined per grid point by
 ``kernels/pbrdf_grid.cl`` (``pb_grid_<quantity>``), which decodes the flat grid index itself.
 What each quantity needs (which tables, its width, units) is its record in
-:mod:`pbrdf_cl.quantities`.  Grids whose device memory would exceed
+:mod:`pbrdf_cl.model.quantities`.  Grids whose device memory would exceed
 ``memory_budget`` bytes run in chunks.
 
 On the numpy backend (:class:`pbrdf_cl.device.engine.NumpyEngine`) the same tables are built with the
