@@ -40,7 +40,6 @@ from .result import fit_status
 from .setup import MODEL_PARAMS, check_model
 from .stages import (
     FINAL_BOBYQA,
-    LS_MAX_NFEV,
     SCREEN_ITERATIONS,
     Candidate,
     GridStage,
@@ -60,6 +59,10 @@ from .uncertainty import uncertainty_stage
 DEFAULT_SHARED = ("sigma", "c")
 #: Local minima of the joint grid profile (over the shared axes) that seed the local stages.
 JOINT_SEEDS = 8
+#: Residual evaluations per free parameter of the joint least-squares polish (fit's LS_MAX_NFEV is
+#: 100: with 11 parameters a flat valley along a bound made it crawl for seconds; where this runs
+#: out, the final BOBYQA finishes, as in fit).
+JOINT_LS_NFEV = 40
 
 
 @dataclass(frozen=True)
@@ -314,7 +317,7 @@ def _local_stages(resid, lo, hi, seeds):
     st["screen"] = screen_stage(resid.rows, lo, hi, [Candidate(np.inf, x, x) for x in seeds], SCREEN_ITERATIONS)
     cands = ranked(st["screen"].value)
     top = min(LS_POLISH, len(cands))
-    st["least_squares"] = least_squares_stage(resid.rows, lo, hi, cands[:top], LS_MAX_NFEV)
+    st["least_squares"] = least_squares_stage(resid.rows, lo, hi, cands[:top], JOINT_LS_NFEV)
     cands = ranked(st["least_squares"].value + cands[top:])
     final_ran = cands[0].converged is False
     st["final_bobyqa"] = (final_bobyqa_stage(resid.rows, lo, hi, cands[0], FINAL_BOBYQA) if final_ran
@@ -377,7 +380,8 @@ def fit_joint(sets, shared=DEFAULT_SHARED, model="six-param", bounds=None, fixed
                     for s in setup.names}
     grids = {s: g.value for s, g in grid_results.items()}
     t_sep = time.perf_counter()
-    separate = {s: fit_on_grid(setup.meas[s], setup.setups[s], grid_results[s], n_basins) for s in setup.names}
+    separate = {s: fit_on_grid(setup.meas[s], setup.setups[s], grid_results[s], n_basins, derivative_free=False)
+                for s in setup.names}
     st = {"grid": StageResult(None, sum(g.nfev for g in grid_results.values()),
                               sum(g.seconds for g in grid_results.values())),
           "separate": StageResult(None, sum(sum(r.nfev.values()) for r in separate.values()) -
