@@ -18,8 +18,9 @@ UNDETERMINED_FRACTION = 0.5
 class JointResult(Result):
     """Result of :func:`pbrdf_cl.fit_joint`; keys are also attributes (like :class:`FitResult`).
 
-    sets, shared (the shared parameter names), model, shadowing
-        what was fitted: the set names in order, and the parameters that take one value for all.
+    sets, shared (the shared parameter names), model, shadowing, measurements
+        what was fitted: the set names in order, the parameters that take one value for all, and
+        set -> the :class:`~pbrdf_cl.io.measurements.Measurements` fitted.
     x, stderr, ci95
         dicts set -> parameter -> value (every model parameter, fitted or held, as
         :attr:`FitResult.x`: ``pbrdf_cl.dop(..., **res.x["a"])`` evaluates set a's fit), standard
@@ -248,6 +249,7 @@ def joint_result(setup, resid, best, cands, unc, jgrid, separate, stages, status
     timing["total"] = float(seconds)
     return JointResult(
         model=model, shadowing=setup.setups[setup.names[0]].shadowing, sets=list(setup.names),
+        measurements=dict(setup.meas),
         shared=[p for p in PARAMETERS if p in setup.shared or p in setup.shared_fixed], shared_x=shared_x,
         free=labels, x=x, stderr=stderr, ci95=ci95, sse=float(sum(r @ r for r in dop_resid.values())),
         set_sse={s: float(r @ r) for s, r in dop_resid.items()}, chi2=float(unc.chi2), dof=int(unc.dof),
