@@ -92,7 +92,8 @@ def main():
                 covered.append(lo <= truths[s][p] <= hi)
             ratios += [res.width_ratio[s][p] for p in ("n", "k") if p in res.width_ratio[s]]
         print(f"problem {i:3d}: joint chi2 {res.chi2:10.4g}, multi-start best {best:10.4g} "
-              f"{'ok' if ok else 'MISSED'}; {t_joint[-1]:.2f} s joint, {t_single[-1]:.2f} s single", flush=True)
+              f"{'ok' if ok else 'MISSED'}; {t_joint[-1]:.2f} s joint, {t_single[-1]:.2f} s single; covered so far "
+              f"{sum(covered)}/{len(covered)}", flush=True)
     print()
     print(f"problems: {args.problems} (three sets sharing sigma and c, noise {NOISE} with dop_std, "
           f"{args.starts} random starts + the truth for the multi-start)")
