@@ -41,6 +41,8 @@ from .explore.sensitivity import morris, sobol
 from .explore.sweeps import SweepResult, SweepSpec, load_spec, sweep
 from .fitting.batch import fit_batch
 from .fitting.inversion import compare_models, fit
+from .fitting.joint import fit_joint
+from .fitting.joint_result import JointResult
 from .fitting.result import FitResult
 from .io.measurements import Measurements, as_measurements, read_csv
 from .model import quantities
@@ -50,7 +52,8 @@ __version__ = "0.1.0"
 __all__ = ["dop", "brdf", "aop", "stokes", "mueller", "evaluate", "quantities", "validate", "MODELS",
            "grid", "reduce_grid", "objective", "ObjectiveResult",
            "sweep", "load_spec", "SweepSpec", "SweepResult", "SpecError",
-           "fit", "fit_batch", "sobol", "morris", "design", "DesignResult", "compare_models", "FitResult",
+           "fit", "fit_joint", "JointResult",
+           "fit_batch", "sobol", "morris", "design", "DesignResult", "compare_models", "FitResult",
            "read_csv", "as_measurements", "Measurements", "DataWarning", "Engine", "NumpyEngine", "probe",
            "OpenCLUnavailableError", "DeviceUnusableError", "DeviceWarning", "KernelBuildError", "ProgramUnusableError",
            "TrialError", "UnitsWarning", "RangeError", "TooLargeError", "StoreError", "CommandError",

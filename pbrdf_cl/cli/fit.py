@@ -49,6 +49,65 @@ def _fit_brief(r):
     return "\n".join(lines)
 
 
+def _joint_json(r):
+    return dict(model=r.model, shadowing=r.shadowing, success=bool(r.success), status=r.status, message=r.message,
+                fits_data=bool(r.fits_data), sets=r.sets, shared=r.shared, shared_x=r.shared_x, free=r.free, x=r.x,
+                stderr=r.stderr, ci95={s: {p: list(v) for p, v in c.items()} for s, c in r.ci95.items()},
+                sse=r.sse, set_sse=r.set_sse, chi2=r.chi2, dof=r.dof, p_value=r.p_value, r2=r.r2, aic=r.aic,
+                bic=r.bic, separate_aic=r.separate_aic, separate_bic=r.separate_bic, width_ratio=r.width_ratio,
+                n_points=r.n_points, seconds=r.seconds, notes=r.notes,
+                separate={s: _fit_json(f) for s, f in r.separate.items()})
+
+
+def _joint_brief(r):
+    """--quiet: the shared values, then each set's own, with their 95% intervals."""
+    lines = [f"joint {r.model}: SSE {r.sse:.4g}, shared: {', '.join(r.shared) or 'none'}"
+             + ("" if r.fits_data else " (the model does not describe these data)")]
+    first = r.sets[0]
+    for p in r.shared:
+        ci = r.ci95[first].get(p)
+        lines.append(f"  {p} = {r.shared_x[p]:.5g}" + (f"  [{ci[0]:.4g}, {ci[1]:.4g}]" if ci else "  (fixed)"))
+    for s in r.sets:
+        for p, (lo, hi) in r.ci95[s].items():
+            if p not in r.shared:
+                lines.append(f"  {p}[{s}] = {r.x[s][p]:.5g}  [{lo:.4g}, {hi:.4g}]")
+    return "\n".join(lines)
+
+
+def cmd_fit_joint(args, fixed, bounds) -> int:
+    """`pbrdf-cl fit a.csv b.csv ...` or `fit table.csv --set-column wavelength`: a joint fit."""
+    from ..fitting import joint
+    if args.compare:
+        return error("--compare fits one data set; give one CSV without --shared or --set-column")
+    shared = joint.DEFAULT_SHARED if args.shared is None else [p for p in args.shared.split(",") if p.strip()]
+    try:
+        if args.set_column:
+            if len(args.data) != 1:
+                raise ValueError(f"--set-column {args.set_column}: give one CSV (the table of every set), got "
+                                 f"{len(args.data)}")
+            sets = args.data[0]
+        else:
+            sets = joint.set_names_of_paths(args.data)
+        engine = engine_for(args)
+        r = joint.fit_joint(sets, shared, args.model, bounds=bounds, fixed=fixed, shadowing=args.shadowing,
+                            set_column=args.set_column, engine=engine, progress=not args.quiet)
+    except (OSError, ValueError, _engine.OpenCLUnavailableError) as exc:
+        return error(exc)
+    if not args.quiet:
+        print("data: " + ", ".join(f"{s}: {m.source} ({len(m)} points)" for s, m in r.measurements.items()))
+    print(_joint_brief(r) if args.quiet else r.summary())
+    if args.json:
+        with open(args.json, "w") as fh:
+            json.dump(dict(data={s: m.source for s, m in r.measurements.items()}, joint=_joint_json(r)), fh,
+                      indent=2)
+        print(f"wrote {args.json}")
+    if args.plot:
+        from ..plots.joint import plot_joint
+        plot_joint(r, args.plot)
+        print(f"wrote {args.plot}")
+    return 0
+
+
 def cmd_fit(args) -> int:
     from ..fitting import inversion as _fit
     from ..io.measurements import read_csv
@@ -57,8 +116,10 @@ def cmd_fit(args) -> int:
     check_figure("--plot", args.plot)
     check_output("--json", args.json)
     check_output("--plot", args.plot)
+    if len(args.data) > 1 or args.shared is not None or args.set_column:
+        return cmd_fit_joint(args, fixed, bounds)
     try:
-        meas = read_csv(args.data)
+        meas = read_csv(args.data[0])
         engine = engine_for(args)
         kw = dict(shadowing=args.shadowing, bounds=bounds, fixed=fixed, engine=engine, progress=not args.quiet)
         if args.compare:
@@ -143,11 +204,16 @@ def cmd_fit_image(args) -> int:
 
 def fit_parser(sub):
     """The `pbrdf-cl fit` sub-command."""
-    f = sub.add_parser("fit", help="invert n, k, sigma, kd/ks, c from measured DOP (CSV)",
+    f = sub.add_parser("fit", help="invert n, k, sigma, kd/ks, c from measured DOP (CSV; several: a joint fit)",
                        description="Fit the six-parameter model (or, with --model specular, the ref. [7] "
                        "specular model; --compare: both) to a CSV of measurements (columns theta_i, theta_r, "
-                       "dop[, phi, dop_std, f00|s0, f00_std]).")
-    f.add_argument("data", help="measurement CSV")
+                       "dop[, phi, dop_std, f00|s0, f00_std]). Several CSVs (or one with --set-column): a joint "
+                       "fit, the --shared parameters one value for every set, the others one per set.")
+    f.add_argument("data", nargs="+", help="measurement CSV; several: one set each (named by its file name)")
+    f.add_argument("--shared", metavar="NAMES", help="joint fit: the parameters shared by every set, comma-"
+                   "separated (default sigma,c; '' shares nothing)")
+    f.add_argument("--set-column", metavar="COLUMN", help="joint fit of one CSV whose column COLUMN (e.g. "
+                   "wavelength) names each row's set")
     model_option(f)
     f.add_argument("--compare", action="store_true",
                    help="fit both models and compare them by AIC/BIC (--model's is listed first)")

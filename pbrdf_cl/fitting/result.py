@@ -158,7 +158,7 @@ def fit_result(meas, model, shadowing, resid, x, lo, hi, unc, cands, grid, stage
     aic, bic = neg2ll + 2 * n_free, neg2ll + n_free * np.log(m_obs)
     fits_data, p_value, r2, first = _goodness(meas, dop_resid, unc, sigma_known)
     notes = first + _convention_notes(meas) + notes + _bound_notes(names, x, lo, hi, unc.ci95)
-    notes += _identifiability_notes(names, unc.jacobian, unc.condition_number, unc.eig, x, unc.stderr, unc.corr,
+    notes += identifiability_notes(names, unc.jacobian, unc.condition_number, unc.eig, x, unc.stderr, unc.corr,
                                     hi - lo)
     if unc.noise_floor is not None:
         notes.append(f"the fit is (nearly) exact: the noise estimated from the residuals (std "
@@ -222,7 +222,11 @@ def _ambiguous_basins(cands, free, unit, se):
     return out
 
 
-def _identifiability_notes(names, J, cond, eig, x, se, corr, scale):
+def identifiability_notes(names, J, cond, eig, x, se, corr, scale):
+    """The notes on what the data do not determine: a near-degenerate direction (condition number
+    ``cond`` of the scaled J^T J, eigen-decomposition ``eig``), parameters the DOP does not change
+    with or poorly determined (``se``), strong correlations (``corr``); ``J`` the Jacobian over
+    ``names``, ``x`` the optimum, ``scale`` the bound ranges."""
     notes = []
     w, v = eig
     if not np.isfinite(cond) or cond > 1e4:

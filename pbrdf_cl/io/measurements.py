@@ -444,3 +444,105 @@ def as_measurements(data) -> "Measurements":
                        values.get("dop_std"), values.get("f00"), values.get("f00_std"), source="data", _locate=locate)
     meas.ignored = tuple(shown)
     return meas
+
+
+def subset(meas, mask, source):
+    """The measurements of ``meas`` where ``mask`` is True, as :class:`Measurements` named ``source``."""
+    from dataclasses import replace
+
+    def cut(a):
+        return None if a is None else a[mask]
+    return replace(meas, theta_i=meas.theta_i[mask], theta_r=meas.theta_r[mask], dop=meas.dop[mask],
+                   phi=meas.phi[mask], dop_std=cut(meas.dop_std), f00=cut(meas.f00), f00_std=cut(meas.f00_std),
+                   lines=cut(meas.lines), source=source)
+
+
+def _label_text(v):
+    """A set's name from its value in the set column: numbers as %g (435.0 -> "435")."""
+    try:
+        return f"{float(v):g}"
+    except (TypeError, ValueError):
+        return str(v).strip()
+
+
+def _csv_column_text(path, column):
+    """(the text of ``column`` on each measurement line, in file order; the header names) of a
+    CSV that :func:`read_csv` reads (the same lines: blank lines and comments skipped)."""
+    header = sep = None
+    out = []
+    for raw in _decode(path).replace("\r\n", "\n").replace("\r", "\n").split("\n"):
+        body = raw.split("#", 1)[0].strip()
+        if not body:
+            continue
+        if header is None:
+            declared = _SEP_LINE.fullmatch(body)
+            if declared and sep is None:
+                sep = declared.group(1)
+                continue
+            sep = sep or _sniff(body)
+            header = _split(body, sep)
+            keys = [h.strip().lower() for h in header]
+            if column.lower() not in keys:
+                return None, header
+            j = keys.index(column.lower())
+            continue
+        fields = _split(body, sep)
+        out.append(fields[j] if j < len(fields) else "")
+    return out, header or []
+
+
+def split_sets(data, column):
+    """Split one table of measurements into sets by the values of one of its columns.
+
+    Parameters
+    ----------
+    data : str or path, dict, DataFrame, xarray.Dataset or numpy structured array
+        The measurements of every set (as :func:`as_measurements` takes them) and a column ``column``.
+    column : str
+        The column naming each measurement's set (any case), e.g. ``"wavelength"`` or ``"sample"``;
+        numbers name a set as ``%g`` (435.0 -> "435").
+
+    Returns
+    -------
+    dict
+        Set name -> :class:`Measurements`, in the order the sets first appear.
+
+    Raises
+    ------
+    ValueError
+        One line, where ``data`` has no such column (naming its columns).
+
+    Examples
+    --------
+    >>> t = dict(theta_i=[40, 40, 40, 40], theta_r=[20, 45, 20, 45], dop=[.1, .2, .1, .3],
+    ...          wavelength=[435, 435, 633, 633])
+    >>> sorted(split_sets(t, "wavelength"))
+    ['435', '633']
+    """
+    if isinstance(data, Measurements):
+        raise ValueError(f"{data.source}: Measurements hold no {column!r} column; give the table itself")
+    where = "data"
+    if isinstance(data, (str, bytes)) or hasattr(data, "__fspath__"):
+        where = os.fsdecode(data)
+        labels, names = _csv_column_text(where, column)
+    else:
+        found = _dataset_columns(data) if hasattr(data, "data_vars") else _table_columns(data)
+        if found is None:
+            raise ValueError("data must be a CSV path, a dict of arrays, a DataFrame, an xarray Dataset or a "
+                             f"structured array to split by {column!r}, got {type(data).__name__}")
+        names = [str(n) for n in found[0]]
+        keys = [n.strip().lower() for n in names]
+        labels = (list(np.asarray(found[1]([found[0][keys.index(column.lower())]])[0]).reshape(-1))
+                  if column.lower() in keys else None)
+    if labels is None:
+        raise ValueError(f"{where}: no column {column!r} to split the sets by (the columns are "
+                         f"{', '.join(str(n).strip() for n in names)})")
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        meas = as_measurements(data)
+    if any(n.strip().lower() != column.lower() for n in meas.ignored):
+        for w in seen:
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    labels = np.array([_label_text(v) for v in labels], dtype=object)
+    order = list(dict.fromkeys(labels))
+    return {name: subset(meas, labels == name, f"{meas.source} ({column} = {name})") for name in order}

@@ -1,0 +1,407 @@
+"""Joint fits of several data sets (:func:`fit_joint`): some parameters take one value for every
+set (``shared``: by default the roughness sigma and the Minnaert exponent c, which are geometry
+and do not change with the wavelength), the others one value per set.
+
+The pipeline is :func:`pbrdf_cl.fit`'s, on the stacked residuals of every set:
+
+1. one device grid per set (:func:`~pbrdf_cl.fitting.stages.grid_stage`, the same grid as
+   ``fit``'s).  The joint objective is a sum over sets, and given the shared parameters each
+   set's own parameters are minimised independently, so the profile of the joint grid over the
+   shared axes is exactly the sum of each set's grid minimised over its own axes
+   (:func:`joint_profiles`): the joint grid (the product of every set's own axes) is never made,
+   and nothing is lost by not making it;
+2. seeds: the best local minima and bound slices of that joint profile, each with every set's
+   best own grid node there, and the separate fits' optima (:func:`joint_seeds`);
+3. the batched Levenberg-Marquardt descent of every seed on the stacked residuals, trust-region
+   least squares to the end from the best, a final BOBYQA where it ran out of evaluations (the
+   stages of :mod:`pbrdf_cl.fitting.stages`);
+4. uncertainties as ``fit``'s (:func:`~pbrdf_cl.fitting.uncertainty.uncertainty_stage`): the
+   posterior mixture of the joint Jacobian's local approximation and the joint grid's profile of
+   each parameter (shared and per set, :func:`joint_profiles`).
+
+Each set's separate fit (:func:`~pbrdf_cl.fitting.inversion.fit_on_grid`, on the same grid) is
+done beside it, so that the result shows what sharing bought.  The result is a
+:class:`~pbrdf_cl.fitting.joint_result.JointResult`.
+"""
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from ..io.measurements import split_sets
+from . import basins
+from .common import dop_noise_floor
+from .inversion import LS_POLISH, check_fit_args, fit_on_grid, grid_shape_of
+from .joint_result import joint_result
+from .result import fit_status
+from .setup import MODEL_PARAMS, check_model
+from .stages import (
+    FINAL_BOBYQA,
+    SCREEN_ITERATIONS,
+    Candidate,
+    GridStage,
+    Model,
+    Residuals,
+    StageResult,
+    final_bobyqa_stage,
+    grid_stage,
+    least_squares_stage,
+    ranked,
+    screen_stage,
+)
+from .uncertainty import uncertainty_stage
+
+#: The parameters shared by default: the surface's geometry (roughness and the diffuse lobe's
+#: shape), the same at every wavelength; n, k and kd/ks change with it.
+DEFAULT_SHARED = ("sigma", "c")
+#: Local minima of the joint grid profile (over the shared axes) that seed the local stages.
+JOINT_SEEDS = 8
+#: Residual evaluations per free parameter of the joint least-squares polish (fit's LS_MAX_NFEV is
+#: 100: with 11 parameters a flat valley along a bound made it crawl for seconds; where this runs
+#: out, the final BOBYQA finishes, as in fit).
+JOINT_LS_NFEV = 40
+
+
+@dataclass(frozen=True)
+class JointSetup:
+    """The checked setup of :func:`fit_joint`: ``names`` (the sets, in order), per set its
+    ``meas`` and :class:`~pbrdf_cl.fitting.setup.FitSetup` (``setups``); ``shared`` (the
+    shared parameters the fit varies, model order) and ``shared_fixed`` (shared and held, name
+    -> value); ``notes`` about the inputs.  The joint parameter vector is :attr:`labels`: the
+    shared parameters, then each set's own free parameters (``"n[a]"``)."""
+    names: tuple
+    meas: dict
+    setups: dict
+    shared: tuple
+    shared_fixed: dict
+    notes: tuple
+
+    def own(self, name):
+        """The free parameters of set ``name`` that are not shared."""
+        return [p for p in self.setups[name].free if p not in self.shared]
+
+    @property
+    def labels(self):
+        return list(self.shared) + [f"{p}[{s}]" for s in self.names for p in self.own(s)]
+
+    def index(self, name):
+        """The joint vector's columns of set ``name``'s free parameters (in its ``free`` order)."""
+        labels = self.labels
+        return np.array([labels.index(p if p in self.shared else f"{p}[{name}]") for p in self.setups[name].free])
+
+    @property
+    def lo(self):
+        return self._bounds(0)
+
+    @property
+    def hi(self):
+        return self._bounds(1)
+
+    def _bounds(self, end):
+        out = np.empty(len(self.labels))
+        for s in self.names:
+            out[self.index(s)] = (self.setups[s].lo, self.setups[s].hi)[end]
+        return out
+
+    @property
+    def sigma_known(self):
+        return self.meas[self.names[0]].dop_std is not None
+
+
+class JointResiduals:
+    """The stacked weighted residuals of every set (each a
+    :class:`~pbrdf_cl.fitting.stages.Residuals`) as a function of the joint vector: ``rows(X)``
+    maps (B, d) joint vectors to (B, sum of M); ``free`` are the joint labels."""
+
+    def __init__(self, setup):
+        self.setup = setup
+        self.free = tuple(setup.labels)
+        self.parts = [set_residuals(setup.meas[s], setup.setups[s]) for s in setup.names]
+        self.index = [setup.index(s) for s in setup.names]
+
+    def rows(self, X):
+        X = np.atleast_2d(X)
+        return np.concatenate([r.rows(X[:, ix]) for r, ix in zip(self.parts, self.index)], axis=1)
+
+    def split(self, x):
+        """Set name -> that set's free parameters (an array in its ``free`` order) from the joint ``x``."""
+        return {s: np.asarray(x)[ix] for s, ix in zip(self.setup.names, self.index)}
+
+
+def set_residuals(meas, setup):
+    """The DOP residuals of one set (weights 1/dop_std^2 where given), as :func:`pbrdf_cl.fit`'s."""
+    std = meas.dop_std if meas.dop_std is not None else np.ones(len(meas))
+    return Residuals(Model(meas, setup.shadowing), setup.free, setup.base, meas.dop, std)
+
+
+def _as_sets(sets, set_column):
+    """Set name -> data from what :func:`fit_joint` takes."""
+    if set_column is not None:
+        return split_sets(sets, set_column)
+    if isinstance(sets, Mapping):
+        return {str(k): v for k, v in sets.items()}
+    if isinstance(sets, (list, tuple)) and all(isinstance(v, (str, bytes)) or hasattr(v, "__fspath__")
+                                               for v in sets):
+        return set_names_of_paths(sets)
+    raise ValueError("sets must be a dict set name -> data, a list of CSV paths, or one table with set_column= "
+                     f"naming its set column, got {type(sets).__name__}")
+
+
+def set_names_of_paths(paths):
+    """Set name -> path: each file's name without its suffix, or the whole path where two share one."""
+    paths = [os.fsdecode(p) for p in paths]
+    stems = [os.path.splitext(os.path.basename(p))[0] for p in paths]
+    names = stems if len(set(stems)) == len(stems) else paths
+    if len(set(names)) != len(names):
+        raise ValueError(f"sets: the same file is given twice ({', '.join(paths)})")
+    return dict(zip(names, paths))
+
+
+def _per_set(arg, names, what, is_value):
+    """``fixed`` or ``bounds`` per set: entries name -> value apply to every set; entries set ->
+    dict to that set (they win)."""
+    common, own = {}, {s: {} for s in names}
+    for key, v in (arg or {}).items():
+        if key in own and isinstance(v, Mapping):
+            own[key] = dict(v)
+        elif is_value(v):
+            common[key] = v
+        else:
+            raise ValueError(f"{what}: {key!r} is neither a parameter with a value nor a set "
+                             f"({', '.join(names)}) with a dict")
+    return {s: {**common, **own[s]} for s in names}
+
+
+def _check_shared(shared, model):
+    if isinstance(shared, str):
+        shared = [p.strip() for p in shared.split(",") if p.strip()]
+    shared = tuple(dict.fromkeys(shared or ()))
+    for p in shared:
+        if p not in MODEL_PARAMS[model]:
+            raise ValueError(f"shared: {p!r} is not a fitted parameter of the {model} model (its parameters: "
+                             f"{', '.join(MODEL_PARAMS[model])})")
+    return tuple(p for p in MODEL_PARAMS[model] if p in shared)
+
+
+def _shared_split(shared, setups):
+    """(the shared parameters varied, the shared parameters held: name -> value); refuses a
+    shared parameter held in some sets only, at different values, or with different bounds."""
+    free, held = [], {}
+    for p in shared:
+        fixed = {s: su.fixed.get(p) for s, su in setups.items()}
+        values = set(fixed.values())
+        if values == {None}:
+            bounds = {s: su.bounds[p] for s, su in setups.items()}
+            if len(set(bounds.values())) > 1:
+                raise ValueError(f"bounds: {p} is shared, so its bounds must be the same in every set, got "
+                                 + ", ".join(f"{s}: {b}" for s, b in bounds.items()))
+            free.append(p)
+        elif len(values) == 1:
+            held[p] = values.pop()
+        else:
+            raise ValueError(f"fixed: {p} is shared, so it must be held in every set at one value or in none, got "
+                             + ", ".join(f"{s}: {'free' if v is None else v}" for s, v in fixed.items()))
+    return tuple(free), held
+
+
+def check_joint_args(sets, shared, model, bounds, fixed, shadowing, set_column=None):
+    """The checked inputs of :func:`fit_joint`: a :class:`JointSetup` (one-line ``ValueError``s
+    naming the set, the parameter and the value)."""
+    check_model(model, shadowing)
+    shared = _check_shared(shared, model)
+    data = _as_sets(sets, set_column)
+    names = tuple(data)
+    if len(names) < 2:
+        raise ValueError(f"sets: {len(names)} set{'' if len(names) == 1 else 's'} ({', '.join(names)}); a joint fit "
+                         "needs at least two (fit one set with pbrdf_cl.fit)")
+    fx = _per_set(fixed, names, "fixed", lambda v: np.ndim(v) == 0 and not isinstance(v, Mapping))
+    bd = _per_set(bounds, names, "bounds", lambda v: not isinstance(v, Mapping) and np.ndim(v) == 1)
+    meas, setups, notes = {}, {}, []
+    for s in names:
+        try:
+            meas[s], setups[s] = check_fit_args(data[s], model, bd[s], fx[s], shadowing)
+        except ValueError as exc:
+            raise ValueError(f"set {s!r}: {exc}") from None
+    given = [s for s in names if meas[s].dop_std is not None]
+    if given and len(given) < len(names):
+        raise ValueError(f"dop_std: given for set{'s' if len(given) > 1 else ''} {', '.join(given)} but not for "
+                         f"{', '.join(s for s in names if s not in given)}; give it for every set or for none")
+    with_f00 = [s for s in names if meas[s].f00 is not None]
+    if with_f00:
+        notes.append(f"the intensities (f00) of set{'s' if len(with_f00) > 1 else ''} {', '.join(with_f00)} were "
+                     "not used: fit_joint fits the DOP only, and so do the separate fits beside it")
+        meas = {s: replace(m, f00=None, f00_std=None) for s, m in meas.items()}
+    free_shared, held = _shared_split(shared, setups)
+    return JointSetup(names, meas, setups, free_shared, held, tuple(notes))
+
+
+def joint_profiles(setup, grids):
+    """The joint grid's objective profiles, from each set's grid (``grids``: set name ->
+    :class:`~pbrdf_cl.fitting.stages.GridStage`, axes in its ``free`` order).
+
+    Returns (total, per_set, profiles): ``total`` the joint objective on the shared axes (each
+    set's grid minimised over its own axes, summed: exact, the joint objective being a sum over
+    sets whose own parameters are independent), ``per_set`` set -> its part of it, and
+    ``profiles`` joint label -> the profile (minimum over every other joint parameter) at its
+    nodes."""
+    shared = list(setup.shared)
+    per_set, ordered = {}, {}
+    for s in setup.names:
+        free = setup.setups[s].free
+        perm = [free.index(p) for p in shared] + [free.index(p) for p in setup.own(s)]
+        ordered[s] = grids[s].sse.transpose(perm)
+        per_set[s] = ordered[s].min(axis=tuple(range(len(shared), len(perm)))).astype(np.float64)
+    total = sum(per_set.values())
+    profiles = {}
+    for j, p in enumerate(shared):
+        others = tuple(a for a in range(len(shared)) if a != j)
+        profiles[p] = total.min(axis=others) if others else total
+    lead = tuple(range(len(shared)))
+    for s in setup.names:
+        rest = total - per_set[s]
+        own = setup.own(s)
+        for j, p in enumerate(own):
+            others = tuple(len(shared) + a for a in range(len(own)) if a != j)
+            g = ordered[s].min(axis=others) if others else ordered[s]
+            g = g.astype(np.float64) + np.asarray(rest)[..., None]
+            profiles[f"{p}[{s}]"] = g.min(axis=lead) if lead else g
+    return total, per_set, profiles
+
+
+def joint_seeds(setup, grids, total, separate, count=JOINT_SEEDS):
+    """Starting joint vectors: at each of the best ``count`` local minima of the joint profile
+    ``total`` (over the shared axes) and at its bound slices' best nodes, the shared nodes with
+    each set's best own grid node there; and each separate fit's shared values with every set's
+    own separate optimum (``separate``: set -> its :class:`~pbrdf_cl.fitting.result.FitResult`,
+    or None)."""
+    shared = list(setup.shared)
+    labels = setup.labels
+    axes0 = grids[setup.names[0]].axes
+    if shared:
+        idxs = basins.grid_basins(total, count)
+        idxs += basins.bound_seeds(total, idxs)
+    else:
+        idxs = [()]
+    seeds = []
+    for idx in idxs:
+        x = np.empty(len(labels))
+        x[:len(shared)] = [axes0[p][i] for p, i in zip(shared, idx)]
+        for s in setup.names:
+            free = setup.setups[s].free
+            own = setup.own(s)
+            perm = [free.index(p) for p in shared] + [free.index(p) for p in own]
+            sub = grids[s].sse.transpose(perm)[tuple(idx)]
+            at = np.unravel_index(int(np.argmin(sub)), sub.shape)
+            for p, i in zip(own, at):
+                x[labels.index(f"{p}[{s}]")] = grids[s].axes[p][i]
+        seeds.append(x)
+    if separate:
+        for s0 in setup.names:
+            x = np.empty(len(labels))
+            x[:len(shared)] = [separate[s0].x[p] for p in shared]
+            for s in setup.names:
+                for p in setup.own(s):
+                    x[labels.index(f"{p}[{s}]")] = separate[s].x[p]
+            seeds.append(x)
+    return seeds
+
+
+def _local_stages(resid, lo, hi, seeds):
+    """The local stages of :func:`pbrdf_cl.fit` on the stacked residuals: the batched descent of
+    every seed, least squares to the end from the best, BOBYQA where it ran out; (candidates
+    best first, whether the final BOBYQA ran, stage results)."""
+    st = {}
+    st["screen"] = screen_stage(resid.rows, lo, hi, [Candidate(np.inf, x, x) for x in seeds], SCREEN_ITERATIONS)
+    cands = ranked(st["screen"].value)
+    top = min(LS_POLISH, len(cands))
+    st["least_squares"] = least_squares_stage(resid.rows, lo, hi, cands[:top], JOINT_LS_NFEV)
+    cands = ranked(st["least_squares"].value + cands[top:])
+    final_ran = cands[0].converged is False
+    st["final_bobyqa"] = (final_bobyqa_stage(resid.rows, lo, hi, cands[0], FINAL_BOBYQA) if final_ran
+                          else StageResult(cands[0], 0, 0.0))
+    cands[0] = st["final_bobyqa"].value
+    return cands, final_ran, st
+
+
+def fit_joint(sets, shared=DEFAULT_SHARED, model="six-param", bounds=None, fixed=None, shadowing="paper", *,
+              set_column=None, grid_shape=None, n_basins=6, engine=None, backend="auto", progress=False):
+    """Fit the model to several data sets at once, some parameters shared by every set.
+
+    Parameters
+    ----------
+    sets : dict, list of CSV paths, or one table
+        Set name -> anything :func:`pbrdf_cl.fit` takes (Measurements, CSV path, dict, DataFrame);
+        a list of CSV paths (each set named by its file name); or, with ``set_column``, one table
+        (CSV path, dict, DataFrame, Dataset) whose column ``set_column`` names each row's set.
+    shared : sequence of str or str, default ("sigma", "c")
+        The parameters that take one value for every set (e.g. ``("n", "k")`` for several samples
+        of one material); the others take one value per set.  ``()`` shares nothing.
+    model, shadowing
+        As for :func:`pbrdf_cl.fit`.
+    bounds, fixed : dict, optional
+        As for :func:`pbrdf_cl.fit` (name -> (low, high), name -> value), for every set; an entry
+        set name -> dict applies to that set only (``fixed={"a": {"kd": 0.1}}``).  A shared
+        parameter has one bounds for all, and is held in every set at one value or in none.
+    set_column : str, optional
+        The column naming the sets when ``sets`` is one table (e.g. ``"wavelength"``).
+    grid_shape, n_basins, engine, backend, progress
+        As for :func:`pbrdf_cl.fit` (each set's grid stage, and its separate fit's basins).
+
+    Returns
+    -------
+    JointResult
+        ``x``, ``stderr``, ``ci95`` (set -> parameter -> value / (lo, hi); shared values repeat
+        in every set and are also in ``shared_x``), ``sse``, ``chi2``, ``aic``, ``bic``, ``notes``,
+        ``separate`` (set -> the :class:`FitResult` of that set alone), ``width_ratio`` (set ->
+        parameter -> joint 95% width / separate 95% width), ``summary()``, ``to_dataset()``.
+
+    Raises
+    ------
+    ValueError
+        One line naming the set, the parameter or the value: fewer than two sets, an unknown shared
+        parameter, a shared parameter held or bounded differently per set, dop_std given for some
+        sets only, and each set's own refusals as :func:`pbrdf_cl.fit`'s.
+
+    Examples
+    --------
+    >>> import pbrdf_cl
+    >>> res = pbrdf_cl.fit_joint({"435": "a.csv", "532": "b.csv", "633": "c.csv"})  # doctest: +SKIP
+    >>> res.shared_x["sigma"], res.ci95["435"]["n"], res.width_ratio["435"]["n"]  # doctest: +SKIP
+    """
+    import time
+    t0 = time.perf_counter()
+    setup = check_joint_args(sets, shared, model, bounds, fixed, shadowing, set_column)
+    shape = grid_shape_of(model, grid_shape)
+    grid_results = {s: grid_stage(setup.meas[s], setup.setups[s].free, setup.setups[s].grid_axes(shape),
+                                  setup.setups[s].base, shadowing, engine=engine, backend=backend, progress=progress)
+                    for s in setup.names}
+    grids = {s: g.value for s, g in grid_results.items()}
+    t_sep = time.perf_counter()
+    separate = {s: fit_on_grid(setup.meas[s], setup.setups[s], grid_results[s], n_basins, derivative_free=False)
+                for s in setup.names}
+    st = {"grid": StageResult(None, sum(g.nfev for g in grid_results.values()),
+                              sum(g.seconds for g in grid_results.values())),
+          "separate": StageResult(None, sum(sum(r.nfev.values()) for r in separate.values()) -
+                                  sum(g.nfev for g in grid_results.values()), time.perf_counter() - t_sep)}
+    t1 = time.perf_counter()
+    total, _, profiles = joint_profiles(setup, grids)
+    seeds = joint_seeds(setup, grids, total, separate)
+    st["seeds"] = StageResult(None, 0, time.perf_counter() - t1)
+    resid = JointResiduals(setup)
+    lo, hi = setup.lo, setup.hi
+    cands, final_ran, local = _local_stages(resid, lo, hi, seeds)
+    st.update(local)
+    best = cands[0]
+    n_points = sum(len(m) for m in setup.meas.values())
+    floor = None if setup.sigma_known else dop_noise_floor(np.concatenate([m.dop for m in setup.meas.values()]))
+    axes = {p: grids[setup.names[0]].axes[p] for p in setup.shared}
+    axes.update({f"{p}[{s}]": grids[s].axes[p] for s in setup.names for p in setup.own(s)})
+    jgrid = GridStage(total, axes, profiles)
+    unc = uncertainty_stage(resid, best.x, lo, hi, jgrid, best.sse, n_points, setup.sigma_known, floor)
+    st["uncertainty"] = unc
+    status = fit_status(best, final_ran, None)
+    return joint_result(setup, resid, best, cands, unc.value, jgrid, separate, st, status,
+                        time.perf_counter() - t0)

@@ -1,0 +1,228 @@
+"""Joint fits (issue #28): several data sets, some parameters shared.  Truth recovered on synthetic
+three-wavelength data made with the numpy reference, the global optimum against a brute-force
+multi-start, shared values equal across sets, per-set fixed and bounds, one-line refusals, the CLI,
+to_dataset and the separate fits beside the joint one."""
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import pbrdf_cl
+from pbrdf_cl.fitting import joint
+from pbrdf_cl.io.measurements import from_arrays, split_sets, write_csv
+
+TI = np.repeat([30.0, 40.0, 50.0], 10)
+TR = np.tile(np.arange(20.0, 66.0, 5.0), 3)
+GEOMETRY = dict(sigma=0.5, c=-0.3)
+#: One sample at three wavelengths: n, k and kd/ks change, sigma and c do not.
+OWN = {"435": dict(n=1.6, k=2.139, kd=0.17), "532": dict(n=2.0, k=2.8, kd=0.1), "633": dict(n=2.5, k=3.4, kd=0.06)}
+
+
+def three_sets(noise=0.003, seed=1, own=OWN, geometry=GEOMETRY):
+    rng = np.random.default_rng(seed)
+    out = {}
+    for s, t in own.items():
+        d = pbrdf_cl.dop(TI, TR, 180.0, backend="numpy", ks=1.0, **t, **geometry)
+        if noise:
+            d = np.clip(d + rng.normal(0, noise, d.size), 0, 1)
+        out[s] = from_arrays(TI, TR, d, 180.0, np.full(d.size, noise) if noise else None)
+    return out
+
+
+@pytest.fixture(scope="module")
+def noisy():
+    sets = three_sets()
+    return sets, pbrdf_cl.fit_joint(sets)
+
+
+def test_noise_free_recovers_truth():
+    res = pbrdf_cl.fit_joint(three_sets(noise=0.0))
+    assert res.sse <= 1e-10
+    for s, own in OWN.items():
+        truth = {**own, **GEOMETRY}
+        for p, v in truth.items():
+            lo, hi = res.ci95[s][p]
+            assert lo <= v <= hi, (s, p, v, (lo, hi))
+        for p in ("n", "k"):
+            assert res.x[s][p] == pytest.approx(truth[p], rel=0.05)
+    assert res.shared_x["sigma"] == pytest.approx(0.5, rel=0.02)
+
+
+def test_noisy_intervals_cover_truth_and_shared_values_repeat(noisy):
+    _, res = noisy
+    assert res.success and res.fits_data
+    assert res.shared == ["sigma", "c"] and res.sets == list(OWN)
+    for s, own in OWN.items():
+        for p, v in {**own, **GEOMETRY}.items():
+            lo, hi = res.ci95[s][p]
+            assert lo <= v <= hi, (s, p, v, (lo, hi))
+        for p in ("sigma", "c"):
+            assert res.x[s][p] == res.shared_x[p]
+            assert res.ci95[s][p] == res.ci95[res.sets[0]][p]
+            assert res.stderr[s][p] == res.stderr[res.sets[0]][p]
+        assert res.x[s]["ks"] == 1.0 and "ks" not in res.ci95[s]
+    # the fit evaluates: x of each set reproduces its residuals
+    for s, m in res.measurements.items():
+        r = pbrdf_cl.dop(m.theta_i, m.theta_r, m.phi, backend="numpy", **res.x[s]) - m.dop
+        assert float(r @ r) == pytest.approx(res.set_sse[s], rel=1e-9)
+    assert res.sse == pytest.approx(sum(res.set_sse.values()))
+    assert res.free[:2] == ["sigma", "c"] and "n[435]" in res.free and len(res.free) == 11
+    assert "JointResult(" in repr(res) and "shared (one value for every set)" in res.summary()
+
+
+def _brute_force(sets, starts, seed):
+    """Best chi^2 of scipy least_squares on the stacked residuals from random starts."""
+    from scipy.optimize import least_squares
+    setup = joint.check_joint_args(sets, ("sigma", "c"), "six-param", None, None, "paper")
+    resid = joint.JointResiduals(setup)
+    lo, hi = setup.lo, setup.hi
+    rng = np.random.default_rng(seed)
+    best = np.inf
+    for _ in range(starts):
+        r = least_squares(lambda x: resid.rows(x[None])[0], lo + rng.random(lo.size) * (hi - lo), bounds=(lo, hi),
+                          x_scale=hi - lo, ftol=1e-12, xtol=1e-12, gtol=1e-12, max_nfev=2000)
+        best = min(best, 2 * r.cost)
+    return best
+
+
+@pytest.mark.parametrize("seed", [3, 11])
+def test_global_optimum_against_brute_force_multistart(seed):
+    rng = np.random.default_rng(seed)
+    geometry = dict(sigma=0.05 + 0.95 * rng.random(), c=-rng.random())
+    own = {s: dict(n=1 + 4 * rng.random(), k=10 * rng.random(), kd=5 * rng.random()) for s in "abc"}
+    sets = three_sets(seed=seed, own=own, geometry=geometry)
+    res = pbrdf_cl.fit_joint(sets)
+    best = _brute_force(sets, 12, seed)
+    assert res.chi2 <= best * (1 + 1e-6) + 1e-6, (res.chi2, best)
+
+
+def test_separate_fits_beside_joint(noisy):
+    sets, res = noisy
+    assert set(res.separate) == set(OWN)
+    alone = pbrdf_cl.fit(sets["532"])
+    assert res.separate["532"].chi2 == pytest.approx(alone.chi2, rel=1e-6)
+    for s in OWN:
+        for p, ratio in res.width_ratio[s].items():
+            j, sep = res.ci95[s][p], res.separate[s].ci95[p]
+            assert ratio == pytest.approx((j[1] - j[0]) / (sep[1] - sep[0]))
+    # sharing sigma narrows it against at least one set's separate fit
+    assert min(res.width_ratio[s]["sigma"] for s in OWN) < 1
+    assert np.isfinite(res.separate_aic) and np.isfinite(res.separate_bic)
+
+
+def test_to_dataset_has_set_dimension(noisy):
+    _, res = noisy
+    ds = res.to_dataset()
+    assert ds["ci95"].dims == ("set", "param", "bound")
+    assert list(ds["set"].values) == list(OWN) and ds.sizes["param"] == 6
+    assert ds["shared"].sel(param="sigma") and not ds["shared"].sel(param="n")
+    assert float(ds["x"].sel(set="633", param="k")) == res.x["633"]["k"]
+    assert float(ds["ci95"].sel(set="435", param="n", bound="hi")) == res.ci95["435"]["n"][1]
+    assert np.isnan(float(ds["stderr"].sel(set="435", param="ks")))
+    assert ds.attrs["shared"] == "sigma,c"
+
+
+def test_per_set_fixed_and_bounds_are_honoured():
+    sets = three_sets()
+    res = pbrdf_cl.fit_joint(sets, fixed={"435": {"kd": 0.17}}, bounds={"532": {"n": (1.8, 2.3)}, "k": (0, 6)})
+    assert res.x["435"]["kd"] == 0.17 and "kd" not in res.ci95["435"] and "kd[435]" not in res.free
+    assert 1.8 <= res.x["532"]["n"] <= 2.3
+    lo, hi = res.ci95["532"]["n"]
+    assert 1.8 <= lo <= hi <= 2.3
+    for s in OWN:
+        assert 0 <= res.ci95[s]["k"][0] <= res.ci95[s]["k"][1] <= 6
+    # a shared parameter held at one value in every set is held, and reported as shared
+    held = pbrdf_cl.fit_joint(sets, fixed={"c": -0.3})
+    assert held.shared_x["c"] == -0.3 and "c" not in held.free and all(held.x[s]["c"] == -0.3 for s in OWN)
+
+
+def test_shared_n_k_for_several_samples():
+    own = {"s1": dict(sigma=0.3, kd=0.1), "s2": dict(sigma=0.6, kd=0.2)}
+    rng = np.random.default_rng(4)
+    sets = {}
+    for s, t in own.items():
+        d = pbrdf_cl.dop(TI, TR, backend="numpy", n=1.6, k=2.139, c=-0.3, **t) + rng.normal(0, 0.003, TI.size)
+        sets[s] = dict(theta_i=TI, theta_r=TR, dop=np.clip(d, 0, 1), dop_std=np.full(TI.size, 0.003))
+    res = pbrdf_cl.fit_joint(sets, shared=("n", "k"))
+    assert res.shared == ["n", "k"] and res.x["s1"]["n"] == res.x["s2"]["n"]
+    assert res.ci95["s1"]["n"][0] <= 1.6 <= res.ci95["s1"]["n"][1]
+    assert res.x["s1"]["sigma"] != res.x["s2"]["sigma"]
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    (dict(sets={"a": "x"}), "sets: 1 set (a); a joint fit needs at least two"),
+    (dict(shared=("sigma", "q")), "shared: 'q' is not a fitted parameter of the six-param model"),
+    (dict(fixed={"435": {"sigma": 0.5}}), "fixed: sigma is shared, so it must be held in every set at one value"),
+    (dict(bounds={"435": {"c": (-0.5, 0)}}), "bounds: c is shared, so its bounds must be the same in every set"),
+    (dict(fixed={"zz": {"n": 1}}), "fixed: 'zz' is neither a parameter with a value nor a set"),
+    (dict(fixed={"633": {"k": -1}}), "set '633': fixed: k = -1.0 is outside the model's domain"),
+    (dict(model="specular"), "shared: 'sigma' is not a fitted parameter of the specular model"),
+    (dict(sets=42), "sets must be a dict set name -> data"),
+])
+def test_refusals_are_one_line(kwargs, message):
+    args = dict(sets=three_sets(noise=0.0), shared=("sigma", "c"))
+    args.update(kwargs)
+    with pytest.raises(ValueError) as info:
+        pbrdf_cl.fit_joint(args.pop("sets"), **args)
+    text = str(info.value)
+    assert "\n" not in text
+    assert message in text or text.startswith(message), text
+
+
+def test_refuses_dop_std_for_some_sets_only_and_a_set_too_small():
+    sets = three_sets()
+    sets["633"] = dict(theta_i=TI, theta_r=TR, dop=sets["633"].dop)
+    with pytest.raises(ValueError, match="dop_std: given for sets 435, 532 but not for 633; give it for every set"):
+        pbrdf_cl.fit_joint(sets)
+    small = dict(three_sets(), tiny=dict(theta_i=[40, 40], theta_r=[20, 30], dop=[0.1, 0.2], dop_std=[0.01, 0.01]))
+    with pytest.raises(ValueError, match="^set 'tiny': data: 2 measurements for 5 free parameters"):
+        pbrdf_cl.fit_joint(small)
+
+
+def test_split_sets_by_column(tmp_path):
+    table = dict(theta_i=np.tile(TI, 2), theta_r=np.tile(TR, 2), dop=np.full(60, 0.1),
+                 Wavelength=np.repeat([435.0, 633.0], 30))
+    sets = split_sets(table, "wavelength")
+    assert list(sets) == ["435", "633"] and len(sets["633"]) == 30
+    path = tmp_path / "all.csv"
+    path.write_text("theta_i;theta_r;dop;sample\n40;20;0,1;a\n# a comment\n40;45;0,2;b\n40;50;0,3;a\n")
+    by_file = split_sets(path, "sample")
+    assert list(by_file) == ["a", "b"] and list(by_file["a"].dop) == [0.1, 0.3]
+    assert list(by_file["a"].lines) == [2, 5]
+    with pytest.raises(ValueError, match="no column 'wl' to split the sets by"):
+        split_sets(path, "wl")
+
+
+def test_cli_joint_round_trip(tmp_path, noisy):
+    sets, res = noisy
+    paths = []
+    rows = ["theta_i,theta_r,phi,dop,dop_std,wavelength"]
+    for s, m in sets.items():
+        paths.append(str(tmp_path / f"{s}.csv"))
+        write_csv(paths[-1], m)
+        rows += [f"{a},{b},{p},{float(d)!r},{float(e)!r},{s}"
+                 for a, b, p, d, e in zip(m.theta_i, m.theta_r, m.phi, m.dop, m.dop_std)]
+    (tmp_path / "all.csv").write_text("\n".join(rows) + "\n")
+    env = dict(os.environ, PYTHONPATH=str(Path(pbrdf_cl.__file__).resolve().parent.parent), PYTHONWARNINGS="ignore")
+    out, png = tmp_path / "joint.json", tmp_path / "joint.png"
+    proc = subprocess.run([sys.executable, "-m", "pbrdf_cl", "fit", *paths, "--shared", "sigma,c", "--json", str(out),
+                           "--plot", str(png)], capture_output=True, text=True, timeout=600, env=env)
+    assert proc.returncode == 0, proc.stderr
+    assert "joint fit: six-param" in proc.stdout and "shared: sigma, c" in proc.stdout
+    got = json.loads(out.read_text())["joint"]
+    assert got["sets"] == list(OWN) and got["shared"] == ["sigma", "c"]
+    assert got["shared_x"]["sigma"] == pytest.approx(res.shared_x["sigma"], rel=1e-4)
+    assert got["x"]["633"]["n"] == pytest.approx(res.x["633"]["n"], rel=1e-3)
+    assert set(got["separate"]) == set(OWN) and "ci95" in got["separate"]["435"]
+    assert png.stat().st_size > 10000 and png.read_bytes()[:4] == b"\x89PNG"
+    quiet = subprocess.run([sys.executable, "-m", "pbrdf_cl", "fit", str(tmp_path / "all.csv"), "--set-column",
+                            "wavelength", "--quiet"], capture_output=True, text=True, timeout=600, env=env)
+    assert quiet.returncode == 0, quiet.stderr
+    assert "n[633] = " in quiet.stdout and "sigma = " in quiet.stdout
+    bad = subprocess.run([sys.executable, "-m", "pbrdf_cl", "fit", *paths[:2], "--shared", "sigma,q"],
+                         capture_output=True, text=True, timeout=120, env=env)
+    assert bad.returncode == 1 and bad.stderr.strip().count("\n") == 0 and "shared: 'q'" in bad.stderr
