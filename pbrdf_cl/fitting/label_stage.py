@@ -1,0 +1,473 @@
+"""The label stage of an image fit with shared material parameters (:func:`run_label_stage`): the
+values of the shared parameters (n, k by default) of every label of a label image, found from all
+the pixels of the label before the per-pixel pass fits each pixel with them held.
+
+The label's objective is the sum over its pixels of each pixel's chi2, every pixel with its own
+values of the other parameters (beta): F(theta) = sum_p min_beta chi2_p(theta, beta).  It is found
+in passes over the blocks of the stack (a label's pixels may lie in every block):
+
+1. the profile: the grid stage (``batch_grid``) with one region per node of the shared
+   parameters' grid axes gives every pixel's least chi2 at each node (over the grid of its own
+   parameters); summed over a label's pixels, the label's profile on the grid, whose least node
+   seeds theta;
+2. the start: the SEEDS lowest local minima of the label's profile tried (each pixel's own
+   parameters descended from the best points of their grid at each: float32 descents, the
+   best polished in float64), the candidate of least F seeds theta, and every pixel is fitted
+   with theta held there (:func:`pbrdf_cl.fitting.pixel_fit.fit_block`, the usual stages for
+   its own parameters);
+3. the refinement, variable projection: each pass moves theta by a damped Gauss-Newton step on
+   F from the sums over the label's pixels of the Schur complement of each pixel's normal
+   equations (the information on theta left once the pixel's own parameters are eliminated) and
+   of the reduced gradient, then re-descends every pixel's own parameters at the new theta
+   (``batch_lm`` from the previous ones) and keeps the step where F fell (per label; Marquardt
+   damping otherwise), until F stops falling;
+4. the intervals: the covariance of theta is the inverse of the summed Schur complements, scaled
+   by the label's reduced chi2 where ``dop_std`` is not given; the central 95% truncated to the
+   bounds (Student's t without ``dop_std``), then cross-checked against the label's profile on
+   the grid: a node whose profile (an upper bound of the true one) lies within chi2 3.84 (times
+   the reduced chi2) of the minimum but outside the interval widens it to cover that node and
+   marks the label ambiguous.
+
+The derivatives and the objective of the refinement are the float64 reference model's
+(:class:`~pbrdf_cl.fitting.pixels.PixelResiduals`, forward differences on the host): the same on
+every backend.  Sums over a label's pixels are taken row by row of the stack in row order, so the
+result does not depend on the blocks (the memory budget).  Memory beyond a block: the pixels'
+own parameters at the current and the trial theta (two floats per parameter and pixel) and the
+labels' sums.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from .common import X_RESOLUTION, fd_jacobian
+from .pixel_fit import fit_block
+from .pixels import Block, PixelResiduals, descent_bounds, grid_points, grid_values, internal, regions
+from .setup import PARAMETERS
+from .source import ANGLES
+from .statistics import DETERMINED_FRACTION, truncated_interval
+
+#: Passes of the refinement at most (each one pass over the stack).
+MAX_ROUNDS = 20
+#: Iterations of each pixel's float32 descents of its own parameters after a step of theta, and
+#: of the float64 polish of the best.
+LM_ITERATIONS = 10
+POLISH_ITERATIONS = 10
+#: Candidate seeds per label: the best local minima of its profile on the grid, each tried.
+SEEDS = 3
+#: Starts of each pixel's descent at a trial theta from the grid of its own parameters (with its
+#: previous values).
+GRID_STARTS = 3
+#: The refinement of a label stops where a step would lower its chi2 by less than this (times the
+#: label's reduced chi2 without dop_std): a tenth of a standard error moves chi2 by 0.01.
+CHI2_TOL = 1e-2
+#: chi2 of one parameter's 95% interval (the profile cross-check's threshold, times the reduced chi2).
+CHI2_95 = 3.841458820694124
+#: The status of each label: code -> (name, meaning).
+LABEL_STATUS = {
+    1: ("converged", "the refinement converged inside the bounds"),
+    2: ("on_bound", "converged with a shared parameter on a bound"),
+    3: ("ambiguous", "a node of the label's profile on the grid lies within chi2 3.84 of the minimum outside the "
+                     "local interval: the interval is widened to cover it"),
+    4: ("underdetermined", "a shared parameter's 95% interval spans more than half its bounds"),
+    0: ("not_converged", f"the refinement still improved after {MAX_ROUNDS} passes"),
+    -2: ("too_few", "not fitted: too few pixels of the label with enough valid measurements"),
+}
+
+
+@dataclass
+class LabelResult:
+    """The label stage's result, arrays over the labels (``ids``): ``theta`` (L, S) the shared
+    parameters' values (``shared`` order), ``stderr``, ``ci95`` (L, S, 2), ``determined``
+    (L, S), ``pixels`` (fitted pixels), ``chi2`` (the label's F), ``sse`` (its unweighted DOP
+    residuals), ``dof``, ``status`` (:data:`LABEL_STATUS`), ``rounds`` (refinement passes) and
+    ``profile`` (L, nodes: the label's chi2 profile on the grid) with ``nodes`` (nodes, S)."""
+    ids: np.ndarray
+    shared: tuple
+    theta: np.ndarray
+    stderr: np.ndarray
+    ci95: np.ndarray
+    determined: np.ndarray
+    pixels: np.ndarray
+    chi2: np.ndarray
+    sse: np.ndarray
+    dof: np.ndarray
+    status: np.ndarray
+    rounds: int
+    profile: np.ndarray
+    nodes: np.ndarray
+
+
+def node_regions(setup, shared):
+    """The grid's points (as :func:`pbrdf_cl.fitting.pixels.regions` orders them) grouped by the
+    node of the ``shared`` parameters: (order, rstart, nodes), node r holding
+    order[rstart[r]:rstart[r + 1]] and ``nodes[r]`` its shared values."""
+    v = grid_values(setup)
+    sizes = [v[n].size for n in PARAMETERS]
+    idx = np.indices(sizes).reshape(6, -1)
+    shape = [sizes[PARAMETERS.index(n)] for n in shared]
+    node = np.ravel_multi_index([idx[PARAMETERS.index(n)] for n in shared], shape)
+    counts = np.bincount(node, minlength=int(np.prod(shape)))
+    rstart = np.concatenate([[0], np.cumsum(counts)]).astype(np.int32)
+    order = np.argsort(node, kind="stable").astype(np.int32)
+    unr = np.unravel_index(np.arange(counts.size), shape)
+    nodes = np.stack([v[n][u] for n, u in zip(shared, unr)], axis=1)
+    return order, rstart, nodes
+
+
+def held_setup(setup, shared, theta):
+    """``setup`` with the ``shared`` parameters held at ``theta`` (the per-pixel fits of a label)."""
+    fixed = {**setup.fixed, **{n: float(t) for n, t in zip(shared, theta)}}
+    return replace(setup, fixed=fixed, axes={n: a for n, a in setup.axes.items() if n not in shared})
+
+
+def take(raw, idx):
+    """The pixels ``idx`` of a block's raw rows (shared angles kept)."""
+    return {k: (v if (v.ndim == 1 and k in ANGLES) else v[idx]) for k, v in raw.items()}
+
+
+class RowSums:
+    """Sums over each label's pixels taken row by row of the stack, rows in order: the same
+    whatever the blocks (a row is never split between blocks)."""
+
+    def __init__(self, n_labels, size):
+        self.total = np.zeros((n_labels, size))
+
+    def add(self, rows, lab, values):
+        """Add the per-pixel ``values`` (p, size) of pixels in ``rows`` (ascending) of labels ``lab``."""
+        if not rows.size:
+            return
+        n = self.total.shape[0]
+        uk, inv = np.unique(rows * n + lab, return_inverse=True)
+        part = np.zeros((uk.size, self.total.shape[1]))
+        np.add.at(part, inv.ravel(), values)
+        np.add.at(self.total, uk % n, part)  # in key order: a label's rows in order
+
+
+class _Stage:
+    """The passes of one label stage (see the module's docstring)."""
+
+    def __init__(self, job, eng, progress):
+        self.job, self.eng, self.progress = job, eng, progress
+        setup = job.setup
+        self.shared = tuple(job.shared)
+        self.own = [n for n in job.names if n not in self.shared]
+        self.si = [job.names.index(n) for n in self.shared]
+        self.bi = [job.names.index(n) for n in self.own]
+        self.lo, self.hi = descent_bounds(setup, job.names)
+        self.span = self.hi - self.lo
+        self.ids = job.label_ids
+        self.lab = job.label_index  # flat, -1: not fitted
+        self.row = int(np.prod(job.source.shape[1:], dtype=np.int64))
+        self.fitted = np.zeros(self.lab.size, bool)
+        n_own = len(self.own)
+        self.beta = np.full((self.lab.size, n_own), np.nan)
+        self.order_own, self.rstart_own = regions(grid_values(held_setup(setup, self.shared, np.zeros(2))),
+                                                  held_setup(setup, self.shared, np.zeros(2)).free)
+        self.dtype = "float64" if getattr(eng, "fp64", True) else "float32"
+        self.lanes = eng.call("batch_lanes")
+
+    def _bar(self, desc, total):
+        if not self.progress:
+            return None
+        from tqdm.auto import tqdm
+        return tqdm(total=total, desc=f"labels: {desc}", unit="px", unit_scale=True, smoothing=0.1)
+
+    def _blocks(self, desc, check=False):
+        """(r0, pixel offset, raw rows) of every block, with a progress bar in pixels; ``check``:
+        the rows' values checked (the first pass)."""
+        bar = self._bar(desc, self.job.source.n_pixels)
+        for r0, r1 in self.job.blocks():
+            raw = self.job.read_rows(r0, r1) if check else self.job.source.rows(r0, r1)
+            yield r0, r0 * self.row, raw
+            if bar is not None:
+                bar.update((r1 - r0) * self.row)
+        if bar is not None:
+            bar.close()
+
+    def profile(self):
+        """Pass 1: each label's chi2 profile over the shared parameters' grid nodes; marks the
+        pixels that can be fitted (label > 0, not masked, enough valid measurements)."""
+        setup = self.job.setup
+        order, rstart, self.nodes = node_regions(setup, self.shared)
+        sums = RowSums(self.ids.size, rstart.size - 1)
+        need = len(self.own)
+        for _, off, raw in self._blocks("grid", check=True):
+            blk = Block(raw, setup, self.lanes)
+            lab = self.lab[off:off + blk.p]
+            ok = (lab >= 0) & blk.mask & (blk.count >= need + 1) & (blk.distinct >= need)
+            idx = np.flatnonzero(ok)
+            if idx.size:
+                best, _ = self.eng.call("batch_grid", setup, blk.subset(idx), order, rstart)
+                best = np.asarray(best, float).T
+                good = np.all(np.isfinite(best), axis=1)
+                idx, best = idx[good], best[good]
+                self.fitted[off + idx] = True
+                sums.add(idx // self.row, lab[idx], best)
+        return sums.total
+
+    def _values(self, setup, sub, theta_px, beta):
+        """Per pixel of ``sub`` at (theta, beta): [1, residual rows, noise floor^2, chi2, DOP sse,
+        Schur complement (S x S), reduced gradient (S)] in coordinates scaled to the bounds."""
+        job = self.job
+        D = len(job.names)
+        X = np.empty((sub.p, D))
+        X[:, self.si], X[:, self.bi] = theta_px, beta
+        Xi = internal(X, job.names)
+        res = PixelResiduals(setup, sub, job.names, np.arange(sub.p), setup.use_f00)
+        r, J = fd_jacobian(res.rows, Xi, self.lo, self.hi)
+        chi2 = np.einsum("pm,pm->p", r, r)
+        M = sub.valid.shape[1]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            sse = np.where(sub.w > 0, r[:, :M] ** 2 / sub.w, 0.0).sum(axis=1)
+        J = J * self.span[None, :, None]
+        H = np.einsum("pim,pjm->pij", J, J)
+        g = np.einsum("pim,pm->pi", J, r)
+        b, s = self.bi, self.si
+        xi = Xi[:, b]
+        held = (((xi <= self.lo[b] + 1e-9 * self.span[b]) & (g[:, b] > 0))
+                | ((xi >= self.hi[b] - 1e-9 * self.span[b]) & (g[:, b] < 0)))
+        keep = (~held).astype(float)
+        Hbb = H[:, b][:, :, b] * keep[:, :, None] * keep[:, None, :]
+        Hsb = H[:, s][:, :, b] * keep[:, None, :]
+        P = np.linalg.pinv(Hbb, rcond=1e-12, hermitian=True)
+        schur = H[:, s][:, :, s] - Hsb @ P @ np.swapaxes(Hsb, 1, 2)
+        grad = g[:, s] - (Hsb @ P @ (g[:, b] * keep)[:, :, None])[:, :, 0]
+        rows = sub.count * (2 if setup.use_f00 else 1)
+        return np.concatenate([np.ones((sub.p, 1)), rows[:, None], sub.noise_floor[:, None] ** 2, chi2[:, None],
+                               sse[:, None], schur.reshape(sub.p, -1), grad], axis=1)
+
+    def evaluate(self, thetas, active, start=False):
+        """One pass at candidate values ``thetas`` (C, L, S) of the ``active`` labels: each pixel's
+        own parameters descended (:meth:`_descend`; ``start``: from its grid alone, else also from
+        its current ones) into ``trial_beta`` (C, pixels, own); returns the labels' sums of
+        :meth:`_values` at each candidate, (C, L, sums)."""
+        setup = self.job.setup
+        C, S = thetas.shape[0], len(self.shared)
+        sums = [RowSums(self.ids.size, 5 + S * S + S) for _ in range(C)]
+        self.trial_beta = np.full((C,) + self.beta.shape, np.nan)
+        for _, off, raw in self._blocks("start" if start else "refine"):
+            lab = self.lab[off:off + raw["dop"].shape[0]]
+            fit = self.fitted[off:off + lab.size] & active[np.maximum(lab, 0)]
+            for L in np.unique(lab[fit]):
+                idx = np.flatnonzero(fit & (lab == L))
+                sub_raw = take(raw, idx)
+                sub = Block(sub_raw, setup, 1)
+                for c in range(C):
+                    held = held_setup(setup, self.shared, thetas[c, L])
+                    before = None if start else self.beta[off + idx]
+                    beta = self._descend(held, Block(sub_raw, held, self.lanes), before)
+                    self.trial_beta[c, off + idx] = beta
+                    vals = self._values(setup, sub, np.broadcast_to(thetas[c, L], (idx.size, S)), beta)
+                    sums[c].add((off + idx) // self.row, np.full(idx.size, L), vals)
+        return np.stack([t.total for t in sums])
+
+    def start(self, theta, active):
+        """The pass at the seeds ``theta`` (L, S): every pixel's own parameters fitted from scratch
+        with theta held (:func:`pbrdf_cl.fitting.pixel_fit.fit_block`: the usual stages) into
+        ``beta`` (a pixel whose fit fails leaves the label stage); the labels' sums there."""
+        setup = self.job.setup
+        S = len(self.shared)
+        sums = RowSums(self.ids.size, 5 + S * S + S)
+        for _, off, raw in self._blocks("start"):
+            lab = self.lab[off:off + raw["dop"].shape[0]]
+            fit = self.fitted[off:off + lab.size] & active[np.maximum(lab, 0)]
+            for L in np.unique(lab[fit]):
+                idx = np.flatnonzero(fit & (lab == L))
+                held = held_setup(setup, self.shared, theta[L])
+                out = fit_block(self.eng, held, take(raw, idx), self.order_own, self.rstart_own, self.own)
+                beta = out["x"]
+                if setup.use_f00 and "kd" in self.own:  # reported kd to the descent's kd/ks
+                    beta[:, self.own.index("kd")] /= beta[:, self.own.index("ks")]
+                good = np.all(np.isfinite(beta), axis=1)
+                self.fitted[off + idx[~good]] = False
+                idx, beta = idx[good], beta[good]
+                if idx.size:
+                    self.beta[off + idx] = beta
+                    at = np.broadcast_to(theta[L], (idx.size, S))
+                    vals = self._values(setup, Block(take(raw, idx), setup, 1), at, beta)
+                    sums.add((off + idx) // self.row, np.full(idx.size, L), vals)
+        return sums.total
+
+    def _descend(self, held, blk, previous):
+        """Each pixel's own parameters at a trial theta (``held``): the best end of float32
+        descents (``batch_lm``, LM_ITERATIONS) from its ``previous`` values (None: none) and
+        from the GRID_STARTS best region minima of the grid of its own parameters at that theta
+        (a pixel's own parameters can jump to another basin as theta moves), polished
+        (POLISH_ITERATIONS in float64 where the device has it)."""
+        best, arg = self.eng.call("batch_grid", held, blk, self.order_own, self.rstart_own)
+        top = np.argsort(np.asarray(best, float), axis=0, kind="stable")[:GRID_STARTS]
+        X = grid_points(held, self.order_own, np.take_along_axis(arg, top, axis=0))  # (T, p, free)
+        cols = [self.own.index(n) for n in held.free]
+        starts = np.ones((X.shape[0], blk.p, len(self.own)))  # ks (with intensities) from 1
+        starts[:, :, cols] = X
+        if previous is not None:
+            starts = np.concatenate([previous[None], starts])
+        d = self.eng.call("batch_lm", held, blk, starts, self.own, "float32", LM_ITERATIONS, held.use_f00)
+        pick = np.argmin(np.where(np.isfinite(d.sse), d.sse, np.inf), axis=0)
+        x = d.x[pick, np.arange(blk.p)]
+        if previous is not None:  # the float32 descent cannot better a float64 optimum: keep it
+            x = np.where((pick == 0)[:, None], previous, x)
+        return self.eng.call("batch_lm", held, blk, x[None], self.own, self.dtype, POLISH_ITERATIONS,
+                             held.use_f00).x[0]
+
+    def unpack(self, sums):
+        """(pixels, rows, floor^2 sum, chi2, sse, Schur (L, S, S), gradient (L, S)) from sums."""
+        S = len(self.shared)
+        return (sums[:, 0], sums[:, 1], sums[:, 2], sums[:, 3], sums[:, 4], sums[:, 5:5 + S * S].reshape(-1, S, S),
+                sums[:, 5 + S * S:])
+
+    def step(self, theta, sums, lam):
+        """The damped Gauss-Newton trial of every label from its sums at ``theta``: (trial theta,
+        the decrease of F the step predicts)."""
+        _, _, _, _, _, A, g = self.unpack(sums)
+        S = A.shape[1]
+        s = self.si
+        scale = np.einsum("lii->li", A)
+        ridge = 1e-12 * np.maximum(scale.max(axis=1), 1e-300)
+        Ad = A + (lam[:, None] * scale + ridge[:, None])[:, :, None] * np.eye(S)[None]
+        with np.errstate(all="ignore"):
+            du = -np.linalg.solve(Ad, g[:, :, None])[:, :, 0]
+        du = np.where(np.isfinite(du), du, 0.0)
+        trial = np.clip(theta + du * self.span[s], self.lo[s], self.hi[s])
+        du = (trial - theta) / self.span[s]
+        predicted = -np.einsum("li,li->l", g, du) - 0.5 * np.einsum("li,lij,lj->l", du, A, du)
+        return trial, predicted
+
+    def refine(self, theta, sums, active):
+        """Passes of the refinement (:meth:`step`, :meth:`evaluate`) until no active label's F
+        falls; returns (theta, sums, not converged, passes)."""
+        lam = np.full(self.ids.size, 1e-3)
+        self.beta[~self.fitted] = np.nan
+        rounds = 0
+        for _ in range(MAX_ROUNDS):
+            chi2 = sums[:, 3]
+            tol = CHI2_TOL * self.scale(sums)
+            trial, predicted = self.step(theta, sums, lam)
+            active &= predicted > tol
+            if not active.any():
+                break
+            rounds += 1
+            new = self.evaluate(trial[None], active)[0]
+            better = active & (new[:, 3] < chi2)
+            mine = self.fitted & np.isin(self.lab, np.flatnonzero(better))
+            self.beta[mine] = self.trial_beta[0, mine]
+            theta, sums = np.where(better[:, None], trial, theta), np.where(better[:, None], new, sums)
+            lam = np.where(better, lam / 3.0, np.where(active, lam * 10.0, lam))
+            active &= better | (lam < 1e8)
+            active &= ~(better & (chi2 - new[:, 3] <= tol))
+        return theta, sums, active, rounds
+
+    def dof(self, sums):
+        """Each label's degrees of freedom: its residuals less its pixels' own parameters and the shared."""
+        return np.maximum(sums[:, 1] - sums[:, 0] * len(self.own) - len(self.shared), 1)
+
+    def scale(self, sums):
+        """Each label's chi2 of one standard error squared: 1 with dop_std, else its reduced chi2
+        (at least its pixels' mean noise floor squared)."""
+        if self.job.setup.sigma_known:
+            return np.ones(sums.shape[0])
+        return np.maximum(sums[:, 3] / self.dof(sums), sums[:, 2] / np.maximum(sums[:, 0], 1))
+
+    def intervals(self, theta, sums, profile, active):
+        """Standard errors, 95% intervals, ``determined`` and the status of every label, the
+        profile's cross-check included (see the module's docstring)."""
+        setup = self.job.setup
+        pixels, rows, floor2, chi2, sse, A, _ = self.unpack(sums)
+        s, span = self.si, self.span[self.si]
+        lo, hi = self.lo[s], self.hi[s]
+        dof, s2 = self.dof(sums), self.scale(sums)
+        with np.errstate(all="ignore"):
+            cov = np.linalg.pinv(A, rcond=1e-12, hermitian=True) * s2[:, None, None]
+        se = np.sqrt(np.clip(np.einsum("lii->li", cov), 0, None)) * span
+        se = np.where(np.isfinite(se), se, np.inf)
+        ci = np.stack(truncated_interval(theta, np.maximum(se, X_RESOLUTION * span), lo, hi,
+                                         None if setup.sigma_known else dof[:, None]), axis=-1)
+        # the profile on the grid is an upper bound of the true one: a node within the threshold
+        # of the minimum is a value the data allow
+        near = profile <= (chi2 + CHI2_95 * s2)[:, None]
+        ambiguous = np.zeros(theta.shape[0], bool)
+        for L in range(theta.shape[0]):
+            if not near[L].any():
+                continue
+            v = self.nodes[near[L]]
+            out = (v < ci[L, :, 0]) | (v > ci[L, :, 1])
+            ambiguous[L] = out.any()
+            ci[L, :, 0] = np.minimum(ci[L, :, 0], v.min(axis=0))
+            ci[L, :, 1] = np.maximum(ci[L, :, 1], v.max(axis=0))
+        determined = (ci[..., 1] - ci[..., 0]) < DETERMINED_FRACTION * span
+        status = np.ones(theta.shape[0], np.int8)
+        status[np.any((theta <= lo + X_RESOLUTION * span) | (theta >= hi - X_RESOLUTION * span), axis=1)] = 2
+        status[ambiguous] = 3
+        status[~determined.all(axis=1)] = 4
+        status[active] = 0
+        return se, ci, determined, status, dof
+
+
+def run_label_stage(job, eng, progress=False):
+    """The shared parameters of every label of ``job`` (a :class:`pbrdf_cl.fitting.labels.LabelJob`).
+
+    Parameters
+    ----------
+    job : pbrdf_cl.fitting.labels.LabelJob
+        The checked job: the stack, its setup, the label image and the shared parameters.
+    eng : pbrdf_cl.Engine or NumpyEngine
+        Where the grid and the pixels' descents run.
+    progress : bool, default False
+        A progress bar per pass over the stack.
+
+    Returns
+    -------
+    LabelResult
+        Values, standard errors, intervals and status of the shared parameters, per label.
+
+    Examples
+    --------
+    >>> job = LabelJob(stack, labels=L)  # doctest: +SKIP
+    >>> run_label_stage(job, engine).theta  # doctest: +SKIP
+    array([[1.601, 2.142], [1.398, 0.503]])
+    """
+    st = _Stage(job, eng, progress)
+    L = st.ids.size
+    profile = st.profile()
+    pixels = np.bincount(st.lab[st.fitted], minlength=L)
+    ok = pixels >= job.min_label_pixels
+    shape = [job.setup.axes[n].size for n in st.shared]
+    cand = st.nodes[seed_nodes(np.where(ok[:, None], profile, 0.0), shape, SEEDS)]  # (C, L, S)
+    tried = st.evaluate(cand, ok, start=True)
+    best = np.argmin(np.where(np.isfinite(tried[:, :, 3]), tried[:, :, 3], np.inf), axis=0)
+    theta = cand[best, np.arange(L)]
+    sums = st.start(theta, ok)
+    pixels = sums[:, 0]
+    ok &= pixels >= job.min_label_pixels
+    theta, sums, active, rounds = st.refine(theta, sums, ok.copy())
+    se, ci, determined, status, dof = st.intervals(np.where(ok[:, None], theta, 0.0), sums, profile, active)
+    status[~ok] = -2
+    nan = np.where(ok[:, None], 1.0, np.nan)
+    _, _, _, chi2, sse, _, _ = st.unpack(sums)
+    return LabelResult(st.ids, st.shared, theta * nan, se * nan, ci * nan[..., None], determined & ok[:, None],
+                       pixels.astype(np.int64), np.where(ok, chi2, np.nan), np.where(ok, sse, np.nan),
+                       np.where(ok, dof, 0).astype(np.int64), status, rounds, profile, st.nodes)
+
+
+def seed_nodes(profile, shape, count):
+    """Per label, the ``count`` lowest local minima of its ``profile`` (L, nodes) over the node
+    grid of ``shape`` (a node no higher than its neighbours along every axis), lowest first,
+    the lowest repeated where there are fewer: (count, L) node indices."""
+    P = profile.reshape((-1,) + tuple(shape))
+    local = np.ones(P.shape, bool)
+    for ax in range(1, P.ndim):
+        n = P.shape[ax]
+        for shift in (1, -1):
+            nb = np.roll(P, shift, axis=ax)
+            edge = [slice(None)] * P.ndim
+            edge[ax] = 0 if shift == 1 else n - 1
+            nb[tuple(edge)] = np.inf
+            local &= P <= nb
+    flat = profile.reshape(profile.shape[0], -1)
+    key = np.where(local.reshape(flat.shape), flat, np.inf)
+    order = np.argsort(key, axis=1, kind="stable")[:, :count]
+    first = order[:, :1]
+    order = np.where(np.isfinite(np.take_along_axis(key, order, axis=1)), order, first)
+    return order.T
