@@ -88,6 +88,13 @@ def fit_batch(data, model="six-param", bounds=None, fixed=None, shadowing="paper
         engine and writes its blocks into the store); at most one of them.
     allow_large : bool, default False, with ``store`` only
         Start even if the store (uncompressed) would not fit on the free disk.
+    labels : array-like or str, optional
+        An integer label image over the pixel dimensions (0: not fitted), or the name of such a
+        variable of the stack: the pixels of a label share the ``shared`` parameters, one value
+        per label found from all its pixels (:mod:`pbrdf_cl.fitting.labels`, docs/joint_images.md);
+        the label stage runs here (with ``workers`` too), then the per-pixel pass.
+    shared : sequence of str or str, default ("n", "k") with ``labels``
+        The parameters the pixels of a label share (free parameters, not all of them).
 
     Returns
     -------
@@ -101,7 +108,12 @@ def fit_batch(data, model="six-param", bounds=None, fixed=None, shadowing="paper
         (measurements used), ``nfev`` and ``status`` (codes in ``attrs["status_codes"]``); the
         stack's coordinates over the pixels; units, settings and the image's goodness of fit
         (:func:`goodness_summary`: ``attrs["goodness"]``, and ``attrs["goodness_warning"]``
-        where too many pixels fail) in ``attrs``.
+        where too many pixels fail) in ``attrs``.  With ``labels``: the pixels' ``labels``; the
+        shared parameters' per-pixel values, stderr and intervals are their label's (the other
+        parameters' intervals hold the shared ones at the label's values); over a ``label``
+        dimension ``label_<name>``, ``label_<name>_stderr``, ``label_<name>_ci95``,
+        ``label_pixels``, ``label_chi2``, ``label_sse``, ``label_dof`` and ``label_status``
+        (codes in its attrs); pixels of label 0 are masked (status -1).
 
     Raises
     ------

@@ -67,7 +67,8 @@ def check_labels(labels, source):
         bad = ~np.isfinite(a) | (a != np.round(a))
         if bad.any():
             i = np.unravel_index(int(np.argmax(bad)), a.shape)
-            raise ValueError(f"labels: must be integers (0: not fitted), got {a[i]!r} at index {tuple(map(int, i))}")
+            raise ValueError(f"labels: must be integers (0: not fitted), got {a[i].item()!r} at index "
+                             f"{tuple(map(int, i))}")
     a = a.astype(np.int64).ravel()
     if (a < 0).any():
         i = int(np.argmax(a < 0))
