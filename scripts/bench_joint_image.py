@@ -5,7 +5,11 @@ Prints, per label and parameter, whether the label's 95% interval covers the tru
 narrower it is than the median per-pixel interval of the plain fit, and the time of both fits
 (the issue's target: at most 2x the plain fit).
 
-    python scripts/bench_joint_image.py [--size 16] [--noise 0.003 0.01] [--seeds 1 2] [--device skylake]
+    python scripts/bench_joint_image.py [--size 16] [--noise 0.003 0.006 0.01] [--seeds 1 2 3 4] [--device skylake]
+        [--bias-replicates 4]
+
+The bias replicates are those of the label stage's parametric bootstrap (``LabelJob.bias_replicates``;
+0: no bias correction).
 """
 import argparse
 import time
@@ -34,11 +38,15 @@ def stack(size, std, seed):
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--size", type=int, default=16)
-    ap.add_argument("--noise", type=float, nargs="+", default=[0.003, 0.01])
-    ap.add_argument("--seeds", type=int, nargs="+", default=[1, 2])
+    ap.add_argument("--noise", type=float, nargs="+", default=[0.003, 0.006, 0.01])
+    ap.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3, 4])
+    ap.add_argument("--bias-replicates", type=int, default=None)
     ap.add_argument("--device", default=None)
     args = ap.parse_args()
     kw = dict(device=args.device) if args.device else {}
+    if args.bias_replicates is not None:
+        from pbrdf_cl.fitting import label_search
+        label_search.BOOT_REPLICATES = args.bias_replicates
     data, lab = stack(8, 0.003, 0)
     pbrdf_cl.fit_batch(data, labels=lab, **kw)  # kernels built before timing
     covered = total = 0
@@ -57,14 +65,16 @@ def main():
             for j, L in enumerate((1, 2)):
                 for i, name in enumerate(("n", "k")):
                     lo, hi = res[f"label_{name}_ci95"].values[j]
+                    se = float(res[f"label_{name}_stderr"][j])
+                    off = (float(res[f"label_{name}"][j]) - TRUTH[L][i]) / se
                     per_pixel = float(np.nanmedian(plain[f"{name}_ci95"].diff("bound").values[lab == L]))
                     ok = lo <= TRUTH[L][i] <= hi
                     covered += ok
                     total += 1
                     ratios.append(per_pixel / (hi - lo))
                     print(f"  label {L} {name}: {float(res[f'label_{name}'][j]):.4f} [{lo:.4f}, {hi:.4f}] truth "
-                          f"{TRUTH[L][i]} {'covered' if ok else 'MISSED'}; per-pixel median width {per_pixel:.3g}, "
-                          f"{per_pixel / (hi - lo):.1f}x narrower; status {int(res.label_status[j])}")
+                          f"{TRUTH[L][i]} {'covered' if ok else 'MISSED'} ({off:+.1f} se); per-pixel median width "
+                          f"{per_pixel:.3g}, {per_pixel / (hi - lo):.1f}x narrower; status {int(res.label_status[j])}")
     t = np.array(times)
     print(f"coverage: {covered} of {total} label intervals cover the truth; width ratio median "
           f"{np.median(ratios):.1f}x (min {np.min(ratios):.1f}x); time labels / plain: median "

@@ -18,6 +18,7 @@ import hashlib
 
 import numpy as np
 
+from . import label_search
 from .dataset import empty_outputs, make_dataset
 from .job import BLOCK_BUDGET, N_STARTS, BatchJob
 from .label_stage import LABEL_STATUS, held_setup, run_label_stage, take
@@ -135,6 +136,9 @@ class LabelJob(BatchJob):
         self.label_ids = np.unique(self.labels[self.labels > 0])
         self.label_index = np.where(self.labels > 0, np.searchsorted(self.label_ids, self.labels), -1)
         self.min_label_pixels = MIN_LABEL_PIXELS
+        #: replicates of the label stage's parametric bootstrap of the bias (0: no correction, the
+        #: intervals then leave out the incidental parameters' bias; see docs/joint_images.md)
+        self.bias_replicates = label_search.BOOT_REPLICATES
         self._check_counts()
         held = held_setup(self.setup, self.shared, np.zeros(len(self.shared)))
         self.order_own, self.rstart_own = regions(grid_values(held), held.free)
