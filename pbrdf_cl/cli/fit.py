@@ -170,7 +170,7 @@ def cmd_fit_image(args) -> int:
             args.stack, store=args.out, model=args.model, bounds=bounds or None, fixed=fixed or None,
             shadowing=args.shadowing, memory_budget=args.memory_budget, progress=not args.no_progress, engine=engine,
             backend=args.backend, device=args.device, workers=args.workers, scheduler=args.scheduler,
-            allow_large=args.allow_large)
+            allow_large=args.allow_large, **_label_options(args))
         counts = batch_store.status_counts(ds)
         if args.png:
             from ..plots.images import plot_batch_maps
@@ -198,8 +198,28 @@ def cmd_fit_image(args) -> int:
         print(ds.attrs["goodness_warning"])
     for note in str(ds.attrs.get("data_notes", "")).splitlines():
         print(f"note: {note}")
+    if "label" in ds.dims:
+        for j, lab in enumerate(ds["label"].values):
+            print(f"label {lab}: " + ", ".join(
+                f"{n} = {float(ds[f'label_{n}'][j]):.4g} [{float(ds[f'label_{n}_ci95'][j, 0]):.4g}, "
+                f"{float(ds[f'label_{n}_ci95'][j, 1]):.4g}]" for n in ds.attrs["shared"].split())
+                + f" ({int(ds['label_pixels'][j])} pixels)")
     print(f"store: {ds.attrs['store']}" + (f"; maps: {args.png}" if args.png else ""))
     return 0
+
+
+def _label_options(args):
+    """fit_batch's labels= and shared= from --labels (a .npy file or a variable of the stack) and --shared."""
+    if args.labels is None:
+        if args.shared is not None:
+            raise ValueError("--shared needs --labels (the label image that says which pixels share them)")
+        return {}
+    labels = args.labels
+    if labels.endswith(".npy"):
+        if not Path(labels).is_file():
+            raise ValueError(f"--labels: no such file {labels!r}")
+        labels = np.load(labels)
+    return {"labels": labels, "shared": args.shared or "n,k"}
 
 
 def fit_parser(sub):
@@ -249,4 +269,7 @@ def fit_image_parser(sub):
     f.add_argument("--no-progress", action="store_true", help="no progress bar")
     f.add_argument("--allow-large", action="store_true",
                    help="start even when the store (uncompressed) would not fit on the free disk")
+    f.add_argument("--labels", metavar="NPY|NAME", help="integer label image over the pixels (0: not fitted), a .npy "
+                   "file or a variable of the stack: the pixels of a label share --shared (docs/joint_images.md)")
+    f.add_argument("--shared", metavar="NAMES", help="parameters the pixels of a label share (default n,k)")
     f.set_defaults(func=cmd_fit_image)

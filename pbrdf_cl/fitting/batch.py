@@ -35,12 +35,13 @@ import numpy as np
 from . import batch_store
 from .dataset import goodness_summary
 from .job import BLOCK_BUDGET, N_STARTS, BatchJob
+from .labels import DEFAULT_SHARED, LabelJob
 from .source import open_stack_lazily
 
 
 def fit_batch(data, model="six-param", bounds=None, fixed=None, shadowing="paper", *, memory_budget=BLOCK_BUDGET,
               progress=False, n_starts=N_STARTS, grid_shape=None, engine=None, backend="auto", device=None, store=None,
-              workers=None, scheduler=None, client=None, allow_large=False):
+              workers=None, scheduler=None, client=None, allow_large=False, labels=None, shared=None):
     """Fit the model to every pixel of a polarization image stack, batched on the device.
 
     Parameters
@@ -87,6 +88,13 @@ def fit_batch(data, model="six-param", bounds=None, fixed=None, shadowing="paper
         engine and writes its blocks into the store); at most one of them.
     allow_large : bool, default False, with ``store`` only
         Start even if the store (uncompressed) would not fit on the free disk.
+    labels : array-like or str, optional
+        An integer label image over the pixel dimensions (0: not fitted), or the name of such a
+        variable of the stack: the pixels of a label share the ``shared`` parameters, one value
+        per label found from all its pixels (:mod:`pbrdf_cl.fitting.labels`, docs/joint_images.md);
+        the label stage runs here (with ``workers`` too), then the per-pixel pass.
+    shared : sequence of str or str, default ("n", "k") with ``labels``
+        The parameters the pixels of a label share (free parameters, not all of them).
 
     Returns
     -------
@@ -100,7 +108,12 @@ def fit_batch(data, model="six-param", bounds=None, fixed=None, shadowing="paper
         (measurements used), ``nfev`` and ``status`` (codes in ``attrs["status_codes"]``); the
         stack's coordinates over the pixels; units, settings and the image's goodness of fit
         (:func:`goodness_summary`: ``attrs["goodness"]``, and ``attrs["goodness_warning"]``
-        where too many pixels fail) in ``attrs``.
+        where too many pixels fail) in ``attrs``.  With ``labels``: the pixels' ``labels``; the
+        shared parameters' per-pixel values, stderr and intervals are their label's (the other
+        parameters' intervals hold the shared ones at the label's values); over a ``label``
+        dimension ``label_<name>``, ``label_<name>_stderr``, ``label_<name>_ci95``,
+        ``label_pixels``, ``label_chi2``, ``label_sse``, ``label_dof`` and ``label_status``
+        (codes in its attrs); pixels of label 0 are masked (status -1).
 
     Raises
     ------
@@ -119,24 +132,29 @@ def fit_batch(data, model="six-param", bounds=None, fixed=None, shadowing="paper
     >>> res.n.shape, bool(abs(res.n - 1.6).max() < 1e-3)
     ((2, 3), True)
     """
+    settings = dict(memory_budget=memory_budget, n_starts=n_starts, grid_shape=grid_shape)
+    if shared is not None and labels is None:
+        raise ValueError("shared= needs labels= (the label image that says which pixels share them)")
     if store is not None:
         batch_store.check_cluster(workers, scheduler, client, engine)
         if isinstance(data, (str, os.PathLike)):
             data = open_stack_lazily(data)
-        job = BatchJob(data, model, bounds, fixed, shadowing, memory_budget=memory_budget, n_starts=n_starts,
-                       grid_shape=grid_shape)
+        job = _job(data, model, bounds, fixed, shadowing, settings, labels, shared)
+        if labels is not None:  # the label stage runs here, the per-pixel pass where the blocks go
+            job.prepare(batch_store.local_engine(engine, backend, device), progress)
         return batch_store.write_store(job, store, progress=progress, engine=engine, backend=backend, device=device,
                                        workers=workers, scheduler=scheduler, client=client, allow_large=allow_large)
     if workers is not None or scheduler is not None or client is not None:
         raise ValueError("workers=, scheduler= and client= need store= (the workers write their blocks into it)")
     if allow_large:
         raise ValueError("allow_large= needs store= (it allows a store larger than the free disk)")
-    job = BatchJob(data, model, bounds, fixed, shadowing, memory_budget=memory_budget, n_starts=n_starts,
-                   grid_shape=grid_shape)
+    job = _job(data, model, bounds, fixed, shadowing, settings, labels, shared)
     eng = batch_store.local_engine(engine, backend, device)
+    t0 = time.perf_counter()
+    if labels is not None:
+        job.prepare(eng, progress)
     parts = []
     bar = _bar(job.source.n_pixels, progress)
-    t0 = time.perf_counter()
     for r0, r1 in job.blocks():
         parts.append(job.fit_rows(eng, r0, r1))
         if bar is not None:
@@ -147,6 +165,15 @@ def fit_batch(data, model="six-param", bounds=None, fixed=None, shadowing="paper
     ds = job.dataset(out, seconds=time.perf_counter() - t0)
     ds.attrs.update(goodness_summary(ds))
     return ds
+
+
+def _job(data, model, bounds, fixed, shadowing, settings, labels, shared):
+    """The checked job: a :class:`~pbrdf_cl.fitting.labels.LabelJob` with ``labels``, else a
+    :class:`~pbrdf_cl.fitting.job.BatchJob`."""
+    if labels is None:
+        return BatchJob(data, model, bounds, fixed, shadowing, **settings)
+    return LabelJob(data, model, bounds, fixed, shadowing, labels=labels, shared=DEFAULT_SHARED if shared is None
+                    else shared, **settings)
 
 
 def _bar(total, enabled):

@@ -124,7 +124,7 @@ def settings(job, block_rows):
             "noise_floor": float(setup.noise_floor), "block_rows": int(block_rows),
             "stack": {"shape": [int(s) for s in src.shape], "dims": list(src.dims), "measurements": int(src.M),
                       "variables": sorted(src.vars), "geometry": "shared" if src.shared else "per pixel",
-                      "sample_sha256": _sample_sha256(src)}}
+                      "sample_sha256": _sample_sha256(src)}, **job.store_settings()}
 
 
 def _canonical(d):
@@ -175,7 +175,9 @@ class _Writer:
         if g.attrs.get("batch_settings_sha256") != digest:
             raise StoreError(f"{name} holds another job now (settings sha256 {g.attrs.get('batch_settings_sha256')})")
         self.group = g
-        self.variables = json.loads(g.attrs["batch_variables"])
+        self.all = json.loads(g.attrs["batch_variables"])
+        whole = json.loads(g.attrs.get("batch_whole_variables", "[]"))
+        self.variables = [v for v in self.all if v not in whole]  # written block by block
         self.arrays = {v: g[v] for v in self.variables}
         self.done = g[DONE]
         self.hashes = g[HASHES]
@@ -187,9 +189,9 @@ class _Writer:
         digest = _rows_sha256(_read(job.source, r0, r1))
         out = _fit(job, eng, r0, r1)
         ds = _block_dataset(job, out, r0, r1)
-        if sorted(ds.data_vars) != sorted(self.variables):
+        if sorted(ds.data_vars) != sorted(self.all):
             raise RuntimeError(f"internal: the fit gives variables {sorted(ds.data_vars)}, the store holds "
-                               f"{sorted(self.variables)}")
+                               f"{sorted(self.all)}")
         delay = float(os.environ.get(DELAY_ENV) or 0)
         if delay:
             time.sleep(delay / 2)
@@ -261,8 +263,14 @@ def _write_skeleton(job, blocks, block_rows, the_settings, memory_budget, store)
     # the stack's coordinates that are not dimensions (x_mm, y_mm, ...): named in each variable's
     # "coordinates" attribute (CF), as xarray writes them, so that open_zarr reads them as coordinates
     aux = [str(c) for c in template.coords if c not in template.dims]
+    whole = [v for v in variables if template[v].dims[0] != first]  # over labels, not rows: written now
     for v in variables:
         var = template[v]
+        if v in whole:
+            arr = zarr_store.create_array(g, v, var.shape, var.shape, var.dtype, None, None,
+                                          {"_ARRAY_DIMENSIONS": list(var.dims), **var.attrs})
+            arr[...] = var.values
+            continue
         shape = (n0,) + var.shape[1:]
         fill = np.nan if var.dtype.kind == "f" else None  # no _FillValue on integers: 0 is a status
         mine = [c for c in aux if set(template[c].dims) <= set(var.dims)]
@@ -279,7 +287,8 @@ def _write_skeleton(job, blocks, block_rows, the_settings, memory_budget, store)
     text, digest = _canonical(the_settings)
     g.attrs.update({**template.attrs, "title": "pbrdf-cl per-pixel fit", "pbrdf_cl_version": __version__,
                     "batch_settings": text, "batch_settings_sha256": digest, "sweep_kernels_sha256": kernels_sha256(),
-                    "batch_variables": json.dumps(variables), "batch_blocks": len(blocks),
+                    "batch_variables": json.dumps(variables), "batch_whole_variables": json.dumps(whole),
+                    "batch_blocks": len(blocks),
                     "batch_block_rows": int(block_rows), "batch_memory_budget": int(memory_budget),
                     "batch_devices": [], "batch_complete": False})
     zarr_store.consolidate(store)

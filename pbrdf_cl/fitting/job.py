@@ -97,13 +97,22 @@ class BatchJob:
         step = self.rows_per_block()
         return [(r0, min(r0 + step, self.source.shape[0])) for r0 in range(0, self.source.shape[0], step)]
 
-    def fit_rows(self, eng, r0, r1):
-        """Fit the pixels of rows r0..r1: a dict of flat per-pixel result arrays."""
+    def read_rows(self, r0, r1):
+        """The checked pixels of rows r0..r1 (:meth:`pbrdf_cl.fitting.source.Source.rows`)."""
         raw = self.source.rows(r0, r1)
         check_block(raw, r0, self.source)
         if r0 == 0:  # angles in radians? (the first block stands for the stack: no extra read)
             pointwise.check_degrees(raw["theta_i"], raw["theta_r"], "data: ")
-        return fit_block(eng, self.setup, raw, self.order, self.rstart, self.names)
+        return raw
+
+    def fit_rows(self, eng, r0, r1):
+        """Fit the pixels of rows r0..r1: a dict of flat per-pixel result arrays."""
+        return fit_block(eng, self.setup, self.read_rows(r0, r1), self.order, self.rstart, self.names)
+
+    def store_settings(self):
+        """What a store's settings (:func:`pbrdf_cl.fitting.batch_store.settings`) add for this
+        kind of job: nothing (a :class:`pbrdf_cl.fitting.labels.LabelJob` adds its labels)."""
+        return {}
 
     def dataset(self, out, seconds=None):
         """The result Dataset from the concatenated outputs of :meth:`fit_rows`."""

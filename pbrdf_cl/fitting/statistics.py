@@ -14,7 +14,7 @@ from .pixels import PixelResiduals, descent_bounds, internal
 DETERMINED_FRACTION = 0.5
 
 
-def _truncated_interval(x, se, lo, hi, dof):
+def truncated_interval(x, se, lo, hi, dof):
     """The central 95% of N(x, se) (Student's t with ``dof`` where given) truncated to [lo, hi],
     elementwise."""
     from scipy import special
@@ -81,7 +81,7 @@ def statistics(setup, blk, names, xb, chi2, jtj, settled, X_all, sse_all, nfev):
         sel = known == kind
         if not sel.any():
             continue
-        l_, h_ = _truncated_interval(xi[sel], se_i[sel], lo, hi, None if kind else dof[sel][:, None])
+        l_, h_ = truncated_interval(xi[sel], se_i[sel], lo, hi, None if kind else dof[sel][:, None])
         lo95[sel], hi95[sel] = l_, h_
     determined = (hi95 - lo95) < DETERMINED_FRACTION * span
     ci = np.stack([lo95, hi95], axis=-1)
@@ -104,7 +104,7 @@ def statistics(setup, blk, names, xb, chi2, jtj, settled, X_all, sse_all, nfev):
             xb[:, d] = ratio * ks
             se[:, d] = np.sqrt(np.clip(var, 0, None))
             kd_hi = setup.hi[setup.free.index("kd")] * ks
-            l_, h_ = _truncated_interval(xb[:, d], np.maximum(se[:, d], resolution[d] * ks), 0.0 * ks, kd_hi,
+            l_, h_ = truncated_interval(xb[:, d], np.maximum(se[:, d], resolution[d] * ks), 0.0 * ks, kd_hi,
                                          None if setup.sigma_known else dof)
             ci[:, d, 0], ci[:, d, 1] = l_, h_
     # ambiguity: another start within one unit of chi2, more than 2 standard errors away

@@ -1,0 +1,247 @@
+"""Image fits with shared material parameters: :class:`LabelJob`, the job of ``pbrdf_cl.fit_batch(stack,
+labels=L, shared=("n", "k"))``.
+
+An integer label image ``L`` over the stack's pixels says which pixels are of one material (0: not
+fitted).  The pixels of a label share the ``shared`` parameters (the complex index n, k by
+default: one value, standard error and interval per label), the other parameters stay per pixel.
+DOP alone barely determines n and k at one pixel; the pixels of a material together do.
+
+The job runs in two steps: the label stage (:func:`pbrdf_cl.fitting.label_stage.run_label_stage`,
+:meth:`LabelJob.prepare`: passes over the whole stack that find each label's shared values), then
+the usual per-pixel pass, block by block (:meth:`LabelJob.fit_rows`: each pixel fitted with its
+label's values held), in memory, into a store or on ``dask.distributed`` workers as any
+:class:`~pbrdf_cl.fitting.job.BatchJob`.
+"""
+from __future__ import annotations
+
+import hashlib
+
+import numpy as np
+
+from . import label_search
+from .dataset import empty_outputs, make_dataset
+from .job import BLOCK_BUDGET, N_STARTS, BatchJob
+from .label_stage import LABEL_STATUS, held_setup, run_label_stage, take
+from .pixel_fit import fit_block
+from .pixels import grid_values, regions
+from .setup import PARAMETERS
+from .source import open_stack
+
+#: The parameters the pixels of a label share by default: the complex index.
+DEFAULT_SHARED = ("n", "k")
+#: A label needs at least this many pixels (a label of one pixel is a per-pixel fit).
+MIN_LABEL_PIXELS = 2
+
+
+def read_labels(data, labels):
+    """(data, labels): ``labels`` as given (an array or DataArray), or the variable of that name in
+    the stack ``data`` (a Dataset, a dict of arrays or a path), then left out of the data."""
+    if not isinstance(labels, str):
+        if labels is None:
+            raise ValueError("labels: give an integer label image over the pixels (0: not fitted)")
+        return data, labels
+    if isinstance(data, dict):
+        if labels not in data:
+            raise ValueError(f"labels={labels!r}: no such variable in the data ({', '.join(map(str, data))})")
+        data = dict(data)
+        return data, data.pop(labels)
+    if isinstance(data, str) or hasattr(data, "__fspath__"):
+        data = open_stack(data)
+    if not hasattr(data, "data_vars") or labels not in data:
+        have = ", ".join(map(str, getattr(data, "data_vars", ())))
+        raise ValueError(f"labels={labels!r}: no such variable in the stack ({have})")
+    return data.drop_vars(labels), data[labels]
+
+
+def check_labels(labels, source):
+    """The label image as flat int64 over the stack's pixels (C order of its pixel dimensions),
+    checked in one-line errors: the pixel shape, integer values, none negative, a label > 0."""
+    if hasattr(labels, "dims") and set(map(str, labels.dims)) == set(source.dims):
+        labels = labels.transpose(*source.dims)
+    a = np.asarray(labels)
+    if a.shape != tuple(source.shape):
+        dims = ", ".join(f"{d} {s}" for d, s in zip(source.dims, source.shape))
+        raise ValueError(f"labels: shape {a.shape} does not match the stack's pixel dimensions ({dims})")
+    if a.dtype.kind == "b" or a.dtype.kind not in "iuf":
+        raise ValueError(f"labels: must be integers (0: not fitted), got dtype {a.dtype}")
+    if a.dtype.kind == "f":
+        bad = ~np.isfinite(a) | (a != np.round(a))
+        if bad.any():
+            i = np.unravel_index(int(np.argmax(bad)), a.shape)
+            raise ValueError(f"labels: must be integers (0: not fitted), got {a[i].item()!r} at index "
+                             f"{tuple(map(int, i))}")
+    a = a.astype(np.int64).ravel()
+    if (a < 0).any():
+        i = int(np.argmax(a < 0))
+        raise ValueError(f"labels: must be >= 0 (0: not fitted), got {a[i]} at index "
+                         f"{tuple(map(int, np.unravel_index(i, source.shape)))}")
+    if not (a > 0).any():
+        raise ValueError("labels: no pixel has a label > 0 (0: not fitted): nothing to fit")
+    return a
+
+
+def check_shared(setup, shared, use_f00):
+    """The shared parameters as a tuple, checked in one-line errors: parameters of the model, free
+    (not fixed), at least one parameter left per pixel, not kd where intensities make it kd/ks."""
+    names = tuple(s.strip() for s in shared.split(",")) if isinstance(shared, str) else tuple(shared)
+    if not names:
+        raise ValueError("shared: name at least one parameter (e.g. shared=('n', 'k'))")
+    if len(set(names)) != len(names):
+        raise ValueError(f"shared: {list(names)} names a parameter twice")
+    for n in names:
+        if n not in PARAMETERS:
+            raise ValueError(f"shared: {n!r} is not a parameter; parameters are {', '.join(setup.free)}")
+        if n in setup.fixed:
+            raise ValueError(f"shared: {n} is also fixed (fixed={n}={setup.fixed[n]:g}); a parameter is shared or "
+                             "fixed, not both")
+        if n not in setup.free:
+            raise ValueError(f"shared: {n} is not a free parameter of the {setup.model} model "
+                             f"({', '.join(setup.free)})")
+        if n == "kd" and use_f00:
+            raise ValueError("shared: kd cannot be shared when intensities are fitted (the fit's kd is then kd/ks)")
+    if len(names) == len(setup.free):
+        raise ValueError(f"shared: every free parameter ({', '.join(setup.free)}) is shared: none is left per pixel; "
+                         "fit the label's pixels as one data set (pbrdf_cl.fit) instead")
+    return tuple(n for n in setup.free if n in names)
+
+
+class LabelJob(BatchJob):
+    """A :class:`~pbrdf_cl.fitting.job.BatchJob` whose pixels share parameters by label.
+
+    Parameters
+    ----------
+    data, model, bounds, fixed, shadowing, memory_budget, n_starts, grid_shape
+        As for :class:`~pbrdf_cl.fitting.job.BatchJob`.
+    labels : array-like or str
+        Integer label image over the pixel dimensions (0: not fitted), or the name of such a
+        variable of the stack.
+    shared : sequence of str or str, default ("n", "k")
+        The parameters the pixels of a label share (``"n,k"`` also).
+
+    Examples
+    --------
+    >>> job = LabelJob(stack, labels=L)  # doctest: +SKIP
+    >>> job.prepare(engine)  # doctest: +SKIP
+    >>> job.result.theta  # doctest: +SKIP
+    """
+
+    def __init__(self, data, model="six-param", bounds=None, fixed=None, shadowing="paper", *, labels,
+                 shared=DEFAULT_SHARED, memory_budget=BLOCK_BUDGET, n_starts=N_STARTS, grid_shape=None):
+        data, given = read_labels(data, labels)
+        super().__init__(data, model, bounds, fixed, shadowing, memory_budget=memory_budget, n_starts=n_starts,
+                         grid_shape=grid_shape)
+        self.shared = check_shared(self.setup, shared, self.setup.use_f00)
+        self.own = [n for n in self.names if n not in self.shared]
+        self.labels = check_labels(given, self.source)
+        self.label_ids = np.unique(self.labels[self.labels > 0])
+        self.label_index = np.where(self.labels > 0, np.searchsorted(self.label_ids, self.labels), -1)
+        self.min_label_pixels = MIN_LABEL_PIXELS
+        #: replicates of the label stage's parametric bootstrap of the bias (0: no correction, the
+        #: intervals then leave out the incidental parameters' bias; see docs/joint_images.md)
+        self.bias_replicates = label_search.BOOT_REPLICATES
+        self._check_counts()
+        held = held_setup(self.setup, self.shared, np.zeros(len(self.shared)))
+        self.order_own, self.rstart_own = regions(grid_values(held), held.free)
+        #: the label stage's :class:`~pbrdf_cl.fitting.label_stage.LabelResult` (:meth:`prepare`)
+        self.result = None
+
+    def _check_counts(self):
+        """Refuse a label with fewer than MIN_LABEL_PIXELS pixels (not masked)."""
+        lab = self.labels
+        mask = self.source.vars.get("mask")
+        if mask is not None:
+            m = np.broadcast_to(np.asarray(getattr(mask, "values", mask), bool), self.source.shape).ravel()
+            lab = np.where(m, lab, 0)
+        counts = np.bincount(np.searchsorted(self.label_ids, lab[lab > 0]), minlength=self.label_ids.size)
+        few = np.flatnonzero(counts < self.min_label_pixels)
+        if few.size:
+            L = int(self.label_ids[few[0]])
+            raise ValueError(f"labels: label {L} has {int(counts[few[0]])} pixel(s) to fit; a label needs at least "
+                             f"{self.min_label_pixels} (merge it into another, or set it to 0: not fitted)")
+
+    def prepare(self, eng, progress=False):
+        """Run the label stage (the shared values of every label) with ``eng``; before any block."""
+        self.result = run_label_stage(self, eng, progress)
+        return self.result
+
+    def fit_rows(self, eng, r0, r1):
+        """Fit the pixels of rows r0..r1 with their label's shared values held: a dict of flat
+        per-pixel result arrays (those of :meth:`BatchJob.fit_rows`, and ``label``)."""
+        if self.result is None:
+            raise RuntimeError("internal: LabelJob.prepare() must run before its blocks")
+        raw = self.read_rows(r0, r1)
+        p = raw["dop"].shape[0]
+        off = r0 * int(np.prod(self.source.shape[1:], dtype=np.int64))
+        lab = self.label_index[off:off + p]
+        out = self.empty_outputs(r1 - r0)
+        out["status"][:] = -1
+        out["label"][:] = self.labels[off:off + p]
+        res, names = self.result, self.names
+        si, bi = [names.index(n) for n in self.shared], [names.index(n) for n in self.own]
+        for L in np.unique(lab[lab >= 0]):
+            idx = np.flatnonzero(lab == L)
+            if res.status[L] == -2:
+                out["status"][idx] = -2
+                continue
+            o = fit_block(eng, held_setup(self.setup, self.shared, res.theta[L]), take(raw, idx), self.order_own,
+                          self.rstart_own, self.own)
+            for k, v in o.items():
+                if k in ("x", "stderr", "ci95", "determined"):
+                    out[k][idx[:, None], bi] = v
+                else:
+                    out[k][idx] = v
+            ok = idx[o["status"] >= 0]
+            out["x"][ok[:, None], si] = res.theta[L]
+            out["stderr"][ok[:, None], si] = res.stderr[L]
+            out["ci95"][ok[:, None], si] = res.ci95[L]
+            out["determined"][ok[:, None], si] = res.determined[L]
+        return out
+
+    def empty_outputs(self, rows):
+        """:meth:`BatchJob.empty_outputs` and the pixels' ``label``."""
+        p = rows * int(np.prod(self.source.shape[1:], dtype=np.int64))
+        return {**empty_outputs(p, len(self.names)), "label": np.zeros(p, np.int64)}
+
+    def dataset(self, out, seconds=None):
+        """The result Dataset: :meth:`BatchJob.dataset`'s, the pixels' ``labels`` and the labels'
+        variables over a ``label`` dimension (:func:`label_variables`)."""
+        ds = make_dataset(self, out, seconds)
+        ds["labels"] = (self.source.dims, out["label"].reshape(self.source.shape),
+                        {"long_name": "label of the pixel (0: not fitted)"})
+        return label_variables(ds, self)
+
+    def store_settings(self):
+        """What a store's settings add for this job: the shared parameters, the label image's SHA-256
+        and the label stage's values (a resumed store must have been fitted with the same)."""
+        res = self.result
+        return {"shared": list(self.shared), "labels_sha256": hashlib.sha256(self.labels.tobytes()).hexdigest(),
+                "label_values": None if res is None else np.asarray(res.theta, float).round(12).tolist()}
+
+
+def label_variables(ds, job):
+    """``ds`` with the labels' variables of ``job``'s label stage over a ``label`` dimension:
+    ``label_<name>``, ``label_<name>_stderr``, ``label_<name>_ci95`` for each shared parameter,
+    ``label_pixels``, ``label_chi2``, ``label_sse``, ``label_dof`` and ``label_status``."""
+    res = job.result
+    dims = ("label",)
+    for j, n in enumerate(res.shared):
+        ds[f"label_{n}"] = (dims, res.theta[:, j], {"units": "1", "long_name": f"{n} shared by the label's pixels"})
+        ds[f"label_{n}_stderr"] = (dims, res.stderr[:, j], {"units": "1", "long_name": f"standard error of label {n}"})
+        ds[f"label_{n}_ci95"] = (dims + ("bound",), res.ci95[:, j],
+                                 {"units": "1", "long_name": f"95% interval of label {n} (truncated to the bounds; "
+                                                             "widened to the profile's nodes it allows)"})
+    ds["label_pixels"] = (dims, res.pixels, {"long_name": "pixels fitted in the label stage"})
+    ds["label_chi2"] = (dims, res.chi2, {"long_name": "weighted sum of squared residuals over the label's pixels"})
+    ds["label_sse"] = (dims, res.sse, {"units": "1", "long_name": "sum of squared DOP residuals over the label's "
+                                                                  "pixels"})
+    ds["label_dof"] = (dims, res.dof, {"long_name": "degrees of freedom: residuals less every fitted parameter"})
+    ds["label_status"] = (dims, res.status, {
+        "long_name": "label fit status", "flag_values": list(LABEL_STATUS),
+        "status_codes": "; ".join(f"{c}: {n} ({m})" for c, (n, m) in LABEL_STATUS.items()),
+        "flag_meanings": " ".join(n for n, _ in LABEL_STATUS.values())})
+    ds = ds.assign_coords(label=res.ids)
+    ds.attrs.update(shared=" ".join(res.shared), label_rounds=int(res.rounds),
+                    shared_note=("the pixels of a label share " + ", ".join(res.shared) + ": their per-pixel values, "
+                                 "stderr and intervals are the label's; the other parameters' intervals hold the "
+                                 "shared ones at the label's values"))
+    return ds

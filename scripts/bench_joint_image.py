@@ -1,0 +1,85 @@
+"""Benchmark of image fits with shared material parameters (issue #28 part 3): a synthetic image of
+two materials (n, k shared by the pixels of each; sigma, kd, c per pixel; DOP noise given as
+dop_std) fitted with ``fit_batch(labels=L, shared=("n", "k"))`` and with the plain ``fit_batch``.
+Prints, per label and parameter, whether the label's 95% interval covers the truth and how much
+narrower it is than the median per-pixel interval of the plain fit, and the time of both fits
+(the issue's target: at most 2x the plain fit).
+
+    python scripts/bench_joint_image.py [--size 16] [--noise 0.003 0.006 0.01] [--seeds 1 2 3 4] [--device skylake]
+        [--bias-replicates 4]
+
+The bias replicates are those of the label stage's parametric bootstrap (``LabelJob.bias_replicates``;
+0: no bias correction).
+"""
+import argparse
+import time
+
+import numpy as np
+
+import pbrdf_cl
+
+TI = np.repeat([30.0, 40.0, 50.0], 10)
+TR = np.tile(np.arange(20.0, 66.0, 5.0), 3)
+TRUTH = {1: (1.6, 2.139), 2: (1.4, 0.5)}
+
+
+def stack(size, std, seed):
+    rng = np.random.default_rng(seed)
+    lab = np.ones((size, size), np.int64)
+    lab[:, size // 2:] = 2
+    n = np.where(lab == 1, TRUTH[1][0], TRUTH[2][0])[..., None]
+    k = np.where(lab == 1, TRUTH[1][1], TRUTH[2][1])[..., None]
+    own = {a: rng.uniform(lo, hi, (size, size, 1)) for a, lo, hi in
+           (("sigma", 0.3, 0.6), ("kd", 0.1, 0.3), ("c", -0.5, -0.1))}
+    dop = pbrdf_cl.dop(TI, TR, n=n, k=k, **own, backend="numpy") + rng.normal(0, std, (size, size, TI.size))
+    return dict(dop=dop, theta_i=TI, theta_r=TR, dop_std=np.full(dop.shape, std)), lab
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--size", type=int, default=16)
+    ap.add_argument("--noise", type=float, nargs="+", default=[0.003, 0.006, 0.01])
+    ap.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3, 4])
+    ap.add_argument("--bias-replicates", type=int, default=None)
+    ap.add_argument("--device", default=None)
+    args = ap.parse_args()
+    kw = dict(device=args.device) if args.device else {}
+    if args.bias_replicates is not None:
+        from pbrdf_cl.fitting import label_search
+        label_search.BOOT_REPLICATES = args.bias_replicates
+    data, lab = stack(8, 0.003, 0)
+    pbrdf_cl.fit_batch(data, labels=lab, **kw)  # kernels built before timing
+    covered = total = 0
+    ratios, times = [], []
+    for std in args.noise:
+        for seed in args.seeds:
+            data, lab = stack(args.size, std, seed)
+            t0 = time.perf_counter()
+            plain = pbrdf_cl.fit_batch(data, **kw)
+            t1 = time.perf_counter()
+            res = pbrdf_cl.fit_batch(data, labels=lab, **kw)
+            t2 = time.perf_counter()
+            times.append((t1 - t0, t2 - t1))
+            print(f"noise {std:g} seed {seed}: plain {t1 - t0:.2f} s, labels {t2 - t1:.2f} s "
+                  f"({(t2 - t1) / (t1 - t0):.2f}x), {res.attrs['label_rounds']} refinement passes")
+            for j, L in enumerate((1, 2)):
+                for i, name in enumerate(("n", "k")):
+                    lo, hi = res[f"label_{name}_ci95"].values[j]
+                    se = float(res[f"label_{name}_stderr"][j])
+                    off = (float(res[f"label_{name}"][j]) - TRUTH[L][i]) / se
+                    per_pixel = float(np.nanmedian(plain[f"{name}_ci95"].diff("bound").values[lab == L]))
+                    ok = lo <= TRUTH[L][i] <= hi
+                    covered += ok
+                    total += 1
+                    ratios.append(per_pixel / (hi - lo))
+                    print(f"  label {L} {name}: {float(res[f'label_{name}'][j]):.4f} [{lo:.4f}, {hi:.4f}] truth "
+                          f"{TRUTH[L][i]} {'covered' if ok else 'MISSED'} ({off:+.1f} se); per-pixel median width "
+                          f"{per_pixel:.3g}, {per_pixel / (hi - lo):.1f}x narrower; status {int(res.label_status[j])}")
+    t = np.array(times)
+    print(f"coverage: {covered} of {total} label intervals cover the truth; width ratio median "
+          f"{np.median(ratios):.1f}x (min {np.min(ratios):.1f}x); time labels / plain: median "
+          f"{np.median(t[:, 1] / t[:, 0]):.2f}x (target <= 2x), {args.size}x{args.size} pixels")
+
+
+if __name__ == "__main__":
+    main()
