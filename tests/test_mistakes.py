@@ -235,7 +235,8 @@ def test_a_list_option_does_not_swallow_the_data_file():
     parser = cli.build_parser()
     args = parser.parse_args(cli_app._positionals_first(["fit", "--fix", "sigma=0.45", "examples/steel_435nm.csv",
                                                      "--bounds", "n=1:3", "k=0:5"]))
-    assert args.data == "examples/steel_435nm.csv" and args.fix == ["sigma=0.45"] and args.bounds == ["n=1:3", "k=0:5"]
+    assert args.data == ["examples/steel_435nm.csv"]
+    assert args.fix == ["sigma=0.45"] and args.bounds == ["n=1:3", "k=0:5"]
     # a malformed item is not taken for the file: it gets its own message
     assert cli_app._positionals_first(["map", "--fix", "k"]) == ["map", "--fix", "k"]
 
