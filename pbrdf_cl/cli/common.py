@@ -73,6 +73,15 @@ def device_options(parser, where=""):
                         "opencl: the device or an error; numpy: the float64 reference")
 
 
+def cluster_options(parser, verb):
+    """--workers or --scheduler (``verb``: what the cluster does, "run", "fit") and the device
+    options of a command whose work may go to a dask cluster (`sweep`, `fit-image`)."""
+    where = parser.add_mutually_exclusive_group()
+    where.add_argument("--workers", type=int, metavar="N", help=f"{verb} on a local dask cluster of N processes")
+    where.add_argument("--scheduler", metavar="ADDR", help=f"{verb} on a dask.distributed cluster (tcp://host:8786)")
+    device_options(parser, " here or on every worker")
+
+
 def model_option(f):
     """--model of `fit` and `fit-image`."""
     f.add_argument("--model", choices=("six-param", "specular"), default="six-param",

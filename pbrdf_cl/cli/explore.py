@@ -15,6 +15,7 @@ from ..outputs import check_figure, check_output, check_store, check_suffix
 from .common import (
     SHADOWING_HELP,
     check_result_outputs,
+    cluster_options,
     device_options,
     engine_for,
     error,
@@ -168,10 +169,7 @@ def sweep_parser(sub):
                        "chunks are computed.")
     s.add_argument("spec", help="TOML spec")
     s.add_argument("--out", required=True, metavar="STORE", help="Zarr store to create or resume (e.g. result.zarr)")
-    where = s.add_mutually_exclusive_group()
-    where.add_argument("--workers", type=int, metavar="N", help="run on a local dask cluster of N processes")
-    where.add_argument("--scheduler", metavar="ADDR", help="run on a dask.distributed cluster (tcp://host:8786)")
-    device_options(s, " here or on every worker")
+    cluster_options(s, "run")
     s.add_argument("--quiet", action="store_true", help="no progress bar; one summary line at the end")
     s.add_argument("--allow-large", action="store_true",
                    help="start even when the store (uncompressed) would not fit on the free disk")

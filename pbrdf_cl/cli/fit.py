@@ -11,6 +11,7 @@ import numpy as np
 from ..device import engine as _engine
 from ..outputs import check_figure, check_output, check_store, check_suffix
 from .common import (
+    cluster_options,
     device_options,
     engine_for,
     error,
@@ -260,10 +261,7 @@ def fit_image_parser(sub):
     fit_settings(f)
     f.add_argument("--memory-budget", default=DEFAULT_BUDGET, metavar="SIZE",
                    help="memory of one block of pixels in flight (host and device), e.g. 256MiB")
-    where = f.add_mutually_exclusive_group()
-    where.add_argument("--workers", type=int, metavar="N", help="fit on a local dask cluster of N processes")
-    where.add_argument("--scheduler", metavar="ADDR", help="fit on a dask.distributed cluster (tcp://host:8786)")
-    device_options(f, " here or on every worker")
+    cluster_options(f, "fit")
     f.add_argument("--png", metavar="PNG", help="also draw the parameter maps, their 95%% interval widths and the "
                    "fit status")
     f.add_argument("--no-progress", action="store_true", help="no progress bar")
