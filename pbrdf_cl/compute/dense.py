@@ -674,11 +674,20 @@ class ObjectiveResult(Result):
         return f"ObjectiveResult(n_pairs={self['n_pairs']}, seconds={self['seconds']:.3g}, best={best})"
 
 
-def _update_best(best_idx, best_sse, idx, sse, k):
-    idx = np.concatenate([best_idx, idx])
-    sse = np.concatenate([best_sse, sse])
+def _update_best(best_idx, best_sse, start, sse, k):
+    """The ``k`` best (flat index, SSE) of the best so far and the block ``sse`` that starts at
+    flat index ``start``: only the block's own best are indexed (an index array of a whole block
+    of millions was most of the objective's host time), its first minimum where ``k`` is 1."""
     if sse.size > k:
-        keep = np.argpartition(sse, k - 1)[:k]
+        keep = np.array([np.argmin(sse)]) if k == 1 else None
+        if keep is None or np.isnan(sse[keep[0]]):  # argmin stops at a NaN; a partition puts NaNs last
+            keep = np.argpartition(sse, k - 1)[:k]
+    else:
+        keep = np.arange(sse.size)
+    idx = np.concatenate([best_idx, start + keep])
+    sse = np.concatenate([best_sse, sse[keep]])
+    if sse.size > k:
+        keep = np.argsort(sse, kind="stable")[:k]
         idx, sse = idx[keep], sse[keep]
     return idx, sse
 
@@ -755,7 +764,7 @@ def objective(data, grid=None, points=None, *, k_best=10, dtype="float32", shado
                       sse)
     for start, host in blocks:  # host: the block's slice of sse (or a temporary without it)
         count = host.size
-        best_idx, best_sse = _update_best(best_idx, best_sse, np.arange(start, start + count), host, k_best)
+        best_idx, best_sse = _update_best(best_idx, best_sse, start, host, k_best)
         if bar is not None:
             bar.update(count)
     if bar is not None:

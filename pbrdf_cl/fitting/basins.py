@@ -23,13 +23,28 @@ def grid_basins(sse, n_basins, pool=4096):
     answer is the same as from the whole grid, which is searched otherwise."""
     flat = sse.ravel()
     if flat.size > 4 * pool:
-        cells = np.flatnonzero(flat <= np.partition(flat, pool)[pool])
+        cells = lowest_cells(sse, pool)
     else:
         cells = np.arange(flat.size)
     chosen = _grid_minima(sse, cells, n_basins)
     if len(chosen) < n_basins and cells.size < flat.size:
         chosen = _grid_minima(sse, np.arange(flat.size), n_basins)
     return [tuple(int(v) for v in c) for c in chosen]
+
+
+def lowest_cells(sse, pool):
+    """The flat indices of the cells at or below the ``pool``-th lowest value of ``sse`` (as
+    ``flatnonzero(flat <= partition(flat, pool)[pool])``, the same cells).  The minima along the
+    first axis give a threshold that at least ``pool + 1`` cells reach, so the partition runs
+    on those cells only, not on the whole grid."""
+    flat = sse.ravel()
+    rows = sse.reshape(sse.shape[0], -1).min(axis=0)
+    top = np.partition(rows, pool)[pool] if sse.ndim > 1 and rows.size > pool else np.nan
+    if np.isnan(top):  # too few columns, or NaN among their minima (a NaN column's minimum is NaN)
+        return np.flatnonzero(flat <= np.partition(flat, pool)[pool])
+    cells = np.flatnonzero(flat <= top)
+    values = flat[cells]
+    return cells[values <= np.partition(values, pool)[pool]]
 
 
 def profile_seeds(sse, profiles, free, basins, count, rise):

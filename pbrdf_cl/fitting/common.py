@@ -72,26 +72,42 @@ def fd_jacobian(rows, X, lo, hi, scheme="2-point"):
     return R[:, 0], (R[:, 1:d + 1] - R[:, d + 1:]) / (up - dn)[:, :, None]
 
 
-def lm_batch(resid_rows, X0, lo, hi, iterations):
+def lm_batch(resid_rows, X0, lo, hi, iterations, rows_apart=True, extra=None):
     """Bounded Levenberg-Marquardt from P starts at once, every problem's trial point and its
     forward-difference Jacobian (:func:`fd_jacobian`, "2-point") in one batched call per
     iteration.  Levenberg damping in coordinates scaled to the bounds (a coordinate whose
     column vanishes, as k does at k = 0, gets no runaway step); a coordinate on a bound whose
     descent direction points outwards is held there, the others' steps are projected onto the
-    bounds.  Returns (X, sse, row evaluations)."""
+    bounds.  Returns (X, sse, row evaluations).
+
+    A problem is frozen, and no longer evaluated, once its step cannot move it any more: its
+    trial point rounds to itself in every coordinate, and the step only shrinks while it stays
+    (the same Jacobian, more damping: the step's norm falls as the damping grows), so its
+    remaining iterations would be rejected evaluations of the same point.  The result is the
+    one of all ``iterations`` bit for bit; the loop ends when every problem is frozen.
+    ``rows_apart`` False: ``resid_rows`` needs every problem's row in its place (the image
+    fits' rows are their pixels), so the frozen are evaluated too, until all are.  ``extra``
+    (P, k): values of k more parameters per problem, not varied, appended to its rows as the
+    last columns of what ``resid_rows`` gets (its width is d + k)."""
     X = np.clip(np.array(X0, float), lo, hi)
     P, d = X.shape
     span = hi - lo
     eye = np.eye(d)
     tol = 1e-12 * span
 
-    def evaluate(X):
-        r, J = fd_jacobian(resid_rows, X, lo, hi)
+    def evaluate(X, lanes=None):
+        rows = resid_rows
+        if extra is not None:
+            more = np.repeat(extra if lanes is None else extra[lanes], d + 1, axis=0)
+            rows = lambda Y: resid_rows(np.concatenate([Y, more], axis=1))  # noqa: E731
+        r, J = fd_jacobian(rows, X, lo, hi)
         J = J * span[None, :, None]  # in coordinates scaled to the bounds
         return r, J, np.einsum("pm,pm->p", r, r)
 
     r, J, sse = evaluate(X)
+    evaluated = P
     lam = 1e-3 * np.einsum("pim,pim->p", J, J) / d
+    live = np.ones(P, bool)
     for _ in range(iterations):
         g = np.einsum("pim,pm->pi", J, r)
         held = ((X <= lo + tol) & (g > 0)) | ((X >= hi - tol) & (g < 0))
@@ -110,11 +126,29 @@ def lm_batch(resid_rows, X0, lo, hi, iterations):
                         pass
         du = np.where(np.isfinite(du), du, 0.0)
         Xt = np.clip(X + du * span, lo, hi)
-        rt, Jt, sset = evaluate(Xt)
-        ok = sset < sse
-        X[ok], r[ok], J[ok], sse[ok] = Xt[ok], rt[ok], Jt[ok], sset[ok]
+        live &= ~_frozen(X, Xt, du, span, held)
+        if not live.any():
+            break
+        ok = np.zeros(P, bool)
+        idx = np.flatnonzero(live) if rows_apart else np.arange(P)
+        rt, Jt, sset = evaluate(Xt[idx], idx)
+        evaluated += idx.size
+        better = sset < sse[idx]
+        ok[idx[better]] = True
+        won = idx[better]
+        X[won], r[won], J[won], sse[won] = Xt[won], rt[better], Jt[better], sset[better]
         lam = np.clip(np.where(ok, lam * 0.3, lam * 6.0), 1e-300, 1e300)
-    return X, sse, P * (d + 1) * (iterations + 1)
+    return X, sse, evaluated * (d + 1)
+
+
+def _frozen(X, Xt, du, span, held):
+    """The problems of :func:`lm_batch` whose steps can no longer move them: the trial point is
+    the point, and every coordinate not held stays put for any step no longer than this one
+    (each coordinate's step is at most the step's norm times its span, under half its spacing)."""
+    same = np.all(Xt == X, axis=1)
+    room = np.where(held, np.inf, 0.5 * np.spacing(np.abs(X)))
+    reach = np.sqrt(np.einsum("pi,pi->p", du, du))[:, None] * span[None, :]
+    return same & np.all(reach < room, axis=1)
 
 
 def dop_resolution(dop, max_decimals=DOP_MAX_DECIMALS, axis=None):

@@ -10,11 +10,14 @@ The pipeline is :func:`pbrdf_cl.fit`'s, on the stacked residuals of every set:
    shared axes is exactly the sum of each set's grid minimised over its own axes
    (:func:`joint_profiles`): the joint grid (the product of every set's own axes) is never made,
    and nothing is lost by not making it;
-2. seeds: the best local minima and bound slices of that joint profile, each with every set's
-   best own grid node there, and the separate fits' optima (:func:`joint_seeds`);
-3. the batched Levenberg-Marquardt descent of every seed on the stacked residuals, trust-region
-   least squares to the end from the best, a final BOBYQA where it ran out of evaluations (the
-   stages of :mod:`pbrdf_cl.fitting.stages`);
+2. starting points: the best local minima and bound slices of that joint profile and the
+   separate fits' shared values (:func:`joint_points`);
+3. at each, the joint profile: every set's own fit at those shared values, batched
+   (:func:`~pbrdf_cl.fitting.joint_exchange.profile_stage`; a set's DOP has valleys of nearly
+   equal depth, and its best grid node is often not in its best valley); trust-region least
+   squares on the stacked residuals from the best, the basin exchange of each set's own
+   parameters at the shared values reached (:func:`~pbrdf_cl.fitting.joint_exchange.exchange_stage`),
+   a final BOBYQA where the least squares ran out of evaluations;
 4. uncertainties as ``fit``'s (:func:`~pbrdf_cl.fitting.uncertainty.uncertainty_stage`): the
    posterior mixture of the joint Jacobian's local approximation and the joint grid's profile of
    each parameter (shared and per set, :func:`joint_profiles`).
@@ -35,13 +38,13 @@ from ..io.measurements import split_sets
 from . import basins
 from .common import dop_noise_floor
 from .inversion import LS_POLISH, check_fit_args, fit_on_grid, grid_shape_of
+from .joint_exchange import exchange_stage, profile_stage
 from .joint_result import joint_result
 from .result import fit_status
 from .setup import MODEL_PARAMS, check_model
 from .stages import (
     FINAL_BOBYQA,
     SCREEN_ITERATIONS,
-    Candidate,
     GridStage,
     Model,
     Residuals,
@@ -59,6 +62,8 @@ from .uncertainty import uncertainty_stage
 DEFAULT_SHARED = ("sigma", "c")
 #: Local minima of the joint grid profile (over the shared axes) that seed the local stages.
 JOINT_SEEDS = 8
+#: The best points of the profile stage that descend jointly.
+PROFILE_SCREEN = 4
 #: Residual evaluations per free parameter of the joint least-squares polish (fit's LS_MAX_NFEV is
 #: 100: with 11 parameters a flat valley along a bound made it crawl for seconds; where this runs
 #: out, the final BOBYQA finishes, as in fit).
@@ -248,12 +253,14 @@ def joint_profiles(setup, grids):
     ``profiles`` joint label -> the profile (minimum over every other joint parameter) at its
     nodes."""
     shared = list(setup.shared)
-    per_set, ordered = {}, {}
+    per_set, own_profiles = {}, {}
     for s in setup.names:
         free = setup.setups[s].free
         perm = [free.index(p) for p in shared] + [free.index(p) for p in setup.own(s)]
-        ordered[s] = grids[s].sse.transpose(perm)
-        per_set[s] = ordered[s].min(axis=tuple(range(len(shared), len(perm)))).astype(np.float64)
+        ordered = grids[s].sse.transpose(perm)
+        own_profiles[s] = each_own_axis(ordered, len(shared))
+        first = own_profiles[s][0] if own_profiles[s] else ordered[..., None]
+        per_set[s] = first.min(axis=len(shared)).astype(np.float64)
     total = sum(per_set.values())
     profiles = {}
     for j, p in enumerate(shared):
@@ -262,63 +269,65 @@ def joint_profiles(setup, grids):
     lead = tuple(range(len(shared)))
     for s in setup.names:
         rest = total - per_set[s]
-        own = setup.own(s)
-        for j, p in enumerate(own):
-            others = tuple(len(shared) + a for a in range(len(own)) if a != j)
-            g = ordered[s].min(axis=others) if others else ordered[s]
+        for p, g in zip(setup.own(s), own_profiles[s]):
             g = g.astype(np.float64) + np.asarray(rest)[..., None]
             profiles[f"{p}[{s}]"] = g.min(axis=lead) if lead else g
     return total, per_set, profiles
 
 
-def joint_seeds(setup, grids, total, separate, count=JOINT_SEEDS):
-    """Starting joint vectors: at each of the best ``count`` local minima of the joint profile
-    ``total`` (over the shared axes) and at its bound slices' best nodes, the shared nodes with
-    each set's best own grid node there; and each separate fit's shared values with every set's
-    own separate optimum (``separate``: set -> its :class:`~pbrdf_cl.fitting.result.FitResult`,
-    or None)."""
+def each_own_axis(a, lead):
+    """For each axis j after the ``lead`` leading ones, the minimum of ``a`` over the other
+    trailing axes (shape: the leading axes, then axis j).  Halving the trailing axes, each level
+    reduces one half away for the other: two passes over ``a`` for any number of axes, where one
+    minimum per axis took one pass each (a grid of 1.6 million nodes per set)."""
+    m = a.ndim - lead
+    if m <= 1:
+        return [a] if m == 1 else []
+    h = m // 2
+    head = a.min(axis=tuple(range(lead + h, a.ndim)))  # keeps the first h trailing axes
+    tail = a.min(axis=tuple(range(lead, lead + h)))    # keeps the others
+    return each_own_axis(head, lead) + each_own_axis(tail, lead)
+
+
+def joint_points(setup, grids, total, separate, count=JOINT_SEEDS):
+    """Where the local stages start: (shared points, own starts).  The shared points (arrays over
+    ``setup.shared``) are the best ``count`` local minima of the joint profile ``total`` (over
+    the shared grid axes), its bound slices' best nodes, and each separate fit's shared values;
+    the own starts (set -> own vectors, tried at every point) are each set's separate optimum
+    (``separate``: set -> its :class:`~pbrdf_cl.fitting.result.FitResult`, or None)."""
     shared = list(setup.shared)
-    labels = setup.labels
     axes0 = grids[setup.names[0]].axes
     if shared:
         idxs = basins.grid_basins(total, count)
         idxs += basins.bound_seeds(total, idxs)
     else:
         idxs = [()]
-    seeds = []
-    for idx in idxs:
-        x = np.empty(len(labels))
-        x[:len(shared)] = [axes0[p][i] for p, i in zip(shared, idx)]
-        for s in setup.names:
-            free = setup.setups[s].free
-            own = setup.own(s)
-            perm = [free.index(p) for p in shared] + [free.index(p) for p in own]
-            sub = grids[s].sse.transpose(perm)[tuple(idx)]
-            at = np.unravel_index(int(np.argmin(sub)), sub.shape)
-            for p, i in zip(own, at):
-                x[labels.index(f"{p}[{s}]")] = grids[s].axes[p][i]
-        seeds.append(x)
+    points = [np.array([axes0[p][i] for p, i in zip(shared, idx)]) for idx in idxs]
+    own = {s: [] for s in setup.names}
     if separate:
-        for s0 in setup.names:
-            x = np.empty(len(labels))
-            x[:len(shared)] = [separate[s0].x[p] for p in shared]
-            for s in setup.names:
-                for p in setup.own(s):
-                    x[labels.index(f"{p}[{s}]")] = separate[s].x[p]
-            seeds.append(x)
-    return seeds
+        if shared:
+            points += [np.array([separate[s].x[p] for p in shared]) for s in setup.names]
+        own = {s: [np.array([separate[s].x[p] for p in setup.own(s)])] for s in setup.names}
+    return points, own
 
 
-def _local_stages(resid, lo, hi, seeds):
-    """The local stages of :func:`pbrdf_cl.fit` on the stacked residuals: the batched descent of
-    every seed, least squares to the end from the best, BOBYQA where it ran out; (candidates
-    best first, whether the final BOBYQA ran, stage results)."""
-    st = {}
-    st["screen"] = screen_stage(resid.rows, lo, hi, [Candidate(np.inf, x, x) for x in seeds], SCREEN_ITERATIONS)
+def _local_stages(setup, resid, grids, points, own):
+    """The local stages on the stacked residuals: the joint profile at each shared point (every
+    set's own fit there, :func:`~pbrdf_cl.fitting.joint_exchange.profile_stage`), least squares
+    (the best :data:`PROFILE_SCREEN` points), their batched Levenberg-Marquardt descent on the
+    stacked residuals, least squares to the end from the best, the basin exchange of each set's own parameters
+    (:func:`~pbrdf_cl.fitting.joint_exchange.exchange_stage`), BOBYQA where the last least
+    squares ran out; (candidates best first, whether the final BOBYQA ran, stage results)."""
+    lo, hi = setup.lo, setup.hi
+    st = {"profile": profile_stage(setup, resid, grids, points, own)}
+    cands = st["profile"].value[:PROFILE_SCREEN]
+    st["screen"] = screen_stage(resid.rows, lo, hi, cands, SCREEN_ITERATIONS)
     cands = ranked(st["screen"].value)
     top = min(LS_POLISH, len(cands))
     st["least_squares"] = least_squares_stage(resid.rows, lo, hi, cands[:top], JOINT_LS_NFEV)
     cands = ranked(st["least_squares"].value + cands[top:])
+    st["exchange"] = exchange_stage(setup, resid, grids, cands[0], lo, hi, JOINT_LS_NFEV)
+    cands[0] = st["exchange"].value[0]
     final_ran = cands[0].converged is False
     st["final_bobyqa"] = (final_bobyqa_stage(resid.rows, lo, hi, cands[0], FINAL_BOBYQA) if final_ran
                           else StageResult(cands[0], 0, 0.0))
@@ -388,11 +397,11 @@ def fit_joint(sets, shared=DEFAULT_SHARED, model="six-param", bounds=None, fixed
                                   sum(g.nfev for g in grid_results.values()), time.perf_counter() - t_sep)}
     t1 = time.perf_counter()
     total, _, profiles = joint_profiles(setup, grids)
-    seeds = joint_seeds(setup, grids, total, separate)
+    points, own = joint_points(setup, grids, total, separate)
     st["seeds"] = StageResult(None, 0, time.perf_counter() - t1)
     resid = JointResiduals(setup)
     lo, hi = setup.lo, setup.hi
-    cands, final_ran, local = _local_stages(resid, lo, hi, seeds)
+    cands, final_ran, local = _local_stages(setup, resid, grids, points, own)
     st.update(local)
     best = cands[0]
     n_points = sum(len(m) for m in setup.meas.values())

@@ -249,7 +249,7 @@ def _lm_numpy(eng, setup, blk, X0, names, dtype, iterations, intensity):
     pix = np.tile(np.arange(p), S)
     res = PixelResiduals(setup, blk, names, pix, intensity)
     Xi = internal(X0, names).reshape(S * p, D)
-    X, sse, _ = lm_batch(res.rows, Xi, lo, hi, iterations)
+    X, sse, _ = lm_batch(res.rows, Xi, lo, hi, iterations, rows_apart=False)
     r, J = fd_jacobian(res.rows, X, lo, hi)
     sse = np.einsum("pm,pm->p", r, r)
     jtj = np.einsum("pim,pjm->pij", J, J)

@@ -6,6 +6,7 @@ region least squares, the final BOBYQA and the intensity stage; the model they e
 """
 from __future__ import annotations
 
+import copy
 import threading
 import time
 from dataclasses import dataclass, replace
@@ -69,10 +70,15 @@ class Model:
     def dop(self, p):
         return reference.dop(*self.parts(p))
 
-    def dop_rows(self, p):
+    def dop_rows(self, p, runs=False):
         """DOP for many parameter vectors at once: ``p`` maps names to (B, 1) arrays (or
-        scalars); returns (B, M).  The same factors, without the cache."""
-        return reference.dop(self._fresnel(p), self._log_scale(p), self._diffuse(p))
+        scalars); returns (B, M).  The same factors, without the cache.  ``runs``: each factor
+        is computed once per run of consecutive rows with the same values of its parameters
+        (:func:`per_run`; for batches whose rows come in long runs)."""
+        if not runs:
+            return reference.dop(self._fresnel(p), self._log_scale(p), self._diffuse(p))
+        return reference.dop(per_run(self._fresnel, p, ("n", "k")), per_run(self._log_scale, p, ("sigma", "ks")),
+                             per_run(self._diffuse, p, ("kd", "c")))
 
     def f00(self, p):
         return reference.brdf(*self.parts(p))
@@ -80,6 +86,31 @@ class Model:
     def f00_rows(self, p):
         """F00 for many parameter vectors at once, like :meth:`dop_rows`."""
         return reference.brdf(self._fresnel(p), self._log_scale(p), self._diffuse(p))
+
+
+def per_run(compute, p, names):
+    """``compute(p)`` for parameter rows ``p`` (name -> (B, 1) array or scalar) that depends only
+    on the parameters ``names``, computed once per run of consecutive rows whose values of
+    ``names`` are the same bits and spread back: ``compute(p)``'s result bit for bit.  A result
+    with fields (the Fresnel terms) is spread field by field."""
+    cols = [np.asarray(p[n], dtype=np.float64) for n in names]
+    rows = max((c.shape[0] for c in cols if c.ndim), default=0)
+    if rows < 2:
+        return compute(p)
+    key = np.concatenate([np.broadcast_to(c.reshape(-1, 1) if c.ndim else c, (rows, 1)) for c in cols], axis=1)
+    bits = np.ascontiguousarray(key).view(np.int64)
+    starts = np.concatenate([[True], np.any(bits[1:] != bits[:-1], axis=1)])
+    if starts.all():
+        return compute(p)
+    first = np.flatnonzero(starts)
+    inverse = np.cumsum(starts) - 1
+    out = compute({**p, **{n: key[first, j:j + 1] for j, n in enumerate(names)}})
+    if isinstance(out, np.ndarray):
+        return out[inverse]
+    spread = copy.copy(out)
+    for field, value in vars(out).items():
+        setattr(spread, field, value[inverse])
+    return spread
 
 
 class _Lockstep:
@@ -238,7 +269,7 @@ class Residuals:
         r = (self.model.dop_rows(p) - self.dop) / self.dop_std
         if self.f00 is not None:
             r = np.concatenate([r, (self.model.f00_rows(p) - self.f00) / self.f00_std], axis=1)
-        return _finite(r)
+        return finite_rows(r)
 
 
 def _sse_of_rows(rows):
@@ -410,7 +441,7 @@ def intensity_stage(residuals, lo, hi, x0, step, maxeval=INTENSITY_MAXEVAL):
     return StageResult(out.value[0], out.nfev, out.seconds)
 
 
-def _finite(r):
+def finite_rows(r):
     """Residuals with non-finite entries replaced by a huge value (never NaN to the optimisers)."""
     return np.where(np.isfinite(r), r, 1e150)
 
