@@ -91,7 +91,7 @@ def main():
                     continue  # a shared parameter counts once
                 covered.append(lo <= truths[s][p] <= hi)
             ratios += [res.width_ratio[s][p] for p in ("n", "k") if p in res.width_ratio[s]]
-        print(f"problem {i:3d}: joint chi2 {res.chi2:10.4g}, multi-start best {best:10.4g} "
+        print(f"problem {i:3d}: joint chi2 {res.chi2:12.8g}, multi-start best {best:12.8g} "
               f"{'ok' if ok else 'MISSED'}; {t_joint[-1]:.2f} s joint, {t_single[-1]:.2f} s single; covered so far "
               f"{sum(covered)}/{len(covered)}", flush=True)
     print()

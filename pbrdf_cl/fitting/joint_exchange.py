@@ -27,7 +27,7 @@ EXCHANGE_SEEDS = 6
 #: slice where they hold too few).
 EXCHANGE_POOL = 256
 #: Levenberg-Marquardt iterations of each own fit (three or so parameters, a few dozen points).
-EXCHANGE_ITERATIONS = 60
+EXCHANGE_ITERATIONS = 30
 #: Levenberg-Marquardt iterations of each own fit in the profile stage (it ranks the starting
 #: points; the least squares and the exchange that follow finish the descent).
 PROFILE_ITERATIONS = 25
