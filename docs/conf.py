@@ -68,6 +68,7 @@ sphinx_gallery_conf = {
     "filename_pattern": r"/plot_",
     "image_scrapers": ("matplotlib", "gallery_hooks.png_scraper"),
     "reset_modules": ("matplotlib", "gallery_hooks.clean_outputs"),
+    "reset_modules_order": "both",
     "download_all_examples": False,
     "remove_config_comments": True,
     "min_reported_time": 0,

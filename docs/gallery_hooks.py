@@ -26,7 +26,8 @@ def clean_outputs(gallery_conf, fname, when):
     """After each example: remove what it wrote into the gallery's source folder (not its sources)."""
     if when != "after":
         return
-    folder = Path(gallery_conf["src_dir"]) / gallery_conf["examples_dirs"]
-    for path in folder.iterdir():
-        if path.is_file() and path.suffix not in SOURCES:
-            path.unlink()
+    dirs = gallery_conf["examples_dirs"]
+    for folder in [dirs] if isinstance(dirs, str) else dirs:
+        for path in (Path(gallery_conf["src_dir"]) / folder).iterdir():
+            if path.is_file() and path.suffix not in SOURCES:
+                path.unlink()
