@@ -1,7 +1,7 @@
 """The one grammar of values, ranges and ``name=value`` items: the command line (``pbrdf-cl
 eval``, ``fit``, ``map``), sweep spec files and :func:`pbrdf_cl.explore.maps.make_map` all parse with it.
 
-Values (README, section "Ranges and name=value"):
+Values (docs/guide/cli.md, section "Ranges and name=value"):
 
 - ``40``: one number;
 - ``20,30,45``: a list of numbers;
@@ -24,7 +24,7 @@ import numpy as np
 
 from .errors import RangeError
 
-#: The grammar in a few words, for ``--help`` texts (the README's section has the whole of it).
+#: The grammar in a few words, for ``--help`` texts (docs/guide/cli.md has the whole of it).
 GRAMMAR = ("a number (40), a list (20,30,45), start:stop:step (20:65:5, ends included) or "
            "start:stop@count (0:85@256: 256 values, ends included)")
 #: The relative slack with which the steps of start:stop:step must land on the stop.

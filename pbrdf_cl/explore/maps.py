@@ -51,7 +51,7 @@ def make_map(x, y, fixed=None, quantity="dop", derivative=None, *, dtype="float6
 
     Parameters
     ----------
-    x, y : ``"name=values"`` strings (``"theta_r=0:85@256"``: the guide's "Ranges and name=value") or
+    x, y : ``"name=values"`` strings (``"theta_r=0:85@256"``: docs/guide/cli.md) or
         (name, values) pairs (degrees for angles)
     fixed : dict name -> value for the other inputs (phi, ks, kd, c default to 180, 1, 0, 0)
     quantity : "dop", "brdf" (alias "f00") or "aop": :func:`pbrdf_cl.quantities.names` ("map")

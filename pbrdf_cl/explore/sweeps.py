@@ -10,7 +10,7 @@ A sweep is described by a spec (TOML, see ``examples/sweep_sigma_theta.toml``)::
     memory_budget = "256 MiB"        # one chunk in flight: its values + the device's working memory
 
     [axes]                           # canonical names of pbrdf_cl.compute.dense.AXES; angles in degrees
-    theta_i = "10:80:10"             # start:stop:step, ends included (README: Ranges and name=value)
+    theta_i = "10:80:10"             # start:stop:step, ends included (docs/guide/cli.md: Ranges)
     theta_r = "0:85@256"             # start:stop@count; = {start = 0, stop = 85, num = 256}
     sigma = [0.1, 0.2, 0.5]
 
