@@ -17,13 +17,14 @@ from pbrdf_cl.explore import paper
 print(paper.FIG2_SAMPLES)
 
 # %%
-# Aluminum: a metal (k = 6.6). DOP in one geometry determines n and k only loosely, and the
-# six-parameter fit's 95% intervals say so.
+# Aluminum: a metal (k = 6.6). DOP in one geometry determines n and k only loosely: the best fit
+# may land far from the truth (even on a bound), another basin may fit as well, and the summary's
+# 95% intervals and notes say so.
 fits = paper.fig2("aluminum", Path("."))
 print(fits["six-param"].summary())
 
 # %%
-# Black paint: a dielectric (k = 0.23). Here the specular model cannot follow the data where the
-# diffuse term dilutes the polarization.
+# Black paint: a dielectric (k = 0.23). Here ref. [7]'s specular model, without a diffuse term,
+# cannot follow the data around the DOP's peak, and AIC/BIC prefer the six-parameter model.
 fits = paper.fig2("black paint", Path("."))
 print(fits.summary())

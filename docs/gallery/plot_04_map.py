@@ -13,4 +13,7 @@ from pbrdf_cl.plots.maps import plot_map
 ds = make_map("theta_r=0:85@128", "sigma=0.05:1@96",
               dict(theta_i=40, n=1.6, k=2.139, ks=0.9, kd=0.15, c=-0.3), derivative="sigma")
 print(ds)
+
+# %%
+# The figure:
 plot_map(ds, "map_sigma_theta_r.png")

@@ -15,4 +15,7 @@ ds = pbrdf_cl.sobol({"n": (1.2, 1.7), "k": (0.2, 7.0, "log"), "sigma": (0.2, 0.7
                      "c": (-0.6, 0.0)},
                     {"theta_i": "0:80@16", "theta_r": "0:85@16"}, fixed={"ks": 1.0}, N=256, seed=1)
 print(summary(ds))
+
+# %%
+# The figure:
 plot_sensitivity(ds, "sobol.png")

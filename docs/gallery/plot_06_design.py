@@ -14,4 +14,7 @@ r = pbrdf_cl.design(dict(n=1.6, k=2.139, sigma=0.5, ks=0.9, kd=0.15, c=-0.3),
                     {"theta_i": "10:80:5", "theta_r": "0:85:5"}, noise=0.005, n_measurements=30,
                     target=("n", "k"))
 print(r.summary())
+
+# %%
+# The figure:
 plot_design(r, "design.png")
