@@ -28,6 +28,7 @@ extensions = [
     "myst_parser",
     "sphinx.ext.autodoc",
     "sphinx.ext.mathjax",
+    "sphinx-mathjax-offline",  # MathJax served from the built site: the equations render offline too
     "numpydoc",
     "sphinx_gallery.gen_gallery",
 ]
