@@ -22,8 +22,19 @@ class KernelBuildError(OpenCLUnavailableError):
 
 class ProgramUnusableError(KernelBuildError):
     """A device cannot run one program: its trial build in a child process failed, crashed, aborted
-    or timed out (:mod:`pbrdf_cl.device.trials`).  ``engine``: where; ``verdict``: the trial's
-    finding; ``program``: a key of the program that does not depend on the device."""
+    or timed out (``pbrdf_cl.device.trials``).
+
+    Parameters
+    ----------
+    message : str
+        The one-line message.
+    engine : pbrdf_cl.Engine, optional
+        Where.
+    verdict : dict, optional
+        The trial's finding.
+    program : tuple, optional
+        A key of the program that does not depend on the device.
+    """
 
     def __init__(self, message, engine=None, verdict=None, program=None):
         super().__init__(message)

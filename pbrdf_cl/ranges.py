@@ -1,7 +1,7 @@
 """The one grammar of values, ranges and ``name=value`` items: the command line (``pbrdf-cl
 eval``, ``fit``, ``map``), sweep spec files and :func:`pbrdf_cl.explore.maps.make_map` all parse with it.
 
-Values (README, section "Ranges and name=value"):
+Values (docs/guide/cli.md, section "Ranges and name=value"):
 
 - ``40``: one number;
 - ``20,30,45``: a list of numbers;
@@ -24,7 +24,7 @@ import numpy as np
 
 from .errors import RangeError
 
-#: The grammar in a few words, for ``--help`` texts (the README's section has the whole of it).
+#: The grammar in a few words, for ``--help`` texts (docs/guide/cli.md has the whole of it).
 GRAMMAR = ("a number (40), a list (20,30,45), start:stop:step (20:65:5, ends included) or "
            "start:stop@count (0:85@256: 256 values, ends included)")
 #: The relative slack with which the steps of start:stop:step must land on the stop.
@@ -135,8 +135,19 @@ def _values(text):
 def parse_values(text, where=None, label=None):
     """``"40"``, ``"20,30,45"``, ``"20:65:5"`` or ``"0:85@256"`` -> a 1-d float64 array.
 
-    The :class:`RangeError` message starts with ``where`` (an option such as ``"--theta-r"``) and
-    the text, or with ``label`` where given (a sweep spec's ``axes.sigma = "1:0:0.1"``)."""
+    Parameters
+    ----------
+    text : str
+        The values, in the grammar of the guide's "Ranges and name=value".
+    where : str, optional
+        An option such as ``"--theta-r"``: the :class:`pbrdf_cl.RangeError` message starts with
+        it and the text.
+    label : str, optional
+        Starts the message instead, where given (a sweep spec's ``axes.sigma = "1:0:0.1"``).
+
+    Returns
+    -------
+    numpy.ndarray"""
     if not isinstance(text, str):
         raise RangeError(f"{label or _label(where, repr(text))}: not a text; {_HINT}")
     try:
@@ -203,7 +214,18 @@ def parse_bytes(field, value):
     """A size in bytes: ``268435456`` (an integer, or a whole float such as ``1e9``), ``"256 MiB"``,
     ``"1.5GB"``, ``"64kib"`` -> int > 0.  The one parser of sizes (``memory_budget`` of
     :func:`pbrdf_cl.grid`, :func:`pbrdf_cl.reduce_grid`, :func:`pbrdf_cl.objective` and of sweep
-    specs); a :class:`RangeError` of one line names ``field`` and the value."""
+    specs).
+
+    Parameters
+    ----------
+    field : str
+        The field or argument, named by the :class:`pbrdf_cl.RangeError` of one line.
+    value : int, float or str
+        The size.
+
+    Returns
+    -------
+    int"""
     if isinstance(value, (bool, np.bool_)):
         raise RangeError(f"{field}: {value!r} {_SIZE_HINT}")
     if isinstance(value, numbers.Integral):

@@ -229,14 +229,15 @@ def test_cli_map_and_sweep_spec_refuse_the_same_text_for_the_same_reason(text):
     assert reasons[0] == reasons[1] == reasons[2], reasons
 
 
-def test_the_example_spec_and_the_readme_examples_parse():
+def test_the_example_spec_and_the_guides_examples_parse():
     spec = pbrdf_cl.load_spec(ROOT / "examples" / "sweep_sigma_theta.toml")
     np.testing.assert_array_equal(spec.axes["theta_r"], np.linspace(0, 85, 86))
     np.testing.assert_array_equal(spec.axes["sigma"], np.linspace(0.05, 1.0, 64))
-    readme = (ROOT / "README.md").read_text()
-    assert "pbrdf-cl map --x theta_r=0:85@256 --y sigma=0.05:1@256" in readme
-    section = readme.split("## Ranges and name=value", 1)[1].split("\n## ", 1)[0]
-    for line in section.splitlines():  # the README's sample errors are what the parser says
+    assert "pbrdf-cl map --x theta_r=0:85@256 --y sigma=0.05:1@256" in (ROOT / "docs/guide/paper.md").read_text()
+    page = (ROOT / "docs/guide/cli.md").read_text()
+    section = page.split("## Ranges and name=value", 1)[1].split("\n## ", 1)[0]
+    assert "pbrdf-cl: error: --x " in section and "pbrdf-cl: error: axes." in section
+    for line in section.splitlines():  # the guide's sample errors are what the parser says
         if line.startswith("pbrdf-cl: error: --x "):
             item = line.split()[3].rstrip(":")
             with pytest.raises(RangeError) as err:

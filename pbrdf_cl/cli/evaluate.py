@@ -77,8 +77,8 @@ def cmd_eval(args) -> int:
 def eval_parser(sub):
     """The `pbrdf-cl eval` sub-command."""
     e = sub.add_parser("eval", help="evaluate DOP, F00, AoP, the Stokes vector or the Mueller matrix",
-                       description=f"Each value option takes {ranges.GRAMMAR}; see the README, Ranges "
-                       "and name=value. The output has one row per combination.")
+                       description=f"Each value option takes {ranges.GRAMMAR}; see the docs, "
+                       "docs/guide/cli.md, Ranges and name=value. The output has one row per combination.")
     for name, default in PARAMS:
         unit = " (degrees)" if name in ("theta_i", "theta_r", "phi") else ""
         e.add_argument(f"--{name.replace('_', '-')}", dest=name, metavar="V",

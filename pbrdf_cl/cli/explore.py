@@ -192,8 +192,9 @@ def reproduce_parser(sub):
 def map_parser(sub):
     """The `pbrdf-cl map` sub-command."""
     m = sub.add_parser("map", help="a dense map of DOP, F00 or AoP over any two axes (PNG + optional .npz)",
-                       description=f"Axes: NAME=VALUES, VALUES being {ranges.GRAMMAR}; see the README, "
-                       "Ranges and name=value. Angles in degrees. Inputs not on an axis are fixed with --fix "
+                       description=f"Axes: NAME=VALUES, VALUES being {ranges.GRAMMAR}; see the docs, "
+                       "docs/guide/cli.md, Ranges and name=value. Angles in degrees. Inputs not on an axis are "
+                       "fixed with --fix "
                        "(phi, ks, kd, c default to 180, 1, 0, 0). Example: pbrdf-cl map --x theta_r=0:85@256 "
                        "--y sigma=0.05:1@256 --fix theta_i=40 n=1.6 k=2.139 ks=0.9 kd=0.15 c=-0.3 --derivative sigma "
                        "--out map.png")

@@ -375,7 +375,7 @@ def grid(axes, fixed=None, quantity="dop", dtype="float32", shadowing="paper", *
     Raises
     ------
     ValueError
-        Naming the axis and the bad value; :class:`pbrdf_cl.sizes.TooLargeError` when the result
+        Naming the axis and the bad value; :class:`pbrdf_cl.TooLargeError` when the result
         cannot fit in memory (found before any work).
 
     Warns

@@ -236,7 +236,9 @@ def _evaluate(quantity, theta_i, theta_r, phi, n, k, sigma, ks, kd, c, shadowing
 #: The Parameters section shared by the per-point functions (numpydoc).
 _POINT_PARAMETERS = """
     theta_i, theta_r : float or array_like
-        Zenith angles of incidence and reflection in degrees, in [0, 90).
+        Zenith angles of incidence and reflection in degrees, in [0, 90). All array arguments
+        broadcast together; a short axis (``theta_r[:, None]``, ``sigma[None, :]``) is sent to the
+        device once, its values read through an index rule, never expanded.
     phi : float or array_like, default 180
         Relative azimuth phi_i - phi_r in degrees; 180 is the plane of incidence on the specular side.
     n, k : float or array_like
@@ -259,14 +261,11 @@ _POINT_PARAMETERS = """
     engine : pbrdf_cl.Engine, optional
         The engine (device) to use instead of the default one.
 
-    All array arguments broadcast together; a short axis (``theta_r[:, None]``, ``sigma[None, :]``)
-    is sent to the device once, its values read through an index rule, never expanded.
-
     Raises
     ------
     ValueError
         Naming the argument, the first bad value and its index.
-    pbrdf_cl.sizes.TooLargeError
+    pbrdf_cl.TooLargeError
         When the result cannot fit in memory (found before any work)."""
 
 

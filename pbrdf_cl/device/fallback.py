@@ -197,7 +197,19 @@ def check_backend(backend):
 def resolve_engine(engine=None, backend="auto"):
     """The engine a call computes with: ``engine`` if given (an :class:`Engine` or a
     :class:`NumpyEngine`), else the default for ``backend`` (see :func:`get_default_engine`).
-    ``backend="numpy"`` always gives the numpy engine; ``backend="opencl"`` refuses a numpy one."""
+
+    Parameters
+    ----------
+    engine : pbrdf_cl.Engine or pbrdf_cl.NumpyEngine, optional
+        The engine asked for.
+    backend : {"auto", "opencl", "numpy"}, default "auto"
+        ``"numpy"`` always gives the numpy engine; ``"opencl"`` refuses a numpy one; ``"auto"``
+        takes the OpenCL device, or the numpy engine where none is usable.
+
+    Returns
+    -------
+    pbrdf_cl.Engine or pbrdf_cl.NumpyEngine
+    """
     check_backend(backend)
     if backend == "numpy":
         return engine if isinstance(engine, NumpyEngine) else NumpyEngine()

@@ -2,7 +2,7 @@
 usable, or where ``backend="numpy"`` asks for it.  It offers the interface the OpenCL engine
 (:class:`pbrdf_cl.device.opencl.Engine`) offers the rest of the package (``call``, ``evaluate``,
 ``compute_dtype``, ``has_kernels``, ``reason``, ``lock``, ...), with the float64 reference of
-:mod:`pbrdf_cl.model.reference`; the operations that differ between the backends are registered
+``pbrdf_cl.model.reference``; the operations that differ between the backends are registered
 per backend in :mod:`pbrdf_cl.device.ops`."""
 from __future__ import annotations
 
@@ -16,12 +16,18 @@ from .sources import DTYPES, POINT_INPUTS
 
 
 class NumpyEngine:
-    """The numpy backend: the float64 reference of :mod:`pbrdf_cl.model.reference`, as an engine.
+    """The numpy backend: the float64 reference of ``pbrdf_cl.model.reference``, as an engine.
 
     Every function that takes ``engine=`` accepts one; the dense grids, reductions and the
     objective build the same factor tables with ``reference.py`` and combine them in chunks
     within the same memory budget.  It computes in float64 whatever ``dtype`` is asked for, and
-    returns that dtype.  ``reason``: why it is in use (empty when asked for by name)."""
+    returns that dtype.
+
+    Parameters
+    ----------
+    reason : str, default ""
+        Why it is in use (empty when asked for by name).
+    """
 
     is_numpy = True
     backend = "numpy"

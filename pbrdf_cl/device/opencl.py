@@ -34,7 +34,7 @@ class Engine:
     Parameters
     ----------
     device : cl.Device, str or None
-        See :func:`pbrdf_cl.device.choice.select_device`.
+        See :func:`pbrdf_cl.select_device`.
     profiling : bool
         Create the queue with profiling enabled (``last_event_seconds`` then reports the
         device time of the last launch).

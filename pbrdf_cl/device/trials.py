@@ -2,7 +2,7 @@
 
 A driver can crash, abort or hang while it compiles one of our programs (PyPI's PoCL 3.0, whose
 LLVM 14 aborts with ``LLVM ERROR: Do not know how to scalarize this operator's operand!`` or
-segfaults on 512-bit vector code on AVX-512 hosts; see the README's "Choosing a device").  Such a
+segfaults on 512-bit vector code on AVX-512 hosts; see docs/guide/devices.md).  Such a
 failure cannot be caught in the process that suffers it.  So before a process first builds a
 program on a device, the program is built there, and each of its kernels launched once, in a child
 process (:mod:`pbrdf_cl.device._trial_child`), with a time limit.  The child's answer is a *verdict*:

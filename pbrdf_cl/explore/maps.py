@@ -5,7 +5,7 @@ A map is the model (any quantity of the registry with a map path: DOP, F00, AoP)
 product of two axes ``x`` and ``y`` with every other input fixed, computed on the OpenCL device by
 :func:`pbrdf_cl.grid`.  A derivative, along one of the map's axes or along a fixed input, is a
 finite difference of step h = 1e-4 deg (angles), 1e-4 |value| (n, sigma, ks) or 1e-4 max(1,
-|value|) (k, kd, c) at every node (:func:`stencil`): central, and second-order one-sided at a bound of
+|value|) (k, kd, c) at every node (``stencil``): central, and second-order one-sided at a bound of
 the model's domain (theta = 0, k = 0, kd = 0), from one float64 device grid over the stencils'
 points.  (Differences on the map's own grid were wrong where the quantity changes by decades
 between nodes: at sigma = 0.05 their one-sided edge form gave dDOP/dsigma < 0 where the DOP rises.)
@@ -51,13 +51,13 @@ def make_map(x, y, fixed=None, quantity="dop", derivative=None, *, dtype="float6
 
     Parameters
     ----------
-    x, y : ``"name=values"`` strings (``"theta_r=0:85@256"``: README, "Ranges and name=value") or
+    x, y : ``"name=values"`` strings (``"theta_r=0:85@256"``: docs/guide/cli.md) or
         (name, values) pairs (degrees for angles)
     fixed : dict name -> value for the other inputs (phi, ks, kd, c default to 180, 1, 0, 0)
     quantity : "dop", "brdf" (alias "f00") or "aop": :func:`pbrdf_cl.quantities.names` ("map")
     derivative : None, or the name of x, y or a fixed input: finite differences of step
-        h = :data:`FD_STEP` x :func:`step_scale` at every node, central, or second-order one-sided
-        at a bound of the model's domain (:func:`stencil`), in float64 (where the device has it)
+        h = ``FD_STEP`` x ``step_scale`` at every node, central, or second-order one-sided
+        at a bound of the model's domain (``stencil``), in float64 (where the device has it)
     dtype, shadowing, engine, backend : as for :func:`pbrdf_cl.grid` (dtype defaults to float64 here)
 
     Returns
@@ -172,7 +172,7 @@ def stencil(name, nodes, step=None):
 def _derivative(name, nodes, axes, fixed, kw, dims, period):
     """d(quantity)/d(name) at ``nodes`` (an axis of the map, or the one fixed value) over the map's
     other axis or axes: (array (nodes, *the map's dims without name), method text).  The stencil
-    points of every node are one axis of one float64 device grid (:func:`stencil`); an angle's
+    points of every node are one axis of one float64 device grid (``stencil``); an angle's
     differences are wrapped into one period first."""
     import warnings
     pts, w = stencil(name, nodes)
@@ -254,8 +254,19 @@ def flat_axis_notes(da, q, dims):
 
 def save_npz(ds, path):
     """The map's arrays beside the picture: x, y (coordinates), the quantity, the derivative if
-    any, their names, and the attrs as JSON; ``path`` ends in ``.npz`` (numpy would append it to
-    any other name, writing a file other than the one named)."""
+    any, their names, and the attrs as JSON.
+
+    Parameters
+    ----------
+    ds : xarray.Dataset
+        From :func:`make_map`.
+    path : str or path
+        Ends in ``.npz`` (numpy would append it to any other name, writing a file other than the
+        one named).
+
+    Returns
+    -------
+    None"""
     from pathlib import Path
     if Path(path).suffix.lower() != ".npz":
         raise ValueError(f"{path}: numpy's archive is named .npz; write e.g. {Path(path).with_suffix('.npz')}")

@@ -90,7 +90,25 @@ def fig2_data(sample, seed=SEED):
 
 
 def fig2(sample, out, engine=None, seed=SEED):
-    """Fit both models to one synthetic Fig. 2 sample, plot and save; returns the fits."""
+    """Fit both models to one synthetic Fig. 2 sample, plot and save (``fig2_<sample>.png`` and
+    ``.npz``).
+
+    Parameters
+    ----------
+    sample : {"aluminum", "black paint"}
+        A key of :data:`FIG2_SAMPLES`.
+    out : pathlib.Path
+        The folder written into.
+    engine : pbrdf_cl.Engine, optional
+        Where the fits' grid stage runs.
+    seed : int, default 2020
+        Seed of the synthetic noise.
+
+    Returns
+    -------
+    ComparisonResult
+        Both fits (:func:`pbrdf_cl.compare_models`).
+    """
     from ..fitting.inversion import compare_models
     meas, clean = fig2_data(sample, seed)
     both = compare_models(meas, engine=engine)
@@ -152,8 +170,18 @@ def table1(fits, out):
 
 def fig4(out):
     """DOP vs theta_r at the three incidence angles with the paper's steel fit: model values only
-    (curves, and markers at the measured geometries); no measured data are drawn.  Returns the
-    (closed) Figure."""
+    (curves, and markers at the measured geometries); no measured data are drawn.
+
+    Parameters
+    ----------
+    out : pathlib.Path
+        The folder written into (``fig4_steel.png`` and ``.npz``).
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        The figure (closed).
+    """
     tr = np.linspace(20.0, 65.0, 181)
     curves = {ti: pointwise.dop(ti, tr, 180.0, backend="numpy", **STEEL) for ti in STEEL_THETA_I}
     measured = {ti: pointwise.dop(ti, STEEL_THETA_R, 180.0, backend="numpy", **STEEL) for ti in STEEL_THETA_I}
@@ -164,8 +192,18 @@ def fig4(out):
 
 
 def fig5(out):
-    """DOP vs theta_r at theta_i = 40 for three roughness values (model curves).  Returns the
-    (closed) Figure."""
+    """DOP vs theta_r at theta_i = 40 for three roughness values (model curves).
+
+    Parameters
+    ----------
+    out : pathlib.Path
+        The folder written into (``fig5_sigma.png`` and ``.npz``).
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        The figure (closed).
+    """
     tr = np.linspace(20.0, 65.0, 181)
     rows = [pointwise.dop(40.0, tr, 180.0, backend="numpy", **{**STEEL, "sigma": s}) for s in SIGMAS]
     fig = figures.plot_fig5(out / "fig5_sigma.png", STEEL, tr, SIGMAS, rows)
@@ -272,11 +310,27 @@ def check_resolution(resolution):
 
 
 def reproduce(out="paper-figures", *, resolution=256, engine=None, backend="auto", seed=SEED, log=print):
-    """Write every figure, table and data file (see the module docstring) into ``out``.
+    """Write every figure, table and data file of the paper (``pbrdf-cl reproduce``) into ``out``.
 
-    ``engine``, ``backend``: where the fits' grid stage and the maps run ("auto": the OpenCL
-    device, or the numpy reference without one).
-    Returns a dict file name -> one-sentence description (what ``summary.md`` lists)."""
+    Parameters
+    ----------
+    out : str or path, default "paper-figures"
+        The folder (created if absent).
+    resolution : int, default 256
+        Points per axis of the dense maps (the Sobol' map has resolution / 8, from 8 to 32).
+    engine : pbrdf_cl.Engine, optional
+        Where the fits' grid stage and the maps run.
+    backend : {"auto", "opencl", "numpy"}, default "auto"
+        "auto": the OpenCL device, or the numpy reference without one.
+    seed : int, default 2020
+        Seed of the synthetic Fig. 2 data and of the Sobol' samples.
+    log : callable, default print
+        Called with each progress line.
+
+    Returns
+    -------
+    dict
+        File name -> one-sentence description (what ``summary.md`` lists)."""
     check_resolution(resolution)
     engine = resolve_engine(engine, backend)
     out = Path(out)

@@ -840,10 +840,22 @@ def _storable(v):
 
 
 def write_result(ds, path):
-    """Write a result of :func:`sobol` to ``path``: ``.nc`` (netCDF: netCDF4 or h5netcdf when
-    installed, else scipy's netCDF3) or ``.zarr`` (a Zarr store, replaced if it is one already).
-    Returns the path as a string; a ``ValueError`` for any other suffix, or for a ``.zarr`` path that
-    exists and is not a Zarr store."""
+    """Write a result of :func:`pbrdf_cl.sobol` to ``path``.
+
+    Parameters
+    ----------
+    ds : xarray.Dataset
+        A result of :func:`pbrdf_cl.sobol` or :func:`pbrdf_cl.morris` (or a design's
+        ``to_dataset()``).
+    path : str or path
+        ``.nc`` (netCDF: netCDF4 or h5netcdf when installed, else scipy's netCDF3) or ``.zarr``
+        (a Zarr store, replaced if it is one already); a ``ValueError`` for any other suffix, or
+        for a ``.zarr`` path that exists and is not a Zarr store.
+
+    Returns
+    -------
+    str
+        The path."""
     from pathlib import Path
     path = Path(path)
     ds = ds.copy()
@@ -880,9 +892,18 @@ def compatible(ds):
 
 
 def summary(ds):
-    """A few lines on a result of :func:`sobol`: the work done, and per parameter its mean indices
-    over the geometries and where it dominates (the share of geometries where its total index, or
-    mu*, is the largest)."""
+    """A few lines on a result of :func:`pbrdf_cl.sobol`: the work done, and per parameter its mean
+    indices over the geometries and where it dominates (the share of geometries where its total
+    index, or mu*, is the largest).
+
+    Parameters
+    ----------
+    ds : xarray.Dataset
+        A result of :func:`pbrdf_cl.sobol` or :func:`pbrdf_cl.morris`.
+
+    Returns
+    -------
+    str"""
     ds = compatible(ds)
     first, second = _indices(ds)
     geo = [d for d in ds[first].dims if d != "parameter"]

@@ -10,7 +10,7 @@ A sweep is described by a spec (TOML, see ``examples/sweep_sigma_theta.toml``)::
     memory_budget = "256 MiB"        # one chunk in flight: its values + the device's working memory
 
     [axes]                           # canonical names of pbrdf_cl.compute.dense.AXES; angles in degrees
-    theta_i = "10:80:10"             # start:stop:step, ends included (README: Ranges and name=value)
+    theta_i = "10:80:10"             # start:stop:step, ends included (docs/guide/cli.md: Ranges)
     theta_r = "0:85@256"             # start:stop@count; = {start = 0, stop = 85, num = 256}
     sigma = [0.1, 0.2, 0.5]
 
@@ -146,7 +146,16 @@ class SweepSpec:
     Attributes: ``quantity``, ``dtype``, ``shadowing``, ``memory_budget`` (bytes), ``title``,
     ``axes`` (name -> float64 array, canonical order), ``fixed`` (every other input, defaults
     filled in), ``over`` (reduced axes), ``dims`` / ``shape`` / ``chunks`` of the stored
-    variables, ``n_chunks`` and the canonical form (:meth:`canonical`, :attr:`sha256`).
+    variables, ``n_chunks`` and the canonical form (``canonical()``, ``sha256``).
+
+    Parameters
+    ----------
+    data : dict
+        The spec's table (the TOML's keys: see :func:`pbrdf_cl.load_spec`).
+    source : str, optional
+        Where it came from (a file name), for messages.
+    text : str, optional
+        The spec's TOML text, kept with the store.
     """
 
     def __init__(self, data, source=None, text=None):
@@ -607,6 +616,8 @@ def sweep(spec, store, *, engine=None, device=None, backend="auto", workers=None
         or "numpy", here and on every worker.
     workers : start a local ``dask.distributed`` cluster of this many processes (1 thread each).
     scheduler : address of a running scheduler (``tcp://host:8786``); or pass ``client``.
+    client : a ``dask.distributed.Client`` to run the chunks on, instead of ``workers`` or
+        ``scheduler``.
     progress : a tqdm bar (chunks, points/s, ETA), after a line with the sweep's size and, once the
         first chunk is done, its estimated time.
     allow_large : start even if the store (uncompressed) would not fit on the free disk.

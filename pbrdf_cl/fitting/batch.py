@@ -55,7 +55,7 @@ def fit_batch(data, model="six-param", bounds=None, fixed=None, shadowing="paper
         a boolean ``mask`` over the pixel dimensions (False: skip the pixel).  A path to a
         ``.npz``, ``.nc`` or ``.zarr`` stack with those variables.  The measurements may lie
         along another axis where the geometry says which (the shared angles' axis or
-        dimension, or a Dataset dimension named ``m``; see :class:`~pbrdf_cl.fitting.source.Source`); ambiguous layouts
+        dimension, or a Dataset dimension named ``m``; see ``pbrdf_cl.fitting.source.Source``); ambiguous layouts
         are refused.  Without ``phi`` every measurement is in plane (``attrs["data_notes"]``).
     model, bounds, fixed, shadowing
         As for :func:`pbrdf_cl.fit`.
@@ -67,7 +67,7 @@ def fit_batch(data, model="six-param", bounds=None, fixed=None, shadowing="paper
     n_starts : int, default 32
         Descents per pixel, from the best region minima of the grid stage.
     grid_shape : dict, optional
-        Grid nodes per free parameter (default :data:`pbrdf_cl.fitting.pixels.BATCH_GRID`).
+        Grid nodes per free parameter (default ``pbrdf_cl.fitting.pixels.BATCH_GRID``).
     engine, backend
         Where to compute (as for :func:`pbrdf_cl.dop`); the numpy backend runs the same stages
         with the float64 reference, much slower.
@@ -91,7 +91,7 @@ def fit_batch(data, model="six-param", bounds=None, fixed=None, shadowing="paper
     labels : array-like or str, optional
         An integer label image over the pixel dimensions (0: not fitted), or the name of such a
         variable of the stack: the pixels of a label share the ``shared`` parameters, one value
-        per label found from all its pixels (:mod:`pbrdf_cl.fitting.labels`, docs/joint_images.md);
+        per label found from all its pixels (``pbrdf_cl.fitting.labels``, docs/joint_images.md);
         the label stage runs here (with ``workers`` too), then the per-pixel pass.
     shared : sequence of str or str, default ("n", "k") with ``labels``
         The parameters the pixels of a label share (free parameters, not all of them).

@@ -229,7 +229,7 @@ def run_block(job, name, digest, i, r0, r1, device=None, backend="auto"):
     i, r0, r1 : int
         The block and its rows.
     device, backend
-        The engine each worker builds once (:func:`pbrdf_cl.store.cluster.worker_engine`).
+        The engine each worker builds once (``pbrdf_cl.store.cluster.worker_engine``).
 
     Returns
     -------
@@ -421,7 +421,7 @@ def status_counts(ds):
     Returns
     -------
     dict
-        Status name (:data:`pbrdf_cl.fitting.dataset.PIXEL_STATUS`) -> pixels, for the codes present, in
+        Status name (``pbrdf_cl.fitting.dataset.PIXEL_STATUS``) -> pixels, for the codes present, in
         the order of ``PIXEL_STATUS``.
 
     Examples
@@ -488,7 +488,7 @@ def check_cluster(workers=None, scheduler=None, client=None, engine=None):
 
 def local_engine(engine=None, backend="auto", device=None):
     """The engine a local run computes with: ``engine`` if given, else this process's engine for
-    ``device`` (built once, :func:`pbrdf_cl.store.cluster.worker_engine`), else the default for
+    ``device`` (built once, ``pbrdf_cl.store.cluster.worker_engine``), else the default for
     ``backend``.
 
     Parameters
@@ -536,7 +536,7 @@ def write_store(job, store, *, progress=False, engine=None, backend="auto", devi
 
     Memory: one block in flight per engine, sized by ``memory_budget``: the input is read a block
     of rows at a time (with the chunks of a lazy stack that hold them), the outputs written a
-    block at a time.  Nothing here reads the whole stack; :class:`~pbrdf_cl.fitting.job.BatchJob`'s
+    block at a time.  Nothing here reads the whole stack; ``pbrdf_cl.fitting.job.BatchJob``'s
     check of the angles reads the first measurement of per-pixel ``theta_i`` and ``theta_r`` of
     every pixel (1/M of those variables), and a block is never smaller than one row.  (How much
     one block takes is BatchJob's estimate.)  With a cluster the job is sent to each worker
@@ -547,7 +547,7 @@ def write_store(job, store, *, progress=False, engine=None, backend="auto", devi
     ----------
     job : pbrdf_cl.fitting.job.BatchJob
         The checked job (the stack, its settings and blocks); with a path to a ``.nc`` stack,
-        opened by :func:`pbrdf_cl.fitting.source.open_stack_lazily` so that it is read a block at
+        opened by ``pbrdf_cl.fitting.source.open_stack_lazily`` so that it is read a block at
         a time.
     store : str or path
         The Zarr store (a local path, or the URL of an fsspec store that every worker reaches);

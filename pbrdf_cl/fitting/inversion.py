@@ -7,7 +7,7 @@ kd as kd/ks.  When intensities (``f00`` or ``s0``) are given, a last stage fits 
 separately with the intensity residuals added.
 
 :func:`fit` only orchestrates: its setup is a :class:`~pbrdf_cl.fitting.setup.FitSetup`, its
-stages are the functions of :mod:`pbrdf_cl.fitting.stages` (the schedule's constants there too:
+stages are the functions of ``pbrdf_cl.fitting.stages`` (the schedule's constants there too:
 ``DIRECT_EVALS``, ``SCREEN_ITERATIONS``, ...) and :mod:`pbrdf_cl.fitting.uncertainty`, its result a
 :class:`~pbrdf_cl.fitting.result.FitResult`.
 """
@@ -79,7 +79,7 @@ def distinct_geometries(meas):
 
 def fit(data, model="six-param", bounds=None, fixed=None, shadowing="paper", *, grid_shape=None, n_basins=6,
         engine=None, backend="auto", progress=False):
-    """Fit the model to measured DOP (and F00 where given): the pipeline of stages of :mod:`pbrdf_cl.fitting.stages`.
+    """Fit the model to measured DOP (and F00 where given): the pipeline of stages of ``pbrdf_cl.fitting.stages``.
 
     Parameters
     ----------
@@ -96,11 +96,13 @@ def fit(data, model="six-param", bounds=None, fixed=None, shadowing="paper", *, 
     shadowing : {"paper", "smith", "none"}, default "paper"
         The shadowing function of the model fitted.
     grid_shape : dict, optional
-        Name -> nodes of the device grid stage (defaults :data:`DEFAULT_GRID`, :data:`SPECULAR_GRID`).
+        Name -> nodes of the device grid stage (defaults ``DEFAULT_GRID``, ``SPECULAR_GRID``).
     n_basins : int, default 6
         How many distinct basins of the grid the local stages start from.
     engine : pbrdf_cl.Engine, optional
-        Where the grid stage runs; ``backend`` ("auto", "opencl", "numpy") as for :func:`pbrdf_cl.dop`.
+        Where the grid stage runs.
+    backend : {"auto", "opencl", "numpy"}, default "auto"
+        As for :func:`pbrdf_cl.dop`.
     progress : bool, default False
         A progress bar for the grid stage.
 

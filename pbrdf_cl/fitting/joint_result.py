@@ -23,7 +23,7 @@ class JointResult(Result):
         set -> the :class:`~pbrdf_cl.io.measurements.Measurements` fitted.
     x, stderr, ci95
         dicts set -> parameter -> value (every model parameter, fitted or held, as
-        :attr:`FitResult.x`: ``pbrdf_cl.dop(..., **res.x["a"])`` evaluates set a's fit), standard
+        ``FitResult.x``: ``pbrdf_cl.dop(..., **res.x["a"])`` evaluates set a's fit), standard
         error, 95% interval (lo, hi) (the fitted ones).  Shared parameters repeat in every set.
         ``ci95`` is :class:`FitResult`'s posterior mixture (the joint Jacobian's local
         approximation and the joint grid's profile likelihood), see :class:`FitResult`.

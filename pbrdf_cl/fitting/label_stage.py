@@ -486,7 +486,7 @@ class _Stage:
 
 
 def run_label_stage(job, eng, progress=False):
-    """The shared parameters of every label of ``job`` (a :class:`pbrdf_cl.fitting.labels.LabelJob`).
+    """The shared parameters of every label of ``job`` (a ``pbrdf_cl.fitting.labels.LabelJob``).
 
     Parameters
     ----------

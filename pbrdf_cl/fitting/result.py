@@ -1,4 +1,4 @@
-"""What :func:`pbrdf_cl.fit` returns: :class:`FitResult` (with :data:`FIT_STATUS`, its status
+"""What :func:`pbrdf_cl.fit` returns: :class:`FitResult` (with ``FIT_STATUS``, its status
 table), :class:`ComparisonResult`, and the notes a fit carries (the model's conventions, the
 data's mistakes, bounds, identifiability, goodness of fit, ambiguous basins)."""
 from __future__ import annotations
@@ -28,14 +28,14 @@ class FitResult(Result):
     ``OptimizeResult``).
 
     success, status, message
-        like scipy's: ``status`` is one of :data:`FIT_STATUS` (1: the local stages converged; 2:
+        like scipy's: ``status`` is one of ``FIT_STATUS`` (1: the local stages converged; 2:
         least squares ran out of evaluations along a flat valley and the final BOBYQA finished;
         0: an evaluation budget ran out while the objective was still falling (see ``SETTLED_REL``
-        in :mod:`pbrdf_cl.fitting.stages`), the result is the best point found; -1: the residuals
+        in ``pbrdf_cl.fitting.stages``), the result is the best point found; -1: the residuals
         are not finite at any candidate), ``success`` is ``status > 0`` and ``message`` says which.
 
     Without given uncertainties (no dop_std) the noise is estimated from the residuals, never
-    below :func:`dop_noise_floor` (an exact fit would make every interval a point); a note says
+    below ``dop_noise_floor`` (an exact fit would make every interval a point); a note says
     when the floor was used.  Fewer distinct geometries than free parameters are refused.
 
     x (dict: every model parameter, fitted and fixed, as the model takes them: ``x["kd"]`` is
@@ -57,7 +57,7 @@ class FitResult(Result):
         x +- stderr * (Gaussian, or Student's t without given uncertainties) truncated to the
         bounds, and the device grid's profile likelihood normalised over the bounds (where the
         grid resolves it: its own interval spans at least ``GRID_RESOLVED_CELLS`` cells, of
-        :mod:`pbrdf_cl.fitting.uncertainty`).  Where the data determine a parameter this is
+        ``pbrdf_cl.fitting.uncertainty``).  Where the data determine a parameter this is
         about x +- 1.96 stderr; where they do not, it is the middle 95% of its bounds (not all of
         them), so it covers the truth about 95% of the time in both cases (``scripts/bench_fit.py``
         measures it).  It need not contain x: the best fit of a parameter the data do not
@@ -119,7 +119,7 @@ class FitResult(Result):
 
 
 class ComparisonResult(Result):
-    """Result of :func:`compare_models`: ``fits`` (model name -> :class:`FitResult`, also the keys
+    """Result of :func:`pbrdf_cl.compare_models`: ``fits`` (model name -> :class:`FitResult`, also the keys
     "six-param" and "specular"), ``preferred`` (the lower BIC), ``table`` (Markdown) and
     :meth:`summary`."""
 

@@ -130,7 +130,7 @@ def dop_from_frames(frames, *, demosaic="bilinear", dark=None, saturation=None, 
     ----------
     frames : sequence of 2-D arrays, or one 3-D array
         One raw mosaic per illumination geometry (M frames of shape (H, W), H and W even), in
-        the IMX250MZR layout of :data:`SUPERPIXEL`; uint8 or uint16 as the camera writes them
+        the IMX250MZR layout of ``SUPERPIXEL``; uint8 or uint16 as the camera writes them
         (other integers in [0, 65535] are converted to uint16; float frames are scaled to uint16
         by polanalyser, by their maximum, which costs precision in dark pixels).  One 3-D array
         holds them along ``axis``; without it, along the axis (first or last) under which every

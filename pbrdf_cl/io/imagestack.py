@@ -105,7 +105,7 @@ def light_positions(n_lights=30, *, camera_theta=60.0, camera_azimuth=270.0, dis
     +-``spread[0]`` degrees in zenith and +-``spread[1]`` in azimuth, so that every pixel has a
     measurement within a few degrees of facet tilt of its own mirror direction (8 degrees with
     the defaults), which carries most of the information on n and k.  Then the rest on a grid of
-    rows of zenith angles by columns of relative azimuths (:data:`LIGHT_AZIMUTHS`: the mirror
+    rows of zenith angles by columns of relative azimuths (``LIGHT_AZIMUTHS``: the mirror
     plane and pairs at 180 +- 30 and +- 65 degrees, the forward half where the specular lobe
     lies), the rows denser towards grazing (zenith ``lo + (hi - lo) sin(pi/2 t)``, t uniform in
     [0, 1]): grazing light separates c, the spread of facet angles sigma and kd.  The columns are
@@ -167,7 +167,7 @@ def truth_maps(size=256):
     dict
         ``material`` (int8: 0 metal, 1 dielectric; a disc of radius 0.3 * size about the centre is
         the dielectric) and float64 maps ``n``, ``k``, ``sigma``, ``kd`` (kd/ks), ``c``; sigma
-        rises linearly in x over :data:`SIGMA_RANGE`.
+        rises linearly in x over ``SIGMA_RANGE``.
 
     Examples
     --------
@@ -215,7 +215,7 @@ def stack_bytes(size, n_lights):
     Returns
     -------
     int
-        Bytes: :data:`STACK_BYTES_PER_MEASUREMENT` per pixel and light, plus :data:`STACK_BYTES_FIXED`.
+        Bytes: ``STACK_BYTES_PER_MEASUREMENT`` per pixel and light, plus ``STACK_BYTES_FIXED``.
 
     Examples
     --------
@@ -274,7 +274,7 @@ def synthetic_stack(size=256, n_lights=30, noise=0.005, seed=0, *, sample_mm=100
     ------
     ValueError
         For a bad size, n_lights or noise, or a geometry with a light or view direction at
-        ``MAX_ZENITH`` degrees or more; :class:`pbrdf_cl.sizes.TooLargeError` (a ValueError and a
+        ``MAX_ZENITH`` degrees or more; :class:`pbrdf_cl.TooLargeError` (a ValueError and a
         MemoryError) before any work when the stack cannot fit in memory (:func:`stack_bytes`).
 
     Examples
@@ -483,7 +483,7 @@ def check_pixels(ds, pixels=None, **fit_kw):
     Returns
     -------
     list of dict
-        One per pixel: ``y``, ``x``, ``material``, and for each of :data:`FIT_PARAMETERS` its
+        One per pixel: ``y``, ``x``, ``material``, and for each of ``FIT_PARAMETERS`` its
         ``true``, ``fit``, ``stderr`` and ``ci95`` in a dict under the parameter's name, plus
         ``reduced_chi2`` and ``seconds``.
 

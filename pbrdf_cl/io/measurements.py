@@ -57,10 +57,29 @@ PHI_DEFAULT_NOTE = ("phi was not given: every measurement is taken in the plane 
 
 @dataclass
 class Measurements:
-    """Validated measurements (1-d float64 arrays of equal length).
+    """Validated measurements (1-d float64 arrays of equal length), as :func:`pbrdf_cl.read_csv`
+    and :func:`pbrdf_cl.as_measurements` return them.
 
-    ``ignored``: the names of the columns of the input that were not read (each reported once,
-    when read, by a :class:`DataWarning`)."""
+    Parameters
+    ----------
+    theta_i, theta_r, phi : numpy.ndarray
+        The geometry in degrees.
+    dop : numpy.ndarray
+        The measured DOP.
+    dop_std : numpy.ndarray, optional
+        Its standard deviations (the fit's weights).
+    f00, f00_std : numpy.ndarray, optional
+        An intensity (F00 or S0) and its standard deviations.
+    source : str, default "arrays"
+        Where the data came from (a file name), for messages.
+    lines : numpy.ndarray, optional
+        The file's line number of each measurement, for messages.
+    ignored : tuple of str
+        The names of the columns of the input that were not read (each reported once, when read,
+        by a :class:`pbrdf_cl.DataWarning`).
+    phi_given : bool, default True
+        False where the input had no phi (every point is then taken in plane, phi = 180).
+    """
     theta_i: np.ndarray
     theta_r: np.ndarray
     dop: np.ndarray

@@ -106,13 +106,37 @@ NAMES = tuple(REGISTRY)
 
 
 def names(path=None):
-    """Canonical names of the quantities available on ``path`` (all of them for None)."""
+    """Canonical names of the quantities available on ``path`` (all of them for None).
+
+    Parameters
+    ----------
+    path : {None, "points", "grid", "sweep", "map", "reduce", "objective"}
+        Where the quantities are to be computed.
+
+    Returns
+    -------
+    tuple of str
+    """
     return tuple(n for n, q in REGISTRY.items() if path is None or path in q.paths)
 
 
 def get(name, path=None, where="quantity"):
-    """The :class:`Quantity` of ``name`` (canonical or alias); with ``path``, a ``ValueError`` unless it
-    is available there.  ``where`` names the argument in messages."""
+    """The ``Quantity`` record of ``name`` (canonical or alias).
+
+    Parameters
+    ----------
+    name : str
+        A quantity's name or alias (``"dop"``, ``"f00"``, ...), in any case.
+    path : str, optional
+        With a path (see :func:`names`), a ``ValueError`` saying why unless it is available there.
+    where : str, default "quantity"
+        Names the argument in messages.
+
+    Returns
+    -------
+    Quantity
+        The registry's record: name, units, labels, colour map, the paths it supports.
+    """
     low = name.strip().lower() if isinstance(name, str) else name
     key = ALIASES.get(low, low) if isinstance(low, str) else low
     q = REGISTRY.get(key) if isinstance(key, str) else None
@@ -131,7 +155,17 @@ def get(name, path=None, where="quantity"):
 
 
 def canonical(name, path=None, where="quantity"):
-    """The canonical name of ``name`` (see :func:`get`)."""
+    """The canonical name of ``name`` (``"f00"`` -> ``"brdf"``).
+
+    Parameters
+    ----------
+    name, path, where
+        As for :func:`get`.
+
+    Returns
+    -------
+    str
+    """
     return get(name, path, where).name
 
 

@@ -14,7 +14,19 @@ def plot_design(result, path):
     and the reference's (crosses); right, the predicted 95% interval widths per parameter,
     chosen against reference, each with and without an intensity column (log scale).  A
     parameter a set leaves undetermined (its interval spans the whole bounds) is drawn as a
-    hatched, unfilled bar of its bound range, named in the legend.  Returns the (closed) Figure."""
+    hatched, unfilled bar of its bound range, named in the legend.
+
+    Parameters
+    ----------
+    result : pbrdf_cl.DesignResult
+        What :func:`pbrdf_cl.design` returned.
+    path : str or path
+        The PNG to write.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        The figure (closed)."""
     from matplotlib.patches import Patch
     plt = pyplot()
     fig, (ax, axb) = plt.subplots(1, 2, figsize=(13, 5.6), layout="constrained",

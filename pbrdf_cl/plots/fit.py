@@ -14,7 +14,23 @@ FIT_MARKERS = ("o", "x", "^")
 def plot_fit(meas, fits, path):
     """Measured DOP (error bars: +-1 ``dop_std``) and each fitted model's curve per incidence
     angle (one colour per theta_i), and the residuals model - data with the same colours, one
-    marker per model and the data's error bars.  Returns the (closed) matplotlib Figure."""
+    marker per model and the data's error bars (``pbrdf-cl fit --plot``).
+
+    Parameters
+    ----------
+    meas : pbrdf_cl.Measurements
+        The data fitted.
+    fits : dict
+        Model name (``"six-param"``, ``"specular"``) -> its :class:`pbrdf_cl.FitResult`, such as
+        ``compare_models(...).fits``.
+    path : str or path
+        Where the figure is written (the suffix says the format).
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        The figure (closed).
+    """
     from matplotlib.lines import Line2D
 
     from ..compute import pointwise

@@ -124,7 +124,7 @@ def plot_map(ds, path, title=None, dpi=120):
     """Write a map as a PNG: the quantity with labelled contour lines and a colour bar, and the
     derivative (diverging colours, zero-centred) in a second panel when present.
 
-    A BRDF over more than two decades is on a log scale of at most :data:`LOG_DECADES` decades
+    A BRDF over more than two decades is on a log scale of at most ``LOG_DECADES`` decades
     (the colour bar says where it is clipped).
 
     Parameters
