@@ -122,7 +122,8 @@ class Figures:
         self.sobol_figs, self.sobol_src = [], []
         self.sobol_mapper = LinearColorMapper(palette="Magma256", low=0, high=1, nan_color=(0, 0, 0, 0))
         for index in ("S1", "ST"):
-            fig = _figure(f"Sobol' {index}: press the button", "theta_r (deg)", "theta_i (deg)", width=width // 2 + 40, height=300,
+            fig = _figure(f"Sobol' {index}: press the button", "theta_r (deg)", "theta_i (deg)",
+                          width=width // 2 + 40, height=300,
                           name=f"sobol_{index}", match_aspect=True)
             src = ColumnDataSource(dict(image=[np.full((2, 2), np.nan, np.float32)], dw=[85.0], dh=[85.0]),
                                    name=f"sobol_{index}_src")
@@ -164,8 +165,9 @@ class Figures:
         step = 10 ** np.floor(np.log10(top / 2))
         rings = np.arange(step, top * 1.05 + step, step)[:8]
         a = np.radians(np.linspace(0, 90, 46))
-        xs = [r * np.sin(a) for r in rings] + [np.array([0, rings[-1] * np.sin(np.radians(d))]) for d in (0, 30, 60, 90)]
-        ys = [r * np.cos(a) for r in rings] + [np.array([0, rings[-1] * np.cos(np.radians(d))]) for d in (0, 30, 60, 90)]
+        spokes = np.radians([0, 30, 60, 90])
+        xs = [r * np.sin(a) for r in rings] + [np.array([0, rings[-1] * np.sin(d)]) for d in spokes]
+        ys = [r * np.cos(a) for r in rings] + [np.array([0, rings[-1] * np.cos(d)]) for d in spokes]
         text = dict(x=[float(r) * 0.02 for r in rings], y=[float(r) for r in rings], text=[f"{r:.3g}" for r in rings])
         for d in (30, 60, 90):
             text["x"].append(float(rings[-1] * np.sin(np.radians(d))))

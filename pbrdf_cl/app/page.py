@@ -371,8 +371,8 @@ class Explorer:
         self.fit_result = r
         self.use_fit.disabled = False
         notes = "".join(f"<li>{n}</li>" for n in r.notes)
-        head = f"{r.model}, shadowing {r.shadowing}: SSE {r.sse:.4g}" + ("" if r.fits_data else
-                                                                       " <b>(the model does not describe these data)</b>")
+        bad = "" if r.fits_data else " <b>(the model does not describe these data)</b>"
+        head = f"{r.model}, shadowing {r.shadowing}: SSE {r.sse:.4g}{bad}"
         self.fit_notes.object = f"{head}<ul>{notes}</ul>"
         self.refresh()
 
