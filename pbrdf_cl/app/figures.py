@@ -182,6 +182,8 @@ class Figures:
     def update_data(self, meas, theta_i, phi, res):
         """The measurements at the curves' incidences and azimuth, with error bars and residuals."""
         if meas is None:
+            if not len(self.data_src.data["x"]) and not len(self.map_data_src.data["x"]):
+                return
             self.data_src.data = dict(x=[], y=[], lo=[], hi=[], ti=[], res=[], res_lo=[], res_hi=[])
             self.map_data_src.data = dict(x=[], y=[])
             return
@@ -223,6 +225,8 @@ class Figures:
         self.colour_bar.title = axis_label(quantity) + (" (log scale)" if mapper is self.log else "")
 
     def update_ticks(self, ticks):
+        if ticks is None and not len(self.tick_src.data["x0"]):
+            return  # nothing drawn, nothing to draw: no message
         x0, y0, x1, y1 = ticks if ticks is not None else ([], [], [], [])
         self.tick_src.data = dict(x0=x0, y0=y0, x1=x1, y1=y1)
 
@@ -243,8 +247,9 @@ class Figures:
         """The fitted values with their intervals (``result``: a FitResult or None) and the fitted
         curves (len(theta_i), len(theta_r)) dashed."""
         if result is None:
-            self.fit_table_src.data = dict(parameter=[], value=[], low=[], high=[])
-            self.fit_src.data = dict(xs=[], ys=[])
+            if len(self.fit_table_src.data["parameter"]) or len(self.fit_src.data["xs"]):
+                self.fit_table_src.data = dict(parameter=[], value=[], low=[], high=[])
+                self.fit_src.data = dict(xs=[], ys=[])
             return
         names = list(result.free)
         self.fit_table_src.data = dict(parameter=names, value=[float(result.x[p]) for p in names],

@@ -17,6 +17,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import panel as pn
+from panel.io import hold
 
 from ..compute.pointwise import MODELS
 from ..device.engine import get_default_engine
@@ -32,6 +33,18 @@ from .figures import Figures
 #: Background jobs (fit, Sobol', design) of every session: one at a time per server, in a thread.
 POOL = ThreadPoolExecutor(max_workers=1, thread_name_prefix="pbrdf-explore")
 _BACKGROUND = {}
+#: How long the views stay still before the URL and the timing line follow them (ms).
+SETTLE_MS = 250
+
+
+class LiveFloatSlider(pn.widgets.FloatSlider):
+    """A slider whose moves reach the server at once (Panel waits 50 ms for more by default)."""
+    _priority_changes = ["value"]
+
+
+class LiveEditableFloatSlider(pn.widgets.EditableFloatSlider):
+    """Panel's slider with a text entry, its slider live (:class:`LiveFloatSlider`)."""
+    _slider_widget = LiveFloatSlider
 
 
 def background_engine(engine):
@@ -67,7 +80,7 @@ class Explorer:
     def __init__(self, engine=None, data=None, query=None):
         self.engine = engine if engine is not None else get_default_engine()
         self.meas, self.fit_result, self.sobol_ds, self.design_result = None, None, None, None
-        self.last_ms, self._quiet = float("nan"), False
+        self.last_ms, self._quiet, self._generation = float("nan"), False, 0
         problem = None
         try:
             self.state = st.from_query(query) if query else st.State()
@@ -90,38 +103,38 @@ class Explorer:
         self.sliders = {}
         for name in NAMES:
             lo, hi = st.LIMITS[name]
-            w = pn.widgets.EditableFloatSlider(name=name, start=lo, end=hi, step=st.STEPS[name], value=p[name],
+            w = LiveEditableFloatSlider(label=name, start=lo, end=hi, step=st.STEPS[name], value=p[name],
                                                fixed_start=lo, fixed_end=hi, width=260,
                                                format="0.0[000]")
-            w.param.watch(self._on_slider, "value")
+            w.param.watch(lambda event, name=name: self._on_slider(name, event.new), "value")
             self.sliders[name] = w
-        self.reset = pn.widgets.Button(name="Reset to the paper's steel", button_type="light", width=260)
+        self.reset = pn.widgets.Button(label="Reset to the paper's steel", color="light", width=260)
         self.reset.on_click(self._on_reset)
-        self.active = pn.widgets.RadioButtonGroup(name="edit set", options=list(st.SET_NAMES),
-                                                  value=st.SET_NAMES[self.state.active], button_type="primary")
-        self.shown = pn.widgets.CheckButtonGroup(name="show", options=list(st.SET_NAMES), button_type="success",
+        self.active = pn.widgets.RadioButtonGroup(label="edit set", options=list(st.SET_NAMES),
+                                                  value=st.SET_NAMES[self.state.active], color="primary")
+        self.shown = pn.widgets.CheckButtonGroup(label="show", options=list(st.SET_NAMES), color="success",
                                                  value=[n for n, on in zip(st.SET_NAMES, self.state.shown) if on])
-        self.solo = pn.widgets.RadioButtonGroup(name="solo", options=["-"] + list(st.SET_NAMES), button_type="warning",
+        self.solo = pn.widgets.RadioButtonGroup(label="solo", options=["-"] + list(st.SET_NAMES), color="warning",
                                                 value="-" if self.state.solo is None else st.SET_NAMES[self.state.solo])
-        self.copy_to = pn.widgets.Button(name="Copy this set to the next hidden one", width=260)
+        self.copy_to = pn.widgets.Button(label="Copy this set to the next hidden one", width=260)
         self.copy_to.on_click(self._on_copy)
-        self.quantity = pn.widgets.Select(name="quantity", options={v[0]: k for k, v in st.QUANTITIES.items()},
+        self.quantity = pn.widgets.Select(label="quantity", options={v[0]: k for k, v in st.QUANTITIES.items()},
                                           value=s.quantity, width=125)
-        self.model = pn.widgets.Select(name="model", options=list(MODELS), value=s.model, width=125)
-        self.shadowing = pn.widgets.Select(name="shadowing", options=sorted(SHADOWING), value=s.shadowing, width=125)
-        self.dtype = pn.widgets.Select(name="dtype", options=["float64", "float32"], value=s.dtype, width=125)
-        self.theta_i = pn.widgets.TextInput(name="theta_i of the curves (deg)", value=",".join(f"{t:g}" for t in
+        self.model = pn.widgets.Select(label="model", options=list(MODELS), value=s.model, width=125)
+        self.shadowing = pn.widgets.Select(label="shadowing", options=sorted(SHADOWING), value=s.shadowing, width=125)
+        self.dtype = pn.widgets.Select(label="dtype", options=["float64", "float32"], value=s.dtype, width=125)
+        self.theta_i = pn.widgets.TextInput(label="theta_i of the curves (deg)", value=",".join(f"{t:g}" for t in
                                                                                              s.theta_i), width=260)
-        self.phi = pn.widgets.EditableFloatSlider(name="phi (deg; 180 = in plane)", start=0, end=359.5, step=0.5,
+        self.phi = LiveEditableFloatSlider(label="phi (deg; 180 = in plane)", start=0, end=359.5, step=0.5,
                                                   value=s.phi, fixed_start=0, fixed_end=359.5, width=260)
-        self.map_kind = pn.widgets.RadioButtonGroup(name="map", options={"theta_i x theta_r": "incidence",
+        self.map_kind = pn.widgets.RadioButtonGroup(label="map", options={"theta_i x theta_r": "incidence",
                                                                          "hemisphere": "hemisphere"},
                                                     value=s.map_kind)
         for w in (self.active, self.shown, self.solo, self.quantity, self.model, self.shadowing, self.dtype,
                   self.theta_i, self.phi, self.map_kind):
             w.param.watch(self._on_setting, "value")
-        self.status = pn.pane.HTML("", width=560, name="status")
-        self.timing = pn.pane.HTML("", name="timing")
+        self.status = pn.pane.HTML("", width=900, height=24, name="status")
+        self.timing = pn.pane.HTML("", name="timing", width=700, height=24)
         self._data_widgets()
         self._export_widgets()
 
@@ -129,26 +142,26 @@ class Explorer:
         self.upload = pn.widgets.FileInput(accept=".csv,.txt,.tsv", width=260)
         self.upload.param.watch(self._on_upload, "value")
         self.data_info = pn.pane.HTML("no measurements loaded", width=420)
-        self.fit_button = pn.widgets.Button(name="Fit", button_type="primary", width=120, disabled=True)
+        self.fit_button = pn.widgets.Button(label="Fit", color="primary", width=120, disabled=True)
         self.fit_button.on_click(self._on_fit)
-        self.use_fit = pn.widgets.Button(name="Move the sliders to the fit", width=220, disabled=True)
+        self.use_fit = pn.widgets.Button(label="Move the sliders to the fit", width=220, disabled=True)
         self.use_fit.on_click(self._on_use_fit)
-        self.progress = pn.indicators.Progress(active=False, value=0, width=200, visible=False, name="progress")
+        self.progress = pn.indicators.Progress(active=False, value=0, width=200, visible=False)
         self.fit_notes = pn.pane.HTML("", width=560, name="fit_notes")
-        self.sobol_button = pn.widgets.Button(name="Sobol' map around this set", width=220)
+        self.sobol_button = pn.widgets.Button(label="Sobol' map around this set", width=220)
         self.sobol_button.on_click(self._on_sobol)
-        self.sobol_param = pn.widgets.Select(name="parameter", options=["n", "k", "sigma", "kd", "c"], value="n",
+        self.sobol_param = pn.widgets.Select(label="parameter", options=["n", "k", "sigma", "kd", "c"], value="n",
                                              width=120)
         self.sobol_param.param.watch(lambda e: self._draw_sobol(), "value")
-        self.sobol_share = pn.widgets.FloatInput(name="box: +- share of each range", value=0.1, start=0.01, end=0.5,
+        self.sobol_share = pn.widgets.FloatInput(label="box: +- share of each range", value=0.1, start=0.01, end=0.5,
                                                  step=0.05, width=200)
-        self.design_button = pn.widgets.Button(name="Design 30 geometries for n, k", width=220)
+        self.design_button = pn.widgets.Button(label="Design 30 geometries for n, k", width=220)
         self.design_button.on_click(self._on_design)
         self.jobs = pn.pane.HTML("", width=560, name="jobs")
 
     def _export_widgets(self):
         def download(label, filename, make):
-            return pn.widgets.FileDownload(callback=make, filename=filename, label=label, button_type="light",
+            return pn.widgets.FileDownload(callback=make, filename=filename, label=label, color="light",
                                            width=170)
         self.exports = [download("view as CSV", "pbrdf-view.csv", self._csv),
                         download("view as NetCDF", "pbrdf-view.nc", self._netcdf),
@@ -184,8 +197,28 @@ class Explorer:
         self.status.object = f'<span style="color:{colour}">{text}</span>' if text else ""
 
     def refresh(self):
-        """Recompute and redraw every live view from the state; the time it took is shown."""
+        """Recompute and redraw every live view from the state, as one message to the browser.  The
+        URL and the timing line follow once the views have been still for SETTLE_MS (each costs
+        the browser a layout or a history entry: not while a slider moves)."""
         t0 = time.perf_counter()
+        with hold(self.doc):
+            ok = self._redraw()
+        if ok:
+            self.last_ms = 1e3 * (time.perf_counter() - t0)
+            self._generation += 1
+            if self.doc is not None and self.doc.session_context is not None:
+                generation = self._generation
+                self.doc.add_timeout_callback(lambda: self._settled(generation), SETTLE_MS)
+            else:
+                self._settled(self._generation)
+
+    def _settled(self, generation):
+        if generation != self._generation:
+            return  # another update came since: wait for its own
+        self.timing.object = f"<small>views updated in {self.last_ms:.0f} ms on {self.engine!r}</small>"
+        self._sync_url()
+
+    def _redraw(self):
         s, f = self.state.settings, self.figs
         try:
             with warnings.catch_warnings():
@@ -203,11 +236,10 @@ class Explorer:
                 self._draw_fit()
         except (ValueError, FloatingPointError) as exc:
             self.say(one_line(exc), error=True)
-            return
-        self.say("")
-        self.last_ms = 1e3 * (time.perf_counter() - t0)
-        self.timing.object = f"<small>views updated in {self.last_ms:.0f} ms on {self.engine!r}</small>"
-        self._sync_url()
+            return False
+        if self.status.object:
+            self.say("")
+        return True
 
     def _draw_data(self):
         f, s = self.figs, self.state.settings
@@ -240,10 +272,10 @@ class Explorer:
 
     # ---- callbacks --------------------------------------------------------------------------------
 
-    def _on_slider(self, event):
+    def _on_slider(self, name, value):
         if self._quiet:
             return
-        self.state.sets[self.state.active][event.obj.name] = float(event.new)
+        self.state.sets[self.state.active][name] = float(value)
         self.refresh()
 
     def _set_sliders(self, values):
