@@ -40,7 +40,7 @@ class Figures:
     """The page's figures and their sources; ``update_*`` methods take numbers and write them."""
 
     def __init__(self, width=560, height=360):
-        self.curves_fig = _figure("In plane: value vs theta_r", "theta_r (deg)", axis_label("dop"),
+        self.curves_fig = _figure("DOP vs theta_r", "theta_r (deg)", axis_label("dop"),
                                   width=width, height=height, name="curves_fig")
         self.curve_src = [ColumnDataSource(dict(xs=[], ys=[], ti=[]), name=f"curve_{n}") for n in SET_NAMES]
         self.label_src = ColumnDataSource(dict(x=[], y=[], text=[], colour=[]), name="curve_labels")
@@ -71,8 +71,9 @@ class Figures:
         self.res_fig.line([0, THETA_MAX], [0, 0], line_color="grey", line_dash="dotted")
         self.res_fig.x_range = self.curves_fig.x_range
 
-        self.polar_fig = _figure("Polar: radius = value, angle = theta_r from the normal", "value sin(theta_r)",
-                                 "value cos(theta_r)", width=height + 40, height=height, match_aspect=True,
+        self.polar_fig = _figure("Polar: radius = |value|, angle = theta_r from the normal",
+                                 "|DOP| sin(theta_r) (1)", "|DOP| cos(theta_r) (1)", width=height + 40, height=height,
+                                 match_aspect=True,
                                  name="polar_fig")
         self.polar_src = [ColumnDataSource(dict(xs=[], ys=[]), name=f"polar_{n}") for n in SET_NAMES]
         self.polar_grid = ColumnDataSource(dict(xs=[], ys=[]), name="polar_grid")
@@ -135,9 +136,23 @@ class Figures:
 
     # ---- updates ------------------------------------------------------------------------------------
 
-    def update_curves(self, theta_r, theta_i, values, quantity):
-        """``values``: set index -> (len(theta_i), len(theta_r)); the others are emptied."""
+    def sync_legends(self):
+        """Legend entries only for what is drawn (the fit, the data, a design, the measurements)."""
+        items = self.curves_fig.legend[0].items
+        for item, src, key in ((items[-2], self.fit_src, "xs"), (items[-1], self.data_src, "x")):
+            item.visible = bool(len(src.data[key]))
+        for item, src in zip(self.map_fig.legend[0].items, (self.design_src, self.map_data_src)):
+            item.visible = bool(len(src.data["x"]))
+
+    def update_curves(self, theta_r, theta_i, values, quantity, phi=180.0):
+        """``values``: set index -> (len(theta_i), len(theta_r)) at azimuth ``phi``; the others
+        are emptied."""
         self.curves_fig.yaxis.axis_label = axis_label(quantity)
+        self.curves_fig.title.text = f"{QUANTITIES[quantity][0]} vs theta_r at phi = {phi:g}°" + (
+            " (in plane)" if phi == 180 else "") + ", one curve per theta_i"
+        label, units = QUANTITIES[quantity][:2]
+        self.polar_fig.xaxis.axis_label = f"|{label}| sin(theta_r) ({units})"
+        self.polar_fig.yaxis.axis_label = f"|{label}| cos(theta_r) ({units})"
         labels = dict(x=[], y=[], text=[], colour=[])
         for i, src in enumerate(self.curve_src):
             v = values.get(i)
@@ -147,7 +162,8 @@ class Figures:
                 continue
             src.data = dict(xs=[theta_r] * len(theta_i), ys=list(v), ti=list(theta_i))
             rad = np.radians(theta_r)
-            self.polar_src[i].data = dict(xs=[row * np.sin(rad) for row in v], ys=[row * np.cos(rad) for row in v])
+            self.polar_src[i].data = dict(xs=[np.abs(row) * np.sin(rad) for row in v],
+                                          ys=[np.abs(row) * np.cos(rad) for row in v])
             for t, row in zip(theta_i, v):
                 labels["x"].append(theta_r[-1])
                 labels["y"].append(float(row[-1]) if np.isfinite(row[-1]) else 0.0)
@@ -232,6 +248,7 @@ class Figures:
 
     def update_design(self, theta_i, theta_r):
         self.design_src.data = dict(x=list(theta_r), y=list(theta_i))
+        self.sync_legends()
 
     def update_sobol(self, ds, parameter):
         """The S1 and ST maps of ``parameter`` from ``pbrdf_cl.sobol``'s Dataset (theta_i x theta_r)."""

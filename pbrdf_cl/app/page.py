@@ -224,7 +224,7 @@ class Explorer:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")  # the page shows errors; warnings go to the server's log
                 tr = st.theta_r_axis()
-                f.update_curves(tr, s.theta_i, st.curves(self.engine, self.state, tr), s.quantity)
+                f.update_curves(tr, s.theta_i, st.curves(self.engine, self.state, tr), s.quantity, s.phi)
                 shown = "dop" if s.quantity == "aop" else s.quantity  # AoP: ticks over the DOP
                 if s.map_kind == "incidence":
                     a, b, v = st.incidence_map(self.engine, self.state, shown)
@@ -234,6 +234,7 @@ class Explorer:
                 f.update_ticks(st.aop_ticks(self.engine, self.state) if s.quantity == "aop" else None)
                 self._draw_data()
                 self._draw_fit()
+                f.sync_legends()
         except (ValueError, FloatingPointError) as exc:
             self.say(one_line(exc), error=True)
             return False
@@ -243,6 +244,10 @@ class Explorer:
 
     def _draw_data(self):
         f, s = self.figs, self.state.settings
+        r = self.design_result  # the design's geometries are (theta_i, theta_r): on that map only
+        design = ([], []) if r is None or s.map_kind != "incidence" else (list(r.theta_i), list(r.theta_r))
+        if len(f.design_src.data["x"]) != len(design[0]):
+            f.update_design(*design)
         if self.meas is None:
             f.update_data(None, s.theta_i, s.phi, None)
             return
