@@ -2,6 +2,7 @@
 files that eval and map read, and the page itself in a real browser (Debian's chromium through
 chromedriver, driven by Selenium): a slider moved, the plotted DOP against ``pbrdf_cl.dop``, the
 example CSV loaded and fitted, the fitted values against ``pbrdf_cl.fit``'s, the state in the URL."""
+import html
 import os
 import subprocess
 import sys
@@ -106,8 +107,25 @@ def test_page_without_a_browser(tmp_path, capsys):
     assert f"error: {cli_line}" in ex.status.object
     ds = ex.dataset()
     assert ds["curve"].sel(set="A", theta_i=40).values.tolist() == expected.tolist()
+    import io
+
+    import xarray as xr
+    back = xr.open_dataset(io.BytesIO(ex._netcdf().getvalue()))
+    assert np.array_equal(back["map"].values, ds["map"].values, equal_nan=True)
     assert "theta_r" in ex._csv().getvalue().splitlines()[1]
     assert read_params_text(ex._params("toml").getvalue(), tmp_path)["sigma"] == 0.37
+
+
+def test_explore_command_refuses_bad_input_in_one_line(tmp_path, capsys):
+    pytest.importorskip("panel", reason="the explore extra (panel) is not installed")
+    bad = tmp_path / "bad.csv"
+    bad.write_text("theta_i,theta_r\n30,20\n")
+    assert main(["fit", str(bad)]) == 1
+    fit_err = capsys.readouterr().err
+    assert main(["explore", "--no-browser", "--data", str(bad)]) == 1
+    assert capsys.readouterr().err == fit_err  # the same line as `pbrdf-cl fit`
+    assert main(["explore", "--no-browser", "--port", "70000"]) == 1
+    assert capsys.readouterr().err == "pbrdf-cl: error: --port 70000: give a port in 0..65535 (0: any free one)\n"
 
 
 def read_params_text(text, folder):
@@ -141,7 +159,7 @@ def _slider_values(driver):
                                  ".filter(m => m.type == 'Slider').map(m => m.value)")
 
 
-def test_in_the_browser_slider_fit_and_url(browser):
+def test_in_the_browser_slider_fit_and_url(browser, tmp_path):
     from selenium.webdriver.common.keys import Keys
 
     from pbrdf_cl.app import drive
@@ -166,6 +184,14 @@ def test_in_the_browser_slider_fit_and_url(browser):
     drive.wait(query, 30, what="the URL holding the new n")
 
     upload = drive.deep_find(driver, "input[type=file]")[0]
+    bad = tmp_path / "steel_bad.csv"
+    bad.write_text("theta_i,theta_r,dop\n30,20,0.05\n30,x,0.1\n")
+    upload.send_keys(str(bad))
+    shown = drive.wait(lambda: driver.execute_script(
+        "return Object.values(Object.fromEntries(Bokeh.documents[0]._all_models))"
+        ".map(m => typeof m.text == 'string' ? m.text : '').find(t => t.includes('error: '))"),
+        60, what="the bad file's error")
+    assert "error: steel_bad.csv, line 3: theta_r = 'x' is not a number" in html.unescape(html.unescape(shown))
     upload.send_keys(str(EXAMPLE))
     drive.wait(lambda: drive.source_data(driver, "data_points")["x"], 60, what="the measurements")
     drive.button(driver, "Fit").click()

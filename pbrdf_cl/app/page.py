@@ -8,6 +8,7 @@ sliders stay live while they run."""
 from __future__ import annotations
 
 import asyncio
+import html
 import io
 import os
 import tempfile
@@ -194,7 +195,7 @@ class Explorer:
 
     def say(self, text, error=False):
         colour = "#b00020" if error else "#333333"
-        self.status.object = f'<span style="color:{colour}">{text}</span>' if text else ""
+        self.status.object = f'<span style="color:{colour}">{html.escape(text, quote=False)}</span>' if text else ""
 
     def refresh(self):
         """Recompute and redraw every live view from the state, as one message to the browser.  The
@@ -340,12 +341,12 @@ class Explorer:
                 meas = read_csv(path)
         except (OSError, ValueError) as exc:
             text = str(exc).replace(str(path), shown_name)
-            self.data_info.object = f'<span style="color:#b00020">{one_line(text)}</span>'
+            self.data_info.object = f'<span style="color:#b00020">{html.escape(one_line(text), quote=False)}</span>'
             self.say(one_line(text), error=True)
             return False
         self.meas, self.fit_result = meas, None
-        notes = "".join(f"<br><small>warning: {w.message}</small>" for w in caught)
-        self.data_info.object = (f"{shown_name}: {meas.theta_i.size} measurements, theta_i "
+        notes = "".join(f"<br><small>warning: {html.escape(str(w.message), quote=False)}</small>" for w in caught)
+        self.data_info.object = (f"{html.escape(shown_name, quote=False)}: {meas.theta_i.size} measurements, theta_i "
                                  f"{', '.join(f'{t:g}' for t in np.unique(meas.theta_i))}{notes}")
         self.fit_button.disabled = False
         self.use_fit.disabled = True
@@ -382,7 +383,7 @@ class Explorer:
         try:
             result = await asyncio.get_running_loop().run_in_executor(POOL, job, *args)
         except (ValueError, FloatingPointError, RuntimeError) as exc:
-            self.jobs.object = f'<span style="color:#b00020">{label}: {one_line(exc)}</span>'
+            self.jobs.object = f'<span style="color:#b00020">{label}: {html.escape(one_line(exc), quote=False)}</span>'
             return None
         finally:
             button.disabled = False
@@ -407,7 +408,7 @@ class Explorer:
     def _show_fit(self, r):
         self.fit_result = r
         self.use_fit.disabled = False
-        notes = "".join(f"<li>{n}</li>" for n in r.notes)
+        notes = "".join(f"<li>{html.escape(n, quote=False)}</li>" for n in r.notes)
         bad = "" if r.fits_data else " <b>(the model does not describe these data)</b>"
         head = f"{r.model}, shadowing {r.shadowing}: SSE {r.sse:.4g}{bad}"
         self.fit_notes.object = f"{head}<ul>{notes}</ul>"
