@@ -36,6 +36,18 @@ def _figure(title, x_label, y_label, **kw):
     return fig
 
 
+def nice_limits(lo, hi, log=False):
+    """Colour limits around [lo, hi] rounded outwards to round numbers (half decades on a log
+    scale), so that they, and the colour bar, change only when the values cross one."""
+    if log:
+        return float(10 ** (np.floor(2 * np.log10(lo)) / 2)), float(10 ** (np.ceil(2 * np.log10(hi)) / 2))
+    span = hi - lo
+    if not span > 0:
+        return lo - 0.5, lo + 0.5
+    step = 10 ** np.floor(np.log10(span)) / 2
+    return float(np.floor(lo / step) * step), float(np.ceil(hi / step) * step)
+
+
 class Figures:
     """The page's figures and their sources; ``update_*`` methods take numbers and write them."""
 
@@ -180,6 +192,9 @@ class Figures:
         top = top if top > 0 else 1.0
         step = 10 ** np.floor(np.log10(top / 2))
         rings = np.arange(step, top * 1.05 + step, step)[:8]
+        if getattr(self, "_rings", None) == tuple(rings):
+            return  # the same grid: nothing to send
+        self._rings = tuple(rings)
         a = np.radians(np.linspace(0, 90, 46))
         spokes = np.radians([0, 30, 60, 90])
         xs = [r * np.sin(a) for r in rings] + [np.array([0, rings[-1] * np.sin(d)]) for d in spokes]
@@ -218,15 +233,17 @@ class Figures:
             self.map_fig.title.text = "Map over (theta_i, theta_r) at the curves' phi"
             self.map_fig.xaxis.axis_label, self.map_fig.yaxis.axis_label = "theta_r (deg)", "theta_i (deg)"
             lim = (0.0, THETA_MAX)
-            self.rim_src.data = dict(x=[], y=[])
+            if len(self.rim_src.data["x"]):
+                self.rim_src.data = dict(x=[], y=[])
         else:
             self.map_src.data = dict(image=[img], x=[-1.0], y=[-1.0], dw=[2.0], dh=[2.0])
             self.map_fig.title.text = "Hemisphere from above at the first theta_i (source on the left)"
             self.map_fig.xaxis.axis_label = "x = (theta_r / 90°) cos(phi_r) (1)"
             self.map_fig.yaxis.axis_label = "y = (theta_r / 90°) sin(phi_r) (1)"
             lim = (-1.0, 1.0)
-            t = np.linspace(0, 2 * np.pi, 181)
-            self.rim_src.data = dict(x=np.cos(t) * THETA_MAX / 90, y=np.sin(t) * THETA_MAX / 90)
+            if not len(self.rim_src.data["x"]):
+                t = np.linspace(0, 2 * np.pi, 181)
+                self.rim_src.data = dict(x=np.cos(t) * THETA_MAX / 90, y=np.sin(t) * THETA_MAX / 90)
         for rng in (self.map_fig.x_range, self.map_fig.y_range):
             rng.start, rng.end = lim
         finite = img[np.isfinite(img)]
@@ -235,7 +252,9 @@ class Figures:
             hi = float(finite.max())
             lo = max(float(finite[finite > 0].min()) if (finite > 0).any() else 1e-12, hi * 1e-5) if mapper is \
                 self.log else float(finite.min())
-            mapper.low, mapper.high = (lo, hi) if hi > lo else (lo - 0.5, lo + 0.5)
+            low, high = nice_limits(lo, hi, mapper is self.log)
+            if (mapper.low, mapper.high) != (low, high):  # the colour bar moves only when a limit does
+                mapper.low, mapper.high = low, high
         self.map_image.glyph.color_mapper = mapper
         self.colour_bar.color_mapper = mapper
         self.colour_bar.title = axis_label(quantity) + (" (log scale)" if mapper is self.log else "")

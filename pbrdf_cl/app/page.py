@@ -391,11 +391,10 @@ class Explorer:
         self.jobs.object = f"{label}: done in {time.perf_counter() - t0:.1f} s"
         return result
 
+    # The jobs leave the warning filters alone (catch_warnings is not thread-safe): their warnings
+    # go to the server's log.
     def _fit_job(self, meas, model, shadowing):
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            return fit(meas, model=model, shadowing=shadowing,
-                                         engine=background_engine(self.engine))
+        return fit(meas, model=model, shadowing=shadowing, engine=background_engine(self.engine))
 
     async def _on_fit(self, event):
         if self.meas is None:
@@ -425,11 +424,9 @@ class Explorer:
     # ---- Sobol' map and design --------------------------------------------------------------------
 
     def _sobol_job(self, params, share, settings):
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            return sobol(st.sobol_box(params, share), {"theta_i": "0:85@24", "theta_r": "0:85@24"},
-                         fixed=dict(ks=params["ks"]), N=256, seed=1, shadowing=settings.shadowing,
-                         engine=background_engine(self.engine))
+        return sobol(st.sobol_box(params, share), {"theta_i": "0:85@24", "theta_r": "0:85@24"},
+                     fixed=dict(ks=params["ks"]), N=256, seed=1, shadowing=settings.shadowing,
+                     engine=background_engine(self.engine))
 
     async def _on_sobol(self, event):
         share = float(self.sobol_share.value or 0.1)
@@ -444,10 +441,8 @@ class Explorer:
             self.figs.update_sobol(self.sobol_ds, self.sobol_param.value)
 
     def _design_job(self, params, settings):
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            return design(params, {"theta_i": "10:80:5", "theta_r": "0:85:5"}, noise=0.005, n_measurements=30,
-                          shadowing=settings.shadowing, engine=background_engine(self.engine))
+        return design(params, {"theta_i": "10:80:5", "theta_r": "0:85:5"}, noise=0.005, n_measurements=30,
+                      shadowing=settings.shadowing, engine=background_engine(self.engine))
 
     async def _on_design(self, event):
         r = await self._background(self.design_button, "design", self._design_job,
