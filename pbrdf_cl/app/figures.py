@@ -224,20 +224,20 @@ class Figures:
                                   hi=(meas.dop + std)[keep], ti=meas.theta_i[keep], res=res[keep],
                                   res_lo=(res - std)[keep], res_hi=(res + std)[keep])
 
-    def update_map(self, kind, a, b, v, quantity, log=False):
+    def update_map(self, kind, a, b, v, quantity, log=False, set_name="A"):
         """The image of the map: ``kind`` "incidence" (a: theta_i rows, b: theta_r columns) or
         "hemisphere" (a: x, b: y in [-1, 1])."""
         img = np.asarray(v, dtype=np.float32)
         if kind == MAP_KINDS[0]:
             self.map_src.data = dict(image=[img], x=[0.0], y=[0.0], dw=[THETA_MAX], dh=[THETA_MAX])
-            self.map_fig.title.text = "Map over (theta_i, theta_r) at the curves' phi"
+            self.map_fig.title.text = f"Set {set_name} over (theta_i, theta_r) at the curves' phi"
             self.map_fig.xaxis.axis_label, self.map_fig.yaxis.axis_label = "theta_r (deg)", "theta_i (deg)"
             lim = (0.0, THETA_MAX)
             if len(self.rim_src.data["x"]):
                 self.rim_src.data = dict(x=[], y=[])
         else:
             self.map_src.data = dict(image=[img], x=[-1.0], y=[-1.0], dw=[2.0], dh=[2.0])
-            self.map_fig.title.text = "Hemisphere from above at the first theta_i (source on the left)"
+            self.map_fig.title.text = f"Set {set_name}: hemisphere from above at the first theta_i (source left)"
             self.map_fig.xaxis.axis_label = "x = (theta_r / 90°) cos(phi_r) (1)"
             self.map_fig.yaxis.axis_label = "y = (theta_r / 90°) sin(phi_r) (1)"
             lim = (-1.0, 1.0)

@@ -231,7 +231,8 @@ class Explorer:
                     a, b, v = st.incidence_map(self.engine, self.state, shown)
                 else:
                     a, b, v = st.hemisphere_map(self.engine, self.state, shown)
-                f.update_map(s.map_kind, a, b, v, shown, log=shown in ("brdf", "s0"))
+                f.update_map(s.map_kind, a, b, v, shown, log=shown in ("brdf", "s0"),
+                             set_name=st.SET_NAMES[self.state.active])
                 f.update_ticks(st.aop_ticks(self.engine, self.state) if s.quantity == "aop" else None)
                 self._draw_data()
                 self._draw_fit()
