@@ -45,6 +45,10 @@ def sobol_and_design(driver):
         image = drive.source_data(driver, "sobol_S1_src")["image"][0]
         return np.isfinite(np.asarray(image, dtype=float)).any()
     drive.wait(drawn, 120, what="the Sobol' map")
+    driver.execute_script("Object.values(Object.fromEntries(Bokeh.documents[0]._all_models))"
+                          ".find(m => m.type.endsWith('Select') && m.value == 'n').value = 'kd'")
+    drive.wait(lambda: "of kd" in driver.execute_script(
+        "return Bokeh.documents[0].get_model_by_name('sobol_S1').title.text"), 30, what="the Sobol' map of kd")
     drive.button(driver, "Design 30 geometries for n, k").click()
     drive.wait(lambda: drive.source_data(driver, "design_points")["x"], 120, what="the design")
 

@@ -107,7 +107,7 @@ class Figures:
                                             TableColumn(field="high", title="95% high", formatter=number)])
 
     def _build_map(self, width, height):
-        self.map_fig = _figure("Map", "theta_r (deg)", "theta_i (deg)", width=width, height=height + 60,
+        self.map_fig = _figure("Map", "theta_r (deg)", "theta_i (deg)", frame_width=height, frame_height=height,
                                name="map_fig", match_aspect=True)
         self.map_src = ColumnDataSource(dict(image=[np.zeros((2, 2), np.float32)], x=[0.0], y=[0.0],
                                              dw=[THETA_MAX], dh=[THETA_MAX]), name="map")
@@ -138,9 +138,9 @@ class Figures:
             fig = _figure(f"Sobol' {index}: press the button", "theta_r (deg)", "theta_i (deg)",
                           width=width // 2 + 40, height=300,
                           name=f"sobol_{index}", match_aspect=True)
-            src = ColumnDataSource(dict(image=[np.full((2, 2), np.nan, np.float32)], dw=[85.0], dh=[85.0]),
-                                   name=f"sobol_{index}_src")
-            fig.image("image", x=0, y=0, dw="dw", dh="dh", source=src, color_mapper=self.sobol_mapper)
+            src = ColumnDataSource(dict(image=[np.full((2, 2), np.nan, np.float32)], x=[0.0], y=[0.0], dw=[85.0],
+                                        dh=[85.0]), name=f"sobol_{index}_src")
+            fig.image("image", x="x", y="y", dw="dw", dh="dh", source=src, color_mapper=self.sobol_mapper)
             fig.x_range, fig.y_range = Range1d(0, 85), Range1d(0, 85)
             self.sobol_figs.append(fig)
             self.sobol_src.append(src)
@@ -228,15 +228,16 @@ class Figures:
         """The image of the map: ``kind`` "incidence" (a: theta_i rows, b: theta_r columns) or
         "hemisphere" (a: x, b: y in [-1, 1])."""
         img = np.asarray(v, dtype=np.float32)
+        h = (float(b[-1]) - float(b[0])) / (img.shape[1] - 1)  # the nodes are the cells' centres
         if kind == MAP_KINDS[0]:
-            self.map_src.data = dict(image=[img], x=[0.0], y=[0.0], dw=[THETA_MAX], dh=[THETA_MAX])
+            self.map_src.data = dict(image=[img], x=[-h / 2], y=[-h / 2], dw=[THETA_MAX + h], dh=[THETA_MAX + h])
             self.map_fig.title.text = f"Set {set_name} over (theta_i, theta_r) at the curves' phi"
             self.map_fig.xaxis.axis_label, self.map_fig.yaxis.axis_label = "theta_r (deg)", "theta_i (deg)"
             lim = (0.0, THETA_MAX)
             if len(self.rim_src.data["x"]):
                 self.rim_src.data = dict(x=[], y=[])
         else:
-            self.map_src.data = dict(image=[img], x=[-1.0], y=[-1.0], dw=[2.0], dh=[2.0])
+            self.map_src.data = dict(image=[img], x=[-1.0 - h / 2], y=[-1.0 - h / 2], dw=[2.0 + h], dh=[2.0 + h])
             self.map_fig.title.text = f"Set {set_name}: hemisphere from above at the first theta_i (source left)"
             self.map_fig.xaxis.axis_label = "x = (theta_r / 90°) cos(phi_r) (1)"
             self.map_fig.yaxis.axis_label = "y = (theta_r / 90°) sin(phi_r) (1)"
@@ -274,7 +275,9 @@ class Figures:
         ti, tr = ds["theta_i"].values, ds["theta_r"].values
         for index, fig, src in zip(("S1", "ST"), self.sobol_figs, self.sobol_src):
             v = ds[index].sel(parameter=parameter).transpose("theta_i", "theta_r").values.astype(np.float32)
-            src.data = dict(image=[v], dw=[float(tr[-1] - tr[0])], dh=[float(ti[-1] - ti[0])])
+            hx, hy = (tr[-1] - tr[0]) / (tr.size - 1), (ti[-1] - ti[0]) / (ti.size - 1)  # nodes: cell centres
+            src.data = dict(image=[v], x=[float(tr[0] - hx / 2)], y=[float(ti[0] - hy / 2)],
+                            dw=[float(tr[-1] - tr[0] + hx)], dh=[float(ti[-1] - ti[0] + hy)])
             fig.title.text = f"Sobol' {index} of {parameter} ({'first order' if index == 'S1' else 'total'})"
             fig.x_range.start, fig.x_range.end = float(tr[0]), float(tr[-1])
             fig.y_range.start, fig.y_range.end = float(ti[0]), float(ti[-1])
