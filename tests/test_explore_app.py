@@ -114,6 +114,8 @@ def test_page_without_a_browser(tmp_path, capsys):
     assert np.array_equal(back["map"].values, ds["map"].values, equal_nan=True)
     assert "theta_r" in ex._csv().getvalue().splitlines()[1]
     assert read_params_text(ex._params("toml").getvalue(), tmp_path)["sigma"] == 0.37
+    png = ex._png().getvalue()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000
 
 
 def test_explore_command_refuses_bad_input_in_one_line(tmp_path, capsys):

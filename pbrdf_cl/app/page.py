@@ -28,6 +28,7 @@ from ..fitting.inversion import fit
 from ..io.measurements import read_csv
 from ..io.params import NAMES, params_text
 from ..model.reference import SHADOWING
+from ..plots.explore import plot_view
 from . import state as st
 from .figures import Figures
 
@@ -163,8 +164,9 @@ class Explorer:
     def _export_widgets(self):
         def download(label, filename, make):
             return pn.widgets.FileDownload(callback=make, filename=filename, label=label, color="light",
-                                           width=170)
-        self.exports = [download("view as CSV", "pbrdf-view.csv", self._csv),
+                                           width=130)
+        self.exports = [download("view as PNG", "pbrdf-view.png", self._png),
+                        download("view as CSV", "pbrdf-view.csv", self._csv),
                         download("view as NetCDF", "pbrdf-view.nc", self._netcdf),
                         download("set as JSON", "pbrdf-params.json", lambda: self._params("json")),
                         download("set as TOML", "pbrdf-params.toml", lambda: self._params("toml"))]
@@ -183,8 +185,8 @@ class Explorer:
                          pn.pane.Bokeh(f.fit_table), self.fit_notes)
         jobs = pn.Column(pn.pane.HTML("<b>On demand</b>"), pn.Row(self.sobol_button, self.sobol_share),
                          self.sobol_param, self.design_button, self.jobs,
-                         pn.pane.HTML("<b>Export</b> (PNG: the save tool above each plot)"),
-                         pn.Row(*self.exports[:2]), pn.Row(*self.exports[2:]))
+                         pn.pane.HTML("<b>Export</b> (one plot as PNG: its toolbar's save tool)"),
+                         pn.Row(*self.exports[:3]), pn.Row(*self.exports[3:]))
         views = pn.Column(self.status, pn.Row(pn.pane.Bokeh(f.curves_fig), pn.pane.Bokeh(f.polar_fig)),
                           pn.Row(pn.Column(pn.pane.Bokeh(f.res_fig), data), pn.pane.Bokeh(f.map_fig)),
                           pn.Row(pn.pane.Bokeh(f.sobol_figs[0]), pn.pane.Bokeh(f.sobol_figs[1]), jobs),
@@ -458,6 +460,12 @@ class Explorer:
 
     def dataset(self):
         return st.view_dataset(self.engine, self.state, self.meas)
+
+    def _png(self):
+        buffer = io.BytesIO()
+        plot_view(self.dataset(), buffer)
+        buffer.seek(0)
+        return buffer
 
     def _csv(self):
         return io.StringIO(st.curves_csv(self.dataset()))
