@@ -76,7 +76,7 @@ def parse_theta_i(text):
 def model_params(params, settings):
     """The keyword arguments of ``pbrdf_cl.evaluate`` for one set: the ref. [7] (specular) model
     has no diffuse term, so kd is 0 there."""
-    kw = {k: float(params[k]) for k in NAMES}
+    kw = {k: params[k] if isinstance(params[k], np.ndarray) else float(params[k]) for k in NAMES}
     if settings.model == "specular":
         kw["kd"] = 0.0
     return kw
@@ -96,12 +96,17 @@ def theta_r_axis(step=0.5):
 
 
 def curves(engine, state, theta_r=None):
-    """Set index -> (len(theta_i), len(theta_r)) values of the visible sets, in plane at the
-    settings' phi."""
+    """Set index -> (len(theta_i), len(theta_r)) values of the visible sets at the settings' phi,
+    all sets in one call (their parameters along a leading axis)."""
     s = state.settings
     theta_r = theta_r_axis() if theta_r is None else theta_r
-    ti = np.asarray(s.theta_i, dtype=float)[:, None]
-    return {i: quantity_values(engine, s, state.sets[i], ti, theta_r[None, :], s.phi) for i in state.visible()}
+    shown = state.visible()
+    if not shown:
+        return {}
+    params = {k: np.array([float(state.sets[i][k]) for i in shown])[:, None, None] for k in NAMES}
+    ti = np.asarray(s.theta_i, dtype=float)[None, :, None]
+    values = quantity_values(engine, s, params, ti, theta_r[None, None, :], s.phi)
+    return dict(zip(shown, values))
 
 
 def incidence_axes(resolution):
