@@ -22,6 +22,7 @@ def test_wheel_ships_kernels_and_evaluates_outside_the_source_tree(tmp_path):
     wheel = next(dist.glob("pbrdf_cl-*.whl"))
     names = zipfile.ZipFile(wheel).namelist()
     assert "pbrdf_cl/kernels/pbrdf.h" in names and "pbrdf_cl/kernels/pbrdf_points.cl" in names
+    assert "pbrdf_cl/app/page.py" in names and "pbrdf_cl/io/params.py" in names  # the explorer ships too
     target = tmp_path / "site"
     subprocess.run([sys.executable, "-m", "pip", "install", "--no-deps", "-q", "--target", str(target),
                     str(wheel)], check=True, timeout=300)

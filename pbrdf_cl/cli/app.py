@@ -10,7 +10,7 @@ import warnings
 from .. import ranges, sizes
 from ..device import engine as _engine
 from ..errors import CommandError
-from . import devices, evaluate, explore, fit
+from . import devices, evaluate, explore, explorer, fit
 from .common import error
 
 
@@ -98,6 +98,7 @@ def build_parser() -> argparse.ArgumentParser:
     explore.map_parser(sub)
     explore.sobol_parser(sub)
     explore.design_parser(sub)
+    explorer.explore_parser(sub)
     b = sub.add_parser("bench", help="benchmark every evaluation path (options: pbrdf-cl bench --help)",
                        add_help=False)
     b.add_argument("rest", nargs=argparse.REMAINDER)

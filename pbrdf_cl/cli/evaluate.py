@@ -23,11 +23,16 @@ def parse_values(option: str, text: str) -> np.ndarray:
 
 
 def cmd_eval(args) -> int:
+    from ..io.params import read_params
+    try:
+        from_file = read_params(args.params) if args.params else {}  # the options given win
+    except (OSError, ValueError) as exc:
+        return error(f"--params {args.params}: {exc.strerror}" if isinstance(exc, OSError) else exc)
     values = {}
     for name, default in PARAMS:
         text = getattr(args, name)
         if text is None:
-            text = default
+            text = repr(from_file[name]) if name in from_file else default
         if text is None and not (name == "sigma" and args.model == "specular" and args.quantity == "dop"):
             print(f"pbrdf-cl: error: --{name.replace('_', '-')} is required", file=sys.stderr)
             return 2
@@ -89,6 +94,8 @@ def eval_parser(sub):
     e.add_argument("--model", choices=pointwise.MODELS, default="six-param",
                    help="six-param, or specular: the ref. [7] model (kd = 0; the DOP then needs no --sigma)")
     e.add_argument("--dtype", choices=("float32", "float64"), default="float64", help="precision")
+    e.add_argument("--params", metavar="FILE", help="n, k, sigma, ks, kd, c from a JSON or TOML file (as `pbrdf-cl "
+                   "explore` exports a set); the options given here win")
     device_options(e)
     e.add_argument("--json", action="store_true", help="JSON output")
     e.set_defaults(func=cmd_eval)

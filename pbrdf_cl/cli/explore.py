@@ -100,6 +100,9 @@ def cmd_map(args) -> int:
         x = maps.parse_axis("--x", args.x)
         y = maps.parse_axis("--y", args.y)
         fixed = maps.parse_fixed("--fix", args.fix)
+        if args.params:  # a parameter-set file (`pbrdf-cl explore` exports them): --fix and the axes win
+            from ..io.params import read_params
+            fixed = {**{k: v for k, v in read_params(args.params).items() if k not in (x[0], y[0])}, **fixed}
         check_figure("--out", args.out)
         check_suffix("--npz", args.npz, (".npz",), "numpy's archive of the arrays is written here")
         check_output("--out", args.out)
@@ -201,6 +204,8 @@ def map_parser(sub):
     m.add_argument("--x", required=True, metavar="NAME=VALUES", help="horizontal axis, e.g. theta_r=0:85@256")
     m.add_argument("--y", required=True, metavar="NAME=VALUES", help="vertical axis, e.g. sigma=0.05:1:0.05")
     m.add_argument("--fix", nargs="*", metavar="NAME=VALUE", help="the other inputs, e.g. theta_i=40 n=1.6")
+    m.add_argument("--params", metavar="FILE", help="n, k, sigma, ks, kd, c from a JSON or TOML file (as `pbrdf-cl "
+                   "explore` exports a set); --fix and the axes win")
     m.add_argument("--quantity", choices=quantity_choices("map"), default="dop", type=str.lower,
                    help="what to map: dop, brdf (alias f00; 1/sr, log colours when it spans decades), aop (deg)")
     m.add_argument("--derivative", metavar="NAME",

@@ -1,0 +1,94 @@
+"""The explorer's current view as one PNG (its *view as PNG* export): the curves of the shown sets
+with the measurements, the map with its colour bar, and the residuals, drawn from the view's
+Dataset (:func:`pbrdf_cl.app.state.view_dataset`) with matplotlib (Agg backend)."""
+from __future__ import annotations
+
+import numpy as np
+
+from .common import pyplot
+
+#: The sets' colours, as the page draws them.
+SET_COLOURS = {"A": "#1f77b4", "B": "#d62728", "C": "#2ca02c", "D": "#9467bd"}
+
+
+def _curves(ax, ds):
+    c = ds["curve"]
+    styles = ("-", "--", ":", "-.")
+    for s in c["set"].values:
+        for j, ti in enumerate(c["theta_i"].values):
+            ax.plot(c["theta_r"], c.sel(set=s, theta_i=ti), color=SET_COLOURS.get(str(s), "k"),
+                    linestyle=styles[j % len(styles)], label=f"set {s}, theta_i {ti:g}°")
+    if "data_dop" in ds and ds.attrs["quantity"] == "dop":
+        std = ds["data_dop_std"].values if "data_dop_std" in ds else None
+        ax.errorbar(ds["data_theta_r"], ds["data_dop"], yerr=std, fmt="o", color="k", ms=3, label="data")
+    ax.set_xlabel("theta_r (deg)")
+    ax.set_ylabel(f"{c.attrs['long_name']} ({c.attrs['units']})")
+    ax.set_title(f"{c.attrs['long_name']} at phi = {ds.attrs['phi_curves']:g}°")
+    ax.legend(fontsize=7, ncol=2)
+    ax.grid(alpha=0.3)
+
+
+def _map(fig, ax, ds):
+    m = ds["map"]
+    values = np.ma.masked_invalid(m.values)
+    if ds.attrs["map_kind"] == "incidence":
+        x, y = m["map_theta_r"].values, m["map_theta_i"].values
+        ax.set_xlabel("theta_r (deg)")
+        ax.set_ylabel("theta_i (deg)")
+        ax.set_title(f"set {ds.attrs['active_set']} over (theta_i, theta_r), phi = {m.attrs['phi']:g}°")
+    else:
+        x, y = m["map_x"].values, m["map_y"].values
+        ax.set_xlabel("x = (theta_r / 90°) cos(phi_r) (1)")
+        ax.set_ylabel("y = (theta_r / 90°) sin(phi_r) (1)")
+        ax.set_title(f"set {ds.attrs['active_set']}: hemisphere from above, theta_i = {m.attrs['theta_i']:g}°")
+    aop = ds.attrs["quantity"] == "aop"  # an angle: a cyclic colour map, as the maps of pbrdf-cl map draw it
+    mesh = ax.pcolormesh(x, y, values, shading="nearest", cmap="twilight" if aop else "viridis",
+                         **(dict(vmin=-90, vmax=90) if aop else {}))
+    ax.set_aspect("equal")
+    fig.colorbar(mesh, ax=ax, label=f"{m.attrs['long_name']} ({m.attrs['units']})")
+
+
+def plot_view(ds, path):
+    """Draw the explorer's view.
+
+    Parameters
+    ----------
+    ds : xarray.Dataset
+        The view's numbers, as :func:`pbrdf_cl.app.state.view_dataset` returns them.
+    path : str, path or file object
+        Where to write the PNG.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        The (closed) figure.
+
+    Examples
+    --------
+    >>> import io, pbrdf_cl
+    >>> from pbrdf_cl.app import state
+    >>> view = state.State()
+    >>> view.settings.resolution = 32
+    >>> fig = plot_view(state.view_dataset(pbrdf_cl.get_default_engine(), view), io.BytesIO())
+    >>> len(fig.axes) >= 2
+    True
+    """
+    plt = pyplot()
+    rows = 2 if "residual" in ds else 1
+    fig = plt.figure(figsize=(13, 5 + 2.5 * (rows - 1)), layout="constrained")
+    grid = fig.add_gridspec(rows, 2, height_ratios=[3, 1.5][:rows])
+    ax = fig.add_subplot(grid[0, 0])
+    _curves(ax, ds)
+    _map(fig, fig.add_subplot(grid[:, 1]), ds)
+    if rows == 2:
+        axr = fig.add_subplot(grid[1, 0], sharex=ax)
+        std = ds["data_dop_std"].values if "data_dop_std" in ds else None
+        axr.errorbar(ds["data_theta_r"], ds["residual"], yerr=std, fmt="o", color="k", ms=3)
+        axr.axhline(0, color="grey", lw=0.8)
+        axr.set_xlabel("theta_r (deg)")
+        axr.set_ylabel("DOP residual (1)")
+        axr.set_title(f"data - set {ds.attrs['active_set']}")
+        axr.grid(alpha=0.3)
+    fig.savefig(path, dpi=110, format="png")
+    plt.close(fig)
+    return fig

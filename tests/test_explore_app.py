@@ -1,0 +1,210 @@
+"""The interactive explorer (issue #29): its state and numbers without a browser, the parameter-set
+files that eval and map read, and the page itself in a real browser (Debian's chromium through
+chromedriver, driven by Selenium): a slider moved, the plotted DOP against ``pbrdf_cl.dop``, the
+example CSV loaded and fitted, the fitted values against ``pbrdf_cl.fit``'s, the state in the URL."""
+import html
+import os
+import subprocess
+import sys
+from pathlib import Path
+from urllib.parse import parse_qs, urlparse
+
+import numpy as np
+import pytest
+
+import pbrdf_cl
+from pbrdf_cl.app import state as st
+from pbrdf_cl.cli import main
+from pbrdf_cl.io.params import params_text, read_params
+
+ROOT = Path(__file__).resolve().parents[1]
+EXAMPLE = ROOT / "examples" / "steel_435nm.csv"
+
+
+def test_importing_pbrdf_cl_does_not_import_panel():
+    code = "import sys, pbrdf_cl, pbrdf_cl.explore.maps; print('panel' in sys.modules, 'bokeh' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                         env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert out.stdout.split() == ["False", "False"]
+
+
+def test_without_panel_one_line_names_the_extra(monkeypatch, capsys):
+    monkeypatch.setitem(sys.modules, "panel", None)  # import panel -> ImportError
+    with pytest.raises(pbrdf_cl.CommandError, match=r"pip install 'pbrdf-cl\[explore\]'"):
+        pbrdf_cl.explore()
+    assert main(["explore", "--no-browser"]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "pbrdf-cl[explore]" in err and "Traceback" not in err
+
+
+def test_hemisphere_in_plane_line_is_the_in_plane_dop():
+    """The hemisphere seen from above: on the x axis right of the centre phi = 180 (in plane), left
+    of it phi = 0; theta_r = 90 x."""
+    engine = pbrdf_cl.get_default_engine()
+    state = st.State()
+    state.settings.map_kind, state.settings.resolution = "hemisphere", 65
+    x, y, v = st.hemisphere_map(engine, state)
+    row = v[32]  # y = 0
+    inside = np.abs(x) * 90 <= st.THETA_MAX
+    right, left = (x > 0.05) & inside, (x < -0.05) & inside
+    ti = state.settings.theta_i[0]
+    assert np.allclose(row[right], pbrdf_cl.dop(ti, 90 * x[right], 180, **st.STEEL), rtol=1e-12)
+    assert np.allclose(row[left], pbrdf_cl.dop(ti, 90 * -x[left], 0, **st.STEEL), rtol=1e-12)
+    assert np.isnan(v[0, 0])  # a corner: outside the disc
+
+
+def test_state_survives_the_url_and_bad_urls_are_one_line():
+    state = st.State()
+    state.sets[1] = dict(st.STEEL, n=2.25, sigma=0.31)
+    state.shown, state.solo, state.active = [True, True, False, False], 1, 1
+    state.settings.quantity, state.settings.theta_i, state.settings.phi = "aop", (20.0, 60.0), 150.0
+    args = {k: v[0] for k, v in parse_qs(st.to_query(state)).items()}
+    assert st.from_query(args) == state
+    with pytest.raises(ValueError, match=r"^URL: B: n = 9 is outside \[1, 5\]$"):
+        st.from_query({**args, "B": "9,2,0.5,1,0,0"})
+    with pytest.raises(ValueError, match=r"^URL: q='dopp' is not one of"):
+        st.from_query({**args, "q": "dopp"})
+
+
+def test_parameter_files_round_trip_through_eval_and_map(tmp_path, capsys):
+    values = dict(n=1.7, k=2.5, sigma=0.4, ks=0.8, kd=0.2, c=-0.4)
+    for fmt in ("json", "toml"):
+        path = tmp_path / f"set.{fmt}"
+        path.write_text(params_text(values, fmt))
+        assert read_params(path) == values
+        assert main(["eval", "--theta-i", "40", "--theta-r", "45", "--params", str(path), "--json"]) == 0
+        out = capsys.readouterr().out
+        import json
+        row = json.loads(out)["rows"][0]
+        assert row["dop"] == pytest.approx(float(pbrdf_cl.dop(40, 45, **values)), rel=1e-12)
+    png = tmp_path / "map.png"
+    assert main(["map", "--x", "theta_r=0:85@8", "--y", "sigma=0.1:0.9@8", "--fix", "theta_i=40",
+                 "--params", str(tmp_path / "set.toml"), "--out", str(png)]) == 0
+    assert png.stat().st_size > 0
+    bad = tmp_path / "bad.json"
+    bad.write_text('{"n": 1.6, "sigmaa": 0.5}')
+    assert main(["eval", "--theta-i", "40", "--theta-r", "45", "--params", str(bad)]) == 1
+    err = capsys.readouterr().err
+    assert err == f"pbrdf-cl: error: {bad}: unknown parameter 'sigmaa'; did you mean sigma? (the parameters are " \
+                  "n, k, sigma, ks, kd, c)\n"
+
+
+def test_page_without_a_browser(tmp_path, capsys):
+    """The page object itself: a slider moves the curves to pbrdf_cl.dop's values; a bad CSV is
+    the CLI's one line; the view's numbers export."""
+    pytest.importorskip("panel", reason="the explore extra (panel) is not installed")
+    page = pbrdf_cl.explore()
+    ex = page.explorer
+    ex.sliders["sigma"].value = 0.37
+    tr = np.asarray(ex.figs.curve_src[0].data["xs"][1])
+    expected = pbrdf_cl.dop(40, tr, 180, **dict(st.STEEL, sigma=0.37))
+    assert np.array_equal(np.asarray(ex.figs.curve_src[0].data["ys"][1]), expected)
+    bad = tmp_path / "bad.csv"
+    bad.write_text("theta_i,theta_r,dop\n30,20,0.05\n30,x,0.1\n")
+    assert main(["fit", str(bad)]) == 1
+    cli_line = capsys.readouterr().err.strip().replace("pbrdf-cl: error: ", "")
+    assert not ex.load_path(bad, str(bad))
+    assert f"error: {cli_line}" in ex.status.object
+    ds = ex.dataset()
+    assert ds["curve"].sel(set="A", theta_i=40).values.tolist() == expected.tolist()
+    import io
+
+    import xarray as xr
+    back = xr.open_dataset(io.BytesIO(ex._netcdf().getvalue()))
+    assert np.array_equal(back["map"].values, ds["map"].values, equal_nan=True)
+    assert "theta_r" in ex._csv().getvalue().splitlines()[1]
+    assert read_params_text(ex._params("toml").getvalue(), tmp_path)["sigma"] == 0.37
+    png = ex._png().getvalue()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000
+
+
+def test_explore_command_refuses_bad_input_in_one_line(tmp_path, capsys):
+    pytest.importorskip("panel", reason="the explore extra (panel) is not installed")
+    bad = tmp_path / "bad.csv"
+    bad.write_text("theta_i,theta_r\n30,20\n")
+    assert main(["fit", str(bad)]) == 1
+    fit_err = capsys.readouterr().err
+    assert main(["explore", "--no-browser", "--data", str(bad)]) == 1
+    assert capsys.readouterr().err == fit_err  # the same line as `pbrdf-cl fit`
+    assert main(["explore", "--no-browser", "--port", "70000"]) == 1
+    assert capsys.readouterr().err == "pbrdf-cl: error: --port 70000: give a port in 0..65535 (0: any free one)\n"
+
+
+def read_params_text(text, folder):
+    path = folder / "p.toml"
+    path.write_text(text)
+    return read_params(path)
+
+
+@pytest.fixture(scope="module")
+def browser():
+    pytest.importorskip("panel", reason="the explore extra (panel) is not installed")
+    pytest.importorskip("selenium", reason="selenium is not installed (the test extra)")
+    from pbrdf_cl.app import drive
+    found, why = drive.find_browser()
+    if found is None:
+        pytest.skip(why)
+    proc, url = drive.start_server()
+    try:
+        driver = drive.open_browser()
+    except Exception as exc:  # noqa: BLE001 - a browser that cannot start here: say why
+        proc.kill()
+        pytest.skip(f"chromium did not start: {str(exc).splitlines()[0]}")
+    yield driver, url
+    driver.quit()
+    proc.kill()
+    proc.wait()
+
+
+def _slider_values(driver):
+    return driver.execute_script("return Object.values(Object.fromEntries(Bokeh.documents[0]._all_models))"
+                                 ".filter(m => m.type == 'Slider').map(m => m.value)")
+
+
+def test_in_the_browser_slider_fit_and_url(browser, tmp_path):
+    from selenium.webdriver.common.keys import Keys
+
+    from pbrdf_cl.app import drive
+    driver, url = browser
+    driver.get(url)
+    before = drive.wait_loaded(driver)
+    handle = drive.deep_find(driver, ".noUi-handle")[0]  # the first slider: n
+    handle.send_keys(Keys.ARROW_RIGHT, Keys.ARROW_RIGHT)
+
+    def plotted_is_the_dop():
+        n = _slider_values(driver)[0]
+        data = drive.source_data(driver, "curve_A")  # theta_i 30, 40, 50
+        tr = np.asarray(data["xs"][0])
+        want = pbrdf_cl.dop(np.array([30.0, 40.0, 50.0])[:, None], tr[None, :], 180, **dict(st.STEEL, n=n))
+        return n if n != st.STEEL["n"] and np.allclose(data["ys"], want, rtol=1e-12, atol=0) else None
+    n = drive.wait(plotted_is_the_dop, 60, what="curve_A equal to pbrdf_cl.dop at the slider's new n")
+    assert n > st.STEEL["n"] and drive.source_data(driver, "curve_A")["ys"] != before["ys"]
+
+    def query():  # the URL follows the views once they are still (250 ms)
+        q = {k: v[0] for k, v in parse_qs(urlparse(driver.current_url).query).items()}
+        return q if "A" in q and abs(float(q["A"].split(",")[0]) - n) < 1e-6 else None
+    drive.wait(query, 30, what="the URL holding the new n")
+
+    upload = drive.deep_find(driver, "input[type=file]")[0]
+    bad = tmp_path / "steel_bad.csv"
+    bad.write_text("theta_i,theta_r,dop\n30,20,0.05\n30,x,0.1\n")
+    upload.send_keys(str(bad))
+    shown = drive.wait(lambda: driver.execute_script(
+        "return Object.values(Object.fromEntries(Bokeh.documents[0]._all_models))"
+        ".map(m => typeof m.text == 'string' ? m.text : '').find(t => t.includes('error: '))"),
+        60, what="the bad file's error")
+    assert "error: steel_bad.csv, line 3: theta_r = 'x' is not a number" in html.unescape(html.unescape(shown))
+    upload.send_keys(str(EXAMPLE))
+    drive.wait(lambda: drive.source_data(driver, "data_points")["x"], 60, what="the measurements")
+    drive.button(driver, "Fit").click()
+    table = drive.wait(lambda: (lambda d: d if d and d["value"] else None)(drive.source_data(driver, "fit_table")),
+                       120, what="the fit")
+    res = pbrdf_cl.fit(str(EXAMPLE))
+    assert table["parameter"] == list(res.free)
+    assert np.allclose(table["value"], [res.x[p] for p in res.free], rtol=1e-9, atol=1e-12)
+    assert np.allclose(table["low"], [res.ci95[p][0] for p in res.free], rtol=1e-9, atol=1e-12)
+
+    # a link reopens the same view
+    driver.get(driver.current_url)
+    drive.wait_loaded(driver)
+    assert _slider_values(driver)[0] == pytest.approx(n, abs=1e-6)
