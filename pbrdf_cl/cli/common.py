@@ -8,7 +8,7 @@ from pathlib import Path
 from .. import ranges
 from ..device import drivers
 from ..device import engine as _engine
-from ..errors import CommandError
+from ..errors import CommandError, RangeError
 from ..model import quantities
 from ..model.reference import SHADOWING
 from ..outputs import check_figure, check_output
@@ -90,13 +90,33 @@ def model_option(f):
 
 def fit_settings(f):
     """--fix, --bounds and --shadowing of `fit` and `fit-image`."""
-    f.add_argument("--fix", nargs="*", metavar="NAME=VALUE", help="hold parameters fixed, e.g. sigma=0.45")
-    f.add_argument("--bounds", nargs="*", metavar="NAME=LO:HI", help="search bounds, e.g. n=1:3 k=0:5")
+    f.add_argument("--fix", nargs="*", metavar="NAME=VALUE", help="hold parameters fixed, e.g. sigma=0.45; in a joint "
+                   "fit SET:NAME=VALUE holds it in one set (435:kd=0.1)")
+    f.add_argument("--bounds", nargs="*", metavar="NAME=LO:HI", help="search bounds, e.g. n=1:3 k=0:5; in a joint fit "
+                   "SET:NAME=LO:HI for one set")
     f.add_argument("--shadowing", choices=sorted(SHADOWING), default="paper", help=SHADOWING_HELP)
 
 
-def fit_assignments(args):
-    """(fixed, bounds) from --fix and --bounds (fit_settings), checked against the parameters."""
+def fit_assignments(args, sets=False):
+    """(fixed, bounds) from --fix and --bounds (fit_settings), checked against the parameters.
+    With ``sets`` (a joint fit) an item may name its set, ``SET:NAME=VALUE`` (``435:kd=0.1``):
+    it goes to that set's dict (``{"435": {"kd": 0.1}}``), as :func:`pbrdf_cl.fit_joint` takes it."""
     from ..fitting.setup import DEFAULT_BOUNDS
-    return (ranges.parse_assignments(args.fix, tuple(DEFAULT_BOUNDS), "value", "--fix", check=True),
-            ranges.parse_assignments(args.bounds, tuple(DEFAULT_BOUNDS), "bounds", "--bounds"))
+    out = []
+    for option, values, kind, check in (("--fix", args.fix, "value", True), ("--bounds", args.bounds, "bounds", False)):
+        common, own = [], {}
+        for item in values or []:
+            name = item.split("=", 1)[0]
+            if ":" not in name:
+                common.append(item)
+            elif not sets:
+                raise RangeError(f"{option} {item}: a set name ({name.split(':', 1)[0]}:) is for joint fits "
+                                        "(several CSVs, or one with --set-column); give NAME=VALUE")
+            else:
+                own.setdefault(name.split(":", 1)[0], []).append(item.split(":", 1)[1])
+        parsed = ranges.parse_assignments(common, tuple(DEFAULT_BOUNDS), kind, option, check=check)
+        for name, items in own.items():
+            parsed[name] = ranges.parse_assignments(items, tuple(DEFAULT_BOUNDS), kind, f"{option} {name}:",
+                                                    check=check)
+        out.append(parsed)
+    return tuple(out)

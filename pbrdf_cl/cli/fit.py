@@ -112,12 +112,13 @@ def cmd_fit_joint(args, fixed, bounds) -> int:
 def cmd_fit(args) -> int:
     from ..fitting import inversion as _fit
     from ..io.measurements import read_csv
-    fixed, bounds = fit_assignments(args)
+    is_joint = len(args.data) > 1 or args.shared is not None or bool(args.set_column)
+    fixed, bounds = fit_assignments(args, sets=is_joint)
     check_suffix("--json", args.json, (".json",), "JSON is written here", allow_none=True)
     check_figure("--plot", args.plot)
     check_output("--json", args.json)
     check_output("--plot", args.plot)
-    if len(args.data) > 1 or args.shared is not None or args.set_column:
+    if is_joint:
         return cmd_fit_joint(args, fixed, bounds)
     try:
         meas = read_csv(args.data[0])
