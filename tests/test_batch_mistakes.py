@@ -274,8 +274,8 @@ def test_a_singular_problem_does_not_stop_the_others_of_its_batch():
     lo, hi = np.array([0.0, 0.0]), np.array([1.0, 1.0])
     X0 = np.array([[0.5, 0.5], [0.9, 0.1]])
     for iterations in (1, 3, 30):
-        X, sse, _ = lm_batch(rows(np.array([True, False])), X0, lo, hi, iterations)
-        Xs, sses, _ = lm_batch(rows(np.array([False])), X0[1:], lo, hi, iterations)
+        X, sse, _ = lm_batch(rows(np.array([True, False])), X0, lo, hi, iterations, rows_apart=False)
+        Xs, sses, _ = lm_batch(rows(np.array([False])), X0[1:], lo, hi, iterations, rows_apart=False)
         np.testing.assert_array_equal(X[1], Xs[0])
         assert sse[1] == sses[0]
     assert abs(X[1, 0] - 0.3) < 1e-6 and np.array_equal(X[0], X0[0])

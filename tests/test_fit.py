@@ -201,10 +201,16 @@ def test_batched_levenberg_marquardt():
         return np.stack([1 - X[:, 0], 10 * (X[:, 1] - X[:, 0] ** 2), np.zeros(len(X))], axis=1)
     lo, hi = np.array([-2.0, -2.0, 0.0]), np.array([2.0, 2.0, 1.0])
     starts = np.array([[-1.2, 1.0, 0.4], [1.5, -1.5, 0.0], [0.0, 0.0, 1.0]])
-    X, sse, rows = common.lm_batch(rosenbrock, starts, lo, hi, 100)
+    asked = []
+    X, sse, rows = common.lm_batch(lambda X: asked.append(len(X)) or rosenbrock(X), starts, lo, hi, 100)
     np.testing.assert_allclose(X[:, :2], 1.0, atol=1e-7)
     np.testing.assert_array_equal(X[:, 2], starts[:, 2])  # no runaway step along the flat direction
-    assert np.all(sse < 1e-14) and rows == 3 * 4 * 101
+    # the rows it reports are the rows it asked for; converged problems stop being evaluated
+    assert np.all(sse < 1e-14) and rows == sum(asked) and 3 * 4 * 2 <= rows < 3 * 4 * 101
+    # ... without changing the answer: the same with every problem evaluated to the end
+    Xall, sseall, rows_all = common.lm_batch(rosenbrock, starts, lo, hi, 100, rows_apart=False)
+    np.testing.assert_array_equal(X, Xall)
+    np.testing.assert_array_equal(sse, sseall)
     # each problem sees the numbers it would see alone
     for i in range(3):
         Xi, si, _ = common.lm_batch(rosenbrock, starts[i:i + 1], lo, hi, 100)

@@ -201,7 +201,8 @@ def _corner_descent_numpy(eng, setup, blk, names, corner, pix, X0, dtype, nfev):
     res = PixelResiduals(setup, blk, names, pix, False)
     U, sse = _to_corner(X0, names, corner), np.full(pix.size, np.inf)
     for _ in range(NUMPY_CORNER_ROUNDS):  # rounds while an objective still falls (see NUMPY_CORNER_ROUNDS)
-        U, new, evals = lm_batch(lambda V: res.rows(_from_corner(V, names, corner)), U, ulo, uhi, corner.iterations)
+        U, new, evals = lm_batch(lambda V: res.rows(_from_corner(V, names, corner)), U, ulo, uhi, corner.iterations,
+                                 rows_apart=False)  # a pixel's rows are in its place
         nfev[pix] += evals // pix.size
         falling = np.any(new < sse * (1 - NUMPY_CORNER_RTOL))
         sse = new
