@@ -119,9 +119,7 @@ def main(argv=None):
     ap.add_argument("--device", help="the server's --device")
     args = ap.parse_args(argv)
     from selenium.webdriver.common.keys import Keys
-    proc, url = drive.start_server(extra=["--device", args.device] if args.device else ())
-    driver = drive.open_browser()
-    try:
+    with drive.session(extra=["--device", args.device] if args.device else ()) as (driver, url):
         show = "ABCD"[:max(1, min(4, args.sets))]
         driver.get(f"{url}?q={args.quantity}&show={show}")
         drive.wait_loaded(driver)
@@ -142,10 +140,6 @@ def main(argv=None):
             drive.wait(lambda: not driver.execute_script(JOB_RUNNING), 120, what="the background job")
             report(f"while the {label.split()[0].rstrip('.')} job runs in the background ({time.time() - t0:.1f} s "
                    "from the click to the end)", lat, srv)
-    finally:
-        driver.quit()
-        proc.kill()
-        proc.wait()
 
 
 if __name__ == "__main__":

@@ -2,6 +2,7 @@
 files that eval and map read, and the page itself in a real browser (Debian's chromium through
 chromedriver, driven by Selenium): a slider moved, the plotted DOP against ``pbrdf_cl.dop``, the
 example CSV loaded and fitted, the fitted values against ``pbrdf_cl.fit``'s, the state in the URL."""
+import contextlib
 import html
 import os
 import subprocess
@@ -144,16 +145,13 @@ def browser():
     found, why = drive.find_browser()
     if found is None:
         pytest.skip(why)
-    proc, url = drive.start_server()
-    try:
-        driver = drive.open_browser()
-    except Exception as exc:  # noqa: BLE001 - a browser that cannot start here: say why
-        proc.kill()
-        pytest.skip(f"chromium did not start: {str(exc).splitlines()[0]}")
-    yield driver, url
-    driver.quit()
-    proc.kill()
-    proc.wait()
+    server = drive.start_server()  # a server that does not start is an error, not a skip
+    with contextlib.ExitStack() as stack:
+        try:
+            driver, url = stack.enter_context(drive.session(server=server))
+        except Exception as exc:  # noqa: BLE001 - a browser that cannot start here: say why
+            pytest.skip(f"chromium did not start: {str(exc).splitlines()[0]}")
+        yield driver, url
 
 
 def _slider_values(driver):

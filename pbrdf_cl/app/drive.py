@@ -1,8 +1,10 @@
 """Driving the explorer in a real browser (Selenium with Debian's chromium and chromedriver, or
 Chrome): start a server, open the page, find elements inside Panel's shadow DOM, read the data
-the plots draw.  Used by ``tests/test_explore_app.py`` and ``scripts/bench_explore.py``."""
+the plots draw.  Used by ``tests/test_explore_app.py``, ``scripts/bench_explore.py`` and
+``scripts/explore_screenshots.py``, each through :func:`session`."""
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import shutil
@@ -74,6 +76,26 @@ def open_browser(width=1800, height=1500):
         options.add_argument(arg)
     return webdriver.Chrome(service=Service(found[1]), options=options)
 
+
+
+@contextlib.contextmanager
+def session(data=None, extra=(), width=1800, height=1500, server=None):
+    """A served explorer and a browser to drive it: yields (driver, page URL); the browser quits
+    and the server is stopped at the end, the server also when the browser does not start.
+    ``server``: the (process, URL) of :func:`start_server` already started, instead of starting one."""
+    proc, url = server if server is not None else start_server(data, extra)
+    try:
+        driver = open_browser(width, height)
+    except BaseException:
+        proc.kill()
+        proc.wait()
+        raise
+    try:
+        yield driver, url
+    finally:
+        driver.quit()
+        proc.kill()
+        proc.wait()
 
 def deep_find(driver, selector):
     """Elements matching ``selector`` anywhere in the page, shadow roots included."""
