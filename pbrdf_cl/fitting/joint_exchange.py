@@ -19,7 +19,7 @@ import numpy as np
 
 from . import basins
 from .common import lm_batch
-from .stages import Candidate, Residuals, StageResult, finite_rows, least_squares_stage
+from .stages import Candidate, StageResult, finite_rows, least_squares_stage
 
 #: Local minima of each set's own grid slice that seed its own fit.
 EXCHANGE_SEEDS = 6
@@ -54,33 +54,21 @@ def own_grid_seeds(setup, grid, name, shared_values):
     return [basins.grid_point(grid.axes, own, idx) for idx in idxs]
 
 
-def own_residuals(part, own, shared_values):
-    """Set residuals (a :class:`~pbrdf_cl.fitting.stages.Residuals` of the joint fit's ``parts``)
-    over the set's own parameters ``own``, the shared ones held at ``shared_values``."""
-    return Residuals(part.model, own, {**part.base, **shared_values}, part.dop, part.dop_std)
-
-
-def exchange_round(setup, resid, grids, x, lo, hi):
-    """One round: every set's own fit at the shared values of ``x``; returns (the exchanged
-    joint vector, the sets that moved, residual rows evaluated)."""
-    labels = setup.labels
+def exchange_round(setup, resid, grids, x):
+    """One round: every set's own fit at the shared values of ``x`` (:func:`own_fits`, from its
+    current own values too); returns (the exchanged joint vector, the sets that moved, residual
+    rows evaluated)."""
     x = np.array(x, dtype=np.float64)
-    shared_values = {p: float(x[labels.index(p)]) for p in setup.shared}
-    moved, rows = [], 0
-    for name, part in zip(setup.names, resid.parts):
-        own = setup.own(name)
-        if not own:
+    mine = {s: [x[own_columns(setup, s)]] for s in setup.names}
+    X, sse, rows = own_fits(setup, resid, grids, x[None, :len(setup.shared)], mine, EXCHANGE_ITERATIONS)
+    moved = []
+    for name, part, ix in zip(setup.names, resid.parts, resid.index):
+        cols = own_columns(setup, name)
+        if not cols.size:
             continue
-        cols = np.array([labels.index(f"{p}[{name}]") for p in own])
-        res = own_residuals(part, own, shared_values)
-        now = res.rows(x[cols][None])[0]
-        now_sse = float(now @ now)
-        starts = np.array([x[cols]] + own_grid_seeds(setup, grids[name], name, shared_values))
-        X, sse, n = lm_batch(res.rows, starts, lo[cols], hi[cols], EXCHANGE_ITERATIONS)
-        rows += n
-        best = int(np.argmin(sse))
-        if sse[best] < now_sse * (1.0 - EXCHANGE_REL) - EXCHANGE_ABS:
-            x[cols] = X[best]
+        now = part.rows(x[ix][None])[0]
+        if sse[name][0] < float(now @ now) * (1.0 - EXCHANGE_REL) - EXCHANGE_ABS:
+            x[cols] = X[0, cols]
             moved.append(name)
     return x, moved, rows
 
@@ -94,7 +82,7 @@ def exchange_stage(setup, resid, grids, best, lo, hi, ls_nfev):
     t0 = time.perf_counter()
     rows, history = 0, []
     for _ in range(EXCHANGE_ROUNDS):
-        x, moved, n = exchange_round(setup, resid, grids, best.x, lo, hi)
+        x, moved, n = exchange_round(setup, resid, grids, best.x)
         rows += n
         history.append(tuple(moved))
         if not moved:
@@ -111,59 +99,78 @@ def exchange_stage(setup, resid, grids, best, lo, hi, ls_nfev):
 
 
 class OwnResiduals:
-    """One set's residuals over its own parameters ``own`` then the shared ones ``shared`` (the
-    columns of the rows ``rows`` gets): for :func:`~pbrdf_cl.fitting.common.lm_batch` with the
-    shared values held per problem (``extra=``), so that each problem has its own."""
+    """One set's residuals over its own parameters ``own``, the shared ones ``shared`` held: at
+    ``at`` (one point's shared values, scalars: every problem at the same point), or, without it,
+    per problem as the last columns of the rows ``rows`` gets (for
+    :func:`~pbrdf_cl.fitting.common.lm_batch` with ``extra=``)."""
 
-    def __init__(self, part, own, shared):
-        self.part, self.names = part, tuple(own) + tuple(shared)
+    def __init__(self, part, own, shared, at=None):
+        self.part = part
+        self.base = dict(part.base) if at is None else {**part.base, **dict(zip(shared, at))}
+        self.names = tuple(own) + (tuple(shared) if at is None else ())
+        self.runs = tuple(shared) if at is None else ()
 
     def rows(self, X):
-        p = dict(self.part.base)
+        p = dict(self.base)
         p.update({n: X[:, j:j + 1] for j, n in enumerate(self.names)})
-        # the shared values (sigma, c) change only from one problem to the next: their factors
-        # once per problem
-        return finite_rows((self.part.model.dop_rows(p, runs=True) - self.part.dop) / self.part.dop_std)
+        # shared values held per problem change only from one problem to the next: the factors
+        # of shared (and held) parameters alone once per problem
+        return finite_rows((self.part.model.dop_rows(p, runs=self.runs) - self.part.dop) / self.part.dop_std)
+
+
+def own_columns(setup, name):
+    """The joint vector's columns of set ``name``'s own (not shared) parameters, in its ``own`` order."""
+    labels = setup.labels
+    return np.array([labels.index(f"{p}[{name}]") for p in setup.own(name)], dtype=int)
+
+
+def own_fits(setup, resid, grids, points, extra_own, iterations):
+    """Every set's own fit at each of the shared values ``points`` ((K, s) over ``setup.shared``):
+    the batched descent (``iterations`` of :func:`~pbrdf_cl.fitting.common.lm_batch`) from the
+    minima and bound slices of the set's grid slice at each point and from ``extra_own`` (set ->
+    own vectors tried at every point), all points of a set in one call.  Returns (X: (K, joint
+    labels), the points with each set's best own values; set -> (K,) its best chi2 at each point;
+    residual rows evaluated)."""
+    shared = list(setup.shared)
+    points = np.asarray(points, dtype=np.float64).reshape(-1, len(shared))
+    X = np.zeros((len(points), len(setup.labels)))
+    X[:, :len(shared)] = points
+    sse_of, rows = {}, 0
+    for name, part, ix in zip(setup.names, resid.parts, resid.index):
+        cols = own_columns(setup, name)
+        if not cols.size:
+            r = part.rows(X[:, ix])
+            sse_of[name] = np.einsum("pm,pm->p", r, r)
+            continue
+        starts, lane_point = [], []
+        for k, pt in enumerate(points):
+            mine = own_grid_seeds(setup, grids[name], name, dict(zip(shared, pt))) + list(extra_own.get(name, []))
+            starts += mine
+            lane_point += [k] * len(mine)
+        lane_point = np.array(lane_point)
+        one = len(points) == 1  # one point: its shared values held as scalars, not per problem
+        own_rows = OwnResiduals(part, setup.own(name), shared, points[0] if one else None).rows
+        Xo, sse, n = lm_batch(own_rows, np.array(starts), setup.lo[cols], setup.hi[cols], iterations,
+                              extra=None if one else points[lane_point])
+        rows += n
+        sse_of[name] = np.empty(len(points))
+        for k in range(len(points)):
+            lanes = np.flatnonzero(lane_point == k)
+            best = lanes[int(np.argmin(sse[lanes]))]
+            X[k, cols] = Xo[best]
+            sse_of[name][k] = sse[best]
+    return X, sse_of, rows
 
 
 def profile_stage(setup, resid, grids, points, extra_own=None):
     """The joint profile at the shared values ``points`` (a list of arrays over ``setup.shared``):
-    at each, every set's own fit (the batched descent from its grid slice's minima and bound
-    slices there, and from ``extra_own``: set -> own vectors tried everywhere), all points of a
-    set in one batched call.  Returns a StageResult whose value is a list, best first, of
+    at each, every set's own fit (:func:`own_fits`, from ``extra_own`` too: set -> own vectors
+    tried everywhere).  Returns a StageResult whose value is a list, best first, of
     :class:`~pbrdf_cl.fitting.stages.Candidate` joint vectors (the points with each set's best own
     values; ``sse`` the profile there)."""
     t0 = time.perf_counter()
-    labels = setup.labels
-    shared = list(setup.shared)
-    X = np.zeros((len(points), len(labels)))
-    X[:, :len(shared)] = np.array(points).reshape(len(points), len(shared))
-    total = np.zeros(len(points))
-    rows = 0
-    for name, part in zip(setup.names, resid.parts):
-        own = setup.own(name)
-        if not own:
-            r = np.array([part.rows(x[resid.index[setup.names.index(name)]][None])[0] for x in X])
-            total += np.einsum("pm,pm->p", r, r)
-            continue
-        cols = np.array([labels.index(f"{p}[{name}]") for p in own])
-        starts, lane_point = [], []
-        for k, pt in enumerate(points):
-            values = dict(zip(shared, np.atleast_1d(pt)))
-            mine = own_grid_seeds(setup, grids[name], name, values) + list((extra_own or {}).get(name, []))
-            starts += mine
-            lane_point += [k] * len(mine)
-        lane_point = np.array(lane_point)
-        own_rows = OwnResiduals(part, own, shared).rows
-        Xo, sse, n = lm_batch(own_rows, np.array(starts), setup.lo[cols], setup.hi[cols], PROFILE_ITERATIONS,
-                              extra=X[lane_point, :len(shared)])
-        rows += n
-        for k in range(len(points)):
-            mine = np.flatnonzero(lane_point == k)
-            best = mine[int(np.argmin(sse[mine]))]
-            X[k, cols] = Xo[best]
-            total[k] += sse[best]
+    X, sse_of, rows = own_fits(setup, resid, grids, points, extra_own or {}, PROFILE_ITERATIONS)
+    total = sum(sse_of.values())
     order = np.argsort(total, kind="stable")
     cands = [Candidate(float(total[k]), X[k], X[k]) for k in order]
     return StageResult(cands, rows, time.perf_counter() - t0)
-

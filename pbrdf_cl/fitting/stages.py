@@ -70,15 +70,17 @@ class Model:
     def dop(self, p):
         return reference.dop(*self.parts(p))
 
-    def dop_rows(self, p, runs=False):
+    def dop_rows(self, p, runs=()):
         """DOP for many parameter vectors at once: ``p`` maps names to (B, 1) arrays (or
-        scalars); returns (B, M).  The same factors, without the cache.  ``runs``: each factor
-        is computed once per run of consecutive rows with the same values of its parameters
-        (:func:`per_run`; for batches whose rows come in long runs)."""
-        if not runs:
-            return reference.dop(self._fresnel(p), self._log_scale(p), self._diffuse(p))
-        return reference.dop(per_run(self._fresnel, p, ("n", "k")), per_run(self._log_scale, p, ("sigma", "ks")),
-                             per_run(self._diffuse, p, ("kd", "c")))
+        scalars); returns (B, M).  The same factors, without the cache.  ``runs``: the parameters
+        whose rows come in long runs of one value (held per problem of a batch); a factor whose
+        parameters are all among them (or scalars) is computed once per run (:func:`per_run`)."""
+        def factor(compute, names):
+            if all(n in runs or np.ndim(p[n]) == 0 for n in names) and any(n in runs for n in names):
+                return per_run(compute, p, names)
+            return compute(p)
+        return reference.dop(factor(self._fresnel, ("n", "k")), factor(self._log_scale, ("sigma", "ks")),
+                             factor(self._diffuse, ("kd", "c")))
 
     def f00(self, p):
         return reference.brdf(*self.parts(p))
