@@ -10,6 +10,7 @@ import warnings
 from .. import ranges, sizes
 from ..device import engine as _engine
 from ..errors import CommandError
+from ..store import interrupt
 from . import devices, evaluate, explore, explorer, fit
 from .common import error
 
@@ -143,7 +144,8 @@ def main(argv=None) -> int:
     saved = warnings.showwarning
     warnings.showwarning = _show_warning
     try:
-        return args.func(args)
+        with interrupt.recording():
+            return args.func(args)
     except (CommandError, ranges.RangeError) as exc:
         return error(exc)
     except KeyboardInterrupt:

@@ -12,6 +12,7 @@ from .. import ranges
 from ..device import engine as _engine
 from ..model.reference import SHADOWING
 from ..outputs import check_figure, check_output, check_store, check_suffix
+from ..store import zarr as zarr_store
 from .common import (
     SHADOWING_HELP,
     check_result_outputs,
@@ -35,6 +36,7 @@ def cmd_sweep(args) -> int:
         res = sweep(spec, args.out, engine=engine, device=args.device, backend=args.backend, workers=args.workers,
                     scheduler=args.scheduler, progress=not args.quiet, allow_large=args.allow_large)
     except KeyboardInterrupt:
+        zarr_store.settle()  # the writes the interrupt left running land, then are counted
         try:
             done = int(read_done(spec, args.out).sum())
             where = f"{done} of {spec.n_chunks} chunks are in {args.out}"

@@ -10,6 +10,7 @@ import numpy as np
 
 from ..device import engine as _engine
 from ..outputs import check_figure, check_output, check_store, check_suffix
+from ..store import zarr as zarr_store
 from .common import (
     cluster_options,
     device_options,
@@ -178,6 +179,7 @@ def cmd_fit_image(args) -> int:
             from ..plots.images import plot_batch_maps
             plot_batch_maps(ds, args.png)
     except KeyboardInterrupt:
+        zarr_store.settle()  # the writes the interrupt left running land, then are counted
         try:
             done, total = batch_store.read_progress(args.out)
             where = f"{done} of {total} blocks are in {args.out}"

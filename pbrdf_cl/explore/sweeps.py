@@ -61,7 +61,7 @@ from ..errors import SpecError
 from ..model import quantities
 from ..model.reference import SHADOWING
 from ..results import Result
-from ..store import cluster
+from ..store import cluster, interrupt
 from ..store import zarr as zarr_store
 
 try:
@@ -672,6 +672,7 @@ def sweep(spec, store, *, engine=None, device=None, backend="auto", workers=None
             for i in todo:
                 _, points, _ = runner.run(eng, i)
                 finished(i, points)
+                interrupt.check()
         elif todo.size:
             _run_distributed(spec, name, todo, device, backend, workers, scheduler, client, finished)
     finally:

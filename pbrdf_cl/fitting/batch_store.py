@@ -46,7 +46,7 @@ import numpy as np
 from .. import sizes
 from ..device.engine import kernels_sha256, resolve_engine
 from ..errors import StoreError
-from ..store import cluster
+from ..store import cluster, interrupt
 from ..store import zarr as zarr_store
 from .dataset import PIXEL_STATUS, goodness_summary
 
@@ -637,6 +637,7 @@ def write_store(job, store, *, progress=False, engine=None, backend="auto", devi
             _add_devices(name, [eng.description])
             for i in todo:
                 finished(writer.run(job, eng, i, *blocks[i]))
+                interrupt.check()
         elif todo.size:
             cluster.run_on_cluster(run_block, job, [int(i) for i in todo],
                                    lambda i: (name, digest, i, *blocks[i], device, backend), "pbrdf-fit", finished,

@@ -15,6 +15,7 @@ import threading
 import uuid
 
 from ..device.engine import resolve_engine
+from . import interrupt
 
 #: This process's engines, by (device, backend) (:func:`worker_engine`).
 _ENGINES = {}
@@ -97,6 +98,7 @@ def run_on_cluster(task, shared, items, args_of, key, finished, *, workers=None,
                 result = fut.result()
                 fut.release()
                 finished(result)
+                interrupt.check()
                 nxt = next(pending, None)
                 if nxt is not None:
                     queue.add(submit(nxt))

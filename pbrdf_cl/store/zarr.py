@@ -16,6 +16,7 @@ store is written beside its place and renamed into it (:func:`create_in_place`),
 """
 from __future__ import annotations
 
+import asyncio
 import json
 import os
 import uuid
@@ -39,6 +40,32 @@ def _zarr():
 
 def _zarr3():
     return int(_zarr().__version__.split(".")[0]) >= 3
+
+
+def settle(timeout=10.0):
+    """Wait (up to ``timeout`` seconds) for the writes still running in Zarr's I/O thread.
+
+    Zarr 3 writes from an event loop in a thread of its own while the caller waits; a Ctrl-C ends
+    the wait, not the write.  A process that reports what its store holds after an interrupt
+    calls this first, so that the report counts the writes that land, and the loop is idle when
+    Python stops it at exit (instead of printing ``Task was destroyed but it is pending``).
+    Does nothing on zarr 2 or before Zarr's loop has started."""
+    try:
+        from zarr.core import sync
+    except ImportError:  # zarr 2 writes in the caller's thread
+        return
+    loop = sync.loop[0]
+    if loop is None or loop.is_closed() or not loop.is_running():
+        return
+
+    async def rest():
+        others = [t for t in asyncio.all_tasks() if t is not asyncio.current_task()]
+        if others:
+            await asyncio.wait(others, timeout=timeout)
+    try:
+        asyncio.run_coroutine_threadsafe(rest(), loop).result(timeout + 1.0)
+    except Exception:  # noqa: BLE001 - a write that fails or hangs is counted as not written
+        pass
 
 
 def is_local(store):
