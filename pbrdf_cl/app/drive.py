@@ -4,12 +4,14 @@ the plots draw.  Used by ``tests/test_explore_app.py``, ``scripts/bench_explore.
 ``scripts/explore_screenshots.py``, each through :func:`session`."""
 from __future__ import annotations
 
+import collections
 import contextlib
 import os
 import re
 import shutil
 import subprocess
 import sys
+import threading
 import time
 
 #: Finds elements matching a CSS selector through every shadow root (Panel renders into them).
@@ -56,7 +58,9 @@ def start_server(data=None, extra=(), timeout=120):
             break
         lines.append(line)
         m = re.search(r"serving (http://\S+)", line)
-        if m:
+        if m:  # the server's log is read on (and its tail kept) so that a full pipe never blocks it
+            proc.log_tail = collections.deque(lines, maxlen=200)
+            threading.Thread(target=proc.log_tail.extend, args=(proc.stdout,), daemon=True).start()
             return proc, m.group(1)
     proc.kill()
     raise RuntimeError("the explorer's server did not start: " + "".join(lines)[-2000:])
@@ -87,13 +91,22 @@ def session(data=None, extra=(), width=1800, height=1500, server=None):
     try:
         driver = open_browser(width, height)
     except BaseException:
-        proc.kill()
-        proc.wait()
+        stop_server(proc)
         raise
     try:
         yield driver, url
     finally:
         driver.quit()
+        stop_server(proc)
+
+
+def stop_server(proc, timeout=10.0):
+    """Stop the server of :func:`start_server`: SIGTERM (it exits as on Ctrl-C; coverage, where it
+    runs, saves its data), SIGKILL if it has not exited after ``timeout`` seconds."""
+    proc.terminate()
+    try:
+        proc.wait(timeout)
+    except subprocess.TimeoutExpired:
         proc.kill()
         proc.wait()
 
