@@ -4,6 +4,7 @@ chromedriver, driven by Selenium): a slider moved, the plotted DOP against ``pbr
 example CSV loaded and fitted, the fitted values against ``pbrdf_cl.fit``'s, the state in the URL."""
 import contextlib
 import html
+import io
 import os
 import subprocess
 import sys
@@ -108,7 +109,6 @@ def test_page_without_a_browser(tmp_path, capsys):
     assert f"error: {cli_line}" in ex.status.object
     ds = ex.dataset()
     assert ds["curve"].sel(set="A", theta_i=40).values.tolist() == expected.tolist()
-    import io
 
     import xarray as xr
     back = xr.open_dataset(io.BytesIO(ex._netcdf().getvalue()))
@@ -117,6 +117,34 @@ def test_page_without_a_browser(tmp_path, capsys):
     assert read_params_text(ex._params("toml").getvalue(), tmp_path)["sigma"] == 0.37
     png = ex._png().getvalue()
     assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000
+
+
+def test_png_export_draws_the_polar_plot_and_the_aop_ticks():
+    """The *view as PNG* figure has the page's polar plot (radius |value| at theta_r from the
+    normal) and, for the AoP, the page's orientation ticks over the map, one segment each."""
+    from matplotlib.collections import LineCollection
+
+    from pbrdf_cl.plots.explore import plot_view
+    eng = pbrdf_cl.get_default_engine()
+    for kind in ("incidence", "hemisphere"):
+        view = st.State()
+        view.settings.quantity, view.settings.map_kind, view.settings.resolution = "aop", kind, 32
+        ds = st.view_dataset(eng, view)
+        ticks = st.aop_ticks(eng, view)
+        assert ticks[0].size > 50
+        for name, values in zip(("tick_x0", "tick_y0", "tick_x1", "tick_y1"), ticks):
+            assert np.array_equal(ds[name].values, values)
+        fig = plot_view(ds, io.BytesIO())
+        polar = [ax for ax in fig.axes if ax.name == "polar"]
+        assert len(polar) == 1 and len(polar[0].lines) == ds["curve"].sizes["theta_i"]
+        r = polar[0].lines[0].get_ydata()
+        assert np.allclose(r, np.abs(ds["curve"].values[0, 0]), equal_nan=True)
+        drawn = [c for ax in fig.axes for c in ax.collections
+                 if isinstance(c, LineCollection) and c.get_label() == "AoP orientation"]
+        assert len(drawn) == 1 and len(drawn[0].get_segments()) == ticks[0].size
+    view = st.State()
+    view.settings.resolution = 32
+    assert "tick_x0" not in st.view_dataset(eng, view)  # DOP: no ticks, as on the page
 
 
 def test_explore_command_refuses_bad_input_in_one_line(tmp_path, capsys):

@@ -185,7 +185,8 @@ def residuals(engine, state, meas):
 
 def view_dataset(engine, state, meas=None):
     """The numbers of the current view as an ``xarray.Dataset``: the curves of the visible sets
-    (set, theta_i, theta_r), the map of the active set, and the measurements with residuals."""
+    (set, theta_i, theta_r), the map of the active set (with the AoP's orientation ticks,
+    ``tick_x0`` ... ``tick_y1``, when the quantity is the AoP), and the measurements with residuals."""
     import xarray as xr
     s = state.settings
     label, units, _, _ = QUANTITIES[s.quantity]
@@ -209,6 +210,10 @@ def view_dataset(engine, state, meas=None):
         ds["map"] = xr.DataArray(v, dims=("map_y", "map_x"), coords=dict(map_x=a, map_y=b),
                                  attrs=dict(long_name=label, units=units, theta_i=s.theta_i[0],
                                             projection="theta_r = 90 hypot(x, y); x towards phi = 180"))
+    if s.quantity == "aop":  # the page's orientation ticks, as segments in the map's coordinates
+        units = "deg" if s.map_kind == "incidence" else "1"
+        for name, values in zip(("tick_x0", "tick_y0", "tick_x1", "tick_y1"), aop_ticks(engine, state)):
+            ds[name] = xr.DataArray(values, dims=("tick",), attrs=dict(units=units))
     if meas is not None:
         model, res = residuals(engine, state, meas)
         for name, values in dict(data_theta_i=meas.theta_i, data_theta_r=meas.theta_r, data_phi=meas.phi,

@@ -1,6 +1,7 @@
 """The explorer's current view as one PNG (its *view as PNG* export): the curves of the shown sets
-with the measurements, the map with its colour bar, and the residuals, drawn from the view's
-Dataset (:func:`pbrdf_cl.app.state.view_dataset`) with matplotlib (Agg backend)."""
+with the measurements, their polar plot, the map with its colour bar (and the AoP's orientation
+ticks), and the residuals, drawn from the view's Dataset
+(:func:`pbrdf_cl.app.state.view_dataset`) with matplotlib (Agg backend)."""
 from __future__ import annotations
 
 import numpy as np
@@ -44,8 +45,33 @@ def _map(fig, ax, ds):
     aop = ds.attrs["quantity"] == "aop"  # an angle: a cyclic colour map, as the maps of pbrdf-cl map draw it
     mesh = ax.pcolormesh(x, y, values, shading="nearest", cmap="twilight" if aop else "viridis",
                          **(dict(vmin=-90, vmax=90) if aop else {}))
+    if "tick_x0" in ds:  # the page's orientation ticks: the AoP's direction at each lattice node
+        from matplotlib.collections import LineCollection
+        ends = np.stack([np.stack([ds["tick_x0"], ds["tick_y0"]], -1), np.stack([ds["tick_x1"], ds["tick_y1"]], -1)], 1)
+        ax.add_collection(LineCollection(ends, colors="k", linewidths=1.2, label="AoP orientation"),
+                          autolim=False)  # the map sets the limits; edge ticks are clipped
+        ax.legend(loc="upper right", fontsize=7)
     ax.set_aspect("equal")
     fig.colorbar(mesh, ax=ax, label=f"{m.attrs['long_name']} ({m.attrs['units']})")
+
+
+def _polar(ax, ds):
+    """The curves as the page's polar plot: radius |value|, angle theta_r from the normal (up)."""
+    c = ds["curve"]
+    styles = ("-", "--", ":", "-.")
+    rad = np.radians(c["theta_r"].values)
+    for s in c["set"].values:
+        for j, ti in enumerate(c["theta_i"].values):
+            ax.plot(rad, np.abs(c.sel(set=s, theta_i=ti).values), color=SET_COLOURS.get(str(s), "k"),
+                    linestyle=styles[j % len(styles)])
+    top = float(np.nanmax(np.abs(c.values), initial=0.0)) if c.size else 0.0
+    ax.set_ylim(0.0, top * 1.05 if top > 0 else 1.0)
+    ax.set_theta_zero_location("N")
+    ax.set_theta_direction(-1)
+    ax.set_thetamin(0)
+    ax.set_thetamax(90)
+    ax.set_xlabel("theta_r (deg) from the normal")
+    ax.set_title(f"polar: radius |{c.attrs['long_name']}| ({c.attrs['units']})", fontsize=10)
 
 
 def plot_view(ds, path):
@@ -70,16 +96,17 @@ def plot_view(ds, path):
     >>> view = state.State()
     >>> view.settings.resolution = 32
     >>> fig = plot_view(state.view_dataset(pbrdf_cl.get_default_engine(), view), io.BytesIO())
-    >>> len(fig.axes) >= 2
+    >>> len(fig.axes) >= 3  # curves, polar plot, map (and its colour bar)
     True
     """
     plt = pyplot()
     rows = 2 if "residual" in ds else 1
-    fig = plt.figure(figsize=(13, 5 + 2.5 * (rows - 1)), layout="constrained")
-    grid = fig.add_gridspec(rows, 2, height_ratios=[3, 1.5][:rows])
+    fig = plt.figure(figsize=(17, 5.5 + 2.5 * (rows - 1)), layout="constrained")
+    grid = fig.add_gridspec(rows, 3, height_ratios=[3, 1.5][:rows], width_ratios=[3, 2, 3])
     ax = fig.add_subplot(grid[0, 0])
     _curves(ax, ds)
-    _map(fig, fig.add_subplot(grid[:, 1]), ds)
+    _polar(fig.add_subplot(grid[0, 1], projection="polar"), ds)
+    _map(fig, fig.add_subplot(grid[:, 2]), ds)
     if rows == 2:
         axr = fig.add_subplot(grid[1, 0], sharex=ax)
         std = ds["data_dop_std"].values if "data_dop_std" in ds else None
