@@ -49,7 +49,7 @@ def sobol_and_design(driver):
                           ".find(m => m.type.endsWith('Select') && m.value == 'n').value = 'kd'")
     drive.wait(lambda: "of kd" in driver.execute_script(
         "return Bokeh.documents[0].get_model_by_name('sobol_S1').title.text"), 30, what="the Sobol' map of kd")
-    drive.button(driver, "Design 30 geometries for n, k").click()
+    drive.button(driver, "Design geometries for n, k").click()
     drive.wait(lambda: drive.source_data(driver, "design_points")["x"], 120, what="the design")
 
 

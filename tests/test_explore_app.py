@@ -147,6 +147,29 @@ def test_png_export_draws_the_polar_plot_and_the_aop_ticks():
     assert "tick_x0" not in st.view_dataset(eng, view)  # DOP: no ticks, as on the page
 
 
+def test_page_design_and_sobol_use_the_chosen_sizes():
+    """The design runs with the page's DOP noise and count, the Sobol' map with its N; each equals
+    the library call with those settings; a noise of 0 is refused on the page in one line."""
+    pytest.importorskip("panel", reason="the explore extra (panel) is not installed")
+    import asyncio
+
+    from pbrdf_cl.app.page import Explorer
+    ex = Explorer()
+    ex.design_noise.value, ex.design_count.value = 0.002, 8
+    asyncio.run(ex._on_design(None))
+    r = ex.design_result
+    assert len(r.theta_i) == 8 and "DOP noise 0.002" in ex.jobs.object
+    want = pbrdf_cl.design(st.STEEL, {"theta_i": "10:80:5", "theta_r": "0:85:5"}, noise=0.002, n_measurements=8)
+    assert np.array_equal(r.theta_i, want.theta_i) and np.array_equal(r.theta_r, want.theta_r)
+    assert r.ci95_width["n"] == pytest.approx(want.ci95_width["n"], rel=1e-9)
+    ex.design_noise.value = 0.0
+    asyncio.run(ex._on_design(None))
+    assert "noise must be > 0" in ex.jobs.object and ex.design_result is r
+    ex.sobol_n.value = 64
+    asyncio.run(ex._on_sobol(None))
+    assert ex.sobol_ds.attrs["N"] == 64
+
+
 def test_explore_command_refuses_bad_input_in_one_line(tmp_path, capsys):
     pytest.importorskip("panel", reason="the explore extra (panel) is not installed")
     bad = tmp_path / "bad.csv"

@@ -37,6 +37,10 @@ POOL = ThreadPoolExecutor(max_workers=1, thread_name_prefix="pbrdf-explore")
 _BACKGROUND = {}
 #: How long the views stay still before the URL and the timing line follow them (ms).
 SETTLE_MS = 250
+#: The Sobol' map's choices of N (base samples per node; the middle one is the default).
+SOBOL_N = (64, 256, 1024)
+#: The design's defaults: DOP noise (std) and number of measurements (both editable on the page).
+DESIGN_NOISE, DESIGN_COUNT = 0.005, 30
 
 
 class LiveFloatSlider(pn.widgets.FloatSlider):
@@ -157,8 +161,13 @@ class Explorer:
         self.sobol_param.param.watch(lambda e: self._draw_sobol(), "value")
         self.sobol_share = pn.widgets.FloatInput(label="box: +- share of each range", value=0.1, start=0.01, end=0.5,
                                                  step=0.05, width=200)
-        self.design_button = pn.widgets.Button(label="Design 30 geometries for n, k", width=220)
+        self.sobol_n = pn.widgets.Select(label="N (base samples)", options=list(SOBOL_N), value=SOBOL_N[1], width=120)
+        self.design_button = pn.widgets.Button(label="Design geometries for n, k", width=220)
         self.design_button.on_click(self._on_design)
+        self.design_noise = pn.widgets.FloatInput(label="DOP noise (std)", value=DESIGN_NOISE, start=1e-4, end=0.1,
+                                                  step=0.001, width=120)
+        self.design_count = pn.widgets.IntInput(label="measurements", value=DESIGN_COUNT, start=5, end=200, step=5,
+                                                width=110)
         self.jobs = pn.pane.HTML("", width=560, name="jobs")
 
     def _export_widgets(self):
@@ -184,7 +193,8 @@ class Explorer:
                          self.upload, self.data_info, pn.Row(self.fit_button, self.progress), self.use_fit,
                          pn.pane.Bokeh(f.fit_table), self.fit_notes)
         jobs = pn.Column(pn.pane.HTML("<b>On demand</b>"), pn.Row(self.sobol_button, self.sobol_share),
-                         self.sobol_param, self.design_button, self.jobs,
+                         pn.Row(self.sobol_param, self.sobol_n),
+                         pn.Row(self.design_button, self.design_noise, self.design_count), self.jobs,
                          pn.pane.HTML("<b>Export</b> (one plot as PNG: its toolbar's save tool)"),
                          pn.Row(*self.exports[:3]), pn.Row(*self.exports[3:]))
         views = pn.Column(self.status, pn.Row(pn.pane.Bokeh(f.curves_fig), pn.pane.Bokeh(f.polar_fig)),
@@ -426,15 +436,16 @@ class Explorer:
 
     # ---- Sobol' map and design --------------------------------------------------------------------
 
-    def _sobol_job(self, params, share, settings):
+    def _sobol_job(self, params, share, settings, n_base=SOBOL_N[1]):
         return sobol(st.sobol_box(params, share), {"theta_i": "0:85@24", "theta_r": "0:85@24"},
-                     fixed=dict(ks=params["ks"]), N=256, seed=1, shadowing=settings.shadowing,
+                     fixed=dict(ks=params["ks"]), N=n_base, seed=1, shadowing=settings.shadowing,
                      engine=background_engine(self.engine))
 
     async def _on_sobol(self, event):
         share = float(self.sobol_share.value or 0.1)
         ds = await self._background(self.sobol_button, "Sobol' map", self._sobol_job,
-                                    dict(self.state.sets[self.state.active]), share, self.state.settings)
+                                    dict(self.state.sets[self.state.active]), share, self.state.settings,
+                                    int(self.sobol_n.value))
         if ds is not None:
             self.sobol_ds = ds
             self._later(self._draw_sobol)
@@ -443,18 +454,25 @@ class Explorer:
         if self.sobol_ds is not None:
             self.figs.update_sobol(self.sobol_ds, self.sobol_param.value)
 
-    def _design_job(self, params, settings):
-        return design(params, {"theta_i": "10:80:5", "theta_r": "0:85:5"}, noise=0.005, n_measurements=30,
+    def _design_job(self, params, settings, noise=DESIGN_NOISE, count=DESIGN_COUNT):
+        return design(params, {"theta_i": "10:80:5", "theta_r": "0:85:5"}, noise=noise, n_measurements=count,
                       shadowing=settings.shadowing, engine=background_engine(self.engine))
 
     async def _on_design(self, event):
+        noise, count = self.design_noise.value, self.design_count.value
+        if noise is None or not noise > 0 or count is None or count < 1:
+            self.jobs.object = ('<span style="color:#b00020">design: the DOP noise must be > 0 and the '
+                                'measurements at least 1</span>')
+            return
         r = await self._background(self.design_button, "design", self._design_job,
-                                   dict(self.state.sets[self.state.active]), self.state.settings)
+                                   dict(self.state.sets[self.state.active]), self.state.settings,
+                                   float(noise), int(count))
         if r is not None:
             self.design_result = r
             self._later(self.figs.update_design, r.theta_i, r.theta_r)
             widths = ", ".join(f"{p} {r.ci95_width[p]:.3g}" for p in ("n", "k"))
-            self.jobs.object += f"; predicted 95% widths at the chosen geometries: {widths} (x on the map)"
+            self.jobs.object += (f"; predicted 95% widths at the {len(r.theta_i)} chosen geometries (DOP noise "
+                                 f"{float(noise):g}): {widths} (x on the map)")
 
     # ---- exports ----------------------------------------------------------------------------------
 
