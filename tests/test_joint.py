@@ -256,22 +256,27 @@ def test_cli_per_set_fix_and_bounds(tmp_path, noisy):
     assert "--fix 435:kd=0.2: a set name" in single.stderr
 
 
-def test_global_optimum_where_a_set_switches_valleys():
-    """Problem 11 of ``scripts/bench_joint.py`` (seed 2028): the sets' DOP have valleys of nearly
-    equal depth, and the descent from each set's best grid node stopped in the wrong ones (chi2
-    88.59); fitting each set's own parameters at the starting shared values (the profile stage)
-    reaches the optimum that least squares from the truth finds (88.457)."""
+def bench_problem(index):
+    """(truths, sets) of problem ``index`` of ``scripts/bench_joint.py`` (seed 2028)."""
     import importlib.util
-
-    from scipy.optimize import least_squares
     spec = importlib.util.spec_from_file_location("bench_joint", Path(__file__).parent.parent / "scripts" /
                                                   "bench_joint.py")
     bench = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(bench)
     rng = np.random.default_rng(2028)
-    for _ in range(12):  # the bench's stream: each problem, then its multi-start's 24 random starts
+    for _ in range(index + 1):  # the bench's stream: each problem, then its multi-start's 24 random starts
         truths, sets = bench.problem(rng)
         [rng.random(11) for _ in range(24)]
+    return truths, sets
+
+
+def test_global_optimum_where_a_set_switches_valleys():
+    """Problem 11 of ``scripts/bench_joint.py`` (seed 2028): the sets' DOP have valleys of nearly
+    equal depth, and the descent from each set's best grid node stopped in the wrong ones (chi2
+    88.59); fitting each set's own parameters at the starting shared values (the profile stage)
+    reaches the optimum that least squares from the truth finds (88.457)."""
+    from scipy.optimize import least_squares
+    truths, sets = bench_problem(11)
     setup = joint.check_joint_args(sets, ("sigma", "c"), "six-param", None, None, "paper")
     resid = joint.JointResiduals(setup)
     lo, hi = setup.lo, setup.hi
@@ -281,3 +286,14 @@ def test_global_optimum_where_a_set_switches_valleys():
                         ftol=1e-12, xtol=1e-12, gtol=1e-12, max_nfev=2000)
     res = pbrdf_cl.fit_joint(sets)
     assert res.chi2 <= 2 * ref.cost * (1 + 1e-6) + 1e-6, (res.chi2, 2 * ref.cost)
+
+
+def test_the_result_says_which_sets_the_basin_exchange_moved():
+    """Problem 4 of the bench: set c's own parameters are moved by the exchange (and the result
+    says so, in ``exchanged`` and a note); problem 0: nothing moves, nothing is said."""
+    res = pbrdf_cl.fit_joint(bench_problem(4)[1])
+    assert res.exchanged and all(set(rnd) <= set(res.sets) for rnd in res.exchanged)
+    assert "c" in res.exchanged[0]
+    assert any(n.startswith("the basin exchange lowered the chi2 of set c") for n in res.notes), res.notes
+    quiet = pbrdf_cl.fit_joint(bench_problem(0)[1])
+    assert quiet.exchanged == () and not any("basin exchange" in n for n in quiet.notes)

@@ -78,13 +78,12 @@ def exchange_stage(setup, resid, grids, best, lo, hi, ls_nfev):
     no set moves): each round's exchanged point descends by least squares on the stacked
     residuals (``ls_nfev`` evaluations per parameter) and is kept where it is better.  Returns
     a :class:`~pbrdf_cl.fitting.stages.StageResult` whose value is (the best candidate, the sets
-    moved in each round)."""
+    moved in each round that was kept: a round whose descent did not improve is not listed)."""
     t0 = time.perf_counter()
     rows, history = 0, []
     for _ in range(EXCHANGE_ROUNDS):
         x, moved, n = exchange_round(setup, resid, grids, best.x)
         rows += n
-        history.append(tuple(moved))
         if not moved:
             break
         r = resid.rows(x[None])[0]
@@ -95,6 +94,7 @@ def exchange_stage(setup, resid, grids, best, lo, hi, ls_nfev):
         if not cand.sse < best.sse:
             break
         best = cand
+        history.append(tuple(moved))
     return StageResult((best, tuple(history)), rows, time.perf_counter() - t0)
 
 

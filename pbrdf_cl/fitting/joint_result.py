@@ -40,6 +40,10 @@ class JointResult(Result):
         criteria of all those separate fits together (lower than the joint's: the data prefer
         separate values of the shared parameters), and set -> parameter -> joint 95% width /
         separate 95% width (below 1: sharing narrowed it).
+    exchanged
+        the sets whose own parameters the basin exchange moved (refitted alone at the shared
+        values, from their grid's valleys, to a lower chi2), one tuple per round kept (empty: the
+        joint descent had reached each set's best itself); a note says so.
     corr, condition_number, notes, success, status, message, nfev, seconds
         as :class:`FitResult`'s, over the joint labels; ``seconds["total"]`` the wall time.
     """
@@ -236,6 +240,12 @@ def joint_result(setup, resid, best, cands, unc, jgrid, separate, stages, status
                                     sum(len(r.free) for r in separate.values()), setup.sigma_known)
     fits, p_value, r2, first = _goodness(setup, dop_resid, unc)
     notes = first + _model_notes(setup) + _joint_notes(setup, labels, best.x, lo, hi, unc)
+    exchanged = tuple(stages["exchange"].value[1]) if "exchange" in stages else ()
+    moved = sorted({s for rnd in exchanged for s in rnd}, key=list(setup.names).index)
+    if moved:
+        notes.append(f"the basin exchange lowered the chi2 of set{'s' if len(moved) > 1 else ''} "
+                     f"{', '.join(moved)}: refitted alone at the shared values (from its grid's valleys) it found "
+                     "own parameters the joint descent had not reached; the data have more than one valley")
     amb = _ambiguous(cands, unc.unit, unc.stderr)
     if amb:
         alt = ", ".join(f"{n}={v:.4g}" for n, v in zip(labels, amb[0].x))
@@ -257,5 +267,5 @@ def joint_result(setup, resid, best, cands, unc, jgrid, separate, stages, status
         fits_data=fits, sigma_known=setup.sigma_known, separate=separate, separate_aic=sep_aic,
         separate_bic=sep_bic, width_ratio=ratio, corr=corr, condition_number=float(unc.condition_number),
         profiles={n: dict(values=jgrid.axes[n], sse=jgrid.profiles[n]) for n in labels},
-        notes=notes, nfev={k: int(v.nfev) for k, v in stages.items()}, seconds=timing,
+        notes=notes, exchanged=exchanged, nfev={k: int(v.nfev) for k, v in stages.items()}, seconds=timing,
         success=status > 0, status=status, message=FIT_STATUS[status])
