@@ -168,6 +168,8 @@ def test_page_design_and_sobol_use_the_chosen_sizes():
     ex.sobol_n.value = 64
     asyncio.run(ex._on_sobol(None))
     assert ex.sobol_ds.attrs["N"] == 64
+    assert ex.load_path(EXAMPLE, EXAMPLE.name)  # its dop_std becomes the design's noise
+    assert ex.design_noise.value == pytest.approx(float(np.median(pbrdf_cl.read_csv(EXAMPLE).dop_std)), abs=1e-6)
 
 
 def test_explore_command_refuses_bad_input_in_one_line(tmp_path, capsys):

@@ -364,6 +364,8 @@ class Explorer:
         self.fit_button.disabled = False
         self.use_fit.disabled = True
         self.fit_notes.object = ""
+        if meas.dop_std is not None and np.isfinite(meas.dop_std).any():  # the data's noise: the design's default
+            self.design_noise.value = float(np.round(np.nanmedian(meas.dop_std), 6))
         self.refresh()
         return True
 
