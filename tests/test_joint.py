@@ -295,5 +295,6 @@ def test_the_result_says_which_sets_the_basin_exchange_moved():
     assert res.exchanged and all(set(rnd) <= set(res.sets) for rnd in res.exchanged)
     assert "c" in res.exchanged[0]
     assert any(n.startswith("the basin exchange lowered the chi2 of set c") for n in res.notes), res.notes
+    assert res.to_dataset().attrs["exchanged"] == "; ".join(",".join(m) for m in res.exchanged)
     quiet = pbrdf_cl.fit_joint(bench_problem(0)[1])
     assert quiet.exchanged == () and not any("basin exchange" in n for n in quiet.notes)

@@ -57,7 +57,7 @@ def _joint_json(r):
                 stderr=r.stderr, ci95={s: {p: list(v) for p, v in c.items()} for s, c in r.ci95.items()},
                 sse=r.sse, set_sse=r.set_sse, chi2=r.chi2, dof=r.dof, p_value=r.p_value, r2=r.r2, aic=r.aic,
                 bic=r.bic, separate_aic=r.separate_aic, separate_bic=r.separate_bic, width_ratio=r.width_ratio,
-                n_points=r.n_points, seconds=r.seconds, notes=r.notes,
+                n_points=r.n_points, seconds=r.seconds, notes=r.notes, exchanged=[list(m) for m in r.exchanged],
                 separate={s: _fit_json(f) for s, f in r.separate.items()})
 
 

@@ -102,7 +102,8 @@ class JointResult(Result):
         xarray.Dataset
             ``x``, ``stderr``, ``ci95`` (set, param, bound), ``separate_x``, ``separate_ci95``,
             ``width_ratio``; coordinate ``shared`` (param: whether it is shared); attrs: model,
-            shadowing, shared, sse, chi2, aic, bic, separate_aic, separate_bic, notes.
+            shadowing, shared, sse, chi2, aic, bic, separate_aic, separate_bic, notes, exchanged (the
+            sets moved in each exchange round kept: "a,c; c").
 
         Examples
         --------
@@ -136,7 +137,8 @@ class JointResult(Result):
         ds.attrs.update(model=self["model"], shadowing=self["shadowing"], shared=",".join(self["shared"]),
                         sse=self["sse"], chi2=self["chi2"], aic=self["aic"], bic=self["bic"],
                         separate_aic=self["separate_aic"], separate_bic=self["separate_bic"],
-                        notes="\n".join(self["notes"]))
+                        notes="\n".join(self["notes"]),
+                        exchanged="; ".join(",".join(moved) for moved in self["exchanged"]))
         return ds
 
     def __repr__(self):
