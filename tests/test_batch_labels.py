@@ -153,3 +153,29 @@ def test_bad_labels_are_refused_in_one_line(kwargs, message):
     with pytest.raises(ValueError, match=message) as err:
         pbrdf_cl.fit_batch(data, backend="numpy", **kw)
     assert "\n" not in str(err.value)
+
+
+def test_cli_fit_image_with_labels(dev, tmp_path, capsys):
+    """``pbrdf-cl fit-image --labels``: each label's values and intervals as the library gives
+    them, the note on what the intervals leave out, the store; ``--shared`` alone refused."""
+    from pbrdf_cl.cli import main
+    from pbrdf_cl.fitting.labels import LABEL_INTERVAL_NOTE
+    data, lab = two_materials(6, 4, 0.003, seed=5)
+    np.savez(tmp_path / "stack.npz", **data)
+    np.save(tmp_path / "labels.npy", lab)
+    out = tmp_path / "fit.zarr"
+    assert main(["fit-image", str(tmp_path / "stack.npz"), "--out", str(out), "--labels",
+                 str(tmp_path / "labels.npy"), "--no-progress"]) == 0
+    printed = capsys.readouterr().out
+    want = pbrdf_cl.fit_batch(data, labels=lab, engine=dev)
+    for j, L in enumerate(want.label.values):
+        line = f"label {L}: " + ", ".join(
+            f"{n} = {float(want[f'label_{n}'][j]):.4g} [{float(want[f'label_{n}_ci95'][j, 0]):.4g}, "
+            f"{float(want[f'label_{n}_ci95'][j, 1]):.4g}]" for n in ("n", "k"))
+        assert line in printed, (line, printed)
+    assert f"note: {LABEL_INTERVAL_NOTE}" in printed
+    import xarray as xr
+    assert xr.open_zarr(out).attrs["label_interval_note"] == LABEL_INTERVAL_NOTE
+    assert main(["fit-image", str(tmp_path / "stack.npz"), "--out", str(tmp_path / "x.zarr"), "--shared", "n,k"]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--shared needs --labels" in err

@@ -208,6 +208,7 @@ def cmd_fit_image(args) -> int:
                 f"{n} = {float(ds[f'label_{n}'][j]):.4g} [{float(ds[f'label_{n}_ci95'][j, 0]):.4g}, "
                 f"{float(ds[f'label_{n}_ci95'][j, 1]):.4g}]" for n in ds.attrs["shared"].split())
                 + f" ({int(ds['label_pixels'][j])} pixels)")
+        print(f"note: {ds.attrs['label_interval_note']}")
     print(f"store: {ds.attrs['store']}" + (f"; maps: {args.png}" if args.png else ""))
     return 0
 
