@@ -55,6 +55,34 @@ def test_hemisphere_in_plane_line_is_the_in_plane_dop():
     assert np.isnan(v[0, 0])  # a corner: outside the disc
 
 
+def test_hemisphere_ticks_lie_along_the_facets_s_axis():
+    """Off the plane too: for unpolarized light each facet reflects more s than p (Rs > Rp), and the
+    diffuse term adds unpolarized light only, so the reflected light is polarized along the
+    facet's s axis, unit(k_in x h) with h = unit(w_i + w_r) (SPEC). Each tick on the hemisphere
+    map, drawn from the model's AoP through the beam's s and p axes, must be parallel to that
+    axis seen from above (the source at azimuth 180, on the left). A mirrored azimuth or a flipped
+    AoP sign would turn the off-plane ticks the other way."""
+    view = st.State()
+    view.settings.map_kind, view.settings.quantity, view.settings.theta_i = "hemisphere", "aop", [40.0]
+    view.sets[0] = dict(st.STEEL, kd=0.3)
+    x0, y0, x1, y1 = st.aop_ticks(pbrdf_cl.get_default_engine(), view, count=21)
+    cx, cy, d = (x0 + x1) / 2, (y0 + y1) / 2, np.stack([x1 - x0, y1 - y0], -1)
+    tr, pr = np.radians(90.0 * np.hypot(cx, cy)), np.arctan2(cy, cx)
+    ti = np.radians(40.0)
+    w_i = np.array([-np.sin(ti), 0.0, np.cos(ti)])
+    w_r = np.stack([np.sin(tr) * np.cos(pr), np.sin(tr) * np.sin(pr), np.cos(tr)], -1)
+    h = w_i + w_r
+    h /= np.linalg.norm(h, axis=-1, keepdims=True)
+    s_f = np.cross(-w_i, h)
+    s_f /= np.linalg.norm(s_f, axis=-1, keepdims=True)
+    seen = s_f[:, :2]
+    ok = np.linalg.norm(seen, axis=-1) > 0.2  # the axis not nearly vertical: its direction from above is defined
+    assert ok.sum() > 150 and (np.abs(cy[ok]) > 0.3).sum() > 40  # well off the plane, both sides
+    cross = d[ok, 0] * seen[ok, 1] - d[ok, 1] * seen[ok, 0]
+    sin_angle = np.abs(cross) / (np.linalg.norm(d[ok], axis=-1) * np.linalg.norm(seen[ok], axis=-1))
+    assert sin_angle.max() < 1e-6, sin_angle.max()
+
+
 def test_state_survives_the_url_and_bad_urls_are_one_line():
     state = st.State()
     state.sets[1] = dict(st.STEEL, n=2.25, sigma=0.31)
