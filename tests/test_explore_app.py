@@ -177,7 +177,7 @@ def test_png_export_draws_the_polar_plot_and_the_aop_ticks():
 
 def test_page_design_and_sobol_use_the_chosen_sizes():
     """The design runs with the page's DOP noise and count, the Sobol' map with its N; each equals
-    the library call with those settings; a noise of 0 is refused on the page in one line."""
+    the library call with those settings; a noise of 0 is refused on the page in design()'s one line."""
     pytest.importorskip("panel", reason="the explore extra (panel) is not installed")
     import asyncio
 
@@ -192,7 +192,7 @@ def test_page_design_and_sobol_use_the_chosen_sizes():
     assert r.ci95_width["n"] == pytest.approx(want.ci95_width["n"], rel=1e-9)
     ex.design_noise.value = 0.0
     asyncio.run(ex._on_design(None))
-    assert "noise must be > 0" in ex.jobs.object and ex.design_result is r
+    assert "design: error: noise must be a positive number, got 0.0" in ex.jobs.object and ex.design_result is r
     ex.sobol_n.value = 64
     asyncio.run(ex._on_sobol(None))
     assert ex.sobol_ds.attrs["N"] == 64

@@ -461,20 +461,16 @@ class Explorer:
                       shadowing=settings.shadowing, engine=background_engine(self.engine))
 
     async def _on_design(self, event):
-        noise, count = self.design_noise.value, self.design_count.value
-        if noise is None or not noise > 0 or count is None or count < 1:
-            self.jobs.object = ('<span style="color:#b00020">design: the DOP noise must be > 0 and the '
-                                'measurements at least 1</span>')
-            return
+        noise = self.design_noise.value  # checked by design(): a bad value is its one line on the page
         r = await self._background(self.design_button, "design", self._design_job,
-                                   dict(self.state.sets[self.state.active]), self.state.settings,
-                                   float(noise), int(count))
+                                   dict(self.state.sets[self.state.active]), self.state.settings, noise,
+                                   self.design_count.value)
         if r is not None:
             self.design_result = r
             self._later(self.figs.update_design, r.theta_i, r.theta_r)
             widths = ", ".join(f"{p} {r.ci95_width[p]:.3g}" for p in ("n", "k"))
             self.jobs.object += (f"; predicted 95% widths at the {len(r.theta_i)} chosen geometries (DOP noise "
-                                 f"{float(noise):g}): {widths} (x on the map)")
+                                 f"{noise:g}): {widths} (x on the map)")
 
     # ---- exports ----------------------------------------------------------------------------------
 
