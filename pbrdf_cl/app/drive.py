@@ -81,7 +81,6 @@ def open_browser(width=1800, height=1500):
     return webdriver.Chrome(service=Service(found[1]), options=options)
 
 
-
 @contextlib.contextmanager
 def session(data=None, extra=(), width=1800, height=1500, server=None):
     """A served explorer and a browser to drive it: yields (driver, page URL); the browser quits
@@ -109,6 +108,7 @@ def stop_server(proc, timeout=10.0):
     except subprocess.TimeoutExpired:
         proc.kill()
         proc.wait()
+
 
 def deep_find(driver, selector):
     """Elements matching ``selector`` anywhere in the page, shadow roots included."""

@@ -12,13 +12,20 @@ from .common import pyplot
 SET_COLOURS = {"A": "#1f77b4", "B": "#d62728", "C": "#2ca02c", "D": "#9467bd"}
 
 
-def _curves(ax, ds):
-    c = ds["curve"]
+def _each_curve(c):
+    """(set, theta_i, values, matplotlib style) of every curve of ``c``: a colour per set, a line
+    style per incidence, as the page draws them."""
     styles = ("-", "--", ":", "-.")
     for s in c["set"].values:
         for j, ti in enumerate(c["theta_i"].values):
-            ax.plot(c["theta_r"], c.sel(set=s, theta_i=ti), color=SET_COLOURS.get(str(s), "k"),
-                    linestyle=styles[j % len(styles)], label=f"set {s}, theta_i {ti:g}°")
+            yield s, ti, c.sel(set=s, theta_i=ti).values, dict(color=SET_COLOURS.get(str(s), "k"),
+                                                                linestyle=styles[j % len(styles)])
+
+
+def _curves(ax, ds):
+    c = ds["curve"]
+    for s, ti, values, style in _each_curve(c):
+        ax.plot(c["theta_r"], values, label=f"set {s}, theta_i {ti:g}°", **style)
     if "data_dop" in ds and ds.attrs["quantity"] == "dop":
         std = ds["data_dop_std"].values if "data_dop_std" in ds else None
         ax.errorbar(ds["data_theta_r"], ds["data_dop"], yerr=std, fmt="o", color="k", ms=3, label="data")
@@ -58,12 +65,9 @@ def _map(fig, ax, ds):
 def _polar(ax, ds):
     """The curves as the page's polar plot: radius |value|, angle theta_r from the normal (up)."""
     c = ds["curve"]
-    styles = ("-", "--", ":", "-.")
     rad = np.radians(c["theta_r"].values)
-    for s in c["set"].values:
-        for j, ti in enumerate(c["theta_i"].values):
-            ax.plot(rad, np.abs(c.sel(set=s, theta_i=ti).values), color=SET_COLOURS.get(str(s), "k"),
-                    linestyle=styles[j % len(styles)])
+    for _, _, values, style in _each_curve(c):
+        ax.plot(rad, np.abs(values), **style)
     top = float(np.nanmax(np.abs(c.values), initial=0.0)) if c.size else 0.0
     ax.set_ylim(0.0, top * 1.05 if top > 0 else 1.0)
     ax.set_theta_zero_location("N")
