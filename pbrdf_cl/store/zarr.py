@@ -16,7 +16,6 @@ store is written beside its place and renamed into it (:func:`create_in_place`),
 """
 from __future__ import annotations
 
-import asyncio
 import json
 import os
 import uuid
@@ -50,6 +49,7 @@ def settle(timeout=10.0):
     calls this first, so that the report counts the writes that land, and the loop is idle when
     Python stops it at exit (instead of printing ``Task was destroyed but it is pending``).
     Does nothing on zarr 2 or before Zarr's loop has started."""
+    import asyncio  # here, not at the top: every pbrdf-cl command imports this module
     try:
         from zarr.core import sync
     except ImportError:  # zarr 2 writes in the caller's thread
