@@ -20,6 +20,21 @@ def error(exc) -> int:
     return 1
 
 
+def interrupted(progress, units, store) -> int:
+    """After Ctrl-C in a run into a store (``sweep``, ``fit-image``): the writes the interrupt left
+    running land (:func:`pbrdf_cl.store.zarr.settle`), then ``progress()`` ((done, total)) is
+    counted and said in one line; exit status 130."""
+    from ..store import zarr as zarr_store
+    zarr_store.settle()
+    try:
+        done, total = progress()
+        where = f"{done} of {total} {units} are in {store}"
+    except Exception:  # noqa: BLE001 - the store may not exist yet
+        where = "nothing was written"
+    print(f"pbrdf-cl: interrupted; {where}; run the same command again to resume", file=sys.stderr)
+    return 130
+
+
 def engine_for(args):
     """The engine of a subcommand from its ``--backend`` and ``--device``; an unusable explicit
     device, ``--backend opencl`` without a usable device, or a fallback to numpy caused by an

@@ -12,7 +12,6 @@ from .. import ranges
 from ..device import engine as _engine
 from ..model.reference import SHADOWING
 from ..outputs import check_figure, check_output, check_store, check_suffix
-from ..store import zarr as zarr_store
 from .common import (
     SHADOWING_HELP,
     check_result_outputs,
@@ -21,6 +20,7 @@ from .common import (
     engine_for,
     error,
     fit_settings,
+    interrupted,
     items,
     quantity_choices,
 )
@@ -36,14 +36,7 @@ def cmd_sweep(args) -> int:
         res = sweep(spec, args.out, engine=engine, device=args.device, backend=args.backend, workers=args.workers,
                     scheduler=args.scheduler, progress=not args.quiet, allow_large=args.allow_large)
     except KeyboardInterrupt:
-        zarr_store.settle()  # the writes the interrupt left running land, then are counted
-        try:
-            done = int(read_done(spec, args.out).sum())
-            where = f"{done} of {spec.n_chunks} chunks are in {args.out}"
-        except Exception:  # noqa: BLE001 - the store may not exist yet
-            where = "nothing was written"
-        print(f"pbrdf-cl: interrupted; {where}; run the same command again to resume", file=sys.stderr)
-        return 130
+        return interrupted(lambda: (int(read_done(spec, args.out).sum()), spec.n_chunks), "chunks", args.out)
     except (OSError, ValueError, RuntimeError, _engine.OpenCLUnavailableError) as exc:
         return error(exc)
     print(res.summary())

@@ -3,14 +3,12 @@ image stack, into a Zarr store)."""
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
 
 from ..device import engine as _engine
 from ..outputs import check_figure, check_output, check_store, check_suffix
-from ..store import zarr as zarr_store
 from .common import (
     cluster_options,
     device_options,
@@ -18,6 +16,7 @@ from .common import (
     error,
     fit_assignments,
     fit_settings,
+    interrupted,
     model_option,
 )
 
@@ -179,14 +178,7 @@ def cmd_fit_image(args) -> int:
             from ..plots.images import plot_batch_maps
             plot_batch_maps(ds, args.png)
     except KeyboardInterrupt:
-        zarr_store.settle()  # the writes the interrupt left running land, then are counted
-        try:
-            done, total = batch_store.read_progress(args.out)
-            where = f"{done} of {total} blocks are in {args.out}"
-        except Exception:  # noqa: BLE001 - the store may not exist yet
-            where = "nothing was written"
-        print(f"pbrdf-cl: interrupted; {where}; run the same command again to resume", file=sys.stderr)
-        return 130
+        return interrupted(lambda: batch_store.read_progress(args.out), "blocks", args.out)
     except (OSError, ValueError, RuntimeError, _engine.OpenCLUnavailableError) as exc:
         return error(exc)
     seconds = time.perf_counter() - t0
