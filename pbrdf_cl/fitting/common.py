@@ -134,8 +134,8 @@ def lm_batch(resid_rows, X0, lo, hi, iterations, rows_apart=True, extra=None):
         rt, Jt, sset = evaluate(Xt[idx], idx)
         evaluated += idx.size
         better = sset < sse[idx]
-        ok[idx[better]] = True
         won = idx[better]
+        ok[won] = True
         X[won], r[won], J[won], sse[won] = Xt[won], rt[better], Jt[better], sset[better]
         lam = np.clip(np.where(ok, lam * 0.3, lam * 6.0), 1e-300, 1e300)
     return X, sse, evaluated * (d + 1)
