@@ -13,14 +13,15 @@ import numpy as np
 from .. import ranges
 from ..compute.pointwise import evaluate
 from ..io.params import NAMES
+from ..plots.explore import SET_COLOURS
 
 #: The paper's steel at 435 nm (Fig. 4): what "reset" returns to.
 STEEL = dict(n=1.6, k=2.139, sigma=0.5, ks=0.9, kd=0.15, c=-0.3)
 #: Slider ranges (the fit's default bounds; ks from 0.05).
 LIMITS = dict(n=(1.0, 5.0), k=(0.0, 10.0), sigma=(0.05, 1.0), ks=(0.05, 5.0), kd=(0.0, 5.0), c=(-1.0, 0.0))
 STEPS = dict(n=0.01, k=0.01, sigma=0.01, ks=0.01, kd=0.01, c=0.01)
-SET_NAMES = ("A", "B", "C", "D")
-COLOURS = ("#1f77b4", "#d62728", "#2ca02c", "#9467bd")
+SET_NAMES = tuple(SET_COLOURS)
+COLOURS = tuple(SET_COLOURS.values())
 #: quantity -> (label, units, what pbrdf_cl.evaluate computes, Stokes component or None)
 QUANTITIES = {"dop": ("DOP", "1", "dop", None), "aop": ("AoP", "deg", "aop", None),
               "brdf": ("BRDF F00", "1/sr", "brdf", None), "s0": ("S0", "1/sr", "stokes", 0),

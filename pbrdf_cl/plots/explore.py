@@ -8,7 +8,8 @@ import numpy as np
 
 from .common import pyplot
 
-#: The sets' colours, as the page draws them.
+#: The explorer's parameter sets and their colours, on the page (``pbrdf_cl.app.state``: SET_NAMES,
+#: COLOURS) and in its PNG.
 SET_COLOURS = {"A": "#1f77b4", "B": "#d62728", "C": "#2ca02c", "D": "#9467bd"}
 
 
