@@ -136,9 +136,12 @@ def test_labels_by_name_of_a_variable(dev):
     (dict(labels=-np.ones((6, 4), int)), r"labels: must be >= 0"),
     (dict(labels=np.zeros((6, 4), int)), r"labels: no pixel has a label > 0"),
     (dict(labels="nope"), r"labels='nope': no such variable"),
-    (dict(labels="one", shared=("n", "q")), r"shared: 'q' is not a parameter"),
-    (dict(labels="one", shared="n,k", fixed=dict(n=1.5)), r"shared: n is also fixed"),
+    (dict(labels="one", shared=("n", "q")), r"shared: 'q' is not a parameter; the six-param model fits"),
+    (dict(labels="one", shared="n,kk"), r"shared: 'kk' is not a parameter \(did you mean 'k'\?\)"),
+    (dict(labels="one", shared="n,k,n"), r"shared: n named twice"),
+    (dict(labels="one", shared="n,k,sigma", model="specular"), r"shared: sigma is not fitted by the specular model"),
     (dict(labels="one", shared=("n", "k", "sigma", "kd", "c")), r"shared: every free parameter"),
+    (dict(labels="one", model="specular"), r"shared: every free parameter \(n, k\) is shared \(the default"),
     (dict(labels="few"), r"labels: label 2 has 1 pixel\(s\) to fit; a label needs at least 2"),
     (dict(shared=("n", "k")), r"shared= needs labels="),
 ])
@@ -153,6 +156,67 @@ def test_bad_labels_are_refused_in_one_line(kwargs, message):
     with pytest.raises(ValueError, match=message) as err:
         pbrdf_cl.fit_batch(data, backend="numpy", **kw)
     assert "\n" not in str(err.value)
+
+
+@pytest.mark.parametrize("shared", ["n,q", "sigm", "n,k,n", "n k sigma kd c"])
+def test_shared_is_read_alike_by_fit_joint_and_fit_batch(shared):
+    """One checker of ``shared`` (issue #34): a joint fit and a label fit refuse the same names
+    with the same line (the label fit's own rule, every parameter shared, aside)."""
+    from test_joint import three_sets
+
+    from pbrdf_cl.fitting.joint import check_joint_args
+    data, lab = two_materials(6, 4, 0.003, seed=5)
+    with pytest.raises(ValueError) as a:
+        pbrdf_cl.fit_batch(data, labels=lab, shared=shared, backend="numpy")
+    try:
+        check_joint_args(three_sets(noise=0.0), shared, "six-param", None, None, "paper")
+    except ValueError as b:
+        assert str(a.value) == str(b)
+    else:
+        assert "every free parameter" in str(a.value)
+
+
+def test_share_nothing_fits_every_pixel_alone(dev):
+    """``shared=()`` or ``""`` with labels (issue #34: '' means nothing, as for fit_joint): every
+    labelled pixel is fitted on its own, equal to the fit without labels, label 0 not fitted, a
+    note says so; a fixed parameter named in shared is held, not refused, and the default leaves
+    out what is fixed."""
+    data, lab = two_materials(6, 4, 0.003, seed=5, unlabelled=2)
+    plain = pbrdf_cl.fit_batch(data, engine=dev)
+    for shared in ((), ""):
+        res = pbrdf_cl.fit_batch(data, labels=lab, shared=shared, engine=dev)
+        assert "label" not in res.dims and "shared names nothing" in res.attrs["data_notes"]
+        on = lab > 0
+        np.testing.assert_array_equal(res.n.values[on], plain.n.values[on])
+        assert np.all(res.status.values[~on] == -1) and np.all(np.isnan(res.n.values[~on]))
+    held = pbrdf_cl.fit_batch(data, labels=lab, fixed=dict(n=1.5), engine=dev)
+    assert held.attrs["shared"] == "k" and "n" not in held and "label_n" not in held
+    named = pbrdf_cl.fit_batch(data, labels=lab, shared="n,k", fixed=dict(n=1.5), engine=dev)
+    np.testing.assert_array_equal(named.label_k.values, held.label_k.values)
+
+
+def test_cli_fit_image_share_nothing_and_label_files(dev, tmp_path, capsys):
+    """``fit-image --labels L --shared ''`` fits every pixel alone; ``--labels`` naming a file that
+    is not .npy says so (not 'no such variable'); ``--fix n=...`` with labels shares k without a
+    word about the default."""
+    from pbrdf_cl.cli import main
+    data, lab = two_materials(6, 4, 0.003, seed=5)
+    np.savez(tmp_path / "stack.npz", **data)
+    np.save(tmp_path / "labels.npy", lab)
+    stack, labels = str(tmp_path / "stack.npz"), str(tmp_path / "labels.npy")
+    assert main(["fit-image", stack, "--out", str(tmp_path / "a.zarr"), "--labels", labels, "--shared", "",
+                 "--no-progress"]) == 0
+    import xarray as xr
+    got = xr.open_zarr(tmp_path / "a.zarr")
+    assert "label" not in got.dims and "shared names nothing" in got.attrs["data_notes"]
+    capsys.readouterr()
+    (tmp_path / "labels.txt").write_text("1 2\n")
+    assert main(["fit-image", stack, "--out", str(tmp_path / "b.zarr"), "--labels", str(tmp_path / "labels.txt")]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "a file, but not a .npy one" in err and "no such variable" not in err
+    assert main(["fit-image", stack, "--out", str(tmp_path / "c.zarr"), "--labels", labels, "--fix", "n=1.6",
+                 "--no-progress"]) == 0
+    assert xr.open_zarr(tmp_path / "c.zarr").attrs["shared"] == "k"
 
 
 def test_cli_fit_image_with_labels(dev, tmp_path, capsys):

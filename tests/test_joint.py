@@ -155,12 +155,14 @@ def test_shared_n_k_for_several_samples():
 
 @pytest.mark.parametrize("kwargs, message", [
     (dict(sets={"a": "x"}), "sets: 1 set (a); a joint fit needs at least two"),
-    (dict(shared=("sigma", "q")), "shared: 'q' is not a fitted parameter of the six-param model"),
+    (dict(shared=("sigma", "q")), "shared: 'q' is not a parameter; the six-param model fits n, k, sigma, kd, c"),
+    (dict(shared="sigm,c"), "shared: 'sigm' is not a parameter (did you mean 'sigma'?)"),
+    (dict(shared="sigma,c,sigma"), "shared: sigma named twice"),
     (dict(fixed={"435": {"sigma": 0.5}}), "fixed: sigma is shared, so it must be held in every set at one value"),
     (dict(bounds={"435": {"c": (-0.5, 0)}}), "bounds: c is shared, so its bounds must be the same in every set"),
     (dict(fixed={"zz": {"n": 1}}), "fixed: 'zz' is neither a parameter with a value nor a set"),
     (dict(fixed={"633": {"k": -1}}), "set '633': fixed: k = -1.0 is outside the model's domain"),
-    (dict(model="specular"), "shared: 'sigma' is not a fitted parameter of the specular model"),
+    (dict(model="specular"), "shared: sigma is not fitted by the specular model (its fitted parameters: n, k)"),
     (dict(sets=42), "sets must be a dict set name -> data"),
 ])
 def test_refusals_are_one_line(kwargs, message):
@@ -171,6 +173,37 @@ def test_refusals_are_one_line(kwargs, message):
     text = str(info.value)
     assert "\n" not in text
     assert message in text or text.startswith(message), text
+
+
+def test_share_nothing_gives_the_separate_fits(noisy):
+    """``shared=()`` and ``shared=""`` (issue #34): the joint fit is each set fitted on its own, its
+    chi2 the sum of each set's ``pbrdf_cl.fit`` (the same optimum), reported as a joint fit, with
+    a note saying nothing is shared."""
+    sets, _ = noisy
+    alone = {s: pbrdf_cl.fit(m) for s, m in sets.items()}
+    for shared in ((), "", " , "):
+        res = pbrdf_cl.fit_joint(sets, shared=shared)
+        assert res.shared == [] and res.success
+        assert res.chi2 == pytest.approx(sum(r.chi2 for r in alone.values()), rel=1e-6)
+        for s, r in alone.items():
+            assert res.x[s]["n"] == pytest.approx(r.x["n"], rel=1e-3), s
+        assert any(n.startswith("nothing is shared: the joint fit is each set fitted on its own") for n in res.notes)
+        assert "shared: none" in res.summary()
+
+
+def test_default_shared_follows_the_model_and_the_fixed(noisy):
+    """The default (sigma, c) never names a parameter the model does not fit or the user fixed:
+    the specular model shares nothing by default (a note says why); sigma fixed in one set leaves
+    c shared; a name list may use spaces after its commas, or spaces alone."""
+    sets, _ = noisy
+    spec = pbrdf_cl.fit_joint(sets, model="specular")
+    said = "by default the sets share sigma, c where the specular model fits them and no set holds them apart"
+    assert spec.shared == [] and any(said in n for n in spec.notes)
+    one = pbrdf_cl.fit_joint(sets, fixed={"435": {"sigma": 0.5}})
+    assert one.shared == ["c"] and one.x["435"]["sigma"] == 0.5 and one.x["633"]["sigma"] != 0.5
+    spaced = [joint.check_joint_args(sets, text, "six-param", None, None, "paper").shared
+              for text in ("sigma, c", "sigma c", " c ,sigma ")]
+    assert spaced == [("sigma", "c")] * 3
 
 
 def test_refuses_dop_std_for_some_sets_only_and_a_set_too_small():
@@ -226,6 +259,14 @@ def test_cli_joint_round_trip(tmp_path, noisy):
     bad = subprocess.run([sys.executable, "-m", "pbrdf_cl", "fit", *paths[:2], "--shared", "sigma,q"],
                          capture_output=True, text=True, timeout=120, env=env)
     assert bad.returncode == 1 and bad.stderr.strip().count("\n") == 0 and "shared: 'q'" in bad.stderr
+    none = subprocess.run([sys.executable, "-m", "pbrdf_cl", "fit", *paths[:2], "--shared", "", "--quiet"],
+                          capture_output=True, text=True, timeout=600, env=env)
+    assert none.returncode == 0, none.stderr
+    assert "shared: none" in none.stdout and "n[435] = " in none.stdout and "sigma[532] = " in none.stdout
+    one = subprocess.run([sys.executable, "-m", "pbrdf_cl", "fit", paths[0], "--shared", "n,k"],
+                         capture_output=True, text=True, timeout=120, env=env)
+    assert one.returncode == 1 and one.stderr.count("\n") == 1
+    assert "--shared is for joint fits: give several CSVs (one set each) or one CSV with --set-column" in one.stderr
 
 
 def test_cli_per_set_fix_and_bounds(tmp_path, noisy):

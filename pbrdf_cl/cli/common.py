@@ -103,12 +103,15 @@ def model_option(f):
                    help="the model to fit (specular: ref. [7], n and k only)")
 
 
-def fit_settings(f):
-    """--fix, --bounds and --shadowing of `fit` and `fit-image`."""
-    f.add_argument("--fix", nargs="*", metavar="NAME=VALUE", help="hold parameters fixed, e.g. sigma=0.45; in a joint "
-                   "fit SET:NAME=VALUE holds it in one set (435:kd=0.1)")
-    f.add_argument("--bounds", nargs="*", metavar="NAME=LO:HI", help="search bounds, e.g. n=1:3 k=0:5; in a joint fit "
-                   "SET:NAME=LO:HI for one set")
+def fit_settings(f, joint=False):
+    """--fix, --bounds and --shadowing of `fit`, `fit-image` and `design`; ``joint``: `fit`'s, whose
+    joint fits also take one set's value (SET:NAME=VALUE)."""
+    one = (" (every set); in a joint fit SET:NAME={} for one set, SET being its file name without the suffix "
+           "(w435:{})") if joint else ""
+    f.add_argument("--fix", nargs="*", metavar="NAME=VALUE", help="hold parameters fixed, e.g. sigma=0.45"
+                   + one.format("VALUE", "kd=0.1"))
+    f.add_argument("--bounds", nargs="*", metavar="NAME=LO:HI", help="search bounds, e.g. n=1:3 k=0:5"
+                   + one.format("LO:HI", "n=2:3"))
     f.add_argument("--shadowing", choices=sorted(SHADOWING), default="paper", help=SHADOWING_HELP)
 
 

@@ -80,7 +80,6 @@ def cmd_fit_joint(args, fixed, bounds) -> int:
     from ..fitting import joint
     if args.compare:
         return error("--compare fits one data set; give one CSV without --shared or --set-column")
-    shared = joint.DEFAULT_SHARED if args.shared is None else [p for p in args.shared.split(",") if p.strip()]
     try:
         if args.set_column:
             if len(args.data) != 1:
@@ -90,7 +89,7 @@ def cmd_fit_joint(args, fixed, bounds) -> int:
         else:
             sets = joint.set_names_of_paths(args.data)
         engine = engine_for(args)
-        r = joint.fit_joint(sets, shared, args.model, bounds=bounds, fixed=fixed, shadowing=args.shadowing,
+        r = joint.fit_joint(sets, args.shared, args.model, bounds=bounds, fixed=fixed, shadowing=args.shadowing,
                             set_column=args.set_column, engine=engine, progress=not args.quiet)
     except (OSError, ValueError, _engine.OpenCLUnavailableError) as exc:
         return error(exc)
@@ -112,7 +111,10 @@ def cmd_fit_joint(args, fixed, bounds) -> int:
 def cmd_fit(args) -> int:
     from ..fitting import inversion as _fit
     from ..io.measurements import read_csv
-    is_joint = len(args.data) > 1 or args.shared is not None or bool(args.set_column)
+    if len(args.data) == 1 and args.shared is not None and not args.set_column:
+        return error("--shared is for joint fits: give several CSVs (one set each) or one CSV with --set-column "
+                     "COLUMN; to fit one data set, leave out --shared")
+    is_joint = len(args.data) > 1 or bool(args.set_column)
     fixed, bounds = fit_assignments(args, sets=is_joint)
     check_suffix("--json", args.json, (".json",), "JSON is written here", allow_none=True)
     check_figure("--plot", args.plot)
@@ -216,7 +218,10 @@ def _label_options(args):
         if not Path(labels).is_file():
             raise ValueError(f"--labels: no such file {labels!r}")
         labels = np.load(labels)
-    return {"labels": labels, "shared": args.shared or "n,k"}
+    elif Path(labels).is_file():
+        raise ValueError(f"--labels {labels}: a file, but not a .npy one; save the label image with numpy.save "
+                         "(a .npy file), or give the name of a variable of the stack")
+    return {"labels": labels, "shared": args.shared}
 
 
 def fit_parser(sub):
@@ -227,14 +232,14 @@ def fit_parser(sub):
                        "dop[, phi, dop_std, f00|s0, f00_std]). Several CSVs (or one with --set-column): a joint "
                        "fit, the --shared parameters one value for every set, the others one per set.")
     f.add_argument("data", nargs="+", help="measurement CSV; several: one set each (named by its file name)")
-    f.add_argument("--shared", metavar="NAMES", help="joint fit: the parameters shared by every set, comma-"
-                   "separated (default sigma,c; '' shares nothing)")
+    f.add_argument("--shared", metavar="NAMES", help="joint fit: the parameters shared by every set, separated by "
+                   "commas or spaces (default sigma,c, those the model fits; '' shares nothing)")
     f.add_argument("--set-column", metavar="COLUMN", help="joint fit of one CSV whose column COLUMN (e.g. "
                    "wavelength) names each row's set")
     model_option(f)
     f.add_argument("--compare", action="store_true",
                    help="fit both models and compare them by AIC/BIC (--model's is listed first)")
-    fit_settings(f)
+    fit_settings(f, joint=True)
     device_options(f, " for the grid stage")
     f.add_argument("--json", metavar="OUT", help="write both fits as JSON")
     f.add_argument("--plot", metavar="PNG", help="plot data, both models and residuals")
@@ -265,5 +270,6 @@ def fit_image_parser(sub):
                    help="start even when the store (uncompressed) would not fit on the free disk")
     f.add_argument("--labels", metavar="NPY|NAME", help="integer label image over the pixels (0: not fitted), a .npy "
                    "file or a variable of the stack: the pixels of a label share --shared (docs/joint_images.md)")
-    f.add_argument("--shared", metavar="NAMES", help="parameters the pixels of a label share (default n,k)")
+    f.add_argument("--shared", metavar="NAMES", help="parameters the pixels of a label share, separated by commas or "
+                   "spaces (default n,k, less a fixed one; '' shares nothing: every pixel on its own)")
     f.set_defaults(func=cmd_fit_image)

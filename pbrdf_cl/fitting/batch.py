@@ -35,7 +35,8 @@ import numpy as np
 from . import batch_store
 from .dataset import goodness_summary
 from .job import BLOCK_BUDGET, N_STARTS, BatchJob
-from .labels import DEFAULT_SHARED, LabelJob
+from .labels import LabelJob, UnsharedLabelJob, label_shared, read_labels
+from .setup import FitSetup
 from .source import open_stack_lazily
 
 
@@ -93,8 +94,10 @@ def fit_batch(data, model="six-param", bounds=None, fixed=None, shadowing="paper
         variable of the stack: the pixels of a label share the ``shared`` parameters, one value
         per label found from all its pixels (``pbrdf_cl.fitting.labels``, docs/joint_images.md);
         the label stage runs here (with ``workers`` too), then the per-pixel pass.
-    shared : sequence of str or str, default ("n", "k") with ``labels``
-        The parameters the pixels of a label share (free parameters, not all of them).
+    shared : sequence of str or str, optional, with ``labels``
+        The parameters the pixels of a label share (free parameters, not all of them), as a
+        sequence or one string (``"n,k"``, ``"n k"``); by default ("n", "k"), less a fixed one;
+        empty (``()``, ``""``): nothing, every pixel is fitted on its own.
 
     Returns
     -------
@@ -140,7 +143,7 @@ def fit_batch(data, model="six-param", bounds=None, fixed=None, shadowing="paper
         if isinstance(data, (str, os.PathLike)):
             data = open_stack_lazily(data)
         job = _job(data, model, bounds, fixed, shadowing, settings, labels, shared)
-        if labels is not None:  # the label stage runs here, the per-pixel pass where the blocks go
+        if job.prepares:  # a label job's label stage runs here, the per-pixel pass where the blocks go
             job.prepare(batch_store.local_engine(engine, backend, device), progress)
         return batch_store.write_store(job, store, progress=progress, engine=engine, backend=backend, device=device,
                                        workers=workers, scheduler=scheduler, client=client, allow_large=allow_large)
@@ -151,8 +154,7 @@ def fit_batch(data, model="six-param", bounds=None, fixed=None, shadowing="paper
     job = _job(data, model, bounds, fixed, shadowing, settings, labels, shared)
     eng = batch_store.local_engine(engine, backend, device)
     t0 = time.perf_counter()
-    if labels is not None:
-        job.prepare(eng, progress)
+    job.prepare(eng, progress)
     parts = []
     bar = _bar(job.source.n_pixels, progress)
     for r0, r1 in job.blocks():
@@ -168,12 +170,15 @@ def fit_batch(data, model="six-param", bounds=None, fixed=None, shadowing="paper
 
 
 def _job(data, model, bounds, fixed, shadowing, settings, labels, shared):
-    """The checked job: a :class:`~pbrdf_cl.fitting.labels.LabelJob` with ``labels``, else a
-    :class:`~pbrdf_cl.fitting.job.BatchJob`."""
+    """The checked job: a :class:`~pbrdf_cl.fitting.labels.LabelJob` with ``labels`` and something
+    to share, else a :class:`~pbrdf_cl.fitting.job.BatchJob` (with ``labels`` and nothing shared,
+    every labelled pixel on its own, label 0 not fitted, as a note says)."""
     if labels is None:
         return BatchJob(data, model, bounds, fixed, shadowing, **settings)
-    return LabelJob(data, model, bounds, fixed, shadowing, labels=labels, shared=DEFAULT_SHARED if shared is None
-                    else shared, **settings)
+    data, given = read_labels(data, labels)
+    if label_shared(FitSetup.check(model, bounds, fixed, shadowing), shared):
+        return LabelJob(data, model, bounds, fixed, shadowing, labels=given, shared=shared, **settings)
+    return UnsharedLabelJob(data, model, bounds, fixed, shadowing, labels=given, **settings)
 
 
 def _bar(total, enabled):

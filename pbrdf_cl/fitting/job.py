@@ -105,6 +105,13 @@ class BatchJob:
             pointwise.check_degrees(raw["theta_i"], raw["theta_r"], "data: ")
         return raw
 
+    #: whether :meth:`prepare` does anything (it needs an engine in the calling process)
+    prepares = False
+
+    def prepare(self, eng, progress=False):
+        """What must run before any block, in the calling process: nothing here (a
+        :class:`pbrdf_cl.fitting.labels.LabelJob` finds its labels' shared values)."""
+
     def fit_rows(self, eng, r0, r1):
         """Fit the pixels of rows r0..r1: a dict of flat per-pixel result arrays."""
         return fit_block(eng, self.setup, self.read_rows(r0, r1), self.order, self.rstart, self.names)

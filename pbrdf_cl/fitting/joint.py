@@ -41,7 +41,7 @@ from .inversion import LS_POLISH, check_fit_args, fit_on_grid, grid_shape_of
 from .joint_exchange import exchange_stage, profile_stage
 from .joint_result import joint_result
 from .result import fit_status
-from .setup import MODEL_PARAMS, check_model
+from .setup import check_model, check_shared
 from .stages import (
     FINAL_BOBYQA,
     SCREEN_ITERATIONS,
@@ -180,17 +180,6 @@ def _per_set(arg, names, what, is_value):
     return {s: {**common, **own[s]} for s in names}
 
 
-def _check_shared(shared, model):
-    if isinstance(shared, str):
-        shared = [p.strip() for p in shared.split(",") if p.strip()]
-    shared = tuple(dict.fromkeys(shared or ()))
-    for p in shared:
-        if p not in MODEL_PARAMS[model]:
-            raise ValueError(f"shared: {p!r} is not a fitted parameter of the {model} model (its parameters: "
-                             f"{', '.join(MODEL_PARAMS[model])})")
-    return tuple(p for p in MODEL_PARAMS[model] if p in shared)
-
-
 def _shared_split(shared, setups):
     """(the shared parameters varied, the shared parameters held: name -> value); refuses a
     shared parameter held in some sets only, at different values, or with different bounds."""
@@ -216,7 +205,8 @@ def check_joint_args(sets, shared, model, bounds, fixed, shadowing, set_column=N
     """The checked inputs of :func:`fit_joint`: a :class:`JointSetup` (one-line ``ValueError``s
     naming the set, the parameter and the value)."""
     check_model(model, shadowing)
-    shared = _check_shared(shared, model)
+    shared_given = shared
+    check_shared(shared, model, DEFAULT_SHARED)  # the names, before the data are read
     data = _as_sets(sets, set_column)
     names = tuple(data)
     if len(names) < 2:
@@ -224,6 +214,8 @@ def check_joint_args(sets, shared, model, bounds, fixed, shadowing, set_column=N
                          "needs at least two (fit one set with pbrdf_cl.fit)")
     fx = _per_set(fixed, names, "fixed", lambda v: np.ndim(v) == 0 and not isinstance(v, Mapping))
     bd = _per_set(bounds, names, "bounds", lambda v: not isinstance(v, Mapping) and np.ndim(v) == 1)
+    unlike = {p for f in fx.values() for p in f if len({repr(fx[s].get(p)) for s in names}) > 1}
+    shared = check_shared(shared, model, DEFAULT_SHARED, unlike)
     meas, setups, notes = {}, {}, []
     for s in names:
         try:
@@ -240,6 +232,11 @@ def check_joint_args(sets, shared, model, bounds, fixed, shadowing, set_column=N
                      "not used: fit_joint fits the DOP only, and so do the separate fits beside it")
         meas = {s: replace(m, f00=None, f00_std=None) for s, m in meas.items()}
     free_shared, held = _shared_split(shared, setups)
+    if not free_shared:
+        why = (f" (by default the sets share {', '.join(DEFAULT_SHARED)} where the {model} model fits them and "
+               "no set holds them apart)" if shared_given is None and not shared else "")
+        notes.append(f"nothing is shared{why}" + (f" but held ({', '.join(held)})" if held else "")
+                     + ": the joint fit is each set fitted on its own (the separate fits), reported together")
     return JointSetup(names, meas, setups, free_shared, held, tuple(notes))
 
 
@@ -335,7 +332,7 @@ def _local_stages(setup, resid, grids, points, own):
     return cands, final_ran, st
 
 
-def fit_joint(sets, shared=DEFAULT_SHARED, model="six-param", bounds=None, fixed=None, shadowing="paper", *,
+def fit_joint(sets, shared=None, model="six-param", bounds=None, fixed=None, shadowing="paper", *,
               set_column=None, grid_shape=None, n_basins=6, engine=None, backend="auto", progress=False):
     """Fit the model to several data sets at once, some parameters shared by every set.
 
@@ -345,9 +342,11 @@ def fit_joint(sets, shared=DEFAULT_SHARED, model="six-param", bounds=None, fixed
         Set name -> anything :func:`pbrdf_cl.fit` takes (Measurements, CSV path, dict, DataFrame);
         a list of CSV paths (each set named by its file name); or, with ``set_column``, one table
         (CSV path, dict, DataFrame, Dataset) whose column ``set_column`` names each row's set.
-    shared : sequence of str or str, default ("sigma", "c")
+    shared : sequence of str or str, optional
         The parameters that take one value for every set (e.g. ``("n", "k")`` for several samples
-        of one material); the others take one value per set.  ``()`` shares nothing.
+        of one material), a sequence or one string (``"n,k"``, ``"n, k"``, ``"n k"``); the others
+        take one value per set.  By default ("sigma", "c") where the model fits them and no set
+        fixes them; ``()`` or ``""`` shares nothing (the joint fit is then the separate fits).
     model, shadowing
         As for :func:`pbrdf_cl.fit`.
     bounds, fixed : dict, optional

@@ -132,7 +132,7 @@ def own_fits(setup, resid, grids, points, extra_own, iterations):
     labels), the points with each set's best own values; set -> (K,) its best chi2 at each point;
     residual rows evaluated)."""
     shared = list(setup.shared)
-    points = np.asarray(points, dtype=np.float64).reshape(-1, len(shared))
+    points = np.asarray(points, dtype=np.float64).reshape(len(points), len(shared))  # (1, 0): nothing shared
     X = np.zeros((len(points), len(setup.labels)))
     X[:, :len(shared)] = points
     sse_of, rows = {}, 0

@@ -24,7 +24,7 @@ from .job import BLOCK_BUDGET, N_STARTS, BatchJob
 from .label_stage import LABEL_STATUS, held_setup, run_label_stage, take
 from .pixel_fit import fit_block
 from .pixels import grid_values, regions
-from .setup import PARAMETERS
+from .setup import check_shared
 from .source import open_stack
 
 #: The parameters the pixels of a label share by default: the complex index.
@@ -80,29 +80,21 @@ def check_labels(labels, source):
     return a
 
 
-def check_shared(setup, shared, use_f00):
-    """The shared parameters as a tuple, checked in one-line errors: parameters of the model, free
-    (not fixed), at least one parameter left per pixel, not kd where intensities make it kd/ks."""
-    names = tuple(s.strip() for s in shared.split(",")) if isinstance(shared, str) else tuple(shared)
-    if not names:
-        raise ValueError("shared: name at least one parameter (e.g. shared=('n', 'k'))")
-    if len(set(names)) != len(names):
-        raise ValueError(f"shared: {list(names)} names a parameter twice")
-    for n in names:
-        if n not in PARAMETERS:
-            raise ValueError(f"shared: {n!r} is not a parameter; parameters are {', '.join(setup.free)}")
-        if n in setup.fixed:
-            raise ValueError(f"shared: {n} is also fixed (fixed={n}={setup.fixed[n]:g}); a parameter is shared or "
-                             "fixed, not both")
-        if n not in setup.free:
-            raise ValueError(f"shared: {n} is not a free parameter of the {setup.model} model "
-                             f"({', '.join(setup.free)})")
-        if n == "kd" and use_f00:
-            raise ValueError("shared: kd cannot be shared when intensities are fitted (the fit's kd is then kd/ks)")
-    if len(names) == len(setup.free):
-        raise ValueError(f"shared: every free parameter ({', '.join(setup.free)}) is shared: none is left per pixel; "
-                         "fit the label's pixels as one data set (pbrdf_cl.fit) instead")
-    return tuple(n for n in setup.free if n in names)
+def label_shared(setup, shared):
+    """The parameters the pixels of a label share, varied by the label stage (model order), from
+    ``shared`` as :func:`~pbrdf_cl.fitting.setup.check_shared` reads it for every fit (None: the
+    default :data:`DEFAULT_SHARED`, less what is fixed; empty: nothing).  A named parameter also
+    fixed is held at its value for every pixel, so it is left out here; refused in one line: kd
+    where intensities make the fit's kd the ratio kd/ks, and every free parameter (none left per
+    pixel).  An empty answer means every pixel is fitted on its own."""
+    names = tuple(n for n in check_shared(shared, setup.model, DEFAULT_SHARED) if n not in setup.fixed)
+    if "kd" in names and getattr(setup, "use_f00", False):
+        raise ValueError("shared: kd cannot be shared when intensities are fitted (the fit's kd is then kd/ks)")
+    if names and len(names) == len(setup.free):
+        said = "" if shared is not None else f" (the default of shared for the {setup.model} model)"
+        raise ValueError(f"shared: every free parameter ({', '.join(setup.free)}) is shared{said}: none is left per "
+                         "pixel; fit the label's pixels as one data set (pbrdf_cl.fit) instead, or fix one")
+    return names
 
 
 class LabelJob(BatchJob):
@@ -115,8 +107,9 @@ class LabelJob(BatchJob):
     labels : array-like or str
         Integer label image over the pixel dimensions (0: not fitted), or the name of such a
         variable of the stack.
-    shared : sequence of str or str, default ("n", "k")
-        The parameters the pixels of a label share (``"n,k"`` also).
+    shared : sequence of str or str, optional
+        The parameters the pixels of a label share (``"n,k"`` also; :func:`label_shared`); by
+        default ("n", "k"), less a fixed one.
 
     Examples
     --------
@@ -126,11 +119,14 @@ class LabelJob(BatchJob):
     """
 
     def __init__(self, data, model="six-param", bounds=None, fixed=None, shadowing="paper", *, labels,
-                 shared=DEFAULT_SHARED, memory_budget=BLOCK_BUDGET, n_starts=N_STARTS, grid_shape=None):
+                 shared=None, memory_budget=BLOCK_BUDGET, n_starts=N_STARTS, grid_shape=None):
         data, given = read_labels(data, labels)
         super().__init__(data, model, bounds, fixed, shadowing, memory_budget=memory_budget, n_starts=n_starts,
                          grid_shape=grid_shape)
-        self.shared = check_shared(self.setup, shared, self.setup.use_f00)
+        self.shared = label_shared(self.setup, shared)
+        if not self.shared:
+            raise ValueError("shared: names nothing to share (fit the stack without labels: pbrdf_cl.fit_batch "
+                             "fits every pixel on its own)")
         self.own = [n for n in self.names if n not in self.shared]
         self.labels = check_labels(given, self.source)
         self.label_ids = np.unique(self.labels[self.labels > 0])
@@ -158,6 +154,8 @@ class LabelJob(BatchJob):
             L = int(self.label_ids[few[0]])
             raise ValueError(f"labels: label {L} has {int(counts[few[0]])} pixel(s) to fit; a label needs at least "
                              f"{self.min_label_pixels} (merge it into another, or set it to 0: not fitted)")
+
+    prepares = True
 
     def prepare(self, eng, progress=False):
         """Run the label stage (the shared values of every label) with ``eng``; before any block."""
@@ -219,6 +217,27 @@ class LabelJob(BatchJob):
 
 
 #: What the labels' intervals leave out (the result's ``label_interval_note``; the CLI prints it).
+class UnsharedLabelJob(BatchJob):
+    """The job of ``fit_batch(stack, labels=L, shared=())``: nothing is shared, so every pixel is
+    fitted on its own, as without labels, but label 0 still means "not fitted" (it is masked) and a
+    note says so."""
+
+    def __init__(self, data, model="six-param", bounds=None, fixed=None, shadowing="paper", *, labels, **settings):
+        super().__init__(data, model, bounds, fixed, shadowing, **settings)
+        self.labels = check_labels(labels, self.source)
+        mask = self.labels.reshape(self.source.shape) > 0
+        given = self.source.vars.get("mask")
+        if given is not None:
+            mask &= np.broadcast_to(np.asarray(getattr(given, "values", given), bool), mask.shape)
+        self.source.vars["mask"] = mask
+        self.notes.append("shared names nothing: every pixel is fitted on its own (the labels only mark label 0 "
+                          "as not fitted)")
+
+    def store_settings(self):
+        """The label image's SHA-256 (it masks pixels) and the empty shared list."""
+        return {"shared": [], "labels_sha256": hashlib.sha256(self.labels.tobytes()).hexdigest()}
+
+
 LABEL_INTERVAL_NOTE = ("the label intervals leave out the bias that the pixels' many own parameters give the shared "
                        "ones: on the two-material bench they covered the truth 16 of 16 times at DOP noise 0.003, "
                        "14 of 16 at 0.006 and 9 of 16 at 0.01 (docs/joint_images.md)")

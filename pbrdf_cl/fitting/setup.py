@@ -9,6 +9,7 @@ free too and the fitted coordinate is the ratio kd/ks (:meth:`FitSetup.fits_inte
 """
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -16,6 +17,7 @@ import numpy as np
 
 from ..compute.pointwise import RULES
 from ..model import reference
+from ..ranges import did_you_mean
 
 #: The model's six parameters, in the order of the kernels' parameter vectors.
 PARAMETERS = ("n", "k", "sigma", "ks", "kd", "c")
@@ -173,3 +175,42 @@ def grid_axis(name, bounds, count):
     if name in ("n", "k", "kd"):
         u = u * u
     return bounds[0] + (bounds[1] - bounds[0]) * u
+
+
+def check_shared(shared, model, default, unlike=()):
+    """The parameters a fit shares (:func:`pbrdf_cl.fit_joint`'s sets, a label's pixels of
+    :func:`pbrdf_cl.fit_batch`), in model order: the one reading of ``shared`` for every fit.
+
+    ``shared`` is a sequence of names or one string of them separated by commas and/or spaces
+    (``"sigma,c"``, ``"sigma, c"``, ``"sigma c"``); an empty one (``()``, ``""``) shares nothing;
+    None takes ``default``, less what the model does not fit and what is held ``unlike`` (names
+    the user held in some parts of the fit only, or at different values: a default never shares
+    them).  A shared parameter held at one value everywhere stays shared: one value for all,
+    which the callers hold.  Refused in one line: a name that is not a parameter (the nearest one
+    offered), one the model does not fit, a name given twice."""
+    params = MODEL_PARAMS[model]
+    if shared is None:
+        return tuple(p for p in params if p in default and p not in unlike)
+    if isinstance(shared, str):
+        names = tuple(re.split(r"[\s,]+", shared.strip(" ,\t\n"))) if shared.strip(" ,\t\n") else ()
+    else:
+        try:
+            names = tuple(shared)
+        except TypeError:
+            raise ValueError(f"shared: give parameter names (a sequence, or a string such as 'sigma,c'), got "
+                             f"{shared!r}") from None
+    for name in names:
+        if not isinstance(name, str):
+            raise ValueError(f"shared: {name!r} is not a parameter name; parameters are {', '.join(params)}")
+        if name not in params:
+            near = did_you_mean(name, list(PARAMETERS))
+            if name in PARAMETERS:
+                why = f"{name} is not fitted by the {model} model (its fitted parameters: {', '.join(params)})"
+            else:
+                why = f"{name!r} is not a parameter" + (f" (did you mean {near!r}?)" if near else "") + \
+                      f"; the {model} model fits {', '.join(params)}"
+            raise ValueError(f"shared: {why}")
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice:
+        raise ValueError(f"shared: {', '.join(twice)} named twice ({', '.join(names)})")
+    return tuple(p for p in params if p in names)
