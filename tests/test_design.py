@@ -340,6 +340,7 @@ def test_figure_and_dataset(steel, tmp_path):
     (dict(n_measurements=200, candidates={"theta_i": 40, "theta_r": "0:85:5"}), ["n_measurements", "200", "18"]),
     (dict(noise=0), ["noise", "0"]),
     (dict(noise=-0.01), ["noise", "-0.01"]),
+    (dict(noise=5), ["noise", "below 1, the DOP's whole range", "got 5", "0.5% is 0.005"]),
     (dict(intensity_noise=float("nan")), ["intensity_noise", "nan"]),
     (dict(criterion="E"), ["criterion", "'E'"]),
     (dict(candidates={"theta_q": 40}), ["candidates", "theta_q"]),
@@ -424,3 +425,34 @@ def test_an_engine_that_is_not_one_is_a_clear_error():
         pbrdf_cl.design(dict(n=1.6, k=2.139, sigma=0.5), engine="nope")
     with pytest.raises(ValueError, match="engine must be"):
         pbrdf_cl.dop(40, 30, n=1.6, k=2.0, sigma=0.3, engine="0:1")
+
+
+def test_large_noise_is_questioned_and_radians_are_warned_once():
+    """A DOP noise above a tenth of its range draws one DataWarning (a percentage?); candidates in
+    radians draw one UnitsWarning per grid (issue #34: twice before, once per angle, and then even
+    where only one of the angles was small)."""
+    import warnings
+    with warnings.catch_warnings(record=True) as got:
+        warnings.simplefilter("always")
+        dz.design(STEEL, candidates=SMALL, noise=0.3, n_measurements=12, backend="numpy")
+    assert [type(w.message) for w in got] == [pbrdf_cl.DataWarning] and "percentage" in str(got[0].message)
+    with warnings.catch_warnings(record=True) as got:
+        warnings.simplefilter("always")
+        dz.design(STEEL, candidates={"theta_i": "0.2:1.4:0.2", "theta_r": "0:1.4:0.2"}, n_measurements=12,
+                  backend="numpy")
+        from pbrdf_cl.explore.sensitivity import check_geometry
+        check_geometry({"theta_i": "0.2:1.4:0.2", "theta_r": "0:85:5"})  # degrees: theta_r is not small
+    units = [str(w.message) for w in got if isinstance(w.message, pbrdf_cl.UnitsWarning)]
+    assert len(units) == 1 and units[0].startswith("candidates: theta_i and theta_r all lie below"), units
+
+
+def test_joint_page_quotes_the_design_s_widths(steel):
+    """docs/joint.md quotes design's predicted widths at the paper's geometry (issue #34: it quoted
+    the fitted median, 6.2, as design's 6.6)."""
+    import re
+    from pathlib import Path
+    text = " ".join((Path(__file__).parents[1] / "docs" / "joint.md").read_text().split())
+    m = re.search(r"`pbrdf_cl.design` predicts 95% widths of ([0-9.]+) for n and ([0-9.]+) for k", text)
+    assert m, "the sentence moved"
+    w = steel.ci95_width_reference
+    assert (float(m.group(1)), float(m.group(2))) == (round(w["n"], 1), round(w["k"], 1))

@@ -454,3 +454,34 @@ def test_bench_fit_script_reports_every_method(tmp_path):
         assert all(c * 2 in (0, 1, 2) for c in geometry["coverage_95"].values())  # of 2 problems
         assert all(0 < w <= 1 for w in geometry["mean_width_over_bounds"].values())
     assert "optimum found" in proc.stdout and "interval coverage" in proc.stdout
+
+
+def test_rows_repeated_exactly_are_noted(tmp_path):
+    """The same rows appended three times (issue #34): the fit says that 60 of the 90 rows repeat
+    an earlier one (by line), up to 3 copies, since counting them as independent narrows the
+    intervals; the file alone draws no such note, nor do repeated geometries with other values."""
+    src = (ROOT / "examples" / "steel_435nm.csv").read_text().splitlines()
+    head = [line for line in src if line.startswith("#") or not line[:1].isdigit()]
+    rows = [line for line in src if line[:1].isdigit()]
+    path = tmp_path / "thrice.csv"
+    path.write_text("\n".join(head + rows * 3) + "\n")
+    r = pbrdf_cl.fit(path)
+    dup = [n for n in r.notes if "repeat an earlier row exactly" in n]
+    assert len(dup) == 1 and dup[0].startswith(f"{2 * len(rows)} of the {3 * len(rows)} rows") and "3 copies" in dup[0]
+    assert f"line {len(head) + len(rows) + 1} repeats line {len(head) + 1}" in dup[0]
+    assert not [n for n in pbrdf_cl.fit(ROOT / "examples" / "steel_435nm.csv").notes if "repeat" in n]
+    m = read_csv(ROOT / "examples" / "steel_435nm.csv")
+    again = from_arrays(np.tile(m.theta_i, 2), np.tile(m.theta_r, 2), np.concatenate([m.dop, m.dop + 1e-3]))
+    from pbrdf_cl.io.measurements import duplicates_note
+    assert duplicates_note(again) is None and duplicates_note(from_arrays(*(np.tile(a, 2) for a in (
+        m.theta_i, m.theta_r, m.dop)))).startswith("30 of the 60 rows")
+
+
+def test_fit_image_help_offers_no_joint_set_form():
+    """``fit-image --help`` describes --fix/--bounds without the joint fit's SET:NAME form, which
+    fit-image refuses; ``fit --help`` names it with a set named as its file is (issue #34)."""
+    from pbrdf_cl.cli.app import build_parser
+    sub = next(a for a in build_parser()._actions if a.__class__.__name__ == "_SubParsersAction")
+    image, fit = sub.choices["fit-image"].format_help(), sub.choices["fit"].format_help()
+    assert "SET:" not in image and "joint" not in image.split("--fix", 1)[1].split("--shadowing")[0]
+    assert "SET:NAME=VALUE" in " ".join(fit.split()) and "w435:kd=0.1" in " ".join(fit.split())

@@ -117,7 +117,7 @@ def fit_settings(f, joint=False):
 
 def fit_assignments(args, sets=False):
     """(fixed, bounds) from --fix and --bounds (fit_settings), checked against the parameters.
-    With ``sets`` (a joint fit) an item may name its set, ``SET:NAME=VALUE`` (``435:kd=0.1``):
+    With ``sets`` (a joint fit) an item may name its set, ``SET:NAME=VALUE`` (``w435:kd=0.1``):
     it goes to that set's dict (``{"435": {"kd": 0.1}}``), as :func:`pbrdf_cl.fit_joint` takes it."""
     from ..fitting.setup import DEFAULT_BOUNDS
     out = []

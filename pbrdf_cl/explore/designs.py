@@ -189,6 +189,10 @@ class DesignResult(Result):
 
 # ----------------------------------------------------------------------------------- inputs
 
+#: A DOP noise above this draws a warning (a tenth of the DOP's range: a percentage given as a number?).
+LARGE_NOISE = 0.1
+
+
 def _positive(name, v):
     if isinstance(v, (bool, np.bool_)) or not isinstance(v, numbers.Real) or not np.isfinite(v) or v <= 0:
         raise ValueError(f"{name} must be a positive number, got {v!r}")
@@ -637,6 +641,15 @@ def _check_options(criterion, noise, intensity_noise, intensity, materials, shad
     if criterion not in CRITERIA:
         raise ValueError(f"criterion must be 'A' or 'D', got {criterion!r}")
     noise = _positive("noise", noise)
+    if noise >= 1.0:
+        raise ValueError(f"noise must be below 1, the DOP's whole range (0 to 1), got {noise:g}: it is the standard "
+                         "deviation of one DOP measurement (a percentage? 0.5% is 0.005)")
+    if noise > LARGE_NOISE:
+        import warnings
+
+        from ..errors import DataWarning
+        warnings.warn(f"noise {noise:g} is more than {LARGE_NOISE:g} of the DOP's range (0 to 1): is it a percentage? "
+                      "(0.5% is 0.005)", DataWarning, stacklevel=4)
     intensity_noise = _positive("intensity_noise", intensity_noise)
     if not isinstance(intensity, (bool, np.bool_)):
         raise ValueError(f"intensity must be True or False, got {intensity!r}")

@@ -176,11 +176,12 @@ def check_geometry(geometry, where="geometry", defaults=(("phi", 180.0),)):
             a = np.array([_number(f"{where}[{name!r}][{i}]" if a.ndim else f"{where}[{name!r}]", x)
                           for i, x in enumerate(a.reshape(-1))])
         pointwise.check_values(name, a)
-        pointwise.check_degrees(a if name == "theta_i" else 0.0, a if name == "theta_r" else 0.0, where=f"{where}: ")
         if a.size == 1 and (isinstance(v, numbers.Real) or np.ndim(v) == 0):
             scalars[name] = float(a[0])
         else:
             axes[name] = a
+    zenith = [axes[n] if n in axes else scalars[n] for n in ("theta_i", "theta_r")]
+    pointwise.check_degrees(*zenith, where=f"{where}: ")  # once, both angles together
     return axes, scalars
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..io.measurements import duplicates_note
 from ..results import Result
 from .common import DOP_NOISE_FLOOR, GOODNESS_P, GOODNESS_R2, MISTAKE_CAUSES
 from .result import FIT_STATUS, identifiability_notes
@@ -37,8 +38,9 @@ class JointResult(Result):
         the goodness-of-fit test.
     separate, separate_aic, separate_bic, width_ratio
         each set fitted alone (set -> :class:`FitResult`, on the same grid), the information
-        criteria of all those separate fits together (lower than the joint's: the data prefer
-        separate values of the shared parameters), and set -> parameter -> joint 95% width /
+        criteria of all those separate fits together (where they are lower than the joint's
+        ``aic``/``bic``, the data prefer separate values of the shared parameters; where higher,
+        as usual when sharing is right, the joint model), and set -> parameter -> joint 95% width /
         separate 95% width (below 1: sharing narrowed it).
     exchanged
         the sets whose own parameters the basin exchange moved (refitted alone at the shared
@@ -202,6 +204,10 @@ def _model_notes(setup):
     if no_phi:
         notes.append(f"phi was not given for set{'s' if len(no_phi) > 1 else ''} {', '.join(no_phi)}: every "
                      "measurement there is taken in plane (phi = 180)")
+    for s in setup.names:
+        dup = duplicates_note(setup.meas[s])
+        if dup:
+            notes.append(f"set {s}: {dup}")
     return notes
 
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..compute import pointwise
+from ..io.measurements import duplicates_note
 from ..results import Result
 from .common import DOP_NOISE_FLOOR, GOODNESS_P, GOODNESS_R2, MISTAKE_CAUSES, dop_resolution
 from .setup import F00_REL_STD, PARAMETERS
@@ -208,6 +209,9 @@ def model_notes(model, fx, use_f00, meas):
     if use_f00 and meas.f00_std is None:
         notes.append(f"intensities weighted with an assumed {F00_REL_STD:.0%} relative uncertainty "
                      "(give an f00_std column to set it)")
+    dup = duplicates_note(meas)
+    if dup:
+        notes.append(dup)
     return notes
 
 
