@@ -9,12 +9,12 @@ import numpy as np
 from .. import ranges, sizes
 from ..compute import pointwise
 from ..device import engine as _engine
-from ..model import quantities
+from ..model import inputs, quantities
 from ..model.reference import SHADOWING
 from .common import SHADOWING_HELP, device_options, engine_for, error, quantity_choices
 
-PARAMS = (("theta_i", None), ("theta_r", None), ("phi", "180"), ("n", None), ("k", None),
-          ("sigma", None), ("ks", "1"), ("kd", "0"), ("c", "0"))
+#: Every input of the model with its default as the option's text (None: required).
+PARAMS = tuple((n, None if i.default is None else f"{i.default:g}") for n, i in inputs.REGISTRY.items())
 
 
 def parse_values(option: str, text: str) -> np.ndarray:
@@ -50,8 +50,8 @@ def cmd_eval(args) -> int:
     cols = {n: values[n][i] for n, i in zip(names, idx)}
     rows = range(total)
     kw = dict(shadowing=args.shadowing, dtype=args.dtype, model=args.model, engine=engine_for(args))
-    pos = {n: cols[n] for n in ("theta_i", "theta_r", "phi")}
-    par = {n: cols[n] for n in ("n", "k", "sigma", "ks", "kd", "c") if n in cols}
+    pos = {n: cols[n] for n in inputs.GEOMETRY}
+    par = {n: cols[n] for n in inputs.PARAMETERS if n in cols}
     try:
         q = quantities.get(args.quantity, "points", "--quantity")
         result = pointwise.evaluate(q.name, pos["theta_i"], pos["theta_r"], pos["phi"], **par, **kw)

@@ -34,23 +34,18 @@ from .. import sizes
 from ..device import engine as _engine
 from ..device import ops
 from ..device.engine import DTYPES, VECTOR_LOCAL_SIZE, aligned_empty, resolve_engine
-from ..model import quantities, reference
+from ..model import inputs, quantities, reference
 from . import pointwise
 
-AXES = ("theta_i", "theta_r", "phi", "n", "k", "sigma", "ks", "kd", "c")
-PARAMETERS = AXES[3:]
-UNITS = {"theta_i": "deg", "theta_r": "deg", "phi": "deg", "n": "1", "k": "1",
-         "sigma": "1", "ks": "1", "kd": "1", "c": "1"}
-LONG_NAMES = {"theta_i": "incidence zenith angle", "theta_r": "reflection zenith angle",
-              "phi": "relative azimuth (180 = in plane)", "n": "refractive index", "k": "extinction coefficient",
-              "sigma": "per-axis rms slope", "ks": "specular weight", "kd": "diffuse weight",
-              "c": "Minnaert exponent"}
-DEFAULTS = {"phi": 180.0, "ks": 1.0, "kd": 0.0, "c": 0.0}
+#: The grid's canonical axes: every input of the model (:mod:`pbrdf_cl.model.inputs`), in its order.
+AXES = inputs.NAMES
+PARAMETERS = inputs.PARAMETERS
+UNITS, LONG_NAMES, DEFAULTS = inputs.UNITS, inputs.LONG_NAMES, inputs.DEFAULTS
 #: The quantities with a grid path: name -> long name (the registry, :mod:`pbrdf_cl.quantities`, says more).
 QUANTITIES = {n: quantities.REGISTRY[n].long_name for n in quantities.names("grid")}
 DEFAULT_BUDGET = 1 << 30
 #: Family (0 geometry, 1 n-k, 2 sigma-ks, 3 kd-c) of each canonical axis.
-FAMILY = {"theta_i": 0, "theta_r": 0, "phi": 0, "n": 1, "k": 1, "sigma": 2, "ks": 2, "kd": 3, "c": 3}
+FAMILY = {n: inputs.family_index(n) for n in AXES}
 
 
 class GridPlan:

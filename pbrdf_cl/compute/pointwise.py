@@ -12,7 +12,7 @@ from .. import sizes
 from ..device import engine as _engine
 from ..device.engine import BACKENDS, DTYPES, POINT_INPUTS, check_backend, compact_values, resolve_engine  # noqa: F401 (api.BACKENDS stays)
 from ..errors import UnitsWarning  # noqa: F401 (pointwise.UnitsWarning stays)
-from ..model import quantities, reference
+from ..model import inputs, quantities, reference
 
 MODELS = ("six-param", "specular")
 #: The quantities with a per-point path (the registry, :mod:`pbrdf_cl.quantities`, says more).
@@ -56,22 +56,6 @@ def _all_finite(a):
     return a.size == 0 or bool(np.all(np.isfinite(_min_max(a))))
 
 
-class _Range:
-    """A valid range of values, as a mask: ``rule(a)``; its bounds make the minimum and the
-    maximum of an array enough to check all of it."""
-
-    def __init__(self, lo=None, hi=None, lo_included=True, hi_included=False):
-        self.lo, self.hi, self.lo_included, self.hi_included = lo, hi, lo_included, hi_included
-
-    def __call__(self, a):
-        ok = np.ones(np.shape(a), bool)
-        if self.lo is not None:
-            ok &= (a >= self.lo) if self.lo_included else (a > self.lo)
-        if self.hi is not None:
-            ok &= (a <= self.hi) if self.hi_included else (a < self.hi)
-        return ok
-
-
 def _where(a, bad):
     return f" at index {np.argwhere(bad)[0].tolist()}" if a.ndim else ""
 
@@ -82,19 +66,8 @@ def _check(name, a, ok, rule):
         raise ValueError(f"{name} must be {rule}, got {float(a[bad].flat[0])!r}{_where(a, bad)}")
 
 
-#: The valid range of each input, as (test, words); every input must also be finite.  The vector
-#: kernels of ``kernels/pbrdf_points.cl`` check the same (``PB_IN_DOMAIN``).
-RULES = {
-    "theta_i": (_Range(0.0, 90.0), "in [0, 90) degrees"),
-    "theta_r": (_Range(0.0, 90.0), "in [0, 90) degrees"),
-    "phi": (_Range(), "finite"),
-    "n": (_Range(0.0, lo_included=False), "> 0"),
-    "k": (_Range(0.0), ">= 0"),
-    "sigma": (_Range(0.0, lo_included=False), "> 0"),
-    "ks": (_Range(0.0, lo_included=False), "> 0"),
-    "kd": (_Range(0.0), ">= 0"),
-    "c": (_Range(), "finite"),
-}
+#: The valid range of each input, as (test, words) (:data:`pbrdf_cl.model.inputs.RULES`).
+RULES = inputs.RULES
 
 
 def check_values(name, value):

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..model import inputs
 from . import drivers
 
 drivers.register_pip_drivers()  # before the first OpenCL call of this process
@@ -26,7 +27,8 @@ except ImportError as exc:  # pragma: no cover - pyopencl is a hard dependency
 else:
     IMPORT_ERROR = None
 
-POINT_INPUTS = ("theta_i", "theta_r", "phi", "n", "k", "sigma", "ks", "kd", "c")
+#: The per-point kernels' inputs, in argument order: every input of the model.
+POINT_INPUTS = inputs.NAMES
 DTYPES = {"float32": np.float32, "float64": np.float64}
 #: Vector width of the explicitly vectorised per-point kernels (float16 / double8 were fastest on
 #: PoCL 3.0) and ``PB_VW`` of the row and batch programs, unless

@@ -19,7 +19,7 @@ import numpy as np
 from .. import ranges, sizes
 from ..compute import dense, pointwise
 from ..device.engine import resolve_engine
-from ..model import quantities
+from ..model import inputs, quantities
 
 #: Relative step of the finite differences of a derivative: h = FD_STEP times 1 degree (angles),
 #: |value| (n, sigma, ks) or max(1, |value|) (k, kd, c) (:func:`step_scale`).
@@ -226,7 +226,7 @@ _FLAT_REASONS = (
      "with kd = 0 the DOP is the specular term's alone, whose scale (sigma, ks, the shadowing) cancels"),
     ("dop", ("c",), lambda f: f.get("kd", 0.0) == 0.0, "with kd = 0 there is no diffuse term"),
     ("brdf", ("c",), lambda f: f.get("kd", 0.0) == 0.0, "with kd = 0 there is no diffuse term"),
-    ("aop", ("n", "k", "sigma", "ks", "kd", "c"), lambda f: True,
+    ("aop", inputs.PARAMETERS, lambda f: True,
      "the AoP depends on the geometry alone wherever it is defined"),
 )
 

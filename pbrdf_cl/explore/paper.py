@@ -122,7 +122,7 @@ def fig2(sample, out, engine=None, seed=SEED):
                       (six, curve_six), (spec, curve_spec))
     np.savez_compressed(out / f"fig2_{slug}.npz", theta_i=meas.theta_i, theta_r=meas.theta_r, dop=meas.dop,
                         dop_clean=clean, angle=angle, six_param=curve_six, specular=curve_spec, true=curve_true,
-                        six_param_x=np.array([six.x[k] for k in ("n", "k", "sigma", "ks", "kd", "c")]),
+                        six_param_x=np.array([six.x[k] for k in dense.PARAMETERS]),
                         specular_x=np.array([spec.x["n"], spec.x["k"]]))
     return both
 

@@ -29,9 +29,9 @@ from ..compute import pointwise
 from ..compute.dense import DEFAULTS, LONG_NAMES, PARAMETERS, outer, progress_bar
 from ..device.engine import DTYPES, resolve_engine
 from ..errors import SensitivityWarning
-from ..model import quantities
+from ..model import inputs, quantities
 
-GEOMETRY = ("theta_i", "theta_r", "phi")
+GEOMETRY = inputs.GEOMETRY
 #: Bootstrap resamples and confidence level of the intervals (SALib's defaults).
 NUM_RESAMPLES = 100
 CONF_LEVEL = 0.95

@@ -23,7 +23,7 @@ from ..device.engine import DTYPES
 from ..model import reference
 from .common import fd_jacobian, lm_batch
 from .pixels import Descent, LogKs, PixelResiduals, descent_bounds, external, grid_values, internal
-from .setup import PARAMETERS
+from .setup import MODEL_PARAMS, PARAMETERS
 from .source import ANGLES
 
 #: Geodesic acceleration of the descents (Transtrum and Sethna 2012) without intensities.
@@ -31,6 +31,8 @@ GEODESIC = True
 #: Work-group size of the batch kernels: each work-item holds a few kB of private arrays, which
 #: PoCL's CPU driver allocates for a whole work-group at once (a large group overflows its stack).
 LOCAL_SIZE = 4
+#: The parameters of batch_lm's vector (its PB_X_<NAME> slots): the fitted ones, then ks.
+SLOTS = MODEL_PARAMS["six-param"] + tuple(p for p in PARAMETERS if p not in MODEL_PARAMS["six-param"])
 
 
 @ops.implements("batch_lanes", "opencl")
@@ -194,7 +196,7 @@ def device_lm(eng, setup, blk, X0, names, dtype, iterations, intensity, coords=L
     Q = S * P
     lanes = eng.lm_lanes[dtype]
     lo, hi = coords.bounds(setup, names)
-    slot = {n: (names.index(n) if n in names else -1) for n in ("n", "k", "sigma", "kd", "c", "ks")}
+    slot = {n: (names.index(n) if n in names else -1) for n in SLOTS}
     defines = {"PB_VECTOR_REAL": lanes, "PB_D": D, "PBRDF_SHADOWING": reference.SHADOWING[setup.shadowing],
                **{f"PB_X_{n.upper()}": s for n, s in slot.items()}}
     geodesic = GEODESIC and not intensity

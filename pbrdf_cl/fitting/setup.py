@@ -16,17 +16,21 @@ from typing import NamedTuple
 import numpy as np
 
 from ..compute.pointwise import RULES
-from ..model import reference
+from ..model import inputs, reference
 from ..ranges import did_you_mean
 
-#: The model's six parameters, in the order of the kernels' parameter vectors.
-PARAMETERS = ("n", "k", "sigma", "ks", "kd", "c")
-#: The parameters each model fits (ks is never among them: only intensities separate it from kd).
-MODEL_PARAMS = {"six-param": ("n", "k", "sigma", "kd", "c"), "specular": ("n", "k")}
-DEFAULT_BOUNDS = {"n": (1.0, 5.0), "k": (0.0, 10.0), "sigma": (0.05, 1.0), "kd": (0.0, 5.0), "c": (-1.0, 0.0),
-                  "ks": (1e-3, 1e3)}
-#: The value a fixed-by-the-model parameter takes (specular: no diffuse term; sigma cancels).
-MODEL_FIXED = {"six-param": {"ks": 1.0}, "specular": {"ks": 1.0, "kd": 0.0, "c": 0.0, "sigma": 0.5}}
+#: The model's six parameters, in the order of the kernels' parameter vectors (the registry's).
+PARAMETERS = inputs.PARAMETERS
+#: The parameters each model fits (ks is never among them: only intensities separate it from kd);
+#: the specular model (ref. [7]) fits the Fresnel factors' n and k alone.
+MODEL_PARAMS = {"six-param": inputs.FITTED, "specular": inputs.INDEX}
+DEFAULT_BOUNDS = inputs.DEFAULT_BOUNDS
+#: sigma's value in the specular model, where it cancels (any value gives the same DOP).
+SPECULAR_SIGMA = 0.5
+#: The value a fixed-by-the-model parameter takes: the registry's default (specular: no diffuse
+#: term, and sigma, which cancels, at SPECULAR_SIGMA).
+MODEL_FIXED = {model: {p: inputs.DEFAULTS.get(p, SPECULAR_SIGMA) for p in PARAMETERS if p not in fitted}
+               for model, fitted in MODEL_PARAMS.items()}
 #: Default relative uncertainty of intensities without an f00_std column (the fit's weights and
 #: the design's intensity noise).
 F00_REL_STD = 0.05

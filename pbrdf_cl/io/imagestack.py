@@ -18,6 +18,7 @@ import numpy as np
 
 from .. import sizes
 from ..compute.pointwise import dop as _dop
+from ..model import inputs
 
 #: The two materials of :func:`synthetic_stack`: name -> n, k, kd (= kd/ks with ks = 1), c.
 MATERIALS = {
@@ -311,7 +312,7 @@ def synthetic_stack(size=256, n_lights=30, noise=0.005, seed=0, *, sample_mm=100
                          "allowed): move the lights or the camera")
     truth = truth_maps(size)
     params = {name: np.broadcast_to(truth[name][:, :, None], ti.shape).ravel()
-              for name in ("n", "k", "sigma", "kd", "c")}
+              for name in FIT_PARAMETERS}
     clean = np.empty(ti.size)
     flat = ti.ravel(), tr.ravel(), phi.ravel()
     for s in range(0, ti.size, _CHUNK):
@@ -435,7 +436,7 @@ def load_stack(path):
 
 
 #: The parameters a DOP-only fit determines (ks = 1), in the order of the truth maps.
-FIT_PARAMETERS = ("n", "k", "sigma", "kd", "c")
+FIT_PARAMETERS = inputs.FITTED
 
 
 def default_check_pixels(size):

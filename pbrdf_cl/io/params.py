@@ -18,10 +18,11 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from ..model import inputs
 from ..ranges import did_you_mean
 
 #: The parameters a file may hold, in the model's order.
-NAMES = ("n", "k", "sigma", "ks", "kd", "c")
+NAMES = inputs.PARAMETERS
 
 
 def params_text(values, fmt="json"):
