@@ -282,11 +282,11 @@ inline real pb_rotation2(real c, real s, real *s2)
     return c * c - s * s;
 }
 
-/* The 4x4 Mueller matrix F = K R_out M^s R_in + fd e00 (eq. 10, 15, 16), row-major into m[16].
- * R(c, s) = [[1,0,0,0],[0,c2,s2,0],[0,-s2,c2,0],[0,0,0,1]], c2 = c^2 - s^2, s2 = 2 c s. */
-inline void pb_mueller(pb_fresnel_t f, pb_frames fr, real logK, real fd, real *m)
+/* The 4x4 Mueller matrix F = K R_out M^s R_in + fd e00 (eq. 10, 15, 16) at the scale K itself,
+ * row-major into m[16].  R(c, s) = [[1,0,0,0],[0,c2,s2,0],[0,-s2,c2,0],[0,0,0,1]], c2 = c^2 - s^2,
+ * s2 = 2 c s.  With K = 1 and fd = 0 it is P = R_out M^s R_in, the specular part per unit K. */
+inline void pb_mueller_at(pb_fresnel_t f, pb_frames fr, real K, real fd, real *m)
 {
-    real K = pb_exp(logK);
     real m00 = (real)0.5 * K * (f.Rs + f.Rp);
     real m01 = (real)0.5 * K * f.diff;
     real rx = K * f.re_x, ix = K * f.im_x;
@@ -301,6 +301,12 @@ inline void pb_mueller(pb_fresnel_t f, pb_frames fr, real logK, real fd, real *m
         m[8 + j] = -S * a1[j] + C * a2[j];
     }
     m[12] = (real)0; m[13] = ix * s; m[14] = -ix * c; m[15] = rx;
+}
+
+/* F = K R_out M^s R_in + fd e00 from log K (pb_mueller_at). */
+inline void pb_mueller(pb_fresnel_t f, pb_frames fr, real logK, real fd, real *m)
+{
+    pb_mueller_at(f, fr, pb_exp(logK), fd, m);
 }
 
 /* The first column of F (pb_mueller): the Stokes vector (S0, S1, S2, S3) reflected for unpolarised
@@ -332,6 +338,84 @@ inline real pb_aop_combine(real diff, real K, real fd, real C, real S)
 {
     const real on = ((diff > (real)0) & ((K > (real)0) | (fd == (real)0))) ? (real)1 : (real)0;
     return pb_aop_of(on * C, -on * S);
+}
+
+/* ---- Polarimetric channels (SPEC, "Polarized incidence and polarimetric measurements"): one
+ * number a polarimeter measures at one geometry, for an incident Stokes vector u (1, s1, s2, s3;
+ * a basis vector e_j for a Mueller element).  F = K P + fd e00 with P = R_out M^s R_in per unit K
+ * (pb_mueller_at with K = 1, fd = 0), so every channel comes from two terms of P and the scale:
+ *   PB_CHANNEL_RATIO  (F u)_comp / (F v)_0, or (F u)_comp itself: tn = (P u)_comp, td = (P v)_0;
+ *   PB_CHANNEL_DOP    |(F u)_123| / (F u)_0:  tn = |(P u)_123|, td = (P u)_0;
+ *   PB_CHANNEL_AOP    AoP of F u (degrees):   tn = the AoP of P u (the diffuse term adds to S0 only).
+ * and pb_channel_combine's (K tn + a fd) / (K td + b fd) for a normalised channel or K tn + a fd for
+ * an absolute one, with the channel's coefficients (a = u0 for S0 or M00, else 0; b = v0 and c = 0
+ * for a normalised channel, b = 0 and c = 1 for an absolute one).  u and v are the channel's own (scalars, the same for every lane of a vector real). */
+#define PB_CHANNEL_RATIO 0
+#define PB_CHANNEL_DOP 1
+#define PB_CHANNEL_AOP 2
+
+/* The terms (tn, *td) of a channel of kind `kind`, output component `comp`, from P (m[16]). */
+inline real pb_channel_terms(const real *m, const real *u, const real *v, int comp, int kind, real *td)
+{
+    real t[4];
+    for (int i = 0; i < 4; i++)
+        t[i] = m[4 * i] * u[0] + m[4 * i + 1] * u[1] + m[4 * i + 2] * u[2] + m[4 * i + 3] * u[3];
+    real tn = t[comp];
+    *td = m[0] * v[0] + m[1] * v[1] + m[2] * v[2] + m[3] * v[3];
+    if (kind == PB_CHANNEL_DOP) {
+        tn = pb_sqrt(t[1] * t[1] + t[2] * t[2] + t[3] * t[3]);
+        *td = t[0];
+    }
+    if (kind == PB_CHANNEL_AOP) {
+        tn = pb_aop_of(t[1], t[2]);
+        *td = (real)1;
+    }
+    return tn;
+}
+
+/* A channel's value from its terms, inv_K = 1/K, the diffuse term fd and its coefficients: a
+ * normalised channel (c = 0) is (tn + a q) / (td + b q), q = fd / K (0 where there is no diffuse
+ * term, whatever K), 0 where that denominator is 0 (no light); an absolute one (c > 0) is
+ * K tn + a fd; an AoP is tn.  The scale enters as 1/K, as in the DOP (pb_dop_combine), so that a K
+ * that underflows (a sharp lobe seen off specular) leaves the ratio exact. */
+#define PB_CHANNEL_COMBINE_BODY(T)                                           \
+    {                                                                        \
+        if (aop)                                                             \
+            return tn;                                                       \
+        const T q = fd > (T)0 ? fd * inv_K : (T)0;                           \
+        const T aq = a > (T)0 ? a * q : (T)0;  /* no 0 * inf where K underflowed */ \
+        const T bq = b > (T)0 ? b * q : (T)0;                                \
+        const T den = td + bq;                                               \
+        const T ratio = den > (T)0 ? (tn + aq) / den : (T)0;                 \
+        return c > (T)0 ? tn / inv_K + a * fd : ratio;                       \
+    }
+inline real pb_channel_combine(real tn, real td, real inv_K, real fd, real a, real b, real c, int aop)
+    PB_CHANNEL_COMBINE_BODY(real)
+#if !defined(PB_VECTOR_REAL) && !defined(PB_HOST_C)
+inline realv pb_channel_combine_v(realv tn, realv td, realv inv_K, realv fd, realv a, realv b, realv c, int aop)
+    PB_CHANNEL_COMBINE_BODY(realv)
+#endif
+
+/* One channel at one point of the model: P from the Fresnel factors and frames, then its terms and
+ * value (pb_channel_terms, pb_channel_combine). */
+inline real pb_channel(pb_fresnel_t f, pb_frames fr, real logK, real fd, const real *u, const real *v, int comp,
+                       int kind, real a, real b, real c)
+{
+    real m[16], td;
+    pb_mueller_at(f, fr, (real)1, (real)0, m);
+    const real tn = pb_channel_terms(m, u, v, comp, kind, &td);
+    return pb_channel_combine(tn, td, pb_exp(-logK), fd, a, b, c, kind == PB_CHANNEL_AOP);
+}
+
+/* The residual of a channel's value against its measurement, wrapped into (-90, 90] for an AoP
+ * (angles modulo 180 degrees); an undefined AoP (NaN) is 90 degrees off. */
+inline real pb_channel_residual(real value, real obs, int aop)
+{
+    const real r = value - obs;
+    if (!aop)
+        return r;
+    const real w = r - (real)180 * rint(r / (real)180);
+    return isnan(w) ? (real)90 : w;
 }
 
 /* ---- The output quantities.  Each has two entry points of fixed signature, named after its

@@ -223,3 +223,98 @@ __kernel void objective_rows(__global real *sse, const pbidx row_start, const pb
     }
 }
 #endif
+
+#ifdef PB_CHANNELS
+/* The objective of polarimetric channels (pbrdf.h's pb_channel_combine and pb_channel_residual):
+ * sum_m w_m r_m^2 over M channels for parameter vectors p = (nk * PB_NM + s) * PB_NI + j, from the
+ * channel tables tn/td[m * PB_NNK + nk] (pbrdf_tables.cl's channel_table), 1/K as scale[m * PB_NM + s]
+ * and the diffuse term fd[m * PB_NI + j], with each channel's coefficients abc[3 m ..] = (a, b, c)
+ * and whether it is an AoP (aop[m]: its residual wrapped modulo 180 degrees).  objective_channels:
+ * one work-item per vector; objective_channel_rows: as objective_rows (PB_ROW_LEVEL 1 or 2). */
+#define PB_CHANNEL_TABLES                                                    \
+    __global const real *tn, __global const real *td, __global const real *scale, __global const real *dif, \
+    __global const real *obs, __global const real *w, __global const real *abc, __global const int *aop, const int M
+
+__kernel void objective_channels(__global real *sse, const pbidx start, const pbidx count, PB_CHANNEL_TABLES)
+{
+    const pbidx gid = get_global_id(0);
+    if (gid >= count) return;
+    pbidx p = start + gid;
+    const pbidx j = p % PB_NI; p /= PB_NI;
+    const pbidx s = p % PB_NM;
+    const pbidx nk = p / PB_NM;
+    real acc = (real)0;
+    for (int m = 0; m < M; m++) {
+        const real v = pb_channel_combine(tn[m * PB_NNK + nk], td[m * PB_NNK + nk], scale[m * PB_NM + s],
+                                          dif[m * PB_NI + j], abc[3 * m], abc[3 * m + 1], abc[3 * m + 2], aop[m]);
+        const real r = pb_channel_residual(v, obs[m], aop[m]);
+        acc += w[m] * r * r;
+    }
+    sse[gid] = acc;
+}
+
+#ifdef PB_OBJECTIVE
+/* the residual of PB_VW values (pb_channel_residual, element by element) */
+inline realv pb_channel_residual_v(realv value, real ob, int is_aop)
+{
+    const realv r = value - (realv)ob;
+    if (!is_aop)
+        return r;
+    const realv wr = r - (realv)180 * rint(r / (realv)180);
+    return isnan(wr) ? (realv)90 : wr;
+}
+
+__kernel void objective_channel_rows(__global real *sse, const pbidx row_start, const pbidx rows, PB_CHANNEL_TABLES)
+{
+    const pbidx gid = get_global_id(0);
+    if (gid >= rows) return;
+    const pbidx i = row_start + gid;
+#if PB_ROW_LEVEL == 1
+    const pbidx s = i % PB_NM;
+    const pbidx nk = i / PB_NM;
+#else
+    const pbidx nk = i;
+#endif
+    __global real *o = sse + gid * PB_ROW_LEN;
+#if PB_ROW_LEVEL == 1
+    for (int q0 = 0; q0 + PB_VW <= PB_ROW_LEN; q0 += PB_VW) {
+        realv acc = (realv)0;
+        for (int m = 0; m < M; m++) {
+            const realv v = pb_channel_combine_v((realv)tn[m * PB_NNK + nk], (realv)td[m * PB_NNK + nk],
+                                                 (realv)scale[m * PB_NM + s], pb_vload(0, dif + m * PB_NI + q0),
+                                                 (realv)abc[3 * m], (realv)abc[3 * m + 1], (realv)abc[3 * m + 2],
+                                                 aop[m]);
+            const realv r = pb_channel_residual_v(v, obs[m], aop[m]);
+            acc += (realv)w[m] * r * r;
+        }
+        pb_vstore(acc, 0, o + q0);
+    }
+    for (int q0 = PB_ROW_LEN / PB_VW * PB_VW; q0 < PB_ROW_LEN; q0 += PB_QB) {
+#else
+    for (int q0 = 0; q0 < PB_ROW_LEN; q0 += PB_QB) {
+#endif
+        real acc[PB_QB];
+        for (int q = 0; q < PB_QB; q++)
+            acc[q] = (real)0;
+        for (int m = 0; m < M; m++) {
+            const real n_ = tn[m * PB_NNK + nk], d_ = td[m * PB_NNK + nk];
+            const real a = abc[3 * m], b = abc[3 * m + 1], c = abc[3 * m + 2], ob = obs[m], wm = w[m];
+            const int is_aop = aop[m];
+            __global const real *fd = dif + m * PB_NI, *sc = scale + m * PB_NM;
+            for (int q = 0; q < PB_QB; q++) {
+                const int qq = min(q0 + q, PB_ROW_LEN - 1);  /* clamped: the tail block re-reads */
+#if PB_ROW_LEVEL == 1
+                const real v = pb_channel_combine(n_, d_, sc[s], fd[qq], a, b, c, is_aop);
+#else
+                const real v = pb_channel_combine(n_, d_, sc[qq / PB_NI], fd[qq % PB_NI], a, b, c, is_aop);
+#endif
+                const real r = pb_channel_residual(v, ob, is_aop);
+                acc[q] += wm * r * r;
+            }
+        }
+        for (int q = 0; q < PB_QB && q0 + q < PB_ROW_LEN; q++)
+            o[q0 + q] = acc[q];
+    }
+}
+#endif
+#endif

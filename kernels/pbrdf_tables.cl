@@ -62,3 +62,22 @@ __kernel void frame_table(__global real *out, const int ng, __global const real 
     out[2 * ig] = C;
     out[2 * ig + 1] = S;
 }
+
+/* The terms (tn, td) of polarimetric channels (pb_channel_terms of pbrdf.h) over (channel, n, k):
+ * channel ig at geometry (ti, tr, ph)[ig] with incident vectors u[4 ig ..], v[4 ig ..], output
+ * component comp[ig] and kind kind[ig]; written as tn/td[ig * s_g + ip * s_p]. */
+__kernel void channel_table(__global real *tn, __global real *td, PB_TABLE_ARGS, __global const real *u,
+                            __global const real *v, __global const int *comp, __global const int *kind)
+{
+    const int ig = get_global_id(0), ip = get_global_id(1);
+    if (ig >= ng) return;
+    pb_geom g = pb_geometry(ti[ig], tr[ig], ph[ig]);
+    pb_fresnel_t f = pb_fresnel(p1[ip / n2], p2[ip % n2], g.cb, g.sb);
+    real m[16], d;
+    pb_mueller_at(f, pb_frame_rotations(g, ph[ig]), (real)1, (real)0, m);
+    const real uu[4] = {u[4 * ig], u[4 * ig + 1], u[4 * ig + 2], u[4 * ig + 3]};
+    const real vv[4] = {v[4 * ig], v[4 * ig + 1], v[4 * ig + 2], v[4 * ig + 3]};
+    const real t = pb_channel_terms(m, uu, vv, comp[ig], kind[ig], &d);
+    tn[ig * s_g + ip * s_p] = t;
+    td[ig * s_g + ip * s_p] = d;
+}

@@ -92,6 +92,20 @@ def main():
             configs += 1
         G.objective(data, points=dict(n=[1.2, 2.0], k=[0.0, 1.0], sigma=[0.3, 0.5]), dtype=dtype, engine=eng)
         configs += 1
+        # polarimetric channels (Stokes under a polarized source, an AoP, Mueller elements, an
+        # intensity): the channel tables and objective_channel_rows / objective_channels
+        from pbrdf_cl.model.measurables import channels as make_channels
+        cols = dict(dop=np.full(7, 0.3), aop=np.full(7, 20.0), s1=np.full(7, 0.1), s2=np.full(7, -0.2),
+                    m23=np.full(7, 0.1), f00=np.full(7, 0.2))
+        chans = make_channels(ti[:7], tr[:7], phi[:7], cols, incident=np.tile([0.0, 1.0, 0.0], (7, 1)))
+        for grid in (dict(n=[1.2, 2.0], k=[0.0, 1.0], sigma=0.3, kd=np.linspace(0, 1, 19)),
+                     dict(n=[1.2, 2.0], k=[0.0, 1.0], sigma=[0.2, 0.4, 0.6, 0.8, 1.0], kd=[0.0, 0.3, 0.6, 0.9]),
+                     dict(n=[1.2, 2.0], k=[0.0, 1.0], sigma=0.3)):
+            got = G.objective(chans, grid=grid, dtype=dtype, engine=eng).sse.values
+            ref = G.objective(chans, grid=grid, dtype="float64", backend="numpy").sse.values
+            if not np.allclose(got, ref, rtol=1e-3 if dtype == "float32" else 1e-10):
+                raise SystemExit(f"channel objective {dtype}: Oclgrind result differs from the reference")
+            configs += 1
     # the batch kernels (pbrdf_batch.cl): grid stages with shared and per-pixel geometry, the
     # descent in float32 and float64, with and without intensities; few pixels, short runs
     from pbrdf_cl.fitting import corners as Bc

@@ -35,7 +35,8 @@ from ..device import engine as _engine
 from ..device import ops
 from ..device.engine import DTYPES, VECTOR_LOCAL_SIZE, aligned_empty, resolve_engine
 from ..model import inputs, quantities, reference
-from . import pointwise
+from ..model.measurables import Channels
+from . import channels, pointwise
 
 #: The grid's canonical axes: every input of the model (:mod:`pbrdf_cl.model.inputs`), in its order.
 AXES = inputs.NAMES
@@ -730,18 +731,24 @@ def objective(data, grid=None, points=None, *, k_best=10, dtype="float32", shado
     if (grid is None) == (points is None):
         raise ValueError("give exactly one of grid= (parameter axes) or points= (explicit parameter vectors)")
     dtype = pointwise.check_options(shadowing, dtype)
-    from ..io.measurements import as_measurements
-    meas = as_measurements(data)
-    pointwise.check_degrees(meas.theta_i, meas.theta_r, f"{meas.source}: ")
-    ti, tr, ph, obs = meas.theta_i, meas.theta_r, meas.phi, meas.dop
-    w = meas.weights if meas.dop_std is not None else np.ones(len(meas))
+    if isinstance(data, Channels):  # polarimetric channels (pbrdf_cl.model.measurables), checked by the caller
+        ti, tr, ph, obs, w = data.theta_i, data.theta_r, data.phi, data.obs, None
+        op, payload, what = "objective_channel_blocks", data, "channels"
+    else:
+        from ..io.measurements import as_measurements
+        meas = as_measurements(data)
+        pointwise.check_degrees(meas.theta_i, meas.theta_r, f"{meas.source}: ")
+        ti, tr, ph, obs = meas.theta_i, meas.theta_r, meas.phi, meas.dop
+        w = meas.weights if meas.dop_std is not None else np.ones(len(meas))
+        op, payload, what = "objective_blocks", (ti, tr, ph, obs, w), "DOP"
     eng = resolve_engine(engine, backend)
     npdt = DTYPES[dtype]
     itemsize = _table_itemsize(eng, dtype)
     M = ti.size
     if points is not None:
-        return _objective_points(eng, points, (ti, tr, ph, obs, w), k_best, dtype, shadowing, return_sse, t0,
-                                 memory_budget)
+        if w is None:
+            raise ValueError("points= takes DOP data; channels take grid=")
+        return _objective_points(eng, points, payload, k_best, dtype, shadowing, return_sse, t0, memory_budget)
     axes = {n: v for n, v in grid.items() if np.ndim(v) > 0}
     fixed = {n: v for n, v in grid.items() if np.ndim(v) == 0}
     plan = GridPlan(axes, fixed, names=PARAMETERS, defaults={"ks": 1.0, "kd": 0.0, "c": 0.0})
@@ -755,8 +762,7 @@ def objective(data, grid=None, points=None, *, k_best=10, dtype="float32", shado
     sse = np.empty(P, npdt) if return_sse else None
     best_idx, best_sse = np.empty(0, np.int64), np.empty(0, npdt)
     bar = progress_bar(P, progress, "objective")
-    blocks = eng.call("objective_blocks", plan, (ti, tr, ph, obs, w), dtype, shadowing, memory_budget - tables_size,
-                      sse)
+    blocks = eng.call(op, plan, payload, dtype, shadowing, memory_budget - tables_size, sse)
     for start, host in blocks:  # host: the block's slice of sse (or a temporary without it)
         count = host.size
         best_idx, best_sse = _update_best(best_idx, best_sse, start, host, k_best)
@@ -774,7 +780,7 @@ def objective(data, grid=None, points=None, *, k_best=10, dtype="float32", shado
     if sse is not None:
         import xarray as xr
         sse_da = xr.DataArray(sse.reshape(plan.shape), coords=plan.coords(), dims=plan.axis_names, name="sse",
-                              attrs=dict(long_name="weighted sum of squared DOP residuals", n_measurements=M,
+                              attrs=dict(long_name=f"weighted sum of squared {what} residuals", n_measurements=M,
                                          shadowing=shadowing, dtype=dtype, **plan.fixed_attrs()))
     return ObjectiveResult(sse=sse_da, best=best, n_pairs=P * M, seconds=time.perf_counter() - t0)
 
@@ -804,8 +810,23 @@ def _device_objective_blocks(eng, plan, meas, dtype, shadowing, room, out):
     """(flat start, SSE) of the parameter grid in chunks, on the device, read straight into
     ``out`` when given."""
     ti, tr, ph, obs, w = meas
-    M = ti.size
-    v = plan.values
+    tables = Tables(eng, dtype, shadowing, "dop", ti, tr, ph, plan.values)
+    args = (*tables.args(), eng.to_device(obs, dtype), eng.to_device(w, dtype), np.int32(ti.size))
+    yield from _objective_chunks(eng, plan, dtype, room, out, ("objective_rows", "objective_grid"), args)
+
+
+@ops.implements("objective_channel_blocks", "opencl")
+def _device_channel_blocks(eng, plan, ch, dtype, shadowing, room, out):
+    """As ``objective_blocks`` for polarimetric channels (:mod:`pbrdf_cl.compute.channels`)."""
+    args = channels.device_channel_tables(eng, ch, plan.values, dtype, shadowing)
+    yield from _objective_chunks(eng, plan, dtype, room, out, ("objective_channel_rows", "objective_channels"), args,
+                                 PB_CHANNELS=None)
+
+
+def _objective_chunks(eng, plan, dtype, room, out, kernels, args, **defines):
+    """(flat start, SSE) of the grid ``plan`` in chunks of ``room`` bytes: the row kernel
+    ``kernels[0]`` (or, where rows would be too long, the per-vector ``kernels[1]``) of
+    ``pbrdf_grid.cl`` with the tables and data ``args``."""
     npdt = DTYPES[dtype]
     itemsize = np.dtype(npdt).itemsize
     _, nnk, nm, ni = family_sizes(plan)
@@ -814,20 +835,17 @@ def _device_objective_blocks(eng, plan, meas, dtype, shadowing, room, out):
     chunk = int(max(64, min(room // itemsize, 2 ** 31 - 1)))
     level, row_len = row_level(nnk, nm, ni, 1, chunk, max_level=2)
     prog = grid_program(eng, dtype, (nnk, nm, ni), idx_name, "dop", PB_OBJECTIVE=None, PB_ROW_LEVEL=level,
-                         PB_ROW_LEN=row_len)
+                        PB_ROW_LEN=row_len, **defines)
     chunk = max(row_len, chunk // row_len * row_len)
-    tables = Tables(eng, dtype, shadowing, "dop", ti, tr, ph, v)
-    bobs, bw = eng.to_device(obs, dtype), eng.to_device(w, dtype)
     for start in range(0, P, chunk):
         count = min(chunk, P - start)
         host = out[start:start + count] if out is not None else np.empty(count, npdt)
         buf, done = eng.output(host)
         if level:
-            eng.launch(prog["objective_rows"], (count // row_len,), buf, idx_np(start // row_len),
-                       idx_np(count // row_len), *tables.args(), bobs, bw, np.int32(M))
+            eng.launch(prog[kernels[0]], (count // row_len,), buf, idx_np(start // row_len),
+                       idx_np(count // row_len), *args)
         else:
-            eng.launch(prog["objective_grid"], (count,), buf, idx_np(start), idx_np(count), *tables.args(),
-                       bobs, bw, np.int32(M))
+            eng.launch(prog[kernels[1]], (count,), buf, idx_np(start), idx_np(count), *args)
         done()
         yield start, host
 

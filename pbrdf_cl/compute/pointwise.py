@@ -358,16 +358,22 @@ def aop(theta_i, theta_r, phi=180.0, *, n, k, sigma, ks=1.0, kd=0.0, c=0.0, shad
 
 @_documented
 def stokes(theta_i, theta_r, phi=180.0, *, n, k, sigma, ks=1.0, kd=0.0, c=0.0, shadowing="paper",
-           dtype="float64", backend="auto", model="six-param", engine=None):
-    """The Stokes vector reflected for unpolarized incidence of unit radiance.
+           dtype="float64", backend="auto", model="six-param", engine=None, incident=None):
+    """The Stokes vector reflected for incident light of unit radiance, unpolarized or polarized.
 
-    The Mueller matrix's first column, in the psps frame of the outgoing beam: what a
-    polarization camera measures, up to its radiometric scale.  S0 is F00, S3 is 0 in this model,
-    DOP = sqrt(S1^2 + S2^2) / S0 and AoP = atan2(S2, S1) / 2.
+    In the psps frame of the outgoing beam (SPEC; ``docs/polarimetry.md``): unpolarized, the
+    Mueller matrix's first column, what a polarization camera measures under an unpolarized lamp
+    (S0 is F00, S3 is 0 in this model, DOP = sqrt(S1^2 + S2^2) / S0, AoP = atan2(S2, S1) / 2);
+    with ``incident``, F S_in, S_in = (1, s1, s2, s3) given in the incoming beam's frame.
 
     Parameters
     ----------
     {parameters}
+    incident : array-like, optional
+        The incident light's normalised Stokes vector (s1, s2, s3), shape ``(3,)`` or broadcasting
+        against the points with a trailing axis of 3: (1, 0, 0) is linear polarization along the
+        incoming beam's s axis (perpendicular to its plane of incidence), (0, 1, 0) at +45 degrees
+        from s towards p, (0, 0, 1) circular.  s1^2 + s2^2 + s3^2 <= 1.  None: unpolarized.
 
     Returns
     -------
@@ -379,9 +385,37 @@ def stokes(theta_i, theta_r, phi=180.0, *, n, k, sigma, ks=1.0, kd=0.0, c=0.0, s
     >>> import pbrdf_cl
     >>> pbrdf_cl.stokes(40, [20, 45], phi=150, n=1.6, k=2.139, sigma=0.5).shape
     (2, 4)
+    >>> s = pbrdf_cl.stokes(40, 45, n=1.6, k=2.139, sigma=0.5, ks=0.9, kd=0.15, c=-0.3, incident=(0, 1, 0))
+    >>> [round(float(v), 5) for v in s[1:] / s[0]]   # SPEC's check values, source at 45 degrees
+    [0.16759, -0.60201, -0.2387]
     """
-    return _evaluate("stokes", theta_i, theta_r, phi, n, k, sigma, ks, kd, c, shadowing, dtype, backend,
-                     model, engine)
+    if incident is None:
+        return _evaluate("stokes", theta_i, theta_r, phi, n, k, sigma, ks, kd, c, shadowing, dtype, backend,
+                         model, engine)
+    s_in = check_incident(incident)
+    M = _evaluate("mueller", theta_i, theta_r, phi, n, k, sigma, ks, kd, c, shadowing, dtype, backend, model,
+                  engine)
+    return np.einsum("...ij,...j->...i", M, s_in).astype(M.dtype, copy=False)
+
+
+def check_incident(incident):
+    """The incident Stokes vectors (1, s1, s2, s3) from ``incident`` (s1, s2, s3): a trailing axis
+    of 3, every vector at most fully polarised; one-line ``ValueError``s otherwise."""
+    try:
+        a = np.asarray(incident, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"incident must be (s1, s2, s3) numbers, got {incident!r}") from None
+    if a.ndim == 0 or a.shape[-1] != 3:
+        raise ValueError(f"incident must be the normalised Stokes vector (s1, s2, s3): a trailing axis of 3, got "
+                         f"shape {a.shape}")
+    if not np.isfinite(a).all():
+        raise ValueError("incident must be finite numbers")
+    norm2 = (a * a).sum(axis=-1)
+    if (norm2 > 1.0 + 1e-9).any():
+        i = np.unravel_index(int(np.argmax(norm2)), norm2.shape) if norm2.ndim else ()
+        raise ValueError(f"incident {tuple(float(v) for v in a[i])} is not a Stokes vector: s1^2 + s2^2 + s3^2 = "
+                         f"{float(norm2[i]):.4g} > 1 (normalised by S0)")
+    return np.concatenate([np.ones(a.shape[:-1] + (1,)), a], axis=-1)
 
 
 @_documented

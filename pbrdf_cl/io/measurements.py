@@ -40,11 +40,19 @@ import numpy as np
 
 from ..compute.pointwise import RULES
 from ..errors import DataWarning
+from ..model import measurables
+from .polar import check_polar
 
 REQUIRED = ("theta_i", "theta_r", "dop")
 OPTIONAL = ("phi", "dop_std", "f00", "s0", "f00_std")
-COLUMNS = REQUIRED + OPTIONAL
-_COLUMNS_TEXT = "theta_i, theta_r, dop and optionally phi, dop_std, f00 (or s0), f00_std"
+#: The polarimetric columns (:mod:`pbrdf_cl.model.measurables`): the AoP, the Stokes vector, the Mueller
+#: elements and their standard deviations, and the incident light's normalised Stokes vector.
+POLAR = tuple(n for n in measurables.REGISTRY if n not in ("dop", "f00"))
+POLAR_STD = tuple(f"{n}_std" for n in POLAR)
+COLUMNS = tuple(dict.fromkeys(REQUIRED + OPTIONAL + POLAR + POLAR_STD + measurables.INCIDENT))
+_COLUMNS_TEXT = ("theta_i, theta_r, and dop or any polarimetric quantity (aop, s0..s3, m00..m33, each with "
+                 "<name>_std), optionally phi, dop_std, f00 (or s0), f00_std, in_s1..in_s3 (the incident state)")
+
 _SEPARATORS = {",": "commas", ";": "semicolons", "\t": "tabs", None: "spaces"}
 _SEP_LINE = re.compile(r"sep=([,;\t])")
 _DECIMAL_COMMA = re.compile(r"[+-]?[0-9]*,[0-9]+(?:[eE][+-]?[0-9]+)?")
@@ -92,9 +100,39 @@ class Measurements:
     ignored: tuple = ()
     #: False where the input had no phi (every point is then taken in plane, phi = 180)
     phi_given: bool = True
+    #: the polarimetric columns (aop, s0..s3, m00..m33): name -> values, NaN where not measured
+    quantities: dict = field(default_factory=dict)
+    #: their standard deviations, name -> values (only those given)
+    stds: dict = field(default_factory=dict)
+    #: the incident light's normalised Stokes vector per row, (M, 3); None: unpolarised
+    incident: np.ndarray | None = None
 
     def __len__(self):
-        return self.dop.size
+        return self.theta_i.size
+
+    @property
+    def polarimetric(self):
+        """Whether the data hold more than DOP (and F00) under unpolarised light: a polarimetric
+        quantity, or an incident state."""
+        return bool(self.quantities) or self.incident is not None
+
+    def columns(self):
+        """Every measured quantity: name -> values (NaN where not measured), in the registry's order."""
+        cols = dict(self.quantities)
+        if self.dop is not None:
+            cols["dop"] = self.dop
+        if self.f00 is not None:
+            cols["f00"] = self.f00
+        return {n: cols[n] for n in measurables.REGISTRY if n in cols}
+
+    def channels(self):
+        """The measured channels (:class:`pbrdf_cl.model.measurables.Channels`), NaN-free."""
+        stds = dict(self.stds)
+        if self.dop_std is not None:
+            stds["dop"] = self.dop_std
+        if self.f00_std is not None:
+            stds["f00"] = self.f00_std
+        return measurables.channels(self.theta_i, self.theta_r, self.phi, self.columns(), stds, self.incident)
 
     @property
     def weights(self):
@@ -126,17 +164,31 @@ def duplicates_note(meas):
             "intervals are otherwise too narrow)")
 
 
+def intensity_s0(values):
+    """``values`` (column name -> array) with a lone ``s0`` read as the intensity ``f00`` (and
+    ``s0_std`` as ``f00_std``): where no other Stokes parameter and no incident state is given, S0 is
+    the BRDF for unpolarised light, F00."""
+    if "s0" in values and not any(k in values for k in ("s1", "s2", "s3") + measurables.INCIDENT):
+        values = dict(values)
+        values["f00"] = values.pop("s0")
+        if "s0_std" in values:
+            values["f00_std"] = values.pop("s0_std")
+    return values
+
+
 def _locator(source, lines):
     if lines is not None:
         return lambda i: f"{source}, line {lines[i]}"
     return lambda i: f"{source}, row {i}"
 
 
-def _validate(cols, source, locate):
-    n = len(cols["dop"])
+def _validate(cols, source, locate, polar=False):
+    n = len(cols["theta_i"])
     for name, values in cols.items():
         a = values
         bad = ~np.isfinite(a)
+        if polar and name not in ("theta_i", "theta_r", "phi"):
+            bad = np.isinf(a)  # NaN: not measured at that row
         if bad.any():
             i = int(np.argmax(bad))
             raise ValueError(f"{locate(i)}: {name} is {float(a[i])!r}; every value must be a finite number")
@@ -147,7 +199,7 @@ def _validate(cols, source, locate):
               "f00_std": (lambda a: a > 0, "> 0")}
     for name, (ok, rule) in checks.items():
         if name in cols:
-            good = ok(cols[name])
+            good = ok(cols[name]) | np.isnan(cols[name])
             if not good.all():
                 i = int(np.argmax(~good))
                 raise ValueError(f"{locate(i)}: {name} = {float(cols[name][i])!r} is not {rule}")
@@ -155,13 +207,21 @@ def _validate(cols, source, locate):
         raise ValueError(f"{source}: no measurements")
 
 
-def from_arrays(theta_i, theta_r, dop, phi=None, dop_std=None, f00=None, f00_std=None, source="arrays",
-                _lines=None, _locate=None):
+def from_arrays(theta_i, theta_r, dop=None, phi=None, dop_std=None, f00=None, f00_std=None, source="arrays",
+                _lines=None, _locate=None, **polar):
     """Validated :class:`Measurements` from arrays (broadcast to a common length); without
-    ``phi`` every point is in plane (phi = 180) and ``phi_given`` is False."""
+    ``phi`` every point is in plane (phi = 180) and ``phi_given`` is False.  ``polar``: the
+    polarimetric columns by name (``aop``, ``s1``, ``m01``, their ``<name>_std``, ``in_s1``, ...;
+    NaN where not measured), then checked by :func:`pbrdf_cl.io.polar.check_polar`."""
     phi_given = phi is not None
+    polar = {k: v for k, v in polar.items() if v is not None}
+    unknown = sorted(set(polar) - set(POLAR + POLAR_STD + measurables.INCIDENT))
+    if unknown:
+        raise ValueError(f"{source}: {unknown[0]!r} is not a column of measurements")
+    if dop is None and not any(k in POLAR for k in polar) and f00 is None:
+        raise ValueError(f"{source}: no measured quantity (give dop or a polarimetric quantity: aop, s1, m01, ...)")
     named = dict(theta_i=theta_i, theta_r=theta_r, dop=dop, phi=180.0 if phi is None else phi, dop_std=dop_std,
-                 f00=f00, f00_std=f00_std)
+                 f00=f00, f00_std=f00_std, **polar)
     cols = {}
     for name, v in named.items():
         if v is None:
@@ -178,12 +238,14 @@ def from_arrays(theta_i, theta_r, dop, phi=None, dop_std=None, f00=None, f00_std
         lengths = ", ".join(f"{k}: {v.size}" for k, v in cols.items())
         raise ValueError(f"{source}: columns differ in length ({lengths})") from None
     cols = {k: np.array(a, dtype=np.float64) for k, a in zip(cols, arrays)}
-    _validate(cols, source, _locate or _locator(source, _lines))
+    locate = _locate or _locator(source, _lines)
+    _validate(cols, source, locate, polar=bool(polar))
     if "f00_std" in cols and "f00" not in cols:
         raise ValueError(f"{source}: f00_std is given without f00")
-    return Measurements(theta_i=cols["theta_i"], theta_r=cols["theta_r"], dop=cols["dop"], phi=cols["phi"],
+    extra = check_polar(cols, locate) if polar else {}
+    return Measurements(theta_i=cols["theta_i"], theta_r=cols["theta_r"], dop=cols.get("dop"), phi=cols["phi"],
                         dop_std=cols.get("dop_std"), f00=cols.get("f00"), f00_std=cols.get("f00_std"),
-                        source=source, lines=_lines, phi_given=phi_given)
+                        source=source, lines=_lines, phi_given=phi_given, **extra)
 
 
 def _short(v):
@@ -205,9 +267,16 @@ def _resolve(names, where):
             used[key] = i
         else:
             ignored.append(i)
-    if "f00" in used and "s0" in used:
+    if "f00" in used and "s0" in used and not any(n in used for n in ("s1", "s2", "s3") + measurables.INCIDENT):
         raise ValueError(f"{where}: give f00 or s0, not both")
-    for need in REQUIRED:
+    for i in ignored:  # a misspelt quantity is a mistake, not an extra column
+        name = str(names[i]).strip()
+        near = _nearest(name.lower(), [c for c in POLAR + measurables.INCIDENT + ("dop",) if c not in used])
+        if near and len(name) > 1:
+            raise ValueError(f"{where}: column {name!r} is not a quantity pbrdf-cl reads; did you mean {near!r}? "
+                             f"(rename it, or drop it; the columns are {_COLUMNS_TEXT})")
+    polar = any(n in used for n in POLAR + measurables.INCIDENT if n != "s0")
+    for need in REQUIRED[:2] if polar else REQUIRED:
         if need not in used:
             near = _nearest(need, [str(names[i]).strip().lower() for i in ignored])
             hint = f"; the column {near!r} is not one of these names" if near else ""
@@ -316,6 +385,7 @@ def read_csv(path) -> Measurements:
                 raise ValueError(f"{path}, line {lineno}: the first line holds numbers, not column names; start "
                                  f"the file with a header line such as theta_i,theta_r,dop")
             used, ignored = _resolve(header, f"{path}, line {lineno}")
+            polar = any(n in used for n in POLAR + measurables.INCIDENT)
             header_line = lineno
             continue
         fields = _split(body, sep)
@@ -333,10 +403,13 @@ def read_csv(path) -> Measurements:
             raise ValueError(f"{path}, line {lineno}: {n} value{'s' if n != 1 else ''} for {len(header)} "
                              f"columns{hint}")
         row = []
-        for i in used.values():
+        for name, i in used.items():
             f = fields[i]
             if sep != "," and _DECIMAL_COMMA.fullmatch(f):
                 f = f.replace(",", ".")
+            if not f and polar and name not in ("theta_i", "theta_r", "phi"):
+                row.append(np.nan)  # not measured at this row
+                continue
             try:
                 row.append(float(f))
             except ValueError:
@@ -353,11 +426,8 @@ def read_csv(path) -> Measurements:
              if header[i] or i in unnamed_filled]
     _warn_ignored(f"{path}, line {header_line}", names, used)
     table = np.array(rows, dtype=np.float64)
-    cols = {name: table[:, j] for j, name in enumerate(used)}
-    if "s0" in cols:
-        cols["f00"] = cols.pop("s0")
-    meas = from_arrays(cols["theta_i"], cols["theta_r"], cols["dop"], cols.get("phi"), cols.get("dop_std"),
-                       cols.get("f00"), cols.get("f00_std"), source=path, _lines=np.array(lines))
+    cols = intensity_s0({name: table[:, j] for j, name in enumerate(used)})
+    meas = from_arrays(**cols, source=path, _lines=np.array(lines))
     meas.ignored = tuple(names)
     return meas
 
@@ -473,13 +543,10 @@ def as_measurements(data) -> "Measurements":
         names, get, locate = found
     used, ignored = _resolve(names, "data")
     chosen = list(used)
-    values = dict(zip(chosen, get([names[used[c]] for c in chosen])))
-    if "s0" in values:
-        values["f00"] = values.pop("s0")
+    values = intensity_s0(dict(zip(chosen, get([names[used[c]] for c in chosen]))))
     shown = [str(names[i]) for i in ignored]
     _warn_ignored("data", shown, used)
-    meas = from_arrays(values["theta_i"], values["theta_r"], values["dop"], values.get("phi"),
-                       values.get("dop_std"), values.get("f00"), values.get("f00_std"), source="data", _locate=locate)
+    meas = from_arrays(**values, source="data", _locate=locate)
     meas.ignored = tuple(shown)
     return meas
 
@@ -490,9 +557,10 @@ def subset(meas, mask, source):
 
     def cut(a):
         return None if a is None else a[mask]
-    return replace(meas, theta_i=meas.theta_i[mask], theta_r=meas.theta_r[mask], dop=meas.dop[mask],
+    return replace(meas, theta_i=meas.theta_i[mask], theta_r=meas.theta_r[mask], dop=cut(meas.dop),
                    phi=meas.phi[mask], dop_std=cut(meas.dop_std), f00=cut(meas.f00), f00_std=cut(meas.f00_std),
-                   lines=cut(meas.lines), source=source)
+                   lines=cut(meas.lines), source=source, quantities={k: v[mask] for k, v in meas.quantities.items()},
+                   stds={k: v[mask] for k, v in meas.stds.items()}, incident=cut(meas.incident))
 
 
 def _label_text(v):

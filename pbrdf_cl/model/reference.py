@@ -192,13 +192,13 @@ def rotation2(c, s):
     return c * c - s * s, 2.0 * c * s
 
 
-def mueller(f, fr, logK, fd):
-    """F = K R_out M^s R_in + fd e00, shape (..., 4, 4) (``pb_mueller``).
+def mueller_at(f, fr, K, fd):
+    """F = K R_out M^s R_in + fd e00 at the scale K itself, shape (..., 4, 4) (``pb_mueller_at``);
+    with K = 1 and fd = 0 it is P = R_out M^s R_in, the specular part per unit K.
 
     R(c, s) = [[1,0,0,0],[0,c2,s2,0],[0,-s2,c2,0],[0,0,0,1]], c2 = c^2 - s^2, s2 = 2 c s.
     """
     with np.errstate(over="ignore", invalid="ignore"):
-        K = np.exp(logK)
         m00 = 0.5 * K * (f.Rs + f.Rp)
         m01 = 0.5 * K * f.diff
         rx, ix = K * f.re_x, K * f.im_x
@@ -216,6 +216,67 @@ def mueller(f, fr, logK, fd):
             m[..., 8 + j] = -S * a1[j] + C * a2[j]
         m[..., 12], m[..., 13], m[..., 14], m[..., 15] = zero, ix * s, -ix * c, rx
     return m.reshape(m00.shape + (4, 4))
+
+
+def mueller(f, fr, logK, fd):
+    """F = K R_out M^s R_in + fd e00 from log K (``pb_mueller``, :func:`mueller_at`)."""
+    with np.errstate(over="ignore"):
+        return mueller_at(f, fr, np.exp(logK), fd)
+
+
+#: Polarimetric channel kinds (``PB_CHANNEL_*``): a ratio (or an absolute value), the DOP and the AoP
+#: of the reflected light for an incident Stokes vector u (see :func:`channel_terms`).
+CHANNEL_RATIO, CHANNEL_DOP, CHANNEL_AOP = 0, 1, 2
+
+
+def channel_terms(m, u, v, comp, kind):
+    """The terms (tn, td) of a polarimetric channel from P = R_out M^s R_in per unit K (``m``,
+    (..., 4, 4): :func:`mueller_at` with K = 1, fd = 0) and the channel's incident vectors ``u``,
+    ``v`` ((..., 4)), output component ``comp`` and ``kind`` (scalars, or arrays over the
+    channels) (``pb_channel_terms``): ratio: (P u)_comp and (P v)_0; DOP: |(P u)_123| and (P u)_0;
+    AoP: the AoP of P u (degrees) and 1."""
+    m = np.asarray(m, dtype=np.float64)
+    t = np.einsum("...ij,...j->...i", m, np.asarray(u, dtype=np.float64))
+    d0 = np.einsum("...j,...j->...", m[..., 0, :], np.asarray(v, dtype=np.float64))
+    comp, kind = np.asarray(comp), np.asarray(kind)
+    tn = np.take_along_axis(t, np.broadcast_to(comp, t.shape[:-1])[..., None], axis=-1)[..., 0]
+    with np.errstate(invalid="ignore"):
+        dop_n = np.sqrt(t[..., 1] * t[..., 1] + t[..., 2] * t[..., 2] + t[..., 3] * t[..., 3])
+    tn = np.where(kind == CHANNEL_DOP, dop_n, tn)
+    td = np.where(kind == CHANNEL_DOP, t[..., 0], d0)
+    tn = np.where(kind == CHANNEL_AOP, aop_of(t[..., 1], t[..., 2]), tn)
+    td = np.where(kind == CHANNEL_AOP, 1.0, td)
+    return tn, td
+
+
+def channel_combine(tn, td, inv_K, fd, a, b, c, aop):
+    """A channel's value (``pb_channel_combine``): normalised (c = 0), (tn + a q) / (td + b q) with
+    q = fd / K (0 where fd is 0), 0 where that denominator is 0; absolute (c > 0), K tn + a fd; the
+    AoP (``aop`` true) is ``tn`` itself.  ``inv_K`` is 1/K."""
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        q = np.where(fd > 0.0, fd * inv_K, 0.0)
+        aq = np.where(a > 0.0, a * q, 0.0)  # no 0 * inf where K underflowed
+        bq = np.where(b > 0.0, b * q, 0.0)
+        den = td + bq
+        ratio = np.where(den > 0.0, (tn + aq) / den, 0.0)
+        value = np.where(c > 0.0, tn / inv_K + a * fd, ratio)
+    return np.where(aop, tn, value)
+
+
+def channel(f, fr, logK, fd, u, v, comp, kind, a, b, c):
+    """One channel at points of the model (``pb_channel``): P, its terms, its value."""
+    tn, td = channel_terms(mueller_at(f, fr, 1.0, 0.0), u, v, comp, kind)
+    with np.errstate(over="ignore"):
+        return channel_combine(tn, td, np.exp(-logK), fd, a, b, c, np.asarray(kind) == CHANNEL_AOP)
+
+
+def channel_residual(value, obs, aop):
+    """A channel's residual, wrapped into [-90, 90] for an AoP (modulo 180 degrees), an undefined
+    AoP (NaN) 90 degrees off (``pb_channel_residual``)."""
+    r = np.asarray(value, dtype=np.float64) - obs
+    with np.errstate(invalid="ignore"):
+        w = r - 180.0 * np.rint(r / 180.0)
+    return np.where(aop, np.where(np.isnan(w), 90.0, w), r)
 
 
 def stokes_combine(sum_, diff, K, fd, C, S):
