@@ -3,7 +3,6 @@ information map over the candidates with the chosen and the reference geometries
 predicted 95% interval widths."""
 import numpy as np
 
-from ..explore.designs import with_ks
 from .common import pyplot
 
 
@@ -68,7 +67,7 @@ def plot_design(result, path):
     keys = [k for k in ("chosen", "chosen_other", "reference", "reference_other") if k in comp]
     colours = {"chosen": "tab:blue", "chosen_other": "tab:cyan", "reference": "tab:red",
                "reference_other": "tab:orange"}
-    params = with_ks(result.free)
+    params = result.compared
     span = {n: hi - lo for n, (lo, hi) in result.bounds.items()}
     width = 0.8 / len(keys)
     handles, any_undetermined = [], False

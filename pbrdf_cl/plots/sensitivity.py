@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..explore.sensitivity import compatible
+from ..io.results import compatible
 from .common import LABELS, pyplot
 
 #: What each drawn variable is called on a figure.
