@@ -1,8 +1,10 @@
 """sphinx-gallery hooks of the pbrdf-cl site (named in ``conf.py`` by their dotted names).
 
-The gallery's figures are drawn by pbrdf-cl's own plot functions, which write a PNG and close the
-figure. :func:`png_scraper` moves every PNG an example block wrote into its folder (sphinx-gallery
-runs an example in the gallery's source folder) to sphinx-gallery's image paths, and
+The gallery's figures are drawn by pbrdf-cl's own plot functions: into pyplot figures (``fig=``,
+which sphinx-gallery's matplotlib scraper shows), or into PNG files (the paper's figures, written
+by :mod:`pbrdf_cl.explore.paper`). :func:`png_scraper` moves every PNG an example block wrote into
+its folder (sphinx-gallery runs an example in the gallery's source folder) to sphinx-gallery's
+image paths, and
 :func:`clean_outputs` removes the other files an example wrote there (the ``.npz`` and ``.nc``
 beside a figure), so that the source folder holds only the examples.
 """

@@ -1,17 +1,13 @@
 """The figure of a per-pixel fit (pbrdf_cl.plots.images, pbrdf-cl fit-image --png; issue #26 item
 15): drawn in the stack's coordinates, undetermined and not-converged pixels marked, missing
 pixels in the legend, colour scales that one outlier does not set, titles not cut."""
-import matplotlib
 import numpy as np
 import pytest
 import xarray as xr
+from matplotlib.collections import PatchCollection
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-from matplotlib.collections import PatchCollection  # noqa: E402
-
-from pbrdf_cl.io import imagestack  # noqa: E402
-from pbrdf_cl.plots import images as batch_plots  # noqa: E402
+from pbrdf_cl.io import imagestack
+from pbrdf_cl.plots import images as batch_plots
 
 
 @pytest.fixture(scope="module")
@@ -44,28 +40,18 @@ def result():
     return ds, stack
 
 
-def drawn(ds, truth, tmp_path, monkeypatch):
-    """The figure plot_batch_maps saves (drawn again here)."""
-    from matplotlib.figure import Figure
-    saved = []
-    original = Figure.savefig
-
-    def spy(self, *args, **kw):
-        saved.append(self)
-        return original(self, *args, **kw)
-    monkeypatch.setattr(Figure, "savefig", spy)
-    assert batch_plots.plot_batch_maps(ds, tmp_path / "maps.png", truth=truth) == str(tmp_path / "maps.png")
-    (fig,) = saved
+def drawn(ds, truth, tmp_path):
+    """The figure plot_batch_maps draws and writes (drawn on an Agg canvas here, for its renderer)."""
+    fig = batch_plots.plot_batch_maps(ds, tmp_path / "maps.png", truth=truth)
+    assert (tmp_path / "maps.png").stat().st_size > 0
     from matplotlib.backends.backend_agg import FigureCanvasAgg
-    FigureCanvasAgg(fig).draw()  # closed by plot_batch_maps: on a canvas of its own again
+    FigureCanvasAgg(fig).draw()
     return fig
 
 
 @pytest.fixture
-def figure(result, tmp_path, monkeypatch):
-    fig = drawn(result[0], result[1], tmp_path, monkeypatch)
-    yield fig
-    plt.close(fig)
+def figure(result, tmp_path):
+    return drawn(result[0], result[1], tmp_path)
 
 
 def panel(fig, title_start):
@@ -129,9 +115,8 @@ def test_titles_are_not_cut_by_colour_bars(figure):
         assert box.x0 >= 0 and box.x1 <= figure.bbox.width
 
 
-def test_a_result_without_coordinates_is_drawn_in_pixel_indices(tmp_path, result, monkeypatch):
-    fig = drawn(result[0].drop_vars(["x_mm", "y_mm"]), None, tmp_path, monkeypatch)
+def test_a_result_without_coordinates_is_drawn_in_pixel_indices(tmp_path, result):
+    fig = drawn(result[0].drop_vars(["x_mm", "y_mm"]), None, tmp_path)
     ax = panel(fig, "n: the parameter n")
     assert ax.get_xlabel() == "x (index)" and ax.get_ylabel() == "y (index)"
     np.testing.assert_allclose(ax.images[0].get_extent(), [-0.5, 11.5, 11.5, -0.5])
-    plt.close(fig)

@@ -218,11 +218,11 @@ def test_paper_figures_label_what_is_drawn(tmp_path):
 
 
 def test_paper_map_of_three_panels_labels_contours_inside(tmp_path, monkeypatch):
-    import matplotlib.pyplot as plt
-    closed, close = [], plt.close
-    monkeypatch.setattr(plt, "close", lambda fig=None: (closed.append(fig), close(fig)))
+    from matplotlib.figure import Figure
+    saved, savefig = [], Figure.savefig
+    monkeypatch.setattr(Figure, "savefig", lambda fig, *a, **k: (saved.append(fig), savefig(fig, *a, **k)))
     paper.map_theta_i_theta_r(tmp_path, resolution=64, engine=pbrdf_cl.NumpyEngine())
-    fig = closed[-1]
+    (fig,) = saved
     assert_nothing_clipped(fig)
     labels = assert_labels_readable(fig)
     assert {t.axes for t in labels} == set(fig.axes[:3])  # every panel has labels

@@ -10,6 +10,8 @@ residuals (what ``pbrdf-cl fit --compare --plot`` writes).
 """
 from pathlib import Path
 
+import matplotlib.pyplot as plt
+
 import pbrdf_cl
 from pbrdf_cl.plots.fit import plot_fit
 
@@ -19,4 +21,8 @@ both = pbrdf_cl.compare_models(data)
 print(both.summary())
 
 # %%
-plot_fit(data, both.fits, "fit_steel.png")
+# Drawn as in a notebook, into a figure of one's own (``fig=``; no file is written);
+# ``plot_fit(data, both.fits, "fit_steel.png")`` writes the file instead, as the command does.
+fig = plt.figure(figsize=(8, 7.5), layout="constrained")
+plot_fit(data, both.fits, fig=fig)
+plt.show()

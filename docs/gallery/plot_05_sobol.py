@@ -7,6 +7,8 @@ S1 is the share of the DOP's variance a parameter explains alone, ST its share w
 interactions. ks is fixed at 1 (the DOP sees kd/ks only). A small map here (16 x 16 geometries,
 N = 256) to keep the build quick; ``pbrdf-cl reproduce`` draws a finer one.
 """
+import matplotlib.pyplot as plt
+
 import pbrdf_cl
 from pbrdf_cl.explore.sensitivity import summary
 from pbrdf_cl.plots.sensitivity import plot_sensitivity
@@ -17,5 +19,7 @@ ds = pbrdf_cl.sobol({"n": (1.2, 1.7), "k": (0.2, 7.0, "log"), "sigma": (0.2, 0.7
 print(summary(ds))
 
 # %%
-# The figure:
-plot_sensitivity(ds, "sobol.png")
+# The figure, drawn as in a notebook into a figure of one's own (``fig=``; a path writes a PNG
+# instead, as ``pbrdf-cl sobol --png`` does):
+plot_sensitivity(ds, fig=plt.figure(figsize=(17, 6.8), layout="constrained"))
+plt.show()

@@ -8,6 +8,8 @@ noise 0.005. :func:`pbrdf_cl.fit_batch` fits every pixel on the device, with int
 status per pixel; :func:`pbrdf_cl.plots.images.plot_batch_maps` draws the truth, the fitted maps
 and the interval widths. A 24 x 24 stack here, to keep the build quick.
 """
+import matplotlib.pyplot as plt
+
 import pbrdf_cl
 from pbrdf_cl.io import imagestack
 from pbrdf_cl.plots.images import plot_batch_maps
@@ -21,4 +23,7 @@ for name in ("n", "k", "sigma", "kd", "c"):
     print(f"{name}: the 95% intervals cover the truth at {covered:.0%} of the pixels")
 
 # %%
-plot_batch_maps(maps, "image_fit.png", truth=stack)
+# Drawn as in a notebook into a figure of one's own (``fig=``: it is sized to fit the panels); a
+# path, ``plot_batch_maps(maps, "image_fit.png", truth=stack)``, writes the PNG instead.
+plot_batch_maps(maps, truth=stack, fig=plt.figure())
+plt.show()

@@ -7,6 +7,7 @@ k and kd/ks change. :func:`pbrdf_cl.fit_joint` fits the three synthetic data set
 and c one value for all, and reports each set's separate fit beside the joint one;
 :func:`pbrdf_cl.plots.joint.plot_joint` draws the data with both fits.
 """
+import matplotlib.pyplot as plt
 import numpy as np
 
 import pbrdf_cl
@@ -23,4 +24,7 @@ joint = pbrdf_cl.fit_joint(sets, shared=("sigma", "c"))
 print(joint.summary())
 
 # %%
-plot_joint(joint, "joint_fit.png")
+# Drawn as in a notebook into a figure of one's own (``fig=``); a path, ``plot_joint(joint,
+# "joint_fit.png")``, writes the file instead, as ``pbrdf-cl fit a.csv b.csv --plot`` does.
+plot_joint(joint, fig=plt.figure(figsize=(12.6, 4.6), layout="constrained"))
+plt.show()

@@ -81,12 +81,6 @@ def _kd_meaning(result):
     return f"kd is absolute, ks fixed at {fx['ks']:g}" if "ks" in fx else "kd is kd/ks"
 
 
-def with_ks(free):
-    """The free parameters and ks after them (where ks is not free): the columns of the comparisons
-    (of :meth:`DesignResult.summary` and the figure, :func:`pbrdf_cl.plots.design.plot_design`)."""
-    return list(free) + ([] if "ks" in free else ["ks"])
-
-
 class DesignResult(Result):
     """The chosen measurements and their predicted 95% interval widths (attribute-access dict).
 
@@ -102,9 +96,15 @@ class DesignResult(Result):
     :func:`pbrdf_cl.plots.design.plot_design` draws it.
     """
 
+    @property
+    def compared(self):
+        """The parameters of the comparisons' columns (of :meth:`summary`, :meth:`to_dataset` and the
+        figure): the free ones, and ks after them where ks is not free (an intensity column frees it)."""
+        return list(self.free) + ([] if "ks" in self.free else ["ks"])
+
     def summary(self):
         """A readable text table of the predicted widths."""
-        names = with_ks(self.free)
+        names = self.compared
         lines = [f"measurement design: {len(self.theta_i)} measurements, criterion {self.criterion} on "
                  f"{', '.join(self.target)}; DOP noise {self.noise:g}"
                  + (f", F00 relative noise {self.intensity_noise:g}" if self.intensity else "")
@@ -149,7 +149,7 @@ class DesignResult(Result):
                 {"long_name": "1 where the reference set does not determine the parameter"}),
         })
         comp = list(self.comparisons)
-        allp = with_ks(self.free)
+        allp = self.compared
         data["comparison_width"] = xr.Variable(
             ("comparison", "parameter_all"),
             [[self.comparisons[c]["widths"].get(n, np.nan) for n in allp] for c in comp],

@@ -180,12 +180,12 @@ def fig4(out):
     Returns
     -------
     matplotlib.figure.Figure
-        The figure (closed).
+        The figure (written).
     """
     tr = np.linspace(20.0, 65.0, 181)
     curves = {ti: pointwise.dop(ti, tr, 180.0, backend="numpy", **STEEL) for ti in STEEL_THETA_I}
     measured = {ti: pointwise.dop(ti, STEEL_THETA_R, 180.0, backend="numpy", **STEEL) for ti in STEEL_THETA_I}
-    fig = figures.plot_fig4(out / "fig4_steel.png", STEEL, tr, curves, STEEL_THETA_R, measured)
+    fig = figures.plot_fig4(out / "fig4_steel.png", STEEL, tr, curves, STEEL_THETA_R, measured).figure
     np.savez_compressed(out / "fig4_steel.npz", theta_r=tr, theta_i=np.array(STEEL_THETA_I),
                         dop=np.stack([curves[t] for t in STEEL_THETA_I]))
     return fig
@@ -202,11 +202,11 @@ def fig5(out):
     Returns
     -------
     matplotlib.figure.Figure
-        The figure (closed).
+        The figure (written).
     """
     tr = np.linspace(20.0, 65.0, 181)
     rows = [pointwise.dop(40.0, tr, 180.0, backend="numpy", **{**STEEL, "sigma": s}) for s in SIGMAS]
-    fig = figures.plot_fig5(out / "fig5_sigma.png", STEEL, tr, SIGMAS, rows)
+    fig = figures.plot_fig5(out / "fig5_sigma.png", STEEL, tr, SIGMAS, rows).figure
     np.savez_compressed(out / "fig5_sigma.npz", theta_r=tr, sigma=np.array(SIGMAS), dop=np.stack(rows))
     return fig
 

@@ -29,6 +29,7 @@ from ..compute import pointwise
 from ..compute.dense import DEFAULTS, LONG_NAMES, PARAMETERS, outer, progress_bar
 from ..device.engine import DTYPES, resolve_engine
 from ..errors import SensitivityWarning
+from ..io.results import compatible
 from ..model import inputs, quantities
 
 GEOMETRY = inputs.GEOMETRY
@@ -882,14 +883,6 @@ def write_result(ds, path):
 def _indices(ds):
     """The two index variables a summary and a figure show: (S1, ST) or (mu_star, ee_std)."""
     return ("S1", "ST") if "S1" in ds else ("mu_star", "ee_std")
-
-
-def compatible(ds):
-    """A result in the current layout: a Morris result written before ``sigma`` became ``ee_std``
-    (the roughness is sigma) renamed; any other returned as is."""
-    if "mu_star" in ds and "sigma" in ds.data_vars and "ee_std" not in ds:
-        return ds.rename({"sigma": "ee_std"})
-    return ds
 
 
 def summary(ds):

@@ -3,14 +3,13 @@ information map over the candidates with the chosen and the reference geometries
 predicted 95% interval widths."""
 import numpy as np
 
-from ..explore.designs import with_ks
-from .common import pyplot
+from .common import figure, save
 
 
-def plot_design(result, path):
-    """Draw a design into a PNG (matplotlib Agg): left, the information map over (theta_i,
-    theta_r), theta_i on the horizontal axis as in the Sobol' maps (the maximum over phi where
-    phi is an axis; explicit candidates as coloured points) with the chosen geometries (circles)
+def plot_design(result, path=None, *, fig=None):
+    """Draw a design: left, the information map over (theta_i, theta_r), theta_i on the
+    horizontal axis as in the Sobol' maps (the maximum over phi where phi is an axis; explicit
+    candidates as coloured points) with the chosen geometries (circles)
     and the reference's (crosses); right, the predicted 95% interval widths per parameter,
     chosen against reference, each with and without an intensity column (log scale).  A
     parameter a set leaves undetermined (its interval spans the whole bounds) is drawn as a
@@ -20,17 +19,28 @@ def plot_design(result, path):
     ----------
     result : pbrdf_cl.DesignResult
         What :func:`pbrdf_cl.design` returned.
-    path : str or path
-        The PNG to write.
+    path : str or path, optional
+        The PNG to write (``pbrdf-cl design --png``; another suffix, another format); None:
+        nothing is written.
+    fig : matplotlib.figure.Figure or SubFigure, optional
+        Drawn into (two panels side by side); default a new 13 x 5.6 inch figure with constrained
+        layout.
 
     Returns
     -------
     matplotlib.figure.Figure
-        The figure (closed)."""
+        The figure drawn (``fig`` where given).
+
+    Examples
+    --------
+    >>> r = pbrdf_cl.design(dict(n=1.6, k=2.139, sigma=0.5), noise=0.005, n_measurements=12)  # doctest: +SKIP
+    >>> plot_design(r, "design.png")  # doctest: +SKIP
+    >>> import matplotlib.pyplot as plt  # doctest: +SKIP
+    >>> fig = plot_design(r, fig=plt.figure(figsize=(13, 5.6), layout="constrained"))  # doctest: +SKIP
+    """
     from matplotlib.patches import Patch
-    plt = pyplot()
-    fig, (ax, axb) = plt.subplots(1, 2, figsize=(13, 5.6), layout="constrained",
-                                  gridspec_kw=dict(width_ratios=[1.1, 1]))
+    fig = figure(fig, figsize=(13, 5.6), layout="constrained")
+    ax, axb = fig.subplots(1, 2, gridspec_kw=dict(width_ratios=[1.1, 1]))
     info = np.asarray(result.information, float)
     axes = result.information_axes
     label = ("relative reduction of the A criterion\nby one more measurement (1)" if result.criterion == "A"
@@ -68,7 +78,7 @@ def plot_design(result, path):
     keys = [k for k in ("chosen", "chosen_other", "reference", "reference_other") if k in comp]
     colours = {"chosen": "tab:blue", "chosen_other": "tab:cyan", "reference": "tab:red",
                "reference_other": "tab:orange"}
-    params = with_ks(result.free)
+    params = result.compared
     span = {n: hi - lo for n, (lo, hi) in result.bounds.items()}
     width = 0.8 / len(keys)
     handles, any_undetermined = [], False
@@ -98,6 +108,5 @@ def plot_design(result, path):
     lo_y, hi_y = axb.get_ylim()
     axb.set_ylim(lo_y, hi_y * (hi_y / lo_y) ** 0.45)  # room above the bars for the legend
     axb.legend(handles=handles, fontsize=8, loc="upper left", ncol=2)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save(fig, path, dpi=110)
     return fig

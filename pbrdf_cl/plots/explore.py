@@ -1,12 +1,12 @@
 """The explorer's current view as one PNG (its *view as PNG* export): the curves of the shown sets
 with the measurements, their polar plot, the map with its colour bar (and the AoP's orientation
 ticks), and the residuals, drawn from the view's Dataset
-(:func:`pbrdf_cl.app.state.view_dataset`) with matplotlib (Agg backend)."""
+(:func:`pbrdf_cl.app.state.view_dataset`) with matplotlib."""
 from __future__ import annotations
 
 import numpy as np
 
-from .common import pyplot
+from .common import figure, save
 
 #: The explorer's parameter sets and their colours, on the page (``pbrdf_cl.app.state``: SET_NAMES,
 #: COLOURS) and in its PNG.
@@ -79,20 +79,22 @@ def _polar(ax, ds):
     ax.set_title(f"polar: radius |{c.attrs['long_name']}| ({c.attrs['units']})", fontsize=10)
 
 
-def plot_view(ds, path):
+def plot_view(ds, path=None, *, fig=None):
     """Draw the explorer's view.
 
     Parameters
     ----------
     ds : xarray.Dataset
         The view's numbers, as :func:`pbrdf_cl.app.state.view_dataset` returns them.
-    path : str, path or file object
-        Where to write the PNG.
+    path : str, path or file object, optional
+        Where to write the PNG; None: nothing is written.
+    fig : matplotlib.figure.Figure or SubFigure, optional
+        Drawn into; default a new figure 17 inches wide, with constrained layout.
 
     Returns
     -------
     matplotlib.figure.Figure
-        The (closed) figure.
+        The figure drawn (``fig`` where given).
 
     Examples
     --------
@@ -104,9 +106,8 @@ def plot_view(ds, path):
     >>> len(fig.axes) >= 3  # curves, polar plot, map (and its colour bar)
     True
     """
-    plt = pyplot()
     rows = 2 if "residual" in ds else 1
-    fig = plt.figure(figsize=(17, 5.5 + 2.5 * (rows - 1)), layout="constrained")
+    fig = figure(fig, figsize=(17, 5.5 + 2.5 * (rows - 1)), layout="constrained")
     grid = fig.add_gridspec(rows, 3, height_ratios=[3, 1.5][:rows], width_ratios=[3, 2, 3])
     ax = fig.add_subplot(grid[0, 0])
     _curves(ax, ds)
@@ -121,6 +122,5 @@ def plot_view(ds, path):
         axr.set_ylabel("DOP residual (1)")
         axr.set_title(f"data - set {ds.attrs['active_set']}")
         axr.grid(alpha=0.3)
-    fig.savefig(path, dpi=110, format="png")
-    plt.close(fig)
+    save(fig, path, dpi=110, format="png")
     return fig

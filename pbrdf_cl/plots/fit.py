@@ -1,17 +1,17 @@
 """The figure of a fit (``pbrdf-cl fit --plot``): measured DOP and each fitted model's curve per
-incidence angle, and the residuals (matplotlib, Agg backend: no display needed)."""
+incidence angle, and the residuals (matplotlib; no display needed)."""
 from __future__ import annotations
 
 import numpy as np
 
-from .common import pyplot
+from .common import figure, save
 
 #: The fitted models' line styles and residual markers, in the order of ``fits``.
 FIT_STYLES = ("-", "--", ":")
 FIT_MARKERS = ("o", "x", "^")
 
 
-def plot_fit(meas, fits, path):
+def plot_fit(meas, fits, path=None, *, fig=None):
     """Measured DOP (error bars: +-1 ``dop_std``) and each fitted model's curve per incidence
     angle (one colour per theta_i), and the residuals model - data with the same colours, one
     marker per model and the data's error bars (``pbrdf-cl fit --plot``).
@@ -23,22 +23,36 @@ def plot_fit(meas, fits, path):
     fits : dict
         Model name (``"six-param"``, ``"specular"``) -> its :class:`pbrdf_cl.FitResult`, such as
         ``compare_models(...).fits``.
-    path : str or path
-        Where the figure is written (the suffix says the format).
+    path : str or path, optional
+        Where the figure is written (the suffix says the format); None: nothing is written.
+    fig : matplotlib.figure.Figure or SubFigure, optional
+        Drawn into (two panels, one above the other); default a new 8 x 7.5 inch figure with
+        constrained layout.
 
     Returns
     -------
     matplotlib.figure.Figure
-        The figure (closed).
+        The figure drawn (``fig`` where given).
+
+    Examples
+    --------
+    In a notebook, into a figure of one's own (the notebook's backend is left as it is); with a
+    path, into a file as ``pbrdf-cl fit --compare --plot`` writes it:
+
+    >>> import matplotlib.pyplot as plt  # doctest: +SKIP
+    >>> data = pbrdf_cl.read_csv("examples/steel_435nm.csv")  # doctest: +SKIP
+    >>> both = pbrdf_cl.compare_models(data)  # doctest: +SKIP
+    >>> fig = plot_fit(data, both.fits, fig=plt.figure(figsize=(8, 7.5), layout="constrained"))  # doctest: +SKIP
+    >>> fig = plot_fit(data, both.fits, "fit.png")  # doctest: +SKIP
     """
+    from matplotlib import rcParams
     from matplotlib.lines import Line2D
 
     from ..compute import pointwise
-    plt = pyplot()
-    fig, (ax, axr) = plt.subplots(2, 1, figsize=(8, 7.5), sharex=True, layout="constrained",
-                                  gridspec_kw=dict(height_ratios=[3, 1.5]))
+    fig = figure(fig, figsize=(8, 7.5), layout="constrained")
+    ax, axr = fig.subplots(2, 1, sharex=True, gridspec_kw=dict(height_ratios=[3, 1.5]))
     incid = np.unique(np.round(meas.theta_i, 6))
-    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    colors = rcParams["axes.prop_cycle"].by_key()["color"]
     has_std = meas.dop_std is not None
     shift = 0.6 * np.min(np.diff(np.unique(meas.theta_r)), initial=5.0) / max(1, len(fits))
     for ci, ti in enumerate(incid):
@@ -83,6 +97,5 @@ def plot_fit(meas, fits, path):
     ax.set_title(f"DOP fit ({meas.source.split('/')[-1]})\n{title}", fontsize=9)
     ax.grid(alpha=0.3)
     axr.grid(alpha=0.3)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    save(fig, path, dpi=120)
     return fig

@@ -8,7 +8,7 @@ import textwrap
 
 import numpy as np
 
-from .common import pyplot
+from .common import figure, save
 
 #: Largest side, in pixels, of a map drawn (larger images are drawn every s-th pixel).
 MAX_SIDE = 1024
@@ -116,8 +116,8 @@ def _hatch(ax, mask, extent, hatch):
                                           linewidth=0.0))
 
 
-def plot_batch_maps(ds, path, *, truth=None, max_side=MAX_SIDE):
-    """Draw the maps of a per-pixel fit into a PNG: per fitted parameter, its value and the width
+def plot_batch_maps(ds, path=None, *, truth=None, max_side=MAX_SIDE, fig=None):
+    """Draw the maps of a per-pixel fit: per fitted parameter, its value and the width
     of its 95% interval (and, given the truth, the true map beside the fitted one on the same
     colour scale, with the share of pixels whose interval covers it), and a panel of the fit
     status.
@@ -136,19 +136,23 @@ def plot_batch_maps(ds, path, *, truth=None, max_side=MAX_SIDE):
     ds : xarray.Dataset
         A result of :func:`pbrdf_cl.fitting.batch.fit_batch` (in memory or with ``store=``)
         over one or two pixel dimensions (``attrs["free"]`` names the fitted parameters).
-    path : str or path
-        The PNG to write (matplotlib's Agg backend).
+    path : str or path, optional
+        The PNG to write (``pbrdf-cl fit-image --png``; another suffix, another format); None:
+        nothing is written.
     truth : xarray.Dataset, optional
         Maps ``true_<name>`` over the same pixels (a synthetic stack of
         :func:`pbrdf_cl.io.imagestack.synthetic_stack`).
     max_side : int, default 1024
         Images with more pixels along a side are drawn every s-th pixel (said in the title), so
         that a store of any size is read only in part.
+    fig : matplotlib.figure.Figure, optional
+        Drawn into, its size set to fit the panels (a subfigure keeps its size); default a new
+        figure of that size.
 
     Returns
     -------
-    str
-        ``path``.
+    matplotlib.figure.Figure
+        The figure drawn (``fig`` where given).
 
     Raises
     ------
@@ -162,25 +166,29 @@ def plot_batch_maps(ds, path, *, truth=None, max_side=MAX_SIDE):
     >>> ti, tr = np.repeat([30.0, 40, 50], 10), np.tile(np.arange(20.0, 66, 5), 3)
     >>> dop = np.broadcast_to(pbrdf_cl.dop(ti, tr, n=1.6, k=2.139, sigma=0.5, kd=0.15, c=-0.3), (2, 3, 30))
     >>> res = fit_batch(dict(dop=dop, theta_i=ti, theta_r=tr))
-    >>> out = plot_batch_maps(res, os.path.join(tempfile.mkdtemp(), "maps.png"))
-    >>> out.endswith("maps.png")
-    True
+    >>> png = os.path.join(tempfile.mkdtemp(), "maps.png")
+    >>> fig = plot_batch_maps(res, png)
+    >>> os.path.exists(png), len(fig.axes) > 6
+    (True, True)
+
+    In a notebook, into a figure of one's own (shown there; no file):
+
+    >>> import matplotlib.pyplot as plt  # doctest: +SKIP
+    >>> fig = plot_batch_maps(res, fig=plt.figure())  # doctest: +SKIP
     """
-    plt = pyplot()
-    fig = _figure(ds, truth, max_side)
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return str(path)
+    fig = _figure(ds, truth, max_side, fig)
+    save(fig, path, dpi=100)
+    return fig
 
 
-def _figure(ds, truth, max_side):
+def _figure(ds, truth, max_side, fig=None):
     """The matplotlib figure of :func:`plot_batch_maps`."""
     names = _check(ds)
     side = max(ds["status"].shape)
     step = max(1, -(-side // int(max_side)))
     sub = "" if step == 1 else f" (every {step}th pixel)"
     status = _image(ds["status"], step).astype(int)
-    sheet = _Sheet(ds, step, status.shape, 3 if truth is not None else 2, len(names) + 1)
+    sheet = _Sheet(ds, step, status.shape, 3 if truth is not None else 2, len(names) + 1, fig)
     not_converged = status == 0
     marked = {"undetermined": False, 0: bool(not_converged.any())}
     for row, n in enumerate(names):
@@ -235,8 +243,7 @@ class _Sheet:
     #: Height of the legends in the status row (of the statuses and of the marks on the maps).
     LEGEND_H = 2.9
 
-    def __init__(self, ds, step, image_shape, ncol, nrow):
-        plt = pyplot()
+    def __init__(self, ds, step, image_shape, ncol, nrow, fig=None):
         dims = self.dims = ds["status"].dims
         if len(dims) == 2:
             (ylab, cy), (xlab, cx) = _axis_coordinate(ds, dims[0], step), _axis_coordinate(ds, dims[1], step)
@@ -252,7 +259,9 @@ class _Sheet:
         self.panel_w, panel_h = self.LEFT + img_w + self.GAP + self.BAR + self.RIGHT, self.TOP + img_h + self.BOTTOM
         self.heights = [panel_h] * (nrow - 1) + [max(panel_h, self.TOP + self.LEGEND_H + self.BOTTOM)]
         self.fig_w, self.fig_h = ncol * self.panel_w + 0.2, sum(self.heights) + 0.45
-        fig = self.fig = plt.figure(figsize=(self.fig_w, self.fig_h))
+        if fig is not None and hasattr(fig, "set_size_inches"):
+            fig.set_size_inches(self.fig_w, self.fig_h)
+        fig = self.fig = figure(fig, figsize=(self.fig_w, self.fig_h))
         self.axes = np.empty((nrow, ncol), object)
         self.caxes = np.empty((nrow, ncol), object)
         for r in range(nrow):
@@ -275,10 +284,10 @@ class _Sheet:
     def draw(self, at, img, title, cmap, label, limits, marks=None):
         """Map ``img`` into panel ``at`` on the colour scale ``limits`` (:func:`_limits`, and
         "truth" fifth where the scale was widened to the truth's), hatched where ``marks`` say."""
-        plt = pyplot()
+        from matplotlib import colormaps
         ax, cax = self.axes[at], self.caxes[at]
         lo, hi, extend, robust = limits[:4]
-        cm = plt.get_cmap(cmap).with_extremes(bad=MISSING_COLOUR)
+        cm = colormaps[cmap].with_extremes(bad=MISSING_COLOUR)
         im = ax.imshow(np.ma.masked_invalid(img), cmap=cm, vmin=lo, vmax=hi, interpolation="nearest", aspect="auto",
                        extent=self.extent)
         self.missing = self.missing or bool(np.isnan(img).any())

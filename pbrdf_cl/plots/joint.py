@@ -1,14 +1,14 @@
 """The figure of a joint fit (``pbrdf-cl fit a.csv b.csv --plot``): one panel per set, its measured
 DOP and the joint fit's curve per incidence angle (the separate fit's dashed beside it), the shared
-values in the title (matplotlib, Agg backend: no display needed)."""
+values in the title (matplotlib; no display needed)."""
 from __future__ import annotations
 
 import numpy as np
 
-from .common import pyplot
+from .common import figure, save
 
 
-def plot_joint(result, path):
+def plot_joint(result, path=None, *, fig=None):
     """One figure of a joint fit: a panel per set with its data (error bars: +-1 ``dop_std``) and
     the joint fit's DOP curve per incidence angle (solid; the set's separate fit dashed), the
     shared parameters' values in the title.
@@ -17,24 +17,31 @@ def plot_joint(result, path):
     ----------
     result : JointResult
         What :func:`pbrdf_cl.fit_joint` returned (its ``measurements`` are the data drawn).
-    path : str or path
-        Where the figure is written (the suffix says the format: .png, .pdf, .svg).
+    path : str or path, optional
+        Where the figure is written (the suffix says the format: .png, .pdf, .svg); None: nothing
+        is written.
+    fig : matplotlib.figure.Figure or SubFigure, optional
+        Drawn into (a panel per set, side by side); default a new figure 4.2 inches wide per set
+        and 4.6 high, with constrained layout.
 
     Returns
     -------
     matplotlib.figure.Figure
-        The figure (closed).
+        The figure drawn (``fig`` where given).
 
     Examples
     --------
     >>> plot_joint(pbrdf_cl.fit_joint(sets), "joint.png")  # doctest: +SKIP
+    >>> import matplotlib.pyplot as plt  # doctest: +SKIP
+    >>> fig = plot_joint(pbrdf_cl.fit_joint(sets), fig=plt.figure(layout="constrained"))  # doctest: +SKIP
     """
+    from matplotlib import rcParams
+
     from ..compute import pointwise
-    plt = pyplot()
     names = list(result.sets)
-    fig, axes = plt.subplots(1, len(names), figsize=(4.2 * len(names), 4.6), sharey=True, layout="constrained",
-                             squeeze=False)
-    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    fig = figure(fig, figsize=(4.2 * len(names), 4.6), layout="constrained")
+    axes = fig.subplots(1, len(names), sharey=True, squeeze=False)
+    colors = rcParams["axes.prop_cycle"].by_key()["color"]
     for ax, s in zip(axes[0], names):
         m = result.measurements[s]
         for ci, ti in enumerate(np.unique(np.round(m.theta_i, 6))):
@@ -58,6 +65,5 @@ def plot_joint(result, path):
     shared = ", ".join(f"{p} = {v:.4g}" for p, v in result.shared_x.items()) or "none"
     fig.suptitle(f"joint fit ({result.model}, shadowing {result.shadowing}); shared: {shared}; "
                  f"AIC {result.aic:.1f} (separate {result.separate_aic:.1f})", fontsize=9)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save(fig, path, dpi=110)
     return fig

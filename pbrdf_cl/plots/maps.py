@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..model import quantities
-from .common import LABELS, pyplot
+from .common import LABELS, figure, save, width_inches
 
 #: Colour-bar labels of the quantities that have maps (from the registry).
 QUANTITY_LABELS = {n: quantities.REGISTRY[n].label for n in quantities.names("map")}
@@ -120,9 +120,9 @@ def _symlog_ticks(norm, lim, min_gap=0.07):
     return sorted(kept)
 
 
-def plot_map(ds, path, title=None, dpi=120):
-    """Write a map as a PNG: the quantity with labelled contour lines and a colour bar, and the
-    derivative (diverging colours, zero-centred) in a second panel when present.
+def plot_map(ds, path=None, title=None, dpi=120, *, fig=None):
+    """Draw a map: the quantity with labelled contour lines and a colour bar, and the derivative
+    (diverging colours, zero-centred) in a second panel when present.
 
     A BRDF over more than two decades is on a log scale of at most ``LOG_DECADES`` decades
     (the colour bar says where it is clipped).
@@ -131,34 +131,49 @@ def plot_map(ds, path, title=None, dpi=120):
     ----------
     ds : xarray.Dataset
         From :func:`pbrdf_cl.explore.maps.make_map`.
-    path : str or path
-        The PNG to write.
+    path : str or path, optional
+        The PNG to write (``pbrdf-cl map --out``; another suffix, another format); None: nothing
+        is written.
     title : str, optional
         Instead of the quantity, axes and fixed inputs.
     dpi : int, default 120
+        Resolution of the file written.
+    fig : matplotlib.figure.Figure or SubFigure, optional
+        Drawn into (a panel per variable, side by side); default a new figure 6.2 inches wide per
+        panel and 5 high, with constrained layout.
 
     Returns
     -------
     matplotlib.figure.Figure
-        The figure (closed).
+        The figure drawn (``fig`` where given).
 
     Examples
     --------
     >>> from pbrdf_cl.explore.maps import make_map
     >>> ds = make_map("theta_r=0:85@64", "sigma=0.05:1@32", dict(theta_i=40, n=1.6, k=2.1))  # doctest: +SKIP
     >>> plot_map(ds, "map.png")  # doctest: +SKIP
+
+    In a notebook, into a figure of one's own; or the DOP and the AoP side by side, each in a
+    subfigure:
+
+    >>> import matplotlib.pyplot as plt  # doctest: +SKIP
+    >>> fig = plot_map(ds, fig=plt.figure(figsize=(6.2, 5), layout="constrained"))  # doctest: +SKIP
+    >>> aop = make_map("theta_r=0:85@64", "sigma=0.05:1@32", dict(theta_i=40, n=1.6, k=2.1),
+    ...                quantity="aop")  # doctest: +SKIP
+    >>> left, right = plt.figure(figsize=(12.4, 5), layout="constrained").subfigures(1, 2)  # doctest: +SKIP
+    >>> _ = plot_map(ds, fig=left), plot_map(aop, fig=right)  # doctest: +SKIP
     """
     from matplotlib import colors
-    plt = pyplot()
     xname, yname = ds.attrs["x"], ds.attrs["y"]
     quantity = ds.attrs["quantity"]
     deriv = ds.attrs.get("derivative")
     panels = [quantity] + ([f"d{quantity}_d{deriv}"] if deriv else [])
-    fig, axs = plt.subplots(1, len(panels), figsize=(6.2 * len(panels), 5.0), squeeze=False, layout="constrained")
+    fig = figure(fig, figsize=(6.2 * len(panels), 5.0), layout="constrained")
+    axs = fig.subplots(1, len(panels), squeeze=False)
     x, y = ds[xname].values, ds[yname].values
     suptitle = title or (f"{QUANTITY_LABELS[quantity]} over ({xname}, {yname}); "
                          f"{_fixed_text(ds.attrs)}; shadowing {ds.attrs['shadowing']}")
-    fig.suptitle(_title(suptitle, fig.get_figwidth(), 10), fontsize=10)
+    fig.suptitle(_title(suptitle, width_inches(fig), 10), fontsize=10)
     contours = []
     for ax, var in zip(axs[0], panels):
         z = ds[var].values
@@ -202,9 +217,8 @@ def plot_map(ds, path, title=None, dpi=120):
         ax.set_xlabel(LABELS[xname])
         ax.set_ylabel(LABELS[yname])
         ax.set_title(_title(label, 4.6, 10), fontsize=10)
-    fig.draw_without_rendering()  # the layout first: labels are placed in the axes' final shape
+    fig.figure.draw_without_rendering()  # the layout first: labels are placed in the axes' final shape
     for ax, cs, fmt in contours:
         label_contours(ax, cs, fmt=fmt)
-    fig.savefig(path, dpi=dpi)
-    plt.close(fig)
+    save(fig, path, dpi=dpi)
     return fig

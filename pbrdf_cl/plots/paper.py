@@ -1,13 +1,15 @@
 """The figures of :func:`pbrdf_cl.explore.paper.reproduce` (``pbrdf-cl reproduce``): Fig. 2 (data
 and both models' fits), Fig. 4 and 5 (DOP curves of the steel), the DOP maps over (theta_i,
-theta_r); each drawn from the arrays :mod:`pbrdf_cl.explore.paper` computed, written as a PNG and
-returned (closed).  The Sobol' map and the design are drawn by :mod:`pbrdf_cl.plots.sensitivity`
-and the design's figure, the map over (theta_r, sigma) by :func:`pbrdf_cl.plots.maps.plot_map`."""
+theta_r); each drawn from the arrays :mod:`pbrdf_cl.explore.paper` computed, into the caller's axes
+(``ax=``; ``fig=`` for the maps' panels) or a new figure, written where a path is given (the first
+argument; None: no file) and returned.  The Sobol' map and the design are drawn by
+:mod:`pbrdf_cl.plots.sensitivity` and the design's figure, the map over (theta_r, sigma) by
+:func:`pbrdf_cl.plots.maps.plot_map`."""
 from __future__ import annotations
 
 import numpy as np
 
-from .common import LABELS, pyplot
+from .common import LABELS, axes, figure, save
 from .maps import label_contours
 
 
@@ -16,22 +18,26 @@ def params_text(p):
     return ", ".join(f"{k}={v:g}" for k, v in p.items())
 
 
-def _finish(fig, ax, path, legend=True):
+#: The size and layout of the figure a curve plot makes where it is given no axes.
+CURVES_FIGURE = dict(figsize=(7.5, 5.2), layout="constrained")
+
+
+def _finish(ax, path, legend=True):
     ax.grid(alpha=0.3)
     if legend:
         ax.legend(fontsize=8)
-    fig.savefig(path, dpi=120)  # the figures are made with layout="constrained": nothing clipped
-    pyplot().close(fig)
-    return fig
+    save(ax.figure, path, dpi=120)  # the figures are made with layout="constrained": nothing clipped
+    return ax
 
 
-def plot_fig2(path, sample, params, noise, meas, angle, true, six, spec):
+def plot_fig2(path, sample, params, noise, meas, angle, true, six, spec, *, ax=None):
     """Fig. 2 of one sample: the synthetic data (``meas``, generated at ``params`` with DOP noise
     sd ``noise``), the true curve and both models' fits over ``angle`` (specular geometry);
-    ``six``, ``spec``: (FitResult, curve) of the six-parameter and the ref. [7] model."""
+    ``six``, ``spec``: (FitResult, curve) of the six-parameter and the ref. [7] model.  Drawn
+    into ``ax`` (default: a new figure's, :data:`CURVES_FIGURE`), written to ``path`` unless it
+    is None; returns the axes."""
     (six, curve_six), (spec, curve_spec) = six, spec
-    plt = pyplot()
-    fig, ax = plt.subplots(figsize=(7.5, 5.2), layout="constrained")
+    ax = axes(ax, **CURVES_FIGURE)
     ax.errorbar(meas.theta_i, meas.dop, yerr=meas.dop_std, fmt="o", ms=4, color="k", capsize=2,
                 label=f"synthetic data ± 1 sd (noise sd {noise:g}: bars within the markers)")
     ax.plot(angle, true, ":", color="0.5", lw=1, label="true model")
@@ -44,16 +50,16 @@ def plot_fig2(path, sample, params, noise, meas, angle, true, six, spec):
     ax.set_xlim(0, 85)
     ax.set_title(f"Fig. 2 ({sample}): DOP vs incidence angle, both models\n"
                  f"data from the six-param model at {params_text(params)}", fontsize=9)
-    return _finish(fig, ax, path)
+    return _finish(ax, path)
 
 
-def plot_fig4(path, steel, theta_r, curves, measured_theta_r, measured):
+def plot_fig4(path, steel, theta_r, curves, measured_theta_r, measured, *, ax=None):
     """Fig. 4: the DOP of the ``steel`` fit over ``theta_r`` at each incidence angle (``curves``:
     theta_i -> values), with markers at the measured geometries (``measured``: theta_i -> values
-    at ``measured_theta_r``): model values only, no data."""
+    at ``measured_theta_r``): model values only, no data.  Drawn into ``ax`` (default: a new
+    figure's), written to ``path`` unless it is None; returns the axes."""
     from matplotlib.lines import Line2D
-    plt = pyplot()
-    fig, ax = plt.subplots(figsize=(7.5, 5.2), layout="constrained")
+    ax = axes(ax, **CURVES_FIGURE)
     for i, ti in enumerate(curves):
         ax.plot(theta_r, curves[ti], "-", color=f"C{i}", label=f"model, theta_i = {ti:g} deg")
         ax.plot(measured_theta_r, measured[ti], "o", color=f"C{i}", ms=4)
@@ -68,29 +74,31 @@ def plot_fig4(path, steel, theta_r, curves, measured_theta_r, measured):
                  fontsize=9)
     ax.grid(alpha=0.3)
     ax.legend(handles=handles, fontsize=8)
-    return _finish(fig, ax, path, legend=False)
+    return _finish(ax, path, legend=False)
 
 
-def plot_fig5(path, steel, theta_r, sigmas, rows):
+def plot_fig5(path, steel, theta_r, sigmas, rows, *, ax=None):
     """Fig. 5: the DOP over ``theta_r`` at theta_i = 40 deg for each roughness of ``sigmas``
-    (``rows``, in that order), the other parameters those of ``steel``."""
-    plt = pyplot()
-    fig, ax = plt.subplots(figsize=(7.5, 5.2), layout="constrained")
+    (``rows``, in that order), the other parameters those of ``steel``.  Drawn into ``ax``
+    (default: a new figure's), written to ``path`` unless it is None; returns the axes."""
+    ax = axes(ax, **CURVES_FIGURE)
     for i, (s, row) in enumerate(zip(sigmas, rows)):
         ax.plot(theta_r, row, "-", color=f"C{i}", label=f"model, sigma = {s:g}")
     ax.set_xlabel("reflection zenith angle theta_r (deg), in plane")
     ax.set_ylabel("degree of polarization")
     others = {k: v for k, v in steel.items() if k != "sigma"}
     ax.set_title(f"Fig. 5: effect of roughness at theta_i = 40 deg ({params_text(others)})", fontsize=9)
-    return _finish(fig, ax, path)
+    return _finish(ax, path)
 
 
-def plot_dop_maps(path, da, angles, sigmas, fixed):
+def plot_dop_maps(path, da, angles, sigmas, fixed, *, fig=None):
     """The DOP over (theta_i, theta_r) (``da``, a grid over both ``angles`` and ``sigmas``), one
-    panel per roughness on one colour scale, with labelled contours; ``fixed``: the other inputs."""
+    panel per roughness on one colour scale, with labelled contours; ``fixed``: the other inputs.
+    Drawn into ``fig`` (a figure or subfigure; default a new one, 5 inches wide per panel),
+    written to ``path`` unless it is None; returns the figure."""
     from matplotlib import colors
-    plt = pyplot()
-    fig, axs = plt.subplots(1, len(sigmas), figsize=(5.0 * len(sigmas), 4.6), sharey=True, layout="constrained")
+    fig = figure(fig, figsize=(5.0 * len(sigmas), 4.6), layout="constrained")
+    axs = fig.subplots(1, len(sigmas), sharey=True)
     norm = colors.Normalize(0.0, float(da.max()))
     contours = []
     for ax, s in zip(axs, sigmas):
@@ -104,9 +112,8 @@ def plot_dop_maps(path, da, angles, sigmas, fixed):
     cb = fig.colorbar(mesh, ax=list(axs), shrink=0.9)
     cb.set_label("DOP")
     fig.suptitle(f"DOP over (theta_i, theta_r), in plane, {params_text(fixed)}", fontsize=10)
-    fig.draw_without_rendering()  # the layout first: labels are placed in the axes' final shape
+    fig.figure.draw_without_rendering()  # the layout first: labels are placed in the axes' final shape
     for ax, cs in contours:
         label_contours(ax, cs, fmt="%.1f")
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save(fig, path, dpi=110)
     return fig

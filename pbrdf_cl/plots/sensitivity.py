@@ -15,8 +15,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..explore.sensitivity import compatible
-from .common import LABELS, pyplot
+from ..io.results import compatible
+from .common import LABELS, figure, save
 
 #: What each drawn variable is called on a figure.
 NAMES = {"S1": "first-order index S1", "ST": "total index ST", "mu_star": "mu* (mean |elementary effect|)",
@@ -106,8 +106,8 @@ def check_axes(axes, what="plot_sensitivity"):
                      f"{' (' + ', '.join(geo) + ')' if geo else ''}{hint}")
 
 
-def plot_sensitivity(ds, path, *, title=None, dpi=110):
-    """Draw a sensitivity map (a result of :func:`pbrdf_cl.sobol`) into a PNG.
+def plot_sensitivity(ds, path=None, *, title=None, dpi=110, fig=None):
+    """Draw a sensitivity map (a result of :func:`pbrdf_cl.sobol`).
 
     Parameters
     ----------
@@ -116,17 +116,21 @@ def plot_sensitivity(ds, path, *, title=None, dpi=110):
         ``mu_star_conf``; a result with Morris' old ``sigma`` is read too) over ``parameter`` and
         one or two geometry axes (theta_i, theta_r, phi; degrees), and ``constant`` where
         present.  Select a value of a third axis first (``ds.sel(phi=180)``).
-    path : str or path
-        The PNG to write (matplotlib's Agg backend).
+    path : str or path, optional
+        The PNG to write (``pbrdf-cl sobol --png``; another suffix, another format); None:
+        nothing is written.
     title : str, optional
         The figure's title (default: the method, quantity, axes, N, runs and fixed values).
     dpi : int, default 110
         Resolution of the PNG.
+    fig : matplotlib.figure.Figure or SubFigure, optional
+        Drawn into; default a new figure with constrained layout (two axes: 3.1 inches wide per
+        parameter plus 1.4, and 6.8 high; one axis: 11 x 4.6 inches).
 
     Returns
     -------
-    str
-        ``path``.
+    matplotlib.figure.Figure
+        The figure drawn (``fig`` where given).
 
     Raises
     ------
@@ -138,22 +142,27 @@ def plot_sensitivity(ds, path, *, title=None, dpi=110):
     >>> import os, tempfile, pbrdf_cl
     >>> ds = pbrdf_cl.sobol({"n": (1.2, 2.5), "k": (0.01, 3, "log"), "sigma": (0.1, 0.6)},
     ...                     {"theta_i": "0:80@5", "theta_r": "0:85@6"}, N=64, seed=1)
-    >>> plot_sensitivity(ds, os.path.join(tempfile.mkdtemp(), "s.png")).endswith("s.png")
-    True
+    >>> png = os.path.join(tempfile.mkdtemp(), "s.png")
+    >>> fig = plot_sensitivity(ds, png)
+    >>> os.path.exists(png), len(fig.axes)  # S1 and ST of 3 parameters, 2 colour bars
+    (True, 8)
+
+    In a notebook, into a figure of one's own (shown there; no file):
+
+    >>> import matplotlib.pyplot as plt  # doctest: +SKIP
+    >>> fig = plot_sensitivity(ds, fig=plt.figure(figsize=(10.7, 6.8), layout="constrained"))  # doctest: +SKIP
     """
     ds = compatible(ds)
     rows = _rows(ds)
     geo = [d for d in ds[rows[0]].dims if d != "parameter"]
     check_axes({d: ds[d].values for d in geo})
-    plt = pyplot()
     if len(geo) == 2:
-        fig = _maps(plt, ds, rows, geo)
+        fig = _maps(fig, ds, rows, geo)
     else:
-        fig = _lines(plt, ds, rows, geo[0])
+        fig = _lines(fig, ds, rows, geo[0])
     fig.suptitle(title or _title(ds, geo), fontsize=10, wrap=True)
-    fig.savefig(path, dpi=dpi)
-    plt.close(fig)
-    return str(path)
+    save(fig, path, dpi=dpi)
+    return fig
 
 
 def _units(ds, var):
@@ -172,7 +181,7 @@ def _constant_cells(ds, names):
     return c if c.any() else None
 
 
-def _maps(plt, ds, rows, geo):
+def _maps(fig, ds, rows, geo):
     from matplotlib import colors
     from matplotlib.collections import PatchCollection
     from matplotlib.patches import Rectangle
@@ -180,8 +189,8 @@ def _maps(plt, ds, rows, geo):
     xname, yname = geo
     x, y = ds[xname].values, ds[yname].values
     ncol = len(params)
-    fig, axs = plt.subplots(2, ncol, figsize=(3.1 * ncol + 1.4, 6.8), sharex=True, sharey=True, squeeze=False,
-                            layout="constrained")
+    fig = figure(fig, figsize=(3.1 * ncol + 1.4, 6.8), layout="constrained")
+    axs = fig.subplots(2, ncol, sharex=True, sharey=True, squeeze=False)
     sobol = rows[0] == "S1"
     const = _constant_cells(ds, (yname, xname))
     xe, ye = _edges(x), _edges(y)
@@ -215,10 +224,11 @@ def _maps(plt, ds, rows, geo):
     return fig
 
 
-def _lines(plt, ds, rows, xname):
+def _lines(fig, ds, rows, xname):
     params = [str(p) for p in ds.parameter.values]
     x = ds[xname].values
-    fig, axs = plt.subplots(1, 2, figsize=(11.0, 4.6), sharex=True, layout="constrained")
+    fig = figure(fig, figsize=(11.0, 4.6), layout="constrained")
+    axs = fig.subplots(1, 2, sharex=True)
     sobol = rows[0] == "S1"
     const = _constant_cells(ds, (xname,))
     xe = _edges(x)
