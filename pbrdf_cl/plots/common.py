@@ -8,11 +8,10 @@ The package never chooses matplotlib's backend: a figure it makes itself is a pl
 left as it is."""
 from __future__ import annotations
 
-#: Axis labels with units of the model's inputs (the canonical names of ``pbrdf_cl.compute.dense.AXES``).
-LABELS = {"theta_i": "incidence zenith angle theta_i (deg)", "theta_r": "reflection zenith angle theta_r (deg)",
-          "phi": "relative azimuth phi (deg, 180 = in plane)", "n": "refractive index n",
-          "k": "extinction coefficient k", "sigma": "per-axis rms slope sigma", "ks": "specular weight ks",
-          "kd": "diffuse weight kd", "c": "Minnaert exponent c"}
+from ..model import inputs
+
+#: Axis labels with units of the model's inputs (the registry's, :data:`pbrdf_cl.model.inputs.LABELS`).
+LABELS = inputs.LABELS
 
 
 def figure(fig=None, **kw):
