@@ -2,7 +2,6 @@
 files that eval and map read, and the page itself in a real browser (Debian's chromium through
 chromedriver, driven by Selenium): a slider moved, the plotted DOP against ``pbrdf_cl.dop``, the
 example CSV loaded and fitted, the fitted values against ``pbrdf_cl.fit``'s, the state in the URL."""
-import contextlib
 import html
 import io
 import os
@@ -212,6 +211,42 @@ def test_explore_command_refuses_bad_input_in_one_line(tmp_path, capsys):
     assert capsys.readouterr().err == "pbrdf-cl: error: --port 70000: give a port in 0..65535 (0: any free one)\n"
 
 
+def test_port_in_use_is_one_line_naming_it(capsys):
+    pytest.importorskip("panel", reason="the explore extra (panel) is not installed")
+    import socket
+    with socket.socket() as taken:
+        taken.bind(("localhost", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        assert main(["explore", "--no-browser", "--port", str(port)]) == 1
+    err = capsys.readouterr().err
+    assert err == (f"pbrdf-cl: error: port {port} is in use (Address already in use); choose another with --port N, "
+                   "or --port 0 for a free one\n")
+
+
+def test_port_0_allows_only_its_own_origin(served):
+    """--port 0: only pages of localhost and 127.0.0.1 at the port bound may connect (no "*",
+    no Bokeh warning of a wildcard)."""
+    import asyncio
+
+    from tornado.httpclient import HTTPClientError, HTTPRequest
+    from tornado.websocket import websocket_connect
+    proc, url = served
+    port = urlparse(url).port
+
+    async def handshake(origin):
+        request = HTTPRequest(f"ws://localhost:{port}/explore/ws", headers={"Origin": origin})
+        try:
+            (await websocket_connect(request)).close()
+        except HTTPClientError as exc:
+            return exc.code
+        return 101
+    codes = {o: asyncio.run(handshake(o)) for o in (f"http://localhost:{port}", f"http://127.0.0.1:{port}",
+                                                   "http://example.com", f"http://localhost:{port + 1}")}
+    assert list(codes.values()) == [101, 101, 403, 403], codes
+    assert "wildcard" not in "".join(proc.log_tail)
+
+
 def read_params_text(text, folder):
     path = folder / "p.toml"
     path.write_text(text)
@@ -219,20 +254,29 @@ def read_params_text(text, folder):
 
 
 @pytest.fixture(scope="module")
-def browser():
+def served():
+    """``pbrdf-cl explore --port 0`` in a child process, for the module: (process, page URL); the
+    browser tests' page too."""
     pytest.importorskip("panel", reason="the explore extra (panel) is not installed")
+    from pbrdf_cl.app import drive
+    proc, url = drive.start_server()  # a server that does not start is an error, not a skip
+    yield proc, url
+    drive.stop_server(proc)
+
+
+@pytest.fixture(scope="module")
+def browser(served):
     pytest.importorskip("selenium", reason="selenium is not installed (the test extra)")
     from pbrdf_cl.app import drive
     found, why = drive.find_browser()
     if found is None:
         pytest.skip(why)
-    server = drive.start_server()  # a server that does not start is an error, not a skip
-    with contextlib.ExitStack() as stack:
-        try:
-            driver, url = stack.enter_context(drive.session(server=server))
-        except Exception as exc:  # noqa: BLE001 - a browser that cannot start here: say why
-            pytest.skip(f"chromium did not start: {str(exc).splitlines()[0]}")
-        yield driver, url
+    try:
+        driver = drive.open_browser()
+    except Exception as exc:  # noqa: BLE001 - a browser that cannot start here: say why
+        pytest.skip(f"chromium did not start: {str(exc).splitlines()[0]}")
+    yield driver, served[1]
+    driver.quit()
 
 
 def _slider_values(driver):
