@@ -61,7 +61,7 @@ def main(argv=None):
     with drive.session(width=1800, height=1700) as (driver, url):
         shot(driver, f"{url}?A={STEEL}&B={ROUGH}&show=AB&q=dop", out / "explore_curves_fit.png", [load_and_fit])
         shot(driver, f"{url}?A={STEEL}&q=aop&map=hemisphere&ti=40", out / "explore_hemisphere_aop.png")
-        shot(driver, f"{url}?A={STEEL}&q=aop&phi=150&ti=30,50", out / "explore_map_aop_phi150.png")
+        shot(driver, f"{url}?A={STEEL}&B={ROUGH}&show=AB&q=aop&phi=150&ti=30,50", out / "explore_map_aop_phi150.png")
         shot(driver, f"{url}?A={STEEL}&q=brdf&ti=40", out / "explore_brdf.png")
         shot(driver, f"{url}?A={STEEL}&q=dop", out / "explore_sobol_design.png", [sobol_and_design])
 

@@ -2,12 +2,12 @@
 files that eval and map read, and the page itself in a real browser (Debian's chromium through
 chromedriver, driven by Selenium): a slider moved, the plotted DOP against ``pbrdf_cl.dop``, the
 example CSV loaded and fitted, the fitted values against ``pbrdf_cl.fit``'s, the state in the URL."""
-import contextlib
 import html
 import io
 import os
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 from urllib.parse import parse_qs, urlparse
 
@@ -212,6 +212,220 @@ def test_explore_command_refuses_bad_input_in_one_line(tmp_path, capsys):
     assert capsys.readouterr().err == "pbrdf-cl: error: --port 70000: give a port in 0..65535 (0: any free one)\n"
 
 
+def _page(query=None):
+    pytest.importorskip("panel", reason="the explore extra (panel) is not installed")
+    from pbrdf_cl.app.page import Explorer
+    return Explorer(query=query)
+
+
+def _red(pane):
+    """The text of a pane's red line, or None."""
+    text = html.unescape(pane.object)
+    return text if "color:#b00020" in text else None
+
+
+def test_url_refuses_each_bad_value_in_one_line_and_keeps_the_others():
+    """A bad show= no longer draws nothing silently; every bad value (and an unknown key) is one
+    line naming it, and the link's other values still hold."""
+    for args, line in (({"show": "XY"}, "URL: show='XY': 'X', 'Y' are not sets; give letters of ABCD "
+                                         "(show=AB: sets A and B)"),
+                       ({"phi": "400"}, "URL: phi = 400 is outside [0, 359.5] (degrees)"),
+                       ({"phi": "nan"}, "URL: phi = nan is outside [0, 359.5] (degrees)"),
+                       ({"ti": "30,95"}, "URL: ti: theta_i = '30,95': angles must be in [0, 90) degrees, got 95"),
+                       ({"sho": "AB"}, "URL: unknown key 'sho' (the keys are A, B, C, D, show, active, solo, q, "
+                                       "model, shadowing, dtype, ti, phi, map)")):
+        with pytest.raises(ValueError) as caught:
+            st.from_query({"q": "aop", **args})
+        assert str(caught.value) == line
+        problems = {}
+        state = st.from_query({"q": "aop", "B": "2,2,0.5,1,0,0", **args}, problems)
+        assert problems == {next(iter(args)): line}
+        assert state.settings.quantity == "aop" and state.sets[1]["n"] == 2.0  # the rest of the link holds
+    assert st.from_query({"show": ""}).shown == [False] * 4  # what to_query writes when no set is shown
+    ex = _page({"show": "XY", "phi": "400", "q": "aop"})
+    assert _red(ex.status) == ("<span style=\"color:#b00020\">error: URL: show='XY': 'X', 'Y' are not sets; "
+                               "give letters of ABCD (show=AB: sets A and B); URL: phi = 400 is outside [0, 359.5] "
+                               "(degrees)</span>")
+    assert set(ex.refused) == {"show", "phi"} and ex.state.visible() == [0] and ex.state.settings.quantity == "aop"
+
+
+def test_entries_refuse_bad_values_in_one_line_and_snap_back():
+    """Every number entry checks what is typed: one red line naming the field and its range, and
+    the entry back to the value in use (no 180400 left in it, no NaN); a good value moves its slider."""
+    ex = _page()
+    for typed, line in ((180400, "phi = 180400 is outside [0, 359.5] (degrees); it stays 180"),
+                        (None, "phi is empty: give a number in [0, 359.5] (degrees); it stays 180"),
+                        (float("inf"), "phi = inf is not a finite number: give one in [0, 359.5] (degrees); "
+                                       "it stays 180")):
+        ex.phi.entry.value = typed
+        assert _red(ex.status).endswith(f"error: {line}</span>")
+        assert ex.phi.value == ex.phi.entry.value == ex.phi.slider.value == ex.state.settings.phi == 180.0
+    ex.sliders["n"].entry.value = 9.0
+    assert "error: n = 9 is outside [1, 5]; it stays 1.6" in _red(ex.status)
+    assert ex.sliders["n"].entry.value == ex.state.sets[0]["n"] == 1.6
+    ex.sliders["k"].entry.value = 8.4e-07  # a good value: taken, the slider follows, the red line goes
+    assert ex.state.sets[0]["k"] == ex.sliders["k"].slider.value == 8.4e-07 and _red(ex.status) is None
+    ex.theta_i.value = "30,95"
+    assert "error: theta_i = '30,95': angles must be in [0, 90) degrees, got 95; it stays 30,40,50" in \
+        _red(ex.status)
+    assert ex.theta_i.value == "30,40,50"
+    for entry, typed, line in ((ex.sobol_share, 0.9, "the box's share = 0.9 is outside [0.01, 0.5]; it stays 0.1"),
+                               (ex.design_noise, 0.0, "DOP noise = 0 is outside [0.0001, 0.1]; it stays 0.005"),
+                               (ex.design_count, 3, "measurements = 3 is outside [5, 200]; it stays 30")):
+        before = entry.value
+        entry.entry.value = typed
+        assert _red(ex.jobs).endswith(f"error: {line}</span>") and entry.value == entry.entry.value == before
+
+
+def test_upload_names_the_users_file_warns_of_radians_at_once_and_refuses_an_empty_file():
+    """The warnings of an uploaded file name it (not the server's temporary copy); radians are said
+    at load, in the library's words; an empty file is one line."""
+    from pbrdf_cl.compute.pointwise import check_degrees
+    ex = _page()
+    ex.upload.param.update(filename="empty.csv", value=None)  # what Panel gives for an empty file: value unchanged
+    assert _red(ex.status).endswith("error: empty.csv: empty file (no header line)</span>")
+    text = b"theta_i,theta_r,dop,extra\n0.5,0.3,0.1,1\n0.5,0.6,0.2,1\n0.7,0.9,0.3,1\n"
+    ex.upload.param.update(filename="radians.csv", value=text)
+    info = html.unescape(ex.data_info.object)
+    with pytest.warns(pbrdf_cl.UnitsWarning) as said:
+        check_degrees(ex.meas.theta_i, ex.meas.theta_r, "radians.csv: ")
+    assert f"warning: {said[0].message}" in info
+    assert "warning: radians.csv, line 1: ignored column 'extra'" in info
+    assert tempfile.gettempdir() not in info and ex.meas.source == "radians.csv"
+
+
+def test_a_note_says_when_shown_sets_draw_the_same_curves():
+    """Set B over set A hides it: where their curves are the same (by evaluation: the AoP here),
+    the page says so and names what differs; otherwise nothing is said."""
+    eng = pbrdf_cl.get_default_engine()
+    a, b = dict(st.STEEL), dict(st.STEEL, n=2.3, sigma=0.3, kd=0.5)
+    ti, tr = np.array([30.0, 50.0])[:, None], st.theta_r_axis()
+    seen = set()
+    for quantity in ("aop", "dop"):
+        same = np.allclose(pbrdf_cl.evaluate(quantity, ti, tr, 150, **a), pbrdf_cl.evaluate(quantity, ti, tr, 150, **b),
+                           rtol=1e-9, atol=1e-12, equal_nan=True)
+        label = st.QUANTITIES[quantity][0]
+        ex = _page({"A": ",".join(map(str, a.values())), "B": ",".join(map(str, b.values())), "show": "AB",
+                    "q": quantity, "phi": "150", "ti": "30,50"})
+        note = html.unescape(ex.status.object)
+        seen.add(bool(same))
+        if same:
+            assert f"sets A and B give the same {label} here (they differ in n, sigma, kd): B is drawn over A" in note
+            assert "#b00020" not in note  # a note, not an error
+        else:
+            assert note == ""
+    assert seen == {True, False}  # both cases met
+    view = st.State()
+    view.shown = [True, False, True, False]
+    assert st.curves_note(view, st.curves(eng, view)) == "sets A and C are equal: C is drawn over A"
+    view.shown = [False] * 4
+    assert st.curves_note(view, st.curves(eng, view)) == "no set is shown: choose one under show"
+
+
+def test_curve_end_labels_do_not_pile_up():
+    """The labels at the curves' right ends (theta_r = 89) are at least LABEL_GAP of the value range
+    apart, in the order of the curves' ends."""
+    pytest.importorskip("panel", reason="the explore extra (panel) is not installed")
+    from pbrdf_cl.app.figures import LABEL_GAP, Figures
+    view = st.State()
+    view.sets[1] = dict(st.STEEL, sigma=0.35)
+    view.shown = [True, True, False, False]
+    tr = st.theta_r_axis()
+    values = st.curves(pbrdf_cl.get_default_engine(), view, tr)
+    figs = Figures()
+    figs.update_curves(tr, view.settings.theta_i, values, "dop")
+    y = np.asarray(figs.label_src.data["y"])
+    ends = np.concatenate([v[:, -1] for v in values.values()])
+    allv = np.concatenate([v.ravel() for v in values.values()])
+    gap = LABEL_GAP * (allv.max() - allv.min())
+    assert np.diff(np.sort(ends)).min() < gap  # the curves' ends do lie closer than a label
+    assert np.diff(np.sort(y)).min() >= gap * (1 - 1e-9)
+    assert np.array_equal(np.argsort(y, kind="stable"), np.argsort(ends, kind="stable"))
+
+
+def test_no_empty_band_above_the_sobol_maps():
+    """The Sobol' maps follow the map in its own column (not a row under the taller of the two
+    columns), and the fit table takes no room before there is a fit."""
+    ex = _page()
+    import panel as pn
+    figs = ex.figs
+
+    def shows(column, model):
+        return any(getattr(o, "object", None) is model for o in column.select(pn.pane.Bokeh))
+    column = next(c for c in ex.layout.select(pn.Column) if any(getattr(o, "object", None) is figs.map_fig
+                                                               for o in c.objects))
+    assert all(shows(column, fig) for fig in figs.sobol_figs)
+    assert not figs.fit_table.visible
+    ex._show_fit(pbrdf_cl.fit(str(EXAMPLE)))
+    assert figs.fit_table.visible
+
+
+def test_fit_table_prints_significant_digits():
+    """k = 8.4e-07 is printed as 8.4e-07, not 0.00000; the table keeps the numbers themselves too."""
+    pytest.importorskip("panel", reason="the explore extra (panel) is not installed")
+    from types import SimpleNamespace
+
+    from pbrdf_cl.app.figures import Figures
+    figs = Figures()
+    r = SimpleNamespace(free=("n", "k"), x=dict(n=1.754941234, k=8.4e-07),
+                        ci95=dict(n=(1.280690001, 3.2485), k=(0.0, 1.23456789e-06)))
+    figs.update_fit(r, None, None, None)
+    d = figs.fit_table_src.data
+    assert d["value"] == [1.754941234, 8.4e-07] and d["value_text"] == ["1.75494", "8.4e-07"]
+    assert d["low_text"] == ["1.28069", "0"] and d["high_text"] == ["3.2485", "1.23457e-06"]
+    assert [c.field for c in figs.fit_table.columns] == ["parameter", "value_text", "low_text", "high_text"]
+
+
+def test_png_colour_bar_is_as_tall_as_the_map():
+    """With residuals the map spans two rows of the figure; its colour bar stays beside it, as tall
+    as the map, not as the figure."""
+    from pbrdf_cl.plots.explore import plot_view
+    view = st.State()
+    view.settings.resolution = 32
+    ds = st.view_dataset(pbrdf_cl.get_default_engine(), view, pbrdf_cl.read_csv(EXAMPLE))
+    fig = plot_view(ds, io.BytesIO())  # drawn: the positions are those of the PNG
+    ax = next(a for a in fig.axes if a.get_title().startswith("set A over"))
+    box, bar = ax.get_position(), ax.collections[0].colorbar.ax.get_position()
+    pixel = 1 / (fig.get_size_inches()[1] * 110)  # in figure heights
+    assert abs(bar.y0 - box.y0) <= pixel and abs(bar.y1 - box.y1) <= pixel and bar.x0 > box.x1
+
+
+def test_port_in_use_is_one_line_naming_it(capsys):
+    pytest.importorskip("panel", reason="the explore extra (panel) is not installed")
+    import socket
+    with socket.socket() as taken:
+        taken.bind(("localhost", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        assert main(["explore", "--no-browser", "--port", str(port)]) == 1
+    err = capsys.readouterr().err
+    assert err == (f"pbrdf-cl: error: port {port} is in use (Address already in use); choose another with --port N, "
+                   "or --port 0 for a free one\n")
+
+
+def test_port_0_allows_only_its_own_origin(served):
+    """--port 0: only pages of localhost and 127.0.0.1 at the port bound may connect (no "*",
+    no Bokeh warning of a wildcard)."""
+    import asyncio
+
+    from tornado.httpclient import HTTPClientError, HTTPRequest
+    from tornado.websocket import websocket_connect
+    proc, url = served
+    port = urlparse(url).port
+
+    async def handshake(origin):
+        request = HTTPRequest(f"ws://localhost:{port}/explore/ws", headers={"Origin": origin})
+        try:
+            (await websocket_connect(request)).close()
+        except HTTPClientError as exc:
+            return exc.code
+        return 101
+    codes = {o: asyncio.run(handshake(o)) for o in (f"http://localhost:{port}", f"http://127.0.0.1:{port}",
+                                                   "http://example.com", f"http://localhost:{port + 1}")}
+    assert list(codes.values()) == [101, 101, 403, 403], codes
+    assert "wildcard" not in "".join(proc.log_tail)
+
+
 def read_params_text(text, folder):
     path = folder / "p.toml"
     path.write_text(text)
@@ -219,20 +433,29 @@ def read_params_text(text, folder):
 
 
 @pytest.fixture(scope="module")
-def browser():
+def served():
+    """``pbrdf-cl explore --port 0`` in a child process, for the module: (process, page URL); the
+    browser tests' page too."""
     pytest.importorskip("panel", reason="the explore extra (panel) is not installed")
+    from pbrdf_cl.app import drive
+    proc, url = drive.start_server()  # a server that does not start is an error, not a skip
+    yield proc, url
+    drive.stop_server(proc)
+
+
+@pytest.fixture(scope="module")
+def browser(served):
     pytest.importorskip("selenium", reason="selenium is not installed (the test extra)")
     from pbrdf_cl.app import drive
     found, why = drive.find_browser()
     if found is None:
         pytest.skip(why)
-    server = drive.start_server()  # a server that does not start is an error, not a skip
-    with contextlib.ExitStack() as stack:
-        try:
-            driver, url = stack.enter_context(drive.session(server=server))
-        except Exception as exc:  # noqa: BLE001 - a browser that cannot start here: say why
-            pytest.skip(f"chromium did not start: {str(exc).splitlines()[0]}")
-        yield driver, url
+    try:
+        driver = drive.open_browser()
+    except Exception as exc:  # noqa: BLE001 - a browser that cannot start here: say why
+        pytest.skip(f"chromium did not start: {str(exc).splitlines()[0]}")
+    yield driver, served[1]
+    driver.quit()
 
 
 def _slider_values(driver):
@@ -287,3 +510,55 @@ def test_in_the_browser_slider_fit_and_url(browser, tmp_path):
     driver.get(driver.current_url)
     drive.wait_loaded(driver)
     assert _slider_values(driver)[0] == pytest.approx(n, abs=1e-6)
+
+
+def _said(driver, needle):
+    """The page's text (HTML, unescaped) that holds ``needle``, or None."""
+    found = driver.execute_script(
+        "if (!window.Bokeh || !Bokeh.documents.length) return null;"
+        "return Object.values(Object.fromEntries(Bokeh.documents[0]._all_models))"
+        ".map(m => typeof m.text == 'string' ? m.text : '').find(t => t.includes(arguments[0]))",
+        html.escape(needle, quote=True))
+    return html.unescape(html.unescape(found)) if found else None
+
+
+def test_in_the_browser_bad_input_is_said_and_undone(browser, tmp_path):
+    """In the page: a link's bad values are one red line and leave the address bar; a value typed
+    past its range or emptied is one red line and the entry shows the value in use again; an
+    empty or radians CSV is said at once, naming the user's file."""
+    from selenium.webdriver.common.keys import Keys
+
+    from pbrdf_cl.app import drive
+    driver, url = browser
+    driver.get(url + "?show=XY&phi=400&q=aop")
+    line = drive.wait(lambda: _said(driver, "error: URL: "), 60, what="the URL's refusal")
+    assert "URL: show='XY': 'X', 'Y' are not sets" in line and "URL: phi = 400 is outside [0, 359.5]" in line
+    drive.wait(lambda: urlparse(driver.current_url).query == "q=aop", 30, what="the refused values gone from the URL")
+    drive.wait_loaded(driver)  # set A drawn: the default of show
+
+    driver.get(url)
+    drive.wait_loaded(driver)
+    entries = drive.deep_find(driver, "input.bk-input")
+    phi, k = entries[7], entries[1]
+    assert phi.get_attribute("value") == "180" and k.get_attribute("value") == "2.139"
+    phi.send_keys("400", Keys.ENTER)  # typed after the 180 already there
+    drive.wait(lambda: _said(driver, "error: phi = 180400 is outside [0, 359.5] (degrees); it stays 180"), 30,
+               what="phi's refusal")
+    drive.wait(lambda: phi.get_attribute("value") == "180", 30, what="the phi entry back to 180")
+    phi.clear()
+    phi.send_keys(Keys.ENTER)
+    drive.wait(lambda: _said(driver, "error: phi is empty: give a number in [0, 359.5]"), 30, what="phi emptied")
+    drive.wait(lambda: phi.get_attribute("value") == "180", 30, what="the phi entry back to 180")
+    k.send_keys(Keys.END, Keys.BACKSPACE * 5, "8.4e-7", Keys.ENTER)  # 2.139 -> 8.4e-7, then Enter
+    drive.wait(lambda: _slider_values(driver)[1] == 8.4e-07, 30, what="k = 8.4e-07 on its slider")
+    assert k.get_attribute("value") == "8.4e-7"
+
+    upload = drive.deep_find(driver, "input[type=file]")[0]
+    empty, radians = tmp_path / "empty.csv", tmp_path / "radians.csv"
+    empty.write_text("")
+    radians.write_text("theta_i,theta_r,dop\n0.5,0.3,0.1\n0.5,0.6,0.2\n0.7,0.9,0.3\n")
+    upload.send_keys(str(empty))
+    drive.wait(lambda: _said(driver, "error: empty.csv: empty file (no header line)"), 30, what="the empty file")
+    upload.send_keys(str(radians))
+    drive.wait(lambda: _said(driver, "warning: radians.csv: theta_i and theta_r all lie below"), 30,
+               what="the radians warning")

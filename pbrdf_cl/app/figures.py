@@ -12,16 +12,19 @@ from bokeh.models import (
     HoverTool,
     LinearColorMapper,
     LogColorMapper,
-    NumberFormatter,
     Range1d,
     TableColumn,
     Whisker,
 )
 from bokeh.plotting import figure
 
-from .state import COLOURS, MAP_KINDS, QUANTITIES, SET_NAMES, THETA_MAX
+from .state import COLOURS, MAP_KINDS, QUANTITIES, SET_NAMES, THETA_MAX, number_text
 
 TOOLS = "pan,wheel_zoom,box_zoom,reset,save"
+#: The fit table's columns: the numbers (as the fit gave them) and their text (six significant digits).
+FIT_COLUMNS = ("parameter", "value", "low", "high", "value_text", "low_text", "high_text")
+#: The curves' end labels: at least this share of the curves' value range apart.
+LABEL_GAP = 0.05
 PALETTE = "Viridis256"
 
 
@@ -46,6 +49,24 @@ def nice_limits(lo, hi, log=False):
         return lo - 0.5, lo + 0.5
     step = 10 ** np.floor(np.log10(span)) / 2
     return float(np.floor(lo / step) * step), float(np.ceil(hi / step) * step)
+
+
+def spread(y, gap):
+    """Label heights near ``y`` at least ``gap`` apart, in the same order: overlapping labels are
+    gathered in groups, each centred on the mean of its labels' own heights."""
+    y = np.asarray(y, dtype=float)
+    order = np.argsort(y, kind="stable")
+    groups = []  # [sum of the heights, count], bottom to top
+    for v in y[order]:
+        groups.append([v, 1])
+        while len(groups) > 1:
+            (s0, n0), (s1, n1) = groups[-2], groups[-1]
+            if (s1 / n1 - (n1 - 1) * gap / 2) - (s0 / n0 + (n0 - 1) * gap / 2) >= gap:
+                break
+            groups[-2:] = [[s0 + s1, n0 + n1]]
+    out = np.empty_like(y)
+    out[order] = np.concatenate([s / n + (np.arange(n) - (n - 1) / 2) * gap for s, n in groups]) if groups else []
+    return out
 
 
 class Figures:
@@ -98,13 +119,12 @@ class Figures:
 
         self._build_map(width, height)
         self._build_sobol(width)
-        number = NumberFormatter(format="0.00000")
-        self.fit_table_src = ColumnDataSource(dict(parameter=[], value=[], low=[], high=[]), name="fit_table")
-        self.fit_table = DataTable(source=self.fit_table_src, width=420, height=170, index_position=None,
-                                   columns=[TableColumn(field="parameter", title="parameter"),
-                                            TableColumn(field="value", title="fitted value", formatter=number),
-                                            TableColumn(field="low", title="95% low", formatter=number),
-                                            TableColumn(field="high", title="95% high", formatter=number)])
+        self.fit_table_src = ColumnDataSource({k: [] for k in FIT_COLUMNS}, name="fit_table")
+        self.fit_table = DataTable(source=self.fit_table_src, width=420, height=170, index_position=None, visible=False,
+                                   columns=[TableColumn(field="parameter", title="parameter"),  # the numbers
+                                            TableColumn(field="value_text", title="fitted value"),  # as text, to
+                                            TableColumn(field="low_text", title="95% low"),  # significant
+                                            TableColumn(field="high_text", title="95% high")])  # digits
 
     def _build_map(self, width, height):
         self.map_fig = _figure("Map", "theta_r (deg)", "theta_i (deg)", frame_width=height, frame_height=height,
@@ -177,10 +197,15 @@ class Figures:
             self.polar_src[i].data = dict(xs=[np.abs(row) * np.sin(rad) for row in v],
                                           ys=[np.abs(row) * np.cos(rad) for row in v])
             for t, row in zip(theta_i, v):
+                finite = np.flatnonzero(np.isfinite(row))  # at the curve's last drawn point
                 labels["x"].append(theta_r[-1])
-                labels["y"].append(float(row[-1]) if np.isfinite(row[-1]) else 0.0)
+                labels["y"].append(float(row[finite[-1]]) if finite.size else 0.0)
                 labels["text"].append(f"{SET_NAMES[i]} {t:g}°")
                 labels["colour"].append(COLOURS[i])
+        finite = [row[np.isfinite(row)] for v in values.values() for row in v]
+        finite = np.concatenate(finite) if finite else np.zeros(1)
+        span = float(finite.max() - finite.min()) if finite.size else 0.0
+        labels["y"] = list(spread(labels["y"], LABEL_GAP * (span if span > 0 else 1.0)))
         self.label_src.data = labels
         for i, item in enumerate(self.curves_fig.legend[0].items[:len(SET_NAMES)]):
             item.visible = i in values
@@ -285,14 +310,17 @@ class Figures:
     def update_fit(self, result, theta_r, theta_i, fitted):
         """The fitted values with their intervals (``result``: a FitResult or None) and the fitted
         curves (len(theta_i), len(theta_r)) dashed."""
+        self.fit_table.visible = result is not None  # no empty table (and band) before a fit
         if result is None:
             if len(self.fit_table_src.data["parameter"]) or len(self.fit_src.data["xs"]):
-                self.fit_table_src.data = dict(parameter=[], value=[], low=[], high=[])
+                self.fit_table_src.data = {k: [] for k in FIT_COLUMNS}
                 self.fit_src.data = dict(xs=[], ys=[])
             return
         names = list(result.free)
-        self.fit_table_src.data = dict(parameter=names, value=[float(result.x[p]) for p in names],
-                                       low=[float(result.ci95[p][0]) for p in names],
-                                       high=[float(result.ci95[p][1]) for p in names])
+        table = dict(parameter=names, value=[float(result.x[p]) for p in names],
+                     low=[float(result.ci95[p][0]) for p in names], high=[float(result.ci95[p][1]) for p in names])
+        for key in ("value", "low", "high"):
+            table[f"{key}_text"] = [number_text(v) for v in table[key]]
+        self.fit_table_src.data = table
         self.fit_src.data = dict(xs=[theta_r] * len(theta_i), ys=list(fitted)) if fitted is not None else \
             dict(xs=[], ys=[])

@@ -15,12 +15,13 @@ import tempfile
 import time
 import warnings
 from concurrent.futures import ThreadPoolExecutor
+from urllib.parse import urlencode
 
 import numpy as np
 import panel as pn
 from panel.io import hold
 
-from ..compute.pointwise import MODELS
+from ..compute.pointwise import MODELS, check_degrees
 from ..device.engine import get_default_engine
 from ..explore.designs import design
 from ..explore.sensitivity import sobol
@@ -31,6 +32,7 @@ from ..model.reference import SHADOWING
 from ..plots.explore import plot_view
 from . import state as st
 from .figures import Figures
+from .inputs import NumberEntry
 
 #: Background jobs (fit, Sobol', design) of every session: one at a time per server, in a thread.
 POOL = ThreadPoolExecutor(max_workers=1, thread_name_prefix="pbrdf-explore")
@@ -41,16 +43,6 @@ SETTLE_MS = 250
 SOBOL_N = (64, 256, 1024)
 #: The design's defaults: DOP noise (std) and number of measurements (both editable on the page).
 DESIGN_NOISE, DESIGN_COUNT = 0.005, 30
-
-
-class LiveFloatSlider(pn.widgets.FloatSlider):
-    """A slider whose moves reach the server at once (Panel waits 50 ms for more by default)."""
-    _priority_changes = ["value"]
-
-
-class LiveEditableFloatSlider(pn.widgets.EditableFloatSlider):
-    """Panel's slider with a text entry, its slider live (:class:`LiveFloatSlider`)."""
-    _slider_widget = LiveFloatSlider
 
 
 def background_engine(engine):
@@ -87,11 +79,8 @@ class Explorer:
         self.engine = engine if engine is not None else get_default_engine()
         self.meas, self.fit_result, self.sobol_ds, self.design_result = None, None, None, None
         self.last_ms, self._quiet, self._generation = float("nan"), False, 0
-        problem = None
-        try:
-            self.state = st.from_query(query) if query else st.State()
-        except ValueError as exc:
-            self.state, problem = st.State(), one_line(exc)
+        self.refused = {}  # the URL's refused keys -> their lines: those keys keep their defaults
+        self.state = st.from_query(query, self.refused) if query else st.State()
         self.figs = Figures()
         self.doc = pn.state.curdoc  # the session's document: background results are drawn under its lock
         self._widgets()
@@ -99,8 +88,11 @@ class Explorer:
         self.refresh()
         if data:
             self.load_path(data, str(data))
-        if problem:
-            self.say(problem, error=True)
+        if self.refused:
+            self.say(one_line("; ".join(self.refused.values())), error=True)
+            if self.doc is not None and self.doc.session_context is not None:
+                kept = {k: v for k, v in query.items() if k not in self.refused}
+                pn.state.onload(lambda: self._set_url(urlencode(kept, safe=",")))
 
     # ---- widgets ----------------------------------------------------------------------------------
 
@@ -108,10 +100,7 @@ class Explorer:
         s, p = self.state.settings, self.state.sets[self.state.active]
         self.sliders = {}
         for name in NAMES:
-            lo, hi = st.LIMITS[name]
-            w = LiveEditableFloatSlider(label=name, start=lo, end=hi, step=st.STEPS[name], value=p[name],
-                                               fixed_start=lo, fixed_end=hi, width=260,
-                                               format="0.0[000]")
+            w = NumberEntry(name, name, st.LIMITS[name], p[name], self._complain, step=st.STEPS[name], slider=True)
             w.param.watch(lambda event, name=name: self._on_slider(name, event.new), "value")
             self.sliders[name] = w
         self.reset = pn.widgets.Button(label="Reset to the paper's steel", color="light", width=260)
@@ -131,8 +120,8 @@ class Explorer:
         self.dtype = pn.widgets.Select(label="dtype", options=["float64", "float32"], value=s.dtype, width=125)
         self.theta_i = pn.widgets.TextInput(label="theta_i of the curves (deg)", value=",".join(f"{t:g}" for t in
                                                                                              s.theta_i), width=260)
-        self.phi = LiveEditableFloatSlider(label="phi (deg; 180 = in plane)", start=0, end=359.5, step=0.5,
-                                                  value=s.phi, fixed_start=0, fixed_end=359.5, width=260)
+        self.phi = NumberEntry("phi", "phi (deg; 180 = in plane)", st.PHI_LIMITS, s.phi, self._complain, step=0.5,
+                               slider=True, units="degrees")
         self.map_kind = pn.widgets.RadioButtonGroup(label="map", options={"theta_i x theta_r": "incidence",
                                                                          "hemisphere": "hemisphere"},
                                                     value=s.map_kind)
@@ -146,7 +135,7 @@ class Explorer:
 
     def _data_widgets(self):
         self.upload = pn.widgets.FileInput(accept=".csv,.txt,.tsv", width=260)
-        self.upload.param.watch(self._on_upload, "value")
+        self.upload.param.watch(self._on_upload, ["value", "filename"])  # an empty file changes only the name
         self.data_info = pn.pane.HTML("no measurements loaded", width=420)
         self.fit_button = pn.widgets.Button(label="Fit", color="primary", width=120, disabled=True)
         self.fit_button.on_click(self._on_fit)
@@ -159,15 +148,15 @@ class Explorer:
         self.sobol_param = pn.widgets.Select(label="parameter", options=["n", "k", "sigma", "kd", "c"], value="n",
                                              width=120)
         self.sobol_param.param.watch(lambda e: self._draw_sobol(), "value")
-        self.sobol_share = pn.widgets.FloatInput(label="box: +- share of each range", value=0.1, start=0.01, end=0.5,
-                                                 step=0.05, width=200)
+        self.sobol_share = NumberEntry("the box's share", "box: +- share of each range", (0.01, 0.5), 0.1,
+                                       self._complain_job, step=0.05, width=200)
         self.sobol_n = pn.widgets.Select(label="N (base samples)", options=list(SOBOL_N), value=SOBOL_N[1], width=120)
         self.design_button = pn.widgets.Button(label="Design geometries for n, k", width=220)
         self.design_button.on_click(self._on_design)
-        self.design_noise = pn.widgets.FloatInput(label="DOP noise (std)", value=DESIGN_NOISE, start=1e-4, end=0.1,
-                                                  step=0.001, width=120)
-        self.design_count = pn.widgets.IntInput(label="measurements", value=DESIGN_COUNT, start=5, end=200, step=5,
-                                                width=110)
+        self.design_noise = NumberEntry("DOP noise", "DOP noise (std)", (1e-4, 0.1), DESIGN_NOISE, self._complain_job,
+                                        step=0.001, width=120)
+        self.design_count = NumberEntry("measurements", "measurements", (5, 200), DESIGN_COUNT, self._complain_job,
+                                        step=5, integer=True, width=110)
         self.jobs = pn.pane.HTML("", width=560, name="jobs")
 
     def _export_widgets(self):
@@ -197,9 +186,11 @@ class Explorer:
                          pn.Row(self.design_button, self.design_noise, self.design_count), self.jobs,
                          pn.pane.HTML("<b>Export</b> (one plot as PNG: its toolbar's save tool)"),
                          pn.Row(*self.exports[:3]), pn.Row(*self.exports[3:]))
+        # two columns under the curves, each as tall as its own content: no empty band above the Sobol' maps
         views = pn.Column(self.status, pn.Row(pn.pane.Bokeh(f.curves_fig), pn.pane.Bokeh(f.polar_fig)),
-                          pn.Row(pn.Column(pn.pane.Bokeh(f.res_fig), data), pn.pane.Bokeh(f.map_fig)),
-                          pn.Row(pn.pane.Bokeh(f.sobol_figs[0]), pn.pane.Bokeh(f.sobol_figs[1]), jobs),
+                          pn.Row(pn.Column(pn.pane.Bokeh(f.res_fig), data, jobs),
+                                 pn.Column(pn.pane.Bokeh(f.map_fig),
+                                           pn.Row(pn.pane.Bokeh(f.sobol_figs[0]), pn.pane.Bokeh(f.sobol_figs[1])))),
                           self.timing)
         return pn.Row(controls, views, name="pbrdf-cl explore")
 
@@ -208,6 +199,14 @@ class Explorer:
     def say(self, text, error=False):
         colour = "#b00020" if error else "#333333"
         self.status.object = f'<span style="color:{colour}">{html.escape(text, quote=False)}</span>' if text else ""
+
+    def _complain(self, text):
+        """A refused entry (:class:`.inputs.NumberEntry`): its one line in the status line."""
+        self.say(one_line(text), error=True)
+
+    def _complain_job(self, text):
+        """A refused entry of the jobs (Sobol' map, design): its one line beside them."""
+        self.jobs.object = f'<span style="color:#b00020">{html.escape(one_line(text), quote=False)}</span>'
 
     def refresh(self):
         """Recompute and redraw every live view from the state, as one message to the browser.  The
@@ -237,7 +236,8 @@ class Explorer:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")  # the page shows errors; warnings go to the server's log
                 tr = st.theta_r_axis()
-                f.update_curves(tr, s.theta_i, st.curves(self.engine, self.state, tr), s.quantity, s.phi)
+                values = st.curves(self.engine, self.state, tr)
+                f.update_curves(tr, s.theta_i, values, s.quantity, s.phi)
                 shown = "dop" if s.quantity == "aop" else s.quantity  # AoP: ticks over the DOP
                 if s.map_kind == "incidence":
                     a, b, v = st.incidence_map(self.engine, self.state, shown)
@@ -252,8 +252,7 @@ class Explorer:
         except (ValueError, FloatingPointError) as exc:
             self.say(one_line(exc), error=True)
             return False
-        if self.status.object:
-            self.say("")
+        self.say(st.curves_note(self.state, values))  # clears an error line that no longer holds
         return True
 
     def _draw_data(self):
@@ -285,9 +284,12 @@ class Explorer:
         self.figs.update_fit(r, tr, s.theta_i, fitted)
 
     def _sync_url(self):
+        self._set_url(st.to_query(self.state))
+
+    def _set_url(self, query):
         loc = pn.state.location
         if loc is not None:
-            loc.search = "?" + st.to_query(self.state)
+            loc.search = "?" + query if query else ""
 
     # ---- callbacks --------------------------------------------------------------------------------
 
@@ -330,8 +332,14 @@ class Explorer:
         state, s = self.state, self.state.settings
         try:
             s.theta_i = st.parse_theta_i(self.theta_i.value)
-        except ValueError as exc:
-            self.say(one_line(exc), error=True)
+        except ValueError as exc:  # one line, and the entry back to the angles in use
+            in_use = ",".join(f"{t:g}" for t in s.theta_i)
+            self.say(one_line(f"{exc}; it stays {in_use}"), error=True)
+            self._quiet = True
+            try:
+                self.theta_i.value = in_use
+            finally:
+                self._quiet = False
             return
         s.quantity, s.model, s.shadowing, s.dtype = (self.quantity.value, self.model.value, self.shadowing.value,
                                                      self.dtype.value)
@@ -352,13 +360,17 @@ class Explorer:
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
                 meas = read_csv(path)
+                meas.source = shown_name  # the fit's messages name the user's file, not a temporary copy
+                check_degrees(meas.theta_i, meas.theta_r, f"{shown_name}: ")  # radians: said now, not at Fit
         except (OSError, ValueError) as exc:
             text = str(exc).replace(str(path), shown_name)
             self.data_info.object = f'<span style="color:#b00020">{html.escape(one_line(text), quote=False)}</span>'
             self.say(one_line(text), error=True)
             return False
         self.meas, self.fit_result = meas, None
-        notes = "".join(f"<br><small>warning: {html.escape(str(w.message), quote=False)}</small>" for w in caught)
+        notes = "".join(f'<br><small style="color:#a05a00">warning: '
+                        f'{html.escape(str(w.message).replace(str(path), shown_name), quote=False)}</small>'
+                        for w in caught)
         self.data_info.object = (f"{html.escape(shown_name, quote=False)}: {meas.theta_i.size} measurements, theta_i "
                                  f"{', '.join(f'{t:g}' for t in np.unique(meas.theta_i))}{notes}")
         self.fit_button.disabled = False
@@ -369,14 +381,14 @@ class Explorer:
         self.refresh()
         return True
 
-    def _on_upload(self, event):
-        if not event.new:
+    def _on_upload(self, *events):
+        if self.upload.filename is None:
             return
-        name = os.path.basename(self.upload.filename or "upload.csv")
+        name = os.path.basename(self.upload.filename)
         with tempfile.TemporaryDirectory() as folder:
             path = os.path.join(folder, name)
             with open(path, "wb") as fh:
-                fh.write(event.new)
+                fh.write(self.upload.value or b"")  # Panel gives None for an empty file: read_csv says so
             self.load_path(path, name)
 
     def _later(self, fn, *args):
@@ -444,7 +456,7 @@ class Explorer:
                      engine=background_engine(self.engine))
 
     async def _on_sobol(self, event):
-        share = float(self.sobol_share.value or 0.1)
+        share = float(self.sobol_share.value)
         ds = await self._background(self.sobol_button, "Sobol' map", self._sobol_job,
                                     dict(self.state.sets[self.state.active]), share, self.state.settings,
                                     int(self.sobol_n.value))
@@ -461,7 +473,7 @@ class Explorer:
                       shadowing=settings.shadowing, engine=background_engine(self.engine))
 
     async def _on_design(self, event):
-        noise = self.design_noise.value  # checked by design(): a bad value is its one line on the page
+        noise = self.design_noise.value  # checked by its entry, and by design() (one line on the page)
         r = await self._background(self.design_button, "design", self._design_job,
                                    dict(self.state.sets[self.state.active]), self.state.settings, noise,
                                    self.design_count.value)

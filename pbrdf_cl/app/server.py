@@ -2,6 +2,9 @@
 :func:`serve` (``pbrdf-cl explore``: a local server, opened in the browser)."""
 from __future__ import annotations
 
+import errno
+
+from ..errors import CommandError
 from . import require_panel
 
 
@@ -44,6 +47,34 @@ def explore_app(data=None, *, engine=None, query=None):
     return explorer.layout
 
 
+def origins(address, port):
+    """The web origins whose pages may open the explorer's connection: this address and the
+    loopback names, at ``port`` only."""
+    return list(dict.fromkeys([f"{address}:{port}", f"localhost:{port}", f"127.0.0.1:{port}"]))
+
+
+def allow_only(server, hosts):
+    """Let only ``hosts`` (``name:port``) open a connection to ``server`` (a Bokeh server, bound
+    and not yet started): what Bokeh's ``allow_websocket_origin`` sets, written once the port is known."""
+    from bokeh.server.tornado import BokehTornado
+    app = getattr(server, "_tornado", None)  # Bokeh keeps the application there, not publicly
+    if not isinstance(app, BokehTornado):
+        raise CommandError("the explorer cannot limit who connects on a free port with this version of Bokeh: "
+                           "give the port, --port N")
+    app.websocket_origins.clear()
+    app.websocket_origins.update(hosts)
+
+
+def bind_error(exc, address, port):
+    """The one line of a server that could not listen on ``address:port`` (``exc``: the OSError)."""
+    why = exc.strerror or str(exc)
+    if exc.errno == errno.EADDRINUSE:
+        return f"port {port} is in use ({why}); choose another with --port N, or --port 0 for a free one"
+    if exc.errno == errno.EACCES:
+        return f"port {port}: {why} (ports below 1024 need privileges); choose another with --port N, or --port 0"
+    return f"cannot listen on {address}{f':{port}' if port else ''}: {why}; check --address and --port"
+
+
 def serve(port=0, data=None, open_browser=True, engine=None, address="localhost"):
     """Serve the explorer on ``address:port`` until interrupted (one page per browser session,
     every session sharing ``engine``).
@@ -66,6 +97,16 @@ def serve(port=0, data=None, open_browser=True, engine=None, address="localhost"
     None
         Returns when the server stops.
 
+    Raises
+    ------
+    pbrdf_cl.CommandError
+        One line when the port cannot be had (in use: it names the port and says to choose another).
+
+    Notes
+    -----
+    Only pages served from ``address``, ``localhost`` or ``127.0.0.1`` at the port bound (the
+    free one found for ``port=0``) may connect to the server.
+
     Examples
     --------
     >>> from pbrdf_cl.app.server import serve
@@ -77,9 +118,13 @@ def serve(port=0, data=None, open_browser=True, engine=None, address="localhost"
 
     def page():
         return explore_app(data, engine=engine)
-    server = pn.serve({"explore": page}, port=port, address=address, show=False, start=False,
-                      title="pbrdf-cl explore", websocket_origin=[f"{address}:{port}", f"127.0.0.1:{port}",
-                                                                  f"localhost:{port}"] if port else "*")
+    try:  # binds the port now (the server starts below)
+        server = pn.serve({"explore": page}, port=port, address=address, show=False, start=False,
+                          title="pbrdf-cl explore", websocket_origin=origins(address, port) if port else None)
+    except OSError as exc:
+        raise CommandError(bind_error(exc, address, port)) from None
+    if not port:  # the free port bound, known only now
+        allow_only(server, origins(address, server.port))
     server.start()
     url = f"http://{address}:{server.port}/explore"
     print(f"pbrdf-cl explore: serving {url} (Ctrl-C stops it)", flush=True)

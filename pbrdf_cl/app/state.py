@@ -28,6 +28,13 @@ QUANTITIES = {"dop": ("DOP", "1", "dop", None), "aop": ("AoP", "deg", "aop", Non
               "s1": ("S1", "1/sr", "stokes", 1), "s2": ("S2", "1/sr", "stokes", 2)}
 MAP_KINDS = ("incidence", "hemisphere")
 THETA_MAX = 89.0  # the views' largest zenith angle (the model's domain is [0, 90))
+PHI_LIMITS = (0.0, 359.5)  # the curves' azimuth (deg): the slider's range
+DIGITS = 6  # the significant digits of the numbers the page prints (the values keep all of theirs)
+
+
+def number_text(value):
+    """A number as the page prints it: six significant digits (``1.62``, ``8.4e-07``, not ``0.00000``)."""
+    return f"{value:.{DIGITS}g}"
 
 
 @dataclass
@@ -108,6 +115,50 @@ def curves(engine, state, theta_r=None):
     ti = np.asarray(s.theta_i, dtype=float)[None, :, None]
     values = quantity_values(engine, s, params, ti, theta_r[None, None, :], s.phi)
     return dict(zip(shown, values))
+
+
+def same_curves(a, b, rtol=1e-6):
+    """Whether two sets' curves are the same as drawn: NaN at the same points and the others equal
+    to ``rtol`` of the largest magnitude of either (exactly, where both are zero everywhere)."""
+    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    nan = np.isnan(a)
+    if a.shape != b.shape or not np.array_equal(nan, np.isnan(b)):
+        return False
+    if nan.all():
+        return True
+    scale = max(float(np.max(np.abs(a[~nan]))), float(np.max(np.abs(b[~nan]))))
+    return bool(np.max(np.abs(a[~nan] - b[~nan])) <= rtol * scale)
+
+
+def _names(indices):
+    names = [SET_NAMES[i] for i in indices]
+    return names[0] if len(names) == 1 else ", ".join(names[:-1]) + " and " + names[-1]
+
+
+def curves_note(state, values):
+    """The page's note on what the curves do not show: no set shown, or shown sets that draw the
+    same curves (``values``: :func:`curves`'s), where the last drawn covers the others; "" if none."""
+    if not values:
+        return "no set is shown: choose one under show"
+    label = QUANTITIES[state.settings.quantity][0]
+    groups = []
+    for i in values:
+        group = next((g for g in groups if same_curves(values[g[0]], values[i])), None)
+        if group is None:
+            groups.append([i])
+        else:
+            group.append(i)
+    notes = []
+    for group in (g for g in groups if len(g) > 1):
+        first = state.sets[group[0]]
+        differ = [p for p in NAMES if any(state.sets[i][p] != first[p] for i in group[1:])]
+        last, others = SET_NAMES[group[-1]], "the others" if len(group) > 2 else SET_NAMES[group[0]]
+        if differ:
+            notes.append(f"sets {_names(group)} give the same {label} here (they differ in {', '.join(differ)}): "
+                         f"{last} is drawn over {others}")
+        else:
+            notes.append(f"sets {_names(group)} are equal: {last} is drawn over {others}")
+    return "; ".join(notes)
 
 
 def incidence_axes(resolution):
@@ -251,51 +302,98 @@ def to_query(state):
     return urlencode(q, safe=",")
 
 
-def _choice(args, key, choices, default):
-    value = args.get(key, default)
+#: The keys of the URL's query, as :func:`to_query` writes them.
+QUERY_KEYS = (*SET_NAMES, "show", "active", "solo", "q", "model", "shadowing", "dtype", "ti", "phi", "map")
+
+
+def _choice(key, value, choices):
     if value not in choices:
         raise ValueError(f"URL: {key}={value!r} is not one of {', '.join(choices)}")
     return value
 
 
-def from_query(args):
-    """A :class:`State` from the query's arguments (name -> str), as :func:`to_query` writes them;
-    a bad value is a one-line ``ValueError`` naming the key."""
+def _parse_set(key, text):
+    parts = text.split(",")
+    if len(parts) != len(NAMES):
+        raise ValueError(f"URL: {key}={text!r}: give the {len(NAMES)} values {','.join(NAMES)}")
+    try:
+        values = [float(v) for v in parts]
+    except ValueError:
+        raise ValueError(f"URL: {key}={text!r}: not numbers") from None
+    for p, v in zip(NAMES, values):
+        lo, hi = LIMITS[p]
+        if not lo <= v <= hi:
+            raise ValueError(f"URL: {key}: {p} = {v:g} is outside [{lo:g}, {hi:g}]")
+    return dict(zip(NAMES, values))
+
+
+def _parse_show(text):
+    bad = sorted(set(text) - set(SET_NAMES))
+    if bad:
+        verb = "is not a set" if len(bad) == 1 else "are not sets"
+        raise ValueError(f"URL: show={text!r}: {', '.join(map(repr, bad))} {verb}; give letters of "
+                         f"{''.join(SET_NAMES)} (show=AB: sets A and B)")
+    return [n in text for n in SET_NAMES]
+
+
+def _parse_theta_i(text):
+    try:
+        return parse_theta_i(text)
+    except ValueError as exc:
+        raise ValueError(f"URL: ti: {exc}") from None
+
+
+def _parse_phi(text):
+    try:
+        phi = float(text)
+    except ValueError:
+        raise ValueError(f"URL: phi={text!r} is not a number") from None
+    lo, hi = PHI_LIMITS
+    if not lo <= phi <= hi:  # NaN too
+        raise ValueError(f"URL: phi = {phi:g} is outside [{lo:g}, {hi:g}] (degrees)")
+    return phi
+
+
+def from_query(args, problems=None):
+    """A :class:`State` from the query's arguments (name -> str), as :func:`to_query` writes them.
+
+    A bad value, or an unknown key, is a one-line ``ValueError`` naming the key; with a dict
+    ``problems`` it is not raised but stored there (key -> the line), and that key keeps its
+    default while the others are read."""
     from ..compute.pointwise import MODELS
     from ..model.reference import SHADOWING
     state = State()
-    for i, name in enumerate(SET_NAMES):
-        if name in args:
-            parts = args[name].split(",")
-            if len(parts) != len(NAMES):
-                raise ValueError(f"URL: {name}={args[name]!r}: give the {len(NAMES)} values {','.join(NAMES)}")
-            try:
-                values = [float(v) for v in parts]
-            except ValueError:
-                raise ValueError(f"URL: {name}={args[name]!r}: not numbers") from None
-            for p, v in zip(NAMES, values):
-                lo, hi = LIMITS[p]
-                if not lo <= v <= hi:
-                    raise ValueError(f"URL: {name}: {p} = {v:g} is outside [{lo:g}, {hi:g}]")
-            state.sets[i] = dict(zip(NAMES, values))
-    if "show" in args:
-        state.shown = [n in args["show"] for n in SET_NAMES]
-    state.active = SET_NAMES.index(_choice(args, "active", SET_NAMES, "A"))
-    if "solo" in args:
-        state.solo = SET_NAMES.index(_choice(args, "solo", SET_NAMES, "A"))
     s = state.settings
-    s.quantity = _choice(args, "q", tuple(QUANTITIES), s.quantity)
-    s.model = _choice(args, "model", tuple(MODELS), s.model)
-    s.shadowing = _choice(args, "shadowing", tuple(sorted(SHADOWING)), s.shadowing)
-    s.dtype = _choice(args, "dtype", ("float64", "float32"), s.dtype)
-    s.map_kind = _choice(args, "map", MAP_KINDS, s.map_kind)
-    if "ti" in args:
-        s.theta_i = parse_theta_i(args["ti"])
-    if "phi" in args:
+
+    def take(key, parse, store):
+        if key not in args:
+            return
         try:
-            s.phi = float(args["phi"])
-        except ValueError:
-            raise ValueError(f"URL: phi={args['phi']!r} is not a number") from None
+            store(parse(args[key]))
+        except ValueError as exc:
+            if problems is None:
+                raise
+            problems[key] = str(exc)
+
+    for i, name in enumerate(SET_NAMES):
+        take(name, lambda text, name=name: _parse_set(name, text), lambda v, i=i: state.sets.__setitem__(i, v))
+    take("show", _parse_show, lambda v: setattr(state, "shown", v))
+    for key in ("active", "solo"):
+        take(key, lambda text, key=key: SET_NAMES.index(_choice(key, text, SET_NAMES)),
+             lambda v, key=key: setattr(state, key, v))
+    for key, attr, choices in (("q", "quantity", tuple(QUANTITIES)), ("model", "model", tuple(MODELS)),
+                               ("shadowing", "shadowing", tuple(sorted(SHADOWING))),
+                               ("dtype", "dtype", ("float64", "float32")), ("map", "map_kind", MAP_KINDS)):
+        take(key, lambda text, key=key, choices=choices: _choice(key, text, choices),
+             lambda v, attr=attr: setattr(s, attr, v))
+    take("ti", _parse_theta_i, lambda v: setattr(s, "theta_i", v))
+    take("phi", _parse_phi, lambda v: setattr(s, "phi", v))
+    for key in args:
+        if key not in QUERY_KEYS and not key.startswith("bokeh-"):  # bokeh's own arguments of an embedded page
+            line = f"URL: unknown key {key!r} (the keys are {', '.join(QUERY_KEYS)})"
+            if problems is None:
+                raise ValueError(line)
+            problems[key] = line
     return state
 
 

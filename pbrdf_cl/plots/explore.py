@@ -60,7 +60,8 @@ def _map(fig, ax, ds):
                           autolim=False)  # the map sets the limits; edge ticks are clipped
         ax.legend(loc="upper right", fontsize=7)
     ax.set_aspect("equal")
-    fig.colorbar(mesh, ax=ax, label=f"{m.attrs['long_name']} ({m.attrs['units']})")
+    cax = ax.inset_axes([1.04, 0.0, 0.04, 1.0])  # beside the map and as tall as it, not the figure's height
+    fig.colorbar(mesh, cax=cax, label=f"{m.attrs['long_name']} ({m.attrs['units']})")
 
 
 def _polar(ax, ds):
