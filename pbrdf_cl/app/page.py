@@ -28,11 +28,12 @@ from ..explore.sensitivity import sobol
 from ..fitting.inversion import fit
 from ..io.measurements import read_csv
 from ..io.params import NAMES, params_text
+from ..model import inputs
 from ..model.reference import SHADOWING
 from ..plots.explore import plot_view
 from . import state as st
+from .entries import NumberEntry
 from .figures import Figures
-from .inputs import NumberEntry
 
 #: Background jobs (fit, Sobol', design) of every session: one at a time per server, in a thread.
 POOL = ThreadPoolExecutor(max_workers=1, thread_name_prefix="pbrdf-explore")
@@ -145,7 +146,7 @@ class Explorer:
         self.fit_notes = pn.pane.HTML("", width=560, name="fit_notes")
         self.sobol_button = pn.widgets.Button(label="Sobol' map around this set", width=220)
         self.sobol_button.on_click(self._on_sobol)
-        self.sobol_param = pn.widgets.Select(label="parameter", options=["n", "k", "sigma", "kd", "c"], value="n",
+        self.sobol_param = pn.widgets.Select(label="parameter", options=list(inputs.FITTED), value="n",
                                              width=120)
         self.sobol_param.param.watch(lambda e: self._draw_sobol(), "value")
         self.sobol_share = NumberEntry("the box's share", "box: +- share of each range", (0.01, 0.5), 0.1,
@@ -201,7 +202,7 @@ class Explorer:
         self.status.object = f'<span style="color:{colour}">{html.escape(text, quote=False)}</span>' if text else ""
 
     def _complain(self, text):
-        """A refused entry (:class:`.inputs.NumberEntry`): its one line in the status line."""
+        """A refused entry (:class:`.entries.NumberEntry`): its one line in the status line."""
         self.say(one_line(text), error=True)
 
     def _complain_job(self, text):

@@ -13,13 +13,15 @@ import numpy as np
 from .. import ranges
 from ..compute.pointwise import evaluate
 from ..io.params import NAMES
+from ..model import inputs
 from ..plots.explore import SET_COLOURS
 
 #: The paper's steel at 435 nm (Fig. 4): what "reset" returns to.
 STEEL = dict(n=1.6, k=2.139, sigma=0.5, ks=0.9, kd=0.15, c=-0.3)
 #: Slider ranges (the fit's default bounds; ks from 0.05).
-LIMITS = dict(n=(1.0, 5.0), k=(0.0, 10.0), sigma=(0.05, 1.0), ks=(0.05, 5.0), kd=(0.0, 5.0), c=(-1.0, 0.0))
-STEPS = dict(n=0.01, k=0.01, sigma=0.01, ks=0.01, kd=0.01, c=0.01)
+#: The sliders' ranges: the registry's views of the parameters (:data:`pbrdf_cl.model.inputs.VIEWS`).
+LIMITS = inputs.VIEWS
+STEPS = {p: 0.01 for p in LIMITS}
 SET_NAMES = tuple(SET_COLOURS)
 COLOURS = tuple(SET_COLOURS.values())
 #: quantity -> (label, units, what pbrdf_cl.evaluate computes, Stokes component or None)
@@ -402,7 +404,7 @@ def sobol_box(params, share=0.1):
     ``share`` of its slider range either side, clipped to the range (ks fixed: the DOP depends on
     kd/ks only)."""
     box = {}
-    for p in ("n", "k", "sigma", "kd", "c"):
+    for p in inputs.FITTED:
         lo, hi = LIMITS[p]
         half = share * (hi - lo)
         a, b = max(lo, params[p] - half), min(hi, params[p] + half)
