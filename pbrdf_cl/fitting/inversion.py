@@ -17,40 +17,24 @@ import numpy as np
 
 from ..compute import pointwise
 from ..io.measurements import as_measurements
-from .basins import bound_seeds, grid_point
 from .common import dop_noise_floor
 from .result import ComparisonResult, fit_result, fit_status, model_notes
 from .setup import F00_REL_STD, FitSetup, check_model
-from .stages import (
-    BOBYQA_EVALS,
-    DIRECT_EVALS,
-    FINAL_BOBYQA,
+from .stages import (  # noqa: F401 (LS_POLISH: fit_joint's too)
     INTENSITY_MAXEVAL,
-    LS_MAX_NFEV,
-    PROFILE_SEEDS,
-    SCREEN_ITERATIONS,
-    Candidate,
+    LS_POLISH,
     Model,
     Residuals,
-    StageResult,
-    basin_stage,
-    bobyqa_stage,
-    direct_stage,
-    final_bobyqa_stage,
     grid_stage,
     intensity_stage,
     intensity_start,
-    least_squares_stage,
-    ranked,
-    screen_stage,
+    local_stages,
 )
 from .uncertainty import uncertainty_stage
 
 #: Grid points per free parameter for the device stage.
 DEFAULT_GRID = {"n": 24, "k": 32, "sigma": 16, "kd": 16, "c": 8}
 SPECULAR_GRID = {"n": 160, "k": 200}
-#: How many of the best BOBYQA candidates get the final least-squares polish.
-LS_POLISH = 2
 
 
 def check_fit_args(data, model, bounds, fixed, shadowing):
@@ -151,34 +135,14 @@ def fit_on_grid(meas, setup, grid_result, n_basins=6, derivative_free=True):
     std = meas.dop_std if meas.dop_std is not None else np.ones(len(meas))
     mdl = Model(meas, shadowing)
     dop_resid = Residuals(mdl, free, base, meas.dop, std)
-    rows = dop_resid.rows
-    st = {"grid": grid_result}
     grid = grid_result.value
-    axes = grid.axes
     # a ridge of at least one unit of chi^2 between valleys; without given uncertainties the
     # unit is estimated from the grid
     rise = 1.0 if meas.dop_std is not None else float(grid.sse.min()) / (len(meas) - len(free))
-    st["basins"] = basin_stage(grid, free, n_basins, rise, PROFILE_SEEDS)
-    basins = st["basins"].value
-    # the basins' optimisers of each stage run in lockstep, their evaluations batched
-    if derivative_free:
-        st["direct"] = direct_stage(rows, lo, hi, basins.seeds, basins.steps, DIRECT_EVALS)
-        st["bobyqa"] = bobyqa_stage(rows, lo, hi, st["direct"].value, basins.steps, BOBYQA_EVALS)
-        starts = ranked(st["bobyqa"].value)
-    else:
-        starts = [Candidate(np.inf, x, x) for x in basins.seeds]
-    # every candidate, and the best grid point of each bound slice (this model's optimum often
-    # sits on a bound: k = 0, n = 1, sigma = 1, kd = 0), descends its valley
-    edges = [grid_point(axes, free, idx) for idx in bound_seeds(grid.sse, basins.indices)]
-    st["screen"] = screen_stage(rows, lo, hi, starts + [Candidate(np.inf, x, x) for x in edges], SCREEN_ITERATIONS)
-    cands = ranked(st["screen"].value)
-    top = min(LS_POLISH, len(cands))  # the best candidates, least squares to the end
-    st["least_squares"] = least_squares_stage(rows, lo, hi, cands[:top], LS_MAX_NFEV)
-    cands = ranked(st["least_squares"].value + cands[top:])
-    final_ran = cands[0].converged is False
-    st["final_bobyqa"] = (final_bobyqa_stage(rows, lo, hi, cands[0], FINAL_BOBYQA) if final_ran
-                          else StageResult(cands[0], 0, 0.0))
-    cands[0] = best = st["final_bobyqa"].value
+    cands, final_ran, st = local_stages(dop_resid.rows, lo, hi, grid, free, n_basins, rise, derivative_free)
+    st = {"grid": grid_result, **st}
+    best = cands[0]
+    axes = grid.axes
 
     use_f00 = setup.fits_intensity(meas.f00 is not None)
     resid, x_final, lo_f, hi_f = dop_resid, best.x, lo, hi

@@ -319,15 +319,18 @@ def run_stage(resid_rows, jobs):
     return StageResult(out, runner.rows, time.perf_counter() - t0)
 
 
-def grid_stage(meas, free, axes, base, shadowing="paper", *, engine=None, backend="auto", progress=False):
+def grid_stage(meas, free, axes, base, shadowing="paper", *, engine=None, backend="auto", progress=False,
+               channels=None):
     """(a) The objective on the grid ``axes`` (name -> nodes, one per free parameter) with the
-    other parameters at ``base``, on the OpenCL device (float32), and its profiles."""
+    other parameters at ``base``, on the OpenCL device (float32), and its profiles: of the DOP of
+    ``meas``, or of polarimetric ``channels`` (:class:`~pbrdf_cl.model.measurables.Channels`)."""
     import warnings
     t0 = time.perf_counter()
     with warnings.catch_warnings():  # fit's argument check gives the radians warning, once
         warnings.simplefilter("ignore", pointwise.UnitsWarning)
-        obj = dense.objective(meas.as_dict(), grid={**base, **axes}, k_best=1, dtype="float32", shadowing=shadowing,
-                              engine=engine, backend=backend, progress=progress)
+        obj = dense.objective(meas.as_dict() if channels is None else channels, grid={**base, **axes}, k_best=1,
+                              dtype="float32", shadowing=shadowing, engine=engine, backend=backend,
+                              progress=progress)
     sse = obj.sse.transpose(*free).values
     profiles = basins.grid_profiles(sse, free)
     return StageResult(GridStage(sse, axes, profiles), int(sse.size), time.perf_counter() - t0)
@@ -418,6 +421,40 @@ def final_bobyqa_stage(resid_rows, lo, hi, cand, evals=FINAL_BOBYQA):
         return replace(cand.better(f, x), converged=n <= maxeval or _settled(seen, 2 * lo.size + 2))
     out = run_stage(resid_rows, [run])
     return StageResult(out.value[0], out.nfev, out.seconds)
+
+
+#: How many of the best candidates of the screen get the least-squares polish.
+LS_POLISH = 2
+
+
+def local_stages(rows, lo, hi, grid, free, n_basins, rise, derivative_free=True):
+    """:func:`fit`'s stages between the grid and the intensities, on the residual rows ``rows``:
+    the grid's basins (``n_basins``, valleys behind a ridge of ``rise``), DIRECT-L and BOBYQA from
+    each (unless not ``derivative_free``), the Levenberg-Marquardt screen of them and of the bound
+    slices' best nodes, least squares from the best, the final BOBYQA where it ran out.  Returns
+    (candidates best first, whether the final BOBYQA ran, the stages' results by name)."""
+    st = {"basins": basin_stage(grid, free, n_basins, rise, PROFILE_SEEDS)}
+    found = st["basins"].value
+    # the basins' optimisers of each stage run in lockstep, their evaluations batched
+    if derivative_free:
+        st["direct"] = direct_stage(rows, lo, hi, found.seeds, found.steps, DIRECT_EVALS)
+        st["bobyqa"] = bobyqa_stage(rows, lo, hi, st["direct"].value, found.steps, BOBYQA_EVALS)
+        starts = ranked(st["bobyqa"].value)
+    else:
+        starts = [Candidate(np.inf, x, x) for x in found.seeds]
+    # every candidate, and the best grid point of each bound slice (this model's optimum often
+    # sits on a bound: k = 0, n = 1, sigma = 1, kd = 0), descends its valley
+    edges = [basins.grid_point(grid.axes, free, idx) for idx in basins.bound_seeds(grid.sse, found.indices)]
+    st["screen"] = screen_stage(rows, lo, hi, starts + [Candidate(np.inf, x, x) for x in edges], SCREEN_ITERATIONS)
+    cands = ranked(st["screen"].value)
+    top = min(LS_POLISH, len(cands))  # the best candidates, least squares to the end
+    st["least_squares"] = least_squares_stage(rows, lo, hi, cands[:top], LS_MAX_NFEV)
+    cands = ranked(st["least_squares"].value + cands[top:])
+    final_ran = cands[0].converged is False
+    st["final_bobyqa"] = (final_bobyqa_stage(rows, lo, hi, cands[0], FINAL_BOBYQA) if final_ran
+                          else StageResult(cands[0], 0, 0.0))
+    cands[0] = st["final_bobyqa"].value
+    return cands, final_ran, st
 
 
 def intensity_start(model, p, f00, f00_std, ks_bounds):
