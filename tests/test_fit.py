@@ -11,7 +11,7 @@ import pytest
 
 import pbrdf_cl
 from pbrdf_cl.cli import fit as cli_fit
-from pbrdf_cl.fitting import basins, common, inversion, stages, uncertainty
+from pbrdf_cl.fitting import basins, common, stages, uncertainty
 from pbrdf_cl.fitting import setup as fit_setup
 from pbrdf_cl.io.measurements import PHI_DEFAULT_NOTE, from_arrays, read_csv
 
@@ -165,11 +165,11 @@ def test_profile_valleys_and_bound_slices_seed_a_distant_basin(monkeypatch):
     r = pbrdf_cl.fit(meas)
     assert r.chi2 <= best * (1 + 1e-9) and r.x["k"] < 1
     # each kind of extra seed finds it alone; the grid's local minima alone lead elsewhere
-    monkeypatch.setattr(inversion, "PROFILE_SEEDS", 0)
+    monkeypatch.setattr(stages, "PROFILE_SEEDS", 0)
     assert pbrdf_cl.fit(meas).chi2 <= best * (1 + 1e-9)
-    monkeypatch.setattr(inversion, "bound_seeds", lambda sse, basins: [])
+    monkeypatch.setattr(basins, "bound_seeds", lambda sse, found: [])
     assert pbrdf_cl.fit(meas).chi2 > best + 0.01
-    monkeypatch.setattr(inversion, "PROFILE_SEEDS", 2)
+    monkeypatch.setattr(stages, "PROFILE_SEEDS", 2)
     assert pbrdf_cl.fit(meas).chi2 <= best * (1 + 1e-9)
 
 
@@ -223,13 +223,13 @@ def test_batched_levenberg_marquardt():
 
 def test_bound_seeds_are_the_best_points_of_the_bound_slices():
     sse = np.arange(48.0).reshape(6, 8)[::-1] % 7  # some landscape
-    seeds = inversion.bound_seeds(sse, [])
+    seeds = basins.bound_seeds(sse, [])
     for idx in seeds:
         assert any(idx[j] in (0, sse.shape[j] - 1) for j in range(2))
         j = 0 if idx[0] in (0, 5) else 1
         assert sse[idx] == np.take(sse, idx[j], axis=j).min()
     assert len(seeds) == len(set(seeds)) and len(seeds) >= 2
-    assert inversion.bound_seeds(sse, [(a, b) for a in range(6) for b in range(8)]) == []  # all taken
+    assert basins.bound_seeds(sse, [(a, b) for a in range(6) for b in range(8)]) == []  # all taken
 
 
 def test_interval_pieces_interpolate_between_sharp_and_flat():

@@ -220,9 +220,9 @@ def test_fit_status_of_a_converged_fit_and_of_a_starved_one(monkeypatch):
     assert "status" not in r.summary()
     r.label = "steel"  # attribute assignment
     assert r["label"] == "steel"
-    monkeypatch.setattr(inversion, "SCREEN_ITERATIONS", 0)  # no descent of the candidates
-    monkeypatch.setattr(inversion, "LS_MAX_NFEV", 0.4)      # least squares: 2 evaluations
-    monkeypatch.setattr(inversion, "FINAL_BOBYQA", 2)       # the final BOBYQA: 10
+    monkeypatch.setattr(stages, "SCREEN_ITERATIONS", 0)  # no descent of the candidates
+    monkeypatch.setattr(stages, "LS_MAX_NFEV", 0.4)         # least squares: 2 evaluations
+    monkeypatch.setattr(stages, "FINAL_BOBYQA", 2)          # the final BOBYQA: 10
     starved = pbrdf_cl.fit(meas)
     assert starved.nfev["final_bobyqa"] > 0
     assert starved.success is False and starved.status == 0 and starved.message.startswith("stopped:")

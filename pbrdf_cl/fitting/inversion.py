@@ -18,6 +18,7 @@ import numpy as np
 from ..compute import pointwise
 from ..io.measurements import as_measurements
 from .common import dop_noise_floor
+from .polarimetric import fit_channels
 from .result import ComparisonResult, fit_result, fit_status, model_notes
 from .setup import F00_REL_STD, FitSetup, check_model
 from .stages import (  # noqa: F401 (LS_POLISH: fit_joint's too)
@@ -44,6 +45,8 @@ def check_fit_args(data, model, bounds, fixed, shadowing):
     pointwise.check_degrees(meas.theta_i, meas.theta_r, f"{meas.source}: ")
     setup = FitSetup.check(model, bounds, fixed, shadowing)
     free = setup.free
+    if meas.polarimetric:  # several numbers a row: fit_channels counts them
+        return meas, setup
     if len(meas) <= len(free):
         raise ValueError(f"{meas.source}: {len(meas)} measurements for {len(free)} free parameters "
                          f"({', '.join(free)}); at least {len(free) + 1} are needed")
@@ -111,6 +114,8 @@ def fit(data, model="six-param", bounds=None, fixed=None, shadowing="paper", *, 
     """
     meas, setup = check_fit_args(data, model, bounds, fixed, shadowing)
     axes = setup.grid_axes(grid_shape_of(model, grid_shape))
+    if meas.polarimetric:
+        return fit_channels(meas, setup, axes, n_basins, engine=engine, backend=backend, progress=progress)
     grid = grid_stage(meas, setup.free, axes, setup.base, shadowing, engine=engine, backend=backend,
                       progress=progress)
     return fit_on_grid(meas, setup, grid, n_basins)

@@ -3,6 +3,8 @@ table), :class:`ComparisonResult`, and the notes a fit carries (the model's conv
 data's mistakes, bounds, identifiability, goodness of fit, ambiguous basins)."""
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
 from ..compute import pointwise
@@ -93,7 +95,7 @@ class FitResult(Result):
                              f"95% interval [{lo:.4g}, {hi:.4g}]" + self._kd_tag(name))
             else:
                 lines.append(f"  {name:6s} = {self['x'][name]:10.5g}  (fixed)" + self._kd_tag(name))
-        fit_line = f"  SSE {self['sse']:.4g} (DOP), RMSE {self['rmse']:.4g}"
+        fit_line = f"  SSE {self['sse']:.4g} ({self.get('observed', 'DOP')}), RMSE {self['rmse']:.4g}"
         if self.get("sigma_known"):  # chi2 means something only with given uncertainties
             fit_line += (f", chi2 {self['chi2']:.4g} for {self['dof']} dof (reduced {self['reduced_chi2']:.3g}, "
                          f"p = {self['p_value']:.3g})")
@@ -147,17 +149,30 @@ def fit_status(best, final_ran, intensity):
     return 2 if final_ran else 1
 
 
-def fit_result(meas, model, shadowing, resid, x, lo, hi, unc, cands, grid, stages, status, notes):
-    """The :class:`FitResult` of :func:`fit` from its stages' outputs."""
+class Observed(NamedTuple):
+    """What a fit's summary statistics are of (the DOP of a DOP fit, the normalised channels of a
+    polarimetric one): the measured ``values``, the ``residuals`` of the fit at them (unweighted;
+    an AoP's wrapped), whether their uncertainties were given (``sigma_known``) and the ``label``
+    of the report's SSE ("DOP", "s1, s2", ...)."""
+    values: np.ndarray
+    residuals: np.ndarray
+    sigma_known: bool
+    label: str = "DOP"
+
+
+def fit_result(meas, model, shadowing, resid, x, lo, hi, unc, cands, grid, stages, status, notes, observed=None):
+    """The :class:`FitResult` of :func:`fit` from its stages' outputs; ``observed`` (an
+    :class:`Observed`) is what its SSE, RMSE and goodness of fit are of (default: the DOP)."""
     names, free = list(resid.free), list(grid.axes)
-    sigma_known = meas.dop_std is not None
     p = resid.params(x)
-    dop_resid = resid.model.dop(p) - meas.dop
+    if observed is None:
+        observed = Observed(meas.dop, resid.model.dop(p) - meas.dop, meas.dop_std is not None)
+    sigma_known, dop_resid = observed.sigma_known, observed.residuals
     m_obs, n_free = unc.residuals.size, len(names)
     # -2 log-likelihood up to a constant: chi^2 with known sigmas, else m log(SSE / m)
     neg2ll = unc.chi2 if sigma_known else m_obs * np.log(max(unc.chi2, 1e-300) / m_obs)
     aic, bic = neg2ll + 2 * n_free, neg2ll + n_free * np.log(m_obs)
-    fits_data, p_value, r2, first = _goodness(meas, dop_resid, unc, sigma_known)
+    fits_data, p_value, r2, first = _goodness(observed.values, dop_resid, unc, sigma_known, observed.label)
     notes = first + _convention_notes(meas) + notes + _bound_notes(names, x, lo, hi, unc.ci95)
     notes += identifiability_notes(names, unc.jacobian, unc.condition_number, unc.eig, x, unc.stderr, unc.corr,
                                     hi - lo)
@@ -165,7 +180,7 @@ def fit_result(meas, model, shadowing, resid, x, lo, hi, unc, cands, grid, stage
         notes.append(f"the fit is (nearly) exact: the noise estimated from the residuals (std "
                      f"{np.sqrt(unc.chi2 / unc.dof):.2g}) is below the noise floor, so the uncertainties assume "
                      f"DOP noise of std {unc.noise_floor:.2g} (the larger of the data's DOP resolution "
-                     f"{dop_resolution(meas.dop):g} / sqrt(12) and {DOP_NOISE_FLOOR:g}); give a dop_std column "
+                     f"{dop_resolution(observed.values):g} / sqrt(12) and {DOP_NOISE_FLOOR:g}); give a dop_std column "
                      "to set it")
     ambiguous = _ambiguous_basins(cands, free, unc.unit, unc.stderr)
     if ambiguous:
@@ -182,7 +197,8 @@ def fit_result(meas, model, shadowing, resid, x, lo, hi, unc, cands, grid, stage
         model=model, shadowing=shadowing, x=x_out, kd_ratio=float(kd_ratio) if model == "six-param" else None,
         free=names, sse=float(dop_resid @ dop_resid), chi2=unc.chi2,
         reduced_chi2=unc.chi2 / unc.dof, rmse=float(np.sqrt(np.mean(dop_resid ** 2))), residuals=dop_resid,
-        dof=unc.dof, n_points=len(meas), stderr=dict(zip(names, map(float, unc.stderr))), ci95=unc.ci95,
+        dof=unc.dof, n_points=observed.values.size, observed=observed.label,
+        stderr=dict(zip(names, map(float, unc.stderr))), ci95=unc.ci95,
         ci95_jacobian=unc.ci95_jacobian, ci95_profile=unc.ci95_profile,
         profiles={n: dict(values=grid.axes[n], sse=grid.profiles[n]) for n in free},
         corr=_labelled(unc.corr, names, "correlation"), cov=_labelled(unc.cov, names, "covariance"),
@@ -257,21 +273,21 @@ def identifiability_notes(names, J, cond, eig, x, se, corr, scale):
     return notes
 
 
-def _goodness(meas, dop_resid, unc, sigma_known):
-    """(fits, p-value or None, R^2 or None, notes): whether the model describes the data, by chi2
-    against its degrees of freedom with given uncertainties, else by the residuals against the
-    data's spread."""
+def _goodness(values, dop_resid, unc, sigma_known, label="DOP"):
+    """(fits, p-value or None, R^2 or None, notes): whether the model describes the data
+    (``values``, the fit's residuals ``dop_resid`` at them), by chi2 against its degrees of freedom
+    with given uncertainties, else by the residuals against the data's spread."""
     from scipy.stats import chi2 as chi2_dist
-    sst = float(np.sum((meas.dop - meas.dop.mean()) ** 2))
+    sst = float(np.sum((values - values.mean()) ** 2))
     r2 = 1.0 - float(dop_resid @ dop_resid) / sst if sst > 0 else None
     p = float(chi2_dist.sf(unc.chi2, unc.dof)) if sigma_known and unc.dof > 0 else None
     if p is not None and p < GOODNESS_P:
         return False, p, r2, [f"the model does not describe these data: chi2 = {unc.chi2:.4g} for {unc.dof} degrees "
                               f"of freedom (p = {p:.2g}); usual causes: {MISTAKE_CAUSES}"]
     if p is None and r2 is not None and r2 < GOODNESS_R2:
-        return False, p, r2, [f"the model does not describe these data: it explains {max(r2, 0):.0%} of the DOP's "
+        return False, p, r2, [f"the model does not describe these data: it explains {max(r2, 0):.0%} of the {label}'s "
                               f"variance (RMSE {np.sqrt(np.mean(dop_resid ** 2)):.3g} against the data's spread "
-                              f"{np.sqrt(sst / len(meas)):.3g}); usual causes: {MISTAKE_CAUSES}"]
+                              f"{np.sqrt(sst / values.size):.3g}); usual causes: {MISTAKE_CAUSES}"]
     return True, p, r2, []
 
 

@@ -149,14 +149,15 @@ def duplicates_note(meas):
     """A note where rows repeat an earlier row exactly (geometry and every measured value), else
     None: a fit counts each row as an independent measurement, so copies of one measurement (a
     file appended to itself) narrow the intervals by up to the square root of the copies."""
-    cols = [meas.theta_i, meas.theta_r, meas.phi, meas.dop] + [c for c in (meas.f00,) if c is not None]
-    table = np.column_stack(cols)
+    cols = [meas.theta_i, meas.theta_r, meas.phi, *meas.columns().values()]
+    table = np.column_stack(cols + ([] if meas.incident is None else [meas.incident]))
     _, first, counts = np.unique(table, axis=0, return_index=True, return_counts=True)
     repeats = int(len(meas) - first.size)
     if not repeats:
         return None
     j = int(np.flatnonzero(np.isin(np.arange(len(meas)), first, invert=True))[0])
-    i = int(np.flatnonzero((table == table[j]).all(axis=1))[0])
+    same = (table == table[j]) | (np.isnan(table) & np.isnan(table[j]))
+    i = int(np.flatnonzero(same.all(axis=1))[0])
     where = _locator("", meas.lines)
     return (f"{repeats} of the {len(meas)} rows repeat an earlier row exactly (geometry and values; e.g. "
             f"{where(j).lstrip(', ')} repeats {where(i).lstrip(', ')}), up to {int(counts.max())} copies: the fit "

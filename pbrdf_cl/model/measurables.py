@@ -98,6 +98,31 @@ class Channels:
         """Which channels are absolute (their value scales with ks): c = 1."""
         return self.abc[:, 2] > 0
 
+    def normalised(self):
+        """These channels with the absolute ones made relative to their row's intensity, as the DOP:
+        S1..S3 over the row's S0, M_ij over its M00 (their std propagated), and S0, M00, F00 and
+        absolute channels of rows without them left out.  What depends on ks and kd only through
+        kd/ks: the channels of the fit's grid stage."""
+        keep = ~self.absolute
+        out = {f.name: getattr(self, f.name) for f in fields(self)}
+        out = {k: np.array(v, copy=True) for k, v in out.items()}
+        for family, first in (("s", "s0"), ("m", "m00")):
+            base = {r: i for i, (r, n) in enumerate(zip(self.row, self.name)) if n == first}
+            for i in np.flatnonzero(self.absolute):
+                name = self.name[i]
+                if name == first or not name.startswith(family) or self.row[i] not in base:
+                    continue
+                j = base[self.row[i]]
+                if not self.obs[j] > 0:
+                    continue
+                ratio = self.obs[i] / self.obs[j]
+                out["obs"][i] = ratio
+                out["std"][i] = np.hypot(self.std[i], ratio * self.std[j]) / self.obs[j]
+                out["v"][i] = self.u[i] if family == "s" else np.eye(4)[0]
+                out["abc"][i] = (0.0, 1.0, 0.0)
+                keep[i] = True
+        return replace(self, **out).take(keep)
+
     def values(self, f, fr, logK, fd):
         """The model's value of every channel from the Fresnel factors ``f``, frames ``fr``, log K
         and fd at the channels' geometry (arrays broadcasting over the channels, last axis)."""
