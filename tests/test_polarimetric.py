@@ -253,3 +253,26 @@ def test_fit_refuses_mixed_weights_in_one_line(extra, words):
     with pytest.raises(ValueError) as err:
         pbrdf_cl.fit(dict(cam, **extra))
     assert words in str(err.value) and "\n" not in str(err.value)
+
+
+def test_cli_eval_prints_stokes_for_an_incident_state(capsys):
+    """``pbrdf-cl eval --quantity stokes --incident 0,1,0`` prints pbrdf_cl.stokes(incident=) (text and
+    JSON); another quantity with --incident, a state that is not a Stokes vector and a state that
+    is not three numbers are refused in one line."""
+    import json
+
+    from pbrdf_cl.cli import main
+    args = ["eval", "--theta-i", "40", "--theta-r", "45", "--phi", "150", "--n", "1.6", "--k", "2.139", "--sigma",
+            "0.5", "--ks", "0.9", "--kd", "0.15", "--c", "-0.3", "--quantity", "stokes", "--incident", "0,1,0"]
+    assert main(args + ["--json"]) == 0
+    got = json.loads(capsys.readouterr().out)
+    want = pbrdf_cl.stokes(40, 45, 150, **STEEL, incident=(0, 1, 0))
+    np.testing.assert_allclose(got["rows"][0]["stokes"], want, rtol=1e-12)
+    assert got["incident"] == [0.0, 1.0, 0.0]
+    assert main(args) == 0 and "for incident (0,1,0)" in capsys.readouterr().out
+    for bad, words in ((["--quantity", "dop"], "use --quantity stokes, not dop"),
+                       (["--incident", "0.9,0.9,0"], "is not a Stokes vector"),
+                       (["--incident", "45"], "give the normalised Stokes vector S1,S2,S3")):
+        assert main(args + bad) == 1
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and words in err, err

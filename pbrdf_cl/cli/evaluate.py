@@ -54,7 +54,11 @@ def cmd_eval(args) -> int:
     par = {n: cols[n] for n in inputs.PARAMETERS if n in cols}
     try:
         q = quantities.get(args.quantity, "points", "--quantity")
-        result = pointwise.evaluate(q.name, pos["theta_i"], pos["theta_r"], pos["phi"], **par, **kw)
+        if args.incident is None:
+            result = pointwise.evaluate(q.name, pos["theta_i"], pos["theta_r"], pos["phi"], **par, **kw)
+        else:
+            result = pointwise.stokes(pos["theta_i"], pos["theta_r"], pos["phi"], **par, **kw,
+                                      incident=incident_state(args.incident, q.name))
     except (ValueError, FloatingPointError, _engine.OpenCLUnavailableError) as exc:
         return error(exc)
     out_name = q.name
@@ -64,10 +68,14 @@ def cmd_eval(args) -> int:
                    for i in range(len(rows))]
         print(json.dumps(dict(quantity=out_name, shadowing=args.shadowing, dtype=args.dtype,
                               backend=kw["engine"].backend,
-                              device=kw["engine"].description, model=args.model, rows=records), indent=2))
+                              device=kw["engine"].description, model=args.model,
+                              incident=None if args.incident is None else list(incident_state(args.incident, out_name)),
+                              rows=records), indent=2))
         return 0
     header = [n for n in names]
     what = {"mueller": "mueller (row-major, 16 values)", "stokes": "stokes (S0 S1 S2 S3)"}.get(out_name, out_name)
+    if args.incident is not None:
+        what += f" for incident ({args.incident})"
     print("  ".join(f"{h:>8s}" for h in header) + f"  {what}" + (f" ({q.units})" if q.units != "1" else ""))
     for i in range(len(rows)):
         lead = "  ".join(f"{cols[n][i]:8.4g}" for n in names)
@@ -77,6 +85,22 @@ def cmd_eval(args) -> int:
             val = f"{result[i]:.8g}"
         print(f"{lead}  {val}")
     return 0
+
+
+def incident_state(text, quantity):
+    """``--incident S1,S2,S3`` (the incident light's normalised Stokes vector) as three numbers;
+    one-line refusals (a quantity other than the Stokes vector, not three numbers)."""
+    if quantity != "stokes":
+        raise ValueError(f"--incident gives the Stokes vector of the reflected light (S0 S1 S2 S3) under that "
+                         f"state: use --quantity stokes, not {quantity}")
+    try:
+        values = tuple(float(v) for v in text.replace(" ", "").split(","))
+    except ValueError:
+        values = ()
+    if len(values) != 3:
+        raise ValueError(f"--incident {text!r}: give the normalised Stokes vector S1,S2,S3 of the incident light, "
+                         "e.g. 1,0,0 (linear along s), 0,1,0 (at 45 degrees), 0,0,1 (circular)")
+    return values
 
 
 def eval_parser(sub):
@@ -94,6 +118,9 @@ def eval_parser(sub):
     e.add_argument("--model", choices=pointwise.MODELS, default="six-param",
                    help="six-param, or specular: the ref. [7] model (kd = 0; the DOP then needs no --sigma)")
     e.add_argument("--dtype", choices=("float32", "float64"), default="float64", help="precision")
+    e.add_argument("--incident", metavar="S1,S2,S3", help="with --quantity stokes: the incident light's normalised "
+                   "Stokes vector in its beam's s/p frame (1,0,0: linear along s; 0,1,0: at +45 degrees; 0,0,1: "
+                   "circular); default unpolarised")
     e.add_argument("--params", metavar="FILE", help="n, k, sigma, ks, kd, c from a JSON or TOML file (as `pbrdf-cl "
                    "explore` exports a set); the options given here win")
     device_options(e)
