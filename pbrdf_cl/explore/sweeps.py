@@ -63,6 +63,7 @@ from ..model.reference import SHADOWING
 from ..results import Result
 from ..store import cluster, interrupt
 from ..store import zarr as zarr_store
+from ..version import __version__
 
 try:
     import tomllib
@@ -418,7 +419,6 @@ def load_spec(spec):
 # the store (the Zarr layer: pbrdf_cl.store.zarr)
 
 def _root_attrs(spec, complete=False):
-    from .. import __version__
     q = quantities.get(spec.quantity)
     attrs = dict(title=spec.title or f"pbrdf-cl sweep of {spec.quantity}", quantity=spec.quantity,
                  long_name=q.long_name, units=q.units,

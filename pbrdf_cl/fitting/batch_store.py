@@ -48,6 +48,7 @@ from ..device.engine import kernels_sha256, resolve_engine
 from ..errors import StoreError
 from ..store import cluster, interrupt
 from ..store import zarr as zarr_store
+from ..version import __version__
 from .dataset import PIXEL_STATUS, goodness_summary
 
 #: Version of the canonical settings (part of their hash).
@@ -283,7 +284,6 @@ def _write_skeleton(job, blocks, block_rows, the_settings, memory_budget, store)
                      block_rows=int(block_rows))
     zarr_store.create_done(g, len(blocks))
     zarr_store.create_array(sub, "input_sha256", (len(blocks), 32), (1, 32), "u1", 0, None, {})
-    from .. import __version__
     text, digest = _canonical(the_settings)
     g.attrs.update({**template.attrs, "title": "pbrdf-cl per-pixel fit", "pbrdf_cl_version": __version__,
                     "batch_settings": text, "batch_settings_sha256": digest, "sweep_kernels_sha256": kernels_sha256(),
