@@ -44,7 +44,7 @@ import time
 import numpy as np
 
 from .. import sizes
-from ..device.engine import kernels_sha256, resolve_engine
+from ..device.engine import engine_for, kernels_sha256
 from ..errors import StoreError
 from ..store import cluster, interrupt
 from ..store import zarr as zarr_store
@@ -510,7 +510,7 @@ def local_engine(engine=None, backend="auto", device=None):
     NumpyEngine(float64 reference)
     """
     if engine is not None or device is None:
-        return resolve_engine(engine, backend)
+        return engine_for(engine, backend=backend)
     return cluster.worker_engine(device, backend)
 
 

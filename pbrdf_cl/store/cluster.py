@@ -14,7 +14,7 @@ import tempfile
 import threading
 import uuid
 
-from ..device.engine import resolve_engine
+from ..device.engine import engine_for
 from . import interrupt
 
 #: This process's engines, by (device, backend) (:func:`worker_engine`).
@@ -39,13 +39,10 @@ def per_process(cache, key, make):
 
 def worker_engine(device=None, backend="auto"):
     """This process's engine for ``device`` and ``backend`` (built once, then reused by every
-    chunk; see :func:`pbrdf_cl.device.engine.resolve_engine`)."""
+    unit of work; see :func:`pbrdf_cl.device.engine.engine_for`)."""
     def make():
         _default_pocl_cache()
-        if device is None or backend == "numpy":
-            return resolve_engine(None, backend)
-        from ..device.engine import Engine
-        return Engine(device)
+        return engine_for(None, device, backend)
     return per_process(_ENGINES, (device, backend), make)
 
 
