@@ -46,8 +46,7 @@ from .fitting.joint_result import JointResult
 from .fitting.result import FitResult
 from .io.measurements import Measurements, as_measurements, read_csv
 from .model import quantities
-
-__version__ = "0.1.0"
+from .version import __version__
 
 __all__ = ["dop", "brdf", "aop", "stokes", "mueller", "evaluate", "quantities", "validate", "MODELS",
            "grid", "reduce_grid", "objective", "ObjectiveResult",

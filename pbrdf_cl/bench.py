@@ -438,8 +438,7 @@ def main(argv=None):
     size, repeats, scale = args.points, args.repeats, 1.0
     if args.quick:
         size, repeats, scale = 1 << 16, 2, 0.25
-    eng = _engine.resolve_engine(_engine.Engine(args.device) if args.device and args.backend != "numpy" else None,
-                                 args.backend)
+    eng = _engine.engine_for(device=args.device or None, backend=args.backend)
     sweep_scale = scale
     if not eng.has_kernels:
         scale = min(scale, 0.25)  # the reference, without kernels, is ~100x slower than a device: smaller grids

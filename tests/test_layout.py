@@ -2,7 +2,11 @@
 700 code lines and no function over 90 (code lines: neither blank, comment nor docstring); no
 import circle between modules; no module using another's private name (``from .x import _y`` or
 ``x._y``); callers outside the device layer branching on the backend (``is_numpy``) 5 times at
-most; every exception and warning class defined in ``pbrdf_cl/errors.py`` and exported."""
+most and never comparing a backend's name (``backend == "numpy"``: the device layer's
+``engine_for`` and ``resolve_engine`` decide what a name means); no module importing the package
+root (``from .. import __version__``, ``import pbrdf_cl``: it imports every public name, and
+``pbrdf_cl.version`` holds the version); every exception and warning class defined in
+``pbrdf_cl/errors.py`` and exported."""
 import ast
 import io
 import tokenize
@@ -91,7 +95,7 @@ def imports(path):
 def test_no_import_circle():
     graph = {dotted(p): {m for m, _, _ in imports(p) if m != dotted(p)} for p in MODULES}
     packages = {dotted(p) for p in MODULES if p.name == "__init__.py"}
-    # a package's face imports its modules, and a module its package's face for __version__: not circles
+    # a package's face imports its modules: not circles
     graph = {m: {t for t in ts if t not in packages} for m, ts in graph.items() if m not in packages}
     circles, state = [], {}
 
@@ -140,6 +144,79 @@ def test_backend_branches_outside_the_device_layer():
             if isinstance(node, ast.Attribute) and node.attr == "is_numpy":
                 found.append(f"{path.relative_to(PKG)}:{node.lineno}")
     assert len(found) <= MAX_BACKEND_BRANCHES, f"{len(found)} branches on the backend:\n" + "\n".join(found)
+
+
+BACKEND_NAMES = {"auto", "opencl", "numpy"}  # pbrdf_cl.device.engine.BACKENDS
+
+
+def _strings(node):
+    """The string constants of a comparison's operand, or of a tuple/list/set of them."""
+    elts = node.elts if isinstance(node, (ast.Tuple, ast.List, ast.Set)) else [node]
+    return {e.value for e in elts if isinstance(e, ast.Constant) and isinstance(e.value, str)}
+
+
+def _names_backend(node):
+    """Whether an operand is a name or attribute that holds a backend (``backend``, ``args.backend``)."""
+    return isinstance(node, ast.Name) and "backend" in node.id or \
+        isinstance(node, ast.Attribute) and "backend" in node.attr
+
+
+def backend_name_comparisons():
+    """``backend == "numpy"``, ``args.backend != "numpy"``, ``backend in ("auto", "opencl")``: every
+    comparison outside ``device/`` with a backend's name or a ``backend`` variable in it."""
+    found = []
+    for path in MODULES:
+        if "device" in path.relative_to(PKG).parts:
+            continue
+        for node in ast.walk(TREES[path]):
+            if isinstance(node, ast.Compare):
+                operands = [node.left, *node.comparators]
+                if any(_strings(o) & BACKEND_NAMES or _names_backend(o) for o in operands):
+                    found.append(f"{path.relative_to(PKG)}:{node.lineno}")
+    return found
+
+
+def test_no_backend_name_comparison_outside_the_device_layer():
+    found = backend_name_comparisons()
+    assert not found, (f"{len(found)} comparisons of a backend's name outside pbrdf_cl/device/ (use "
+                       "device.engine.engine_for / resolve_engine):\n" + "\n".join(found))
+
+
+def root_imports():
+    """Every import of the package root from inside the package: ``import pbrdf_cl``, ``from pbrdf_cl
+    import x`` and ``from .. import x`` where x is not a module (``__version__``), at module level or
+    inside a function."""
+    found = []
+    for path in MODULES:
+        if path == PKG / "__init__.py":
+            continue
+        for mod, names, line in imports(path):
+            if mod == "pbrdf_cl":  # the root itself, not one of its modules (those are named in full)
+                found.append(f"{path.relative_to(PKG)}:{line}: {mod} {' '.join(names)}".rstrip())
+    return found
+
+
+def test_no_module_imports_the_package_root():
+    found = root_imports()
+    assert not found, (f"{len(found)} imports of the package root (import the module that owns the name, "
+                       "pbrdf_cl.version for __version__):\n" + "\n".join(found))
+
+
+def test_the_checks_find_what_they_look_for():
+    """The two counts above on made-up sources: they find each form (so that a count of 0 means none)."""
+    source = ("def f(args, backend):\n    if backend == 'numpy' or args.backend != 'opencl':\n        pass\n"
+              "    if backend in ('auto', 'opencl'):\n        pass\n    from .. import __version__\n"
+              "    import pbrdf_cl\n    from pbrdf_cl import dop\n    from .. import sizes\n")
+    fake = PKG / "store" / "made_up.py"
+    TREES[fake] = ast.parse(source)
+    MODULES.append(fake)
+    try:
+        assert len(backend_name_comparisons()) == 3
+        assert [f.split(": ", 1)[1] for f in root_imports()] == ["pbrdf_cl __version__", "pbrdf_cl",
+                                                                 "pbrdf_cl dop"]
+    finally:
+        MODULES.remove(fake)
+        del TREES[fake]
 
 
 def test_every_exception_is_defined_in_errors_and_exported():

@@ -84,7 +84,7 @@ def _positionals_first(argv):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from .. import __version__
+    from ..version import __version__
     p = _Parser(prog="pbrdf-cl", description="The six-parameter pBRDF model on OpenCL. "
                 "Angles in degrees; phi = 180 is the in-plane geometry. `pbrdf-cl COMMAND --help` for each.")
     p.add_argument("--version", action="version", version=f"pbrdf-cl {__version__}")

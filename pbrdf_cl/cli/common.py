@@ -36,17 +36,12 @@ def interrupted(progress, units, store) -> int:
 
 
 def engine_for(args):
-    """The engine of a subcommand from its ``--backend`` and ``--device``; an unusable explicit
+    """The engine of a subcommand from its ``--backend`` and ``--device``
+    (:func:`pbrdf_cl.device.engine.engine_for`); an unusable explicit
     device, ``--backend opencl`` without a usable device, or a fallback to numpy caused by an
     unwritable PoCL cache raise :class:`CommandError`."""
-    backend = getattr(args, "backend", "auto")
-    device = getattr(args, "device", None)
     try:
-        if backend == "numpy":
-            return _engine.NumpyEngine()
-        if device:
-            return _engine.Engine(device)
-        eng = _engine.get_default_engine(backend)
+        eng = _engine.engine_for(device=getattr(args, "device", None) or None, backend=getattr(args, "backend", "auto"))
     except (ValueError, _engine.OpenCLUnavailableError) as exc:
         raise CommandError(str(exc)) from None
     if eng.reason:  # a fallback (the numpy backend, no device being usable): perhaps for want of PoCL's cache

@@ -1,7 +1,8 @@
 """The device layer's one interface for the rest of the package: the engines and how a call gets one.
 
 Every function that computes takes ``engine=`` and ``backend=`` and asks :func:`resolve_engine`
-for the engine; an :class:`Engine` (an OpenCL device) and a :class:`NumpyEngine` (the float64
+for the engine (:func:`engine_for` where a device may be named too: the command line, store runs
+and their workers); an :class:`Engine` (an OpenCL device) and a :class:`NumpyEngine` (the float64
 reference) offer the same interface: ``call(operation, ...)`` runs the operation's implementation
 for the engine's backend (:mod:`pbrdf_cl.device.ops`), ``evaluate`` the per-point quantities,
 ``compute_dtype(dtype)`` the precision a computation runs in, ``has_kernels`` whether there are
@@ -41,6 +42,7 @@ from .drivers import describe, first_error_line
 from .fallback import (
                      BACKENDS,
                      check_backend,
+                     engine_for,
                      fallback_engine,
                      falls_back,
                      get_default_engine,
@@ -56,7 +58,7 @@ __all__ = ["BACKENDS", "DRIVER_MESSAGES", "DTYPES", "POINT_INPUTS", "VECTOR_LOCA
            "DeviceWarning", "Engine", "KernelBuildError", "NumpyEngine", "OpenCLUnavailableError", "ProbeResult",
            "ProgramUnusableError", "aligned_empty", "build_options", "candidates", "check_backend", "cl",
            "compact_values",
-           "clear_probe_cache", "describe", "fallback_engine", "falls_back", "first_error_line",
+           "clear_probe_cache", "describe", "engine_for", "fallback_engine", "falls_back", "first_error_line",
            "get_default_engine", "has_fp64", "is_pocl", "is_simulator", "kernel_dir", "kernels_sha256",
            "list_devices", "narrow_reason", "probe", "resolve_engine", "select_device", "set_default_engine",
            "vector_widths"]

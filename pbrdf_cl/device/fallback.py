@@ -4,7 +4,9 @@
 **Backends.**  ``backend="auto"`` (the default everywhere) computes on the chosen OpenCL device,
 or, when no device is usable, on :class:`NumpyEngine` (the float64 reference of
 ``reference.py``), saying so once with the reason and the remedies; ``"opencl"`` makes that an
-error; ``"numpy"`` always uses the reference.  :func:`resolve_engine` implements this.
+error; ``"numpy"`` always uses the reference.  :func:`resolve_engine` implements this, and
+:func:`engine_for` adds a device named by the caller: the one place that turns ``(engine, device,
+backend)`` into an engine (the command line, store runs and their workers, the benchmark).
 
 **A program a device cannot run.**  Where the trial found a program unusable on the engine's
 device (:class:`ProgramUnusableError`), the functions marked :func:`falls_back` compute on the
@@ -221,3 +223,34 @@ def resolve_engine(engine=None, backend="auto"):
     if backend == "opencl" and engine.is_numpy:
         raise ValueError("backend='opencl' with a NumpyEngine: pass an OpenCL Engine, or backend='auto'")
     return engine
+
+
+def engine_for(engine=None, device=None, backend="auto"):
+    """The engine of ``(engine, device, backend)``: the one place a backend's name is turned into an
+    engine.  ``engine`` if given (checked against ``backend``, :func:`resolve_engine`); else a
+    :class:`NumpyEngine` for ``backend="numpy"``; else an :class:`Engine` of ``device`` (an explicit
+    choice: a program it cannot run is an error, never a move); else the default engine for
+    ``backend`` (:func:`get_default_engine`).
+
+    Parameters
+    ----------
+    engine : pbrdf_cl.Engine or pbrdf_cl.NumpyEngine, optional
+        The engine asked for; ``device`` is then not used.
+    device : str or pyopencl.Device, optional
+        An OpenCL device (see :func:`pbrdf_cl.select_device`); not used with ``backend="numpy"``.
+    backend : {"auto", "opencl", "numpy"}, default "auto"
+        As for :func:`resolve_engine`.
+
+    Returns
+    -------
+    pbrdf_cl.Engine or pbrdf_cl.NumpyEngine
+
+    Examples
+    --------
+    >>> engine_for(device="0:0", backend="numpy")
+    NumpyEngine(float64 reference)
+    """
+    check_backend(backend)
+    if engine is not None or device is None or backend == "numpy":
+        return resolve_engine(engine, backend)
+    return Engine(device)

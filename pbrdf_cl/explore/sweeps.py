@@ -1,6 +1,7 @@
 """Sweeps larger than memory and larger than one machine: the grid engine of :mod:`pbrdf_cl.compute.dense`
 chunk by chunk into a Zarr store, resumable, optionally over a ``dask.distributed`` cluster (the
-store and the cluster runs: :mod:`pbrdf_cl.store.zarr`, :mod:`pbrdf_cl.store.cluster`).
+store, the run and the cluster: :mod:`pbrdf_cl.store.zarr`, :mod:`pbrdf_cl.store.runner`,
+:mod:`pbrdf_cl.store.cluster`; this module says what a chunk computes and writes).
 
 A sweep is described by a spec (TOML, see ``examples/sweep_sigma_theta.toml``)::
 
@@ -56,13 +57,14 @@ import numpy as np
 
 from .. import ranges, sizes
 from ..compute import dense, pointwise
-from ..device.engine import DTYPES, kernels_sha256, resolve_engine
+from ..device.engine import DTYPES, kernels_sha256
 from ..errors import SpecError
 from ..model import quantities
 from ..model.reference import SHADOWING
 from ..results import Result
-from ..store import cluster, interrupt
+from ..store import cluster, runner
 from ..store import zarr as zarr_store
+from ..version import __version__
 
 try:
     import tomllib
@@ -418,7 +420,6 @@ def load_spec(spec):
 # the store (the Zarr layer: pbrdf_cl.store.zarr)
 
 def _root_attrs(spec, complete=False):
-    from .. import __version__
     q = quantities.get(spec.quantity)
     attrs = dict(title=spec.title or f"pbrdf-cl sweep of {spec.quantity}", quantity=spec.quantity,
                  long_name=q.long_name, units=q.units,
@@ -512,29 +513,26 @@ def compute_chunk(spec, eng, i):
         return {v: ds[v].values for v in spec.variables}
 
 
-class _Runner:
-    """Writes chunks of one spec into one store."""
+class _Runner(runner.Writer):
+    """Writes chunks of one spec into one store (:class:`pbrdf_cl.store.runner.Writer`)."""
+
+    delay_env = DELAY_ENV
 
     def __init__(self, spec, name):
-        g = zarr_store.open_group(name, "r+")
-        zarr_store.check_kernels(name, g.attrs)  # a worker with another pbrdf-cl would mix values
+        super().__init__(name)  # a worker with another pbrdf-cl would mix values
         self.spec = spec
-        self.arrays = {v: g[v] for v in spec.variables}
-        self.done = g[zarr_store.DONE]
+        self.arrays = {v: self.group[v] for v in spec.variables}
 
-    def run(self, eng, i):
-        t0 = time.perf_counter()
-        values = compute_chunk(self.spec, eng, i)
-        delay = float(os.environ.get(DELAY_ENV) or 0)
-        if delay:
-            time.sleep(delay / 2)
+    def compute(self, eng, i):
+        return compute_chunk(self.spec, eng, i)
+
+    def write(self, i, values):
         region = self.spec.region(i)
         for v, a in values.items():
-            self.arrays[v][region] = a  # one whole Zarr chunk, written atomically by zarr
-        if delay:
-            time.sleep(delay / 2)
-        self.done[int(i)] = 1  # ... and only then marked done
-        return int(i), self.spec.box_points(i), time.perf_counter() - t0
+            self.arrays[v][region] = a  # one whole Zarr chunk
+
+    def result(self, eng, i, values, seconds):
+        return int(i), self.spec.box_points(i), seconds
 
 
 def _runner(spec, name):
@@ -572,32 +570,12 @@ class SweepResult(Result):
         return f"SweepResult({self.summary()})"
 
 
-def _bar(spec, initial, enabled):
-    if not enabled:
-        return None
-    from tqdm import tqdm
-    return tqdm(total=spec.n_chunks, initial=initial, unit="chunk", desc="sweep", dynamic_ncols=True)
-
-
 def store_bytes(spec):
     """The uncompressed size of a spec's stored values (an upper bound of the store: Blosc compresses)."""
     cells = int(np.prod(spec.shape, dtype=np.int64))
     if spec.over:
         return cells * (2 * spec.itemsize + 8 * len(spec.over))
     return cells * spec.itemsize
-
-
-def _check_before_work(spec, store, distributed, allow_large):
-    """What can be refused before a store is created: a cluster without dask.distributed, a store
-    that would not fit on its disk (unless ``allow_large``)."""
-    if distributed:
-        cluster.require_distributed("sweep")
-    need, free = store_bytes(spec), sizes.free_disk(store)
-    if free is not None and need > free and not allow_large:
-        raise sizes.TooLargeError(
-            f"the store would hold up to {_human(need)} ({spec.points} points, uncompressed; Blosc usually saves "
-            f"a factor 1.5-3) but {_human(free)} is free where it goes; free space, choose another store, reduce "
-            f"axes with [reduce], or pass allow_large=True (pbrdf-cl sweep --allow-large) to start anyway")
 
 
 def sweep(spec, store, *, engine=None, device=None, backend="auto", workers=None, scheduler=None, client=None,
@@ -611,10 +589,12 @@ def sweep(spec, store, *, engine=None, device=None, backend="auto", workers=None
     store : path (or URL of an fsspec store) of the Zarr store; created if absent, resumed if
         it holds the same spec, refused if it holds another.
     engine, device : the engine (or device, see :func:`pbrdf_cl.select_device`) for a local run;
-        ``device`` is also what every cluster worker builds its own engine for.
+        ``device`` is also what every cluster worker builds its own engine for (``engine`` with a
+        cluster is refused: ``pbrdf_cl.store.runner.check_cluster``).
     backend : "auto" (the OpenCL device, or the numpy reference where none is usable), "opencl"
         or "numpy", here and on every worker.
-    workers : start a local ``dask.distributed`` cluster of this many processes (1 thread each).
+    workers : start a local ``dask.distributed`` cluster of this many processes (1 thread each; an
+        int, Python's or numpy's).
     scheduler : address of a running scheduler (``tcp://host:8786``); or pass ``client``.
     client : a ``dask.distributed.Client`` to run the chunks on, instead of ``workers`` or
         ``scheduler``.
@@ -634,12 +614,9 @@ def sweep(spec, store, *, engine=None, device=None, backend="auto", workers=None
     >>> res.open().dop.sel(theta_i=40, phi=180).plot()  # doctest: +SKIP
     """
     spec = load_spec(spec)
-    given = sum(x is not None for x in (workers, scheduler, client))
-    if given > 1:
-        raise ValueError("give at most one of workers=, scheduler= and client=")
-    if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 1):
-        raise ValueError(f"workers must be a positive integer, got {workers!r}")
-    _check_before_work(spec, store, given > 0, allow_large)
+    runner.check_cluster(workers, scheduler, client, engine, "sweep")
+    runner.check_free_disk(store, store_bytes(spec), f"{spec.points} points, uncompressed; Blosc usually saves a "
+                           "factor 1.5-3", allow_large, "sweep", hint="reduce axes with [reduce], ")
     name, existed = open_store(spec, store)
     done = zarr_store.resume(store, name, spec.n_chunks, existed)
     todo = np.flatnonzero(~done)
@@ -648,12 +625,13 @@ def sweep(spec, store, *, engine=None, device=None, backend="auto", workers=None
     if progress and todo.size:
         print(f"sweep: {spec.points} points in {spec.n_chunks} chunks ({todo.size} to compute), up to "
               f"{_human(store_bytes(spec))} stored uncompressed", file=sys.stderr)
-    bar = _bar(spec, skipped, progress and todo.size > 0)
+    bar = runner.progress_bar(progress and todo.size > 0, total=spec.n_chunks, initial=skipped, unit="chunk",
+                              desc="sweep")
     t0 = time.perf_counter()
 
-    def finished(i, points):
+    def finished(result):
         stats["chunks"] += 1
-        stats["points"] += points
+        stats["points"] += result[1]
         if stats["chunks"] == 1:
             stats["first"] = time.perf_counter()
         if stats["chunks"] == 2 and progress and todo.size > 2:  # the first chunk also built the kernels
@@ -665,19 +643,9 @@ def sweep(spec, store, *, engine=None, device=None, backend="auto", workers=None
             bar.update(1)
             bar.set_postfix_str(f"{stats['points'] / max(time.perf_counter() - t0, 1e-9):.3g} points/s", refresh=False)
 
-    try:
-        if todo.size and given == 0:
-            eng = resolve_engine(engine, backend) if engine is not None else cluster.worker_engine(device, backend)
-            runner = _Runner(spec, name)
-            for i in todo:
-                _, points, _ = runner.run(eng, i)
-                finished(i, points)
-                interrupt.check()
-        elif todo.size:
-            _run_distributed(spec, name, todo, device, backend, workers, scheduler, client, finished)
-    finally:
-        if bar is not None:
-            bar.close()
+    runner.run_units(todo, lambda: _Runner(spec, name), finished, task=run_chunk, shared=spec,
+                     args_of=lambda i: (name, i, device, backend), key="pbrdf-sweep", engine=engine, device=device,
+                     backend=backend, workers=workers, scheduler=scheduler, client=client, bar=bar)
     seconds = time.perf_counter() - t0
     complete = skipped + stats["chunks"] == spec.n_chunks
     if complete:
@@ -695,9 +663,3 @@ def _eta(seconds):
         if seconds >= size:
             return f"{seconds / size:.3g} {unit}"
     return f"{seconds:.3g} s"
-
-
-def _run_distributed(spec, name, todo, device, backend, workers, scheduler, client, finished):
-    cluster.run_on_cluster(run_chunk, spec, todo, lambda i: (name, int(i), device, backend), "pbrdf-sweep",
-                           lambda result: finished(result[0], result[1]), workers=workers, scheduler=scheduler,
-                           client=client)

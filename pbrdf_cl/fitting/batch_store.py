@@ -5,7 +5,9 @@ door (:mod:`pbrdf_cl.fitting.batch`).
 
 The unit of work is :class:`pbrdf_cl.fitting.job.BatchJob`'s block of rows of the first pixel
 dimension (sized by ``memory_budget``); each block is read from the stack on its own, fitted,
-written, and marked done, as :mod:`pbrdf_cl.explore.sweeps` does with its chunks.
+written, and marked done by the runner sweeps use for their chunks (:mod:`pbrdf_cl.store.runner`:
+the checks before any work, write-then-mark, the loop here or on a cluster, progress, Ctrl-C);
+this module says what a block computes and writes.
 
 Layout of the store (Zarr format 2, consolidated metadata; ``xarray.open_zarr`` reads it as the
 Dataset :func:`pbrdf_cl.fit_batch` returns in memory):
@@ -36,18 +38,18 @@ import copy
 import gc
 import hashlib
 import json
-import os
 import re
-import sys
 import time
 
 import numpy as np
 
 from .. import sizes
-from ..device.engine import kernels_sha256, resolve_engine
+from ..device.engine import kernels_sha256
 from ..errors import StoreError
-from ..store import cluster, interrupt
+from ..store import cluster, runner
 from ..store import zarr as zarr_store
+from ..store.cluster import local_engine  # noqa: F401 (batch_store.local_engine stays)
+from ..version import __version__
 from .dataset import PIXEL_STATUS, goodness_summary
 
 #: Version of the canonical settings (part of their hash).
@@ -166,49 +168,49 @@ def _block_dataset(job, out, r0, r1):
     return part.dataset(out)
 
 
-class _Writer:
-    """Writes blocks of one job into one store (opened once per process)."""
+class _Writer(runner.Writer):
+    """Writes blocks of one job's store (:class:`pbrdf_cl.store.runner.Writer`; opened once per
+    process); the job comes with each block."""
+
+    delay_env = DELAY_ENV
 
     def __init__(self, name, digest):
-        g = zarr_store.open_group(name, "r+")
-        _check_kernels(name, g.attrs)  # a worker with other kernels would mix values
+        super().__init__(name, error=StoreError)  # a worker with other kernels would mix values
+        g = self.group
         if g.attrs.get("batch_settings_sha256") != digest:
             raise StoreError(f"{name} holds another job now (settings sha256 {g.attrs.get('batch_settings_sha256')})")
-        self.group = g
         self.all = json.loads(g.attrs["batch_variables"])
         whole = json.loads(g.attrs.get("batch_whole_variables", "[]"))
         self.variables = [v for v in self.all if v not in whole]  # written block by block
         self.arrays = {v: g[v] for v in self.variables}
-        self.done = g[DONE]
         self.hashes = g[HASHES]
 
-    def run(self, job, eng, i, r0, r1):
-        """Fit block ``i`` (rows r0..r1), write it, then mark it done; returns (i, pixels, seconds,
-        device)."""
-        t0 = time.perf_counter()
+    def compute(self, eng, i, job, r0, r1):
+        """Fit block ``i`` (rows r0..r1): (its input's SHA-256, the fit's outputs, their Dataset)."""
         digest = _rows_sha256(_read(job.source, r0, r1))
         out = _fit(job, eng, r0, r1)
         ds = _block_dataset(job, out, r0, r1)
         if sorted(ds.data_vars) != sorted(self.all):
             raise RuntimeError(f"internal: the fit gives variables {sorted(ds.data_vars)}, the store holds "
                                f"{sorted(self.all)}")
-        delay = float(os.environ.get(DELAY_ENV) or 0)
-        if delay:
-            time.sleep(delay / 2)
+        return digest, out, ds
+
+    def write(self, i, values, job, r0, r1):
+        digest, _, ds = values
         for v in self.variables:
             a, arr = ds[v].values, self.arrays[v]
             if a.dtype != arr.dtype:
                 raise RuntimeError(f"internal: the fit gives {v} as {a.dtype}, the store holds {arr.dtype}")
-            arr[r0:r1] = a  # one whole Zarr chunk, written atomically by zarr
+            arr[r0:r1] = a  # one whole Zarr chunk
         self.hashes[int(i)] = np.frombuffer(bytes.fromhex(digest), np.uint8)
-        if delay:
-            time.sleep(delay / 2)
-        self.done[int(i)] = 1  # ... and only then marked done
+
+    def result(self, eng, i, values, seconds):
+        """(i, pixels, seconds, device)."""
         # a lazy stack's reads build dask graphs whose reference cycles wait for the cyclic
         # collector, which in a long-lived process runs rarely: 7 MB of them after a dozen blocks
         # of a 16 MB stack with it held off; collected here they stay one block's worth
         gc.collect()
-        return int(i), int(out["status"].size), time.perf_counter() - t0, eng.description
+        return int(i), int(values[1]["status"].size), seconds, eng.description
 
 
 _WRITERS = {}
@@ -241,7 +243,7 @@ def run_block(job, name, digest, i, r0, r1, device=None, backend="auto"):
     >>> client.submit(run_block, job_future, "fit.zarr", digest, 0, 0, 8)  # doctest: +SKIP
     """
     writer = cluster.per_process(_WRITERS, (name, digest), lambda: _Writer(name, digest))
-    return writer.run(job, cluster.worker_engine(device, backend), i, r0, r1)
+    return writer.run(cluster.worker_engine(device, backend), i, job, r0, r1)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -283,7 +285,6 @@ def _write_skeleton(job, blocks, block_rows, the_settings, memory_budget, store)
                      block_rows=int(block_rows))
     zarr_store.create_done(g, len(blocks))
     zarr_store.create_array(sub, "input_sha256", (len(blocks), 32), (1, 32), "u1", 0, None, {})
-    from .. import __version__
     text, digest = _canonical(the_settings)
     g.attrs.update({**template.attrs, "title": "pbrdf-cl per-pixel fit", "pbrdf_cl_version": __version__,
                     "batch_settings": text, "batch_settings_sha256": digest, "sweep_kernels_sha256": kernels_sha256(),
@@ -452,7 +453,8 @@ def check_cluster(workers=None, scheduler=None, client=None, engine=None):
     Parameters
     ----------
     workers, scheduler, client : optional
-        As for :func:`write_store`: at most one of them.
+        As for :func:`write_store`: at most one of them (``pbrdf_cl.store.runner.check_cluster``,
+        the sweeps' check too).
     engine : pbrdf_cl.Engine, optional
         A local run's engine: refused with a cluster (every worker builds its own).
 
@@ -473,45 +475,7 @@ def check_cluster(workers=None, scheduler=None, client=None, engine=None):
     >>> check_cluster(workers=2)  # doctest: +SKIP
     1
     """
-    given = sum(x is not None for x in (workers, scheduler, client))
-    if given > 1:
-        raise ValueError("give at most one of workers=, scheduler= and client=")
-    if workers is not None and (isinstance(workers, bool) or not isinstance(workers, (int, np.integer))
-                                or workers < 1):
-        raise ValueError(f"workers must be a positive integer, got {workers!r}")
-    if given and engine is not None:
-        raise ValueError("engine= is for a local run; every cluster worker builds its own (device=, backend=)")
-    if given:
-        cluster.require_distributed("fit")
-    return given
-
-
-def local_engine(engine=None, backend="auto", device=None):
-    """The engine a local run computes with: ``engine`` if given, else this process's engine for
-    ``device`` (built once, ``pbrdf_cl.store.cluster.worker_engine``), else the default for
-    ``backend``.
-
-    Parameters
-    ----------
-    engine : pbrdf_cl.Engine or NumpyEngine, optional
-        The caller's.
-    backend : {"auto", "opencl", "numpy"}, default "auto"
-        As for :func:`pbrdf_cl.dop`.
-    device : str, optional
-        An OpenCL device (see :func:`pbrdf_cl.select_device`).
-
-    Returns
-    -------
-    pbrdf_cl.Engine or pbrdf_cl.NumpyEngine
-
-    Examples
-    --------
-    >>> local_engine(backend="numpy")
-    NumpyEngine(float64 reference)
-    """
-    if engine is not None or device is None:
-        return resolve_engine(engine, backend)
-    return cluster.worker_engine(device, backend)
+    return runner.check_cluster(workers, scheduler, client, engine, "fit")
 
 
 def write_store(job, store, *, progress=False, engine=None, backend="auto", device=None, workers=None, scheduler=None,
@@ -598,15 +562,11 @@ def write_store(job, store, *, progress=False, engine=None, backend="auto", devi
     ((2, 3), True, True)
     """
     import xarray as xr
-    given = check_cluster(workers, scheduler, client, engine)
+    check_cluster(workers, scheduler, client, engine)
     blocks = job.blocks()
     block_rows = blocks[0][1] - blocks[0][0]
-    need, free = store_bytes(job), sizes.free_disk(store)
-    if free is not None and need > free and not allow_large:
-        raise sizes.TooLargeError(
-            f"the store would hold up to {sizes.human(need)} ({job.source.n_pixels} pixels, uncompressed) but "
-            f"{sizes.human(free)} is free where it goes; free space, choose another store, or pass "
-            f"allow_large=True (pbrdf-cl fit-image --allow-large) to start anyway")
+    runner.check_free_disk(store, store_bytes(job), f"{job.source.n_pixels} pixels, uncompressed", allow_large,
+                           "fit-image")
     the_settings = settings(job, block_rows)
     digest = _canonical(the_settings)[1]
     name, existed = _open_store(job, blocks, block_rows, the_settings, job.memory_budget, store)
@@ -615,11 +575,8 @@ def write_store(job, store, *, progress=False, engine=None, backend="auto", devi
         _check_inputs(job, name, blocks, done)
     todo = np.flatnonzero(~done)
     skipped_px = sum(_pixels(job, *blocks[i]) for i in np.flatnonzero(done))
-    bar = None
-    if progress and todo.size:
-        from tqdm.auto import tqdm
-        bar = tqdm(total=job.source.n_pixels, initial=skipped_px, desc="fit_batch", unit="px", unit_scale=True,
-                   smoothing=0.1, dynamic_ncols=True, file=sys.stderr)
+    bar = runner.progress_bar(progress and todo.size > 0, total=job.source.n_pixels, initial=skipped_px,
+                              desc="fit_batch", unit="px", unit_scale=True, smoothing=0.1)
     stats = dict(blocks=0, pixels=0, devices=set())
     t0 = time.perf_counter()
 
@@ -631,20 +588,12 @@ def write_store(job, store, *, progress=False, engine=None, backend="auto", devi
         if bar is not None:
             bar.update(pixels)
     try:
-        if todo.size and not given:
-            eng = local_engine(engine, backend, device)
-            writer = _Writer(name, digest)
-            _add_devices(name, [eng.description])
-            for i in todo:
-                finished(writer.run(job, eng, i, *blocks[i]))
-                interrupt.check()
-        elif todo.size:
-            cluster.run_on_cluster(run_block, job, [int(i) for i in todo],
-                                   lambda i: (name, digest, i, *blocks[i], device, backend), "pbrdf-fit", finished,
-                                   workers=workers, scheduler=scheduler, client=client)
+        runner.run_units(todo, lambda: _Writer(name, digest), finished, task=run_block, shared=job,
+                         args_of=lambda i: (name, digest, i, *blocks[i], device, backend), key="pbrdf-fit",
+                         local_args=lambda i: (job, *blocks[i]), engine=engine, device=device, backend=backend,
+                         workers=workers, scheduler=scheduler, client=client, bar=bar,
+                         started=lambda eng: _add_devices(name, [eng.description]))
     finally:
-        if bar is not None:
-            bar.close()
         if stats["devices"]:
             _add_devices(name, stats["devices"])
     seconds = time.perf_counter() - t0

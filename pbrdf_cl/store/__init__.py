@@ -1,1 +1,2 @@
-"""Zarr stores: chunked, resumable writing, shared by sweeps and image fits, and the Dask cluster runs."""
+"""Resumable Zarr stores: the one runner of sweeps and image fits (``runner``), the Zarr layer
+(``zarr``), the Dask cluster runs (``cluster``), Ctrl-C (``interrupt``)."""

@@ -1,6 +1,6 @@
 """Runs on a ``dask.distributed`` cluster (sweeps, image fits into a store): the driver's loop
 (:func:`run_on_cluster`) and what each worker process builds once and reuses for every task
-(:func:`worker_engine`, :func:`per_process`).
+(:func:`worker_engine`, :func:`per_process`); the engine of a local run (:func:`local_engine`).
 
 Every task writes its own unit of work into the store itself (a path or URL every worker
 reaches) and returns a small summary to the driver; nothing large travels back.
@@ -14,7 +14,7 @@ import tempfile
 import threading
 import uuid
 
-from ..device.engine import resolve_engine
+from ..device.engine import engine_for
 from . import interrupt
 
 #: This process's engines, by (device, backend) (:func:`worker_engine`).
@@ -39,14 +39,39 @@ def per_process(cache, key, make):
 
 def worker_engine(device=None, backend="auto"):
     """This process's engine for ``device`` and ``backend`` (built once, then reused by every
-    chunk; see :func:`pbrdf_cl.device.engine.resolve_engine`)."""
+    unit of work; see :func:`pbrdf_cl.device.engine.engine_for`)."""
     def make():
         _default_pocl_cache()
-        if device is None or backend == "numpy":
-            return resolve_engine(None, backend)
-        from ..device.engine import Engine
-        return Engine(device)
+        return engine_for(None, device, backend)
     return per_process(_ENGINES, (device, backend), make)
+
+
+def local_engine(engine=None, backend="auto", device=None):
+    """The engine a local run into a store (and an image fit in memory) computes with: ``engine``
+    if given, else this process's engine for ``device`` (built once, ``worker_engine``), else
+    the default for ``backend`` (both through :func:`pbrdf_cl.device.engine.engine_for`).
+
+    Parameters
+    ----------
+    engine : pbrdf_cl.Engine or NumpyEngine, optional
+        The caller's.
+    backend : {"auto", "opencl", "numpy"}, default "auto"
+        As for :func:`pbrdf_cl.dop`.
+    device : str, optional
+        An OpenCL device (see :func:`pbrdf_cl.select_device`).
+
+    Returns
+    -------
+    pbrdf_cl.Engine or pbrdf_cl.NumpyEngine
+
+    Examples
+    --------
+    >>> local_engine(backend="numpy")
+    NumpyEngine(float64 reference)
+    """
+    if engine is not None or device is None:
+        return engine_for(engine, backend=backend)
+    return worker_engine(device, backend)
 
 
 def require_distributed(what):
