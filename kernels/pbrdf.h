@@ -373,33 +373,39 @@ inline real pb_channel_terms(const real *m, const real *u, const real *v, int co
     return tn;
 }
 
-/* A channel's value from its terms, inv_K = 1/K, the diffuse term fd and its coefficients: a
- * normalised channel (c = 0) is (tn + a q) / (td + b q), q = fd / K (0 where there is no diffuse
- * term, whatever K), 0 where that denominator is 0 (no light); an absolute one (c > 0) is
- * K tn + a fd; an AoP is tn.  The scale enters as 1/K, as in the DOP (pb_dop_combine), so that a K
- * that underflows (a sharp lobe seen off specular) leaves the ratio exact. */
+/* A channel's value from its terms, inv_K = 1/K, the diffuse term fd and its coefficients (scalars,
+ * the same for every lane: the branches below are uniform): an AoP is tn; an absolute channel
+ * (c != 0) is K tn + a fd; a normalised one (tn + a q) / (td + b q), q = fd / K (0 where there is no
+ * diffuse term, whatever K), 0 where that denominator is 0 (no light).  The scale enters as 1/K, as
+ * in the DOP (pb_dop_combine), so that a K that underflows (a sharp lobe seen off specular) leaves
+ * the ratio exact; a zero coefficient adds nothing (no 0 * inf). */
 #define PB_CHANNEL_COMBINE_BODY(T)                                           \
     {                                                                        \
         if (aop)                                                             \
             return tn;                                                       \
+        if (c != 0)                                                          \
+            return tn / inv_K + a * fd;                                      \
         const T q = fd > (T)0 ? fd * inv_K : (T)0;                           \
-        const T aq = a > (T)0 ? a * q : (T)0;  /* no 0 * inf where K underflowed */ \
-        const T bq = b > (T)0 ? b * q : (T)0;                                \
-        const T den = td + bq;                                               \
-        const T ratio = den > (T)0 ? (tn + aq) / den : (T)0;                 \
-        return c > (T)0 ? tn / inv_K + a * fd : ratio;                       \
+        T num = tn, den = td;                                                \
+        if (a != 0)                                                          \
+            num += a * q;                                                    \
+        if (b != 0)                                                          \
+            den += b * q;                                                    \
+        return den > (T)0 ? num / den : (T)0;                                \
     }
-inline real pb_channel_combine(real tn, real td, real inv_K, real fd, real a, real b, real c, int aop)
+inline real pb_channel_combine(real tn, real td, real inv_K, real fd, PB_SCALAR a, PB_SCALAR b, PB_SCALAR c,
+                               int aop)
     PB_CHANNEL_COMBINE_BODY(real)
 #if !defined(PB_VECTOR_REAL) && !defined(PB_HOST_C)
-inline realv pb_channel_combine_v(realv tn, realv td, realv inv_K, realv fd, realv a, realv b, realv c, int aop)
+inline realv pb_channel_combine_v(realv tn, realv td, realv inv_K, realv fd, PB_SCALAR a, PB_SCALAR b, PB_SCALAR c,
+                                  int aop)
     PB_CHANNEL_COMBINE_BODY(realv)
 #endif
 
 /* One channel at one point of the model: P from the Fresnel factors and frames, then its terms and
  * value (pb_channel_terms, pb_channel_combine). */
 inline real pb_channel(pb_fresnel_t f, pb_frames fr, real logK, real fd, const real *u, const real *v, int comp,
-                       int kind, real a, real b, real c)
+                       int kind, PB_SCALAR a, PB_SCALAR b, PB_SCALAR c)
 {
     real m[16], td;
     pb_mueller_at(f, fr, (real)1, (real)0, m);

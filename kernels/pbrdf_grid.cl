@@ -282,8 +282,7 @@ __kernel void objective_channel_rows(__global real *sse, const pbidx row_start, 
         for (int m = 0; m < M; m++) {
             const realv v = pb_channel_combine_v((realv)tn[m * PB_NNK + nk], (realv)td[m * PB_NNK + nk],
                                                  (realv)scale[m * PB_NM + s], pb_vload(0, dif + m * PB_NI + q0),
-                                                 (realv)abc[3 * m], (realv)abc[3 * m + 1], (realv)abc[3 * m + 2],
-                                                 aop[m]);
+                                                 abc[3 * m], abc[3 * m + 1], abc[3 * m + 2], aop[m]);
             const realv r = pb_channel_residual_v(v, obs[m], aop[m]);
             acc += (realv)w[m] * r * r;
         }

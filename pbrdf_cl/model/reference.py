@@ -236,30 +236,38 @@ def channel_terms(m, u, v, comp, kind):
     channels) (``pb_channel_terms``): ratio: (P u)_comp and (P v)_0; DOP: |(P u)_123| and (P u)_0;
     AoP: the AoP of P u (degrees) and 1."""
     m = np.asarray(m, dtype=np.float64)
-    t = np.einsum("...ij,...j->...i", m, np.asarray(u, dtype=np.float64))
-    d0 = np.einsum("...j,...j->...", m[..., 0, :], np.asarray(v, dtype=np.float64))
+    u, v = np.asarray(u, dtype=np.float64), np.asarray(v, dtype=np.float64)
     comp, kind = np.asarray(comp), np.asarray(kind)
-    tn = np.take_along_axis(t, np.broadcast_to(comp, t.shape[:-1])[..., None], axis=-1)[..., 0]
-    with np.errstate(invalid="ignore"):
-        dop_n = np.sqrt(t[..., 1] * t[..., 1] + t[..., 2] * t[..., 2] + t[..., 3] * t[..., 3])
-    tn = np.where(kind == CHANNEL_DOP, dop_n, tn)
-    td = np.where(kind == CHANNEL_DOP, t[..., 0], d0)
-    tn = np.where(kind == CHANNEL_AOP, aop_of(t[..., 1], t[..., 2]), tn)
-    td = np.where(kind == CHANNEL_AOP, 1.0, td)
+    shape = np.broadcast_shapes(m.shape[:-2], u.shape[:-1], v.shape[:-1], comp.shape, kind.shape)
+    rows = np.broadcast_to(np.broadcast_to(comp, shape)[..., None, None], shape + (1, 4))
+    row = np.take_along_axis(np.broadcast_to(m, shape + (4, 4)), rows, axis=-2)[..., 0, :]
+    tn = row[..., 0] * u[..., 0] + row[..., 1] * u[..., 1] + row[..., 2] * u[..., 2] + row[..., 3] * u[..., 3]
+    r0 = m[..., 0, :]
+    td = r0[..., 0] * v[..., 0] + r0[..., 1] * v[..., 1] + r0[..., 2] * v[..., 2] + r0[..., 3] * v[..., 3]
+    if np.any(kind != CHANNEL_RATIO):  # the DOP and the AoP take the whole of P u
+        t = [m[..., i, 0] * u[..., 0] + m[..., i, 1] * u[..., 1] + m[..., i, 2] * u[..., 2] + m[..., i, 3] * u[..., 3]
+             for i in range(4)]
+        with np.errstate(invalid="ignore"):
+            dop_n = np.sqrt(t[1] * t[1] + t[2] * t[2] + t[3] * t[3])
+        tn = np.where(kind == CHANNEL_DOP, dop_n, tn)
+        td = np.where(kind == CHANNEL_DOP, t[0], td)
+        if np.any(kind == CHANNEL_AOP):
+            tn = np.where(kind == CHANNEL_AOP, aop_of(t[1], t[2]), tn)
+            td = np.where(kind == CHANNEL_AOP, 1.0, td)
     return tn, td
 
 
 def channel_combine(tn, td, inv_K, fd, a, b, c, aop):
-    """A channel's value (``pb_channel_combine``): normalised (c = 0), (tn + a q) / (td + b q) with
-    q = fd / K (0 where fd is 0), 0 where that denominator is 0; absolute (c > 0), K tn + a fd; the
-    AoP (``aop`` true) is ``tn`` itself.  ``inv_K`` is 1/K."""
+    """A channel's value (``pb_channel_combine``): the AoP (``aop`` true) is ``tn`` itself; an
+    absolute channel (c != 0) K tn + a fd; a normalised one (tn + a q) / (td + b q) with q = fd / K
+    (0 where fd is 0), 0 where that denominator is 0; a zero coefficient adds nothing.  ``inv_K``
+    is 1/K."""
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         q = np.where(fd > 0.0, fd * inv_K, 0.0)
-        aq = np.where(a > 0.0, a * q, 0.0)  # no 0 * inf where K underflowed
-        bq = np.where(b > 0.0, b * q, 0.0)
-        den = td + bq
-        ratio = np.where(den > 0.0, (tn + aq) / den, 0.0)
-        value = np.where(c > 0.0, tn / inv_K + a * fd, ratio)
+        num = tn + np.where(a != 0, a * q, 0.0)
+        den = td + np.where(b != 0, b * q, 0.0)
+        ratio = np.where(den > 0.0, num / den, 0.0)
+        value = np.where(c != 0, tn / inv_K + a * fd, ratio)
     return np.where(aop, tn, value)
 
 
