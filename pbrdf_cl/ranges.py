@@ -23,6 +23,7 @@ import re
 import numpy as np
 
 from .errors import RangeError
+from .model import inputs
 
 #: The grammar in a few words, for ``--help`` texts (docs/guide/cli.md has the whole of it).
 GRAMMAR = ("a number (40), a list (20,30,45), start:stop:step (20:65:5, ends included) or "
@@ -262,7 +263,7 @@ def parse_assignment(item, names, kind="value", where=None, check=False):
     ``kind``: ``"value"`` (one number), ``"values"`` (the whole grammar: a 1-d array) or
     ``"bounds"`` (``low:high``: a pair).  ``names``: the names allowed (an unknown one is refused
     with the nearest known one suggested).  ``check``: also check the numbers against the model's
-    domain (:data:`pbrdf_cl.compute.pointwise.RULES`)."""
+    domain (:data:`pbrdf_cl.model.inputs.RULES`)."""
     if kind not in KINDS:
         raise ValueError(f"kind must be one of {', '.join(KINDS)}, got {kind!r}")
     name, sep, text = item.partition("=")
@@ -290,9 +291,8 @@ def parse_assignment(item, names, kind="value", where=None, check=False):
     except RangeError as bad:
         _raise(where, item, bad)
     if check:
-        from .compute import pointwise
         try:
-            pointwise.check_values(name, out)
+            inputs.refuse_outside(name, np.asarray(out, dtype=np.float64))
         except ValueError as exc:
             _raise(where, item, exc)
     return name, out

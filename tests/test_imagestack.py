@@ -216,15 +216,20 @@ def test_script(tmp_path, capsys, monkeypatch):
 
 
 def test_check_pixels_fits_one_pixel():
-    """The stack's columns feed pbrdf_cl.fit as they are (one metal pixel, the numpy backend)."""
+    """The script's check (``make_image_stack.py --check``): the stack's columns feed pbrdf_cl.fit as
+    they are (one metal pixel, the numpy backend)."""
+    spec = importlib.util.spec_from_file_location(
+        "make_image_stack", Path(__file__).resolve().parent.parent / "scripts" / "make_image_stack.py")
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
     ds = imagestack.synthetic_stack(SIZE, seed=1)
-    (row,) = imagestack.check_pixels(ds, [(SIZE // 2, 0)], backend="numpy")
+    (row,) = script.check_pixels(ds, [(SIZE // 2, 0)], backend="numpy")
     assert row["material"] == 0 and 0.3 < row["reduced_chi2"] < 3
     for name in imagestack.FIT_PARAMETERS:
         r = row[name]
         assert r["true"] == float(ds[f"true_{name}"][SIZE // 2, 0]) and r["ci95"][0] <= r["ci95"][1]
     assert abs(row["sigma"]["fit"] - row["sigma"]["true"]) < 5 * row["sigma"]["stderr"] < 0.05
-    for y, x in imagestack.default_check_pixels(64):
+    for y, x in script.default_check_pixels(64):
         assert 0 <= y < 64 and 0 <= x < 64
-    mats = [int(imagestack.truth_maps(64)["material"][y, x]) for y, x in imagestack.default_check_pixels(64)]
+    mats = [int(imagestack.truth_maps(64)["material"][y, x]) for y, x in script.default_check_pixels(64)]
     assert mats == [0, 0, 0, 0, 1, 1, 1]

@@ -56,16 +56,6 @@ def _all_finite(a):
     return a.size == 0 or bool(np.all(np.isfinite(_min_max(a))))
 
 
-def _where(a, bad):
-    return f" at index {np.argwhere(bad)[0].tolist()}" if a.ndim else ""
-
-
-def _check(name, a, ok, rule):
-    bad = ~ok(a)
-    if bad.any():
-        raise ValueError(f"{name} must be {rule}, got {float(a[bad].flat[0])!r}{_where(a, bad)}")
-
-
 #: The valid range of each input, as (test, words) (:data:`pbrdf_cl.model.inputs.RULES`).
 RULES = inputs.RULES
 
@@ -86,10 +76,7 @@ def _check_domain(name, a):
         lo, hi = _min_max(a)  # NaN propagates
         if np.isfinite(lo) and np.isfinite(hi) and ok(lo) and ok(hi):
             return float(lo), float(hi)
-        bad = ~np.isfinite(a)
-        if bad.any():
-            raise ValueError(f"{name} must be finite, got {float(a[bad].flat[0])!r}{_where(a, bad)}")
-        _check(name, a, ok, rule)
+        inputs.refuse_outside(name, a)
 
 
 #: Zenith angles that all lie below this many degrees (and are not all 0) look like radians.
@@ -170,7 +157,7 @@ def validate(theta_i, theta_r, phi, n, k, sigma, ks, kd, c, *, shadowing="paper"
     bounds = {name: _check_domain(name, arrays[name]) for name in POINT_INPUTS} if values else None
     check_degrees(arrays["theta_i"], arrays["theta_r"], bounds=bounds)  # the bounds read above, if any
     if model == "specular":
-        _check("kd", arrays["kd"], lambda a: a == 0, "0 in the specular (ref. [7]) model")
+        inputs.refuse_where("kd", arrays["kd"], lambda a: a == 0, "0 in the specular (ref. [7]) model")
     try:
         shape = np.broadcast_shapes(*(arrays[name].shape for name in POINT_INPUTS))
     except ValueError:

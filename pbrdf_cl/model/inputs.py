@@ -103,7 +103,9 @@ DEFAULTS = {n: i.default for n, i in REGISTRY.items() if i.default is not None}
 UNITS = {n: i.units for n, i in REGISTRY.items()}
 LONG_NAMES = {n: i.long_name for n, i in REGISTRY.items()}
 LABELS = {n: i.label for n, i in REGISTRY.items()}
-DEFAULT_BOUNDS = {n: i.bounds for n, i in REGISTRY.items() if i.bounds is not None}
+#: The fit's default search bounds: the fitted parameters first, then ks (freed by intensities).
+DEFAULT_BOUNDS = {n: REGISTRY[n].bounds for n in FITTED + tuple(n for n in PARAMETERS if n not in FITTED)
+                  if REGISTRY[n].bounds is not None}
 VIEWS = {n: i.view for n, i in REGISTRY.items() if i.kind == "material"}
 #: The valid range of each input, as (test, words); every input must also be finite.  The vector
 #: kernels of ``kernels/pbrdf_points.cl`` check the same (``PB_IN_DOMAIN``).
@@ -113,3 +115,19 @@ RULES = {n: (i.domain, i.rule) for n, i in REGISTRY.items()}
 def family_index(name):
     """The index of ``name``'s family in :data:`FAMILIES` (0 geometry, 1 index, 2 specular, 3 diffuse)."""
     return FAMILIES.index(REGISTRY[name].family)
+
+
+def refuse_where(name, a, ok, rule):
+    """A one-line ``ValueError`` where some value of the array ``a`` fails ``ok``: "``name`` must be
+    ``rule``, got the first such value (at its index)"."""
+    bad = ~ok(a)
+    if bad.any():
+        where = f" at index {np.argwhere(bad)[0].tolist()}" if a.ndim else ""
+        raise ValueError(f"{name} must be {rule}, got {float(a[bad].flat[0])!r}{where}")
+
+
+def refuse_outside(name, a):
+    """A one-line ``ValueError`` naming ``name`` and the first value of the array ``a`` that is not
+    finite or breaks its rule (:data:`RULES`), with its index; nothing where every value is good."""
+    refuse_where(name, a, np.isfinite, "finite")
+    refuse_where(name, a, *RULES[name])
