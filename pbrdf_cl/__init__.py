@@ -9,7 +9,7 @@ Angles are in degrees; phi = 180 (the default) is the in-plane geometry.  Comput
 the first usable OpenCL device, or on the float64 numpy reference where none is usable
 (``backend="auto"``, the default; see :mod:`pbrdf_cl.device.engine`).
 """
-from .compute.dense import ObjectiveResult, grid, objective, reduce_grid
+from .compute.dense import ObjectiveResult, grid, reduce_grid
 from .compute.pointwise import MODELS, aop, brdf, dop, evaluate, mueller, stokes, validate
 from .device.engine import (
                             Engine,
@@ -43,6 +43,7 @@ from .fitting.batch import fit_batch
 from .fitting.inversion import compare_models, fit
 from .fitting.joint import fit_joint
 from .fitting.joint_result import JointResult
+from .fitting.objective import objective
 from .fitting.result import FitResult
 from .io.measurements import Measurements, as_measurements, read_csv
 from .model import quantities

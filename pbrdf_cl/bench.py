@@ -35,6 +35,7 @@ import numpy as np
 from .compute import dense
 from .compute.pointwise import dop as api_dop
 from .device import engine as _engine
+from .fitting.objective import objective
 from .model import reference
 
 INPUTS = _engine.POINT_INPUTS
@@ -326,7 +327,7 @@ def bench_objective(eng, rows, rng, scale, repeats):
     if scale < 1:
         grid["n"], grid["k"] = grid["n"][::4], grid["k"][::4]
     for dtype in _dtypes(eng):
-        res = dense.objective(data, grid=grid, dtype=dtype, engine=eng)
+        res = objective(data, grid=grid, dtype=dtype, engine=eng)
         # error: the objective of a sample of parameter vectors against numpy
         idx = rng.integers(0, res.sse.size, 500)
         unr = np.unravel_index(idx, res.sse.shape)
@@ -334,8 +335,8 @@ def bench_objective(eng, rows, rng, scale, repeats):
         d = api_dop(ti[:, None], tr[:, None], 180.0, backend="numpy", **{n: v[None, :] for n, v in params.items()})
         want = ((d - data["dop"][:, None]) ** 2).sum(axis=0)
         err = float(np.max(np.abs(res.sse.values.ravel()[idx] - want)))
-        rate, sec = median_rate(lambda dtype=dtype: dense.objective(data, grid=grid, dtype=dtype, engine=eng,
-                                                                return_sse=False),
+        rate, sec = median_rate(lambda dtype=dtype: objective(data, grid=grid, dtype=dtype, engine=eng,
+                                                          return_sse=False),
                                 res.n_pairs, repeats)
         row = dict(path=f"objective, grid x 30 measurements (end-to-end, top-10{_backend_label(eng)})", dtype=dtype,
                    rate=rate, unit="pairs/s", seconds=sec, max_abs_err=err, n=res.n_pairs)

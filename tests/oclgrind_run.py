@@ -88,9 +88,9 @@ def main():
         for grid in (dict(n=[1.2, 2.0], k=[0.0, 1.0], sigma=0.3, kd=np.linspace(0, 1, 19)),
                      dict(n=[1.2, 2.0], k=[0.0, 1.0], sigma=[0.2, 0.4, 0.6, 0.8, 1.0], kd=[0.0, 0.3, 0.6, 0.9]),
                      dict(n=[1.2, 2.0], k=[0.0, 1.0], sigma=0.3)):
-            G.objective(data, grid=grid, dtype=dtype, engine=eng)
+            pbrdf_cl.objective(data, grid=grid, dtype=dtype, engine=eng)
             configs += 1
-        G.objective(data, points=dict(n=[1.2, 2.0], k=[0.0, 1.0], sigma=[0.3, 0.5]), dtype=dtype, engine=eng)
+        pbrdf_cl.objective(data, points=dict(n=[1.2, 2.0], k=[0.0, 1.0], sigma=[0.3, 0.5]), dtype=dtype, engine=eng)
         configs += 1
         # polarimetric channels (Stokes under a polarized source, an AoP, Mueller elements, an
         # intensity): the channel tables and objective_channel_rows / objective_channels

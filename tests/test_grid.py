@@ -157,7 +157,7 @@ def numpy_sse(data, params):
 @pytest.mark.parametrize("dtype", ["float64", "float32"])
 def test_objective_grid_equals_numpy_sse(rng, grid, dtype):
     data = measurements(rng)
-    res = G.objective(data, grid=grid, dtype=dtype, k_best=5)
+    res = pbrdf_cl.objective(data, grid=grid, dtype=dtype, k_best=5)
     axes = [n for n in G.PARAMETERS if np.ndim(grid.get(n, 0)) > 0]
     mesh = np.meshgrid(*[grid[n] for n in axes], indexing="ij")
     params = {n: grid.get(n, {"ks": 1.0, "kd": 0.0, "c": 0.0}.get(n)) for n in G.PARAMETERS}
@@ -178,11 +178,11 @@ def test_objective_points_equals_numpy_sse(rng):
     P = 300
     pts = dict(n=rng.uniform(1, 3, P), k=rng.uniform(0, 3, P), sigma=rng.uniform(0.1, 0.9, P), ks=1.0,
                kd=rng.uniform(0, 1, P), c=rng.uniform(-1, 0, P))
-    res = G.objective(data, points=pts, dtype="float64", k_best=3)
+    res = pbrdf_cl.objective(data, points=pts, dtype="float64", k_best=3)
     want = numpy_sse(data, {n: np.broadcast_to(v, P) for n, v in pts.items()})
     np.testing.assert_allclose(res.sse, want, rtol=1e-11)
     np.testing.assert_array_equal(res.best["index"], np.argsort(want)[:3])
-    res32 = G.objective(data, points=pts, dtype="float32")
+    res32 = pbrdf_cl.objective(data, points=pts, dtype="float32")
     np.testing.assert_allclose(res32.sse, want, rtol=2e-4)
 
 
@@ -190,8 +190,8 @@ def test_objective_chunked_equals_unchunked(rng):
     data = measurements(rng)
     grid = dict(n=np.linspace(1, 3, 9), k=np.linspace(0, 3, 7), sigma=np.linspace(0.1, 0.8, 5),
                 kd=np.linspace(0, 1, 32), c=np.array([-0.6, -0.2]))
-    whole = G.objective(data, grid=grid)
-    part = G.objective(data, grid=grid, memory_budget=40000)
+    whole = pbrdf_cl.objective(data, grid=grid)
+    part = pbrdf_cl.objective(data, grid=grid, memory_budget=40000)
     np.testing.assert_array_equal(part.sse.values, whole.sse.values)
     np.testing.assert_array_equal(part.best["index"], whole.best["index"])
 
@@ -226,15 +226,15 @@ def test_bad_reduction_and_objective_inputs(rng):
         G.grid(axes, fixed, quantity="s1")
     data = measurements(rng)
     with pytest.raises(ValueError, match="exactly one of grid"):
-        G.objective(data)
+        pbrdf_cl.objective(data)
     with pytest.raises(ValueError, match=r"data, row 0: dop = 1.5 is not in \[0, 1\]"):
-        G.objective(dict(data, dop=np.full(12, 1.5)), grid=dict(n=[1, 2], k=[0, 1], sigma=0.3))
+        pbrdf_cl.objective(dict(data, dop=np.full(12, 1.5)), grid=dict(n=[1, 2], k=[0, 1], sigma=0.3))
     with pytest.raises(ValueError, match=r"data, row 0: dop_std = 0.0 is not > 0"):
-        G.objective(dict(data, dop_std=np.zeros(12)), grid=dict(n=[1, 2], k=[0, 1], sigma=0.3))
+        pbrdf_cl.objective(dict(data, dop_std=np.zeros(12)), grid=dict(n=[1, 2], k=[0, 1], sigma=0.3))
     with pytest.raises(ValueError, match="unknown parameter 'theta_i'"):
-        G.objective(data, points=dict(theta_i=[1.0], n=[1.0], k=[0.0], sigma=[0.3]))
+        pbrdf_cl.objective(data, points=dict(theta_i=[1.0], n=[1.0], k=[0.0], sigma=[0.3]))
     with pytest.raises(ValueError, match="unknown axis 'q'"):
-        G.objective(data, grid=dict(q=[1, 2], n=[1, 2], k=[0, 1], sigma=0.3))
+        pbrdf_cl.objective(data, grid=dict(q=[1, 2], n=[1, 2], k=[0, 1], sigma=0.3))
 
 
 def test_grid_engine_interface_used_by_sweep_and_bench(each_device):

@@ -281,6 +281,6 @@ def test_memory_budget_strings_through_grid_reduce_and_objective(backend):
         dense.grid(axes, fixed, backend=backend, memory_budget="200 B")
     data = dict(theta_i=TI, theta_r=TR, dop=DOP)
     grid = dict(n=np.linspace(1.2, 2.0, 9), k=np.linspace(1.5, 2.5, 9), sigma=np.linspace(0.3, 0.7, 5))
-    ref = dense.objective(data, grid=grid, dtype="float64", backend=backend)
-    small = dense.objective(data, grid=grid, dtype="float64", backend=backend, memory_budget="40 KB")
+    ref = pbrdf_cl.objective(data, grid=grid, dtype="float64", backend=backend)
+    small = pbrdf_cl.objective(data, grid=grid, dtype="float64", backend=backend, memory_budget="40 KB")
     np.testing.assert_array_equal(small.sse.values, ref.sse.values)

@@ -50,7 +50,7 @@ def _results(eng):
     data = dict(theta_i=rng.uniform(10, 70, 9), theta_r=rng.uniform(5, 80, 9), phi=rng.choice([180.0, 120.0], 9))
     data["dop"] = pbrdf_cl.dop(**data, n=1.8, k=1.2, sigma=0.6, kd=0.3, c=-0.4, backend="numpy")
     for grid in OBJECTIVE_GRIDS:
-        res = G.objective(data, grid=grid, dtype="float32", engine=eng, k_best=4, memory_budget=20000)
+        res = pbrdf_cl.objective(data, grid=grid, dtype="float32", engine=eng, k_best=4, memory_budget=20000)
         out += [res.sse.values, res.best["index"], res.best["sse"]]
     return out
 

@@ -14,7 +14,6 @@ import numpy as np
 import pytest
 
 import pbrdf_cl
-from pbrdf_cl.compute import dense
 from pbrdf_cl.device import choice, sources, trials
 from pbrdf_cl.device import engine as E
 
@@ -131,7 +130,7 @@ def test_a_program_that_kills_its_trial_falls_back_to_numpy_with_one_warning_per
     proc = run(["-c", SCRIPT], env)
     assert proc.returncode == 0 and "Traceback" not in proc.stderr, proc.stderr
     out = json.loads(proc.stdout)
-    want = np.asarray(dense.objective(CSV, grid=GRID, backend="numpy").sse).ravel()
+    want = np.asarray(pbrdf_cl.objective(CSV, grid=GRID, backend="numpy").sse).ravel()
     np.testing.assert_allclose(out["sse"], want, rtol=1e-5)
     usable = [d for d in E.candidates() if E.probe(d).usable]  # every device the fallback tries (not only the
     assert len(out["warnings"]) == len(usable), out["warnings"]  # tests' own, which PBRDF_TEST_DEVICES may narrow)
@@ -161,7 +160,7 @@ def test_the_work_moves_to_the_next_usable_device(tmp_path):
     assert out["warnings"][0].startswith(f"OpenCL device {device_id(first)} ({E.describe(first)}) cannot run "
                                          "pbrdf_grid.cl")
     assert out["warnings"][0].endswith(f"computing it on OpenCL device {device_id(second)} ({E.describe(second)})")
-    want = np.asarray(dense.objective(CSV, grid=GRID, engine=E.Engine(second)).sse).ravel()
+    want = np.asarray(pbrdf_cl.objective(CSV, grid=GRID, engine=E.Engine(second)).sse).ravel()
     assert out["sse"] == want.tolist()
 
 
@@ -200,7 +199,7 @@ def test_a_hanging_trial_is_killed_at_the_time_limit(store, monkeypatch):
     t0 = time.monotonic()
     with pytest.raises(E.ProgramUnusableError,
                        match=r"cannot run pbrdf_grid\.cl \(float32, .*\): timed out after 2 s$"):
-        dense.objective(CSV, grid=GRID, engine=eng)
+        pbrdf_cl.objective(CSV, grid=GRID, engine=eng)
     assert time.monotonic() - t0 < 60
     assert not any(p.name.startswith("pbrdf-trial-") for p in Path(os.environ["POCL_CACHE_DIR"]).glob("*")
                    if str(os.getpid()) in p.name)  # the killed child's cache folder is gone
@@ -269,7 +268,7 @@ def test_narrow_vectors_change_no_value(engine):
             o = dict(dop=pbrdf_cl.dop(ti, tr, ph, n=1.6, k=2.1, sigma=sg, kd=0.2, c=-0.3, dtype=dtype, engine=eng),
                      bcast=pbrdf_cl.brdf(ti[:, None], tr[None, :13], 150, n=1.6, k=2.1, sigma=0.3, kd=0.2, c=-0.3,
                                          dtype=dtype, engine=eng),
-                     sse=np.asarray(dense.objective(CSV, grid=GRID, dtype=dtype, engine=eng).sse))
+                     sse=np.asarray(pbrdf_cl.objective(CSV, grid=GRID, dtype=dtype, engine=eng).sse))
             if dtype == "float32":
                 fit = pbrdf_cl.fit_batch(dict(dop=stack, **geo), engine=eng)
                 o.update({v: fit[v].values for v in ("n", "k", "sigma", "kd", "c", "sse", "status")})

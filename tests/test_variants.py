@@ -247,7 +247,7 @@ def test_objective_of_every_variant_equals_the_reference_sse(engine, shadowing, 
         for dtype in ("float64", "float32"):
             rtol = 1e-11 if dtype == "float64" else 2e-4
             for where, kw in backends(engine):
-                res = G.objective(data, grid=grid, dtype=dtype, shadowing=shadowing, k_best=3, **kw)
+                res = pbrdf_cl.objective(data, grid=grid, dtype=dtype, shadowing=shadowing, k_best=3, **kw)
                 np.testing.assert_allclose(res.sse.values, want, rtol=rtol, err_msg=f"{where} {dtype}")
                 assert res.sse.attrs["shadowing"] == shadowing
                 np.testing.assert_array_equal(res.best["index"], np.argsort(want.ravel())[:3])
@@ -257,7 +257,7 @@ def test_objective_of_every_variant_equals_the_reference_sse(engine, shadowing, 
     for dtype in ("float64", "float32"):
         rtol = 1e-11 if dtype == "float64" else 2e-4
         for where, kw in backends(engine):
-            res = G.objective(data, points=pts, dtype=dtype, shadowing=shadowing, **kw)
+            res = pbrdf_cl.objective(data, points=pts, dtype=dtype, shadowing=shadowing, **kw)
             np.testing.assert_allclose(res.sse, want, rtol=rtol, err_msg=f"{where} {dtype}")
 
 

@@ -691,40 +691,11 @@ def _update_best(best_idx, best_sse, start, sse, k):
 @_engine.falls_back
 def objective(data, grid=None, points=None, *, k_best=10, dtype="float32", shadowing="paper", engine=None,
               backend="auto", memory_budget=DEFAULT_BUDGET, return_sse=True, progress=False):
-    """Weighted sum of squared DOP residuals, sum_m w_m (DOP(p, m) - dop_m)^2, for many parameter
-    vectors p over the measurements m, on the device.
-
-    Parameters
-    ----------
-    data : dict, CSV path or Measurements
-        theta_i, theta_r (degrees), dop, optionally phi (default 180) and dop_std (weights 1/dop_std^2).
-    grid : dict
-        Parameter axes (n, k, sigma, ks, kd, c -> 1-d array or scalar) whose Cartesian product is
-        searched (factorised: no transcendental function per pair).  ks, kd, c default to 1, 0, 0.
-    points : dict
-        Or an explicit list: n, k, sigma, ks, kd, c -> equal-length arrays (one full model
-        evaluation per pair).
-    k_best : int
-        How many of the best parameter vectors to return.
-    dtype, shadowing, engine, backend, memory_budget, progress
-        As for :func:`grid`.
-    return_sse : bool, default True
-        Keep the SSE of every parameter vector (False: only the best).
-
-    Returns
-    -------
-    ObjectiveResult
-        ``sse`` (a DataArray over the grid's axes, or an array for ``points``), ``best`` (the
-        ``k_best`` best vectors and their SSE, best first), ``n_pairs``, ``seconds``.
-
-    Examples
-    --------
-    >>> import numpy as np, pbrdf_cl
-    >>> data = dict(theta_i=[30, 40, 50], theta_r=[20, 45, 65], dop=[0.052, 0.168, 0.338])
-    >>> res = pbrdf_cl.objective(data, grid=dict(n=np.linspace(1, 5, 16), k=np.linspace(0, 10, 16), sigma=0.5))
-    >>> len(res.best["sse"])
-    10
-    """
+    """Weighted sum of squared residuals over the measurements for many parameter vectors, on the
+    device: the engine of :func:`pbrdf_cl.objective` (which reads the data and documents the
+    arguments and the result).  ``data`` is checked :class:`~pbrdf_cl.io.measurements.Measurements`
+    (their DOP: theta_i, theta_r, phi, dop, dop_std) or polarimetric
+    :class:`~pbrdf_cl.model.measurables.Channels`."""
     t0 = time.perf_counter()
     from ..ranges import parse_bytes
     memory_budget = parse_bytes("memory_budget", memory_budget)
@@ -734,12 +705,9 @@ def objective(data, grid=None, points=None, *, k_best=10, dtype="float32", shado
     if isinstance(data, Channels):  # polarimetric channels (pbrdf_cl.model.measurables), checked by the caller
         ti, tr, ph, obs, w = data.theta_i, data.theta_r, data.phi, data.obs, None
         op, payload, what = "objective_channel_blocks", data, "channels"
-    else:
-        from ..io.measurements import as_measurements
-        meas = as_measurements(data)
-        pointwise.check_degrees(meas.theta_i, meas.theta_r, f"{meas.source}: ")
-        ti, tr, ph, obs = meas.theta_i, meas.theta_r, meas.phi, meas.dop
-        w = meas.weights if meas.dop_std is not None else np.ones(len(meas))
+    else:  # checked measurements (pbrdf_cl.objective reads them)
+        ti, tr, ph, obs = data.theta_i, data.theta_r, data.phi, data.dop
+        w = 1.0 / data.dop_std ** 2 if data.dop_std is not None else np.ones(ti.size)
         op, payload, what = "objective_blocks", (ti, tr, ph, obs, w), "DOP"
     eng = resolve_engine(engine, backend)
     npdt = DTYPES[dtype]
@@ -810,23 +778,26 @@ def _device_objective_blocks(eng, plan, meas, dtype, shadowing, room, out):
     """(flat start, SSE) of the parameter grid in chunks, on the device, read straight into
     ``out`` when given."""
     ti, tr, ph, obs, w = meas
-    tables = Tables(eng, dtype, shadowing, "dop", ti, tr, ph, plan.values)
-    args = (*tables.args(), eng.to_device(obs, dtype), eng.to_device(w, dtype), np.int32(ti.size))
-    yield from _objective_chunks(eng, plan, dtype, room, out, ("objective_rows", "objective_grid"), args)
+
+    def tables():
+        t = Tables(eng, dtype, shadowing, "dop", ti, tr, ph, plan.values)
+        return (*t.args(), eng.to_device(obs, dtype), eng.to_device(w, dtype), np.int32(ti.size))
+    yield from _objective_chunks(eng, plan, dtype, room, out, ("objective_rows", "objective_grid"), tables)
 
 
 @ops.implements("objective_channel_blocks", "opencl")
 def _device_channel_blocks(eng, plan, ch, dtype, shadowing, room, out):
     """As ``objective_blocks`` for polarimetric channels (:mod:`pbrdf_cl.compute.channels`)."""
-    args = channels.device_channel_tables(eng, ch, plan.values, dtype, shadowing)
-    yield from _objective_chunks(eng, plan, dtype, room, out, ("objective_channel_rows", "objective_channels"), args,
+    yield from _objective_chunks(eng, plan, dtype, room, out, ("objective_channel_rows", "objective_channels"),
+                                 lambda: channels.device_channel_tables(eng, ch, plan.values, dtype, shadowing),
                                  PB_CHANNELS=None)
 
 
-def _objective_chunks(eng, plan, dtype, room, out, kernels, args, **defines):
+def _objective_chunks(eng, plan, dtype, room, out, kernels, make_args, **defines):
     """(flat start, SSE) of the grid ``plan`` in chunks of ``room`` bytes: the row kernel
     ``kernels[0]`` (or, where rows would be too long, the per-vector ``kernels[1]``) of
-    ``pbrdf_grid.cl`` with the tables and data ``args``."""
+    ``pbrdf_grid.cl`` with the tables and data that ``make_args()`` returns (made once the program
+    is built: its trial comes first)."""
     npdt = DTYPES[dtype]
     itemsize = np.dtype(npdt).itemsize
     _, nnk, nm, ni = family_sizes(plan)
@@ -837,6 +808,7 @@ def _objective_chunks(eng, plan, dtype, room, out, kernels, args, **defines):
     prog = grid_program(eng, dtype, (nnk, nm, ni), idx_name, "dop", PB_OBJECTIVE=None, PB_ROW_LEVEL=level,
                         PB_ROW_LEN=row_len, **defines)
     chunk = max(row_len, chunk // row_len * row_len)
+    args = make_args()
     for start in range(0, P, chunk):
         count = min(chunk, P - start)
         host = out[start:start + count] if out is not None else np.empty(count, npdt)

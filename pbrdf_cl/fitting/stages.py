@@ -328,7 +328,7 @@ def grid_stage(meas, free, axes, base, shadowing="paper", *, engine=None, backen
     t0 = time.perf_counter()
     with warnings.catch_warnings():  # fit's argument check gives the radians warning, once
         warnings.simplefilter("ignore", pointwise.UnitsWarning)
-        obj = dense.objective(meas.as_dict() if channels is None else channels, grid={**base, **axes}, k_best=1,
+        obj = dense.objective(meas if channels is None else channels, grid={**base, **axes}, k_best=1,
                               dtype="float32", shadowing=shadowing, engine=engine, backend=backend,
                               progress=progress)
     sse = obj.sse.transpose(*free).values
