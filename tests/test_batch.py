@@ -293,3 +293,29 @@ def test_blocks_do_not_change_the_answers(dev):
         np.testing.assert_array_equal(rows.status.values, whole.status.values)
         for name in ("n", "k", "sigma", "kd", "c", "sse", "chi2", "n_stderr", "kd_ci95"):
             np.testing.assert_allclose(rows[name].values, whole[name].values, rtol=1e-12, atol=0, err_msg=name)
+
+
+def test_pixels_outside_their_intervals_are_marked(dev, tmp_path, capsys):
+    """Issue #34 item 4 for image fits: ``<name>_outside_ci95`` is True exactly where a pixel's
+    best value lies outside its own interval (a parameter its data do not determine, at a bound),
+    its ``long_name`` says why, ``attrs`` count them with the note fit-image prints."""
+    from pbrdf_cl.cli import main
+    from pbrdf_cl.fitting.common import OUTSIDE_FOOTNOTE, OUTSIDE_WHY
+    dop, _ = random_pixels(24, seed=3, noise=0.003)
+    data = dict(dop=dop.reshape(4, 6, 30), theta_i=TI, theta_r=TR, dop_std=np.full((4, 6, 30), 0.003))
+    res = pbrdf_cl.fit_batch(data, engine=dev)
+    counts = {}
+    for name in ("n", "k", "sigma", "kd", "c"):
+        x, ci = res[name].values, res[f"{name}_ci95"].values
+        want = (x < ci[..., 0]) | (x > ci[..., 1])
+        np.testing.assert_array_equal(res[f"{name}_outside_ci95"].values, want)
+        assert res[f"{name}_outside_ci95"].attrs["long_name"] == OUTSIDE_FOOTNOTE
+        if want.any():
+            counts[name] = int(want.sum())
+    assert counts, "no pixel of this stack lies outside its interval: choose another seed"
+    assert res.attrs["outside_ci95"] == ", ".join(f"{n} {c}" for n, c in counts.items())
+    note = res.attrs["outside_ci95_note"]
+    assert note.endswith(OUTSIDE_WHY) and all(f"{n}_outside_ci95" in note for n in counts)
+    np.savez(tmp_path / "stack.npz", **data)
+    assert main(["fit-image", str(tmp_path / "stack.npz"), "--out", str(tmp_path / "fit.zarr"), "--no-progress"]) == 0
+    assert f"note: {note}" in capsys.readouterr().out

@@ -1,12 +1,16 @@
 """Image fits with shared material parameters (pbrdf_cl.fit_batch(labels=, shared=), issue #28 part
 3): a two-material image's label intervals cover the truth and are much narrower than the per-pixel
 ones, the pixels carry their label's n, k, label 0 is masked, the result does not depend on the
-memory budget, the store holds the same, and bad labels or shared names are refused in one line."""
+memory budget, the store holds the same, and bad labels or shared names are refused in one line.
+Issue #34: a label over two materials fails its goodness-of-fit test (the pixels' own tests pass:
+their own parameters absorb the misfit) and the CLI names it in a WARNING; a correct labelling
+passes quietly; the labels' correlations are valid."""
 import numpy as np
 import pytest
 
 import pbrdf_cl
 from pbrdf_cl.fitting import job as J
+from pbrdf_cl.fitting.common import GOODNESS_P, LABEL_MISTAKE_CAUSES
 from pbrdf_cl.fitting.labels import LabelJob
 
 TI = np.repeat([30.0, 40.0, 50.0], 10)            # the paper's geometry
@@ -243,3 +247,55 @@ def test_cli_fit_image_with_labels(dev, tmp_path, capsys):
     assert main(["fit-image", str(tmp_path / "stack.npz"), "--out", str(tmp_path / "x.zarr"), "--shared", "n,k"]) == 1
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "--shared needs --labels" in err
+
+
+@pytest.mark.parametrize("given", [True, False], ids=["dop_std", "no_dop_std"])
+def test_a_label_over_two_materials_is_reported(dev, given):
+    """One label over steel (n 1.6, k 2.139) and a dielectric (1.4, 0.5): its shared values are a
+    compromise every pixel's own parameters absorb, so the pixels pass their own tests, but the
+    label's test fails (chi2 with dop_std, the F test against the pixels' own fits without) and
+    says so with the usual causes; labelled correctly, both labels pass and nothing warns."""
+    data, lab = two_materials(8, 8, 0.003, seed=5)
+    if not given:
+        data.pop("dop_std")
+    mixed = pbrdf_cl.fit_batch(data, labels=np.ones_like(lab), engine=dev)
+    assert (mixed.fits_data.values == 1).mean() > 0.9  # the pixels' own tests do not see it
+    assert mixed.label_p_value.values[0] < GOODNESS_P and mixed.label_fits_data.values.tolist() == [0]
+    warning = mixed.attrs["label_goodness_warning"]
+    assert warning.startswith("WARNING:") and "label 1 " in warning and LABEL_MISTAKE_CAUSES in warning
+    assert "two materials under one label" in warning and "1 of 1 tested labels fail" in mixed.attrs["label_goodness"]
+    right = pbrdf_cl.fit_batch(data, labels=lab, engine=dev)
+    assert np.all(right.label_p_value.values >= GOODNESS_P) and right.label_fits_data.values.tolist() == [1, 1]
+    assert "label_goodness_warning" not in right.attrs and "0 of 2 tested labels fail" in right.attrs["label_goodness"]
+    for res in (mixed, right):  # the labels' correlations: valid numbers (issue #34 item 3)
+        corr = res.label_corr.values
+        np.testing.assert_array_equal(corr, np.swapaxes(corr, 1, 2))
+        assert np.all(np.abs(corr) <= 1)
+        np.testing.assert_allclose(np.diagonal(corr, axis1=1, axis2=2), 1.0, rtol=0, atol=1e-12)
+        assert list(res.shared_param.values) == ["n", "k"]
+
+
+def test_cli_names_the_label_that_does_not_fit(dev, tmp_path, capsys):
+    """``pbrdf-cl fit-image --labels``: a WARNING line naming the label over two materials with the
+    usual causes, its line saying it does not fit; none for the correct labelling; the store
+    keeps the test."""
+    import xarray as xr
+
+    from pbrdf_cl.cli import main
+    data, lab = two_materials(8, 8, 0.003, seed=5)
+    np.savez(tmp_path / "stack.npz", **data)
+    np.save(tmp_path / "one.npy", np.ones_like(lab))
+    np.save(tmp_path / "two.npy", lab)
+    assert main(["fit-image", str(tmp_path / "stack.npz"), "--out", str(tmp_path / "one.zarr"), "--labels",
+                 str(tmp_path / "one.npy"), "--no-progress"]) == 0
+    printed = capsys.readouterr().out
+    warning = [ln for ln in printed.splitlines() if ln.startswith("WARNING")]
+    assert len(warning) == 1 and "label 1 " in warning[0] and LABEL_MISTAKE_CAUSES in warning[0], printed
+    assert any(ln.startswith("label 1: ") and "does not fit" in ln for ln in printed.splitlines())
+    store = xr.open_zarr(tmp_path / "one.zarr")
+    assert store.label_fits_data.values.tolist() == [0] and store.attrs["label_goodness_warning"] == warning[0]
+    assert main(["fit-image", str(tmp_path / "stack.npz"), "--out", str(tmp_path / "two.zarr"), "--labels",
+                 str(tmp_path / "two.npy"), "--no-progress"]) == 0
+    printed = capsys.readouterr().out
+    assert "WARNING" not in printed and "does not fit" not in printed
+    assert "label goodness of fit: 0 of 2 tested labels fail" in printed

@@ -344,7 +344,9 @@ def test_cli_fit_image_writes_the_store_and_the_png(stack, tmp_path):
     assert lines[2] == ds.attrs["goodness"] and lines[2].startswith("goodness of fit: 0 of 255 fitted pixels (0.0%)")
     from pbrdf_cl.io.measurements import PHI_DEFAULT_NOTE
     assert lines[3] == f"note: {PHI_DEFAULT_NOTE}"  # the stack has no phi
-    assert lines[4] == f"store: {tmp_path / 'p.zarr'}; maps: {tmp_path / 'maps.png'}"
+    # pixels whose best value lies outside its own interval: counted, with the note (issue #34 item 4)
+    assert lines[4:-1] == ([f"note: {ds.attrs['outside_ci95_note']}"] if "outside_ci95_note" in ds.attrs else [])
+    assert lines[-1] == f"store: {tmp_path / 'p.zarr'}; maps: {tmp_path / 'maps.png'}"
     assert ds.attrs["free"] == "n k sigma c" and ds.attrs["fixed_kd"] == 0.15 and ds.attrs["batch_complete"]
     assert float(ds.n_ci95.max()) <= 3.0
     assert ds.attrs["batch_blocks"] == 2

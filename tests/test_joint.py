@@ -10,9 +10,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from test_fit_output import assert_valid_covariance
 
 import pbrdf_cl
 from pbrdf_cl.fitting import joint
+from pbrdf_cl.fitting.common import OUTSIDE_FOOTNOTE, OUTSIDE_MARK
 from pbrdf_cl.io.measurements import from_arrays, split_sets, write_csv
 
 TI = np.repeat([30.0, 40.0, 50.0], 10)
@@ -339,3 +341,30 @@ def test_the_result_says_which_sets_the_basin_exchange_moved():
     assert res.to_dataset().attrs["exchanged"] == "; ".join(",".join(m) for m in res.exchanged)
     quiet = pbrdf_cl.fit_joint(bench_problem(0)[1])
     assert quiet.exchanged == () and not any("basin exchange" in n for n in quiet.notes)
+
+
+def test_a_joint_fit_that_does_not_describe_its_data_has_valid_matrices_and_marks():
+    """Issue #34 items 3 and 4 for fit_joint: in-plane sets labelled phi = 0 gave correlations of
+    9.7 and inf, not symmetric; now the covariance is valid or NaN with a note, the standard
+    errors are NaN where it is, and every best value outside its interval is marked (*) in the
+    summary, listed in ``outside_ci95`` and flagged in ``to_dataset()``."""
+    sets = {s: from_arrays(m.theta_i, m.theta_r, m.dop, 0.0, m.dop_std) for s, m in three_sets().items()
+            if s != "633"}
+    r = pbrdf_cl.fit_joint(sets, shared=("sigma", "c"))
+    assert not r.fits_data
+    undefined = assert_valid_covariance(r.cov, r.corr)
+    assert list(r.corr.coords["param"].values) == r.free
+    assert sum("projected onto a valid one" in n or "cannot be computed" in n for n in r.notes) == 1
+    for label, u in zip(r.free, undefined):
+        p, s = (label.split("[")[0], label.split("[")[1].rstrip("]")) if "[" in label else (label, r.sets[0])
+        assert np.isnan(r.stderr[s][p]) == u
+    text = r.summary()
+    ds = r.to_dataset()
+    assert ds["outside_ci95"].attrs["long_name"] == OUTSIDE_FOOTNOTE
+    for s in r.sets:
+        outside = [p for p, (lo, hi) in r.ci95[s].items() if not lo <= r.x[s][p] <= hi]
+        assert r.outside_ci95[s] == outside
+        for p in r.ci95[s]:
+            assert bool(ds["outside_ci95"].sel(set=s, param=p)) == (p in outside)
+    assert any(r.outside_ci95.values()) and OUTSIDE_MARK in text
+    assert sum(OUTSIDE_MARK in n for n in r.notes) == 1

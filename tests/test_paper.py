@@ -182,6 +182,27 @@ def test_fig2_data_fits_and_table1(reproduced):
     assert "| aluminum | 1.24 | 6.6 | 1.37 | 3.97 | 1.255 | 6.582 |" in md
 
 
+def test_table1_marks_a_best_value_outside_its_interval(tmp_path):
+    """Issue #34 item 4: the aluminium row's six-parameter k (10, on its bound) lies outside its
+    interval [0.254, 9.75]: the Markdown marks it (*) with the footnote that says why, the CSV
+    flags it, and the values inside their intervals are not marked."""
+    from pbrdf_cl.fitting.common import OUTSIDE_FOOTNOTE, OUTSIDE_MARK
+    fits = {"aluminum": paper.fig2("aluminum", tmp_path)}
+    rows = paper.table1(fits, tmp_path)
+    six = fits["aluminum"]["six-param"]
+    outside = {p: not six.ci95[p][0] <= six.x[p] <= six.ci95[p][1] for p in ("n", "k")}
+    assert any(outside.values()), "the aluminium fit no longer puts n or k outside its interval: choose another case"
+    csv_row = next(csv.DictReader(open(tmp_path / "table1.csv")))
+    md = (tmp_path / "table1.md").read_text()
+    row = next(line for line in md.splitlines() if line.startswith("| aluminum"))
+    cells = [c.strip() for c in row.split("|")[1:-1]]
+    for p, cell in zip(("n", "k"), cells[9:11]):
+        assert (OUTSIDE_MARK in cell) == outside[p], cell
+        assert csv_row[f"ours_six_{p}_outside_ci95"] == str(outside[p])
+        assert rows[0][f"ours_six_{p}_outside_ci95"] == outside[p]
+    assert md.rstrip().endswith(OUTSIDE_FOOTNOTE + ".")
+
+
 def test_map_cli_roundtrip_and_derivative(tmp_path, capsys):
     png, npz = tmp_path / "m.png", tmp_path / "m.npz"
     rc = cli.main(["map", "--x", "theta_r=0:85@40", "--y", "n=1:3@30", "--fix", "theta_i=40", "k=2.139", "sigma=0.5",

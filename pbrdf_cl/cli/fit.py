@@ -21,12 +21,17 @@ from .common import (
 )
 
 
+def _finite(d):
+    """``d`` with None for its values that are not finite (JSON has no NaN)."""
+    return {k: (v if np.isfinite(v) else None) for k, v in d.items()}
+
+
 def _fit_json(r):
     corr = np.asarray(r.corr, dtype=float)
     return dict(model=r.model, shadowing=r.shadowing, success=bool(r.success), status=r.status, message=r.message,
                 fits_data=bool(r.fits_data), x=r.x, kd_ratio=r.get("kd_ratio"),
                 kd_fitted_as=("kd/ks" if "ks" in r.free and "kd" in r.free else "kd") if "kd" in r.free else None,
-                free=r.free, stderr=r.stderr,
+                free=r.free, stderr=_finite(r.stderr), outside_ci95=r.outside_ci95,
                 ci95={k: list(v) for k, v in r.ci95.items()}, sse=r.sse, rmse=r.rmse, chi2=r.chi2,
                 reduced_chi2=r.reduced_chi2 if r.sigma_known else None, p_value=r.p_value, r2=r.r2, aic=r.aic,
                 bic=r.bic, dof=r.dof, residuals=r.residuals.tolist(),
@@ -41,19 +46,33 @@ def _fit_brief(r):
     ratio = "ks" in r.free and "kd" in r.free  # intensities: the interval under "kd" is that of kd/ks
     for name in r.free:
         lo, hi = r.ci95[name]
+        mark = _mark(r.fitted_value(name), lo, hi)
         if name == "kd" and ratio:
-            lines.append(f"  kd/ks = {r.kd_ratio:.5g}  [{lo:.4g}, {hi:.4g}]  (kd = {r.x['kd']:.5g})")
+            lines.append(f"  kd/ks = {r.kd_ratio:.5g}  [{lo:.4g}, {hi:.4g}]{mark}  (kd = {r.x['kd']:.5g})")
         else:
-            lines.append(f"  {name} = {r.x[name]:.5g}  [{lo:.4g}, {hi:.4g}]")
+            lines.append(f"  {name} = {r.x[name]:.5g}  [{lo:.4g}, {hi:.4g}]{mark}")
     if PHI_DEFAULT_NOTE in r.notes:
         lines.append(f"  note: {PHI_DEFAULT_NOTE}")
-    return "\n".join(lines)
+    return "\n".join(lines + _footnote(lines))
+
+
+def _mark(x, lo, hi):
+    """" (*)" where ``x`` lies outside its 95% interval [lo, hi] (:data:`OUTSIDE_FOOTNOTE` says why)."""
+    from ..fitting.common import OUTSIDE_MARK, outside_interval
+    return f" {OUTSIDE_MARK}" if outside_interval(x, lo, hi) else ""
+
+
+def _footnote(lines, indent="  "):
+    """The footnote of the marks in ``lines`` (none without a mark)."""
+    from ..fitting.common import OUTSIDE_FOOTNOTE, OUTSIDE_MARK
+    return [indent + OUTSIDE_FOOTNOTE] if any(OUTSIDE_MARK in ln for ln in lines) else []
 
 
 def _joint_json(r):
     return dict(model=r.model, shadowing=r.shadowing, success=bool(r.success), status=r.status, message=r.message,
                 fits_data=bool(r.fits_data), sets=r.sets, shared=r.shared, shared_x=r.shared_x, free=r.free, x=r.x,
-                stderr=r.stderr, ci95={s: {p: list(v) for p, v in c.items()} for s, c in r.ci95.items()},
+                stderr={s: _finite(e) for s, e in r.stderr.items()}, outside_ci95=r.outside_ci95,
+                ci95={s: {p: list(v) for p, v in c.items()} for s, c in r.ci95.items()},
                 sse=r.sse, set_sse=r.set_sse, chi2=r.chi2, dof=r.dof, p_value=r.p_value, r2=r.r2, aic=r.aic,
                 bic=r.bic, separate_aic=r.separate_aic, separate_bic=r.separate_bic, width_ratio=r.width_ratio,
                 n_points=r.n_points, seconds=r.seconds, notes=r.notes, exchanged=[list(m) for m in r.exchanged],
@@ -67,12 +86,13 @@ def _joint_brief(r):
     first = r.sets[0]
     for p in r.shared:
         ci = r.ci95[first].get(p)
-        lines.append(f"  {p} = {r.shared_x[p]:.5g}" + (f"  [{ci[0]:.4g}, {ci[1]:.4g}]" if ci else "  (fixed)"))
+        lines.append(f"  {p} = {r.shared_x[p]:.5g}" + (f"  [{ci[0]:.4g}, {ci[1]:.4g}]{_mark(r.shared_x[p], *ci)}"
+                                                     if ci else "  (fixed)"))
     for s in r.sets:
         for p, (lo, hi) in r.ci95[s].items():
             if p not in r.shared:
-                lines.append(f"  {p}[{s}] = {r.x[s][p]:.5g}  [{lo:.4g}, {hi:.4g}]")
-    return "\n".join(lines)
+                lines.append(f"  {p}[{s}] = {r.x[s][p]:.5g}  [{lo:.4g}, {hi:.4g}]{_mark(r.x[s][p], lo, hi)}")
+    return "\n".join(lines + _footnote(lines))
 
 
 def cmd_fit_joint(args, fixed, bounds) -> int:
@@ -196,15 +216,35 @@ def cmd_fit_image(args) -> int:
         print(ds.attrs["goodness_warning"])
     for note in str(ds.attrs.get("data_notes", "")).splitlines():
         print(f"note: {note}")
+    if "outside_ci95_note" in ds.attrs:
+        print(f"note: {ds.attrs['outside_ci95_note']}")
     if "label" in ds.dims:
-        for j, lab in enumerate(ds["label"].values):
-            print(f"label {lab}: " + ", ".join(
-                f"{n} = {float(ds[f'label_{n}'][j]):.4g} [{float(ds[f'label_{n}_ci95'][j, 0]):.4g}, "
-                f"{float(ds[f'label_{n}_ci95'][j, 1]):.4g}]" for n in ds.attrs["shared"].split())
-                + f" ({int(ds['label_pixels'][j])} pixels)")
-        print(f"note: {ds.attrs['label_interval_note']}")
+        _print_labels(ds)
     print(f"store: {ds.attrs['store']}" + (f"; maps: {args.png}" if args.png else ""))
     return 0
+
+
+def _print_labels(ds):
+    """fit-image --labels: each label's shared values with their 95% intervals (marked where the
+    value lies outside), whether its values describe its pixels' data, the notes and the WARNING
+    naming the labels that do not."""
+    lines = []
+    for j, lab in enumerate(ds["label"].values):
+        values = []
+        for n in ds.attrs["shared"].split():
+            x, (lo, hi) = float(ds[f"label_{n}"][j]), ds[f"label_{n}_ci95"].values[j]
+            values.append(f"{n} = {x:.4g} [{lo:.4g}, {hi:.4g}]{_mark(x, lo, hi)}")
+        fits = int(ds["label_fits_data"][j]) if "label_fits_data" in ds else -1
+        lines.append(f"label {lab}: " + ", ".join(values) + f" ({int(ds['label_pixels'][j])} pixels"
+                     + ("; does not fit its pixels' data: see the WARNING" if fits == 0 else "") + ")")
+    lines += _footnote(lines, indent="")
+    print("\n".join(lines))
+    for key in ("label_goodness", "label_cov_note"):
+        for line in str(ds.attrs.get(key, "")).splitlines():
+            print(line if key == "label_goodness" else f"note: {line}")
+    print(f"note: {ds.attrs['label_interval_note']}")
+    if "label_goodness_warning" in ds.attrs:
+        print(ds.attrs["label_goodness_warning"])
 
 
 def _label_options(args):

@@ -33,7 +33,7 @@ import time
 import numpy as np
 
 from . import batch_store
-from .dataset import goodness_summary
+from .dataset import goodness_summary, interval_summary
 from .job import BLOCK_BUDGET, N_STARTS, BatchJob
 from .labels import LabelJob, UnsharedLabelJob, label_shared, read_labels
 from .setup import FitSetup
@@ -105,18 +105,27 @@ def fit_batch(data, model="six-param", bounds=None, fixed=None, shadowing="paper
         Over the pixel dimensions: one variable per fitted parameter (``n``, ``k``, ``sigma``,
         ``kd``, ``c``, and ``ks`` with intensities; kd is kd/ks without them), ``sse`` (sum of
         squared DOP residuals), ``chi2`` (weighted), ``<name>_stderr``, ``<name>_ci95`` (a
-        trailing ``bound`` dimension: low, high), ``determined`` (per parameter: the 95%
-        interval is narrower than half the bounds), ``r2``, ``p_value`` and ``fits_data`` (the
-        goodness-of-fit test of each pixel, as :func:`pbrdf_cl.fit`'s), ``n_valid``
-        (measurements used), ``nfev`` and ``status`` (codes in ``attrs["status_codes"]``); the
-        stack's coordinates over the pixels; units, settings and the image's goodness of fit
-        (:func:`goodness_summary`: ``attrs["goodness"]``, and ``attrs["goodness_warning"]``
-        where too many pixels fail) in ``attrs``.  With ``labels``: the pixels' ``labels``; the
-        shared parameters' per-pixel values, stderr and intervals are their label's (the other
-        parameters' intervals hold the shared ones at the label's values); over a ``label``
-        dimension ``label_<name>``, ``label_<name>_stderr``, ``label_<name>_ci95``,
-        ``label_pixels``, ``label_chi2``, ``label_sse``, ``label_dof`` and ``label_status``
-        (codes in its attrs); pixels of label 0 are masked (status -1).
+        trailing ``bound`` dimension: low, high), ``<name>_outside_ci95`` (the best value lies
+        outside its own 95% interval: a parameter the pixel's data do not determine, its best
+        fit at a bound; the variable's ``long_name`` says why), ``determined`` (per parameter:
+        the 95% interval is narrower than half the bounds), ``r2``, ``p_value`` and
+        ``fits_data`` (the goodness-of-fit test of each pixel, as :func:`pbrdf_cl.fit`'s),
+        ``n_valid`` (measurements used), ``nfev`` and ``status`` (codes in
+        ``attrs["status_codes"]``); the stack's coordinates over the pixels; units, settings,
+        the image's goodness of fit (:func:`goodness_summary`: ``attrs["goodness"]``, and
+        ``attrs["goodness_warning"]`` where too many pixels fail) and the count of best values
+        outside their intervals (:func:`interval_summary`: ``attrs["outside_ci95"]``, with
+        ``attrs["outside_ci95_note"]`` where any) in ``attrs``.  With ``labels``: the pixels'
+        ``labels``; the shared parameters' per-pixel values, stderr and intervals are their
+        label's (the other parameters' intervals hold the shared ones at the label's values);
+        over a ``label`` dimension ``label_<name>``, ``label_<name>_stderr``,
+        ``label_<name>_ci95``, ``label_<name>_outside_ci95``, ``label_corr`` (the shared
+        parameters' correlations, valid or NaN), ``label_pixels``, ``label_chi2``,
+        ``label_sse``, ``label_dof``, ``label_p_value`` and ``label_fits_data`` (each label's
+        goodness-of-fit test: chi2 with dop_std, else an F test against the pixels' own fits;
+        ``attrs["label_goodness"]``, and ``attrs["label_goodness_warning"]`` naming the labels
+        that fail) and ``label_status`` (codes in its attrs); pixels of label 0 are masked
+        (status -1).
 
     Raises
     ------
@@ -166,6 +175,7 @@ def fit_batch(data, model="six-param", bounds=None, fixed=None, shadowing="paper
     out = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
     ds = job.dataset(out, seconds=time.perf_counter() - t0)
     ds.attrs.update(goodness_summary(ds))
+    ds.attrs.update(interval_summary(ds))
     return ds
 
 

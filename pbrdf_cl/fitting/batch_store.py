@@ -50,7 +50,7 @@ from ..store import cluster, runner
 from ..store import zarr as zarr_store
 from ..store.cluster import local_engine  # noqa: F401 (batch_store.local_engine stays)
 from ..version import __version__
-from .dataset import PIXEL_STATUS, goodness_summary
+from .dataset import PIXEL_STATUS, goodness_summary, interval_summary
 
 #: Version of the canonical settings (part of their hash).
 SETTINGS_VERSION = 2  # 2: the goodness-of-fit variables (r2, p_value, fits_data)
@@ -348,8 +348,9 @@ def _mark_complete(name, n_blocks):
 
 def _add_goodness(name, ds):
     """The goodness-of-fit summary of a complete store (:func:`pbrdf_cl.fitting.dataset.goodness_summary`,
-    read block by block) written into its attrs; returns it."""
-    summary = goodness_summary(ds)
+    read block by block) and where best values lie outside their intervals
+    (:func:`pbrdf_cl.fitting.dataset.interval_summary`) written into its attrs; returns them."""
+    summary = {**goodness_summary(ds), **interval_summary(ds)}
     g = zarr_store.open_group(name, "r+")
     g.attrs.update(summary)
     zarr_store.consolidate(name)

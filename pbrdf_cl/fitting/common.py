@@ -7,10 +7,17 @@ in spirit), and :func:`pbrdf_cl.design` with them:
 - the noise floor of fits without given uncertainties: :data:`DOP_NOISE_FLOOR`,
   :func:`dop_resolution`, :func:`dop_noise_floor`; the resolution of a located optimum
   (:data:`X_RESOLUTION`);
-- the goodness-of-fit test of a fit and of each pixel of an image fit: :data:`GOODNESS_P`,
-  :data:`GOODNESS_R2` and the usual causes of a failure named in their notes
-  (:data:`MISTAKE_CAUSES`).
+- the goodness-of-fit test of a fit, of each pixel and of each label of an image fit:
+  :data:`GOODNESS_P`, :data:`GOODNESS_R2` and the usual causes of a failure named in their notes
+  (:data:`MISTAKE_CAUSES`, :data:`LABEL_MISTAKE_CAUSES`);
+- the covariances every fit reports, made valid in one place (:func:`valid_covariance`: symmetric
+  positive semi-definite, correlations in [-1, 1], NaN where they cannot be computed, a note);
+- a best value outside its own 95% interval, decided in one place (:func:`outside_interval`) and
+  marked and explained in one wording (:data:`OUTSIDE_MARK`, :func:`outside_note`,
+  :data:`OUTSIDE_FOOTNOTE`).
 """
+from dataclasses import dataclass
+
 import numpy as np
 
 #: Resolution of the located optimum, as a fraction of each parameter's bound range: the
@@ -32,6 +39,9 @@ GOODNESS_R2 = 0.9
 #: What usually makes a fit fail the goodness-of-fit test (named in its note and warning).
 MISTAKE_CAUSES = ("angles in radians (pbrdf-cl takes degrees), the phi convention (180 is in plane, the specular "
                   "side; SCATMECH's 0), another shadowing variant (shadowing=), DOP in percent or dop_std too small")
+#: What usually makes a label of an image fit fail its goodness-of-fit test: its pixels do not
+#: share one material, then the causes of any fit.
+LABEL_MISTAKE_CAUSES = ("two materials under one label (split it: its pixels do not share one n, k), " + MISTAKE_CAUSES)
 
 
 def _fd_steps(x, hi):
@@ -167,3 +177,120 @@ def dop_noise_floor(dop):
     """The smallest DOP noise standard deviation assumed without given uncertainties
     (:data:`DOP_NOISE_FLOOR`): the rounding error of the data's resolution, at least the default."""
     return max(DOP_NOISE_FLOOR, dop_resolution(dop) / np.sqrt(12.0))
+
+
+#: A correlation matrix with an eigenvalue below minus this is not positive semi-definite beyond
+#: rounding (its eigenvalues lie in [0, d]; a pseudo-inverse's rounding leaves about 1e-12), and
+#: one whose C - C^T exceeds ASYMMETRY_TOLERANCE (in correlation) is not symmetric beyond it.
+PSD_TOLERANCE = 1e-10
+ASYMMETRY_TOLERANCE = 1e-8
+
+
+@dataclass(frozen=True)
+class Covariance:
+    """A covariance made valid by :func:`valid_covariance`, over the last two axes of its arrays.
+
+    cov, corr
+        (..., d, d): symmetric, positive semi-definite, correlations in [-1, 1]; NaN in the rows
+        and columns of the ``undefined`` parameters.
+    undefined
+        (..., d) bool: the parameters whose variance cannot be computed (zero, negative or not
+        finite: the data do not determine them, or J^T J is singular along them).
+    repaired
+        (...) bool: the rest was not symmetric or not positive semi-definite beyond rounding and
+        was projected (its negative eigenvalues set to 0 in correlation space, the variances kept).
+    worst, asymmetry
+        (...) the most negative eigenvalue of the correlation matrix before (0 where none), and
+        the largest |C - C^T| in correlation (divided by the standard errors).
+    """
+    cov: np.ndarray
+    corr: np.ndarray
+    undefined: np.ndarray
+    repaired: np.ndarray
+    worst: np.ndarray
+    asymmetry: np.ndarray
+
+    def note(self, names, index=(), what="the covariance"):
+        """One sentence on what was done to the matrix ``index`` (``()`` for one matrix) over the
+        parameters ``names``, or None where it was valid as computed."""
+        bad = [n for n, u in zip(names, self.undefined[index]) if u]
+        parts = []
+        if self.repaired[index]:
+            problem = []
+            if self.asymmetry[index] > ASYMMETRY_TOLERANCE:
+                problem.append(f"not symmetric (by {self.asymmetry[index]:.2g} in correlation)")
+            if self.worst[index] < -PSD_TOLERANCE:
+                problem.append(f"not positive semi-definite (an eigenvalue of {self.worst[index]:.2g} in correlation)")
+            parts.append(f"{what} as computed was {' and '.join(problem)}, numerical error in the pseudo-inverse of a "
+                         "near-singular J^T J: it is projected onto a valid one in correlation space (symmetrised, "
+                         "negative eigenvalues set to 0, the variances kept), so its correlations are approximate")
+        if bad:
+            one = len(bad) == 1
+            parts.append(f"the variance of {', '.join(bad)} cannot be computed (zero or not finite: the data do not "
+                         f"determine {'it' if one else 'them'}), so {'its' if one else 'their'} covariances and "
+                         "correlations are NaN")
+        return "; ".join(parts) or None
+
+
+def valid_covariance(cov):
+    """A covariance (..., d, d) made valid, or said not to be: the one place every fit's covariance
+    passes through (:func:`pbrdf_cl.fit`, :func:`pbrdf_cl.fit_joint`, the pixels and the labels
+    of :func:`pbrdf_cl.fit_batch`).
+
+    The parameters whose variance is zero, negative or not finite cannot be given one: their rows
+    and columns are NaN.  The rest is made exactly symmetric, (C + C^T) / 2 (the diagonal, the
+    variances, unchanged; a symmetric C unchanged bit for bit); where it is symmetric and positive
+    semi-definite to rounding (:data:`ASYMMETRY_TOLERANCE`, :data:`PSD_TOLERANCE` on its
+    correlation matrix) that is all, and the correlations C_ij / (se_i se_j) are only clipped to
+    [-1, 1] (which moves rounding alone): a valid covariance is not regularised.  Else it is
+    projected in correlation space: its negative eigenvalues set to 0, rescaled to a unit
+    diagonal, so that the variances (the standard errors a fit reports) are kept.  Returns a
+    :class:`Covariance`; its :meth:`Covariance.note` says what was done."""
+    C = np.array(cov, dtype=float)
+    d = C.shape[-1]
+    diag = np.einsum("...ii->...i", C)
+    with np.errstate(invalid="ignore"):
+        undefined = ~(np.isfinite(diag) & (diag > 0)) | ~np.all(np.isfinite(C), axis=-1)
+    both = undefined[..., :, None] | undefined[..., None, :]
+    se = np.sqrt(np.where(undefined, 1.0, diag))
+    scale = se[..., :, None] * se[..., None, :]
+    C = np.where(both, 0.0, C)  # the rows and columns without a variance zeroed (NaN at the end)
+    asymmetry = np.max(np.abs(C - np.swapaxes(C, -1, -2)) / scale, axis=(-2, -1), initial=0.0)
+    C = 0.5 * (C + np.swapaxes(C, -1, -2))  # exactly symmetric (a symmetric C is unchanged)
+    R = np.where(both & np.eye(d, dtype=bool), 1.0, C / scale)
+    w, v = np.linalg.eigh(R)
+    worst = np.minimum(w[..., 0], 0.0) if d else np.zeros(C.shape[:-2])
+    repaired = (worst < -PSD_TOLERANCE) | (asymmetry > ASYMMETRY_TOLERANCE)
+    if np.any(repaired):
+        P = np.einsum("...ik,...k,...jk->...ij", v, np.maximum(w, 0.0), v)
+        p = np.sqrt(np.maximum(np.einsum("...ii->...i", P), 1e-300))
+        P = P / (p[..., :, None] * p[..., None, :])
+        P = 0.5 * (P + np.swapaxes(P, -1, -2))
+        R = np.where(repaired[..., None, None], P, R)
+        C = np.where(repaired[..., None, None], P * scale, C)
+    return Covariance(np.where(both, np.nan, C), np.where(both, np.nan, np.clip(R, -1.0, 1.0)), undefined, repaired,
+                      worst, asymmetry)
+
+
+#: The mark of a best value outside its own 95% interval, in every table and summary, and why
+#: that is no mistake (:func:`outside_note`, :data:`OUTSIDE_FOOTNOTE`).
+OUTSIDE_MARK = "(*)"
+OUTSIDE_WHY = ("the 95% interval is the central 95% of the posterior over the bounds, and where the data barely "
+               "determine a parameter its best fit is arbitrary and often at a bound: quote the interval, not the "
+               "best value")
+#: The footnote of a table whose rows carry :data:`OUTSIDE_MARK`.
+OUTSIDE_FOOTNOTE = f"{OUTSIDE_MARK} the best value lies outside its own 95% interval: {OUTSIDE_WHY}"
+
+
+def outside_interval(x, lo, hi):
+    """Whether each best value ``x`` lies outside its 95% interval [``lo``, ``hi``] (elementwise,
+    broadcasting; False where any of them is NaN): the one test behind :data:`OUTSIDE_MARK`."""
+    x, lo, hi = (np.asarray(a, dtype=float) for a in (x, lo, hi))
+    with np.errstate(invalid="ignore"):
+        return (x < lo) | (x > hi)
+
+
+def outside_note(items):
+    """The note of best values outside their intervals: ``items`` (e.g. "k's best value 10 lies
+    outside its 95% interval [0.254, 9.75]") joined, then the mark and why."""
+    return f"{'; '.join(items)} {OUTSIDE_MARK}: {OUTSIDE_WHY}"

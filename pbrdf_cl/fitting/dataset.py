@@ -5,7 +5,15 @@ from __future__ import annotations
 
 import numpy as np
 
-from .common import GOODNESS_P, GOODNESS_R2, MISTAKE_CAUSES
+from .common import (
+    GOODNESS_P,
+    GOODNESS_R2,
+    MISTAKE_CAUSES,
+    OUTSIDE_FOOTNOTE,
+    OUTSIDE_MARK,
+    OUTSIDE_WHY,
+    outside_interval,
+)
 from .statistics import DETERMINED_FRACTION
 
 #: The status of each pixel of an image fit (``status``): code -> (name, meaning).  (Not
@@ -137,6 +145,42 @@ def goodness_summary(ds):
     return out
 
 
+def interval_summary(ds):
+    """Where the best value of a pixel lies outside its own 95% interval (a parameter the pixel's
+    data do not determine, its best fit on a bound), over all the fitted pixels of an image fit:
+    the attrs :func:`pbrdf_cl.fit_batch` adds to its result (counted block by block from a store).
+
+    Parameters
+    ----------
+    ds : xarray.Dataset
+        A result of :func:`pbrdf_cl.fit_batch` (its ``<name>_outside_ci95`` variables).
+
+    Returns
+    -------
+    dict
+        ``outside_ci95`` (the count of such pixels per parameter, "k 12, n 3"; empty where none)
+        and, where any, ``outside_ci95_note`` (a line with the counts, the variables and
+        ``pbrdf_cl.fitting.common.OUTSIDE_FOOTNOTE``).
+
+    Examples
+    --------
+    >>> res = fit_batch(stack)  # doctest: +SKIP
+    >>> res.attrs["outside_ci95"]  # doctest: +SKIP
+    'k 12'
+    """
+    names = [str(v)[:-len("_outside_ci95")] for v in ds.data_vars
+             if str(v).endswith("_outside_ci95") and not str(v).startswith("label_")]
+    counts = {n: int(ds[f"{n}_outside_ci95"].sum()) for n in names}
+    counts = {n: c for n, c in counts.items() if c}
+    out = {"outside_ci95": ", ".join(f"{n} {c}" for n, c in counts.items())}
+    if counts:
+        out["outside_ci95_note"] = (
+            "the best value lies outside its own 95% interval at " + ", ".join(
+                f"{c} pixel{'s' if c > 1 else ''} for {n}" for n, c in counts.items()) + " ("
+            + ", ".join(f"{n}_outside_ci95" for n in counts) + f") {OUTSIDE_MARK}: {OUTSIDE_WHY}")
+    return out
+
+
 def make_dataset(job, out, seconds):
     """The result ``xarray.Dataset`` of ``job`` (a :class:`~pbrdf_cl.fitting.job.BatchJob`) from
     the per-pixel outputs ``out`` of its blocks, concatenated; ``seconds`` (or None) in its attrs."""
@@ -155,6 +199,9 @@ def make_dataset(job, out, seconds):
                              {"units": units[n], "long_name": f"standard error of {n}"})
         ds[f"{n}_ci95"] = (dims + ("bound",), out["ci95"][:, j].reshape(shape + (2,)),
                            {"units": units[n], "long_name": f"95% interval of {n} (truncated to the bounds)"})
+        ds[f"{n}_outside_ci95"] = (dims, outside_interval(out["x"][:, j], out["ci95"][:, j, 0],
+                                                          out["ci95"][:, j, 1]).reshape(shape),
+                                   {"long_name": OUTSIDE_FOOTNOTE})
     ds["sse"] = (dims, out["sse"].reshape(shape), {"long_name": "sum of squared DOP residuals", "units": "1"})
     ds["chi2"] = (dims, out["chi2"].reshape(shape),
                   {"long_name": "weighted sum of squared residuals" + (" (chi2)" if setup.sigma_known else

@@ -7,8 +7,17 @@ import numpy as np
 
 from ..io.measurements import duplicates_note
 from ..results import Result
-from .common import DOP_NOISE_FLOOR, GOODNESS_P, GOODNESS_R2, MISTAKE_CAUSES
-from .result import FIT_STATUS, identifiability_notes
+from .common import (
+    DOP_NOISE_FLOOR,
+    GOODNESS_P,
+    GOODNESS_R2,
+    MISTAKE_CAUSES,
+    OUTSIDE_FOOTNOTE,
+    OUTSIDE_MARK,
+    outside_interval,
+    outside_note,
+)
+from .result import FIT_STATUS, identifiability_notes, reported_stderr
 from .setup import PARAMETERS
 
 #: A parameter is "not determined" by the joint data where its 95% interval spans more than this
@@ -28,6 +37,9 @@ class JointResult(Result):
         error, 95% interval (lo, hi) (the fitted ones).  Shared parameters repeat in every set.
         ``ci95`` is :class:`FitResult`'s posterior mixture (the joint Jacobian's local
         approximation and the joint grid's profile likelihood), see :class:`FitResult`.
+    outside_ci95
+        set -> the parameters whose best value lies outside its own 95% interval (marked ``(*)``
+        in ``summary()``, a note says why; see :class:`FitResult`).
     shared_x
         shared parameter -> its one value.
     free
@@ -46,8 +58,9 @@ class JointResult(Result):
         the sets whose own parameters the basin exchange moved (refitted alone at the shared
         values, from their grid's valleys, to a lower chi2), one tuple per round kept (empty: the
         joint descent had reached each set's best itself); a note says so.
-    corr, condition_number, notes, success, status, message, nfev, seconds
-        as :class:`FitResult`'s, over the joint labels; ``seconds["total"]`` the wall time.
+    corr, cov, condition_number, notes, success, status, message, nfev, seconds
+        as :class:`FitResult`'s, over the joint labels (``corr`` and ``cov`` made valid, or NaN
+        with a note, as :class:`FitResult`'s); ``seconds["total"]`` the wall time.
     """
 
     def summary(self):
@@ -93,8 +106,9 @@ class JointResult(Result):
 
     def _line(self, s, p):
         lo, hi = self["ci95"][s][p]
+        mark = f" {OUTSIDE_MARK}" if outside_interval(self["x"][s][p], lo, hi) else ""
         return (f"    {p:6s} = {self['x'][s][p]:10.5g}  +- {self['stderr'][s][p]:.3g}   95% interval "
-                f"[{lo:.4g}, {hi:.4g}]")
+                f"[{lo:.4g}, {hi:.4g}]{mark}")
 
     def to_dataset(self):
         """The result as an ``xarray.Dataset`` over ``set`` and ``param`` (and ``bound``: lo, hi).
@@ -103,7 +117,8 @@ class JointResult(Result):
         -------
         xarray.Dataset
             ``x``, ``stderr``, ``ci95`` (set, param, bound), ``separate_x``, ``separate_ci95``,
-            ``width_ratio``; coordinate ``shared`` (param: whether it is shared); attrs: model,
+            ``width_ratio``, ``outside_ci95`` (set, param: the best value lies outside its own 95%
+            interval; its ``long_name`` says why); coordinate ``shared`` (param: whether it is shared); attrs: model,
             shadowing, shared, sse, chi2, aic, bic, separate_aic, separate_bic, notes, exchanged (the
             sets moved in each exchange round kept: "a,c; c").
 
@@ -136,6 +151,9 @@ class JointResult(Result):
             coords={"set": sets, "param": params, "bound": ["lo", "hi"],
                     "shared": ("param", [p in self["shared"] for p in params])})
         ds["width_ratio"].attrs["long_name"] = "joint 95% width / separate 95% width"
+        ci = ds["ci95"].values
+        ds["outside_ci95"] = (dims, outside_interval(ds["x"].values, ci[..., 0], ci[..., 1]),
+                              {"long_name": OUTSIDE_FOOTNOTE})
         ds.attrs.update(model=self["model"], shadowing=self["shadowing"], shared=",".join(self["shared"]),
                         sse=self["sse"], chi2=self["chi2"], aic=self["aic"], bic=self["bic"],
                         separate_aic=self["separate_aic"], separate_bic=self["separate_bic"],
@@ -187,8 +205,14 @@ def _joint_notes(setup, labels, x, lo, hi, unc):
         side = "lower" if x[i] <= lo[i] + tol else ("upper" if x[i] >= hi[i] - tol else None)
         if side:
             notes.append(f"{name} = {x[i]:.4g} is on its {side} bound: the data push it there")
+    outside = [f"{n}'s best value {x[i]:.4g} lies outside its 95% interval [{unc.ci95[n][0]:.4g}, {unc.ci95[n][1]:.4g}]"
+               for i, n in enumerate(labels) if outside_interval(x[i], *unc.ci95[n])]
+    if outside:
+        notes.append(outside_note(outside))
     notes += identifiability_notes(labels, unc.jacobian, unc.condition_number, unc.eig, x, unc.stderr, unc.corr,
                                    hi - lo)
+    if unc.cov_note:
+        notes.append(unc.cov_note)
     if unc.noise_floor is not None:
         notes.append(f"the joint fit is (nearly) exact: the uncertainties assume DOP noise of std "
                      f"{unc.noise_floor:.2g} (at least {DOP_NOISE_FLOOR:g}); give a dop_std column to set it")
@@ -238,7 +262,7 @@ def joint_result(setup, resid, best, cands, unc, jgrid, separate, stages, status
     reported = PARAMETERS if model == "six-param" else ("n", "k")
     x = {s: {p: float(params[s][p]) for p in reported} for s in setup.names}
     dop_resid = {s: part.model.dop(params[s]) - setup.meas[s].dop for s, part in zip(setup.names, resid.parts)}
-    stderr = _per_set(setup, labels, [float(v) for v in unc.stderr])
+    stderr = _per_set(setup, labels, [float(v) for v in reported_stderr(unc)])
     ci95 = _per_set(setup, labels, [tuple(map(float, unc.ci95[n])) for n in labels])
     ratio = {s: {p: _width(ci95[s][p]) / _width(separate[s].ci95[p]) for p in ci95[s]
                  if p in separate[s].ci95 and _width(separate[s].ci95[p]) > 0} for s in setup.names}
@@ -261,8 +285,8 @@ def joint_result(setup, resid, best, cands, unc, jgrid, separate, stages, status
                      f"{best.sse:.4g}, within one unit of chi2); the data cannot decide between them")
     shared_x = {p: float(best.x[labels.index(p)]) for p in setup.shared}
     shared_x.update({p: float(v) for p, v in setup.shared_fixed.items()})
-    corr = xr.DataArray(np.asarray(unc.corr), dims=("param", "param_2"),
-                        coords={"param": labels, "param_2": labels}, name="correlation")
+    corr, cov = (xr.DataArray(np.asarray(m), dims=("param", "param_2"), coords={"param": labels, "param_2": labels},
+                              name=name) for m, name in ((unc.corr, "correlation"), (unc.cov, "covariance")))
     timing = {k: float(v.seconds) for k, v in stages.items()}
     timing["total"] = float(seconds)
     return JointResult(
@@ -273,7 +297,9 @@ def joint_result(setup, resid, best, cands, unc, jgrid, separate, stages, status
         set_sse={s: float(r @ r) for s, r in dop_resid.items()}, chi2=float(unc.chi2), dof=int(unc.dof),
         n_points=int(sum(len(m) for m in setup.meas.values())), aic=aic, bic=bic, p_value=p_value, r2=r2,
         fits_data=fits, sigma_known=setup.sigma_known, separate=separate, separate_aic=sep_aic,
-        separate_bic=sep_bic, width_ratio=ratio, corr=corr, condition_number=float(unc.condition_number),
+        separate_bic=sep_bic, width_ratio=ratio, corr=corr, cov=cov,
+        outside_ci95={s: [p for p, (a, b) in ci95[s].items() if outside_interval(x[s][p], a, b)] for s in setup.names},
+        condition_number=float(unc.condition_number),
         profiles={n: dict(values=jgrid.axes[n], sse=jgrid.profiles[n]) for n in labels},
         notes=notes, exchanged=exchanged, nfev={k: int(v.nfev) for k, v in stages.items()}, seconds=timing,
         success=status > 0, status=status, message=FIT_STATUS[status])

@@ -1,6 +1,7 @@
 """The label stage's work on a subsample of each label's pixels, held in memory: the global search
 for the shared parameters (:func:`rank_seeds`: every candidate seed refined briefly and ranked by
-its chi2) and the parametric bootstrap of the estimator's bias (:func:`bootstrap_bias`).
+its chi2), the parametric bootstrap of the estimator's bias (:func:`bootstrap_bias`) and, without
+``dop_std``, the goodness-of-fit test of each label (:func:`f_test`).
 
 Both take the label stage (``pbrdf_cl.fitting.label_stage._Stage``) as ``st`` and use only its
 public methods (``local_fit``, ``scale``); the subsample is a fixed, evenly spaced choice of each
@@ -10,6 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .pixel_fit import fit_block
 from .pixels import Block, PixelResiduals, internal
 from .source import ANGLES
 
@@ -143,3 +145,39 @@ def bootstrap_bias(st, subs, picks, theta, se, s2, ok, replicates=BOOT_REPLICATE
         floor = se[L] ** 2 * np.sum(st.fitted & (st.lab == L)) / keep.sum()
         var[L] = np.maximum(spread, floor) / replicates
     return bias, var
+
+
+def f_test(st, subs, picks, theta, ok, pixels):
+    """Without ``dop_std`` (no chi2 to test): per label, the p-value of the F test of its shared
+    values against each pixel's own, on its subsample (NaN where it cannot be made).
+
+    The label's model (``theta`` held, each pixel's own parameters ``st.beta``) is nested in the
+    pixels' own fits (every parameter free: :func:`pbrdf_cl.fitting.pixel_fit.fit_block`, each
+    pixel's chi2 taken no higher than at the label's values): F = ((chi2_label - chi2_own) / (S P))
+    / s2 with S shared parameters over P pixels (S (P - 1) where the subsample is the label), s2
+    the own fits' chi2 per degree of freedom, at least the pixels' mean noise floor squared (an
+    exact fit of noise-free data is not a misfit).  Where the pixels are of two materials, their
+    own fits explain the data and the label's do not."""
+    from scipy.stats import f as f_dist
+    job, setup = st.job, st.job.setup
+    S, D = len(st.shared), len(job.names)
+    p_value = np.full(st.ids.size, np.nan)
+    for L in np.flatnonzero(ok):
+        beta = st.beta[picks[L]]
+        keep = np.all(np.isfinite(beta), axis=1)
+        if keep.sum() < 2:
+            continue
+        raw = {k: (v if (v.ndim == 1 and k in ANGLES) else v[keep]) for k, v in subs[L].items()}
+        vals = st.values(setup, Block(raw, setup, 1), np.broadcast_to(theta[L], (int(keep.sum()), S)), beta[keep])
+        own = fit_block(st.eng, setup, raw, job.order, job.rstart, job.names)["chi2"]
+        good = np.isfinite(vals[:, 3]) & np.isfinite(own)
+        P = int(good.sum())
+        chi2_label = vals[good, 3].sum()
+        chi2_own = np.minimum(own[good], vals[good, 3]).sum()
+        df1 = S * P - (S if P >= pixels[L] else 0)
+        df2 = vals[good, 1].sum() - P * D
+        if P < 2 or df1 < 1 or df2 < 1:
+            continue
+        s2 = max(chi2_own / df2, vals[good, 2].mean())
+        p_value[L] = float(f_dist.sf((chi2_label - chi2_own) / df1 / s2, df1, df2))
+    return p_value

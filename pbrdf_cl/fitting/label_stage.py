@@ -31,7 +31,13 @@ in passes over the blocks of the stack (a label's pixels may lie in every block)
    the reduced chi2) of the minimum but outside the interval widens it to cover that node and
    marks the label ambiguous, as does another basin (2.) whose label chi2 lies within 3.84 of the
    kept one's (the interval then covers that basin's interval too);
-5. optionally (``LabelJob.bias_replicates`` > 0; default 0) a parametric bootstrap of the bias
+5. the goodness of fit of each label (:func:`label_goodness`): with ``dop_std`` (and ``f00_std``
+   with intensities) its chi2 against its degrees of freedom, else an F test of its shared values
+   against each pixel's own on its subsample (:func:`pbrdf_cl.fitting.label_search.f_test`); a
+   p-value below ``GOODNESS_P``
+   says the label's pixels do not share one material (each pixel's own parameters absorb the
+   misfit, so the pixels' own tests pass);
+6. optionally (``LabelJob.bias_replicates`` > 0; default 0) a parametric bootstrap of the bias
    on the subsample (:func:`pbrdf_cl.fitting.label_search.bootstrap_bias`), taken off theta,
    its uncertainty added to the variance.  Off by default: measured on the two-material bench,
    the bias at the fitted point (the pixels' noisy fitted own parameters) did not estimate the
@@ -52,7 +58,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from . import label_search as search
-from .common import X_RESOLUTION, fd_jacobian
+from .common import GOODNESS_P, X_RESOLUTION, fd_jacobian, valid_covariance
 from .pixel_fit import fit_block
 from .pixels import Block, PixelResiduals, descent_bounds, grid_points, grid_values, internal, regions
 from .setup import PARAMETERS
@@ -94,8 +100,13 @@ class LabelResult:
     parameters' values (``shared`` order), ``stderr``, ``ci95`` (L, S, 2), ``determined``
     (L, S), ``pixels`` (fitted pixels), ``chi2`` (the label's F), ``sse`` (its unweighted DOP
     residuals), ``dof``, ``status`` (:data:`LABEL_STATUS`), ``rounds`` (refinement passes) and
-    ``profile`` (L, nodes: the label's chi2 profile on the grid) with ``nodes`` (nodes, S), and
-    ``bias`` (L, S): the bootstrap's estimate of the bias, already taken off ``theta``."""
+    ``profile`` (L, nodes: the label's chi2 profile on the grid) with ``nodes`` (nodes, S),
+    ``bias`` (L, S): the bootstrap's estimate of the bias, already taken off ``theta``, the
+    goodness of fit (:func:`label_goodness`): ``p_value``, ``fits_data`` (1: fits, 0: does
+    not, -1: not fitted or not tested) and ``goodness_test`` ("chi2" or "F"), and ``corr``
+    (L, S, S) the correlations of the shared parameters (valid or NaN,
+    :func:`pbrdf_cl.fitting.common.valid_covariance`) with ``cov_notes`` (a sentence per label
+    where the covariance needed one, else None)."""
     ids: np.ndarray
     shared: tuple
     theta: np.ndarray
@@ -111,6 +122,11 @@ class LabelResult:
     profile: np.ndarray
     nodes: np.ndarray
     bias: np.ndarray
+    p_value: np.ndarray
+    fits_data: np.ndarray
+    goodness_test: str
+    corr: np.ndarray
+    cov_notes: list
 
 
 def node_regions(setup, shared):
@@ -427,17 +443,23 @@ class _Stage:
             return np.ones(sums.shape[0])
         return np.maximum(sums[:, 3] / self.dof(sums), sums[:, 2] / np.maximum(sums[:, 0], 1))
 
+    def covariance(self, sums):
+        """Each label's covariance of the shared parameters, in coordinates scaled to the bounds:
+        the inverse of its summed Schur complements times its chi2 scale, made valid
+        (:func:`pbrdf_cl.fitting.common.valid_covariance`; NaN where a variance cannot be computed)."""
+        A = self.unpack(sums)[5]
+        with np.errstate(all="ignore"):
+            return valid_covariance(np.linalg.pinv(A, rcond=1e-12, hermitian=True) * self.scale(sums)[:, None, None])
+
     def gauss(self, theta, sums, extra_var=None):
         """Standard errors and the central 95% intervals (truncated to the bounds; Student's t
         without dop_std) of every label at ``theta`` from its sums, the variance ``extra_var``
-        (L, S) added to each parameter's; returns (se, ci, dof, chi2 scale)."""
+        (L, S) added to each parameter's; returns (se, ci, dof, chi2 scale).  A variance that
+        cannot be computed gives an infinite standard error (the interval spans the bounds)."""
         setup = self.job.setup
-        A = self.unpack(sums)[5]
         s, span = self.si, self.span[self.si]
         dof, s2 = self.dof(sums), self.scale(sums)
-        with np.errstate(all="ignore"):
-            cov = np.linalg.pinv(A, rcond=1e-12, hermitian=True) * s2[:, None, None]
-        se = np.sqrt(np.clip(np.einsum("lii->li", cov), 0, None)) * span
+        se = np.sqrt(np.clip(np.einsum("lii->li", self.covariance(sums).cov), 0, None)) * span
         if extra_var is not None:
             se = np.sqrt(se ** 2 + extra_var)
         se = np.where(np.isfinite(se), se, np.inf)
@@ -526,6 +548,7 @@ def run_label_stage(job, eng, progress=False):
         theta, sums, active, other, more = refit_runner_up(st, theta, sums, active, runner, second)
         rounds += more
     se, _, _, s2 = st.gauss(theta, sums)
+    p_value, fits, test = label_goodness(st, sums, subs, picks, theta, ok, pixels)
     bias, extra = (search.bootstrap_bias(st, subs, picks, theta, se, s2, ok, job.bias_replicates)
                    if job.bias_replicates else (np.zeros_like(theta), None))
     s = st.si
@@ -534,9 +557,32 @@ def run_label_stage(job, eng, progress=False):
     status[~ok] = -2
     nan = np.where(ok[:, None], 1.0, np.nan)
     _, _, _, chi2, sse, _, _ = st.unpack(sums)
+    valid = st.covariance(sums)
+    notes = [valid.note(st.shared, L, f"the covariance of label {st.ids[L]}'s {', '.join(st.shared)}") if ok[L]
+             else None for L in range(st.ids.size)]
     return LabelResult(st.ids, st.shared, theta * nan, se * nan, ci * nan[..., None], determined & ok[:, None],
                        sums[:, 0].astype(np.int64), np.where(ok, chi2, np.nan), np.where(ok, sse, np.nan),
-                       np.where(ok, dof, 0).astype(np.int64), status, rounds, profile, st.nodes, bias * nan)
+                       np.where(ok, dof, 0).astype(np.int64), status, rounds, profile, st.nodes, bias * nan,
+                       np.where(ok, p_value, np.nan), np.where(ok, fits, -1).astype(np.int8),
+                       test, valid.corr * nan[:, :, None], notes)
+
+
+def label_goodness(st, sums, subs, picks, theta, ok, pixels):
+    """Whether each label's shared values describe its pixels' data: (p-value, fits (1, 0, or -1
+    where not tested), the test: "chi2" or "F").  With given uncertainties (``dop_std``, and
+    ``f00_std`` with intensities) the label's chi2 against its degrees of freedom (its residuals
+    less its pixels' own parameters and the shared ones); else (its chi2 has no scale, or an
+    assumed one) the F test of :func:`pbrdf_cl.fitting.label_search.f_test` on its subsample.  A
+    p-value below :data:`~pbrdf_cl.fitting.common.GOODNESS_P` fails, as a fit's."""
+    from scipy.stats import chi2 as chi2_dist
+    setup = st.job.setup
+    if setup.sigma_known and (not setup.use_f00 or "f00_std" in st.job.source.vars):
+        chi2 = st.unpack(sums)[3]
+        p_value, test = np.where(ok, chi2_dist.sf(chi2, st.dof(sums)), np.nan), "chi2"
+    else:
+        p_value, test = search.f_test(st, subs, picks, theta, ok, pixels), "F"
+    fits = np.where(np.isfinite(p_value), p_value >= GOODNESS_P, -1).astype(np.int8)
+    return p_value, fits, test
 
 
 def refit_runner_up(st, theta, sums, active, runner, second):

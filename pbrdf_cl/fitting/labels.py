@@ -19,6 +19,7 @@ import hashlib
 import numpy as np
 
 from . import label_search
+from .common import GOODNESS_P, LABEL_MISTAKE_CAUSES, OUTSIDE_FOOTNOTE, outside_interval
 from .dataset import empty_outputs, make_dataset
 from .job import BLOCK_BUDGET, N_STARTS, BatchJob
 from .label_stage import LABEL_STATUS, held_setup, run_label_stage, take
@@ -245,8 +246,11 @@ LABEL_INTERVAL_NOTE = ("the label intervals leave out the bias that the pixels' 
 
 def label_variables(ds, job):
     """``ds`` with the labels' variables of ``job``'s label stage over a ``label`` dimension:
-    ``label_<name>``, ``label_<name>_stderr``, ``label_<name>_ci95`` for each shared parameter,
-    ``label_pixels``, ``label_chi2``, ``label_sse``, ``label_dof`` and ``label_status``."""
+    ``label_<name>``, ``label_<name>_stderr``, ``label_<name>_ci95``, ``label_<name>_outside_ci95``
+    for each shared parameter, ``label_corr`` (label, shared_param, shared_param_2), ``label_pixels``,
+    ``label_chi2``, ``label_sse``, ``label_dof``, ``label_p_value``, ``label_fits_data`` and
+    ``label_status``; attrs: the labels' goodness of fit (:func:`label_goodness_summary`) and
+    ``label_cov_note`` where a label's covariance was projected or is NaN."""
     res = job.result
     dims = ("label",)
     for j, n in enumerate(res.shared):
@@ -255,19 +259,83 @@ def label_variables(ds, job):
         ds[f"label_{n}_ci95"] = (dims + ("bound",), res.ci95[:, j],
                                  {"units": "1", "long_name": f"95% interval of label {n} (truncated to the bounds; "
                                                              "widened to the profile's nodes it allows)"})
+        ds[f"label_{n}_outside_ci95"] = (dims, outside_interval(res.theta[:, j], res.ci95[:, j, 0], res.ci95[:, j, 1]),
+                                         {"long_name": OUTSIDE_FOOTNOTE})
+    ds["label_corr"] = (dims + ("shared_param", "shared_param_2"), res.corr,
+                        {"units": "1", "long_name": "correlation of the label's shared parameters (NaN where it "
+                                                    "cannot be computed; see label_cov_note)"})
     ds["label_pixels"] = (dims, res.pixels, {"long_name": "pixels fitted in the label stage"})
     ds["label_chi2"] = (dims, res.chi2, {"long_name": "weighted sum of squared residuals over the label's pixels"})
     ds["label_sse"] = (dims, res.sse, {"units": "1", "long_name": "sum of squared DOP residuals over the label's "
                                                                   "pixels"})
     ds["label_dof"] = (dims, res.dof, {"long_name": "degrees of freedom: residuals less every fitted parameter"})
+    ds["label_p_value"] = (dims, res.p_value, {"units": "1", "long_name": "p-value of the label's goodness-of-fit "
+                                               "test: " + _LABEL_TESTS[res.goodness_test][1]})
+    ds["label_fits_data"] = (dims, res.fits_data, {
+        "long_name": f"whether the label's shared values describe its pixels' data: label_p_value >= {GOODNESS_P:g}",
+        "flag_values": [1, 0, -1], "flag_meanings": "fits does_not_fit not_tested"})
     ds["label_status"] = (dims, res.status, {
         "long_name": "label fit status", "flag_values": list(LABEL_STATUS),
         "status_codes": "; ".join(f"{c}: {n} ({m})" for c, (n, m) in LABEL_STATUS.items()),
         "flag_meanings": " ".join(n for n, _ in LABEL_STATUS.values())})
-    ds = ds.assign_coords(label=res.ids)
+    ds = ds.assign_coords(label=res.ids, shared_param=list(res.shared), shared_param_2=list(res.shared))
     ds.attrs.update(shared=" ".join(res.shared), label_rounds=int(res.rounds),
                     shared_note=("the pixels of a label share " + ", ".join(res.shared) + ": their per-pixel values, "
                                  "stderr and intervals are the label's; the other parameters' intervals hold the "
                                  "shared ones at the label's values"),
-                    label_interval_note=LABEL_INTERVAL_NOTE)
+                    label_interval_note=LABEL_INTERVAL_NOTE, **label_goodness_summary(res))
+    notes = [n for n in res.cov_notes if n]
+    if notes:
+        ds.attrs["label_cov_note"] = "\n".join(notes)  # one note a line
     return ds
+
+
+#: The labels' goodness-of-fit tests (``LabelResult.goodness_test``): (name, what it is).
+_LABEL_TESTS = {"chi2": ("chi2 test", "chi2 for its degrees of freedom (label_chi2, label_dof)"),
+                "F": ("F test against the pixels' own fits", "F test of its shared values against each pixel's own on "
+                      f"a subsample of at most {label_search.SUBSAMPLE} of its pixels (without dop_std, or f00_std "
+                      "with intensities, the chi2 has no known scale)")}
+
+
+def label_goodness_summary(res):
+    """Whether each label's shared values describe its pixels' data: the attrs
+    :func:`pbrdf_cl.fit_batch` adds to a result with labels.
+
+    Each pixel's own parameters absorb the misfit of shared values that do not fit it (two
+    materials under one label), so every pixel passes its own test: only the label's tells.
+
+    Parameters
+    ----------
+    res : pbrdf_cl.fitting.label_stage.LabelResult
+        The label stage's result (its ``p_value``, ``fits_data``, ``goodness_test``, ``chi2``,
+        ``dof``).
+
+    Returns
+    -------
+    dict
+        ``label_goodness`` (a line: how many of the tested labels fail, which, their chi2 and
+        p-values) and, where a label fails, ``label_goodness_warning`` (a WARNING line naming the
+        labels, with the usual causes, ``pbrdf_cl.fitting.common.LABEL_MISTAKE_CAUSES``).
+
+    Examples
+    --------
+    >>> res = fit_batch(stack, labels=L)  # doctest: +SKIP
+    >>> res.attrs["label_goodness_warning"][:40]  # doctest: +SKIP
+    'WARNING: the shared n, k of label 1 do n'
+    """
+    tested = res.fits_data >= 0
+    bad = np.flatnonzero(res.fits_data == 0)
+    out = {"label_goodness": f"label goodness of fit: {bad.size} of {int(tested.sum())} tested labels fail the "
+                             f"{_LABEL_TESTS[res.goodness_test][0]} (p < {GOODNESS_P:g})"}
+    if bad.size:
+        chi2 = res.goodness_test == "chi2"
+        what = "; ".join(f"label {res.ids[i]}: " + (f"chi2 {res.chi2[i]:.4g} for {res.dof[i]} degrees of freedom, "
+                                                     if chi2 else "") + f"p = {res.p_value[i]:.2g}" for i in bad)
+        names = ", ".join(str(res.ids[i]) for i in bad)
+        out["label_goodness"] += f" ({what})"
+        out["label_goodness_warning"] = (
+            f"WARNING: the shared {', '.join(res.shared)} of label{'s' if bad.size > 1 else ''} {names} do not "
+            f"describe {'their' if bad.size > 1 else 'its'} pixels' data ({what}; label_fits_data = 0): each pixel's "
+            "own parameters absorb the misfit, so the pixels' own tests pass, but the label's values and intervals are "
+            f"not to be trusted; usual causes: {LABEL_MISTAKE_CAUSES}")
+    return out

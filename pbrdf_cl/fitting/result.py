@@ -10,7 +10,16 @@ import numpy as np
 from ..compute import pointwise
 from ..io.measurements import duplicates_note
 from ..results import Result
-from .common import DOP_NOISE_FLOOR, GOODNESS_P, GOODNESS_R2, MISTAKE_CAUSES, dop_resolution
+from .common import (
+    DOP_NOISE_FLOOR,
+    GOODNESS_P,
+    GOODNESS_R2,
+    MISTAKE_CAUSES,
+    OUTSIDE_MARK,
+    dop_resolution,
+    outside_interval,
+    outside_note,
+)
 from .setup import F00_REL_STD, PARAMETERS
 
 #: FitResult.status -> message (scipy's convention: success is status > 0).
@@ -43,10 +52,17 @@ class FitResult(Result):
 
     x (dict: every model parameter, fitted and fixed, as the model takes them: ``x["kd"]`` is
     the absolute kd, so that ``pbrdf_cl.dop(..., **res.x)`` evaluates the fit), kd_ratio (kd/ks),
-    free (names fitted), sse, chi2, reduced_chi2, rmse, residuals, stderr, corr (matrix over
-    ``free``), condition_number, aic, bic, dof, nfev and seconds per stage, basins (candidates
+    free (names fitted), sse, chi2, reduced_chi2, rmse, residuals, stderr (NaN where the variance
+    cannot be computed, as in ``cov``), corr and cov (matrices
+    over ``free``), condition_number, aic, bic, dof, nfev and seconds per stage, basins (candidates
     with their SSE), ambiguous, notes (list of sentences), and three kinds of 95% interval (dicts
     name -> (lo, hi)).
+
+    ``cov`` is symmetric positive semi-definite and ``corr`` lies in [-1, 1]: where the matrix as
+    computed is not (rounding in the inverse of a near-singular J^T J) it is projected, the
+    variances kept, and where a parameter's variance cannot be computed (the data do not change
+    with it) its row and column are NaN; a note says which
+    (``pbrdf_cl.fitting.common.valid_covariance``).
 
     Which kd: without intensities the DOP sees kd/ks only, ks is fixed (at 1 unless ``fixed``
     says otherwise) and kd is fitted as itself (equal to kd/ks at ks = 1).  With an intensity
@@ -64,7 +80,9 @@ class FitResult(Result):
         about x +- 1.96 stderr; where they do not, it is the middle 95% of its bounds (not all of
         them), so it covers the truth about 95% of the time in both cases (``scripts/bench_fit.py``
         measures it).  It need not contain x: the best fit of a parameter the data do not
-        determine is arbitrary and often sits on a bound.
+        determine is arbitrary and often sits on a bound: ``outside_ci95`` lists the parameters
+        whose best value lies outside, ``summary()`` marks their lines with ``(*)`` and a note
+        says why.
     ci95_jacobian
         x +- 1.96 stderr (Student's t without given uncertainties, unless the noise floor was
         used), clipped to the bounds.
@@ -87,12 +105,13 @@ class FitResult(Result):
             if name == "kd" and ratio:
                 lo, hi = self["ci95"][name]
                 lines.append(f"  {'kd/ks':6s} = {self['kd_ratio']:10.5g}  +- {self['stderr'][name]:.3g}   "
-                             f"95% interval [{lo:.4g}, {hi:.4g}]  (fitted: stderr, ci95, corr of 'kd')")
+                             f"95% interval [{lo:.4g}, {hi:.4g}]{self._mark(name)}  (fitted: stderr, ci95, corr of "
+                             "'kd')")
                 lines.append(f"  {'kd':6s} = {self['x'][name]:10.5g}  (absolute, kd/ks x ks: x['kd'])")
             elif name in self["free"]:
                 lo, hi = self["ci95"][name]
                 lines.append(f"  {name:6s} = {self['x'][name]:10.5g}  +- {self['stderr'][name]:.3g}   "
-                             f"95% interval [{lo:.4g}, {hi:.4g}]" + self._kd_tag(name))
+                             f"95% interval [{lo:.4g}, {hi:.4g}]" + self._mark(name) + self._kd_tag(name))
             else:
                 lines.append(f"  {name:6s} = {self['x'][name]:10.5g}  (fixed)" + self._kd_tag(name))
         fit_line = f"  SSE {self['sse']:.4g} ({self.get('observed', 'DOP')}), RMSE {self['rmse']:.4g}"
@@ -107,6 +126,18 @@ class FitResult(Result):
         for note in self["notes"]:
             lines.append(f"  note: {note}")
         return "\n".join(lines)
+
+    def fitted_value(self, name):
+        """The fitted coordinate of free parameter ``name``, the one its ``stderr`` and ``ci95`` are
+        of: ``kd_ratio`` for "kd" where intensities were fitted (kd/ks), else ``x[name]``."""
+        if name == "kd" and "ks" in self["free"] and "kd" in self["free"]:
+            return self["kd_ratio"]
+        return self["x"][name]
+
+    def _mark(self, name):
+        """" (*)" where the best value of ``name`` lies outside its own 95% interval (the notes say why)."""
+        lo, hi = self["ci95"][name]
+        return f" {OUTSIDE_MARK}" if outside_interval(self.fitted_value(name), lo, hi) else ""
 
     def _kd_tag(self, name):
         """What a DOP-only fit's kd is: the ratio kd/ks where ks is 1, else absolute at the fixed ks."""
@@ -176,6 +207,8 @@ def fit_result(meas, model, shadowing, resid, x, lo, hi, unc, cands, grid, stage
     notes = first + _convention_notes(meas) + notes + _bound_notes(names, x, lo, hi, unc.ci95)
     notes += identifiability_notes(names, unc.jacobian, unc.condition_number, unc.eig, x, unc.stderr, unc.corr,
                                     hi - lo)
+    if unc.cov_note:
+        notes.append(unc.cov_note)
     if unc.noise_floor is not None:
         notes.append(f"the fit is (nearly) exact: the noise estimated from the residuals (std "
                      f"{np.sqrt(unc.chi2 / unc.dof):.2g}) is below the noise floor, so the uncertainties assume "
@@ -198,10 +231,11 @@ def fit_result(meas, model, shadowing, resid, x, lo, hi, unc, cands, grid, stage
         free=names, sse=float(dop_resid @ dop_resid), chi2=unc.chi2,
         reduced_chi2=unc.chi2 / unc.dof, rmse=float(np.sqrt(np.mean(dop_resid ** 2))), residuals=dop_resid,
         dof=unc.dof, n_points=observed.values.size, observed=observed.label,
-        stderr=dict(zip(names, map(float, unc.stderr))), ci95=unc.ci95,
+        stderr=dict(zip(names, map(float, reported_stderr(unc)))), ci95=unc.ci95,
         ci95_jacobian=unc.ci95_jacobian, ci95_profile=unc.ci95_profile,
         profiles={n: dict(values=grid.axes[n], sse=grid.profiles[n]) for n in free},
         corr=_labelled(unc.corr, names, "correlation"), cov=_labelled(unc.cov, names, "covariance"),
+        outside_ci95=[n for i, n in enumerate(names) if outside_interval(x[i], *unc.ci95[n])],
         fits_data=fits_data, p_value=p_value, r2=r2,
         condition_number=unc.condition_number, aic=float(aic), bic=float(bic),
         nfev={k: s.nfev for k, s in stages.items()}, seconds={k: s.seconds for k, s in stages.items()},
@@ -308,8 +342,9 @@ def _convention_notes(meas):
 
 
 def _bound_notes(names, x, lo, hi, ci95):
-    """A note for each parameter on a bound, and for a best value outside its own 95% interval."""
-    notes = []
+    """A note for each parameter on a bound, then one for the best values outside their own 95%
+    intervals (:func:`pbrdf_cl.fitting.common.outside_note`)."""
+    notes, outside = [], []
     for i, n in enumerate(names):
         tol = 1e-6 * (hi[i] - lo[i])
         side = "lower" if x[i] <= lo[i] + tol else ("upper" if x[i] >= hi[i] - tol else None)
@@ -317,11 +352,16 @@ def _bound_notes(names, x, lo, hi, ci95):
         if side:
             notes.append(f"{n} = {x[i]:.4g} is on its {side} bound: the data push it there (the optimum may lie "
                          "beyond; widen the bounds if that is physical)")
-        if not a <= x[i] <= b:
-            notes.append(f"{n}'s best value {x[i]:.4g} lies outside its 95% interval [{a:.4g}, {b:.4g}]: the "
-                         "interval is the central 95% of the posterior over the bounds, and where the data barely "
-                         "determine a parameter its best fit is arbitrary and often at an edge; quote the interval")
-    return notes
+        if outside_interval(x[i], a, b):
+            outside.append(f"{n}'s best value {x[i]:.4g} lies outside its 95% interval [{a:.4g}, {b:.4g}]")
+    return notes + ([outside_note(outside)] if outside else [])
+
+
+def reported_stderr(unc):
+    """The standard errors a result reports: NaN where the variance cannot be computed (the NaN
+    diagonal of the valid covariance, :func:`pbrdf_cl.fitting.common.valid_covariance`), else
+    those of the uncertainty stage."""
+    return np.where(np.isnan(np.diag(unc.cov)), np.nan, unc.stderr)
 
 
 def _labelled(matrix, names, what):

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .common import GOODNESS_P, GOODNESS_R2, X_RESOLUTION
+from .common import GOODNESS_P, GOODNESS_R2, X_RESOLUTION, valid_covariance
 from .pixels import PixelResiduals, descent_bounds, internal
 
 #: A parameter counts as determined by a pixel's data where its 95% interval is narrower than
@@ -39,7 +39,9 @@ def truncated_interval(x, se, lo, hi, dof):
 
 def _covariances(jtj, s2, span):
     """Covariance (p, D, D) from J^T J in internal coordinates (pseudo-inverse in coordinates
-    scaled to the bounds: a direction the data do not see gets an infinite variance)."""
+    scaled to the bounds: a direction the data do not see gets an infinite variance), made valid
+    (:func:`pbrdf_cl.fitting.common.valid_covariance`: NaN in the rows and columns of a parameter
+    without a finite variance), and the variances (p, D) (inf along a direction the data do not see)."""
     A = jtj * span[None, :, None] * span[None, None, :]
     eigval, eigvec = np.linalg.eigh(A)
     top = np.maximum(eigval.max(axis=1, keepdims=True), 1e-300)
@@ -51,7 +53,10 @@ def _covariances(jtj, s2, span):
         null = np.einsum("pik,pk->pi", eigvec ** 2 > 1e-12, np.isinf(inv).astype(float)) > 0
     cov = cov * span[None, :, None] * span[None, None, :] * s2[:, None, None]
     var = np.where(null, np.inf, np.einsum("pii->pi", cov))
-    return cov, var
+    # valid (symmetric positive semi-definite), NaN in the rows and columns of the parameters of
+    # infinite (null directions) or no variance
+    np.einsum("pii->pi", cov)[...] = var
+    return valid_covariance(cov).cov, var
 
 
 def statistics(setup, blk, names, xb, chi2, jtj, settled, X_all, sse_all, nfev):
@@ -100,7 +105,7 @@ def statistics(setup, blk, names, xb, chi2, jtj, settled, X_all, sse_all, nfev):
             # kd = ratio ks, d kd = ks d ratio + ratio ks d(log ks)
             with np.errstate(invalid="ignore"):
                 var = ks ** 2 * (cov[:, d, d] + ratio ** 2 * cov[:, j, j] + 2 * ratio * cov[:, d, j])
-            var = np.where(np.isinf(se_int[:, d]) | np.isinf(se_int[:, j]), np.inf, var)
+            var = np.where(np.isinf(se_int[:, d]) | np.isinf(se_int[:, j]) | np.isnan(var), np.inf, var)
             xb[:, d] = ratio * ks
             se[:, d] = np.sqrt(np.clip(var, 0, None))
             kd_hi = setup.hi[setup.free.index("kd")] * ks

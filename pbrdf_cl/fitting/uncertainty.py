@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .basins import local_spacing
-from .common import X_RESOLUTION, fd_jacobian
+from .common import X_RESOLUTION, fd_jacobian, valid_covariance
 from .stages import StageResult
 
 #: The grid's profile enters a 95% interval where its own 95% interval spans at least this many
@@ -34,6 +34,7 @@ class Uncertainties:
     ci95_jacobian: dict
     ci95_profile: dict
     noise_floor: float | None = None  # the noise standard deviation assumed where the fit is exact
+    cov_note: str | None = None  # what valid_covariance did to cov and corr (None: valid as computed)
 
 
 def uncertainty_stage(residuals, x, lo, hi, grid, dop_sse, n_points, sigma_known, noise_floor=None):
@@ -73,10 +74,10 @@ def uncertainty_stage(residuals, x, lo, hi, grid, dop_sse, n_points, sigma_known
     ci_prof = _profile_intervals(grid.profiles, grid.axes, dop_sse + 3.84 * unit)
     ci = _posterior_intervals(names, J, x, se, lo, hi, grid, dist, resolution / q, n_points, known,
                               s2 if floored else 1.0)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        corr = cov / np.outer(se, se)
-    out = Uncertainties(r, J, chi2, dof, se, cov, corr, float(cond), eig, unit, ci, ci_jac, ci_prof,
-                        noise_floor if floored else None)
+    # symmetric positive semi-definite, correlations in [-1, 1], NaN where they cannot be computed
+    valid = valid_covariance(cov)
+    out = Uncertainties(r, J, chi2, dof, se, valid.cov, valid.corr, float(cond), eig, unit, ci, ci_jac, ci_prof,
+                        noise_floor if floored else None, valid.note(names))
     return StageResult(out, 2 * len(names) + 1, time.perf_counter() - t0)
 
 
