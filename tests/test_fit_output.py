@@ -10,7 +10,7 @@ import pytest
 
 import pbrdf_cl
 from pbrdf_cl.compute import pointwise as api
-from pbrdf_cl.fitting import result
+from pbrdf_cl.fitting import report, result
 from pbrdf_cl.fitting.common import OUTSIDE_MARK, OUTSIDE_WHY, valid_covariance
 from pbrdf_cl.io.measurements import read_csv
 
@@ -84,7 +84,7 @@ def test_correlations_are_summarised(good):
     corr = np.full((5, 5), 0.99)
     np.fill_diagonal(corr, 1)
     eig = (np.ones(5), np.eye(5))
-    notes = result.identifiability_notes(names, np.eye(5), 10.0, eig, np.ones(5), np.full(5, 0.01), corr,
+    notes = report.identifiability_notes(names, np.eye(5), 10.0, eig, np.ones(5), np.full(5, 0.01), corr,
                                              np.ones(5))
     strong = [n for n in notes if n.startswith("strongly correlated")]
     assert strong == ["strongly correlated: a-b (r = +0.990), a-c (r = +0.990), a-d (r = +0.990), and 7 more "

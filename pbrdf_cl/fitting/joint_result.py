@@ -7,17 +7,15 @@ import numpy as np
 
 from ..io.measurements import duplicates_note
 from ..results import Result
+from . import report
 from .common import (
     DOP_NOISE_FLOOR,
-    GOODNESS_P,
-    GOODNESS_R2,
-    MISTAKE_CAUSES,
     OUTSIDE_FOOTNOTE,
     OUTSIDE_MARK,
     outside_interval,
     outside_note,
 )
-from .result import FIT_STATUS, identifiability_notes, reported_stderr
+from .result import FIT_STATUS, reported_stderr
 from .setup import PARAMETERS
 
 #: A parameter is "not determined" by the joint data where its 95% interval spans more than this
@@ -168,28 +166,19 @@ class JointResult(Result):
                 "the report)")
 
 
-def _information(chi2, m_obs, n_free, sigma_known):
-    """(AIC, BIC) as :class:`FitResult`'s: -2 log L is chi2 with known sigmas, else m log(SSE / m)."""
-    neg2ll = chi2 if sigma_known else m_obs * np.log(max(chi2, 1e-300) / m_obs)
-    return float(neg2ll + 2 * n_free), float(neg2ll + n_free * np.log(m_obs))
-
-
 def _goodness(setup, dop_resid, unc):
     """(fits, p-value or None, R^2, notes) of the joint fit, as :func:`pbrdf_cl.fit` tests one
-    (R^2 against each set's own mean DOP)."""
-    from scipy.stats import chi2 as chi2_dist
+    (:func:`pbrdf_cl.fitting.report.goodness`; R^2 against each set's own mean DOP)."""
     sse = sum(float(r @ r) for r in dop_resid.values())
     sst = sum(float(((m.dop - m.dop.mean()) ** 2).sum()) for m in setup.meas.values())
-    r2 = 1.0 - sse / sst if sst > 0 else None
-    p = float(chi2_dist.sf(unc.chi2, unc.dof)) if setup.sigma_known and unc.dof > 0 else None
-    if p is not None and p < GOODNESS_P:
-        return False, p, r2, [f"the model does not describe these data with the shared parameters: chi2 = "
-                              f"{unc.chi2:.4g} for {unc.dof} degrees of freedom (p = {p:.2g}); compare "
-                              f"separate_aic (the sets fitted alone), and the usual causes: {MISTAKE_CAUSES}"]
-    if p is None and r2 is not None and r2 < GOODNESS_R2:
-        return False, p, r2, [f"the model does not describe these data: it explains {max(r2, 0):.0%} of the DOP's "
-                              f"variance; usual causes: {MISTAKE_CAUSES}"]
-    return True, p, r2, []
+    fits, p, r2 = report.goodness(unc.chi2, unc.dof, sse, sst, setup.sigma_known)
+    p, r2 = (float(v) if np.isfinite(v) else None for v in (p, r2))
+    if fits:
+        return True, p, r2, []
+    if p is None:
+        return False, p, r2, [report.not_described(np.nan, r2, unc.chi2, unc.dof)]
+    return False, p, r2, [report.not_described(p, r2, unc.chi2, unc.dof, "these data with the shared parameters",
+                                               advice="compare separate_aic (the sets fitted alone), and the ")]
 
 
 def _joint_notes(setup, labels, x, lo, hi, unc):
@@ -209,7 +198,7 @@ def _joint_notes(setup, labels, x, lo, hi, unc):
                for i, n in enumerate(labels) if outside_interval(x[i], *unc.ci95[n])]
     if outside:
         notes.append(outside_note(outside))
-    notes += identifiability_notes(labels, unc.jacobian, unc.condition_number, unc.eig, x, unc.stderr, unc.corr,
+    notes += report.identifiability_notes(labels, unc.jacobian, unc.condition_number, unc.eig, x, unc.stderr, unc.corr,
                                    hi - lo)
     if unc.cov_note:
         notes.append(unc.cov_note)
@@ -233,13 +222,6 @@ def _model_notes(setup):
         if dup:
             notes.append(f"set {s}: {dup}")
     return notes
-
-
-def _ambiguous(cands, unit, se):
-    """Other candidates within one unit of chi^2 of the best and over 2 standard errors away."""
-    best = cands[0]
-    return [c for c in cands[1:] if c.sse - best.sse <= unit
-            and np.any(np.abs(c.x - best.x) > 2 * np.maximum(se, 1e-12))]
 
 
 def _per_set(setup, labels, values):
@@ -267,8 +249,8 @@ def joint_result(setup, resid, best, cands, unc, jgrid, separate, stages, status
     ratio = {s: {p: _width(ci95[s][p]) / _width(separate[s].ci95[p]) for p in ci95[s]
                  if p in separate[s].ci95 and _width(separate[s].ci95[p]) > 0} for s in setup.names}
     m_obs, n_free = unc.residuals.size, len(labels)
-    aic, bic = _information(unc.chi2, m_obs, n_free, setup.sigma_known)
-    sep_aic, sep_bic = _information(sum(r.chi2 for r in separate.values()), m_obs,
+    aic, bic = report.information(unc.chi2, m_obs, n_free, setup.sigma_known)
+    sep_aic, sep_bic = report.information(sum(r.chi2 for r in separate.values()), m_obs,
                                     sum(len(r.free) for r in separate.values()), setup.sigma_known)
     fits, p_value, r2, first = _goodness(setup, dop_resid, unc)
     notes = first + _model_notes(setup) + _joint_notes(setup, labels, best.x, lo, hi, unc)
@@ -278,7 +260,7 @@ def joint_result(setup, resid, best, cands, unc, jgrid, separate, stages, status
         notes.append(f"the basin exchange lowered the chi2 of set{'s' if len(moved) > 1 else ''} "
                      f"{', '.join(moved)}: refitted alone at the shared values (from its grid's valleys) it found "
                      "own parameters the joint descent had not reached; the data have more than one valley")
-    amb = _ambiguous(cands, unc.unit, unc.stderr)
+    amb = report.ambiguous(cands, unc.unit, unc.stderr)
     if amb:
         alt = ", ".join(f"{n}={v:.4g}" for n, v in zip(labels, amb[0].x))
         notes.append(f"ambiguous: another joint optimum fits equally well ({alt}: objective {amb[0].sse:.4g} against "

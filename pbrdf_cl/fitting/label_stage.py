@@ -58,6 +58,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from . import label_search as search
+from . import report
 from .common import GOODNESS_P, X_RESOLUTION, fd_jacobian, valid_covariance
 from .pixel_fit import fit_block
 from .pixels import Block, PixelResiduals, descent_bounds, grid_points, grid_values, internal, regions
@@ -574,11 +575,10 @@ def label_goodness(st, sums, subs, picks, theta, ok, pixels):
     less its pixels' own parameters and the shared ones); else (its chi2 has no scale, or an
     assumed one) the F test of :func:`pbrdf_cl.fitting.label_search.f_test` on its subsample.  A
     p-value below :data:`~pbrdf_cl.fitting.common.GOODNESS_P` fails, as a fit's."""
-    from scipy.stats import chi2 as chi2_dist
     setup = st.job.setup
     if setup.sigma_known and (not setup.use_f00 or "f00_std" in st.job.source.vars):
         chi2 = st.unpack(sums)[3]
-        p_value, test = np.where(ok, chi2_dist.sf(chi2, st.dof(sums)), np.nan), "chi2"
+        p_value, test = np.where(ok, report.chi2_p_value(chi2, st.dof(sums)), np.nan), "chi2"
     else:
         p_value, test = search.f_test(st, subs, picks, theta, ok, pixels), "F"
     fits = np.where(np.isfinite(p_value), p_value >= GOODNESS_P, -1).astype(np.int8)

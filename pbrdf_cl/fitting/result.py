@@ -10,11 +10,9 @@ import numpy as np
 from ..compute import pointwise
 from ..io.measurements import duplicates_note
 from ..results import Result
+from . import report
 from .common import (
     DOP_NOISE_FLOOR,
-    GOODNESS_P,
-    GOODNESS_R2,
-    MISTAKE_CAUSES,
     OUTSIDE_MARK,
     dop_resolution,
     outside_interval,
@@ -31,8 +29,6 @@ FIT_STATUS = {
        "point found",
     -1: "failed: the model's residuals are not finite at any candidate",
 }
-#: How many of the strongest correlations the notes name.
-MAX_CORR_NOTES = 3
 
 
 class FitResult(Result):
@@ -199,13 +195,10 @@ def fit_result(meas, model, shadowing, resid, x, lo, hi, unc, cands, grid, stage
     if observed is None:
         observed = Observed(meas.dop, resid.model.dop(p) - meas.dop, meas.dop_std is not None)
     sigma_known, dop_resid = observed.sigma_known, observed.residuals
-    m_obs, n_free = unc.residuals.size, len(names)
-    # -2 log-likelihood up to a constant: chi^2 with known sigmas, else m log(SSE / m)
-    neg2ll = unc.chi2 if sigma_known else m_obs * np.log(max(unc.chi2, 1e-300) / m_obs)
-    aic, bic = neg2ll + 2 * n_free, neg2ll + n_free * np.log(m_obs)
-    fits_data, p_value, r2, first = _goodness(observed.values, dop_resid, unc, sigma_known, observed.label)
+    aic, bic = report.information(unc.chi2, unc.residuals.size, len(names), sigma_known)
+    fits_data, p_value, r2, first = _goodness(observed, unc)
     notes = first + _convention_notes(meas) + notes + _bound_notes(names, x, lo, hi, unc.ci95)
-    notes += identifiability_notes(names, unc.jacobian, unc.condition_number, unc.eig, x, unc.stderr, unc.corr,
+    notes += report.identifiability_notes(names, unc.jacobian, unc.condition_number, unc.eig, x, unc.stderr, unc.corr,
                                     hi - lo)
     if unc.cov_note:
         notes.append(unc.cov_note)
@@ -215,7 +208,8 @@ def fit_result(meas, model, shadowing, resid, x, lo, hi, unc, cands, grid, stage
                      f"DOP noise of std {unc.noise_floor:.2g} (the larger of the data's DOP resolution "
                      f"{dop_resolution(observed.values):g} / sqrt(12) and {DOP_NOISE_FLOOR:g}); give a dop_std column "
                      "to set it")
-    ambiguous = _ambiguous_basins(cands, free, unc.unit, unc.stderr)
+    ambiguous = [dict(zip(free, map(float, c.x)), sse=float(c.sse))
+                 for c in report.ambiguous(cands, unc.unit, unc.stderr)]
     if ambiguous:
         alt = ", ".join(f"{n}={ambiguous[0][n]:.4g}" for n in free)
         notes.append(f"ambiguous: another basin fits equally well ({alt}: its objective, the weighted sum of "
@@ -265,64 +259,19 @@ def model_notes(model, fx, use_f00, meas):
     return notes
 
 
-def _ambiguous_basins(cands, free, unit, se):
-    """The other candidates within one unit of chi^2 of the best and more than 2 standard errors
-    away from it in some parameter (dicts of their parameters and SSE)."""
-    best = cands[0]
-    out = []
-    for c in cands[1:]:
-        if c.sse - best.sse <= unit and np.any(np.abs(c.x - best.x) > 2 * np.maximum(se[:len(free)], 1e-12)):
-            out.append(dict(zip(free, map(float, c.x)), sse=float(c.sse)))
-    return out
-
-
-def identifiability_notes(names, J, cond, eig, x, se, corr, scale):
-    """The notes on what the data do not determine: a near-degenerate direction (condition number
-    ``cond`` of the scaled J^T J, eigen-decomposition ``eig``), parameters the DOP does not change
-    with or poorly determined (``se``), strong correlations (``corr``); ``J`` the Jacobian over
-    ``names``, ``x`` the optimum, ``scale`` the bound ranges."""
-    notes = []
-    w, v = eig
-    if not np.isfinite(cond) or cond > 1e4:
-        weak = v[:, 0]
-        order = np.argsort(-np.abs(weak))
-        terms = " ".join(f"{'+' if weak[i] >= 0 else '-'} {abs(weak[i]):.2f} d{names[i]}" for i in order[:3]
-                         if abs(weak[i]) > 0.1)
-        notes.append(f"near-degenerate direction (condition number {cond:.2g} in parameters scaled to their "
-                     f"bounds): the data barely constrain the combination {terms.lstrip('+ ')}")
-    col = np.linalg.norm(J, axis=0) * scale
-    for i, n in enumerate(names):
-        if col[i] < 1e-8 * max(col.max(), 1e-300):
-            notes.append(f"{n} is not determined by these data (the DOP does not change with it here"
-                         + ("; with kd = 0 the DOP does not depend on sigma or c" if n in ("sigma", "c") else "")
-                         + ")")
-        elif abs(x[i]) > 0 and se[i] > 0.5 * abs(x[i]):
-            notes.append(f"{n} is poorly determined: standard error {se[i]:.3g} on {x[i]:.4g}")
-    pairs = sorted(((abs(corr[i, j]), i, j) for i in range(len(names)) for j in range(i + 1, len(names))
-                    if np.isfinite(corr[i, j]) and abs(corr[i, j]) > 0.95), key=lambda t: -t[0])
-    if pairs:
-        shown = ", ".join(f"{names[i]}-{names[j]} (r = {corr[i, j]:+.3f})" for _, i, j in pairs[:MAX_CORR_NOTES])
-        more = f", and {len(pairs) - MAX_CORR_NOTES} more (see .corr)" if len(pairs) > MAX_CORR_NOTES else ""
-        notes.append(f"strongly correlated: {shown}{more}")
-    return notes
-
-
-def _goodness(values, dop_resid, unc, sigma_known, label="DOP"):
-    """(fits, p-value or None, R^2 or None, notes): whether the model describes the data
-    (``values``, the fit's residuals ``dop_resid`` at them), by chi2 against its degrees of freedom
-    with given uncertainties, else by the residuals against the data's spread."""
-    from scipy.stats import chi2 as chi2_dist
-    sst = float(np.sum((values - values.mean()) ** 2))
-    r2 = 1.0 - float(dop_resid @ dop_resid) / sst if sst > 0 else None
-    p = float(chi2_dist.sf(unc.chi2, unc.dof)) if sigma_known and unc.dof > 0 else None
-    if p is not None and p < GOODNESS_P:
-        return False, p, r2, [f"the model does not describe these data: chi2 = {unc.chi2:.4g} for {unc.dof} degrees "
-                              f"of freedom (p = {p:.2g}); usual causes: {MISTAKE_CAUSES}"]
-    if p is None and r2 is not None and r2 < GOODNESS_R2:
-        return False, p, r2, [f"the model does not describe these data: it explains {max(r2, 0):.0%} of the {label}'s "
-                              f"variance (RMSE {np.sqrt(np.mean(dop_resid ** 2)):.3g} against the data's spread "
-                              f"{np.sqrt(sst / values.size):.3g}); usual causes: {MISTAKE_CAUSES}"]
-    return True, p, r2, []
+def _goodness(observed, unc):
+    """(fits, p-value or None, R^2 or None, notes) of a fit (:func:`pbrdf_cl.fitting.report.goodness`)
+    of ``observed`` (an :class:`Observed`)."""
+    values, resid = observed.values, observed.residuals
+    sse, sst = float(resid @ resid), float(np.sum((values - values.mean()) ** 2))
+    fits, p, r2 = report.goodness(unc.chi2, unc.dof, sse, sst, observed.sigma_known)
+    p, r2 = (float(v) if np.isfinite(v) else None for v in (p, r2))
+    if fits:
+        return True, p, r2, []
+    detail = (f" (RMSE {np.sqrt(np.mean(resid ** 2)):.3g} against the data's spread "
+              f"{np.sqrt(sst / values.size):.3g})")
+    return False, p, r2, [report.not_described(np.nan if p is None else p, r2, unc.chi2, unc.dof,
+                                               label=observed.label, detail=detail)]
 
 
 def _convention_notes(meas):

@@ -6,7 +6,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .common import GOODNESS_P, GOODNESS_R2, X_RESOLUTION, valid_covariance
+from . import report
+from .common import X_RESOLUTION, valid_covariance
 from .pixels import PixelResiduals, descent_bounds, internal
 
 #: A parameter counts as determined by a pixel's data where its 95% interval is narrower than
@@ -138,23 +139,14 @@ def statistics(setup, blk, names, xb, chi2, jtj, settled, X_all, sse_all, nfev):
 
 
 def _goodness(setup, blk, dop_sse, chi2, dof):
-    """Per pixel, as :func:`pbrdf_cl.fit` tests a fit: (R^2 of the DOP, the p-value of chi2 with
-    ``dof`` degrees of freedom (NaN without dop_std), 1 where the model describes the pixel's
-    data else 0): with dop_std the p-value must reach GOODNESS_P, without it R^2 GOODNESS_R2
-    (a pixel whose DOP does not vary passes)."""
-    from scipy.stats import chi2 as chi2_dist
+    """Per pixel, as :func:`pbrdf_cl.fit` tests a fit (:func:`pbrdf_cl.fitting.report.goodness`):
+    (R^2 of the DOP, the p-value of chi2 with ``dof`` degrees of freedom (NaN without dop_std), 1
+    where the model describes the pixel's data else 0; a pixel whose DOP does not vary passes)."""
     n = np.maximum(blk.count, 1)
     mean = (blk.obs * blk.valid).sum(axis=1) / n
     sst = np.where(blk.valid, blk.obs - mean[:, None], 0.0)
     sst = np.einsum("pm,pm->p", sst, sst)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        r2 = np.where(sst > 0, 1.0 - dop_sse / sst, np.nan)
-    if setup.sigma_known:
-        p_value = np.where(dof > 0, chi2_dist.sf(chi2, np.maximum(dof, 1)), np.nan)
-        fits = ~(p_value < GOODNESS_P)
-    else:
-        p_value = np.full(blk.p, np.nan)
-        fits = ~(r2 < GOODNESS_R2)
+    fits, p_value, r2 = report.goodness(chi2, dof, dop_sse, sst, setup.sigma_known)
     return r2, p_value, fits.astype(np.int8)
 
 
