@@ -274,3 +274,27 @@ def test_cli_design_compares_instruments(tmp_path, capsys):
     assert err.count("\n") == 1 and err.startswith("pbrdf-cl: error: instrument: unknown 'camra45' (did you mean "
                                                    "'camera45'?)")
 
+
+def test_what_to_measure_page_quotes_the_design_module():
+    """docs/guide/what_to_measure.md: its two tables are what design computes (standard errors to
+    two significant digits)."""
+    import re
+    from pathlib import Path
+    text = (Path(__file__).parents[1] / "docs" / "guide" / "what_to_measure.md").read_text()
+    paper = {"theta_i": [30, 40, 50], "theta_r": "20:65:5"}
+    got = {phi: _se(pbrdf_cl.design(STEEL, SMALL, n_measurements=8, instrument=FOUR,
+                                    reference=dict(paper, phi=phi), backend="numpy")) for phi in (180, 150)}
+    rows = re.findall(r"^\| `(\w+)` \| (\d+) \| ± ([0-9.]+) \| ± ([0-9.]+) \| ± ([0-9.]+) \| ± ([0-9.]+) \|$", text,
+                      re.MULTILINE)
+    assert [r[0] for r in rows] == FOUR.split(",")
+    for name, channels, *values in rows:
+        assert int(channels) == ins.REGISTRY[name].per_geometry
+        want = [*got[180][name], *got[150][name]]
+        assert [float(v) for v in values] == [float(f"{w:.2g}") for w in want], name
+    own = re.findall(r"^\| `(\w+)` \| ± ([0-9.]+) \| ± ([0-9.]+) \| (\d+)\.\.(\d+) \|$", text, re.MULTILINE)
+    assert [r[0] for r in own] == FOUR.split(",")
+    for name, n, k, lo, hi in own:
+        r = pbrdf_cl.design(STEEL, noise=0.005, instrument=name, backend="numpy")
+        se = r.instrument_comparisons["chosen"][name]["se"]
+        assert (float(n), float(k)) == (float(f"{se['n']:.2g}"), float(f"{se['k']:.2g}")), name
+        assert (float(lo), float(hi)) == (r.theta_i.min(), r.theta_i.max()), name
