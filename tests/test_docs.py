@@ -11,7 +11,7 @@ import pytest
 import pbrdf_cl
 from pbrdf_cl.compute import dense
 from pbrdf_cl.compute import pointwise as api
-from pbrdf_cl.explore import maps, sensitivity
+from pbrdf_cl.explore import instruments, maps, sensitivity
 from pbrdf_cl.fitting import batch, batch_store, dataset, label_stage, source
 from pbrdf_cl.io import camera, imagestack
 from pbrdf_cl.io import measurements as data
@@ -23,7 +23,7 @@ from pbrdf_cl.plots import sensitivity as sensitivity_plots
 PUBLIC = [getattr(pbrdf_cl, n) for n in pbrdf_cl.__all__ if inspect.isfunction(getattr(pbrdf_cl, n))]
 PUBLIC += [maps.make_map, map_plots.plot_map, data.as_measurements, sensitivity.load_sobol_spec,
            sensitivity_plots.plot_sensitivity, source.open_stack, dataset.goodness_summary, data.split_sets,
-           joint_plots.plot_joint, label_stage.run_label_stage]
+           joint_plots.plot_joint, label_stage.run_label_stage, instruments.instruments]
 PUBLIC += [getattr(m, n) for m in (imagestack, camera, batch, batch_store, batch_plots) for n in dir(m)
            if not n.startswith("_") and inspect.isfunction(getattr(m, n)) and getattr(m, n).__module__ == m.__name__]
 
@@ -40,7 +40,7 @@ def test_numpydoc_sections(func):
 
 
 @pytest.mark.parametrize("module", [api, dense, data, maps, map_plots, imagestack, batch, batch_store, source,
-                                    batch_plots, sensitivity, sensitivity_plots],
+                                    batch_plots, sensitivity, sensitivity_plots, instruments],
                          ids=lambda m: m.__name__)
 def test_docstring_examples_run(module):
     result = doctest.testmod(module, optionflags=doctest.ELLIPSIS | doctest.NORMALIZE_WHITESPACE,

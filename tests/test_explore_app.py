@@ -190,6 +190,16 @@ def test_page_design_and_sobol_use_the_chosen_sizes():
     want = pbrdf_cl.design(st.STEEL, {"theta_i": "10:80:5", "theta_r": "0:85:5"}, noise=0.002, n_measurements=8)
     assert np.array_equal(r.theta_i, want.theta_i) and np.array_equal(r.theta_r, want.theta_r)
     assert r.ci95_width["n"] == pytest.approx(want.ci95_width["n"], rel=1e-9)
+    assert list(r.instrument_comparisons["chosen"]) == ["dop", "camera45", "camera4", "mueller"]
+    ex.design_instrument.value = "mueller"  # chosen for the polarimeter; every instrument in the table
+    asyncio.run(ex._on_design(None))
+    r = ex.design_result
+    want = pbrdf_cl.design(st.STEEL, {"theta_i": "10:80:5", "theta_r": "0:85:5"}, noise=0.002, n_measurements=8,
+                           instrument="mueller,dop,camera45,camera4")
+    assert np.array_equal(r.theta_i, want.theta_i) and np.array_equal(r.theta_r, want.theta_r)
+    cells = "".join(f"<td>{want.instrument_comparisons[s]['camera4']['widths'][p]:.3g}</td>"
+                    for s in ("chosen", "reference") for p in ("n", "k"))
+    assert "(mueller noise 0.002)" in ex.jobs.object and f"<tr><td>camera4</td>{cells}</tr>" in ex.jobs.object
     ex.design_noise.value = 0.0
     asyncio.run(ex._on_design(None))
     assert "design: error: noise must be a positive number, got 0.0" in ex.jobs.object and ex.design_result is r

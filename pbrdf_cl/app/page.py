@@ -44,6 +44,23 @@ SETTLE_MS = 250
 SOBOL_N = (64, 256, 1024)
 #: The design's defaults: DOP noise (std) and number of measurements (both editable on the page).
 DESIGN_NOISE, DESIGN_COUNT = 0.005, 30
+#: The design's instruments (explore.instruments.REGISTRY): the geometries are chosen for the one
+#: picked on the page, and all of them are compared at those and at the paper's geometries.
+DESIGN_INSTRUMENTS = {"DOP, unpolarised source": "dop", "camera s1, s2, source at 45 deg": "camera45",
+                      "camera s1, s2, 4 linear + circular sources": "camera4",
+                      "Mueller polarimeter (15 m_ij)": "mueller"}
+
+
+def design_table(r):
+    """A design's instruments compared (:func:`pbrdf_cl.design`'s ``instrument_comparisons``): the
+    predicted 95% widths of n and k at the chosen and at the paper's geometries, as an HTML table."""
+    comp = r.instrument_comparisons
+    head = "".join(f"<th>{p}, {s}</th>" for s in ("chosen", "paper") for p in ("n", "k"))
+    rows = "".join(f"<tr><td>{html.escape(name)}</td>" + "".join(
+        f"<td>{'undet.' if p in comp[s][name]['undetermined'] else format(comp[s][name]['widths'][p], '.3g')}</td>"
+        for s in ("chosen", "reference") for p in ("n", "k")) + "</tr>" for name in comp["chosen"])
+    return (f'<table class="design-instruments" style="font-size:90%"><tr><th>instrument</th>{head}</tr>{rows}'
+            "</table>")
 
 
 def background_engine(engine):
@@ -158,6 +175,8 @@ class Explorer:
                                         step=0.001, width=120)
         self.design_count = NumberEntry("measurements", "measurements", (5, 200), DESIGN_COUNT, self._complain_job,
                                         step=5, integer=True, width=110)
+        self.design_instrument = pn.widgets.Select(label="design for the instrument (all compared)",
+                                                   options=DESIGN_INSTRUMENTS, value="dop", width=300)
         self.jobs = pn.pane.HTML("", width=560, name="jobs")
 
     def _export_widgets(self):
@@ -184,7 +203,8 @@ class Explorer:
                          pn.pane.Bokeh(f.fit_table), self.fit_notes)
         jobs = pn.Column(pn.pane.HTML("<b>On demand</b>"), pn.Row(self.sobol_button, self.sobol_share),
                          pn.Row(self.sobol_param, self.sobol_n),
-                         pn.Row(self.design_button, self.design_noise, self.design_count), self.jobs,
+                         pn.Row(self.design_button, self.design_noise, self.design_count), self.design_instrument,
+                         self.jobs,
                          pn.pane.HTML("<b>Export</b> (one plot as PNG: its toolbar's save tool)"),
                          pn.Row(*self.exports[:3]), pn.Row(*self.exports[3:]))
         # two columns under the curves, each as tall as its own content: no empty band above the Sobol' maps
@@ -469,21 +489,25 @@ class Explorer:
         if self.sobol_ds is not None:
             self.figs.update_sobol(self.sobol_ds, self.sobol_param.value)
 
-    def _design_job(self, params, settings, noise=DESIGN_NOISE, count=DESIGN_COUNT):
+    def _design_job(self, params, settings, noise=DESIGN_NOISE, count=DESIGN_COUNT, instrument="dop"):
+        others = [i for i in DESIGN_INSTRUMENTS.values() if i != instrument]
         return design(params, {"theta_i": "10:80:5", "theta_r": "0:85:5"}, noise=noise, n_measurements=count,
-                      shadowing=settings.shadowing, engine=background_engine(self.engine))
+                      shadowing=settings.shadowing, instrument=[instrument, *others],
+                      engine=background_engine(self.engine))
 
     async def _on_design(self, event):
         noise = self.design_noise.value  # checked by its entry, and by design() (one line on the page)
+        chosen = self.design_instrument.value
         r = await self._background(self.design_button, "design", self._design_job,
                                    dict(self.state.sets[self.state.active]), self.state.settings, noise,
-                                   self.design_count.value)
+                                   self.design_count.value, chosen)
         if r is not None:
             self.design_result = r
             self._later(self.figs.update_design, r.theta_i, r.theta_r)
             widths = ", ".join(f"{p} {r.ci95_width[p]:.3g}" for p in ("n", "k"))
-            self.jobs.object += (f"; predicted 95% widths at the {len(r.theta_i)} chosen geometries (DOP noise "
-                                 f"{noise:g}): {widths} (x on the map)")
+            label = "DOP" if chosen == "dop" else chosen
+            self.jobs.object += (f"; predicted 95% widths at the {len(r.theta_i)} chosen geometries ({label} noise "
+                                 f"{noise:g}): {widths} (x on the map)" + design_table(r))
 
     # ---- exports ----------------------------------------------------------------------------------
 

@@ -136,12 +136,13 @@ def cmd_design(args) -> int:
     fixed = ranges.parse_assignments(args.fix, tuple(DEFAULT_BOUNDS), "value", "--fix", check=True)
     bounds = ranges.parse_assignments(args.bounds, tuple(DEFAULT_BOUNDS), "bounds", "--bounds")
     target = tuple(t.strip() for t in args.target.split(",") if t.strip())
+    instrument = [s for a in args.instrument for s in a.split(",") if s.strip()] if args.instrument else None
     check_result_outputs(args)
     try:
         res = design(params, cand, noise=args.noise, n_measurements=args.n, target=target, intensity=args.intensity,
                      fixed=fixed, criterion=args.criterion, reference=ref, intensity_noise=args.intensity_noise,
                      bounds=bounds, materials=args.materials, repeats=args.repeats, seed=args.seed,
-                     shadowing=args.shadowing, engine=engine_for(args))
+                     shadowing=args.shadowing, instrument=instrument, engine=engine_for(args))
     except (ValueError, _engine.OpenCLUnavailableError) as exc:
         return error(exc)
     print(res.summary())
@@ -238,8 +239,10 @@ def design_parser(sub):
                        description="For a hypothesised material (--params) or a box of materials (--box), "
                        "choose the --n geometries out of the candidates that make the target parameters' "
                        "predicted 95% intervals narrowest, and compare with the paper's geometry (theta_i "
-                       "30/40/50 x theta_r 20..65 step 5). Example: pbrdf-cl design --params n=1.6,k=2.139,"
-                       "sigma=0.5,kd=0.15,c=-0.3 --noise 0.005 --n 30 --out design.nc --png design.png")
+                       "30/40/50 x theta_r 20..65 step 5); with --instrument, for the first instrument, and "
+                       "every instrument compared at the same geometries. Example: pbrdf-cl design --params "
+                       "n=1.6,k=2.139,sigma=0.5,kd=0.15,c=-0.3 --noise 0.005 --n 30 --instrument "
+                       "dop,camera45,camera4,mueller --out design.nc --png design.png")
     d.add_argument("--params", nargs="+", metavar="NAME=VALUE", required=True,
                    help="the material: n, k, sigma (and kd, c, ks; defaults 0, 0, 1), e.g. n=1.6,k=2.139,sigma=0.5")
     d.add_argument("--box", nargs="+", metavar="NAME=LO:HI", help="parameters ranging over a box (instead of "
@@ -248,7 +251,14 @@ def design_parser(sub):
                    help="candidate grid axes (degrees), e.g. theta_i=10:80:5 theta_r=0:85:5 (default; phi 180)")
     d.add_argument("--reference", nargs="+", action="extend", metavar="NAME=VALUES",
                    help="the grid to compare with (default the paper's: theta_i=30,40,50 theta_r=20:65:5)")
-    d.add_argument("--noise", type=float, default=0.005, help="standard deviation of each DOP measurement")
+    d.add_argument("--noise", type=float, default=0.005, help="standard deviation of each DOP measurement (with "
+                   "--instrument: of each normalised quantity measured)")
+    d.add_argument("--instrument", nargs="+", action="extend", metavar="NAME",
+                   help="what is measured at each geometry, one or several (comma-separated) to compare: dop (the "
+                   "DOP, unpolarised source), camera45 or camera (s1, s2; source linear at 45 deg), camera4 (s1, s2; "
+                   "sources linear at 0/45/90/135 deg and circular), mueller (the 15 m_ij = M_ij / M00), or "
+                   "QUANTITIES[@STATES] joined by + (s1+s2@0+90+circular, dop@45, camera@0+45); the geometries are "
+                   "chosen for the first")
     d.add_argument("--n", type=int, default=30, help="how many measurements to choose")
     d.add_argument("--target", default="n,k", help="the parameters to determine best, comma-separated")
     d.add_argument("--intensity", action="store_true", help="each geometry also measures F00 (ks free, kd as kd/ks)")

@@ -15,6 +15,14 @@ How the widths are predicted (the local linearisation :func:`pbrdf_cl.fit` itsel
   (:func:`pbrdf_cl.compute.dense.outer`, float64): the material and its +-h steps (h = 1e-6 of each
   bound range, one-sided at a bound, as :func:`pbrdf_cl.fitting.common.fd_jacobian`) are extra
   parameter sets of ONE evaluation over every candidate geometry.
+* With ``instrument=`` (:mod:`pbrdf_cl.explore.instruments`) a geometry's rows are an
+  instrument's channels (normalised Stokes components under source states, normalised Mueller
+  elements, the DOP) divided by its noise: their derivatives come from ONE
+  :func:`~pbrdf_cl.compute.dense.outer` of "mueller" over the same parameter sets, the channels'
+  values from those matrices by arithmetic (:func:`instrument_jacobians`); the unpolarised DOP
+  keeps its own rows above.  The geometries are chosen for the first instrument (its rows
+  compressed to their QR factor where they outnumber the parameters), and every instrument is
+  compared at the chosen and the reference geometries.
 * The Fisher information of a set is the sum of its rows' J^T J; the covariance its
   pseudo-inverse (as ``fitting.uncertainty._covariance``); the predicted interval of parameter j is
   ``x_j +- 1.96 se_j`` clipped to the bounds, and its width is reported.
@@ -48,10 +56,10 @@ from ..device.engine import resolve_engine
 from ..fitting.common import X_RESOLUTION, fd_jacobian
 from ..fitting.setup import F00_REL_STD, FitSetup
 from ..model import reference as _reference
-from ..results import Result
+from .design_result import GEOMETRY, DesignResult
+from .instruments import instruments as instruments_of
 from .sensitivity import check_fixed, check_geometry, check_ranges, geometry_list
 
-GEOMETRY = ("theta_i", "theta_r", "phi")
 CRITERIA = ("A", "D")
 #: The paper's geometry (45# steel at 435 nm): theta_i 30/40/50 x theta_r 20..65 step 5, in plane.
 PAPER_GEOMETRY = {"theta_i": [30.0, 40.0, 50.0], "theta_r": "20:65:5", "phi": 180.0}
@@ -73,118 +81,6 @@ NULL_SHARE_NEGLIGIBLE = 1e-6
 #: the parameter is undetermined.
 UNDETERMINED_RTOL = 1e-9
 MAX_SWAPS_PER_POINT = 20
-
-
-def _kd_meaning(result):
-    """What a design's ``kd`` is: the ratio kd/ks, or the absolute kd where ks is fixed."""
-    fx = result.get("fixed", {})
-    return f"kd is absolute, ks fixed at {fx['ks']:g}" if "ks" in fx else "kd is kd/ks"
-
-
-class DesignResult(Result):
-    """The chosen measurements and their predicted 95% interval widths (attribute-access dict).
-
-    ``theta_i``, ``theta_r``, ``phi`` (degrees): the chosen geometries; ``ci95_width``: dict
-    parameter -> predicted width (the median over the materials of a box);
-    ``ci95_width_reference`` the same for ``reference`` (dict of geometry arrays);
-    ``comparisons``: name -> dict(widths, n_points, description, undetermined); ``information``:
-    each candidate's value at the final design (shaped as the candidate grid,
-    ``information_axes``); ``undetermined`` (``undetermined_reference``): the free parameters the
-    chosen (reference) set does not determine, whose predicted interval spans their whole bounds
-    (their width is then the bound range); ``notes``: sentences on what the design cannot do;
-    ``criterion``, ``criterion_value``, ``criterion_greedy``, ``free``, ``target``, ``noise``, ...;
-    :func:`pbrdf_cl.plots.design.plot_design` draws it.
-    """
-
-    @property
-    def compared(self):
-        """The parameters of the comparisons' columns (of :meth:`summary`, :meth:`to_dataset` and the
-        figure): the free ones, and ks after them where ks is not free (an intensity column frees it)."""
-        return list(self.free) + ([] if "ks" in self.free else ["ks"])
-
-    def summary(self):
-        """A readable text table of the predicted widths."""
-        names = self.compared
-        lines = [f"measurement design: {len(self.theta_i)} measurements, criterion {self.criterion} on "
-                 f"{', '.join(self.target)}; DOP noise {self.noise:g}"
-                 + (f", F00 relative noise {self.intensity_noise:g}" if self.intensity else "")
-                 + (f"; median over {self.n_materials} materials" if self.n_materials > 1 else ""),
-                 f"  criterion: greedy {self.criterion_greedy:.6g} -> exchange {self.criterion_value:.6g} "
-                 f"({self.swaps} swaps; reference {self.criterion_reference:.6g}); {self.seconds:.2f} s",
-                 "", f"predicted 95% interval widths ({_kd_meaning(self)})"]
-        head = f"  {'measurement set':<44s}{'points':>7s}" + "".join(f"{n:>10s}" for n in names)
-        lines.append(head)
-        for c in self.comparisons.values():
-            w, u = c["widths"], c.get("undetermined", ())
-            lines.append(f"  {c['description'][:43]:<44s}{c['n_points']:>7d}"
-                         + "".join(f"{'undet.':>10s}" if n in u else f"{w[n]:>10.4g}" if n in w else f"{'-':>10s}"
-                                   for n in names))
-        if any(c.get("undetermined") for c in self.comparisons.values()):
-            lines.append("  undet.: undetermined, the predicted interval spans the whole bounds (the data do not "
-                         "determine the parameter)")
-        lines += [f"note: {n}" for n in self.get("notes", ())]
-        lines += ["", "chosen geometries (theta_i, theta_r, phi) [deg]:"]
-        pts = [f"({a:g}, {b:g}, {c:g})" for a, b, c in zip(self.theta_i, self.theta_r, self.phi)]
-        for i in range(0, len(pts), 6):
-            lines.append("  " + " ".join(pts[i:i + 6]))
-        return "\n".join(lines)
-
-    def to_dataset(self):
-        """The result as an ``xarray.Dataset`` (``to_netcdf`` saves it)."""
-        import xarray as xr
-        deg = {"units": "deg"}
-        data = {g: xr.Variable(("measurement",), self[g], deg) for g in GEOMETRY}
-        data.update({f"reference_{g}": xr.Variable(("reference_measurement",), self.reference[g], deg)
-                     for g in GEOMETRY})
-        data.update({
-            "ci95_width": xr.Variable(("parameter",), [self.ci95_width[n] for n in self.free],
-                                      {"long_name": "predicted 95% interval width, chosen set"}),
-            "ci95_width_reference": xr.Variable(("parameter",), [self.ci95_width_reference[n] for n in self.free],
-                                                {"long_name": "predicted 95% interval width, reference set"}),
-            "undetermined": xr.Variable(("parameter",), np.array([n in self.undetermined for n in self.free], np.int8),
-                                        {"long_name": "1 where the chosen set does not determine the parameter "
-                                                      "(its predicted interval spans the whole bounds)"}),
-            "undetermined_reference": xr.Variable(
-                ("parameter",), np.array([n in self.undetermined_reference for n in self.free], np.int8),
-                {"long_name": "1 where the reference set does not determine the parameter"}),
-        })
-        comp = list(self.comparisons)
-        allp = self.compared
-        data["comparison_width"] = xr.Variable(
-            ("comparison", "parameter_all"),
-            [[self.comparisons[c]["widths"].get(n, np.nan) for n in allp] for c in comp],
-            {"long_name": "predicted 95% interval width (NaN: not free)"})
-        data["comparison_undetermined"] = xr.Variable(
-            ("comparison", "parameter_all"),
-            np.array([[n in self.comparisons[c].get("undetermined", ()) for n in allp] for c in comp], dtype=np.int8),
-            {"long_name": "1 where the predicted interval spans the whole bounds: the parameter is undetermined"})
-        data["comparison_points"] = xr.Variable(("comparison",), [self.comparisons[c]["n_points"] for c in comp])
-        data["comparison_description"] = xr.Variable(("comparison",), [self.comparisons[c]["description"]
-                                                                        for c in comp])
-        info_dims = tuple(f"candidate_{n}" for n in self.information_axes) or ("candidate",)
-        data["information"] = xr.Variable(info_dims, self.information, {"long_name": self.information_label,
-                                                                        "units": "1"})
-        coords = {"parameter": list(self.free), "parameter_all": allp, "comparison": comp}
-        for n, v in self.information_axes.items():
-            coords[f"candidate_{n}"] = xr.Variable((f"candidate_{n}",), v, deg)
-        if self.n_materials > 1:
-            data["materials"] = xr.Variable(("material", "model_parameter"),
-                                            np.stack([self.materials[n] for n in PARAMETERS], axis=1))
-            data["ci95_width_materials"] = xr.Variable(("material", "parameter"),
-                                                       np.stack([self.ci95_width_materials[n] for n in self.free],
-                                                                axis=1))
-            coords["model_parameter"] = list(PARAMETERS)
-        attrs = dict(criterion=self.criterion, target=",".join(self.target), noise=self.noise,
-                     intensity=int(self.intensity), intensity_noise=self.intensity_noise,
-                     criterion_value=self.criterion_value, criterion_greedy=self.criterion_greedy,
-                     criterion_reference=self.criterion_reference, swaps=self.swaps,
-                     n_materials=self.n_materials, shadowing=self.shadowing, engine=self.engine,
-                     seconds=round(self.seconds, 3), notes=" | ".join(self.get("notes", ())))
-        for n, (lo, hi) in self.bounds.items():
-            attrs[f"bounds_{n}"] = [lo, hi]
-        for n, v in self.material.items():
-            attrs[f"material_{n}"] = v
-        return xr.Dataset(data, coords=coords, attrs=attrs)
 
 
 # ----------------------------------------------------------------------------------- inputs
@@ -317,6 +213,50 @@ def whitened_rows(dop_J, f00, f00_J, noise, intensity_noise, intensity):
     if intensity:
         rows.append(f00_J / (intensity_noise * f00)[..., None])
     return np.stack(rows, axis=2)
+
+
+#: Memory for one block of geometries of :func:`instrument_jacobians` (Mueller matrices and channel terms).
+INSTRUMENT_BLOCK_BYTES = 64 * 2**20
+
+
+def instrument_jacobians(eng, geometry, mat, names, lo, hi, instruments, shadowing="paper"):
+    """Central-difference derivatives of every instrument's channels at every geometry for every
+    material, in the fit's coordinates ``names`` (as :func:`jacobians`): the materials and all
+    their steps the parameter sets of :func:`pbrdf_cl.compute.dense.outer` of "mueller" (float64,
+    geometries in blocks), each instrument's channel values from those Mueller matrices by
+    :meth:`Instrument.values <pbrdf_cl.explore.instruments.Instrument.values>` (arithmetic on the
+    model's output: :meth:`~pbrdf_cl.model.measurables.Channels.values_of`).
+
+    Returns (values, J): per instrument, values (M, G, c) and derivatives (M, G, c, d)."""
+    X = _x_of(mat, names)
+    M, d = X.shape
+    G = geometry["theta_i"].size
+    sizes = [i.per_geometry for i in instruments]
+
+    def rows(S):  # parameter vectors (B, d) -> every instrument's channels (B, G * sum(c))
+        basep = {n: np.repeat(np.asarray(mat[n], float), S.shape[0] // M) for n in PARAMETERS}
+        params = _model_of(S, names, basep)
+        out = np.empty((S.shape[0], G, sum(sizes)))
+        per = max(1, INSTRUMENT_BLOCK_BYTES // (S.shape[0] * 8 * (16 + 8 * max(sizes))))
+        for g0 in range(0, G, per):
+            g1 = min(G, g0 + per)
+            F = outer(eng, "mueller", geometry, params, "float64", shadowing, rows=(g0, g1))  # (g, B, 4, 4)
+            out[:, g0:g1] = np.concatenate([i.values(F) for i in instruments], axis=-1).transpose(1, 0, 2)
+        return out.reshape(S.shape[0], -1)
+    Y, J = fd_jacobian(rows, X, lo, hi, "central")  # (M, G * C), (M, d, G * C)
+    Y, J = Y.reshape(M, G, -1), J.reshape(M, d, G, -1).transpose(0, 2, 3, 1)
+    edges = np.cumsum([0] + sizes)
+    return ([Y[:, :, a:b] for a, b in zip(edges[:-1], edges[1:])],
+            [J[:, :, a:b] for a, b in zip(edges[:-1], edges[1:])])
+
+
+def instrument_rows(J, f00, f00_J, noise, intensity_noise, intensity):
+    """Rows (M, G, c (+1), d): an instrument's channel derivatives (M, G, c, d) / its noise, and
+    with ``intensity`` the F00 row of :func:`whitened_rows` after them."""
+    rows = J / noise
+    if intensity:
+        rows = np.concatenate([rows, whitened_rows(f00_J, f00, f00_J, 1.0, intensity_noise, True)[:, :, 1:]], axis=2)
+    return rows
 
 
 def predicted_widths(rows, x, lo, hi):
@@ -599,6 +539,7 @@ class _Problem:
     cand_axes: dict | None
     ref: dict
     ref_given: bool
+    instruments: list  # of instruments.Instrument; empty: the DOP with ``noise`` (the default)
 
     @property
     def fx(self):
@@ -726,9 +667,10 @@ def _fix_materials(mat, fx, names, lo, hi):
 
 
 def _problem(params, candidates, noise, n_measurements, target, intensity, fixed, criterion, reference,
-             intensity_noise, bounds, materials, repeats, seed, shadowing):
+             intensity_noise, bounds, materials, repeats, seed, shadowing, instrument=None):
     """Check every input of :func:`design` (in the order its errors are reported) into a :class:`_Problem`."""
     noise, intensity_noise = _check_options(criterion, noise, intensity_noise, intensity, materials, shadowing)
+    inst = [] if instrument is None else instruments_of(instrument, noise)
     setup = _fit_setup(bounds, dict(fixed or {}), intensity)  # first: the same refusals as fit's
     mat, rngs = _materials(params, fixed, int(materials), seed)
     fx = setup.fixed
@@ -742,7 +684,7 @@ def _problem(params, candidates, noise, n_measurements, target, intensity, fixed
         raise ValueError(f"n_measurements: {n} is more than the {N} candidate geometries (repeats=False)")
     X = _fix_materials(mat, fx, names, *setup.bounds_of(names))
     return _Problem(criterion, noise, intensity_noise, intensity, n, repeats, target, setup, mat, rngs, X, cand,
-                    cand_axes, ref, reference is not None)
+                    cand_axes, ref, reference is not None, inst)
 
 
 class _Linearisation:
@@ -754,36 +696,60 @@ class _Linearisation:
         self.p = p
         geo = {g: np.concatenate([p.cand[g], p.ref[g]]) for g in GEOMETRY}
         _, self.f00, self.Jd, self.Jf = jacobians(eng, geo, p.mat, p.names, p.lo, p.hi, shadowing)
+        polar = [i for i in p.instruments if not i.unpolarised_dop]  # the DOP's rows are the ones above
+        self.Ji = {}
+        if polar:
+            J = instrument_jacobians(eng, geo, p.mat, p.names, p.lo, p.hi, polar, shadowing)[1]
+            self.Ji = {i.name: j for i, j in zip(polar, J)}
 
     def columns(self, with_int):
         """The parameters of a fit with or without intensities and their columns in the Jacobians."""
         names = self.p.free5 + (["ks"] if with_int else [])
         return names, np.array([self.p.names.index(x) for x in names])
 
-    def rows(self, with_int, scaled):
-        """Whitened rows (M, G, r, d); ``scaled``: in parameters scaled by their bound ranges."""
+    def rows(self, with_int, scaled, ins=None):
+        """Whitened rows (M, G, r, d) of instrument ``ins`` (default the design's: the first
+        instrument, or the DOP); ``scaled``: in parameters scaled by their bound ranges."""
         p = self.p
+        ins = ins or (p.instruments[0] if p.instruments else None)
         _, cols = self.columns(with_int)
-        R = whitened_rows(self.Jd[..., cols], self.f00, self.Jf[..., cols], p.noise, p.intensity_noise, with_int)
+        if ins is None or ins.unpolarised_dop:
+            noise = p.noise if ins is None else ins.noise
+            R = whitened_rows(self.Jd[..., cols], self.f00, self.Jf[..., cols], noise, p.intensity_noise, with_int)
+        else:
+            R = instrument_rows(self.Ji[ins.name][..., cols], self.f00, self.Jf[..., cols], ins.noise,
+                                p.intensity_noise, with_int)
         return R * (p.hi - p.lo)[cols] if scaled else R
 
-    def widths(self, idx, with_int):
-        """Median widths over the materials, the per-material widths of a set of indices, and the
-        parameters undetermined by the set (their median width spans the whole bounds)."""
+    def widths(self, idx, with_int, ins=None):
+        """Median widths over the materials, the per-material widths of a set of indices, the
+        parameters undetermined by the set (their median width spans the whole bounds) and the
+        median standard errors (infinite along the data's null space)."""
         p = self.p
         names, cols = self.columns(with_int)
-        R = _finite(self.rows(with_int, False)[:, idx])
-        W = np.stack([predicted_widths(R[m].reshape(-1, len(cols)), p.X[m, cols], p.lo[cols], p.hi[cols])[0]
-                      for m in range(p.X.shape[0])])
-        med = np.median(W, axis=0)
+        R = _finite(self.rows(with_int, False, ins)[:, idx])
+        both = [predicted_widths(R[m].reshape(-1, len(cols)), p.X[m, cols], p.lo[cols], p.hi[cols])[:2]
+                for m in range(p.X.shape[0])]
+        W = np.stack([w for w, _ in both])
+        med, se = np.median(W, axis=0), np.median(np.stack([e for _, e in both]), axis=0)
         span = (p.hi - p.lo)[cols]
         undetermined = [x for j, x in enumerate(names) if med[j] >= span[j] * (1.0 - UNDETERMINED_RTOL)]
-        return {x: float(med[j]) for j, x in enumerate(names)}, W, undetermined
+        return {x: float(med[j]) for j, x in enumerate(names)}, W, undetermined, dict(zip(names, se.tolist()))
 
 
 def _finite(A):
     """Rows with their non-finite entries (where the model is undefined) zero."""
     return np.where(np.isfinite(A), A, 0.0)
+
+
+def _compressed(A):
+    """Rows (M, N, r, d) with r > d as the d rows of each geometry's QR factor R: the same
+    information (R^T R = A^T A), so that the search's rank-r updates stay small and their
+    determinant test meaningful (a geometry with a non-finite row stays non-finite)."""
+    if A.shape[2] <= A.shape[3]:
+        return A
+    ok = np.all(np.isfinite(A), axis=(2, 3))[..., None, None]
+    return np.where(ok, np.linalg.qr(np.where(ok, A, 0.0), mode="r"), np.nan)
 
 
 def _information(A):
@@ -834,10 +800,10 @@ def _comparisons(p, lin, idx_c, idx_r):
                   "_other": "reference" if p.ref_given else "paper"}
     comparisons, W = {}, {}
     for key, with_int, tag in modes:
-        w, W[key], u = lin.widths(idx_c, with_int)
+        w, W[key], u, _ = lin.widths(idx_c, with_int)
         comparisons["chosen" + key] = dict(widths=w, n_points=p.n, description=f"chosen ({p.criterion}){tag}",
                                            undetermined=u)
-        w, _, u = lin.widths(idx_r, with_int)
+        w, _, u, _ = lin.widths(idx_r, with_int)
         comparisons["reference" + key] = dict(widths=w, n_points=idx_r.size, description=ref_labels[key] + tag,
                                               undetermined=u)
     return comparisons, W[""]
@@ -853,7 +819,7 @@ def _incidence_comparisons(p, lin, crit, A, idx_r):
     one = idx_r[p.ref["theta_i"] == first]
     if one.size <= len(p.free):
         return {}
-    w, _, u = lin.widths(one, p.intensity)
+    w, _, u, _ = lin.widths(one, p.intensity)
     out = {"one_incidence": dict(widths=w, n_points=int(one.size), description=f"ref. theta_i {first:g} alone{tag}",
                                  undetermined=u)}
     best = None
@@ -863,9 +829,23 @@ def _incidence_comparisons(p, lin, crit, A, idx_r):
         if best is None or f2 < best[0]:
             best = (f2, second, idx2)
     if best is not None:
-        w, _, u = lin.widths(best[2], p.intensity)
+        w, _, u, _ = lin.widths(best[2], p.intensity)
         out["two_incidences"] = dict(widths=w, n_points=int(best[2].size),
                                      description=f"ref. theta_i {first:g} + {best[1]:g}{tag}", undetermined=u)
+    return out
+
+
+def _instrument_comparisons(p, lin, sets):
+    """Every instrument's predicted widths and standard errors at each set of ``sets`` (name ->
+    indices), with the design's intensity rows: name -> instrument -> dict(widths, se,
+    undetermined, n_points, channels)."""
+    out = {}
+    for key, idx in sets.items():
+        out[key] = {}
+        for ins in p.instruments:
+            w, _, u, se = lin.widths(idx, p.intensity, ins)
+            out[key][ins.name] = dict(widths=w, se=se, undetermined=u, n_points=int(idx.size),
+                                      channels=int(idx.size) * ins.per_geometry)
     return out
 
 
@@ -877,7 +857,8 @@ def _notes(p, comparisons):
     if und:
         why = ""
         if np.all(p.mat["kd"] == 0) and any(n in ("sigma", "c") for n in und):
-            why = ("; with kd = 0 there is no diffuse term: the DOP depends on neither sigma nor c (the specular "
+            what = "the DOP" if not p.instruments or p.instruments[0].unpolarised_dop else "a normalised quantity"
+            why = (f"; with kd = 0 there is no diffuse term: {what} depends on neither sigma nor c (the specular "
                    "scale cancels), and F00 not on c")
         label = ", ".join("kd/ks" if n == "kd" and "ks" not in p.fx else n for n in und)
         notes.append(f"undetermined by the chosen set: {label} (the predicted 95% interval spans the whole "
@@ -901,7 +882,7 @@ def _subset(geo, idx):
 
 def design(params, candidates=None, noise=0.005, n_measurements=30, target=("n", "k"), intensity=False, fixed=None,
            *, criterion="A", reference=None, intensity_noise=F00_REL_STD, bounds=None, materials=16,
-           repeats=False, seed=0, shadowing="paper", engine=None, backend="auto"):
+           repeats=False, seed=0, shadowing="paper", instrument=None, engine=None, backend="auto"):
     """Choose the measurement geometries that best determine the target parameters.
 
     Parameters
@@ -917,7 +898,8 @@ def design(params, candidates=None, noise=0.005, n_measurements=30, target=("n",
         points, a sequence of (theta_i, theta_r[, phi]) or an (N, 2|3) array.  Default
         theta_i 10..80 and theta_r 0..85 in 5 degree steps, in plane.
     noise : float, default 0.005
-        Standard deviation of each DOP measurement.
+        Standard deviation of each DOP measurement; with ``instrument``, of each normalised
+        quantity an instrument measures (unless it has its own noise).
     n_measurements : int, default 30
         How many geometries to choose (more than the free parameters).
     target : sequence of str, default ("n", "k")
@@ -943,6 +925,16 @@ def design(params, candidates=None, noise=0.005, n_measurements=30, target=("n",
         Allow a geometry to be chosen more than once.
     seed : int, default 0
         Seeds the materials drawn from a box.
+    instrument : str, dict or sequence, optional
+        What is measured at each geometry (:mod:`pbrdf_cl.explore.instruments`): ``"dop"`` (the
+        DOP, unpolarised source), ``"camera45"`` (alias ``"camera"``: s1, s2 with the source at 45
+        degrees), ``"camera4"`` (s1, s2 under 0/45/90/135 degree and circular sources),
+        ``"mueller"`` (the 15 Mueller elements normalised by M00), ``"QUANTITIES[@STATES]"`` text
+        (``"s1+s2@0+90"``) or a dict (``quantities``, ``states``, ``noise``, ``name``); several
+        (a sequence, or comma-separated text) to compare.  The geometries are chosen for the
+        first; every one is compared at the chosen and the reference geometries
+        (``instrument_comparisons``, a table in :meth:`pbrdf_cl.DesignResult.summary`).  None (default):
+        the DOP, as ``"dop"``, without the instrument table.
     shadowing, engine, backend : as for :func:`pbrdf_cl.fit`
 
     Returns
@@ -958,14 +950,20 @@ def design(params, candidates=None, noise=0.005, n_measurements=30, target=("n",
     >>> r = pbrdf_cl.design(dict(n=1.6, k=2.139, sigma=0.5, kd=0.15, c=-0.3), noise=0.005, backend="numpy")
     >>> len(r.theta_i), bool(r.ci95_width["n"] < r.ci95_width_reference["n"])
     (30, True)
+    >>> r = pbrdf_cl.design(dict(n=1.6, k=2.139, sigma=0.5, kd=0.15, c=-0.3), n_measurements=12,
+    ...                     instrument="dop,camera45,mueller", backend="numpy")
+    >>> se = {i: c["se"]["n"] for i, c in r.instrument_comparisons["reference"].items()}
+    >>> bool(se["mueller"] < se["camera45"] < se["dop"])
+    True
     """
     t0 = time.perf_counter()
     p = _problem(params, candidates, noise, n_measurements, target, intensity, fixed, criterion, reference,
-                 intensity_noise, bounds, materials, repeats, seed, shadowing)
+                 intensity_noise, bounds, materials, repeats, seed, shadowing, instrument)
     eng = resolve_engine(engine, backend)
     lin = _Linearisation(p, eng, shadowing)
     N = p.cand["theta_i"].size
     A = lin.rows(p.intensity, True)
+    A = _compressed(A) if p.instruments else A  # an instrument's many channels per geometry
     crit = _Criterion(criterion, [p.free.index(t) for t in p.target])
     Ac, available, chosen, greedy, swaps, singular = _select_design(p, A[:, :N], crit)
     Mfin = _information(Ac[:, chosen])
@@ -973,6 +971,7 @@ def design(params, candidates=None, noise=0.005, n_measurements=30, target=("n",
     idx_c, idx_r = np.array(chosen), N + np.arange(p.ref["theta_i"].size)
     comparisons, Wc = _comparisons(p, lin, idx_c, idx_r)
     comparisons.update(_incidence_comparisons(p, lin, crit, _finite(A), idx_r))  # as the reference's criterion
+    compared = _instrument_comparisons(p, lin, {"chosen": idx_c, "reference": idx_r}) if p.instruments else {}
     return DesignResult(
         **_subset(p.cand, idx_c), indices=idx_c, ci95_width=comparisons["chosen"]["widths"],
         ci95_width_reference=comparisons["reference"]["widths"],
@@ -989,4 +988,5 @@ def design(params, candidates=None, noise=0.005, n_measurements=30, target=("n",
         intensity_noise=p.intensity_noise, n_materials=p.X.shape[0], materials={k: v.copy() for k, v in p.mat.items()},
         material={k: float(np.median(v)) for k, v in p.mat.items()}, ranges={r.name: (r.low, r.high) for r in p.rngs},
         bounds={x: (float(p.lo[j]), float(p.hi[j])) for j, x in enumerate(p.names) if x in p.free},
-        fixed=p.fx, shadowing=shadowing, engine=eng.description, seconds=time.perf_counter() - t0)
+        fixed=p.fx, shadowing=shadowing, engine=eng.description, instruments=[i.info() for i in p.instruments],
+        instrument_comparisons=compared, seconds=time.perf_counter() - t0)

@@ -128,6 +128,16 @@ class Channels:
         and fd at the channels' geometry (arrays broadcasting over the channels, last axis)."""
         return reference.channel(f, fr, logK, fd, self.u, self.v, self.comp, self.kind, *self.abc.T)
 
+    def values_of(self, F):
+        """The model's value of every channel from Mueller matrices ``F`` (..., 4, 4) with K and fd
+        folded in, F = K P + fd e00 (what :func:`pbrdf_cl.mueller` and ``dense.outer`` of "mueller"
+        give), broadcasting over the channels (the axis before the matrix's two): arithmetic on
+        the model's output, the same channel terms and combination as :meth:`values` with K = 1
+        and fd = 0 (a normalised channel's ratio (F u)_comp / (F v)_0, the DOP |(F u)_123| /
+        (F u)_0, an absolute channel (F u)_comp, the AoP of F u)."""
+        tn, td = reference.channel_terms(F, self.u, self.v, self.comp, self.kind)
+        return reference.channel_combine(tn, td, 1.0, 0.0, *self.abc.T, self.aop)
+
     def residuals(self, values):
         """(value - obs) per channel, an AoP's wrapped (``reference.channel_residual``)."""
         return reference.channel_residual(values, self.obs, self.aop)

@@ -13,7 +13,9 @@ def plot_design(result, path=None, *, fig=None):
     and the reference's (crosses); right, the predicted 95% interval widths per parameter,
     chosen against reference, each with and without an intensity column (log scale).  A
     parameter a set leaves undetermined (its interval spans the whole bounds) is drawn as a
-    hatched, unfilled bar of its bound range, named in the legend.
+    hatched, unfilled bar of its bound range, named in the legend.  A design with instruments
+    (``instrument=``) gets a third panel: each instrument's widths at the reference geometries
+    (solid) and at the chosen ones (faded).
 
     Parameters
     ----------
@@ -23,8 +25,8 @@ def plot_design(result, path=None, *, fig=None):
         The PNG to write (``pbrdf-cl design --png``; another suffix, another format); None:
         nothing is written.
     fig : matplotlib.figure.Figure or SubFigure, optional
-        Drawn into (two panels side by side); default a new 13 x 5.6 inch figure with constrained
-        layout.
+        Drawn into (two panels side by side, three with instruments); default a new 13 x 5.6 inch
+        figure (19.5 x 5.6 with instruments) with constrained layout.
 
     Returns
     -------
@@ -39,8 +41,9 @@ def plot_design(result, path=None, *, fig=None):
     >>> fig = plot_design(r, fig=plt.figure(figsize=(13, 5.6), layout="constrained"))  # doctest: +SKIP
     """
     from matplotlib.patches import Patch
-    fig = figure(fig, figsize=(13, 5.6), layout="constrained")
-    ax, axb = fig.subplots(1, 2, gridspec_kw=dict(width_ratios=[1.1, 1]))
+    compared = bool(result.get("instrument_comparisons"))
+    fig = figure(fig, figsize=(19.5 if compared else 13, 5.6), layout="constrained")
+    ax, axb, *axi = fig.subplots(1, 3 if compared else 2, gridspec_kw=dict(width_ratios=[1.1, 1, 1][:2 + compared]))
     info = np.asarray(result.information, float)
     axes = result.information_axes
     label = ("relative reduction of the A criterion\nby one more measurement (1)" if result.criterion == "A"
@@ -102,11 +105,45 @@ def plot_design(result, path=None, *, fig=None):
     axb.set_xticks(range(len(params)), [(kd_label if p == "kd" else p) for p in params])
     axb.set_xlabel("parameter")
     axb.set_ylabel("predicted 95% interval width (parameter units; dimensionless)")
-    axb.set_title(f"DOP noise {result.noise:g}" + (f", F00 relative noise {result.intensity_noise:g}"
+    ins = result.get("instruments") or [dict(name="DOP", noise=result.noise)]
+    axb.set_title(f"{ins[0]['name']} noise {ins[0]['noise']:g}" + (f", F00 relative noise {result.intensity_noise:g}"
                                                     if any(k.endswith("_other") for k in keys) or result.intensity
                                                     else ""))
     lo_y, hi_y = axb.get_ylim()
     axb.set_ylim(lo_y, hi_y * (hi_y / lo_y) ** 0.45)  # room above the bars for the legend
     axb.legend(handles=handles, fontsize=8, loc="upper left", ncol=2)
+    if compared:
+        _instrument_panel(axi[0], result)
     save(fig, path, dpi=110)
     return fig
+
+
+def _instrument_panel(ax, result):
+    """The instruments compared (``design(instrument=...)``): per free parameter, a bar per
+    instrument at the reference geometries (solid) and at the chosen ones (faded); an
+    undetermined parameter a hatched, unfilled bar of its bound range."""
+    from matplotlib.patches import Patch
+    comp, names = result.instrument_comparisons, list(result.free)
+    span = {n: hi - lo for n, (lo, hi) in result.bounds.items()}
+    bars = [(key, i) for key in ("reference", "chosen") for i in range(len(result.instruments))]
+    width = 0.84 / len(bars)
+    colours = [f"C{i}" for i in range(len(result.instruments))]
+    for b, (key, i) in enumerate(bars):
+        c = comp[key][result.instruments[i]["name"]]
+        xs = np.arange(len(names)) + (b - (len(bars) - 1) / 2) * width
+        und = np.array([n in c["undetermined"] for n in names])
+        heights = np.array([span[n] if u else c["widths"][n] for n, u in zip(names, und)])
+        ax.bar(xs[~und], heights[~und], width, color=colours[i], alpha=1.0 if key == "reference" else 0.45)
+        ax.bar(xs[und], heights[und], width, fill=False, hatch="///", edgecolor=colours[i], linewidth=1.0)
+    ax.set_yscale("log")
+    kd_label = "kd" if "ks" in result.get("fixed", {}) else "kd/ks"
+    ax.set_xticks(range(len(names)), [(kd_label if p == "kd" else p) for p in names])
+    ax.set_xlabel("parameter")
+    ax.set_ylabel("predicted 95% interval width")
+    ref = "paper's geometry" if result.reference_is_paper else "reference"
+    ax.set_title(f"instruments (solid: {ref}; faded: chosen)")
+    lo_y, hi_y = ax.get_ylim()
+    ax.set_ylim(lo_y, hi_y * (hi_y / lo_y) ** 0.3)  # room above the bars for the legend
+    ax.legend(handles=[Patch(color=colours[i], label=f"{d['name']}: {d['per_geometry']} channels/geometry, "
+                             f"noise {d['noise']:g}") for i, d in enumerate(result.instruments)],
+              fontsize=8, loc="upper right")
