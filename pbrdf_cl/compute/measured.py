@@ -1,13 +1,12 @@
 """The model's value of what a polarimeter measures (:mod:`pbrdf_cl.model.measurables`: the DOP, the
 AoP, a Stokes parameter, a Mueller element or F00, normalised or absolute) under an incident state,
-through the public per-point functions only (:func:`~pbrdf_cl.compute.pointwise.evaluate` and
-:func:`~pbrdf_cl.compute.pointwise.stokes` with ``incident=``): what the fit's figure and the explorer
+through the public per-point functions only (:func:`pbrdf_cl.evaluate` and :func:`pbrdf_cl.stokes`
+with ``incident=``): what the fit's figure and the explorer
 draw beside measured data.
 
 Under polarized light the DOP and the AoP are those of the reflected Stokes vector S = F S_in
 (SPEC: DOP = sqrt(S1^2 + S2^2 + S3^2) / S0, AoP = atan2(S2, S1) / 2, as the fit's channels take
-them); under unpolarized light they are :func:`~pbrdf_cl.compute.pointwise.evaluate`'s ``dop`` and
-``aop`` themselves.
+them); under unpolarized light they are :func:`pbrdf_cl.evaluate`'s ``dop`` and ``aop`` themselves.
 """
 from __future__ import annotations
 
@@ -33,8 +32,8 @@ def measured(name, theta_i, theta_r, phi=180.0, *, incident=None, normalised=Tru
     Parameters
     ----------
     name : str
-        A name of :data:`pbrdf_cl.model.measurables.REGISTRY`: ``dop``, ``aop``, ``s0`` ... ``s3``,
-        ``m00`` ... ``m33`` or ``f00``.
+        A measurable quantity (``pbrdf_cl.model.measurables.REGISTRY``, the columns of measurements):
+        ``dop``, ``aop``, ``s0`` ... ``s3``, ``m00`` ... ``m33`` or ``f00``.
     theta_i, theta_r, phi : array-like
         The geometry in degrees (broadcasting).
     incident : array-like, optional
@@ -46,13 +45,23 @@ def measured(name, theta_i, theta_r, phi=180.0, *, incident=None, normalised=Tru
         ``f00`` are absolute, ``dop`` and ``aop`` ratios, either way.
     params : dict
         The model's parameters n, k, sigma, ks, kd, c (scalars or broadcasting arrays).
-    shadowing, dtype, model, engine, backend
+    shadowing, dtype, model, engine, backend : optional
         As :func:`pbrdf_cl.evaluate` takes them.
 
     Returns
     -------
     numpy.ndarray
         The values, of the broadcast shape; degrees for the AoP.
+
+    Examples
+    --------
+    A polarization camera's s1 = S1/S0 of the steel under a source polarized at +45 degrees (SPEC's
+    check value), which :func:`pbrdf_cl.stokes` gives as well:
+
+    >>> from pbrdf_cl.compute.measured import measured
+    >>> steel = dict(n=1.6, k=2.139, sigma=0.5, ks=0.9, kd=0.15, c=-0.3)
+    >>> round(float(measured("s1", 40, 45, incident=(0, 1, 0), params=steel)), 5)
+    0.16759
     """
     q = measurables.REGISTRY[name]
     kw = dict(shadowing=shadowing, dtype=dtype, model=model, engine=engine, backend=backend, **params)
