@@ -1,6 +1,7 @@
 """Screenshots of the explorer's views for the docs (``docs/explore_*.png``), taken in headless
 chromium: the page opened from URLs that set each state (so each shot is also a check that a link
-reopens a view), the example CSV loaded and fitted, a Sobol' map and a design computed.
+reopens a view), the example CSVs loaded and fitted (DOP; a polarization camera's s1, s2 under a
+source at +45 degrees), a Sobol' map and a design computed.
 
     python scripts/explore_screenshots.py [--out docs]
 """
@@ -32,8 +33,8 @@ def shot(driver, url, path, actions=()):
     print("wrote", path)
 
 
-def load_and_fit(driver):
-    drive.deep_find(driver, "input[type=file]")[0].send_keys(str(ROOT / "examples" / "steel_435nm.csv"))
+def load_and_fit(driver, csv="steel_435nm.csv"):
+    drive.deep_find(driver, "input[type=file]")[0].send_keys(str(ROOT / "examples" / csv))
     drive.wait(lambda: drive.source_data(driver, "data_points")["x"], 60, what="the measurements")
     drive.button(driver, "Fit").click()
     drive.wait(lambda: drive.source_data(driver, "fit_table")["value"], 120, what="the fit")
@@ -64,6 +65,8 @@ def main(argv=None):
         shot(driver, f"{url}?A={STEEL}&B={ROUGH}&show=AB&q=aop&phi=150&ti=30,50", out / "explore_map_aop_phi150.png")
         shot(driver, f"{url}?A={STEEL}&q=brdf&ti=40", out / "explore_brdf.png")
         shot(driver, f"{url}?A={STEEL}&q=dop", out / "explore_sobol_design.png", [sobol_and_design])
+        shot(driver, f"{url}?A={STEEL}&q=s2n&inc=0,1,0", out / "explore_camera_fit.png",
+             [lambda d: load_and_fit(d, "steel_camera_45.csv")])
 
 
 if __name__ == "__main__":

@@ -243,7 +243,7 @@ def test_url_refuses_each_bad_value_in_one_line_and_keeps_the_others():
                        ({"phi": "nan"}, "URL: phi = nan is outside [0, 359.5] (degrees)"),
                        ({"ti": "30,95"}, "URL: ti: theta_i = '30,95': angles must be in [0, 90) degrees, got 95"),
                        ({"sho": "AB"}, "URL: unknown key 'sho' (the keys are A, B, C, D, show, active, solo, q, "
-                                       "model, shadowing, dtype, ti, phi, map)")):
+                                       "model, shadowing, dtype, ti, phi, map, inc)")):
         with pytest.raises(ValueError) as caught:
             st.from_query({"q": "aop", **args})
         assert str(caught.value) == line
@@ -572,3 +572,169 @@ def test_in_the_browser_bad_input_is_said_and_undone(browser, tmp_path):
     upload.send_keys(str(radians))
     drive.wait(lambda: _said(driver, "warning: radians.csv: theta_i and theta_r all lie below"), 30,
                what="the radians warning")
+
+
+CAMERA = ROOT / "examples" / "steel_camera_45.csv"
+AT_45 = (0.0, 1.0, 0.0)
+
+
+def test_views_under_a_polarized_source_are_pbrdf_cl_stokes():
+    """The incident state as a setting: S0..S3, the normalised s1..s3, the DOP and the AoP of the
+    curves are those of pbrdf_cl.stokes(incident=) for that state; under unpolarized light the
+    views are pbrdf_cl.dop and pbrdf_cl.stokes as before."""
+    eng = pbrdf_cl.get_default_engine()
+    view = st.State()
+    ti, tr = np.asarray(view.settings.theta_i)[:, None], st.theta_r_axis()[None, :]
+    plain = pbrdf_cl.stokes(ti, tr, 180, **st.STEEL)
+    view.settings.quantity = "s1"
+    assert np.array_equal(st.curves(eng, view)[0], plain[..., 1])
+    view.settings.quantity = "dop"
+    assert np.array_equal(st.curves(eng, view)[0], pbrdf_cl.dop(ti, tr, 180, **st.STEEL))
+    view.settings.incident = AT_45
+    s = pbrdf_cl.stokes(ti, tr, 180, **st.STEEL, incident=AT_45)
+    for quantity, want in (("s0", s[..., 0]), ("s3", s[..., 3]), ("s1n", s[..., 1] / s[..., 0]),
+                           ("s3n", s[..., 3] / s[..., 0]), ("dop", np.linalg.norm(s[..., 1:], axis=-1) / s[..., 0]),
+                           ("aop", np.degrees(np.arctan2(s[..., 2], s[..., 1])) / 2),
+                           ("brdf", pbrdf_cl.brdf(ti, tr, 180, **st.STEEL))):
+        view.settings.quantity = quantity
+        np.testing.assert_allclose(st.curves(eng, view)[0], want, rtol=1e-12, err_msg=quantity)
+    view.settings.quantity = "m23"
+    m = pbrdf_cl.mueller(ti, tr, 180, **st.STEEL)
+    np.testing.assert_allclose(st.curves(eng, view)[0], m[..., 2, 3] / m[..., 0, 0], rtol=1e-12)
+    assert st.source_text(view.settings) == "" and st.QUANTITIES["m23"][:2] == ("m23 = M23/M00", "1")
+
+
+def test_camera_csv_points_are_in_the_s1_view_of_their_source_and_the_fit_curve_is_pbrdf_cl_stokes():
+    """A camera CSV (s1, s2 under a source at +45 degrees): its points are drawn in the s1 and s2
+    views at that state and in no other (not under unpolarized light, not in the DOP's view); the
+    residuals are data - pbrdf_cl.stokes; the fitted curve is pbrdf_cl.stokes at the fit's parameters."""
+    eng = pbrdf_cl.get_default_engine()
+    meas = pbrdf_cl.read_csv(CAMERA)
+    assert st.first_view(meas) == ("s1n", AT_45)
+    view = st.State()
+    view.settings.quantity, view.settings.incident = "s1n", AT_45
+    p = st.view_points(meas, view.settings)
+    assert p.rows.all() and p.name == "s1" and np.array_equal(p.value, meas.quantities["s1"])
+    assert np.array_equal(p.std, meas.stds["s1"])
+    model, res = st.residuals(eng, view, meas)
+    s = pbrdf_cl.stokes(meas.theta_i, meas.theta_r, meas.phi, **st.STEEL, incident=AT_45)
+    np.testing.assert_allclose(model, s[:, 1] / s[:, 0], rtol=1e-12)
+    np.testing.assert_allclose(res, meas.quantities["s1"] - s[:, 1] / s[:, 0], rtol=1e-12, atol=1e-15)
+    for quantity, incident in (("s2n", AT_45), ("s1n", st.UNPOLARIZED), ("s1", AT_45), ("dop", AT_45)):
+        view.settings.quantity, view.settings.incident = quantity, incident
+        assert st.view_points(meas, view.settings).rows.sum() == (30 if quantity == "s2n" else 0), quantity
+    assert st.measures(meas, "s1n") and not st.measures(meas, "dop")
+    view.settings.quantity, view.settings.incident, view.settings.resolution = "s1n", AT_45, 16
+    ds = st.view_dataset(eng, view, meas)
+    assert np.array_equal(ds["data_s1n"].values, meas.quantities["s1"]) and "data_s1n_std" in ds
+    assert ds.attrs["source"] == "linear +45 (0, 1, 0)" and ds.attrs["incident"] == [0.0, 1.0, 0.0]
+    r = pbrdf_cl.fit(meas)
+    tr = st.theta_r_axis()
+    want = pbrdf_cl.stokes(np.asarray(view.settings.theta_i)[:, None], tr[None, :], 180, **r.x, incident=AT_45)
+    np.testing.assert_allclose(st.fit_curves(eng, view, r, tr), want[..., 1] / want[..., 0], rtol=1e-12)
+
+
+def test_url_carries_the_incident_state_and_refuses_a_bad_one_in_one_line():
+    state = st.State()
+    state.settings.quantity, state.settings.incident = "s2n", (0.5, -0.5, 0.5)
+    query = st.to_query(state)
+    assert "&inc=0.5,-0.5,0.5" in query and "&inc=" not in st.to_query(st.State())  # unpolarized: as before
+    assert st.from_query({k: v[0] for k, v in parse_qs(query).items()}) == state
+    for text, line in (("0.8,0.8,0", "URL: inc='0.8,0.8,0': incident (0.8, 0.8, 0.0) is not a Stokes vector: "
+                                     "s1^2 + s2^2 + s3^2 = 1.28 > 1 (normalised by S0)"),
+                       ("0,1", "URL: inc='0,1': give the three numbers s1,s2,s3 of the source, got 2"),
+                       ("a,b,c", "URL: inc='a,b,c': not numbers; give s1,s2,s3 of the source (0,1,0: linear at "
+                                 "+45 degrees)")):
+        problems = {}
+        got = st.from_query({"inc": text, "q": "s1n"}, problems)
+        assert problems == {"inc": line} and got.settings.incident == st.UNPOLARIZED and got.settings.quantity == "s1n"
+    ex = _page({"inc": "0.5,-0.5,0.5", "q": "s2n"})  # a state without a name: offered as its numbers
+    assert ex.incident.value == (0.5, -0.5, 0.5) and "(0.5, -0.5, 0.5)" in ex.incident.options
+    assert ex.figs.curves_fig.title.text == "s2 = S2/S0 vs theta_r at phi = 180° (in plane), source (0.5, -0.5, 0.5)"
+
+
+def _two_states_csv(path):
+    """s1 of the steel under sources s and +45 (12 rows each) and an AoP in radians (under +45)."""
+    ti, tr = np.repeat([30.0, 50.0], 6), np.tile(np.arange(20.0, 80.0, 10.0), 2)
+    lines = ["theta_i,theta_r,phi,s1,aop,in_s1,in_s2,in_s3"]
+    for inc in ((1.0, 0.0, 0.0), AT_45):
+        s = pbrdf_cl.stokes(ti, tr, 180, **st.STEEL, incident=inc)
+        aop = np.arctan2(s[:, 2], s[:, 1]) / 2 if inc == AT_45 else np.full(12, np.nan)
+        lines += [f"{a:g},{b:g},180,{float(v)!r},{'' if np.isnan(w) else repr(float(w))},{inc[0]:g},{inc[1]:g},0"
+                  for a, b, v, w in zip(ti, tr, s[:, 1] / s[:, 0], aop)]
+    path.write_text("\n".join(lines) + "\n")
+
+
+def test_page_shows_an_uploaded_camera_csv_fits_it_and_offers_the_datas_states(tmp_path):
+    """Without a browser: an uploaded camera CSV turns the page to the s1 view under its source with
+    its points; Fit gives pbrdf_cl.fit's table and the fitted s1 curves; the DOP's view says the data
+    hold none. A file of two states offers both, each showing its own points; its AoP in radians is
+    one red line. A specular fit draws its curve and moves the sliders (its held sigma, ks, kd, c)."""
+    import asyncio
+    ex = _page()
+    ex.upload.param.update(filename="cam.csv", value=CAMERA.read_bytes())
+    assert (ex.quantity.value, ex.incident.value) == ("s1n", AT_45) == (ex.state.settings.quantity,
+                                                                         ex.state.settings.incident)
+    meas = pbrdf_cl.read_csv(CAMERA)
+    assert np.array_equal(ex.figs.data_src.data["y"], meas.quantities["s1"])
+    assert "cam.csv: 30 rows of s1 = S1/S0, s2 = S2/S0 under linear +45 (0, 1, 0)" in ex.data_info.object
+    asyncio.run(ex._on_fit(None))
+    r = pbrdf_cl.fit(meas)
+    table = ex.figs.fit_table_src.data
+    assert table["parameter"] == list(r.free) and np.allclose(table["value"], [r.x[p] for p in r.free], rtol=1e-9)
+    assert "SSE" in ex.fit_notes.object and "(s1, s2)" in ex.fit_notes.object
+    tr = np.asarray(ex.figs.fit_src.data["xs"][0])
+    s = pbrdf_cl.stokes(30, tr, 180, **r.x, incident=AT_45)
+    np.testing.assert_allclose(ex.figs.fit_src.data["ys"][0], s[:, 1] / s[:, 0], rtol=1e-12)
+    ex.quantity.value = "dop"
+    assert not len(ex.figs.data_src.data["x"]) and not len(ex.figs.fit_src.data["xs"])
+    assert ex.figs.res_fig.title.text == "No DOP measured: the data hold s1 = S1/S0, s2 = S2/S0"
+    ex.quantity.value = "s1n"
+    assert len(ex.figs.fit_src.data["xs"]) == 3  # the fit's curves are back in the view of what it fitted
+
+    path = tmp_path / "states.csv"
+    _two_states_csv(path)
+    ex.upload.param.update(filename="states.csv", value=path.read_bytes())
+    assert ex.fit_result is None and not len(ex.figs.fit_src.data["xs"])
+    assert ("linear s (1, 0, 0)" in ex.incident.options and ex.incident.value == AT_45)  # s1 under +45 was shown
+    assert "error: " not in (_red(ex.status) or "") and "warning: states.csv: aop: every value lies within" in \
+        _red(ex.status)
+    for incident in ((1.0, 0.0, 0.0), AT_45):
+        ex.incident.value = incident
+        s = pbrdf_cl.stokes(ex.meas.theta_i, ex.meas.theta_r, 180, **st.STEEL, incident=incident)
+        rows = (ex.meas.incident == incident).all(axis=1)
+        np.testing.assert_allclose(ex.figs.data_src.data["y"], (s[:, 1] / s[:, 0])[rows], rtol=1e-12)
+        np.testing.assert_allclose(ex.figs.data_src.data["res"], 0.0, atol=1e-12)
+
+    ex.upload.param.update(filename="steel.csv", value=EXAMPLE.read_bytes())
+    ex.model.value = "specular"
+    asyncio.run(ex._on_fit(None))
+    spec = pbrdf_cl.fit(str(EXAMPLE), model="specular")
+    tr = np.asarray(ex.figs.fit_src.data["xs"][1])
+    np.testing.assert_allclose(ex.figs.fit_src.data["ys"][1], pbrdf_cl.dop(40, tr, 180, **spec.x, model="specular"),
+                               rtol=1e-12)
+    ex._on_use_fit(None)
+    assert ex.state.sets[0]["n"] == pytest.approx(spec.x["n"], rel=1e-12) and ex.state.sets[0]["kd"] == 0.0
+
+
+def test_in_the_browser_a_camera_csv_is_shown_and_fitted(browser):
+    """In the page: an uploaded camera CSV is drawn in the s1 view under its source (the URL says
+    q=s1n and inc=0,1,0), and Fit shows the table of pbrdf_cl.fit."""
+    from pbrdf_cl.app import drive
+    driver, url = browser
+    driver.get(url)
+    drive.wait_loaded(driver)
+    drive.deep_find(driver, "input[type=file]")[0].send_keys(str(CAMERA))
+    y = drive.wait(lambda: drive.source_data(driver, "data_points")["y"], 60, what="the camera's points")
+    assert np.array_equal(y, pbrdf_cl.read_csv(CAMERA).quantities["s1"])
+    drive.button(driver, "Fit").click()
+    table = drive.wait(lambda: (lambda d: d if d and d["value"] else None)(drive.source_data(driver, "fit_table")),
+                       120, what="the fit")
+    r = pbrdf_cl.fit(str(CAMERA))
+    assert table["parameter"] == list(r.free)
+    for key, want in (("value", [r.x[p] for p in r.free]), ("low", [r.ci95[p][0] for p in r.free]),
+                      ("high", [r.ci95[p][1] for p in r.free])):
+        np.testing.assert_allclose(table[key], want, rtol=1e-9, atol=1e-12)
+    query = drive.wait(lambda: (lambda q: q if q.get("inc") else None)(
+        {k: v[0] for k, v in parse_qs(urlparse(driver.current_url).query).items()}), 30, what="the URL's source")
+    assert query["q"] == "s1n" and query["inc"] == "0,1,0"

@@ -176,12 +176,12 @@ class Figures:
         for item, src in zip(self.map_fig.legend[0].items, (self.design_src, self.map_data_src)):
             item.visible = bool(len(src.data["x"]))
 
-    def update_curves(self, theta_r, theta_i, values, quantity, phi=180.0):
+    def update_curves(self, theta_r, theta_i, values, quantity, phi=180.0, source=""):
         """``values``: set index -> (len(theta_i), len(theta_r)) at azimuth ``phi``; the others
-        are emptied."""
+        are emptied; ``source``: the incident state in words, for the title (:func:`.state.source_text`)."""
         self.curves_fig.yaxis.axis_label = axis_label(quantity)
         self.curves_fig.title.text = f"{QUANTITIES[quantity][0]} vs theta_r at phi = {phi:g}°" + (
-            " (in plane)" if phi == 180 else "") + ", one curve per theta_i"
+            " (in plane)" if phi == 180 else "") + (source or ", one curve per theta_i")  # the title's room
         label, units = QUANTITIES[quantity][:2]
         self.polar_fig.xaxis.axis_label = f"|{label}| sin(theta_r) ({units})"
         self.polar_fig.yaxis.axis_label = f"|{label}| cos(theta_r) ({units})"
@@ -235,18 +235,24 @@ class Figures:
         self.polar_fig.x_range.start, self.polar_fig.x_range.end = -0.15 * edge, 1.45 * edge
         self.polar_fig.y_range.start, self.polar_fig.y_range.end = -0.15 * edge, 1.1 * edge
 
-    def update_data(self, meas, theta_i, phi, res):
-        """The measurements at the curves' incidences and azimuth, with error bars and residuals."""
-        if meas is None:
+    def update_data(self, points, theta_i, phi, res, quantity="dop", title=""):
+        """The measured points of the view (``points``: :func:`.state.view_points`'s, or None) at the
+        curves' incidences and azimuth, with error bars and residuals (``res``) in units of
+        ``quantity``; ``title``: the residuals' title (default: data - the set shown)."""
+        label, units = QUANTITIES[quantity][:2]
+        self.res_fig.yaxis.axis_label = f"{label} residual ({units})"
+        self.res_fig.title.text = title or f"Residuals: data - set shown in the sliders ({label})"
+        if points is None:
             if not len(self.data_src.data["x"]) and not len(self.map_data_src.data["x"]):
                 return
             self.data_src.data = dict(x=[], y=[], lo=[], hi=[], ti=[], res=[], res_lo=[], res_hi=[])
             self.map_data_src.data = dict(x=[], y=[])
             return
-        std = meas.dop_std if meas.dop_std is not None else np.zeros_like(meas.dop)
-        keep = np.isin(np.round(meas.theta_i, 6), np.round(theta_i, 6)) & np.isclose(meas.phi, phi)
-        self.data_src.data = dict(x=meas.theta_r[keep], y=meas.dop[keep], lo=(meas.dop - std)[keep],
-                                  hi=(meas.dop + std)[keep], ti=meas.theta_i[keep], res=res[keep],
+        value = points.value
+        std = points.std if points.std is not None else np.zeros_like(value)
+        keep = np.isin(np.round(points.theta_i, 6), np.round(theta_i, 6)) & np.isclose(points.phi, phi)
+        self.data_src.data = dict(x=points.theta_r[keep], y=value[keep], lo=(value - std)[keep],
+                                  hi=(value + std)[keep], ti=points.theta_i[keep], res=res[keep],
                                   res_lo=(res - std)[keep], res_hi=(res + std)[keep])
 
     def update_map(self, kind, a, b, v, quantity, log=False, set_name="A"):

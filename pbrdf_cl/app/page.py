@@ -21,8 +21,10 @@ import numpy as np
 import panel as pn
 from panel.io import hold
 
+from ..compute import measured as ms
 from ..compute.pointwise import MODELS, check_degrees
 from ..device.engine import get_default_engine
+from ..errors import UnitsWarning
 from ..explore.designs import design
 from ..explore.sensitivity import sobol
 from ..fitting.inversion import fit
@@ -73,6 +75,13 @@ def background_engine(engine):
     if key not in _BACKGROUND:
         _BACKGROUND[key] = type(engine)(device)
     return _BACKGROUND[key]
+
+
+def quantity_groups():
+    """The quantity menu's groups: what depends on the source's state, and what does not."""
+    under = {st.QUANTITIES[k][0]: k for k in st.UNDER_SOURCE}
+    other = {v[0]: k for k, v in st.QUANTITIES.items() if k not in st.UNDER_SOURCE}
+    return {"under the source": under, "of any source": other}
 
 
 def one_line(exc):
@@ -131,8 +140,7 @@ class Explorer:
                                                 value="-" if self.state.solo is None else st.SET_NAMES[self.state.solo])
         self.copy_to = pn.widgets.Button(label="Copy this set to the next hidden one", width=260)
         self.copy_to.on_click(self._on_copy)
-        self.quantity = pn.widgets.Select(label="quantity", options={v[0]: k for k, v in st.QUANTITIES.items()},
-                                          value=s.quantity, width=125)
+        self.quantity = pn.widgets.Select(label="quantity", groups=quantity_groups(), value=s.quantity, width=125)
         self.model = pn.widgets.Select(label="model", options=list(MODELS), value=s.model, width=125)
         self.shadowing = pn.widgets.Select(label="shadowing", options=sorted(SHADOWING), value=s.shadowing, width=125)
         self.dtype = pn.widgets.Select(label="dtype", options=["float64", "float32"], value=s.dtype, width=125)
@@ -143,8 +151,10 @@ class Explorer:
         self.map_kind = pn.widgets.RadioButtonGroup(label="map", options={"theta_i x theta_r": "incidence",
                                                                          "hemisphere": "hemisphere"},
                                                     value=s.map_kind)
+        self.incident = pn.widgets.Select(label="source: incident light (s1, s2, s3)", width=260,
+                                          options=st.incident_options([s.incident]), value=s.incident)
         for w in (self.active, self.shown, self.solo, self.quantity, self.model, self.shadowing, self.dtype,
-                  self.theta_i, self.phi, self.map_kind):
+                  self.theta_i, self.phi, self.map_kind, self.incident):
             w.param.watch(self._on_setting, "value")
         self.status = pn.pane.HTML("", width=900, height=24, name="status")
         self.timing = pn.pane.HTML("", name="timing", width=700, height=24)
@@ -196,9 +206,11 @@ class Explorer:
             pn.Row(pn.pane.HTML("edit", width=40), self.active), pn.Row(pn.pane.HTML("show", width=40), self.shown),
             pn.Row(pn.pane.HTML("solo", width=40), self.solo), self.copy_to,
             *self.sliders.values(), self.reset,
-            pn.Row(self.quantity, self.model), pn.Row(self.shadowing, self.dtype),
+            pn.Row(self.quantity, self.model), pn.Row(self.shadowing, self.dtype), self.incident,
             self.theta_i, self.phi, pn.pane.HTML("<b>Map</b>"), self.map_kind, width=290)
-        data = pn.Column(pn.pane.HTML("<b>Measurements</b> (CSV: theta_i, theta_r, dop, optionally phi, dop_std)"),
+        data = pn.Column(pn.pane.HTML("<b>Measurements</b> (CSV: theta_i, theta_r, and dop or what a polarimeter "
+                                      "measures: aop, s0..s3, m00..m33; optionally phi, &lt;name&gt;_std, "
+                                      "in_s1..in_s3: the source's state)", width=420),
                          self.upload, self.data_info, pn.Row(self.fit_button, self.progress), self.use_fit,
                          pn.pane.Bokeh(f.fit_table), self.fit_notes)
         jobs = pn.Column(pn.pane.HTML("<b>On demand</b>"), pn.Row(self.sobol_button, self.sobol_share),
@@ -258,7 +270,7 @@ class Explorer:
                 warnings.simplefilter("ignore")  # the page shows errors; warnings go to the server's log
                 tr = st.theta_r_axis()
                 values = st.curves(self.engine, self.state, tr)
-                f.update_curves(tr, s.theta_i, values, s.quantity, s.phi)
+                f.update_curves(tr, s.theta_i, values, s.quantity, s.phi, st.source_text(s))
                 shown = "dop" if s.quantity == "aop" else s.quantity  # AoP: ticks over the DOP
                 if s.map_kind == "incidence":
                     a, b, v = st.incidence_map(self.engine, self.state, shown)
@@ -283,14 +295,26 @@ class Explorer:
         if len(f.design_src.data["x"]) != len(design[0]):
             f.update_design(*design)
         if self.meas is None:
-            f.update_data(None, s.theta_i, s.phi, None)
+            f.update_data(None, s.theta_i, s.phi, None, s.quantity)
             return
-        _, res = st.residuals(self.engine, self.state, self.meas)
-        f.update_data(self.meas, s.theta_i, s.phi, res)
+        points = st.view_points(self.meas, s)
+        _, res = st.residuals(self.engine, self.state, self.meas, points)
+        f.update_data(points, s.theta_i, s.phi, res, s.quantity, self._residual_title(points))
         if s.map_kind == "incidence":
             f.map_data_src.data = dict(x=self.meas.theta_r, y=self.meas.theta_i)
         else:
             f.map_data_src.data = dict(x=[], y=[])
+
+    def _residual_title(self, points):
+        """The residuals' title: what they are of, or why the view shows no measurements."""
+        s = self.state.settings
+        label = st.QUANTITIES[s.quantity][0]
+        if points.rows.any():
+            return f"Residuals: data - set {st.SET_NAMES[self.state.active]} ({label}{st.source_text(s)})"
+        held = ", ".join(dict.fromkeys(st.QUANTITIES[st.view_of(g[0], g[1])][0] for g in ms.groups(self.meas)))
+        if st.measures(self.meas, s.quantity):
+            return f"No {label} measured under this source: choose one of the data's states"
+        return f"No {label} measured: the data hold {held}"
 
     def _draw_fit(self):
         r, s = self.fit_result, self.state.settings
@@ -299,9 +323,8 @@ class Explorer:
             return
         tr = st.theta_r_axis()
         fitted = None
-        if s.quantity == "dop":
-            shown = st.Settings(**{**s.__dict__, "model": r.model, "shadowing": r.shadowing})
-            fitted = st.quantity_values(self.engine, shown, r.x, np.asarray(s.theta_i)[:, None], tr[None, :], s.phi)
+        if self.meas is not None and st.measures(self.meas, s.quantity):  # in the views of what it fitted
+            fitted = st.fit_curves(self.engine, self.state, r, tr)
         self.figs.update_fit(r, tr, s.theta_i, fitted)
 
     def _sync_url(self):
@@ -364,7 +387,7 @@ class Explorer:
             return
         s.quantity, s.model, s.shadowing, s.dtype = (self.quantity.value, self.model.value, self.shadowing.value,
                                                      self.dtype.value)
-        s.phi, s.map_kind = float(self.phi.value), self.map_kind.value
+        s.phi, s.map_kind, s.incident = float(self.phi.value), self.map_kind.value, tuple(self.incident.value)
         active = st.SET_NAMES.index(self.active.value)
         state.shown = [n in self.shown.value for n in st.SET_NAMES]
         state.solo = None if self.solo.value == "-" else st.SET_NAMES.index(self.solo.value)
@@ -389,18 +412,44 @@ class Explorer:
             self.say(one_line(text), error=True)
             return False
         self.meas, self.fit_result = meas, None
-        notes = "".join(f'<br><small style="color:#a05a00">warning: '
-                        f'{html.escape(str(w.message).replace(str(path), shown_name), quote=False)}</small>'
-                        for w in caught)
-        self.data_info.object = (f"{html.escape(shown_name, quote=False)}: {meas.theta_i.size} measurements, theta_i "
+        said = [str(w.message).replace(str(path), shown_name) for w in caught]
+        notes = "".join(f'<br><small style="color:#a05a00">warning: {html.escape(text, quote=False)}</small>'
+                        for text in said)
+        self.data_info.object = (f"{html.escape(shown_name, quote=False)}: {self._holds(meas)}, theta_i "
                                  f"{', '.join(f'{t:g}' for t in np.unique(meas.theta_i))}{notes}")
         self.fit_button.disabled = False
         self.use_fit.disabled = True
         self.fit_notes.object = ""
         if meas.dop_std is not None and np.isfinite(meas.dop_std).any():  # the data's noise: the design's default
             self.design_noise.value = float(np.round(np.nanmedian(meas.dop_std), 6))
-        self.refresh()
+        self._show_data_view(meas)
+        units = [text for text, w in zip(said, caught) if issubclass(w.category, UnitsWarning)]
+        if units:  # radians: one red line, as the other inputs' refusals
+            self.say("warning: " + units[0].splitlines()[0], error=True)
         return True
+
+    @staticmethod
+    def _holds(meas):
+        """What a data set holds, in words: DOP points, or its quantities and incident states."""
+        if not meas.polarimetric:
+            return f"{meas.theta_i.size} measurements"
+        quantities = ", ".join(dict.fromkeys(st.QUANTITIES[st.view_of(g[0], g[1])][0] for g in ms.groups(meas)))
+        states = "; ".join(ms.state_text(v) for v in st.data_states(meas))
+        return f"{meas.theta_i.size} rows of {quantities} under {states}"
+
+    def _show_data_view(self, meas):
+        """Offer the data's incident states, and turn to a view that shows the data's points where the
+        one shown has none (the quantity they measure, at their first state); then redraw."""
+        s = self.state.settings
+        self._quiet = True
+        try:
+            self.incident.options = st.incident_options([s.incident, *st.data_states(meas)])
+            if not st.view_points(meas, s).rows.any():
+                s.quantity, s.incident = st.first_view(meas)
+                self.quantity.value, self.incident.value = s.quantity, s.incident
+        finally:
+            self._quiet = False
+        self.refresh()
 
     def _on_upload(self, *events):
         if self.upload.filename is None:
@@ -457,14 +506,17 @@ class Explorer:
         self.use_fit.disabled = False
         notes = "".join(f"<li>{html.escape(n, quote=False)}</li>" for n in r.notes)
         bad = "" if r.fits_data else " <b>(the model does not describe these data)</b>"
-        head = f"{r.model}, shadowing {r.shadowing}: SSE {r.sse:.4g}{bad}"
+        observed = r.get("observed", "DOP")
+        of = "" if observed == "DOP" else f" ({html.escape(observed, quote=False)})"
+        head = f"{r.model}, shadowing {r.shadowing}: SSE {r.sse:.4g}{of}{bad}"
         self.fit_notes.object = f"{head}<ul>{notes}</ul>"
         self.refresh()
 
     def _on_use_fit(self, event):
         if self.fit_result is None:
             return
-        values = {p: float(np.clip(self.fit_result.x[p], *st.LIMITS[p])) for p in NAMES}
+        fitted = st.fit_params(self.fit_result)  # the specular model's held values too
+        values = {p: float(np.clip(fitted[p], *st.LIMITS[p])) for p in NAMES}
         self.state.sets[self.state.active] = values
         self._set_sliders(values)
         self.refresh()

@@ -1,19 +1,23 @@
 """What the explorer shows, without the page: the parameter sets and settings (:class:`State`),
-their numbers through the public API (``pbrdf_cl.evaluate`` on one kept engine), the view's
-numbers as a Dataset, and the state as a URL query.  Nothing here imports panel or bokeh, so the
-tests check it without a browser."""
+their numbers through the public API (``pbrdf_cl.evaluate`` and ``pbrdf_cl.stokes(incident=)``,
+through :func:`pbrdf_cl.compute.measured.measured`, on one kept engine), the loaded measurements'
+points of the view's quantity and incident state, the view's numbers as a Dataset, and the state as
+a URL query.  Nothing here imports panel or bokeh, so the tests check it without a browser."""
 from __future__ import annotations
 
 import copy
 from dataclasses import dataclass, field
+from typing import NamedTuple
 from urllib.parse import urlencode
 
 import numpy as np
 
 from .. import ranges
-from ..compute.pointwise import evaluate
+from ..compute import measured as ms
+from ..compute.pointwise import check_incident
+from ..fitting.setup import MODEL_FIXED
 from ..io.params import NAMES
-from ..model import inputs
+from ..model import inputs, measurables
 from ..plots.explore import SET_COLOURS
 
 #: The paper's steel at 435 nm (Fig. 4): what "reset" returns to.
@@ -24,10 +28,30 @@ LIMITS = inputs.VIEWS
 STEPS = {p: 0.01 for p in LIMITS}
 SET_NAMES = tuple(SET_COLOURS)
 COLOURS = tuple(SET_COLOURS.values())
-#: quantity -> (label, units, what pbrdf_cl.evaluate computes, Stokes component or None)
-QUANTITIES = {"dop": ("DOP", "1", "dop", None), "aop": ("AoP", "deg", "aop", None),
-              "brdf": ("BRDF F00", "1/sr", "brdf", None), "s0": ("S0", "1/sr", "stokes", 0),
-              "s1": ("S1", "1/sr", "stokes", 1), "s2": ("S2", "1/sr", "stokes", 2)}
+
+
+def _quantities():
+    """The views' quantities: key -> (label, units, measurable quantity, normalised), the measurable
+    quantities of :mod:`pbrdf_cl.model.measurables` (what a data column of that name holds)."""
+    def entry(name, norm):
+        return (*ms.label(name, norm), name, norm)
+    q = {"dop": entry("dop", True), "aop": entry("aop", True), "brdf": entry("f00", False)}
+    q.update({f"s{j}": entry(f"s{j}", False) for j in range(4)})  # absolute: 1/sr
+    q.update({f"s{j}n": entry(f"s{j}", True) for j in (1, 2, 3)})  # S_j / S0
+    pairs = [f"{i}{j}" for i in range(4) for j in range(4) if i or j]
+    q.update({f"m{ij}": entry(f"m{ij}", True) for ij in pairs})  # M_ij / M00
+    q.update({f"M{ij}": entry(f"m{ij}", False) for ij in pairs})  # absolute: 1/sr
+    return q
+
+
+#: quantity -> (label, units, measurable quantity, normalised): what the views show, computed by
+#: :func:`pbrdf_cl.compute.measured.measured` (``dop``, ``aop``, the Stokes parameters s0..s3 and
+#: the normalised s1n..s3n under the settings' incident state; ``brdf``, the Mueller elements
+#: normalised m01..m33 and absolute M01..M33, of any source).
+QUANTITIES = _quantities()
+#: The views whose values depend on the incident state (the others do not: F00, Mueller elements).
+UNDER_SOURCE = tuple(k for k, v in QUANTITIES.items() if measurables.REGISTRY[v[2]].family in ms.STATE_DEPENDENT)
+UNPOLARIZED = (0.0, 0.0, 0.0)
 MAP_KINDS = ("incidence", "hemisphere")
 THETA_MAX = 89.0  # the views' largest zenith angle (the model's domain is [0, 90))
 PHI_LIMITS = (0.0, 359.5)  # the curves' azimuth (deg): the slider's range
@@ -50,6 +74,8 @@ class Settings:
     phi: float = 180.0
     map_kind: str = "incidence"
     resolution: int = 256
+    #: the incident light's normalised Stokes vector (s1, s2, s3); (0, 0, 0): unpolarized
+    incident: tuple = UNPOLARIZED
 
 
 @dataclass
@@ -93,11 +119,110 @@ def model_params(params, settings):
 
 
 def quantity_values(engine, settings, params, theta_i, theta_r, phi, quantity=None):
-    """``quantity`` (default: the settings') of one parameter set at broadcast geometries."""
-    _, _, name, component = QUANTITIES[quantity or settings.quantity]
-    out = evaluate(name, theta_i, theta_r, phi, shadowing=settings.shadowing, dtype=settings.dtype,
-                   model=settings.model, engine=engine, **model_params(params, settings))
-    return out if component is None else out[..., component]
+    """``quantity`` (default: the settings') of one parameter set at broadcast geometries, under the
+    settings' incident state (:func:`pbrdf_cl.compute.measured.measured`: ``pbrdf_cl.evaluate``, or
+    ``pbrdf_cl.stokes`` with ``incident=``)."""
+    _, _, name, norm = QUANTITIES[quantity or settings.quantity]
+    return ms.measured(name, theta_i, theta_r, phi, incident=settings.incident, normalised=norm,
+                       params=model_params(params, settings), shadowing=settings.shadowing, dtype=settings.dtype,
+                       model=settings.model, engine=engine)
+
+
+def source_text(settings, quantity=None):
+    """The incident state, in words, where the quantity depends on it (``, source linear +45 (0, 1,
+    0)``), else ""; unpolarized light is said only where it is not the default."""
+    if (quantity or settings.quantity) not in UNDER_SOURCE or ms.unpolarized(settings.incident):
+        return ""
+    return f", source {ms.state_text(settings.incident)}"
+
+
+def view_of(name, normalised):
+    """The view's quantity (a key of :data:`QUANTITIES`) that shows the measurable quantity ``name``
+    as measured (normalised or absolute); F00 and M00 are the BRDF's view."""
+    if name in ("f00", "m00"):
+        return "brdf"
+    return next(k for k, v in QUANTITIES.items() if v[2] == name and (v[3] == normalised or name == "s0"))
+
+
+class Points(NamedTuple):
+    """The loaded measurements the view shows: the ``rows`` (a mask), their geometry, the measured
+    ``value`` and its ``std`` (None where not given), the measurable quantity ``name``."""
+    rows: np.ndarray
+    theta_i: np.ndarray
+    theta_r: np.ndarray
+    phi: np.ndarray
+    value: np.ndarray
+    std: np.ndarray | None
+    name: str
+
+
+def _stds(meas):
+    stds = dict(meas.stds)
+    for name, std in (("dop", meas.dop_std), ("f00", meas.f00_std)):
+        if std is not None:
+            stds[name] = std
+    return stds
+
+
+def view_points(meas, settings, quantity=None):
+    """The points of ``meas`` that the view of ``quantity`` (default: the settings') shows: the
+    rows that measure that quantity (as measured: normalised or absolute) under the settings'
+    incident state (a Mueller element and F00 under any); a :class:`Points` (no rows: none)."""
+    key = quantity or settings.quantity
+    cols = meas.columns()
+    groups = [g for g in ms.groups(meas) if view_of(g[0], g[1]) == key]
+    rows = np.zeros(len(meas), bool)
+    name = groups[0][0] if groups else QUANTITIES[key][2]  # the BRDF's view: f00, else m00
+    for g_name, _, state, g_rows in groups:
+        if g_name == name and (state is None or np.allclose(state, settings.incident, rtol=0, atol=1e-9)):
+            rows |= g_rows
+    value = cols[name][rows] if name in cols else np.empty(0)
+    std = _stds(meas).get(name)
+    return Points(rows, meas.theta_i[rows], meas.theta_r[rows], meas.phi[rows], value,
+                  None if std is None else std[rows], name)
+
+
+def measures(meas, quantity):
+    """Whether ``meas`` holds the view ``quantity``'s quantity (under any incident state)."""
+    return any(view_of(g[0], g[1]) == quantity for g in ms.groups(meas))
+
+
+def incident_options(extra=()):
+    """The incident states a page offers: label -> (s1, s2, s3), the named ones
+    (:data:`pbrdf_cl.compute.measured.NAMED_STATES`) and then the ``extra`` ones (a data set's, a
+    link's) that are not among them."""
+    out = {ms.state_text(v): v for v in ms.NAMED_STATES.values()}
+    for state in extra:
+        state = tuple(float(v) for v in state)
+        if state not in out.values():
+            out[ms.state_text(state)] = state
+    return out
+
+
+def data_states(meas):
+    """The incident states of ``meas``'s rows, (s1, s2, s3) tuples in order of first appearance."""
+    inc = np.zeros((len(meas), 3)) if meas.incident is None else meas.incident
+    return list(dict.fromkeys(tuple(float(v) for v in row) for row in inc))
+
+
+def first_view(meas):
+    """(quantity, incident state) of the first view that shows points of ``meas``."""
+    name, norm, state, _ = ms.groups(meas)[0]
+    return view_of(name, norm), UNPOLARIZED if state is None else state
+
+
+def fit_params(result):
+    """Every model parameter of a :class:`pbrdf_cl.FitResult`: the fitted values and those the
+    model holds (the specular model's sigma, ks, kd, c)."""
+    return {**MODEL_FIXED[result.model], **result.x}
+
+
+def fit_curves(engine, state, result, theta_r):
+    """(len(theta_i), len(theta_r)) values of the view's quantity for the fit ``result`` (its model,
+    shadowing and parameters) at the settings' theta_i, phi and incident state."""
+    s = state.settings
+    shown = Settings(**{**s.__dict__, "model": result.model, "shadowing": result.shadowing})
+    return quantity_values(engine, shown, fit_params(result), np.asarray(s.theta_i)[:, None], theta_r[None, :], s.phi)
 
 
 def theta_r_axis(step=0.5):
@@ -230,11 +355,13 @@ def aop_ticks(engine, state, count=15):
     return cx - half * dx, cy - half * dy, cx + half * dx, cy + half * dy
 
 
-def residuals(engine, state, meas):
-    """(model DOP, data - model) of the active set at the measurements' geometries."""
+def residuals(engine, state, meas, points=None):
+    """(model, data - model) of the active set at the view's points of ``meas`` (``points``:
+    :func:`view_points`'s, computed where not given); an AoP's residual wrapped modulo 180."""
     s = state.settings
-    model = quantity_values(engine, s, state.sets[state.active], meas.theta_i, meas.theta_r, meas.phi, "dop")
-    return model, meas.dop - model
+    p = view_points(meas, s) if points is None else points
+    model = quantity_values(engine, s, state.sets[state.active], p.theta_i, p.theta_r, p.phi)
+    return model, -ms.residual(p.name, model, p.value)
 
 
 def view_dataset(engine, state, meas=None):
@@ -249,6 +376,9 @@ def view_dataset(engine, state, meas=None):
     names = [SET_NAMES[i] for i in cv]
     ds = xr.Dataset(attrs=dict(quantity=s.quantity, model=s.model, shadowing=s.shadowing, dtype=s.dtype,
                                phi_curves=s.phi, map_kind=s.map_kind, units=units, active_set=SET_NAMES[state.active]))
+    if s.quantity in UNDER_SOURCE:
+        ds.attrs["incident"] = list(s.incident)  # (s1, s2, s3) of the source
+        ds.attrs["source"] = ms.state_text(s.incident)
     ds["curve"] = xr.DataArray(np.stack([cv[i] for i in cv]) if cv else np.empty((0, len(s.theta_i), tr.size)),
                                dims=("set", "theta_i", "theta_r"),
                                coords=dict(set=names, theta_i=list(s.theta_i), theta_r=tr),
@@ -268,13 +398,16 @@ def view_dataset(engine, state, meas=None):
         units = "deg" if s.map_kind == "incidence" else "1"
         for name, values in zip(("tick_x0", "tick_y0", "tick_x1", "tick_y1"), aop_ticks(engine, state)):
             ds[name] = xr.DataArray(values, dims=("tick",), attrs=dict(units=units))
-    if meas is not None:
-        model, res = residuals(engine, state, meas)
-        for name, values in dict(data_theta_i=meas.theta_i, data_theta_r=meas.theta_r, data_phi=meas.phi,
-                                 data_dop=meas.dop, model_dop=model, residual=res).items():
+    points = None if meas is None else view_points(meas, s)
+    if points is not None and points.rows.any():  # the measurements of this view's quantity and source
+        model, res = residuals(engine, state, meas, points)
+        q = s.quantity
+        for name, values in {"data_theta_i": points.theta_i, "data_theta_r": points.theta_r,
+                             "data_phi": points.phi, f"data_{q}": points.value, f"model_{q}": model,
+                             "residual": res}.items():
             ds[name] = xr.DataArray(values, dims=("measurement",))
-        if meas.dop_std is not None:
-            ds["data_dop_std"] = xr.DataArray(meas.dop_std, dims=("measurement",))
+        if points.std is not None:
+            ds[f"data_{q}_std"] = xr.DataArray(points.std, dims=("measurement",))
     return ds
 
 
@@ -301,16 +434,24 @@ def to_query(state):
              ti=",".join(f"{t:g}" for t in s.theta_i), phi=f"{s.phi:g}", map=s.map_kind)
     if state.solo is not None:
         q["solo"] = SET_NAMES[state.solo]
+    if not ms.unpolarized(s.incident):
+        q["inc"] = ",".join(_shortest(v) for v in s.incident)
     return urlencode(q, safe=",")
 
 
+def _shortest(value):
+    """A float as the shortest text that reads back as it (``1``, ``0.7071067811865476``)."""
+    text = repr(float(value))
+    return text[:-2] if text.endswith(".0") else text
+
+
 #: The keys of the URL's query, as :func:`to_query` writes them.
-QUERY_KEYS = (*SET_NAMES, "show", "active", "solo", "q", "model", "shadowing", "dtype", "ti", "phi", "map")
+QUERY_KEYS = (*SET_NAMES, "show", "active", "solo", "q", "model", "shadowing", "dtype", "ti", "phi", "map", "inc")
 
 
 def _choice(key, value, choices):
     if value not in choices:
-        raise ValueError(f"URL: {key}={value!r} is not one of {', '.join(choices)}")
+        raise ValueError(f"URL: {key}={value!r} is not one of {_choice_text(key, choices)}")
     return value
 
 
@@ -356,6 +497,30 @@ def _parse_phi(text):
     return phi
 
 
+def parse_incident(text, where="inc"):
+    """An incident state (s1, s2, s3) from text ``s1,s2,s3``: three numbers, a Stokes vector
+    (s1^2 + s2^2 + s3^2 <= 1); one-line ``ValueError``s naming ``where`` otherwise."""
+    parts = text.split(",")
+    try:
+        values = tuple(float(v) for v in parts)
+    except ValueError:
+        raise ValueError(f"{where}={text!r}: not numbers; give s1,s2,s3 of the source (0,1,0: linear at +45 "
+                         "degrees)") from None
+    if len(values) != 3:
+        raise ValueError(f"{where}={text!r}: give the three numbers s1,s2,s3 of the source, got {len(values)}")
+    try:
+        check_incident(values)
+    except ValueError as exc:
+        raise ValueError(f"{where}={text!r}: {exc}") from None
+    return tuple(v + 0.0 for v in values)  # no -0
+
+
+def _choice_text(key, choices):
+    if key == "q":  # forty of them: the families
+        return "dop, aop, brdf, s0..s3, s1n..s3n (S_j/S0), m01..m33 (M_ij/M00), M01..M33"
+    return ", ".join(choices)
+
+
 def from_query(args, problems=None):
     """A :class:`State` from the query's arguments (name -> str), as :func:`to_query` writes them.
 
@@ -390,6 +555,7 @@ def from_query(args, problems=None):
              lambda v, attr=attr: setattr(s, attr, v))
     take("ti", _parse_theta_i, lambda v: setattr(s, "theta_i", v))
     take("phi", _parse_phi, lambda v: setattr(s, "phi", v))
+    take("inc", lambda text: parse_incident(text, "URL: inc"), lambda v: setattr(s, "incident", v))
     for key in args:
         if key not in QUERY_KEYS and not key.startswith("bokeh-"):  # bokeh's own arguments of an embedded page
             line = f"URL: unknown key {key!r} (the keys are {', '.join(QUERY_KEYS)})"

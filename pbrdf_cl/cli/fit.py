@@ -128,6 +128,17 @@ def cmd_fit_joint(args, fixed, bounds) -> int:
     return 0
 
 
+def _data_text(meas):
+    """What a data set holds, for the first line of ``pbrdf-cl fit``: its points, and for
+    polarimetric data the quantities measured and the incident states."""
+    if not meas.polarimetric:
+        return f"{len(meas)} points"
+    from ..compute.measured import state_text
+    states = [None] if meas.incident is None else np.unique(meas.incident, axis=0)
+    return (f"{len(meas)} rows, {len(meas.channels())} measured numbers: {', '.join(meas.columns())} under "
+            f"{len(states)} incident state{'s' if len(states) > 1 else ''}: {'; '.join(map(state_text, states))}")
+
+
 def cmd_fit(args) -> int:
     from ..fitting import inversion as _fit
     from ..io.measurements import read_csv
@@ -158,7 +169,7 @@ def cmd_fit(args) -> int:
     except (OSError, ValueError, _engine.OpenCLUnavailableError) as exc:
         return error(exc)
     if not args.quiet:
-        print(f"data: {meas.source} ({len(meas)} points)")
+        print(f"data: {meas.source} ({_data_text(meas)})")
     for r in fits.values():
         print(_fit_brief(r) if args.quiet else r.summary())
         if not args.quiet:

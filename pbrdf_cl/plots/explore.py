@@ -27,12 +27,14 @@ def _curves(ax, ds):
     c = ds["curve"]
     for s, ti, values, style in _each_curve(c):
         ax.plot(c["theta_r"], values, label=f"set {s}, theta_i {ti:g}°", **style)
-    if "data_dop" in ds and ds.attrs["quantity"] == "dop":
-        std = ds["data_dop_std"].values if "data_dop_std" in ds else None
-        ax.errorbar(ds["data_theta_r"], ds["data_dop"], yerr=std, fmt="o", color="k", ms=3, label="data")
+    data = f"data_{ds.attrs['quantity']}"  # the measurements of the view's quantity (and source)
+    if data in ds:
+        std = ds[f"{data}_std"].values if f"{data}_std" in ds else None
+        ax.errorbar(ds["data_theta_r"], ds[data], yerr=std, fmt="o", color="k", ms=3, label="data")
     ax.set_xlabel("theta_r (deg)")
     ax.set_ylabel(f"{c.attrs['long_name']} ({c.attrs['units']})")
-    ax.set_title(f"{c.attrs['long_name']} at phi = {ds.attrs['phi_curves']:g}°")
+    source = f", source {ds.attrs['source']}" if "source" in ds.attrs else ""
+    ax.set_title(f"{c.attrs['long_name']} at phi = {ds.attrs['phi_curves']:g}°{source}")
     ax.legend(fontsize=7, ncol=2)
     ax.grid(alpha=0.3)
 
@@ -116,11 +118,12 @@ def plot_view(ds, path=None, *, fig=None):
     _map(fig, fig.add_subplot(grid[:, 2]), ds)
     if rows == 2:
         axr = fig.add_subplot(grid[1, 0], sharex=ax)
-        std = ds["data_dop_std"].values if "data_dop_std" in ds else None
+        std_name = f"data_{ds.attrs['quantity']}_std"
+        std = ds[std_name].values if std_name in ds else None
         axr.errorbar(ds["data_theta_r"], ds["residual"], yerr=std, fmt="o", color="k", ms=3)
         axr.axhline(0, color="grey", lw=0.8)
         axr.set_xlabel("theta_r (deg)")
-        axr.set_ylabel("DOP residual (1)")
+        axr.set_ylabel(f"{ds['curve'].attrs['long_name']} residual ({ds['curve'].attrs['units']})")
         axr.set_title(f"data - set {ds.attrs['active_set']}")
         axr.grid(alpha=0.3)
     save(fig, path, dpi=110, format="png")
