@@ -1,19 +1,16 @@
 """The model's value of what a polarimeter measures (:mod:`pbrdf_cl.model.measurables`: the DOP, the
-AoP, a Stokes parameter, a Mueller element or F00, normalised or absolute) under an incident state,
-through the public per-point functions only (:func:`pbrdf_cl.evaluate` and :func:`pbrdf_cl.stokes`
-with ``incident=``): what the fit's figure and the explorer
-draw beside measured data.
-
-Under polarized light the DOP and the AoP are those of the reflected Stokes vector S = F S_in
-(SPEC: DOP = sqrt(S1^2 + S2^2 + S3^2) / S0, AoP = atan2(S2, S1) / 2, as the fit's channels take
-them); under unpolarized light they are :func:`pbrdf_cl.evaluate`'s ``dop`` and ``aop`` themselves.
+AoP, a Stokes parameter, a Mueller element or F00, normalised or absolute) under an incident state:
+the Mueller matrix through the public per-point function (:func:`pbrdf_cl.evaluate`), then the
+quantity's channel (:func:`pbrdf_cl.model.measurables.quantity_channels`, the channels the fit
+takes): what the fit's figure and the explorer draw beside measured data.  Under unpolarized light
+the DOP and the AoP are :func:`pbrdf_cl.evaluate`'s ``dop`` and ``aop`` themselves.
 """
 from __future__ import annotations
 
 import numpy as np
 
 from ..model import measurables, reference
-from .pointwise import evaluate, stokes
+from .pointwise import check_incident, evaluate
 
 #: The families of measurable quantities whose value depends on the incident state (a Mueller
 #: element and F00 do not).
@@ -65,25 +62,15 @@ def measured(name, theta_i, theta_r, phi=180.0, *, incident=None, normalised=Tru
     """
     q = measurables.REGISTRY[name]
     kw = dict(shadowing=shadowing, dtype=dtype, model=model, engine=engine, backend=backend, **params)
-    if q.family == "f00":
-        return evaluate("brdf", theta_i, theta_r, phi, **kw)
-    if q.family == "mueller":
-        m = evaluate("mueller", theta_i, theta_r, phi, **kw)
-        out = m[..., q.comp, q.col]
-        if normalised and (q.comp or q.col):
-            with np.errstate(divide="ignore", invalid="ignore"):
-                out = out / m[..., 0, 0]
-        return out
     if unpolarized(incident) and q.family in ("dop", "aop"):
         return evaluate(q.family, theta_i, theta_r, phi, **kw)
-    s = stokes(theta_i, theta_r, phi, incident=None if unpolarized(incident) else incident, **kw)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        if q.family == "dop":
-            return np.sqrt(s[..., 1] ** 2 + s[..., 2] ** 2 + s[..., 3] ** 2) / s[..., 0]
-        if q.family == "aop":
-            return reference.aop_of(s[..., 1], s[..., 2]).astype(s.dtype, copy=False)
-        out = s[..., q.comp]
-        return out / s[..., 0] if normalised and q.comp else out
+    F = evaluate("mueller", theta_i, theta_r, phi, **kw)
+    s_in = check_incident((0.0, 0.0, 0.0) if incident is None else incident)
+    shape = np.broadcast_shapes(F.shape[:-2], s_in.shape[:-1])
+    u = np.broadcast_to(s_in, shape + (4,)).reshape(-1, 4)
+    ch = measurables.quantity_channels(name, u, normalised)
+    values = ch.values_of(np.broadcast_to(F, shape + (4, 4)).reshape(-1, 4, 4).astype(np.float64))
+    return values.reshape(shape).astype(F.dtype, copy=False)
 
 
 #: Incident states by name: (s1, s2, s3) of the incident light, in the incoming beam's s, p basis

@@ -160,6 +160,24 @@ def _spec(q, u, normalised_):
     return u, np.zeros((R, 4)), q.comp, reference.CHANNEL_RATIO, (a, 0.0, 1.0)
 
 
+def quantity_channels(name, u, normalised_=True):
+    """The channels of one measurable quantity ``name`` for incident vectors ``u`` ((R, 4): (1, s1, s2,
+    s3) each), normalised (S_j / S0, M_ij / M00) or absolute (``normalised_`` False; s0, m00 and f00 are
+    absolute either way): their ``values_of`` a model's Mueller matrices gives the quantity (no
+    geometry, no measurement)."""
+    q = REGISTRY[name]
+    u = np.asarray(u, dtype=np.float64)
+    R = len(u)
+    absolute_only = q.family == "f00" or (q.family in ("stokes", "mueller") and not q.comp and not q.col)
+    cu, cv, comp, kind, abc = _spec(q, u, normalised_ and not absolute_only)
+    zero = np.zeros(R)
+    return Channels(zero, zero, zero, np.broadcast_to(cu, (R, 4)), np.broadcast_to(cv, (R, 4)), np.full(R, comp),
+                    np.full(R, kind), np.column_stack([np.broadcast_to(np.asarray(x, dtype=np.float64), (R,))
+                                                       for x in abc]),
+                    np.full(R, q.family == "aop"), zero, np.full(R, np.nan), np.full(R, name, dtype=object),
+                    np.arange(R))
+
+
 def channels(theta_i, theta_r, phi, columns, stds=None, incident=None):
     """The channels of measurements: ``columns`` maps measurable names to (M,) arrays over the
     rows (NaN: not measured at that row), ``stds`` names to their standard deviations (missing:
