@@ -355,12 +355,12 @@ def stokes(theta_i, theta_r, phi=180.0, *, n, k, sigma, ks=1.0, kd=0.0, c=0.0, s
 
     Parameters
     ----------
-    {parameters}
     incident : array-like, optional
         The incident light's normalised Stokes vector (s1, s2, s3), shape ``(3,)`` or broadcasting
         against the points with a trailing axis of 3: (1, 0, 0) is linear polarization along the
         incoming beam's s axis (perpendicular to its plane of incidence), (0, 1, 0) at +45 degrees
         from s towards p, (0, 0, 1) circular.  s1^2 + s2^2 + s3^2 <= 1.  None: unpolarized.
+    {parameters}
 
     Returns
     -------

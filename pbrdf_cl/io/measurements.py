@@ -87,6 +87,14 @@ class Measurements:
         by a :class:`pbrdf_cl.DataWarning`).
     phi_given : bool, default True
         False where the input had no phi (every point is then taken in plane, phi = 180).
+    quantities : dict
+        The polarimetric columns (``aop``, ``s0`` .. ``s3``, ``m00`` .. ``m33``): name -> values, NaN
+        where not measured at that row (``docs/polarimetry.md``); ``dop`` may then be None.
+    stds : dict
+        Their standard deviations, name -> values (those given).
+    incident : numpy.ndarray, optional
+        The incident light's normalised Stokes vector (s1, s2, s3) per row, shape (M, 3); None:
+        unpolarized.
     """
     theta_i: np.ndarray
     theta_r: np.ndarray
