@@ -116,7 +116,7 @@ _DOCUMENTED = {}
 
 
 def _resolve_alias(app, env, node, contnode):
-    """A reference to an object under another of its names (``pbrdf_cl.fitting.inversion.fit``, or
+    """A reference to an object under another of its names (``pbrdf_cl.fitting.sample.inversion.fit``, or
     ``fit`` inside that module's docstrings) resolves to where the object is documented
     (``pbrdf_cl.fit``). A reference to an object that does not exist, or is documented nowhere,
     stays broken (and fails the build)."""
@@ -134,7 +134,7 @@ def _resolve_alias(app, env, node, contnode):
     target = node["reftarget"].lstrip("~.")
     names = [f"{node['py:module']}.{target}"] if node.get("py:module") else []
     # in a docstring of a re-exported object (pbrdf_cl.fit_batch), a short name is one of the
-    # module that defines it (pbrdf_cl.fitting.batch)
+    # module that defines it (pbrdf_cl.fitting.images.batch)
     source = str(node.source or "")
     if "docstring of " in source:
         owner = _import_dotted(source.split("docstring of ", 1)[1].strip())

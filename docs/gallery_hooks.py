@@ -2,7 +2,7 @@
 
 The gallery's figures are drawn by pbrdf-cl's own plot functions: into pyplot figures (``fig=``,
 which sphinx-gallery's matplotlib scraper shows), or into PNG files (the paper's figures, written
-by :mod:`pbrdf_cl.explore.paper`). :func:`png_scraper` moves every PNG an example block wrote into
+by :mod:`pbrdf_cl.analysis.paper`). :func:`png_scraper` moves every PNG an example block wrote into
 its folder (sphinx-gallery runs an example in the gallery's source folder) to sphinx-gallery's
 image paths, and
 :func:`clean_outputs` removes the other files an example wrote there (the ``.npz`` and ``.nc``

@@ -9,42 +9,43 @@ Angles are in degrees; phi = 180 (the default) is the in-plane geometry.  Comput
 the first usable OpenCL device, or on the float64 numpy reference where none is usable
 (``backend="auto"``, the default; see :mod:`pbrdf_cl.device.engine`).
 """
+from .analysis.designs import DesignResult, design
+from .analysis.sensitivity import morris, sobol
+from .analysis.sweeps import SweepResult, SweepSpec, load_spec, sweep
+from .app import explore
 from .compute.dense import ObjectiveResult, grid, reduce_grid
 from .compute.pointwise import MODELS, aop, brdf, dop, evaluate, mueller, stokes, validate
 from .device.engine import (
-                            Engine,
-                            NumpyEngine,
-                            get_default_engine,
-                            list_devices,
-                            probe,
-                            select_device,
-                            set_default_engine,
+    Engine,
+    NumpyEngine,
+    get_default_engine,
+    list_devices,
+    probe,
+    select_device,
+    set_default_engine,
 )
 from .errors import (
-                            CommandError,
-                            DataWarning,
-                            DeviceUnusableError,
-                            DeviceWarning,
-                            KernelBuildError,
-                            OpenCLUnavailableError,
-                            ProgramUnusableError,
-                            RangeError,
-                            SensitivityWarning,
-                            SpecError,
-                            StoreError,
-                            TooLargeError,
-                            TrialError,
-                            UnitsWarning,
+    CommandError,
+    DataWarning,
+    DeviceUnusableError,
+    DeviceWarning,
+    KernelBuildError,
+    OpenCLUnavailableError,
+    ProgramUnusableError,
+    RangeError,
+    SensitivityWarning,
+    SpecError,
+    StoreError,
+    TooLargeError,
+    TrialError,
+    UnitsWarning,
 )
-from .explore.designs import DesignResult, design
-from .explore.sensitivity import morris, sobol
-from .explore.sweeps import SweepResult, SweepSpec, load_spec, sweep
-from .fitting.batch import fit_batch
-from .fitting.inversion import compare_models, fit
-from .fitting.joint import fit_joint
-from .fitting.joint_result import JointResult
+from .fitting.images.batch import fit_batch
 from .fitting.objective import objective
-from .fitting.result import FitResult
+from .fitting.sample.inversion import compare_models, fit
+from .fitting.sample.result import FitResult
+from .fitting.sets.joint import fit_joint
+from .fitting.sets.result import JointResult
 from .io.measurements import Measurements, as_measurements, read_csv
 from .model import quantities
 from .version import __version__
@@ -53,7 +54,7 @@ __all__ = ["dop", "brdf", "aop", "stokes", "mueller", "evaluate", "quantities", 
            "grid", "reduce_grid", "objective", "ObjectiveResult",
            "sweep", "load_spec", "SweepSpec", "SweepResult", "SpecError",
            "fit", "fit_joint", "JointResult",
-           "fit_batch", "sobol", "morris", "design", "DesignResult", "compare_models", "FitResult",
+           "fit_batch", "sobol", "morris", "design", "DesignResult", "compare_models", "FitResult", "explore",
            "read_csv", "as_measurements", "Measurements", "DataWarning", "Engine", "NumpyEngine", "probe",
            "OpenCLUnavailableError", "DeviceUnusableError", "DeviceWarning", "KernelBuildError", "ProgramUnusableError",
            "TrialError", "UnitsWarning", "RangeError", "TooLargeError", "StoreError", "CommandError",

@@ -358,7 +358,7 @@ def bench_sweep(eng, device, rows, rng, scale, repeats, workers=2, backend="auto
 
     import xarray as xr
 
-    from .explore.sweeps import SweepSpec, sweep
+    from .analysis.sweeps import SweepSpec, sweep
     axes, budget = dict(SWEEP_AXES), 4 << 20
     if scale < 1:
         axes["theta_r"], axes["sigma"], budget = axes["theta_r"][::4], axes["sigma"][::4], 256 << 10

@@ -1,5 +1,5 @@
 """The one grammar of values, ranges and ``name=value`` items: the command line (``pbrdf-cl
-eval``, ``fit``, ``map``), sweep spec files and :func:`pbrdf_cl.explore.maps.make_map` all parse with it.
+eval``, ``fit``, ``map``), sweep spec files and :func:`pbrdf_cl.analysis.maps.make_map` all parse with it.
 
 Values (docs/guide/cli.md, section "Ranges and name=value"):
 

@@ -29,8 +29,8 @@ import numpy as np
 
 import pbrdf_cl
 from pbrdf_cl.device.engine import Engine, NumpyEngine
-from pbrdf_cl.fitting import corners, pixel_fit
-from pbrdf_cl.fitting.dataset import PIXEL_STATUS
+from pbrdf_cl.fitting.images import corners, pixel_fit
+from pbrdf_cl.fitting.images.dataset import PIXEL_STATUS
 from pbrdf_cl.fitting.setup import DEFAULT_BOUNDS
 from pbrdf_cl.io import imagestack
 
@@ -55,7 +55,7 @@ def pixels(n, ti, tr, seed):
 class StageClock:
     """Wall time spent in the stages of an image fit (wrapped for the run): the grid and the descents
     run through the engine (the operations ``batch_grid`` and ``batch_lm``) or the device's descent
-    called directly (``device_lm`` in pbrdf_cl.fitting.pixel_fit and .corners), and the statistics."""
+    called directly (``device_lm`` in pbrdf_cl.fitting.images.pixel_fit and .corners), and the statistics."""
 
     OPERATIONS = {"batch_grid": "grid", "batch_lm": "descent"}
     FUNCTIONS = {(pixel_fit, "device_lm"): "descent", (corners, "device_lm"): "descent",

@@ -21,7 +21,7 @@ import numpy as np
 
 import pbrdf_cl
 from pbrdf_cl.fitting import setup as fit_setup
-from pbrdf_cl.fitting import stages
+from pbrdf_cl.fitting.sample import stages
 from pbrdf_cl.io.measurements import from_arrays
 
 GEOMETRIES = {

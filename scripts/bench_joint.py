@@ -20,8 +20,8 @@ import time
 import numpy as np
 
 import pbrdf_cl
-from pbrdf_cl.fitting import joint
 from pbrdf_cl.fitting import setup as fit_setup
+from pbrdf_cl.fitting.sets import joint
 from pbrdf_cl.io.measurements import from_arrays
 
 TI = np.repeat([30.0, 40.0, 50.0], 10)

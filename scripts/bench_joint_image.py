@@ -45,7 +45,7 @@ def main():
     args = ap.parse_args()
     kw = dict(device=args.device) if args.device else {}
     if args.bias_replicates is not None:
-        from pbrdf_cl.fitting import label_search
+        from pbrdf_cl.fitting.images import label_search
         label_search.BOOT_REPLICATES = args.bias_replicates
     data, lab = stack(8, 0.003, 0)
     pbrdf_cl.fit_batch(data, labels=lab, **kw)  # kernels built before timing

@@ -39,8 +39,8 @@ def main(argv=None):
     check_json("--json", args.json, "bench_sobol")  # before the work, not after it
 
     import pbrdf_cl
+    from pbrdf_cl.analysis import sensitivity
     from pbrdf_cl.compute import dense
-    from pbrdf_cl.explore import sensitivity
     from pbrdf_cl.model import reference
     # SALib divides by the outputs' standard deviation, which is 0 where the DOP is (theta_i = theta_r = 0)
     warnings.filterwarnings("ignore", "invalid value encountered in divide", RuntimeWarning)

@@ -143,7 +143,7 @@ def calls(backend, tmp):
     yield "sweep", sweep_arrays
 
     def a_map():
-        from pbrdf_cl.explore import maps
+        from pbrdf_cl.analysis import maps
         return maps.make_map(("theta_r", np.linspace(0, 85, 24)), ("sigma", np.linspace(0.05, 1, 16)),
                              dict(theta_i=40, n=1.6, k=2.1, kd=0.2), derivative="sigma", **kw)
     yield "map", a_map

@@ -20,7 +20,7 @@ import time
 import numpy as np
 
 import pbrdf_cl
-from pbrdf_cl.explore.designs import PAPER_MATERIAL
+from pbrdf_cl.analysis.designs import PAPER_MATERIAL
 
 
 def simulate_and_fit(geo, material, noise, sets, rng, engine):

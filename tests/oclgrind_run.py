@@ -108,8 +108,8 @@ def main():
             configs += 1
     # the batch kernels (pbrdf_batch.cl): grid stages with shared and per-pixel geometry, the
     # descent in float32 and float64, with and without intensities; few pixels, short runs
-    from pbrdf_cl.fitting import corners as Bc
-    from pbrdf_cl.fitting import pixel_fit as Bt
+    from pbrdf_cl.fitting.images import corners as Bc
+    from pbrdf_cl.fitting.images import pixel_fit as Bt
     Bt.SCREEN_SCHEDULE, Bt.POLISH_ITERATIONS, Bt.EXTRA_ROUNDS, Bt.INTENSITY_ITERATIONS = ((2, 2), (1, 2)), 2, 1, 2
     m_ti, m_tr = np.repeat([30.0, 50.0], 4), np.tile([20.0, 35.0, 50.0, 65.0], 2)
     truth = dict(n=1.6, k=2.139, sigma=0.5, ks=0.9, kd=0.15, c=-0.3)

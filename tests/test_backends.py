@@ -269,7 +269,7 @@ def test_numpy_grid_stays_within_its_memory_budget():
 
 
 def test_fit_and_map_run_on_the_numpy_backend():
-    from pbrdf_cl.explore import maps
+    from pbrdf_cl.analysis import maps
     res = pbrdf_cl.fit(ROOT / "examples" / "steel_435nm.csv", backend="numpy")
     ref = pbrdf_cl.fit(ROOT / "examples" / "steel_435nm.csv") if DEVICES else res
     assert res.chi2 == pytest.approx(ref.chi2, rel=1e-3, abs=1e-6)

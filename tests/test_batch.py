@@ -5,10 +5,10 @@ import numpy as np
 import pytest
 
 import pbrdf_cl
-from pbrdf_cl.fitting import batch as B
-from pbrdf_cl.fitting import corners
-from pbrdf_cl.fitting.dataset import PIXEL_STATUS
-from pbrdf_cl.fitting.job import BLOCK_BUDGET
+from pbrdf_cl.fitting.images import batch as B
+from pbrdf_cl.fitting.images import corners
+from pbrdf_cl.fitting.images.dataset import PIXEL_STATUS
+from pbrdf_cl.fitting.images.job import BLOCK_BUDGET
 from pbrdf_cl.fitting.setup import DEFAULT_BOUNDS
 
 TI = np.repeat([30.0, 40.0, 50.0], 10)            # the paper's geometry

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 import pbrdf_cl
-from pbrdf_cl.fitting import job as J
 from pbrdf_cl.fitting.common import GOODNESS_P, LABEL_MISTAKE_CAUSES
-from pbrdf_cl.fitting.labels import LabelJob
+from pbrdf_cl.fitting.images import job as J
+from pbrdf_cl.fitting.images.labels import LabelJob
 
 TI = np.repeat([30.0, 40.0, 50.0], 10)            # the paper's geometry
 TR = np.tile(np.arange(20.0, 66.0, 5.0), 3)
@@ -168,7 +168,7 @@ def test_shared_is_read_alike_by_fit_joint_and_fit_batch(shared):
     with the same line (the label fit's own rule, every parameter shared, aside)."""
     from test_joint import three_sets
 
-    from pbrdf_cl.fitting.joint import check_joint_args
+    from pbrdf_cl.fitting.sets.joint import check_joint_args
     data, lab = two_materials(6, 4, 0.003, seed=5)
     with pytest.raises(ValueError) as a:
         pbrdf_cl.fit_batch(data, labels=lab, shared=shared, backend="numpy")
@@ -227,7 +227,7 @@ def test_cli_fit_image_with_labels(dev, tmp_path, capsys):
     """``pbrdf-cl fit-image --labels``: each label's values and intervals as the library gives
     them, the note on what the intervals leave out, the store; ``--shared`` alone refused."""
     from pbrdf_cl.cli import main
-    from pbrdf_cl.fitting.labels import LABEL_INTERVAL_NOTE
+    from pbrdf_cl.fitting.images.labels import LABEL_INTERVAL_NOTE
     data, lab = two_materials(6, 4, 0.003, seed=5)
     np.savez(tmp_path / "stack.npz", **data)
     np.save(tmp_path / "labels.npy", lab)

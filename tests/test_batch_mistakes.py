@@ -12,7 +12,7 @@ import pytest
 import xarray as xr
 
 import pbrdf_cl
-from pbrdf_cl.fitting import batch as B
+from pbrdf_cl.fitting.images import batch as B
 from pbrdf_cl.io import imagestack
 from pbrdf_cl.io.measurements import PHI_DEFAULT_NOTE, DataWarning
 

@@ -1,4 +1,4 @@
-"""Per-pixel fits into Zarr stores (pbrdf_cl.fitting.batch_store, pbrdf-cl fit-image): equal to fit_batch in
+"""Per-pixel fits into Zarr stores (pbrdf_cl.fitting.images.store, pbrdf-cl fit-image): equal to fit_batch in
 memory, resumable after Ctrl-C and kill -9 with a byte-identical store, the same store from a dask
 LocalCluster, refused when the settings or the input differ, a lazy stack read block by block,
 and the command line (store, PNG, one-line errors)."""
@@ -17,12 +17,12 @@ import xarray as xr
 
 import pbrdf_cl
 from pbrdf_cl import cli
-from pbrdf_cl.fitting import batch
-from pbrdf_cl.fitting.batch_store import StoreError, read_progress, status_counts
+from pbrdf_cl.fitting.images import batch
+from pbrdf_cl.fitting.images.store import StoreError, read_progress, status_counts
 
 from test_sweep import files, n_done  # the sweep store's helpers: the fit store has its layout
 
-BS = importlib.import_module("pbrdf_cl.fitting.batch_store")
+BS = importlib.import_module("pbrdf_cl.fitting.images.store")
 PACKAGE_ROOT = str(Path(pbrdf_cl.__file__).resolve().parent.parent)
 STEEL = dict(k=2.139, sigma=0.5, kd=0.15, c=-0.3)
 TI, TR = np.repeat([30.0, 40, 50], 10), np.tile(np.arange(20.0, 66, 5), 3)

@@ -6,9 +6,10 @@ import pytest
 
 import pbrdf_cl
 from pbrdf_cl import cli
-from pbrdf_cl.explore import designs as dz  # the module (pbrdf_cl.design is the function)
-from pbrdf_cl.fitting import common, stages
+from pbrdf_cl.analysis import designs as dz  # the module (pbrdf_cl.design is the function)
+from pbrdf_cl.fitting import common
 from pbrdf_cl.fitting import setup as fit_setup
+from pbrdf_cl.fitting.sample import stages
 from pbrdf_cl.io.measurements import as_measurements
 from pbrdf_cl.model import reference
 from pbrdf_cl.plots.design import plot_design
@@ -440,7 +441,7 @@ def test_large_noise_is_questioned_and_radians_are_warned_once():
         warnings.simplefilter("always")
         dz.design(STEEL, candidates={"theta_i": "0.2:1.4:0.2", "theta_r": "0:1.4:0.2"}, n_measurements=12,
                   backend="numpy")
-        from pbrdf_cl.explore.sensitivity import check_geometry
+        from pbrdf_cl.analysis.sensitivity import check_geometry
         check_geometry({"theta_i": "0.2:1.4:0.2", "theta_r": "0:85:5"})  # degrees: theta_r is not small
     units = [str(w.message) for w in got if isinstance(w.message, pbrdf_cl.UnitsWarning)]
     assert len(units) == 1 and units[0].startswith("candidates: theta_i and theta_r all lie below"), units

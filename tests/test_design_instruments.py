@@ -7,8 +7,8 @@ import pytest
 
 import pbrdf_cl
 from pbrdf_cl import cli
-from pbrdf_cl.explore import designs as dz
-from pbrdf_cl.explore import instruments as ins
+from pbrdf_cl.analysis import designs as dz
+from pbrdf_cl.analysis import instruments as ins
 from pbrdf_cl.fitting import setup as fit_setup
 from pbrdf_cl.model import measurables, reference
 from pbrdf_cl.plots.design import plot_design

@@ -9,11 +9,12 @@ from pathlib import Path
 import pytest
 
 import pbrdf_cl
+from pbrdf_cl.analysis import instruments, maps, sensitivity
 from pbrdf_cl.compute import dense
 from pbrdf_cl.compute import pointwise as api
-from pbrdf_cl.explore import instruments, maps, sensitivity
-from pbrdf_cl.fitting import batch, batch_store, dataset, label_stage, source
-from pbrdf_cl.io import camera, imagestack
+from pbrdf_cl.fitting.images import batch, dataset, label_stage
+from pbrdf_cl.fitting.images import store as batch_store
+from pbrdf_cl.io import camera, imagestack, source
 from pbrdf_cl.io import measurements as data
 from pbrdf_cl.plots import images as batch_plots
 from pbrdf_cl.plots import joint as joint_plots

@@ -24,7 +24,7 @@ EXAMPLE = ROOT / "examples" / "steel_435nm.csv"
 
 
 def test_importing_pbrdf_cl_does_not_import_panel():
-    code = "import sys, pbrdf_cl, pbrdf_cl.explore.maps; print('panel' in sys.modules, 'bokeh' in sys.modules)"
+    code = "import sys, pbrdf_cl, pbrdf_cl.analysis.maps; print('panel' in sys.modules, 'bokeh' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
                          env={**os.environ, "PYTHONPATH": str(ROOT)})
     assert out.stdout.split() == ["False", "False"]
@@ -152,7 +152,7 @@ def test_png_export_draws_the_polar_plot_and_the_aop_ticks():
     normal) and, for the AoP, the page's orientation ticks over the map, one segment each."""
     from matplotlib.collections import LineCollection
 
-    from pbrdf_cl.plots.explore import plot_view
+    from pbrdf_cl.plots.explorer import plot_view
     eng = pbrdf_cl.get_default_engine()
     for kind in ("incidence", "hemisphere"):
         view = st.State()
@@ -389,7 +389,7 @@ def test_fit_table_prints_significant_digits():
 def test_png_colour_bar_is_as_tall_as_the_map():
     """With residuals the map spans two rows of the figure; its colour bar stays beside it, as tall
     as the map, not as the figure."""
-    from pbrdf_cl.plots.explore import plot_view
+    from pbrdf_cl.plots.explorer import plot_view
     view = st.State()
     view.settings.resolution = 32
     ds = st.view_dataset(pbrdf_cl.get_default_engine(), view, pbrdf_cl.read_csv(EXAMPLE))

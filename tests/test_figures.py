@@ -10,8 +10,8 @@ from matplotlib.container import ErrorbarContainer
 from matplotlib.layout_engine import ConstrainedLayoutEngine
 
 import pbrdf_cl
+from pbrdf_cl.analysis import maps, paper
 from pbrdf_cl.compute import dense
-from pbrdf_cl.explore import maps, paper
 from pbrdf_cl.io.measurements import from_arrays
 from pbrdf_cl.plots import fit as plots
 from pbrdf_cl.plots import maps as map_plots

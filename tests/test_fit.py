@@ -11,8 +11,9 @@ import pytest
 
 import pbrdf_cl
 from pbrdf_cl.cli import fit as cli_fit
-from pbrdf_cl.fitting import basins, common, stages, uncertainty
+from pbrdf_cl.fitting import common
 from pbrdf_cl.fitting import setup as fit_setup
+from pbrdf_cl.fitting.sample import basins, stages, uncertainty
 from pbrdf_cl.io.measurements import PHI_DEFAULT_NOTE, from_arrays, read_csv
 
 ROOT = Path(__file__).resolve().parent.parent

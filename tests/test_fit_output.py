@@ -10,8 +10,9 @@ import pytest
 
 import pbrdf_cl
 from pbrdf_cl.compute import pointwise as api
-from pbrdf_cl.fitting import report, result
+from pbrdf_cl.fitting import report
 from pbrdf_cl.fitting.common import OUTSIDE_MARK, OUTSIDE_WHY, valid_covariance
+from pbrdf_cl.fitting.sample import result
 from pbrdf_cl.io.measurements import read_csv
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -185,7 +186,7 @@ def test_a_best_value_outside_its_interval_is_marked():
     """Table 1's aluminium (issue #34 item 4): k = 10 on its upper bound, its interval [0.254,
     9.75]. Each line of the summary is marked (*) exactly where the best value lies outside its
     interval, ``outside_ci95`` lists them, and one note says why."""
-    from pbrdf_cl.explore import paper
+    from pbrdf_cl.analysis import paper
     meas, _ = paper.fig2_data("aluminum")
     r = pbrdf_cl.fit(meas)
     outside = [n for n in r.free if not r.ci95[n][0] <= r.x[n] <= r.ci95[n][1]]

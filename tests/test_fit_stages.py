@@ -8,8 +8,9 @@ import pytest
 import pbrdf_cl
 from pbrdf_cl import cli, results
 from pbrdf_cl.compute import dense
-from pbrdf_cl.fitting import basins, common, inversion, result, stages, uncertainty
+from pbrdf_cl.fitting import common
 from pbrdf_cl.fitting import setup as fit_setup
+from pbrdf_cl.fitting.sample import basins, inversion, result, stages, uncertainty
 from pbrdf_cl.io.measurements import from_arrays
 
 TI = np.repeat([30.0, 40.0, 50.0], 10)

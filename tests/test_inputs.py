@@ -10,8 +10,8 @@ import xarray as xr
 
 import pbrdf_cl
 from pbrdf_cl import ranges
+from pbrdf_cl.analysis import sweeps
 from pbrdf_cl.compute import dense
-from pbrdf_cl.explore import sweeps
 from pbrdf_cl.io.measurements import DataWarning, as_measurements, read_csv
 
 from conftest import requires_opencl

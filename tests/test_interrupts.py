@@ -10,8 +10,8 @@ import time
 import pytest
 
 import pbrdf_cl
-from pbrdf_cl.fitting import batch
-from pbrdf_cl.fitting.batch_store import read_progress
+from pbrdf_cl.fitting.images import batch
+from pbrdf_cl.fitting.images.store import read_progress
 from pbrdf_cl.store import interrupt
 from pbrdf_cl.store import zarr as zarr_store
 

@@ -13,8 +13,8 @@ import pytest
 from test_fit_output import assert_valid_covariance
 
 import pbrdf_cl
-from pbrdf_cl.fitting import joint
 from pbrdf_cl.fitting.common import OUTSIDE_FOOTNOTE, OUTSIDE_MARK
+from pbrdf_cl.fitting.sets import joint
 from pbrdf_cl.io.measurements import from_arrays, split_sets, write_csv
 
 TI = np.repeat([30.0, 40.0, 50.0], 10)

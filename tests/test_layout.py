@@ -113,6 +113,53 @@ def test_no_import_circle():
     assert not circles, "import circles:\n" + "\n".join(circles)
 
 
+#: The layers of ARCHITECTURE.md ("Layers: who may import whom"): each room (a subpackage, a room of
+#: fitting/, or a top-level module) imports only from rooms of a lower layer.
+LAYERS = {
+    "errors": 0, "results": 0, "version": 0, "model": 0,
+    "sizes": 1, "ranges": 1,
+    "device": 2,
+    "compute": 3, "outputs": 3,
+    "io": 4, "store": 4,
+    "fitting": 5,
+    "fitting.sample": 6, "fitting.images": 6,
+    "fitting.sets": 7,
+    "plots": 8,
+    "analysis": 9,
+    "bench": 10, "app": 10,
+    "cli": 11, "__main__": 12,
+}
+FITTING_ROOMS = ("sample", "sets", "images")
+
+
+def room(module):
+    """The room of a dotted module name: its subpackage (fitting's own rooms apart), or itself."""
+    parts = module.split(".")
+    if len(parts) > 2 and parts[1] == "fitting" and parts[2] in FITTING_ROOMS:
+        return f"fitting.{parts[2]}"
+    return parts[1] if len(parts) > 1 else parts[0]
+
+
+def test_rooms_import_only_the_layers_below_them():
+    """Every import of the package's own modules (inside functions too) goes to a room of a lower
+    layer, or stays in its room: no two rooms import each other, and the floors of ARCHITECTURE.md
+    hold (issue #35).  Every room has a layer."""
+    bad, rooms = [], set()
+    for path in MODULES:
+        me = dotted(path)
+        if me == "pbrdf_cl":
+            continue
+        rooms.add(room(me))
+        for mod, _, line in imports(path):
+            a, b = room(me), room(mod)
+            rooms.add(b)
+            if a != b and b != "pbrdf_cl" and not LAYERS.get(a, -1) > LAYERS.get(b, 99):
+                bad.append(f"{path.relative_to(PKG)}:{line}: {a} (layer {LAYERS.get(a)}) imports {mod} "
+                           f"({b}, layer {LAYERS.get(b)})")
+    assert not (rooms - set(LAYERS) - {"pbrdf_cl"}), sorted(rooms - set(LAYERS))
+    assert not bad, "imports against the layers:\n" + "\n".join(bad)
+
+
 def test_no_private_name_of_another_module():
     found = []
     for path in MODULES:

@@ -9,9 +9,9 @@ import pytest
 
 import pbrdf_cl
 from pbrdf_cl import cli, sizes
+from pbrdf_cl.analysis import maps, sweeps
 from pbrdf_cl.cli import app as cli_app
 from pbrdf_cl.compute import pointwise as api
-from pbrdf_cl.explore import maps, sweeps
 
 STEEL = dict(n=1.6, k=2.139, sigma=0.5, ks=0.9, kd=0.15, c=-0.3)
 
@@ -170,9 +170,10 @@ def test_every_output_suffix_is_checked_before_the_work(argv, option, suffix, ca
     work: the functions that would do it fail the test if called."""
     import os
 
+    from pbrdf_cl.analysis import designs, sensitivity
     from pbrdf_cl.device import engine
-    from pbrdf_cl.explore import designs, sensitivity
-    from pbrdf_cl.fitting import batch, inversion
+    from pbrdf_cl.fitting.images import batch
+    from pbrdf_cl.fitting.sample import inversion
     root = __import__("pathlib").Path(__file__).resolve().parents[1]
     monkeypatch.chdir(root)
 

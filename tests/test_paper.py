@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from pbrdf_cl import cli
-from pbrdf_cl.explore import maps, paper
+from pbrdf_cl.analysis import maps, paper
 from pbrdf_cl.model import reference
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"

@@ -24,7 +24,7 @@ PACKAGE = Path(pbrdf_cl.__file__).resolve().parent
 PLOT_MODULES = sorted(p.stem for p in (PACKAGE / "plots").glob("*.py") if p.stem != "__init__")
 #: Public functions of pbrdf_cl.plots that draw nothing (so take no axes), and what they do instead.
 NOT_DRAWING = {"contour_levels": "computes contour levels", "params_text": "formats parameter values"}
-#: What the package's plots may import: the rooms below them (never explore, app or cli, which draw through plots).
+#: What the package's plots may import: the rooms below them (never analysis, app or cli, which draw through plots).
 BELOW_PLOTS = {"plots", "model", "compute", "fitting", "io", "errors", "results", "sizes", "ranges", "device"}
 STEEL = dict(n=1.6, k=2.139, sigma=0.5, ks=0.9, kd=0.15, c=-0.3)
 
@@ -94,7 +94,7 @@ def test_plots_imports_only_the_rooms_below_it():
     above = {f"plots/{p.name}": sorted(_rooms_imported(p) - BELOW_PLOTS)
              for p in sorted((PACKAGE / "plots").glob("*.py"))}
     assert not any(above.values()), {k: v for k, v in above.items() if v}
-    assert "plots" in _rooms_imported(PACKAGE / "explore" / "paper.py")  # the paper draws through plots
+    assert "plots" in _rooms_imported(PACKAGE / "analysis" / "paper.py")  # the paper draws through plots
 
 
 # ---------------------------------------------------------------------------- every plot function
@@ -159,9 +159,9 @@ def _paper_inputs():
 def cases():
     """Plot function name -> (``ax`` or ``fig``, call(path, **kw)): each function with small inputs,
     its path (None: no file) and the axes or figure to draw into."""
+    from pbrdf_cl.analysis.maps import make_map
     from pbrdf_cl.app import state
-    from pbrdf_cl.explore.maps import make_map
-    from pbrdf_cl.plots import design, explore, fit, images, joint, maps, paper, sensitivity
+    from pbrdf_cl.plots import design, explorer, fit, images, joint, maps, paper, sensitivity
     meas = _steel_data()
     fmap = make_map("theta_r=0:85@12", "sigma=0.05:1@10", dict(theta_i=40, n=1.6, k=2.1), derivative="sigma",
                     backend="numpy")
@@ -182,7 +182,7 @@ def cases():
         "plot_sensitivity (one axis)": ("fig", lambda path=None, **kw: sensitivity.plot_sensitivity(
             sob.isel(theta_i=1), path, **kw)),
         "plot_design": ("fig", lambda path=None, **kw: design.plot_design(des, path, **kw)),
-        "plot_view": ("fig", lambda path=None, **kw: explore.plot_view(vds, path, **kw)),
+        "plot_view": ("fig", lambda path=None, **kw: explorer.plot_view(vds, path, **kw)),
         "plot_fig2": ("ax", lambda path=None, **kw: paper.plot_fig2(path, *p["fig2"], **kw)),
         "plot_fig4": ("ax", lambda path=None, **kw: paper.plot_fig4(path, *p["fig4"], **kw)),
         "plot_fig5": ("ax", lambda path=None, **kw: paper.plot_fig5(path, *p["fig5"], **kw)),
@@ -278,7 +278,7 @@ def test_a_notebooks_backend_is_left_alone(tmp_path):
 
 
 def test_design_result_names_the_compared_parameters():
-    """The figure's and the summary's columns come from the result (plots reads no explore code)."""
+    """The figure's and the summary's columns come from the result (plots reads no analysis code)."""
     des = pbrdf_cl.design(dict(n=1.6, k=2.139, sigma=0.5), {"theta_i": "10:70:20", "theta_r": "0:80:20"},
                           noise=0.005, n_measurements=8, backend="numpy")
     assert des.compared == list(des.free) + ["ks"] and "compared" not in des

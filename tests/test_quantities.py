@@ -8,9 +8,9 @@ import xarray as xr
 
 import pbrdf_cl
 from pbrdf_cl import cli, quantities
+from pbrdf_cl.analysis import maps
+from pbrdf_cl.analysis.sweeps import SpecError, SweepSpec
 from pbrdf_cl.device.engine import kernel_dir
-from pbrdf_cl.explore import maps
-from pbrdf_cl.explore.sweeps import SpecError, SweepSpec
 from pbrdf_cl.model import reference
 from pbrdf_cl.plots import maps as map_plots
 

@@ -12,9 +12,9 @@ import pytest
 
 import pbrdf_cl
 from pbrdf_cl import cli, ranges
+from pbrdf_cl.analysis import maps
+from pbrdf_cl.analysis.sweeps import SpecError, SweepSpec
 from pbrdf_cl.compute import dense
-from pbrdf_cl.explore import maps
-from pbrdf_cl.explore.sweeps import SpecError, SweepSpec
 from pbrdf_cl.ranges import RangeError
 
 PACKAGE_ROOT = str(Path(pbrdf_cl.__file__).resolve().parent.parent)

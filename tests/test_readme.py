@@ -27,7 +27,7 @@ from pathlib import Path
 import pytest
 
 from pbrdf_cl import cli
-from pbrdf_cl.explore.sweeps import load_spec
+from pbrdf_cl.analysis.sweeps import load_spec
 
 ROOT = Path(__file__).resolve().parent.parent
 PACKAGE_ROOT = str(ROOT)

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 import pbrdf_cl
-from pbrdf_cl.explore import sensitivity
+from pbrdf_cl.analysis import sensitivity
 from pbrdf_cl.model import reference
 
 SALib = pytest.importorskip("SALib")

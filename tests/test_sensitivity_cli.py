@@ -9,8 +9,8 @@ import xarray as xr
 
 import pbrdf_cl
 from pbrdf_cl import cli
-from pbrdf_cl.explore.sensitivity import load_sobol_spec, sobol, summary, write_result
-from pbrdf_cl.explore.sweeps import SpecError
+from pbrdf_cl.analysis.sensitivity import load_sobol_spec, sobol, summary, write_result
+from pbrdf_cl.analysis.sweeps import SpecError
 from pbrdf_cl.plots.sensitivity import plot_sensitivity
 
 ROOT = Path(__file__).resolve().parents[1]

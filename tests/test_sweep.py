@@ -16,9 +16,9 @@ import xarray as xr
 
 import pbrdf_cl
 from pbrdf_cl import cli
-from pbrdf_cl.explore.sweeps import SpecError, SweepSpec, load_spec, read_done
+from pbrdf_cl.analysis.sweeps import SpecError, SweepSpec, load_spec, read_done
 
-S = importlib.import_module("pbrdf_cl.explore.sweeps")
+S = importlib.import_module("pbrdf_cl.analysis.sweeps")
 ROOT = Path(__file__).resolve().parent.parent
 PACKAGE_ROOT = str(Path(pbrdf_cl.__file__).resolve().parent.parent)
 STEEL = dict(n=1.6, k=2.139, ks=0.9, kd=0.15, c=-0.3)
@@ -268,7 +268,7 @@ def test_local_cluster_gives_the_same_store(spec_file, reference, tmp_path, monk
         client = distributed.Client(cluster)
         res = pbrdf_cl.sweep(spec_file, store, client=client, progress=False)
         engines = client.run(lambda: len(sys.modules["pbrdf_cl.store.cluster"]._ENGINES))
-        runners = client.run(lambda: len(sys.modules["pbrdf_cl.explore.sweeps"]._RUNNERS))
+        runners = client.run(lambda: len(sys.modules["pbrdf_cl.analysis.sweeps"]._RUNNERS))
     finally:
         signal.alarm(0)
         signal.signal(signal.SIGALRM, old)

@@ -10,7 +10,7 @@ import time
 import pytest
 
 import pbrdf_cl
-from pbrdf_cl.explore import sweeps as S
+from pbrdf_cl.analysis import sweeps as S
 
 from test_sweep import PACKAGE_ROOT, files, n_done, reference, spec_file  # noqa: F401 - fixtures
 

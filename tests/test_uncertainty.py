@@ -13,7 +13,8 @@ import pytest
 from scipy.optimize import curve_fit
 
 import pbrdf_cl
-from pbrdf_cl.fitting import result, stages
+from pbrdf_cl.fitting import report
+from pbrdf_cl.fitting.sample import stages
 from pbrdf_cl.model import reference
 
 TI = np.repeat([20.0, 35.0, 50.0, 65.0], 10)
@@ -105,9 +106,9 @@ def test_ambiguous_on_constructed_candidates():
     near = cand(1.2, np.array([1.501, 2.001]), np.array([1.5, 2.0]))  # as good, but the same basin
     worse = cand(5.0, np.array([4.0, 6.0]), np.array([4.0, 6.0]))  # far away, but 4 units worse
     se = np.array([0.01, 0.01])
-    got = result._ambiguous_basins([best, twin, near, worse], free, 1.0, se)
-    assert got == [dict(n=3.0, k=0.5, sse=1.3)]
-    assert result._ambiguous_basins([best, near, worse], free, 1.0, se) == []
+    got = report.ambiguous([best, twin, near, worse], 1.0, se)
+    assert got == [twin] and dict(zip(free, twin.x), sse=twin.sse) == dict(n=3.0, k=0.5, sse=1.3)
+    assert report.ambiguous([best, near, worse], 1.0, se) == []
 
 
 def test_out_of_plane_data_recover_the_truth():

@@ -15,9 +15,9 @@ from test_kernels import f32_tolerance
 
 import pbrdf_cl
 from pbrdf_cl import cli, quantities
+from pbrdf_cl.analysis.sweeps import SweepSpec
 from pbrdf_cl.compute import dense as G
-from pbrdf_cl.explore.sweeps import SweepSpec
-from pbrdf_cl.fitting import inversion
+from pbrdf_cl.fitting.sample import inversion
 from pbrdf_cl.io.measurements import read_csv
 
 SHADOWINGS = ["paper", "smith", "none"]

@@ -6,13 +6,13 @@ Fig. 2 of Zhu et al. (2020) fits the six-parameter model and its ref. [7] (the s
 alone, Thilak et al. 2007) to DOP measurements of aluminum and black paint in the specular
 geometry (theta_r = theta_i, phi = 180). Those measurements are not published, so the data here
 are synthetic: the six-parameter model at Table 1's true n and k, with the roughness, diffuse
-weight and Minnaert exponent of ``pbrdf_cl.explore.paper.FIG2_SAMPLES`` and Gaussian DOP noise of
-sd 0.001. :func:`pbrdf_cl.explore.paper.fig2` fits both models with
+weight and Minnaert exponent of ``pbrdf_cl.analysis.paper.FIG2_SAMPLES`` and Gaussian DOP noise of
+sd 0.001. :func:`pbrdf_cl.analysis.paper.fig2` fits both models with
 :func:`pbrdf_cl.compare_models` and draws the data, the true curve and both fits.
 """
 from pathlib import Path
 
-from pbrdf_cl.explore import paper
+from pbrdf_cl.analysis import paper
 
 print(paper.FIG2_SAMPLES)
 

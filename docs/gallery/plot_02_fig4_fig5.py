@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 import pbrdf_cl
-from pbrdf_cl.explore import paper
+from pbrdf_cl.analysis import paper
 
 steel = paper.STEEL
 print(np.round(pbrdf_cl.dop(40, [20, 45, 65], **steel), 6))   # SPEC's check values: 0.051841 ...

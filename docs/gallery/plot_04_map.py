@@ -3,13 +3,13 @@ A dense map and its derivative
 ==============================
 
 The DOP of the steel over (theta_r, sigma) at theta_i = 40 deg, and its derivative along sigma by
-central differences of device grids (:func:`pbrdf_cl.explore.maps.make_map`), drawn with labelled
+central differences of device grids (:func:`pbrdf_cl.analysis.maps.make_map`), drawn with labelled
 contours by :func:`pbrdf_cl.plots.maps.plot_map`. The same as ``pbrdf-cl map --x theta_r=0:85@128
 --y sigma=0.05:1@96 --fix theta_i=40 ... --derivative sigma``.
 """
 import matplotlib.pyplot as plt
 
-from pbrdf_cl.explore.maps import make_map
+from pbrdf_cl.analysis.maps import make_map
 from pbrdf_cl.plots.maps import plot_map
 
 ds = make_map("theta_r=0:85@128", "sigma=0.05:1@96",

@@ -10,7 +10,7 @@ N = 256) to keep the build quick; ``pbrdf-cl reproduce`` draws a finer one.
 import matplotlib.pyplot as plt
 
 import pbrdf_cl
-from pbrdf_cl.explore.sensitivity import summary
+from pbrdf_cl.analysis.sensitivity import summary
 from pbrdf_cl.plots.sensitivity import plot_sensitivity
 
 ds = pbrdf_cl.sobol({"n": (1.2, 1.7), "k": (0.2, 7.0, "log"), "sigma": (0.2, 0.7), "kd": (0.0, 0.25),

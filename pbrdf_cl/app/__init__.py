@@ -19,3 +19,34 @@ def require_panel():
         import panel  # noqa: F401
     except ImportError as exc:
         raise CommandError(f"the explorer needs panel and bokeh ({exc.name} is missing): {INSTALL_HINT}") from None
+
+
+def explore(data=None, *, engine=None, query=None):
+    """The interactive explorer's page, for a notebook (``pbrdf-cl explore`` serves the same page).
+
+    Parameters
+    ----------
+    data : str or path, optional
+        A measurement CSV to load (its points drawn, fitted on demand).
+    engine : pbrdf_cl.Engine, optional
+        The device the page computes on (default: the chosen device).
+    query : str, optional
+        A URL query holding the page's state (as the page's address bar shows it).
+
+    Returns
+    -------
+    panel.viewable.Viewable
+        The page; display it in a notebook, or ``.servable()`` it.
+
+    Raises
+    ------
+    pbrdf_cl.CommandError
+        Without panel and bokeh (the ``explore`` extra), one line saying how to install them.
+
+    Examples
+    --------
+    >>> page = pbrdf_cl.explore(data="examples/steel_435nm.csv")  # doctest: +SKIP
+    """
+    require_panel()  # one line naming the extra when panel is missing, before importing the page
+    from .server import explore_app
+    return explore_app(data, engine=engine, query=query)

@@ -21,18 +21,18 @@ import numpy as np
 import panel as pn
 from panel.io import hold
 
+from ..analysis.designs import design
+from ..analysis.sensitivity import sobol
 from ..compute import measured as ms
 from ..compute.pointwise import MODELS, check_degrees
 from ..device.engine import get_default_engine
 from ..errors import UnitsWarning
-from ..explore.designs import design
-from ..explore.sensitivity import sobol
-from ..fitting.inversion import fit
+from ..fitting.sample.inversion import fit
 from ..io.measurements import read_csv
 from ..io.params import NAMES, params_text
 from ..model import inputs
 from ..model.reference import SHADOWING
-from ..plots.explore import plot_view
+from ..plots.explorer import plot_view
 from . import state as st
 from .entries import NumberEntry
 from .figures import Figures

@@ -18,7 +18,7 @@ from ..compute.pointwise import check_incident
 from ..fitting.setup import MODEL_FIXED
 from ..io.params import NAMES
 from ..model import inputs, measurables
-from ..plots.explore import SET_COLOURS
+from ..plots.explorer import SET_COLOURS
 
 #: The paper's steel at 435 nm (Fig. 4): what "reset" returns to.
 STEEL = dict(n=1.6, k=2.139, sigma=0.5, ks=0.9, kd=0.15, c=-0.3)

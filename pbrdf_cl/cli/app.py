@@ -11,7 +11,7 @@ from .. import ranges, sizes
 from ..device import engine as _engine
 from ..errors import CommandError
 from ..store import interrupt
-from . import devices, evaluate, explore, explorer, fit
+from . import analysis, devices, evaluate, explorer, fit
 from .common import error
 
 
@@ -92,13 +92,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     devices.devices_parser(sub)
     evaluate.eval_parser(sub)
-    explore.sweep_parser(sub)
+    analysis.sweep_parser(sub)
     fit.fit_parser(sub)
     fit.fit_image_parser(sub)
-    explore.reproduce_parser(sub)
-    explore.map_parser(sub)
-    explore.sobol_parser(sub)
-    explore.design_parser(sub)
+    analysis.reproduce_parser(sub)
+    analysis.map_parser(sub)
+    analysis.sobol_parser(sub)
+    analysis.design_parser(sub)
     explorer.explore_parser(sub)
     b = sub.add_parser("bench", help="benchmark every evaluation path (options: pbrdf-cl bench --help)",
                        add_help=False)

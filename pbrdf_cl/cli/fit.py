@@ -97,7 +97,7 @@ def _joint_brief(r):
 
 def cmd_fit_joint(args, fixed, bounds) -> int:
     """`pbrdf-cl fit a.csv b.csv ...` or `fit table.csv --set-column wavelength`: a joint fit."""
-    from ..fitting import joint
+    from ..fitting.sets import joint
     if args.compare:
         return error("--compare fits one data set; give one CSV without --shared or --set-column")
     try:
@@ -140,7 +140,7 @@ def _data_text(meas):
 
 
 def cmd_fit(args) -> int:
-    from ..fitting import inversion as _fit
+    from ..fitting.sample import inversion as _fit
     from ..io.measurements import read_csv
     if len(args.data) == 1 and args.shared is not None and not args.set_column:
         return error("--shared is for joint fits: give several CSVs (one set each) or one CSV with --set-column "
@@ -191,7 +191,8 @@ def cmd_fit(args) -> int:
 def cmd_fit_image(args) -> int:
     import time
 
-    from ..fitting import batch, batch_store
+    from ..fitting.images import batch
+    from ..fitting.images import store as image_store
     fixed, bounds = fit_assignments(args)
     check_store("--out", args.out)
     check_figure("--png", args.png)
@@ -206,12 +207,12 @@ def cmd_fit_image(args) -> int:
             shadowing=args.shadowing, memory_budget=args.memory_budget, progress=not args.no_progress, engine=engine,
             backend=args.backend, device=args.device, workers=args.workers, scheduler=args.scheduler,
             allow_large=args.allow_large, **_label_options(args))
-        counts = batch_store.status_counts(ds)
+        counts = image_store.status_counts(ds)
         if args.png:
             from ..plots.images import plot_batch_maps
             plot_batch_maps(ds, args.png)
     except KeyboardInterrupt:
-        return interrupted(lambda: batch_store.read_progress(args.out), "blocks", args.out)
+        return interrupted(lambda: image_store.read_progress(args.out), "blocks", args.out)
     except (OSError, ValueError, RuntimeError, _engine.OpenCLUnavailableError) as exc:
         return error(exc)
     seconds = time.perf_counter() - t0
@@ -301,7 +302,7 @@ def fit_parser(sub):
 
 def fit_image_parser(sub):
     """The `pbrdf-cl fit-image` sub-command."""
-    from ..fitting.job import BLOCK_BUDGET as DEFAULT_BUDGET
+    from ..fitting.images.job import BLOCK_BUDGET as DEFAULT_BUDGET
     f = sub.add_parser("fit-image", help="fit every pixel of a DOP image stack into a Zarr store (resumable; dask)",
                        description="Fit the model to every pixel of a polarization image stack (.npz, .nc or "
                        ".zarr with dop (y, x, m), theta_i, theta_r[, phi, dop_std, f00|s0, f00_std, mask]; angles "

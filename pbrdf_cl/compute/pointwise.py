@@ -10,7 +10,7 @@ import numpy as np
 
 from .. import sizes
 from ..device import engine as _engine
-from ..device.engine import BACKENDS, DTYPES, POINT_INPUTS, check_backend, compact_values, resolve_engine  # noqa: F401 (api.BACKENDS stays)
+from ..device.engine import BACKENDS, DTYPES, POINT_INPUTS, check_backend, compact_values, resolve_engine  # noqa: F401,E501 (pointwise.BACKENDS stays)
 from ..errors import UnitsWarning  # noqa: F401 (pointwise.UnitsWarning stays)
 from ..model import inputs, quantities, reference
 

@@ -23,31 +23,37 @@ computation at a time.  Functions that compute on an engine are decorated with
 A module's settings (``transfers.LAUNCH_POINTS``, ``choice.cpu_flags``, ...) are read where they
 are defined: change them there, not through this face.
 """
-from ..errors import DeviceUnusableError, DeviceWarning, KernelBuildError, OpenCLUnavailableError, ProgramUnusableError
+from ..errors import (
+    DeviceUnusableError,
+    DeviceWarning,
+    KernelBuildError,
+    OpenCLUnavailableError,
+    ProgramUnusableError,
+)
 from .choice import (
-                     DRIVER_MESSAGES,
-                     ProbeResult,
-                     candidates,
-                     clear_probe_cache,
-                     has_fp64,
-                     is_pocl,
-                     is_simulator,
-                     list_devices,
-                     narrow_reason,
-                     probe,
-                     select_device,
-                     vector_widths,
+    DRIVER_MESSAGES,
+    ProbeResult,
+    candidates,
+    clear_probe_cache,
+    has_fp64,
+    is_pocl,
+    is_simulator,
+    list_devices,
+    narrow_reason,
+    probe,
+    select_device,
+    vector_widths,
 )
 from .drivers import describe, first_error_line
 from .fallback import (
-                     BACKENDS,
-                     check_backend,
-                     engine_for,
-                     fallback_engine,
-                     falls_back,
-                     get_default_engine,
-                     resolve_engine,
-                     set_default_engine,
+    BACKENDS,
+    check_backend,
+    engine_for,
+    fallback_engine,
+    falls_back,
+    get_default_engine,
+    resolve_engine,
+    set_default_engine,
 )
 from .numpy_engine import NumpyEngine
 from .opencl import Engine

@@ -1,6 +1,6 @@
 """Result files read back: a sensitivity map (:func:`pbrdf_cl.sobol`, :func:`pbrdf_cl.morris`)
 written in an older layout, brought into the current one (:func:`compatible`), for its summary
-(:func:`pbrdf_cl.explore.sensitivity.summary`) and its figure
+(:func:`pbrdf_cl.analysis.sensitivity.summary`) and its figure
 (:func:`pbrdf_cl.plots.sensitivity.plot_sensitivity`) alike."""
 from __future__ import annotations
 

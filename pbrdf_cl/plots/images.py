@@ -1,4 +1,4 @@
-"""Figures of per-pixel fits (:func:`pbrdf_cl.fitting.batch.fit_batch`, ``pbrdf-cl fit-image --png``):
+"""Figures of per-pixel fits (:func:`pbrdf_cl.fitting.images.batch.fit_batch`, ``pbrdf-cl fit-image --png``):
 the parameter maps with the widths of their 95% intervals, and the fit status of every pixel;
 in the stack's coordinates, robust colour scales, undetermined, not-converged and missing pixels
 marked (:func:`plot_batch_maps`)."""
@@ -13,7 +13,7 @@ from .common import figure, save
 #: Largest side, in pixels, of a map drawn (larger images are drawn every s-th pixel).
 MAX_SIDE = 1024
 
-#: Colours of the status codes (``pbrdf_cl.fitting.dataset.PIXEL_STATUS``).
+#: Colours of the status codes (``pbrdf_cl.fitting.images.dataset.PIXEL_STATUS``).
 STATUS_COLOURS = {1: "#2ca02c", 2: "#bcbd22", 3: "#ff7f0e", 4: "#9467bd", 0: "#d62728", -1: "#7f7f7f",
                   -2: "#c7c7c7", -3: "#000000"}
 
@@ -134,7 +134,7 @@ def plot_batch_maps(ds, path=None, *, truth=None, max_side=MAX_SIDE, fig=None):
     Parameters
     ----------
     ds : xarray.Dataset
-        A result of :func:`pbrdf_cl.fitting.batch.fit_batch` (in memory or with ``store=``)
+        A result of :func:`pbrdf_cl.fitting.images.batch.fit_batch` (in memory or with ``store=``)
         over one or two pixel dimensions (``attrs["free"]`` names the fitted parameters).
     path : str or path, optional
         The PNG to write (``pbrdf-cl fit-image --png``; another suffix, another format); None:
@@ -162,7 +162,7 @@ def plot_batch_maps(ds, path=None, *, truth=None, max_side=MAX_SIDE, fig=None):
     Examples
     --------
     >>> import numpy as np, pbrdf_cl, tempfile, os
-    >>> from pbrdf_cl.fitting.batch import fit_batch
+    >>> from pbrdf_cl.fitting.images.batch import fit_batch
     >>> ti, tr = np.repeat([30.0, 40, 50], 10), np.tile(np.arange(20.0, 66, 5), 3)
     >>> dop = np.broadcast_to(pbrdf_cl.dop(ti, tr, n=1.6, k=2.139, sigma=0.5, kd=0.15, c=-0.3), (2, 3, 30))
     >>> res = fit_batch(dict(dop=dop, theta_i=ti, theta_r=tr))
@@ -363,7 +363,7 @@ def _status_row(sheet, status, sub, marked):
     from matplotlib.colors import BoundaryNorm, ListedColormap
     from matplotlib.patches import Patch
 
-    from ..fitting.dataset import PIXEL_STATUS as STATUS
+    from ..fitting.images.dataset import PIXEL_STATUS as STATUS
     codes = sorted(STATUS)
     colours = [STATUS_COLOURS.get(c, "#ffffff") for c in codes]
     cmap = ListedColormap(colours)

@@ -1,4 +1,4 @@
-"""Figures of two-axis maps (:func:`pbrdf_cl.explore.maps.make_map`, ``pbrdf-cl map``): the quantity
+"""Figures of two-axis maps (:func:`pbrdf_cl.analysis.maps.make_map`, ``pbrdf-cl map``): the quantity
 with labelled contour lines and a colour bar, and its derivative in a second panel
 (:func:`plot_map`); the contour levels and labels the paper's maps use too."""
 from __future__ import annotations
@@ -130,7 +130,7 @@ def plot_map(ds, path=None, title=None, dpi=120, *, fig=None):
     Parameters
     ----------
     ds : xarray.Dataset
-        From :func:`pbrdf_cl.explore.maps.make_map`.
+        From :func:`pbrdf_cl.analysis.maps.make_map`.
     path : str or path, optional
         The PNG to write (``pbrdf-cl map --out``; another suffix, another format); None: nothing
         is written.
@@ -149,7 +149,7 @@ def plot_map(ds, path=None, title=None, dpi=120, *, fig=None):
 
     Examples
     --------
-    >>> from pbrdf_cl.explore.maps import make_map
+    >>> from pbrdf_cl.analysis.maps import make_map
     >>> ds = make_map("theta_r=0:85@64", "sigma=0.05:1@32", dict(theta_i=40, n=1.6, k=2.1))  # doctest: +SKIP
     >>> plot_map(ds, "map.png")  # doctest: +SKIP
 

@@ -1,6 +1,6 @@
-"""The figures of :func:`pbrdf_cl.explore.paper.reproduce` (``pbrdf-cl reproduce``): Fig. 2 (data
+"""The figures of :func:`pbrdf_cl.analysis.paper.reproduce` (``pbrdf-cl reproduce``): Fig. 2 (data
 and both models' fits), Fig. 4 and 5 (DOP curves of the steel), the DOP maps over (theta_i,
-theta_r); each drawn from the arrays :mod:`pbrdf_cl.explore.paper` computed, into the caller's axes
+theta_r); each drawn from the arrays :mod:`pbrdf_cl.analysis.paper` computed, into the caller's axes
 (``ax=``; ``fig=`` for the maps' panels) or a new figure, written where a path is given (the first
 argument; None: no file) and returned.  The Sobol' map and the design are drawn by
 :mod:`pbrdf_cl.plots.sensitivity` and the design's figure, the map over (theta_r, sigma) by

@@ -91,8 +91,8 @@ def run_on_cluster(task, shared, items, args_of, key, finished, *, workers=None,
     ``shared`` is scattered to every worker once; at most two tasks per worker thread (plus two)
     are in flight, the next submitted as one finishes; ``finished(result)`` is called on the
     driver as the results arrive (in any order).  On an error (or Ctrl-C) the tasks not yet done
-    are cancelled and the error is raised.  Used by :func:`pbrdf_cl.explore.sweeps.sweep` and
-    :func:`pbrdf_cl.fitting.batch_store.write_store`.
+    are cancelled and the error is raised.  Used by :func:`pbrdf_cl.analysis.sweeps.sweep` and
+    :func:`pbrdf_cl.fitting.images.store.write_store`.
     """
     try:
         from distributed import Client, LocalCluster, as_completed

@@ -6,8 +6,8 @@ on a ``dask.distributed`` cluster, with its progress bar and its interrupt check
 
 A job says only what its store is (:mod:`pbrdf_cl.store.zarr` creates and resumes it) and what a
 unit computes and writes: a subclass of :class:`Writer` (``compute``, ``write``, ``result``), and
-for a cluster a task that runs it on a worker.  :mod:`pbrdf_cl.explore.sweeps` and
-:mod:`pbrdf_cl.fitting.batch_store` are the two jobs.
+for a cluster a task that runs it on a worker.  :mod:`pbrdf_cl.analysis.sweeps` and
+:mod:`pbrdf_cl.fitting.images.store` are the two jobs.
 """
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
-"""The Zarr layer of the resumable stores (:mod:`pbrdf_cl.explore.sweeps`' sweeps,
-:mod:`pbrdf_cl.fitting.batch_store`'s image fits): opening and creating groups and arrays,
+"""The Zarr layer of the resumable stores (:mod:`pbrdf_cl.analysis.sweeps`' sweeps,
+:mod:`pbrdf_cl.fitting.images.store`'s image fits): opening and creating groups and arrays,
 creating a store whole or not at all, the done marks, resuming.
 
 The stores are Zarr format 2 with consolidated metadata (``xarray.open_zarr`` reads them), on

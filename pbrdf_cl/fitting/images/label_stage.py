@@ -1,0 +1,628 @@
+"""The label stage of an image fit with shared material parameters (:func:`run_label_stage`): the
+values of the shared parameters (n, k by default) of every label of a label image, found from all
+the pixels of the label before the per-pixel pass fits each pixel with them held.
+
+The label's objective is the sum over its pixels of each pixel's chi2, every pixel with its own
+values of the other parameters (beta): F(theta) = sum_p min_beta chi2_p(theta, beta).  It is found
+in passes over the blocks of the stack (a label's pixels may lie in every block):
+
+1. the profile: the grid stage (``batch_grid``) with one region per node of the shared
+   parameters' grid axes gives every pixel's least chi2 at each node (over the grid of its own
+   parameters); summed over a label's pixels, the label's profile on the grid, whose local
+   minima are candidate seeds of theta;
+2. the search (:mod:`pbrdf_cl.fitting.images.label_search`, on an evenly spaced subsample of at most
+   SUBSAMPLE of the label's pixels held in memory): the SEEDS lowest local minima of the label's
+   profile and the median of its pixels' own best nodes, each refined by a few Gauss-Newton
+   steps (as in 3.) on the subsample and ranked by the subsample's chi2; the best seeds the
+   label, and every pixel is fitted with theta held there
+   (:func:`pbrdf_cl.fitting.images.pixel_fit.fit_block`, the usual stages for its own parameters).  The
+   best end of another basin is refined on all the pixels too where its subsample chi2, scaled to
+   the label, lies within RUNNER_UP_CHI2 of the best's; the basin of lower label chi2 is kept;
+3. the refinement, variable projection: each pass moves theta by a damped Gauss-Newton step on
+   F from the sums over the label's pixels of the Schur complement of each pixel's normal
+   equations (the information on theta left once the pixel's own parameters are eliminated) and
+   of the reduced gradient, then re-descends every pixel's own parameters at the new theta
+   (``batch_lm`` from the previous ones) and keeps the step where F fell (per label; Marquardt
+   damping otherwise), until F stops falling;
+4. the intervals: the covariance of theta is the inverse of the summed Schur complements, scaled
+   by the label's reduced chi2 where ``dop_std`` is not given; the central 95% truncated to the
+   bounds (Student's t without ``dop_std``), then cross-checked against the label's profile on
+   the grid: a node whose profile (an upper bound of the true one) lies within chi2 3.84 (times
+   the reduced chi2) of the minimum but outside the interval widens it to cover that node and
+   marks the label ambiguous, as does another basin (2.) whose label chi2 lies within 3.84 of the
+   kept one's (the interval then covers that basin's interval too);
+5. the goodness of fit of each label (:func:`label_goodness`): with ``dop_std`` (and ``f00_std``
+   with intensities) its chi2 against its degrees of freedom, else an F test of its shared values
+   against each pixel's own on its subsample (:func:`pbrdf_cl.fitting.images.label_search.f_test`); a
+   p-value below ``GOODNESS_P``
+   says the label's pixels do not share one material (each pixel's own parameters absorb the
+   misfit, so the pixels' own tests pass);
+6. optionally (``LabelJob.bias_replicates`` > 0; default 0) a parametric bootstrap of the bias
+   on the subsample (:func:`pbrdf_cl.fitting.images.label_search.bootstrap_bias`), taken off theta,
+   its uncertainty added to the variance.  Off by default: measured on the two-material bench,
+   the bias at the fitted point (the pixels' noisy fitted own parameters) did not estimate the
+   estimator's bias at the truth (-0.03 against +0.12 in the dielectric's k at DOP noise 0.01),
+   so the intervals do not include the incidental parameters' bias (docs/joint_images.md).
+
+The derivatives and the objective of the refinement are the float64 reference model's
+(:class:`~pbrdf_cl.fitting.images.pixels.PixelResiduals`, forward differences on the host): the same on
+every backend.  Sums over a label's pixels are taken row by row of the stack in row order, so the
+result does not depend on the blocks (the memory budget).  Memory beyond a block: the pixels'
+own parameters at the current and the trial theta (two floats per parameter and pixel) and the
+labels' sums.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from ...io.source import ANGLES
+from .. import report
+from ..common import GOODNESS_P, X_RESOLUTION, fd_jacobian, valid_covariance
+from ..setup import PARAMETERS
+from . import label_search as search
+from .pixel_fit import fit_block
+from .pixels import Block, PixelResiduals, descent_bounds, grid_points, grid_values, internal, regions
+from .statistics import DETERMINED_FRACTION, truncated_interval
+
+#: Passes of the refinement at most (each one pass over the stack).
+MAX_ROUNDS = 20
+#: Iterations of each pixel's float32 descents of its own parameters after a step of theta, and
+#: of the float64 polish of the best.
+LM_ITERATIONS = 10
+POLISH_ITERATIONS = 10
+#: Candidate seeds per label: the best local minima of its profile on the grid, each tried (with the
+#: median of its pixels' best nodes) on a subsample of its pixels (:mod:`label_search`).
+SEEDS = 6
+#: Starts of each pixel's descent at a trial theta from the grid of its own parameters (with its
+#: previous values).
+GRID_STARTS = 3
+#: The refinement of a label stops where a step would lower its chi2 by less than this (times the
+#: label's reduced chi2 without dop_std): a tenth of a standard error moves chi2 by 0.01.
+CHI2_TOL = 1e-2
+#: chi2 of one parameter's 95% interval (the profile cross-check's threshold, times the reduced chi2).
+CHI2_95 = 3.841458820694124
+#: The status of each label: code -> (name, meaning).
+LABEL_STATUS = {
+    1: ("converged", "the refinement converged inside the bounds"),
+    2: ("on_bound", "converged with a shared parameter on a bound"),
+    3: ("ambiguous", "a node of the label's profile on the grid, or another basin's refinement, lies within chi2 3.84 "
+                     "of the minimum outside the local interval: the interval is widened to cover it"),
+    4: ("underdetermined", "a shared parameter's 95% interval spans more than half its bounds"),
+    0: ("not_converged", f"the refinement still improved after {MAX_ROUNDS} passes"),
+    -2: ("too_few", "not fitted: too few pixels of the label with enough valid measurements"),
+}
+
+
+@dataclass
+class LabelResult:
+    """The label stage's result, arrays over the labels (``ids``): ``theta`` (L, S) the shared
+    parameters' values (``shared`` order), ``stderr``, ``ci95`` (L, S, 2), ``determined``
+    (L, S), ``pixels`` (fitted pixels), ``chi2`` (the label's F), ``sse`` (its unweighted DOP
+    residuals), ``dof``, ``status`` (:data:`LABEL_STATUS`), ``rounds`` (refinement passes) and
+    ``profile`` (L, nodes: the label's chi2 profile on the grid) with ``nodes`` (nodes, S),
+    ``bias`` (L, S): the bootstrap's estimate of the bias, already taken off ``theta``, the
+    goodness of fit (:func:`label_goodness`): ``p_value``, ``fits_data`` (1: fits, 0: does
+    not, -1: not fitted or not tested) and ``goodness_test`` ("chi2" or "F"), and ``corr``
+    (L, S, S) the correlations of the shared parameters (valid or NaN,
+    :func:`pbrdf_cl.fitting.common.valid_covariance`) with ``cov_notes`` (a sentence per label
+    where the covariance needed one, else None)."""
+    ids: np.ndarray
+    shared: tuple
+    theta: np.ndarray
+    stderr: np.ndarray
+    ci95: np.ndarray
+    determined: np.ndarray
+    pixels: np.ndarray
+    chi2: np.ndarray
+    sse: np.ndarray
+    dof: np.ndarray
+    status: np.ndarray
+    rounds: int
+    profile: np.ndarray
+    nodes: np.ndarray
+    bias: np.ndarray
+    p_value: np.ndarray
+    fits_data: np.ndarray
+    goodness_test: str
+    corr: np.ndarray
+    cov_notes: list
+
+
+def node_regions(setup, shared):
+    """The grid's points (as :func:`pbrdf_cl.fitting.images.pixels.regions` orders them) grouped by the
+    node of the ``shared`` parameters: (order, rstart, nodes), node r holding
+    order[rstart[r]:rstart[r + 1]] and ``nodes[r]`` its shared values."""
+    v = grid_values(setup)
+    sizes = [v[n].size for n in PARAMETERS]
+    idx = np.indices(sizes).reshape(6, -1)
+    shape = [sizes[PARAMETERS.index(n)] for n in shared]
+    node = np.ravel_multi_index([idx[PARAMETERS.index(n)] for n in shared], shape)
+    counts = np.bincount(node, minlength=int(np.prod(shape)))
+    rstart = np.concatenate([[0], np.cumsum(counts)]).astype(np.int32)
+    order = np.argsort(node, kind="stable").astype(np.int32)
+    unr = np.unravel_index(np.arange(counts.size), shape)
+    nodes = np.stack([v[n][u] for n, u in zip(shared, unr)], axis=1)
+    return order, rstart, nodes
+
+
+def held_setup(setup, shared, theta):
+    """``setup`` with the ``shared`` parameters held at ``theta`` (the per-pixel fits of a label)."""
+    fixed = {**setup.fixed, **{n: float(t) for n, t in zip(shared, theta)}}
+    return replace(setup, fixed=fixed, axes={n: a for n, a in setup.axes.items() if n not in shared})
+
+
+def take(raw, idx):
+    """The pixels ``idx`` of a block's raw rows (shared angles kept)."""
+    return {k: (v if (v.ndim == 1 and k in ANGLES) else v[idx]) for k, v in raw.items()}
+
+
+class RowSums:
+    """Sums over each label's pixels taken row by row of the stack, rows in order: the same
+    whatever the blocks (a row is never split between blocks)."""
+
+    def __init__(self, n_labels, size):
+        self.total = np.zeros((n_labels, size))
+
+    def add(self, rows, lab, values):
+        """Add the per-pixel ``values`` (p, size) of pixels in ``rows`` (ascending) of labels ``lab``."""
+        if not rows.size:
+            return
+        n = self.total.shape[0]
+        uk, inv = np.unique(rows * n + lab, return_inverse=True)
+        part = np.zeros((uk.size, self.total.shape[1]))
+        np.add.at(part, inv.ravel(), values)
+        np.add.at(self.total, uk % n, part)  # in key order: a label's rows in order
+
+
+class _Stage:
+    """The passes of one label stage (see the module's docstring)."""
+
+    def __init__(self, job, eng, progress):
+        self.job, self.eng, self.progress = job, eng, progress
+        setup = job.setup
+        self.shared = tuple(job.shared)
+        self.own = [n for n in job.names if n not in self.shared]
+        self.si = [job.names.index(n) for n in self.shared]
+        self.bi = [job.names.index(n) for n in self.own]
+        self.lo, self.hi = descent_bounds(setup, job.names)
+        self.span = self.hi - self.lo
+        self.ids = job.label_ids
+        self.lab = job.label_index  # flat, -1: not fitted
+        self.row = int(np.prod(job.source.shape[1:], dtype=np.int64))
+        self.fitted = np.zeros(self.lab.size, bool)
+        self.pixel_node = np.full(self.lab.size, -1, np.int64)  # each pixel's best node of the profile
+        n_own = len(self.own)
+        self.beta = np.full((self.lab.size, n_own), np.nan)
+        self.order_own, self.rstart_own = regions(grid_values(held_setup(setup, self.shared, np.zeros(2))),
+                                                  held_setup(setup, self.shared, np.zeros(2)).free)
+        self.dtype = "float64" if getattr(eng, "fp64", True) else "float32"
+        self.lanes = eng.call("batch_lanes")
+
+    def _bar(self, desc, total):
+        if not self.progress:
+            return None
+        from tqdm.auto import tqdm
+        return tqdm(total=total, desc=f"labels: {desc}", unit="px", unit_scale=True, smoothing=0.1)
+
+    def _blocks(self, desc, check=False):
+        """(r0, pixel offset, raw rows) of every block, with a progress bar in pixels; ``check``:
+        the rows' values checked (the first pass)."""
+        bar = self._bar(desc, self.job.source.n_pixels)
+        for r0, r1 in self.job.blocks():
+            raw = self.job.read_rows(r0, r1) if check else self.job.source.rows(r0, r1)
+            yield r0, r0 * self.row, raw
+            if bar is not None:
+                bar.update((r1 - r0) * self.row)
+        if bar is not None:
+            bar.close()
+
+    def profile(self):
+        """Pass 1: each label's chi2 profile over the shared parameters' grid nodes; marks the
+        pixels that can be fitted (label > 0, not masked, enough valid measurements)."""
+        setup = self.job.setup
+        order, rstart, self.nodes = node_regions(setup, self.shared)
+        sums = RowSums(self.ids.size, rstart.size - 1)
+        need = len(self.own)
+        for _, off, raw in self._blocks("grid", check=True):
+            blk = Block(raw, setup, self.lanes)
+            lab = self.lab[off:off + blk.p]
+            ok = (lab >= 0) & blk.mask & (blk.count >= need + 1) & (blk.distinct >= need)
+            idx = np.flatnonzero(ok)
+            if idx.size:
+                best, _ = self.eng.call("batch_grid", setup, blk.subset(idx), order, rstart)
+                best = np.asarray(best, float).T
+                good = np.all(np.isfinite(best), axis=1)
+                idx, best = idx[good], best[good]
+                self.fitted[off + idx] = True
+                self.pixel_node[off + idx] = np.argmin(best, axis=1)
+                sums.add(idx // self.row, lab[idx], best)
+        return sums.total
+
+    def values(self, setup, sub, theta_px, beta):
+        """Per pixel of ``sub`` at (theta, beta): [1, residual rows, noise floor^2, chi2, DOP sse,
+        Schur complement (S x S), reduced gradient (S)] in coordinates scaled to the bounds."""
+        job = self.job
+        D = len(job.names)
+        X = np.empty((sub.p, D))
+        X[:, self.si], X[:, self.bi] = theta_px, beta
+        Xi = internal(X, job.names)
+        res = PixelResiduals(setup, sub, job.names, np.arange(sub.p), setup.use_f00)
+        r, J = fd_jacobian(res.rows, Xi, self.lo, self.hi)
+        chi2 = np.einsum("pm,pm->p", r, r)
+        M = sub.valid.shape[1]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            sse = np.where(sub.w > 0, r[:, :M] ** 2 / sub.w, 0.0).sum(axis=1)
+        J = J * self.span[None, :, None]
+        H = np.einsum("pim,pjm->pij", J, J)
+        g = np.einsum("pim,pm->pi", J, r)
+        b, s = self.bi, self.si
+        xi = Xi[:, b]
+        held = (((xi <= self.lo[b] + 1e-9 * self.span[b]) & (g[:, b] > 0))
+                | ((xi >= self.hi[b] - 1e-9 * self.span[b]) & (g[:, b] < 0)))
+        keep = (~held).astype(float)
+        Hbb = H[:, b][:, :, b] * keep[:, :, None] * keep[:, None, :]
+        Hsb = H[:, s][:, :, b] * keep[:, None, :]
+        P = np.linalg.pinv(Hbb, rcond=1e-12, hermitian=True)
+        schur = H[:, s][:, :, s] - Hsb @ P @ np.swapaxes(Hsb, 1, 2)
+        grad = g[:, s] - (Hsb @ P @ (g[:, b] * keep)[:, :, None])[:, :, 0]
+        rows = sub.count * (2 if setup.use_f00 else 1)
+        return np.concatenate([np.ones((sub.p, 1)), rows[:, None], sub.noise_floor[:, None] ** 2, chi2[:, None],
+                               sse[:, None], schur.reshape(sub.p, -1), grad], axis=1)
+
+    def evaluate(self, thetas, active, start=False):
+        """One pass at candidate values ``thetas`` (C, L, S) of the ``active`` labels: each pixel's
+        own parameters descended (:meth:`descend`; ``start``: from its grid alone, else also from
+        its current ones) into ``trial_beta`` (C, pixels, own); returns the labels' sums of
+        :meth:`values` at each candidate, (C, L, sums)."""
+        setup = self.job.setup
+        C, S = thetas.shape[0], len(self.shared)
+        sums = [RowSums(self.ids.size, 5 + S * S + S) for _ in range(C)]
+        self.trial_beta = np.full((C,) + self.beta.shape, np.nan)
+        for _, off, raw in self._blocks("start" if start else "refine"):
+            lab = self.lab[off:off + raw["dop"].shape[0]]
+            fit = self.fitted[off:off + lab.size] & active[np.maximum(lab, 0)]
+            for L in np.unique(lab[fit]):
+                idx = np.flatnonzero(fit & (lab == L))
+                sub_raw = take(raw, idx)
+                sub = Block(sub_raw, setup, 1)
+                for c in range(C):
+                    held = held_setup(setup, self.shared, thetas[c, L])
+                    before = None if start else self.beta[off + idx]
+                    beta = self.descend(held, Block(sub_raw, held, self.lanes), before)
+                    self.trial_beta[c, off + idx] = beta
+                    vals = self.values(setup, sub, np.broadcast_to(thetas[c, L], (idx.size, S)), beta)
+                    sums[c].add((off + idx) // self.row, np.full(idx.size, L), vals)
+        return np.stack([t.total for t in sums])
+
+    def start(self, theta, active):
+        """The pass at the seeds ``theta`` (L, S): every pixel's own parameters fitted from scratch
+        with theta held (:func:`pbrdf_cl.fitting.images.pixel_fit.fit_block`: the usual stages) into
+        ``beta`` (a pixel whose fit fails leaves the label stage); the labels' sums there."""
+        setup = self.job.setup
+        S = len(self.shared)
+        sums = RowSums(self.ids.size, 5 + S * S + S)
+        for _, off, raw in self._blocks("start"):
+            lab = self.lab[off:off + raw["dop"].shape[0]]
+            fit = self.fitted[off:off + lab.size] & active[np.maximum(lab, 0)]
+            for L in np.unique(lab[fit]):
+                idx = np.flatnonzero(fit & (lab == L))
+                held = held_setup(setup, self.shared, theta[L])
+                out = fit_block(self.eng, held, take(raw, idx), self.order_own, self.rstart_own, self.own)
+                beta = out["x"]
+                if setup.use_f00 and "kd" in self.own:  # reported kd to the descent's kd/ks
+                    beta[:, self.own.index("kd")] /= beta[:, self.own.index("ks")]
+                good = np.all(np.isfinite(beta), axis=1)
+                self.fitted[off + idx[~good]] = False
+                idx, beta = idx[good], beta[good]
+                if idx.size:
+                    self.beta[off + idx] = beta
+                    at = np.broadcast_to(theta[L], (idx.size, S))
+                    vals = self.values(setup, Block(take(raw, idx), setup, 1), at, beta)
+                    sums.add((off + idx) // self.row, np.full(idx.size, L), vals)
+        return sums.total
+
+    def descend(self, held, blk, previous):
+        """Each pixel's own parameters at a trial theta (``held``): the best end of float32
+        descents (``batch_lm``, LM_ITERATIONS) from its ``previous`` values (None: none) and
+        from the GRID_STARTS best region minima of the grid of its own parameters at that theta
+        (a pixel's own parameters can jump to another basin as theta moves), polished
+        (POLISH_ITERATIONS in float64 where the device has it)."""
+        best, arg = self.eng.call("batch_grid", held, blk, self.order_own, self.rstart_own)
+        top = np.argsort(np.asarray(best, float), axis=0, kind="stable")[:GRID_STARTS]
+        X = grid_points(held, self.order_own, np.take_along_axis(arg, top, axis=0))  # (T, p, free)
+        cols = [self.own.index(n) for n in held.free]
+        starts = np.ones((X.shape[0], blk.p, len(self.own)))  # ks (with intensities) from 1
+        starts[:, :, cols] = X
+        if previous is not None:
+            starts = np.concatenate([previous[None], starts])
+        d = self.eng.call("batch_lm", held, blk, starts, self.own, "float32", LM_ITERATIONS, held.use_f00)
+        pick = np.argmin(np.where(np.isfinite(d.sse), d.sse, np.inf), axis=0)
+        x = d.x[pick, np.arange(blk.p)]
+        if previous is not None:  # the float32 descent cannot better a float64 optimum: keep it
+            x = np.where((pick == 0)[:, None], previous, x)
+        return self.eng.call("batch_lm", held, blk, x[None], self.own, self.dtype, POLISH_ITERATIONS,
+                             held.use_f00).x[0]
+
+    def gather(self, picks):
+        """One pass over the stack: the raw rows of the pixels ``picks`` (a list per label of flat
+        pixel indices, ascending), in memory, as one raw dict per label (None where empty)."""
+        parts = [[] for _ in picks]
+        for _, off, raw in self._blocks("subsample"):
+            p = raw["dop"].shape[0]
+            for L, idx in enumerate(picks):
+                mine = idx[(idx >= off) & (idx < off + p)] - off
+                if mine.size:
+                    parts[L].append(take(raw, mine))
+        return [None if not ps else {k: (ps[0][k] if (ps[0][k].ndim == 1 and k in ANGLES) else
+                                         np.concatenate([q[k] for q in ps])) for k in ps[0]} for ps in parts]
+
+    def local_fit(self, raw, theta, rounds, beta=None):
+        """The shared parameters of one label refined on the in-memory pixels ``raw`` from ``theta``:
+        each pixel's own parameters descended there (:meth:`descend`, from ``beta`` where given),
+        then up to ``rounds`` damped Gauss-Newton steps (:meth:`step`) kept where the chi2 of these
+        pixels falls.  Returns (theta, sums of :meth:`values` over the pixels, beta); a pixel whose
+        descent fails counts nowhere."""
+        setup, S = self.job.setup, len(self.shared)
+        sub = Block(raw, setup, 1)
+
+        def at(t, previous):
+            held = held_setup(setup, self.shared, t)
+            b = self.descend(held, Block(raw, held, self.lanes), previous)
+            v = self.values(setup, sub, np.broadcast_to(t, (sub.p, S)), b)
+            return b, v[np.all(np.isfinite(v), axis=1)].sum(axis=0)
+
+        beta, sums = at(theta, beta)
+        lam = np.array([1e-3])
+        for _ in range(rounds):
+            trial, predicted = self.step(theta[None], sums[None], lam)
+            if predicted[0] <= CHI2_TOL * self.scale(sums[None])[0]:
+                break
+            b, v = at(trial[0], beta)
+            if v[3] < sums[3]:
+                theta, sums, beta, lam = trial[0], v, b, lam / 3.0
+            else:
+                lam = lam * 10.0
+        return theta, sums, beta
+
+    def unpack(self, sums):
+        """(pixels, rows, floor^2 sum, chi2, sse, Schur (L, S, S), gradient (L, S)) from sums."""
+        S = len(self.shared)
+        return (sums[:, 0], sums[:, 1], sums[:, 2], sums[:, 3], sums[:, 4], sums[:, 5:5 + S * S].reshape(-1, S, S),
+                sums[:, 5 + S * S:])
+
+    def step(self, theta, sums, lam):
+        """The damped Gauss-Newton trial of every label from its sums at ``theta``: (trial theta,
+        the decrease of F the step predicts)."""
+        _, _, _, _, _, A, g = self.unpack(sums)
+        S = A.shape[1]
+        s = self.si
+        scale = np.einsum("lii->li", A)
+        ridge = 1e-12 * np.maximum(scale.max(axis=1), 1e-300)
+        Ad = A + (lam[:, None] * scale + ridge[:, None])[:, :, None] * np.eye(S)[None]
+        with np.errstate(all="ignore"):
+            du = -np.linalg.solve(Ad, g[:, :, None])[:, :, 0]
+        du = np.where(np.isfinite(du), du, 0.0)
+        trial = np.clip(theta + du * self.span[s], self.lo[s], self.hi[s])
+        du = (trial - theta) / self.span[s]
+        predicted = -np.einsum("li,li->l", g, du) - 0.5 * np.einsum("li,lij,lj->l", du, A, du)
+        return trial, predicted
+
+    def refine(self, theta, sums, active):
+        """Passes of the refinement (:meth:`step`, :meth:`evaluate`) until no active label's F
+        falls; returns (theta, sums, not converged, passes)."""
+        lam = np.full(self.ids.size, 1e-3)
+        self.beta[~self.fitted] = np.nan
+        rounds = 0
+        for _ in range(MAX_ROUNDS):
+            chi2 = sums[:, 3]
+            tol = CHI2_TOL * self.scale(sums)
+            trial, predicted = self.step(theta, sums, lam)
+            active &= predicted > tol
+            if not active.any():
+                break
+            rounds += 1
+            new = self.evaluate(trial[None], active)[0]
+            better = active & (new[:, 3] < chi2)
+            mine = self.fitted & np.isin(self.lab, np.flatnonzero(better))
+            self.beta[mine] = self.trial_beta[0, mine]
+            theta, sums = np.where(better[:, None], trial, theta), np.where(better[:, None], new, sums)
+            lam = np.where(better, lam / 3.0, np.where(active, lam * 10.0, lam))
+            active &= better | (lam < 1e8)
+            active &= ~(better & (chi2 - new[:, 3] <= tol))
+        return theta, sums, active, rounds
+
+    def dof(self, sums):
+        """Each label's degrees of freedom: its residuals less its pixels' own parameters and the shared."""
+        return np.maximum(sums[:, 1] - sums[:, 0] * len(self.own) - len(self.shared), 1)
+
+    def scale(self, sums):
+        """Each label's chi2 of one standard error squared: 1 with dop_std, else its reduced chi2
+        (at least its pixels' mean noise floor squared)."""
+        if self.job.setup.sigma_known:
+            return np.ones(sums.shape[0])
+        return np.maximum(sums[:, 3] / self.dof(sums), sums[:, 2] / np.maximum(sums[:, 0], 1))
+
+    def covariance(self, sums):
+        """Each label's covariance of the shared parameters, in coordinates scaled to the bounds:
+        the inverse of its summed Schur complements times its chi2 scale, made valid
+        (:func:`pbrdf_cl.fitting.common.valid_covariance`; NaN where a variance cannot be computed)."""
+        A = self.unpack(sums)[5]
+        with np.errstate(all="ignore"):
+            return valid_covariance(np.linalg.pinv(A, rcond=1e-12, hermitian=True) * self.scale(sums)[:, None, None])
+
+    def gauss(self, theta, sums, extra_var=None):
+        """Standard errors and the central 95% intervals (truncated to the bounds; Student's t
+        without dop_std) of every label at ``theta`` from its sums, the variance ``extra_var``
+        (L, S) added to each parameter's; returns (se, ci, dof, chi2 scale).  A variance that
+        cannot be computed gives an infinite standard error (the interval spans the bounds)."""
+        setup = self.job.setup
+        s, span = self.si, self.span[self.si]
+        dof, s2 = self.dof(sums), self.scale(sums)
+        se = np.sqrt(np.clip(np.einsum("lii->li", self.covariance(sums).cov), 0, None)) * span
+        if extra_var is not None:
+            se = np.sqrt(se ** 2 + extra_var)
+        se = np.where(np.isfinite(se), se, np.inf)
+        ci = np.stack(truncated_interval(theta, np.maximum(se, X_RESOLUTION * span), self.lo[s], self.hi[s],
+                                         None if setup.sigma_known else dof[:, None]), axis=-1)
+        return se, ci, dof, s2
+
+    def intervals(self, theta, sums, profile, active, extra_var=None, other=None):
+        """Standard errors, 95% intervals, ``determined`` and the status of every label (see the
+        module's docstring): :meth:`gauss` with ``extra_var``, widened to the profile's nodes
+        the data allow and to ``other`` (L, S, 2: another basin's interval, NaN where none) where
+        given, either marking the label ambiguous."""
+        chi2 = self.unpack(sums)[3]
+        s, span = self.si, self.span[self.si]
+        lo, hi = self.lo[s], self.hi[s]
+        se, ci, dof, s2 = self.gauss(theta, sums, extra_var)
+        # the profile on the grid is an upper bound of the true one: a node within the threshold
+        # of the minimum is a value the data allow
+        near = profile <= (chi2 + CHI2_95 * s2)[:, None]
+        ambiguous = np.zeros(theta.shape[0], bool)
+        for L in range(theta.shape[0]):
+            v = self.nodes[near[L]]
+            if other is not None and np.all(np.isfinite(other[L])):
+                v = np.concatenate([v, other[L].T])
+            if not v.size:
+                continue
+            out = (v < ci[L, :, 0]) | (v > ci[L, :, 1])
+            ambiguous[L] = out.any()
+            ci[L, :, 0] = np.minimum(ci[L, :, 0], v.min(axis=0))
+            ci[L, :, 1] = np.maximum(ci[L, :, 1], v.max(axis=0))
+        determined = (ci[..., 1] - ci[..., 0]) < DETERMINED_FRACTION * span
+        status = np.ones(theta.shape[0], np.int8)
+        status[np.any((theta <= lo + X_RESOLUTION * span) | (theta >= hi - X_RESOLUTION * span), axis=1)] = 2
+        status[ambiguous] = 3
+        status[~determined.all(axis=1)] = 4
+        status[active] = 0
+        return se, ci, determined, status, dof
+
+    def full_fit(self, theta, ok):
+        """Every pixel of the labels ``ok`` fitted at ``theta`` (:meth:`start`), then
+        :meth:`refine`: (theta, sums, ok, not converged, passes)."""
+        sums = self.start(theta, ok)
+        ok = ok & (sums[:, 0] >= self.job.min_label_pixels)
+        theta, sums, active, rounds = self.refine(theta, sums, ok.copy())
+        return theta, sums, ok, active, rounds
+
+
+def run_label_stage(job, eng, progress=False):
+    """The shared parameters of every label of ``job`` (a ``pbrdf_cl.fitting.images.labels.LabelJob``).
+
+    Parameters
+    ----------
+    job : pbrdf_cl.fitting.images.labels.LabelJob
+        The checked job: the stack, its setup, the label image and the shared parameters.
+    eng : pbrdf_cl.Engine or NumpyEngine
+        Where the grid and the pixels' descents run.
+    progress : bool, default False
+        A progress bar per pass over the stack.
+
+    Returns
+    -------
+    LabelResult
+        Values, standard errors, intervals and status of the shared parameters, per label.
+
+    Examples
+    --------
+    >>> job = LabelJob(stack, labels=L)  # doctest: +SKIP
+    >>> run_label_stage(job, engine).theta  # doctest: +SKIP
+    array([[1.601, 2.142], [1.398, 0.503]])
+    """
+    st = _Stage(job, eng, progress)
+    L = st.ids.size
+    profile = st.profile()
+    pixels = np.bincount(st.lab[st.fitted], minlength=L)
+    ok = pixels >= job.min_label_pixels
+    shape = [job.setup.axes[n].size for n in st.shared]
+    cand = st.nodes[seed_nodes(np.where(ok[:, None], profile, 0.0), shape, SEEDS)]  # (C, L, S)
+    cand = np.concatenate([cand, search.median_node(st, st.pixel_node)[None]])
+    picks = search.subsample(st)
+    subs = st.gather(picks)
+    best, runner, gap = search.rank_seeds(st, subs, cand, ok, pixels)
+    theta, sums, ok, active, rounds = st.full_fit(best, ok)
+    other = np.full(theta.shape + (2,), np.nan)
+    second = ok & (gap < search.RUNNER_UP_CHI2)
+    if second.any():
+        theta, sums, active, other, more = refit_runner_up(st, theta, sums, active, runner, second)
+        rounds += more
+    se, _, _, s2 = st.gauss(theta, sums)
+    p_value, fits, test = label_goodness(st, sums, subs, picks, theta, ok, pixels)
+    bias, extra = (search.bootstrap_bias(st, subs, picks, theta, se, s2, ok, job.bias_replicates)
+                   if job.bias_replicates else (np.zeros_like(theta), None))
+    s = st.si
+    theta = np.where(ok[:, None], np.clip(theta - bias, st.lo[s], st.hi[s]), 0.0)
+    se, ci, determined, status, dof = st.intervals(theta, sums, profile, active, extra, other)
+    status[~ok] = -2
+    nan = np.where(ok[:, None], 1.0, np.nan)
+    _, _, _, chi2, sse, _, _ = st.unpack(sums)
+    valid = st.covariance(sums)
+    notes = [valid.note(st.shared, L, f"the covariance of label {st.ids[L]}'s {', '.join(st.shared)}") if ok[L]
+             else None for L in range(st.ids.size)]
+    return LabelResult(st.ids, st.shared, theta * nan, se * nan, ci * nan[..., None], determined & ok[:, None],
+                       sums[:, 0].astype(np.int64), np.where(ok, chi2, np.nan), np.where(ok, sse, np.nan),
+                       np.where(ok, dof, 0).astype(np.int64), status, rounds, profile, st.nodes, bias * nan,
+                       np.where(ok, p_value, np.nan), np.where(ok, fits, -1).astype(np.int8),
+                       test, valid.corr * nan[:, :, None], notes)
+
+
+def label_goodness(st, sums, subs, picks, theta, ok, pixels):
+    """Whether each label's shared values describe its pixels' data: (p-value, fits (1, 0, or -1
+    where not tested), the test: "chi2" or "F").  With given uncertainties (``dop_std``, and
+    ``f00_std`` with intensities) the label's chi2 against its degrees of freedom (its residuals
+    less its pixels' own parameters and the shared ones); else (its chi2 has no scale, or an
+    assumed one) the F test of :func:`pbrdf_cl.fitting.images.label_search.f_test` on its subsample.  A
+    p-value below :data:`~pbrdf_cl.fitting.common.GOODNESS_P` fails, as a fit's."""
+    setup = st.job.setup
+    if setup.sigma_known and (not setup.use_f00 or "f00_std" in st.job.source.vars):
+        chi2 = st.unpack(sums)[3]
+        p_value, test = np.where(ok, report.chi2_p_value(chi2, st.dof(sums)), np.nan), "chi2"
+    else:
+        p_value, test = search.f_test(st, subs, picks, theta, ok, pixels), "F"
+    fits = np.where(np.isfinite(p_value), p_value >= GOODNESS_P, -1).astype(np.int8)
+    return p_value, fits, test
+
+
+def refit_runner_up(st, theta, sums, active, runner, second):
+    """The labels ``second`` fitted again on all their pixels from their runner-up basin
+    ``runner``; per label the basin of lower chi2 kept (its pixels' own parameters too).  Returns
+    (theta, sums, not converged, other, passes): ``other`` (L, S, 2) the interval of the basin not
+    kept where its chi2 lies within CHI2_95 (times the chi2 scale) of the kept one's, else NaN."""
+    beta, fitted = st.beta.copy(), st.fitted.copy()
+    t2, s2, ok2, a2, rounds = st.full_fit(np.where(second[:, None], runner, theta), second.copy())
+    ok2 &= second
+    better = ok2 & (s2[:, 3] < sums[:, 3])
+    keep_first = np.isin(st.lab, np.flatnonzero(second & ~better))
+    st.beta[keep_first], st.fitted[keep_first] = beta[keep_first], fitted[keep_first]
+    _, ci1, _, sc1 = st.gauss(theta, sums)
+    _, ci2, _, sc2 = st.gauss(t2, s2)
+    close = ok2 & (np.abs(s2[:, 3] - sums[:, 3]) < CHI2_95 * np.maximum(sc1, sc2))
+    other = np.where((close & better)[:, None, None], ci1, np.where((close & ~better)[:, None, None], ci2, np.nan))
+    theta = np.where(better[:, None], t2, theta)
+    sums = np.where(better[:, None], s2, sums)
+    active = np.where(better, a2, active)
+    return theta, sums, active, other, rounds
+
+
+def seed_nodes(profile, shape, count):
+    """Per label, the ``count`` lowest local minima of its ``profile`` (L, nodes) over the node
+    grid of ``shape`` (a node no higher than its neighbours along every axis), lowest first,
+    the lowest repeated where there are fewer: (count, L) node indices."""
+    P = profile.reshape((-1,) + tuple(shape))
+    local = np.ones(P.shape, bool)
+    for ax in range(1, P.ndim):
+        n = P.shape[ax]
+        for shift in (1, -1):
+            nb = np.roll(P, shift, axis=ax)
+            edge = [slice(None)] * P.ndim
+            edge[ax] = 0 if shift == 1 else n - 1
+            nb[tuple(edge)] = np.inf
+            local &= P <= nb
+    flat = profile.reshape(profile.shape[0], -1)
+    key = np.where(local.reshape(flat.shape), flat, np.inf)
+    order = np.argsort(key, axis=1, kind="stable")[:, :count]
+    first = order[:, :1]
+    order = np.where(np.isfinite(np.take_along_axis(key, order, axis=1)), order, first)
+    return order.T

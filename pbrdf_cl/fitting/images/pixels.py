@@ -1,0 +1,229 @@
+"""What the stages of an image fit share (:mod:`pbrdf_cl.fitting.images.pixel_stages`,
+:mod:`~pbrdf_cl.fitting.images.corners`, :mod:`~pbrdf_cl.fitting.images.pixel_fit`,
+:mod:`~pbrdf_cl.fitting.images.statistics`): the setup of :func:`pbrdf_cl.fit_batch`
+(:class:`BatchSetup`), a block of pixels ready for them (:class:`Block`), the grid's regions and
+points, the descents' coordinates (ks as log ks) and what a descent returns (:class:`Descent`),
+and the reference model's residual rows of many pixels (:class:`PixelResiduals`)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+
+from ...io.source import ANGLES
+from ...model import reference
+from ..common import dop_resolution
+from ..setup import F00_REL_STD, PARAMETERS, FitSetup
+
+#: Grid nodes per free parameter of the batched grid stage (coarser than :func:`pbrdf_cl.fit`'s: the
+#: regions' minima only seed the descents).
+BATCH_GRID = {"n": 12, "k": 12, "sigma": 8, "kd": 8, "c": 4}
+BATCH_SPECULAR_GRID = {"n": 48, "k": 48}
+
+
+@dataclass(frozen=True)
+class BatchSetup(FitSetup):
+    """The checked setup of :func:`pbrdf_cl.fit_batch`: the fit's
+    (:class:`~pbrdf_cl.fitting.setup.FitSetup`: model, shadowing, bounds, fixed values) and the
+    image fit's own: the grid stage's ``axes`` (free parameter -> nodes), ``use_f00`` (the
+    intensities enter the fit: ks free, kd as kd/ks), ``n_starts`` (descents per pixel),
+    ``sigma_known`` (dop_std given) and ``noise_floor`` (the least DOP noise assumed without it;
+    each pixel's own may be higher: :attr:`Block.noise_floor`)."""
+    axes: dict
+    use_f00: bool
+    n_starts: int
+    sigma_known: bool
+    noise_floor: float
+
+
+class Descent(NamedTuple):
+    """What a batch of descents returns, arrays over (starts, pixels): the points ``x`` (..., D),
+    their objective ``sse``, ``jtj`` (J^T J in the descent's coordinates, (..., D, D)) and
+    ``settled`` (the descent stopped improving)."""
+    x: np.ndarray
+    sse: np.ndarray
+    jtj: np.ndarray
+    settled: np.ndarray
+
+    def concat(self, other):
+        """The starts of this and ``other`` together (along the first axis)."""
+        return Descent(*(np.concatenate([a, b]) for a, b in zip(self, other)))
+
+
+def regions(axes, free):
+    """The grid points (flat index over (n, k, sigma, ks, kd, c) of ``axes``, ks of size 1) ordered
+    region by region, a region being one half of every free axis (2^d boxes); returns (order,
+    rstart), region r holding order[rstart[r]:rstart[r + 1]]."""
+    names = PARAMETERS
+    sizes = [axes[n].size for n in names]
+    idx = np.indices(sizes).reshape(6, -1)
+    region = np.zeros(idx.shape[1], np.int64)
+    for axis, name in enumerate(names):
+        if name in free and sizes[axis] > 1:
+            region = region * 2 + (idx[axis] >= sizes[axis] // 2)
+    counts = np.bincount(region)
+    rstart = np.concatenate([[0], np.cumsum(counts[counts > 0])])
+    return np.argsort(region, kind="stable").astype(np.int32), rstart.astype(np.int32)
+
+
+def grid_values(setup):
+    """The grid's parameter values (every parameter: free on its axis, the others fixed) as arrays
+    for the tables: dict name -> 1-d array."""
+    v = {}
+    for name in PARAMETERS:
+        v[name] = setup.axes[name] if name in setup.axes else np.array([setup.base[name]], float)
+    return v
+
+
+def grid_points(setup, order, flat):
+    """Parameter vectors (over ``setup.free``) of region-ordered grid indices ``flat``."""
+    v = grid_values(setup)
+    sizes = [v[n].size for n in PARAMETERS]
+    unr = np.unravel_index(order[flat], sizes)
+    names = PARAMETERS
+    return np.stack([v[n][unr[names.index(n)]] for n in setup.free], axis=-1)
+
+
+class Block:
+    """One block of pixels prepared for the stages: flat (p, M) arrays, weights, validity."""
+
+    def __init__(self, raw, setup, lanes):
+        self.raw, self.setup, self.lanes = raw, setup, lanes
+        self.p = raw["dop"].shape[0]
+        self.P = -(-self.p // lanes) * lanes  # padded
+        dop = raw["dop"]
+        mask = raw.get("mask", np.ones(self.p, bool))
+        std = raw.get("dop_std")
+        valid = np.isfinite(dop) & mask[:, None]
+        if std is not None:
+            valid &= np.isfinite(std)
+        if setup.use_f00:
+            valid &= np.isfinite(raw["f00"])
+        self.mask = mask
+        self.valid = valid
+        self.shared = all(raw[a].ndim == 1 for a in ANGLES)
+        self.angles = [raw[a] if self.shared else np.broadcast_to(raw[a], dop.shape) for a in ANGLES]
+        self.obs = np.where(valid, dop, 0.0)
+        w = valid / (std ** 2 if std is not None else 1.0)
+        self.w = np.where(valid, w, 0.0)
+        if setup.use_f00:
+            f00 = raw["f00"]
+            fstd = raw.get("f00_std")
+            if fstd is None:
+                fstd = F00_REL_STD * np.maximum(np.where(valid, f00, 1.0), 1e-300)
+            self.fobs = np.where(valid, f00, 0.0)
+            self.fw = np.where(valid, 1.0 / np.where(valid, fstd, 1.0) ** 2, 0.0)
+        else:
+            self.fobs = self.fw = None
+        self.count = valid.sum(axis=1)
+        self.distinct = self._distinct_geometries()
+        self.noise_floor = self._noise_floor(setup.noise_floor)
+
+    def _noise_floor(self, floor):
+        """Each pixel's floor of the noise estimate without dop_std, as :func:`pbrdf_cl.fit`'s
+        (:func:`pbrdf_cl.fitting.common.dop_noise_floor`): the rounding error of the DOP resolution
+        of its valid values (invalid ones are 0 in ``obs``, exact at any resolution), at least
+        ``floor``."""
+        return np.maximum(floor, dop_resolution(self.obs, axis=1) / np.sqrt(12.0))
+
+    def _distinct_geometries(self):
+        """Distinct valid (theta_i, theta_r, phi) per pixel."""
+        ti, tr, ph = (np.broadcast_to(a, self.valid.shape) for a in self.angles)
+        key = np.stack([ti, tr, ph], axis=-1)
+        key = np.where(self.valid[..., None], key, np.nan)
+        s = np.ascontiguousarray(key).view(np.dtype((np.void, 24)))[..., 0]
+        s = np.sort(s, axis=1)
+        distinct = 1 + (s[:, 1:] != s[:, :-1]).sum(axis=1)
+        return distinct - (~self.valid).any(axis=1)
+
+    def subset(self, idx):
+        """The block of pixels ``idx`` (repeats allowed) of this one."""
+        raw = {k: (v if (v.ndim == 1 and k in ANGLES) else v[idx]) for k, v in self.raw.items()}
+        return Block(raw, self.setup, self.lanes)
+
+    def padded(self, a, fill=0.0):
+        """(p, ...) -> (P, ...) padded with ``fill``."""
+        out = np.full((self.P,) + a.shape[1:], fill, a.dtype if a.dtype != bool else float)
+        out[:self.p] = a
+        return out
+
+    def pixel_major(self, a, dtype):
+        """(p, M) -> (M, P) contiguous in ``dtype`` (the kernels' layout)."""
+        return np.ascontiguousarray(self.padded(a).T, dtype=dtype)
+
+
+def _map_ks(X, names, func):
+    """A copy of the parameter vectors X with ``func`` applied to their ks coordinate (if any)."""
+    X = np.array(X, float)
+    if "ks" in names:
+        j = names.index("ks")
+        X[..., j] = func(X[..., j])
+    return X
+
+
+def internal(X, names):
+    """Parameter vectors to the descent's coordinates (ks as log ks)."""
+    return _map_ks(X, names, np.log)
+
+
+def external(X, names):
+    """The descent's coordinates back to parameter vectors."""
+    return _map_ks(X, names, np.exp)
+
+
+def descent_bounds(setup, names):
+    """(lo, hi) of the descent's coordinates ``names`` (ks as log ks)."""
+    free, flo, fhi, ks = setup.free, setup.lo, setup.hi, setup.ks_bounds
+    lo = [np.log(ks[0]) if n == "ks" else flo[free.index(n)] for n in names]
+    hi = [np.log(ks[1]) if n == "ks" else fhi[free.index(n)] for n in names]
+    return np.array(lo), np.array(hi)
+
+
+class LogKs:
+    """The descents' usual coordinates: the parameters, ks as log ks (the kernel's default build);
+    :class:`pbrdf_cl.fitting.images.corners.Corner` is the other kind, with the same methods."""
+    logged = ()  # the parameters descended as log(p - offset) (PB_LOG_* builds): none
+
+    @staticmethod
+    def bounds(setup, names):
+        return descent_bounds(setup, names)
+
+    @staticmethod
+    def to_internal(X, names):
+        return internal(X, names)
+
+    @staticmethod
+    def to_external(U, names):
+        return external(U, names)
+
+
+class PixelResiduals:
+    """Weighted residual rows of the reference model for many pixels (the numpy backend): rows
+    of a (B, D) batch belong to pixels ``pix`` repeated ``B // len(pix)`` times each, as
+    :func:`fd_jacobian` lays them out."""
+
+    def __init__(self, setup, blk, names, pix, intensity, weights=None):
+        self.setup, self.blk, self.names, self.pix, self.intensity = setup, blk, names, pix, intensity
+        self.w = blk.w if weights is None else weights  # of the DOP residuals
+
+    def rows(self, X):
+        rep = X.shape[0] // self.pix.size
+        pix = np.repeat(self.pix, rep)
+        blk, setup = self.blk, self.setup
+        ang = [a[None, :] if blk.shared else a[pix] for a in blk.angles]
+        g = reference.geometry(*ang)
+        p = dict(setup.base)
+        ext = external(X, self.names)
+        for j, n in enumerate(self.names):
+            p[n] = ext[:, j:j + 1]
+        if self.intensity:
+            p["kd"] = p["kd"] * p["ks"]
+        f = reference.fresnel(p["n"], p["k"], g.cb, g.sb)
+        variant = reference.SHADOWING[setup.shadowing]
+        log_k = reference.log_specular_scale(g, p["sigma"], p["ks"], reference.shadowing_factor(g, p["sigma"], variant))
+        fd = reference.diffuse(g, p["kd"], p["c"])
+        r = (reference.dop(f, log_k, fd) - blk.obs[pix]) * np.sqrt(self.w[pix])
+        if self.intensity:
+            r = np.concatenate([r, (reference.brdf(f, log_k, fd) - blk.fobs[pix]) * np.sqrt(blk.fw[pix])], axis=1)
+        return np.where(np.isfinite(r), r, 1e150)

@@ -1,0 +1,238 @@
+"""Fits of polarimetric data (issue #36): whatever a polarimeter measures (:mod:`pbrdf_cl.model.measurables`:
+Stokes parameters under polarized light, Mueller elements, DOP, AoP, intensities, in any mix), through
+:func:`pbrdf_cl.fit`'s stages on their channels.
+
+- the device grid stage on the *normalised* channels (absolute Stokes parameters and Mueller
+  elements divided by their row's S0 or M00, which, like the DOP, depend on ks and kd only through
+  kd/ks): :class:`~pbrdf_cl.model.measurables.Channels` through ``pbrdf_grid.cl``'s
+  ``objective_channel_rows``;
+- the basins, DIRECT-L, BOBYQA, the Levenberg-Marquardt screen, least squares and the final BOBYQA on
+  the weighted residuals of those channels (:class:`ChannelResiduals`, ks held, kd as kd/ks);
+- where absolute channels are measured (S0, M00, F00: the data's scale), the intensity stage: every
+  channel, ks free, kd fitted as kd/ks, as :func:`pbrdf_cl.fit` does with an F00 column;
+- the uncertainties, goodness of fit and notes of :func:`pbrdf_cl.fit`.
+
+Weights: every channel has its standard deviation (``<name>_std``), or none has; without them the
+normalised channels (dimensionless, as the DOP) share one noise level estimated from the residuals,
+and absolute ones take :data:`~pbrdf_cl.fitting.setup.F00_REL_STD` of their row's intensity.  An
+AoP mixed with other quantities needs its ``aop_std`` (degrees are not the others' units).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ...model import reference
+from ..setup import F00_REL_STD
+from .stages import finite_rows
+
+#: What the intervals of a polarimetric fit without given uncertainties assume at least: the noise
+#: floor of the DOP (a normalised Stokes parameter or Mueller element is as resolved).
+DIMENSIONLESS = ("dop", "s1", "s2", "s3") + tuple(f"m{i}{j}" for i in range(4) for j in range(4))
+
+
+class ChannelModel:
+    """The model's value of every channel of ``ch`` (:class:`~pbrdf_cl.model.measurables.Channels`)
+    at their geometry, for the local stages: ``rows(p)`` maps parameters (name -> scalars or (B, 1)
+    arrays) to (B, C) values.  P (over n, k), 1/K (over sigma, ks) and fd (over kd, c) are computed
+    once per distinct geometry (a Mueller polarimeter measures 15 channels at each, a camera under
+    five source states 10) and spread to its channels, then each channel's terms and value by
+    :func:`~pbrdf_cl.model.reference.channel_terms` and
+    :func:`~pbrdf_cl.model.reference.channel_combine`."""
+
+    def __init__(self, ch, shadowing):
+        self.ch = ch
+        geo = np.column_stack([ch.theta_i, ch.theta_r, ch.phi])
+        first, self.at = np.unique(geo, axis=0, return_index=True, return_inverse=True)[1:]
+        self.at = self.at.reshape(-1)
+        self.g = reference.geometry(ch.theta_i[first], ch.theta_r[first], ch.phi[first])
+        self.fr = reference.frame_rotations(self.g, ch.phi[first])
+        self.variant = reference.SHADOWING[shadowing]
+
+    def terms(self, p):
+        def compute(q):
+            f = reference.fresnel(q["n"], q["k"], self.g.cb, self.g.sb)
+            P = reference.mueller_at(f, self.fr, 1.0, 0.0)[..., self.at, :, :]  # per distinct geometry, spread
+            ch = self.ch
+            return reference.channel_terms(P, ch.u, ch.v, ch.comp, ch.kind)
+        return per_distinct(compute, p, ("n", "k"))
+
+    def inv_scale(self, p):
+        def compute(q):
+            g = self.g
+            log_k = reference.log_specular_scale(g, q["sigma"], q["ks"],
+                                                 reference.shadowing_factor(g, q["sigma"], self.variant))
+            with np.errstate(over="ignore"):
+                return np.exp(-log_k)[..., self.at]
+        return per_distinct(compute, p, ("sigma", "ks"))
+
+    def rows(self, p):
+        tn, td = self.terms(p)
+        fd = per_distinct(lambda q: reference.diffuse(self.g, q["kd"], q["c"])[..., self.at], p, ("kd", "c"))
+        ch = self.ch
+        return reference.channel_combine(tn, td, self.inv_scale(p), fd, *ch.abc.T, ch.aop)
+
+
+#: Batches of at least this many parameter rows look for the rows that share factors (:func:`per_distinct`).
+DISTINCT_ROWS = 16
+
+
+def per_distinct(compute, p, names):
+    """``compute(p)`` for parameter rows ``p`` (name -> (B, 1) arrays or scalars) that depends only
+    on the parameters ``names``, computed once per distinct pair of their values and spread back:
+    the finite-difference Jacobians of the local stages step one parameter at a time, so most of
+    their rows share the factors of the others.  A tuple result is spread item by item."""
+    cols = [np.asarray(p[n], dtype=np.float64) for n in names]
+    rows = max((c.shape[0] for c in cols if c.ndim), default=0)
+    if rows < DISTINCT_ROWS:  # a few rows (the derivative-free stages' lockstep): not worth the search
+        return compute(p)
+    key = np.concatenate([np.broadcast_to(c.reshape(-1, 1) if c.ndim else c, (rows, 1)) for c in cols], axis=1)
+    uniq, inverse = np.unique(key, axis=0, return_inverse=True)
+    if len(uniq) == rows:
+        return compute(p)
+    out = compute({**p, **{n: uniq[:, j:j + 1] for j, n in enumerate(names)}})
+    inverse = inverse.reshape(-1)
+    return tuple(o[inverse] for o in out) if isinstance(out, tuple) else out[inverse]
+
+
+class ChannelResiduals:
+    """Weighted residuals of channels as a function of the free parameters, as
+    :class:`~pbrdf_cl.fitting.sample.stages.Residuals` for the DOP: ``rows(X)`` maps (B, d) vectors over
+    ``free`` to (B, C) residuals (value - measured, an AoP's wrapped) / std; with ``intensity`` (ks
+    among ``free``) the ``kd`` of a vector is the ratio kd/ks.  Non-finite residuals become 1e150."""
+
+    def __init__(self, model, free, base, std, intensity=False):
+        self.model, self.free, self.base = model, tuple(free), dict(base)
+        self.std, self.intensity = std, intensity
+
+    def params(self, x):
+        """Every model parameter at the free parameters ``x`` (a dict)."""
+        return self._with(zip(self.free, x))
+
+    def _with(self, values):
+        p = dict(self.base)
+        p.update(values)
+        if self.intensity:
+            p["kd"] = p["kd"] * p["ks"]
+        return p
+
+    def raw(self, p):
+        """The unweighted residuals (value - measured; an AoP's wrapped) at parameters ``p``."""
+        ch = self.model.ch
+        return reference.channel_residual(self.model.rows(p), ch.obs, ch.aop)
+
+    def rows(self, X):
+        p = self._with((n, X[:, j:j + 1]) for j, n in enumerate(self.free))
+        return finite_rows(self.raw(p) / self.std)
+
+
+def channel_stds(ch, what):
+    """(std per channel, whether the stds are given): the channels' own, or, where none is given,
+    1 for the normalised channels (one noise level, estimated from the residuals) and
+    :data:`F00_REL_STD` of the row's intensity for absolute ones; one-line refusals for stds given
+    for some quantities only, and for an AoP without its std among other quantities."""
+    given = np.isfinite(ch.std)
+    names = list(dict.fromkeys(ch.name))
+    if given.all():
+        return ch.std.copy(), True
+    if given.any():
+        have = sorted({n for n, g in zip(ch.name, given) if g})
+        lack = sorted({n for n, g in zip(ch.name, given) if not g})
+        raise ValueError(f"{what}: standard deviations are given for {', '.join(have)} but not for "
+                         f"{', '.join(lack)}; give <name>_std for every quantity or for none")
+    if "aop" in names and len(names) > 1:
+        raise ValueError(f"{what}: aop_std is needed where the AoP is fitted with other quantities ("
+                         f"{', '.join(n for n in names if n != 'aop')}): degrees are not their units")
+    std = np.ones(len(ch))
+    absolute = ch.absolute
+    if absolute.any():
+        std[absolute] = F00_REL_STD * np.maximum(np.abs(_row_intensity(ch))[absolute], 1e-300)
+    return std, False
+
+
+def _row_intensity(ch):
+    """Each channel's row intensity: the measured S0, M00 or F00 of its row where there is one, else
+    its own absolute value."""
+    out = np.abs(ch.obs).astype(float)
+    for name in ("s0", "m00", "f00"):
+        sel = ch.name == name
+        if sel.any():
+            level = dict(zip(ch.row[sel], ch.obs[sel]))
+            hit = np.array([r in level for r in ch.row])
+            out[hit] = [level[r] for r in ch.row[hit]]
+    return out
+
+
+def _ks_start(model, p, ch, std, ks_bounds):
+    """The ks that best scales the absolute channels' model values at ``p`` (with ks = 1) to
+    their measurements (weighted least squares), clipped to ``ks_bounds``."""
+    m1 = model.rows(dict(p, ks=1.0))
+    w = 1.0 / std ** 2
+    return float(np.clip((w * ch.obs * m1).sum() / max((w * m1 * m1).sum(), 1e-300), *ks_bounds))
+
+
+def _label(ch):
+    return ", ".join(dict.fromkeys(ch.name))
+
+
+def fit_channels(meas, setup, axes, n_basins=6, *, engine=None, backend="auto", progress=False):
+    """:func:`pbrdf_cl.fit` of polarimetric measurements ``meas`` (``meas.polarimetric``) with the
+    checked ``setup``: the device grid ``axes`` and the local stages on the normalised channels,
+    then the intensity stage where absolute channels are measured; the :class:`FitResult`."""
+    from ..common import dop_noise_floor
+    from .result import Observed, fit_result, fit_status, model_notes
+    from .stages import INTENSITY_MAXEVAL, grid_stage, intensity_stage, local_stages
+    from .uncertainty import uncertainty_stage
+    free, base, lo, hi = setup.free, setup.base, setup.lo, setup.hi
+    every = meas.channels()
+    channel_stds(every, meas.source)  # refuses stds given for some quantities only, before any work
+    ch = every.normalised()
+    if not len(ch):
+        raise ValueError(f"{meas.source}: the data hold intensities only ({_label(every)}): the fit needs a "
+                         "polarization quantity too (dop, aop, s1..s3, or Mueller elements other than m00)")
+    if len(ch) <= len(free):
+        raise ValueError(f"{meas.source}: {len(ch)} measured numbers for {len(free)} free parameters "
+                         f"({', '.join(free)}); at least {len(free) + 1} are needed")
+    std, known = channel_stds(ch, meas.source)
+    grid_result = grid_stage(meas, free, axes, base, setup.shadowing, engine=engine, backend=backend,
+                             progress=progress, channels=ch)
+    grid = grid_result.value
+    resid = ChannelResiduals(ChannelModel(ch, setup.shadowing), free, base, std)
+    rise = 1.0 if known else float(grid.sse.min()) / (len(ch) - len(free))
+    cands, final_ran, st = local_stages(resid.rows, lo, hi, grid, free, n_basins, rise)
+    st = {"grid": grid_result, **st}
+    best = cands[0]
+    final, x_final, lo_f, hi_f = resid, best.x, lo, hi
+    use_abs = every.absolute.any() and setup.fits_intensity(True)
+    if use_abs:
+        std_all, _ = channel_stds(every, meas.source)
+        model_all = ChannelModel(every, setup.shadowing)
+        absolute = every.take(every.absolute)
+        ks0 = _ks_start(ChannelModel(absolute, setup.shadowing), resid.params(best.x), absolute,
+                        std_all[every.absolute], setup.ks_bounds)
+        final = ChannelResiduals(model_all, free + ["ks"], base, std_all, intensity=True)
+        lo_f, hi_f = np.append(lo, setup.ks_bounds[0]), np.append(hi, setup.ks_bounds[1])
+        spacing = np.array([np.median(np.diff(axes[n])) for n in free])
+        st["intensity"] = intensity_stage(final, lo_f, hi_f, np.append(best.x, ks0), np.append(spacing, ks0 * 0.1),
+                                          INTENSITY_MAXEVAL)
+        x_final = st["intensity"].value.x
+    floor = None if known else dop_noise_floor(ch.obs)
+    unc = uncertainty_stage(final, x_final, lo_f, hi_f, grid, best.sse, len(ch), known, floor).value
+    status = fit_status(best, final_ran, st["intensity"].value if use_abs else None)
+    raw = resid.raw(resid.params(x_final[:len(free)] if not use_abs else _ratio_x(x_final, free)))
+    notes = model_notes(setup.model, setup.fixed, use_abs, meas)
+    notes = [n for n in notes if not n.startswith("DOP depends on ks and kd only through kd/ks")]
+    if not use_abs:
+        notes.insert(0, "normalised Stokes parameters, Mueller elements, the DOP and the AoP depend on ks and kd only "
+                        "through kd/ks: ks is fixed at 1 and kd is the ratio kd/ks (absolute S0 or M00 separate them)")
+        if every.absolute.any():
+            notes.append(f"the absolute channels ({_label(every.take(every.absolute))}) entered only as ratios: "
+                         "ks or kd is fixed, so they cannot separate ks")
+    observed = Observed(ch.obs, raw, known, _label(ch))
+    return fit_result(meas, setup.model, setup.shadowing, final, x_final, lo_f, hi_f, unc, cands, grid, st, status,
+                      notes, observed)
+
+
+def _ratio_x(x, free):
+    """The free parameters of the normalised channels' residuals from the intensity stage's vector
+    (free + ks, kd as kd/ks): the first ``len(free)``, whose kd is already the ratio."""
+    return np.asarray(x)[:len(free)]

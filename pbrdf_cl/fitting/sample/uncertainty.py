@@ -1,0 +1,180 @@
+"""Uncertainties of a fit (:func:`uncertainty_stage`): the central-difference Jacobian at the
+optimum, the covariance, and the three kinds of 95% interval of :class:`pbrdf_cl.FitResult`
+(the posterior mixture ``ci95``, ``ci95_jacobian``, ``ci95_profile``)."""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..common import X_RESOLUTION, fd_jacobian, valid_covariance
+from .basins import local_spacing
+from .stages import StageResult
+
+#: The grid's profile enters a 95% interval where its own 95% interval spans at least this many
+#: grid cells (where it is narrower, the grid does not resolve the parameter).
+GRID_RESOLVED_CELLS = 3
+
+
+@dataclass(frozen=True)
+class Uncertainties:
+    """Output of :func:`uncertainty_stage` (see :class:`FitResult` for the intervals)."""
+    residuals: np.ndarray
+    jacobian: np.ndarray
+    chi2: float
+    dof: int
+    stderr: np.ndarray
+    cov: np.ndarray
+    corr: np.ndarray
+    condition_number: float
+    eig: tuple
+    unit: float
+    ci95: dict
+    ci95_jacobian: dict
+    ci95_profile: dict
+    noise_floor: float | None = None  # the noise standard deviation assumed where the fit is exact
+    cov_note: str | None = None  # what valid_covariance did to cov and corr (None: valid as computed)
+
+
+def uncertainty_stage(residuals, x, lo, hi, grid, dop_sse, n_points, sigma_known, noise_floor=None):
+    """(e) Statistics and uncertainties at the optimum ``x`` of ``residuals`` (names
+    ``residuals.free``): the central-difference Jacobian, covariance, and the three kinds of
+    95% interval of :class:`FitResult`; ``grid`` is the :class:`GridStage`, ``dop_sse`` the
+    DOP-only objective at the optimum (the grid's scale), ``n_points`` the measurements.
+
+    Without known uncertainties the noise variance is estimated as chi2 / dof; where that is
+    below ``noise_floor ** 2`` (see :data:`DOP_NOISE_FLOOR`) the noise is taken as known, of
+    standard deviation ``noise_floor`` (``Uncertainties.noise_floor`` says so)."""
+    from scipy.stats import norm
+    from scipy.stats import t as student_t
+    t0 = time.perf_counter()
+    names = residuals.free
+    R, J = fd_jacobian(residuals.rows, x[None], lo, hi, "central")
+    r, J = R[0], J[0].T
+    dof = r.size - len(names)
+    chi2 = float(r @ r)
+    s2 = 1.0 if sigma_known else chi2 / dof
+    unit = 1.0 if sigma_known else dop_sse / dof  # one unit of chi^2 on the DOP-only SSE scale
+    floored = not sigma_known and noise_floor is not None and not s2 >= noise_floor ** 2
+    if floored:  # an (almost) exact fit: the noise is taken as known, at the floor
+        s2 = unit = float(noise_floor) ** 2
+    known = sigma_known or floored
+    cov, cond, eig = _covariance(J, s2, hi - lo)
+    se = np.sqrt(np.clip(np.diag(cov), 0, None))
+    # with known uncertainties the Gaussian quantile, else Student's t on the residual dof
+    dist = norm if known else student_t(dof)
+    q = float(dist.ppf(0.975))
+    # never narrower than the optimizer's resolution (noise-free data would give a zero width)
+    resolution = X_RESOLUTION * (hi - lo)
+    half = np.maximum(q * se, resolution)
+    ci_jac = {n: (max(lo[i], x[i] - half[i]), min(hi[i], x[i] + half[i])) for i, n in enumerate(names)}
+    # likelihood-ratio intervals from the profile of the grid objective (banana-shaped valleys
+    # are not ellipses)
+    ci_prof = _profile_intervals(grid.profiles, grid.axes, dop_sse + 3.84 * unit)
+    ci = _posterior_intervals(names, J, x, se, lo, hi, grid, dist, resolution / q, n_points, known,
+                              s2 if floored else 1.0)
+    # symmetric positive semi-definite, correlations in [-1, 1], NaN where they cannot be computed
+    valid = valid_covariance(cov)
+    out = Uncertainties(r, J, chi2, dof, se, valid.cov, valid.corr, float(cond), eig, unit, ci, ci_jac, ci_prof,
+                        noise_floor if floored else None, valid.note(names))
+    return StageResult(out, 2 * len(names) + 1, time.perf_counter() - t0)
+
+
+def _posterior_intervals(names, J, x, se, lo, hi, grid, dist, min_se, n_points, sigma_known, chi2_unit=1.0):
+    """95% intervals: the posterior under a uniform prior over the bounds, the equal mixture of
+    the local (Laplace) approximation and the grid's profile (where the grid resolves it; its
+    SSE divided by ``chi2_unit`` is chi^2 when ``sigma_known``)."""
+    ci = {}
+    col = np.linalg.norm(J, axis=0)
+    for i, n in enumerate(names):
+        # a direction the DOP does not depend on at all has no finite standard error
+        se_i = np.inf if col[i] <= 1e-12 * max(col.max(), 1e-300) else max(se[i], min_se[i])
+        cdfs = [_truncated_cdf(dist, x[i], se_i, lo[i], hi[i])]
+        if n in grid.axes:
+            # the grid's profile counts where the grid resolves it: its own 95% interval spans
+            # several cells (a valley, a banana, a flat stretch); else it only says "near the
+            # best node", which the local approximation says better
+            prof, vals = grid.profiles[n], grid.axes[n]
+            g = _grid_cdf(prof / chi2_unit, vals, n_points, sigma_known)
+            g_a, g_b = _central_interval([g], x[i], se_i, lo[i], hi[i], vals)
+            if g_b - g_a >= GRID_RESOLVED_CELLS * local_spacing(vals, int(np.argmin(prof))):
+                cdfs.append(g)
+        ci[n] = _central_interval(cdfs, x[i], se_i, lo[i], hi[i], grid.axes.get(n, ()))
+    return ci
+
+
+def _covariance(J, s2, scale):
+    """Covariance s2 (J^T J)^+ and, in parameters scaled by their bound ranges, the condition
+    number and eigen-decomposition of J^T J."""
+    JtJ = J.T @ J
+    cov = s2 * np.linalg.pinv(JtJ, rcond=1e-15)
+    Js = J * scale[None, :]
+    w, v = np.linalg.eigh(Js.T @ Js)
+    cond = w[-1] / w[0] if w[0] > 0 else np.inf
+    return cov, cond, (w, v)
+
+
+def _profile_intervals(profiles, axes, threshold):
+    """For each free parameter, the range of grid values whose profile (min SSE over the other
+    parameters) is below ``threshold``, widened to the neighbouring nodes; None where no node is."""
+    out = {}
+    for n, prof in profiles.items():
+        ok = np.nonzero(prof <= threshold)[0]
+        if ok.size == 0:
+            out[n] = None
+            continue
+        vals = axes[n]
+        out[n] = (float(vals[max(ok[0] - 1, 0)]), float(vals[min(ok[-1] + 1, vals.size - 1)]))
+    return out
+
+
+def _truncated_cdf(dist, x, se, lo, hi):
+    """CDF of ``x + se * dist`` truncated to [lo, hi] (the Laplace approximation of the posterior
+    under a uniform prior over the bounds), as a function of the parameter value; an infinite
+    ``se`` (a direction the data do not constrain at all) gives the uniform prior itself."""
+    if not np.isfinite(se):
+        return lambda t: np.clip((t - lo) / (hi - lo), 0.0, 1.0)
+    a, b = dist.cdf((lo - x) / se), dist.cdf((hi - x) / se)
+    if not b - a > 1e-300:  # x many standard errors outside the bounds: cannot happen for a fit's x
+        return lambda t: (np.asarray(t) >= x).astype(float)
+    return lambda t: np.clip((dist.cdf((np.asarray(t) - x) / se) - a) / (b - a), 0.0, 1.0)
+
+
+def _grid_cdf(prof, vals, n_obs, sigma_known):
+    """CDF of one parameter's grid profile likelihood (``prof`` at the nodes ``vals``) normalised
+    over its bounds (a uniform prior), the likelihood linear between nodes.  With known
+    uncertainties the likelihood is exp(-chi2 / 2); else the noise is integrated out (Jeffreys
+    prior): SSE^(-N/2).  Where the data are weak this follows the valley wherever it goes
+    (banana-shaped and multimodal profiles); where they are sharp the grid's nodes miss the
+    valley floor and it is only as fine as the grid."""
+    prof = np.where(np.isfinite(prof), prof, np.inf)
+    ref = prof.min()
+    if sigma_known:
+        w = np.exp(-0.5 * (prof - ref))
+    else:
+        w = np.exp(-0.5 * n_obs * np.log(np.maximum(prof, 1e-300) / max(ref, 1e-300)))
+    cdf = np.concatenate([[0.0], np.cumsum(0.5 * (w[1:] + w[:-1]) * np.diff(vals))])
+    if not cdf[-1] > 0:  # one node: all the mass there
+        k = float(vals[int(np.argmin(prof))])
+        return lambda t: (np.asarray(t) >= k).astype(float)
+    cdf /= cdf[-1]
+    return lambda t: np.interp(t, vals, cdf)
+
+
+def _central_interval(cdfs, x, se, lo, hi, nodes=(), level=0.95):
+    """Central ``level`` interval of the equal-weight mixture of the distributions ``cdfs``
+    (callables), found on a mesh over [lo, hi] refined around x (+-8 se) and at ``nodes``."""
+    mesh = [np.linspace(lo, hi, 2001), np.asarray(nodes, float)]
+    if np.isfinite(se) and se > 0:
+        mesh.append(x + se * np.linspace(-8, 8, 321))
+    mesh = np.unique(np.clip(np.concatenate(mesh + [[x]]), lo, hi))
+    cdf = np.mean([c(mesh) for c in cdfs], axis=0)
+    cdf = np.maximum.accumulate(cdf)
+    tail = (1 - level) / 2
+
+    def inverse(p):  # linear inside the mesh cell that brackets p
+        j = int(np.clip(np.searchsorted(cdf, p, side="left"), 1, mesh.size - 1))
+        c0, c1 = cdf[j - 1], cdf[j]
+        return float(mesh[j] if c1 <= c0 else mesh[j - 1] + (p - c0) / (c1 - c0) * (mesh[j] - mesh[j - 1]))
+    return inverse(tail), inverse(1 - tail)
