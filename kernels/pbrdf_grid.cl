@@ -254,16 +254,6 @@ __kernel void objective_channels(__global real *sse, const pbidx start, const pb
 }
 
 #ifdef PB_OBJECTIVE
-/* the residual of PB_VW values (pb_channel_residual, element by element) */
-inline realv pb_channel_residual_v(realv value, real ob, int is_aop)
-{
-    const realv r = value - (realv)ob;
-    if (!is_aop)
-        return r;
-    const realv wr = r - (realv)180 * rint(r / (realv)180);
-    return isnan(wr) ? (realv)90 : wr;
-}
-
 __kernel void objective_channel_rows(__global real *sse, const pbidx row_start, const pbidx rows, PB_CHANNEL_TABLES)
 {
     const pbidx gid = get_global_id(0);
@@ -284,7 +274,7 @@ __kernel void objective_channel_rows(__global real *sse, const pbidx row_start, 
                                                  (realv)scale[m * PB_NM + s], pb_vload(0, dif + m * PB_NI + q0),
                                                  (realv)abc[3 * m], (realv)abc[3 * m + 1], (realv)abc[3 * m + 2],
                                                  aop[m]);
-            const realv r = pb_channel_residual_v(v, obs[m], aop[m]);
+            const realv r = pb_channel_residual_v(v, (realv)obs[m], aop[m]);
             acc += (realv)w[m] * r * r;
         }
         pb_vstore(acc, 0, o + q0);

@@ -60,7 +60,7 @@ class ChannelModel:
         tn, td = self.terms(p)
         fd = reference.diffuse(self.g, p["kd"], p["c"])
         ch = self.ch
-        return reference.channel_combine(tn, td, self.inv_scale(p), fd, *ch.abc.T, ch.aop)
+        return reference.channel_combine(tn, td, self.inv_scale(p), fd, *np.moveaxis(ch.abc, -1, 0), ch.aop)
 
 
 class ChannelResiduals:
