@@ -173,8 +173,9 @@ def choose_quantities(source, quantities):
         for n in names:
             if n not in MEASURED:
                 from ..ranges import did_you_mean
-                raise ValueError(f"quantities: {n!r} is not a measured quantity{did_you_mean(n, MEASURED)} "
-                                 f"({', '.join(MEASURED[:5])}, m01 .. m33)")
+                near = did_you_mean(n, MEASURED)
+                raise ValueError(f"quantities: {n!r} is not a measured quantity" + (f"; did you mean {near!r}?" if near
+                                 else "") + f" ({', '.join(MEASURED[:5])}, m01 .. m33)")
             if n not in measured:
                 raise ValueError(f"quantities: {n!r} is not in the stack, which has {', '.join(measured)}")
         if not names:

@@ -200,8 +200,9 @@ class Source:
         if unknown:
             from ..ranges import did_you_mean
             bad = sorted(unknown)[0]
-            raise ValueError(f"data: unknown variable {bad!r}{did_you_mean(bad, VARIABLES)}; variables are "
-                             f"{VARIABLES_TEXT}")
+            near = did_you_mean(bad, VARIABLES)
+            raise ValueError(f"data: unknown variable {bad!r}" + (f" (did you mean {near!r}?)" if near else "")
+                             + f"; variables are {VARIABLES_TEXT}")
         measured = measured_of(data)
         if not measured:
             raise ValueError(f"data: no measured array ({', '.join(MEASURED[:5])}, ...)")
@@ -472,7 +473,7 @@ def _check_polarimetric(block, where, first, source):
         bad = np.isinf(block["aop"])
         if bad.any():
             raise ValueError(f"aop must be finite (degrees; NaN for a missing measurement), got {first('aop', bad)}")
-    given = [n for n in INCIDENT if n in block]
+    given = sorted((n for n in INCIDENT if n in block), key=lambda n: -np.ndim(block[n]))  # per pixel first
     if given:
         inc = [np.broadcast_to(block[n], block[given[0]].shape) for n in given]
         for n, a in zip(given, inc):
@@ -484,7 +485,7 @@ def _check_polarimetric(block, where, first, source):
         bad = norm2 > 1.0 + 1e-9
         if bad.any():
             i = int(np.argmax(bad.reshape(-1)))
-            state = ", ".join(f"{n} = {float(a.reshape(-1)[i]):g}" for n, a in zip(given, inc))
+            state = ", ".join(f"{n} = {float(a.reshape(-1)[i]):g}" for n, a in sorted(zip(given, inc)))
             raise ValueError(f"the incident state at index {where(given[0], i)} ({state}) is not a Stokes vector: "
                              f"in_s1^2 + in_s2^2 + in_s3^2 = {float(norm2.reshape(-1)[i]):.4g} > 1 (normalised by S0)")
     names = [n for n in POLARIMETRIC if n in block and n != "aop"]
