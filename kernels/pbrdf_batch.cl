@@ -356,6 +356,10 @@ inline void pb_accumulate(real res, const real *col, real *sse, real *A, real *g
     }
 }
 
+#ifndef PB_NQ
+#define PB_NQ 1
+#endif
+
 /* Evaluate the weighted residuals at x (and the Jacobian's normal equations) for the lanes'
  * problems; h: the forward steps in x (internal coordinates). */
 inline void pb_evaluate(const real *x, const real *h, __global const scalar *base,
@@ -380,6 +384,66 @@ inline void pb_evaluate(const real *x, const real *h, __global const scalar *bas
             xs[j] = x[j] + (i == j ? h[j] : (real)0);
         ps[i] = pb_params(xs, base);
     }
+#ifdef PB_CHANNELS
+    /* M polarimetric channels in groups of PB_NQ consecutive channels at one geometry (the quantities
+     * measured at one measurement): per group the geometry's factors and P = R_out M^s R_in once (and
+     * once per column that moves n or k), per channel its terms and value, the forward differences
+     * of its wrapped residual (an AoP's) along each free parameter.  (Written here, not as a function
+     * of ps: Oclgrind cannot create the kernel with one.) */
+    for (int m0 = 0; m0 < M; m0 += PB_NQ) {
+        const pb_geom g = pb_geom_at(geo, m0, p0, M, P);
+        const pb_frames fr = pb_frames_at(geo, m0, p0, M, P);
+        const pb_fresnel_t f = pb_fresnel(p.n, p.k, g.cb, g.sb);
+        const real logK = pb_log_specular_scale(g, p.sigma, p.ks, pb_shadowing_factor(g, p.sigma, PBRDF_SHADOWING));
+        const real inv_K = pb_exp(-logK), mn = pb_minnaert(g, p.c);
+        const real fd = pb_diffuse_of(p.kd, mn);
+        real P0[16];
+        pb_mueller_at(f, fr, (real)1, (real)0, P0);
+        /* per channel of the group (its pb_chan read again where it is needed) */
+        real sw[PB_NQ], tn0[PB_NQ], td0[PB_NQ], v0[PB_NQ], col[PB_NQ * PB_D];
+        for (int j = 0; j < PB_NQ; j++) {
+            const pb_chan ch = pb_chan_at(geo, chan, m0 + j, p0, M, P);
+            sw[j] = sqrt(pb_vl(0, w + (m0 + j) * P + p0));
+            tn0[j] = pb_channel_terms(P0, ch.u, ch.v, ch.comp, ch.kind, &td0[j]);
+            v0[j] = pb_chan_value(&ch, tn0[j], td0[j], inv_K, fd);
+        }
+        for (int i = 0; i < PB_D; i++) {
+            const pb_par q = ps[i];
+            /* only the factors the moved parameter enters are recomputed */
+            const int moves_f = i == PB_X_N || i == PB_X_K;
+            const int moves_s = i == PB_X_SIGMA || i == PB_X_KS;
+            const real inv_Ki = moves_s ? pb_exp(-pb_log_specular_scale(g, q.sigma, q.ks,
+                                                                          pb_shadowing_factor(g, q.sigma,
+                                                                                              PBRDF_SHADOWING)))
+                                        : inv_K;
+            const real fdi = i == PB_X_C ? pb_diffuse(g, q.kd, q.c)
+                                         : ((i == PB_X_KD || i == PB_X_KS) ? pb_diffuse_of(q.kd, mn) : fd);
+            real Pi[16];
+            if (moves_f)
+                pb_mueller_at(pb_fresnel(q.n, q.k, g.cb, g.sb), fr, (real)1, (real)0, Pi);
+            for (int j = 0; j < PB_NQ; j++) {
+                const pb_chan ch = pb_chan_at(geo, chan, m0 + j, p0, M, P);
+                real tni = tn0[j], tdi = td0[j];
+                if (moves_f)
+                    tni = pb_channel_terms(Pi, ch.u, ch.v, ch.comp, ch.kind, &tdi);
+                col[j * PB_D + i] = sw[j] * pb_channel_residual(pb_chan_value(&ch, tni, tdi, inv_Ki, fdi), v0[j],
+                                                                ch.aop) / h[i];
+            }
+        }
+        for (int j = 0; j < PB_NQ; j++) {
+            const int m = m0 + j;
+            const int aop = (int)chan[5 * m + 1] == PB_CHANNEL_AOP;
+            const real res0 = sw[j] * pb_channel_residual(v0[j], pb_vl(0, obs + m * P + p0), aop);
+            pb_accumulate(res0, col + j * PB_D, sse, A, gr);
+#ifdef PB_GEODESIC
+            /* this channel's Jacobian row and residual, for the geodesic acceleration */
+            for (int i = 0; i < PB_D; i++)
+                pb_vs(col[j * PB_D + i], 0, rows + (size_t)(m * (PB_D + 1) + i) * PB_N);
+            pb_vs(res0, 0, rows + (size_t)(m * (PB_D + 1) + PB_D) * PB_N);
+#endif
+        }
+    }
+#else
     for (int m = 0; m < M; m++) {
         const int o = m * P + p0;
         const pb_geom g = pb_geom_at(geo, m, p0, M, P);
@@ -389,18 +453,7 @@ inline void pb_evaluate(const real *x, const real *h, __global const scalar *bas
         /* 1/K and the Minnaert factor, shared by the columns that do not move them */
         const real inv_K = pb_exp(-logK), mn = pb_minnaert(g, p.c);
         const real fd = pb_diffuse_of(p.kd, mn);
-#ifdef PB_CHANNELS
-        /* the channel's value (dop0 below) and its terms, which only n and k move */
-        const pb_chan ch = pb_chan_at(geo, chan, m, p0, M, P);
-        const pb_frames fr = pb_frames_at(geo, m, p0, M, P);
-        real td0;
-        const real tn0 = pb_chan_terms(f, fr, &ch, &td0);
-        const real dop0 = pb_chan_value(&ch, tn0, td0, inv_K, fd);
-        const real res0 = sw * pb_channel_residual(dop0, pb_vl(0, obs + o), ch.aop);
-#else
         const real dop0 = pb_dop_at(f, inv_K, fd);
-        const real res0 = sw * (dop0 - pb_vl(0, obs + o));
-#endif
         real col[PB_D];
 #ifdef PB_INTENSITY
         const real swf = sqrt(pb_vl(0, fw + o));
@@ -419,29 +472,23 @@ inline void pb_evaluate(const real *x, const real *h, __global const scalar *bas
             const real inv_Ki = moves_s ? pb_exp(-logKi) : inv_K;
             const real fdi = i == PB_X_C ? pb_diffuse(g, q.kd, q.c)
                                          : ((i == PB_X_KD || i == PB_X_KS) ? pb_diffuse_of(q.kd, mn) : fd);
-#ifdef PB_CHANNELS
-            real tni = tn0, tdi = td0;
-            if (moves_f)
-                tni = pb_chan_terms(fi, fr, &ch, &tdi);
-            col[i] = sw * pb_channel_residual(pb_chan_value(&ch, tni, tdi, inv_Ki, fdi), dop0, ch.aop) / h[i];
-#else
             col[i] = sw * (pb_dop_at(fi, inv_Ki, fdi) - dop0) / h[i];
-#endif
 #ifdef PB_INTENSITY
             fcol[i] = swf * (pb_brdf(fi, logKi, fdi) - f000) / h[i];
 #endif
         }
-        pb_accumulate(res0, col, sse, A, gr);
+        pb_accumulate(sw * (dop0 - pb_vl(0, obs + o)), col, sse, A, gr);
 #ifdef PB_GEODESIC
         /* this point's Jacobian row and residual, for the geodesic acceleration */
         for (int i = 0; i < PB_D; i++)
             pb_vs(col[i], 0, rows + (size_t)(m * (PB_D + 1) + i) * PB_N);
-        pb_vs(res0, 0, rows + (size_t)(m * (PB_D + 1) + PB_D) * PB_N);
+        pb_vs(sw * (dop0 - pb_vl(0, obs + o)), 0, rows + (size_t)(m * (PB_D + 1) + PB_D) * PB_N);
 #endif
 #ifdef PB_INTENSITY
         pb_accumulate(swf * (f000 - pb_vl(0, fobs + o)), fcol, sse, A, gr);
 #endif
     }
+#endif
     for (int i = 0; i < PB_D; i++)
         for (int j = i + 1; j < PB_D; j++)
             A[i * PB_D + j] = A[j * PB_D + i];

@@ -247,6 +247,7 @@ def device_lm(eng, setup, blk, X0, names, dtype, iterations, intensity, coords=L
         defines["PB_PIXEL_GEOMETRY"] = None
     if blk.spec is not None:
         defines["PB_CHANNELS"] = None
+        defines["PB_NQ"] = blk.nq  # the channels of one measurement share its geometry's factors
     prog = eng.program("pbrdf_batch.cl", dtype, defines)
     Xi = np.zeros((D, S, P))
     Xi[:, :, :p] = np.moveaxis(coords.to_internal(X0, names), -1, 0)

@@ -121,6 +121,7 @@ class Block:
         if setup.channels:
             self.spec = channel_spec(raw, setup.quantities, self.shared)
             names = [n for n in measurables.REGISTRY if n in setup.quantities]
+            self.nq = len(names)  # channels per measurement, consecutive: channel m * nq + j
             dop = np.stack([raw[n] for n in names], axis=2).reshape(raw[names[0]].shape[0], -1)
             stds = [raw.get(f"{n}_std") for n in names]
             std = None if stds[0] is None else np.stack([np.broadcast_to(s, raw[n].shape) for n, s in
