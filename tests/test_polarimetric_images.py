@@ -318,3 +318,18 @@ def test_a_state_given_partly_shared_partly_per_pixel():
     np.testing.assert_array_equal(blk.spec.u[:, :, 2], 1.0)
     r = pbrdf_cl.fit_batch(mixed, backend="numpy")
     np.testing.assert_allclose(r.n.values, TRUTH["n"], rtol=1e-5)
+
+
+def test_narrow_vectors_change_no_channel_value(engine):
+    """The channel kernels at 256-bit vectors (PB_VW, PB_VECTOR_REAL 8 / 4) give every value of the
+    512-bit builds, bit for bit: each lane computes alone (shared and per-pixel stacks)."""
+    from pbrdf_cl.device import engine as E
+    from pbrdf_cl.device import sources
+    if E.narrow_reason(engine.device):
+        pytest.skip(f"this device builds 256-bit vectors only: {E.narrow_reason(engine.device)}")
+    narrow = E.Engine(engine.device)
+    narrow.vector_width, narrow.lm_lanes = dict(sources.NARROW_VECTOR_WIDTH), dict(sources.NARROW_LM_LANES)
+    for data in (shared_stack(), per_pixel_stack()):
+        a, b = (pbrdf_cl.fit_batch(data, engine=eng, grid_shape=SMALL_GRID, n_starts=8) for eng in (engine, narrow))
+        for v in ("n", "k", "sigma", "kd", "c", "chi2", "status"):
+            np.testing.assert_array_equal(a[v].values, b[v].values, err_msg=v)
