@@ -414,15 +414,20 @@ inline real pb_channel(pb_fresnel_t f, pb_frames fr, real logK, real fd, const r
 }
 
 /* The residual of a channel's value against its measurement, wrapped into (-90, 90] for an AoP
- * (angles modulo 180 degrees); an undefined AoP (NaN) is 90 degrees off. */
-inline real pb_channel_residual(real value, real obs, int aop)
-{
-    const real r = value - obs;
-    if (!aop)
-        return r;
-    const real w = r - (real)180 * rint(r / (real)180);
-    return isnan(w) ? (real)90 : w;
-}
+ * (angles modulo 180 degrees); an undefined AoP (NaN) is 90 degrees off.  Written once as a body for
+ * any real type T (pb_channel_residual_v: PB_VW values at once, one measurement). */
+#define PB_CHANNEL_RESIDUAL_BODY(T)                                          \
+    {                                                                        \
+        const T r = value - obs;                                             \
+        if (!aop)                                                            \
+            return r;                                                        \
+        const T w = r - (T)180 * rint(r / (T)180);                           \
+        return isnan(w) ? (T)90 : w;                                         \
+    }
+inline real pb_channel_residual(real value, real obs, int aop) PB_CHANNEL_RESIDUAL_BODY(real)
+#if !defined(PB_VECTOR_REAL) && !defined(PB_HOST_C)
+inline realv pb_channel_residual_v(realv value, realv obs, int aop) PB_CHANNEL_RESIDUAL_BODY(realv)
+#endif
 
 /* ---- The output quantities.  Each has two entry points of fixed signature, named after its
  * registry name (pbrdf_cl/quantities.py: the kernels are built with -DPB_QUANTITY=<name>):

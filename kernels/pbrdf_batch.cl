@@ -18,6 +18,16 @@
  *                      list m * P + p, laid out table[param * (M P) + m * P + p], combined per
  *                      pixel and grid point (pb_dop_combine); grid point q is order[q], decoded
  *                      as (nk * PB_NM + s) * PB_NI + j.
+ * Polarimetric channels (pbrdf_cl.model.measurables: s1, s2, s3, Mueller elements, DOP, AoP under
+ * any incident state; one channel = one number measured at one measurement index, C per pixel):
+ *   batch_channel_values  shared geometry and incident states: the value table T[q * C + c] of
+ *                      every grid point q (region order) and channel c, from compute.channels' tables
+ *                      (pb_channel_combine), computed once;
+ *   batch_grid_channels   each pixel's sum_c w_c r_c^2 over T, r = pb_channel_residual (an AoP's
+ *                      wrapped modulo 180 degrees, so not the product form of batch_grid_table);
+ *   batch_grid_channel_factors  per-pixel geometry or incident states: channel_table, scale_table
+ *                      (1/K) and diffuse_table (fd) of pbrdf_tables.cl for the list c * P + p, laid
+ *                      out as batch_grid_factors' tables, combined per pixel and grid point.
  *
  * LM stage (built with -DPB_VECTOR_REAL=N: N problems per work-item as the lanes of real):
  *   batch_lm           from a start per problem (problem = start slot * P + pixel), a bounded
@@ -30,7 +40,11 @@
  *   (then kd in x is kd/ks and ks enters x as log ks); PB_PIXEL_GEOMETRY reads the geometry table
  *   per pixel instead of shared (pb_geom_at); PB_GEODESIC the geodesic acceleration; PB_LOG_N, PB_LOG_K,
  *   PB_LOG_KD: x holds log(n - 1), log k, log kd instead of n, k, kd (a corner's coordinates:
- *   pbrdf_cl.batch.CORNERS); PBRDF_SHADOWING.
+ *   pbrdf_cl.batch.CORNERS); PBRDF_SHADOWING.  PB_CHANNELS: the residuals are M polarimetric channels
+ *   instead of M DOP values (pb_channel_terms, pb_channel_combine, pb_channel_residual: an AoP's
+ *   residuals and differences wrapped): the geometry table then also holds each channel's frame
+ *   rotations and its incident and normalising vectors u, v (rows 7..18, see pb_chan_at), and
+ *   chan[5 m ..] its component, kind and coefficients a, b, c (the same for every pixel).
  */
 #include "pbrdf.h"
 
@@ -79,6 +93,58 @@ __kernel void batch_grid_table(__global real *best, __global real *arg, const in
     }
 }
 
+__kernel void batch_grid_channels(__global real *best, __global real *arg, const int P, const int C,
+                                  __global const real *T, __global const int *rstart, const int R,
+                                  __global const real *obs, __global const real *w, __global const int *aop)
+{
+    const int p0 = get_global_id(0) * PB_VW;
+    if (p0 >= P) return;
+    for (int r = 0; r < R; r++) {
+        realv bs = (realv)INFINITY, bq = (realv)0;
+        const int q1 = rstart[r + 1];
+        for (int q0 = rstart[r]; q0 < q1; q0 += PB_TILE) {
+            realv acc[PB_TILE];
+            __global const real *t[PB_TILE];
+            for (int u = 0; u < PB_TILE; u++) {
+                acc[u] = (realv)0;
+                t[u] = T + (size_t)min(q0 + u, q1 - 1) * C;  /* clamped: the last tile re-reads */
+            }
+            for (int c = 0; c < C; c++) {
+                const realv wc = pb_vload(0, w + c * P + p0), oc = pb_vload(0, obs + c * P + p0);
+                const int is_aop = aop[c];
+                for (int u = 0; u < PB_TILE; u++) {
+                    const realv res = pb_channel_residual_v((realv)t[u][c], oc, is_aop);
+                    acc[u] = fma(wc * res, res, acc[u]);
+                }
+            }
+            for (int u = 0; u < PB_TILE && q0 + u < q1; u++) {
+                const realv q_ = (realv)(real)(q0 + u);
+                bq = acc[u] < bs ? q_ : bq;
+                bs = acc[u] < bs ? acc[u] : bs;
+            }
+        }
+        pb_vstore(bs, 0, best + r * P + p0);
+        pb_vstore(bq, 0, arg + r * P + p0);
+    }
+}
+
+/* Global size (G, C): T[q * C + c] of grid point q (region order: order[q], decoded as in
+ * batch_grid_factors over nm (sigma, ks) pairs and ni (kd, c) pairs, given at run time: one program
+ * for every grid) and channel c, from the tables tn/td[c * nnk + nk], 1/K as scale[c * nm + s], fd as
+ * dif[c * ni + j]. */
+__kernel void batch_channel_values(__global real *T, const int G, const int C, __global const int *order,
+                                   const int nnk, const int nm, const int ni,
+                                   __global const real *tn, __global const real *td, __global const real *scale,
+                                   __global const real *dif, __global const real *abc, __global const int *aop)
+{
+    const int q = get_global_id(0), c = get_global_id(1);
+    if (q >= G || c >= C) return;
+    const int gp = order[q];
+    const int j = gp % ni, s = (gp / ni) % nm, nk = gp / (ni * nm);
+    T[(size_t)q * C + c] = pb_channel_combine(tn[c * nnk + nk], td[c * nnk + nk], scale[c * nm + s],
+                                              dif[c * ni + j], abc[3 * c], abc[3 * c + 1], abc[3 * c + 2], aop[c]);
+}
+
 #ifdef PB_NI
 __kernel void batch_grid_factors(__global real *best, __global real *arg, const int P, const int M,
                                  __global const real *sum, __global const real *diff,
@@ -105,6 +171,42 @@ __kernel void batch_grid_factors(__global real *best, __global real *arg, const 
             }
             const realv q_ = (realv)(real)q;
             /* a NaN sum never wins: acc < bs is false */
+            bq = acc < bs ? q_ : bq;
+            bs = acc < bs ? acc : bs;
+        }
+        pb_vstore(bs, 0, best + r * P + p0);
+        pb_vstore(bq, 0, arg + r * P + p0);
+    }
+}
+
+__kernel void batch_grid_channel_factors(__global real *best, __global real *arg, const int P, const int C,
+                                         __global const real *tn, __global const real *td,
+                                         __global const real *scale, __global const real *dif,
+                                         __global const int *order, __global const int *rstart, const int R,
+                                         __global const real *obs, __global const real *w,
+                                         __global const real *abc, __global const int *aop)
+{
+    const int p0 = get_global_id(0) * PB_VW;
+    if (p0 >= P) return;
+    const int ng = C * P;
+    for (int r = 0; r < R; r++) {
+        realv bs = (realv)INFINITY, bq = (realv)0;
+        for (int q = rstart[r]; q < rstart[r + 1]; q++) {
+            const int gp = order[q];
+            const int j = gp % PB_NI, s = (gp / PB_NI) % PB_NM, nk = gp / (PB_NI * PB_NM);
+            __global const real *n_ = tn + (size_t)nk * ng + p0, *d_ = td + (size_t)nk * ng + p0;
+            __global const real *sc = scale + (size_t)s * ng + p0, *fd = dif + (size_t)j * ng + p0;
+            realv acc = (realv)0;
+            for (int c = 0; c < C; c++) {
+                const int o = c * P;
+                const int is_aop = aop[c];
+                const realv v = pb_channel_combine_v(pb_vload(0, n_ + o), pb_vload(0, d_ + o), pb_vload(0, sc + o),
+                                                     pb_vload(0, fd + o), abc[3 * c], abc[3 * c + 1], abc[3 * c + 2],
+                                                     is_aop);
+                const realv res = pb_channel_residual_v(v, pb_vload(0, obs + o + p0), is_aop);
+                acc = fma(pb_vload(0, w + o + p0) * res, res, acc);
+            }
+            const realv q_ = (realv)(real)q;
             bq = acc < bs ? q_ : bq;
             bs = acc < bs ? acc : bs;
         }
@@ -185,6 +287,63 @@ inline pb_geom pb_geom_at(__global const scalar *geo, const int m, const int p0,
     return g;
 }
 
+#ifdef PB_CHANNELS
+/* A polarimetric channel of the descent: its incident and normalising vectors (per pixel where the
+ * geometry is), component, kind (uniform: the same for every lane) and coefficients. */
+typedef struct {
+    real u[4], v[4];
+    int comp, kind, aop;
+    scalar a, b, c;  /* pb_channel_combine's coefficients: uniform */
+} pb_chan;
+
+/* Channel m's outgoing and incoming frame rotations (rows 7..10 of the geometry table: ci, si, co,
+ * so of pb_frame_rotations, from the host's reference.frame_rotations), its vectors u and v (rows
+ * 11..14, 15..18) and chan[5 m ..] = comp, kind, a, b, c. */
+#ifdef PB_PIXEL_GEOMETRY
+#define PB_G(c) pb_vl(0, geo + ((size_t)(c) * M + m) * P + p0)
+#else
+#define PB_G(c) ((real)geo[(c) * M + m])
+#endif
+inline pb_frames pb_frames_at(__global const scalar *geo, const int m, const int p0, const int M, const int P)
+{
+    pb_frames fr;
+    fr.ci = PB_G(7); fr.si = PB_G(8); fr.co = PB_G(9); fr.so = PB_G(10);
+    return fr;
+}
+
+inline pb_chan pb_chan_at(__global const scalar *geo, __global const scalar *chan, const int m, const int p0,
+                          const int M, const int P)
+{
+    pb_chan ch;
+    for (int j = 0; j < 4; j++) {
+        ch.u[j] = PB_G(11 + j);
+        ch.v[j] = PB_G(15 + j);
+    }
+    ch.comp = (int)chan[5 * m];
+    ch.kind = (int)chan[5 * m + 1];
+    ch.aop = ch.kind == PB_CHANNEL_AOP;
+    ch.a = (scalar)chan[5 * m + 2];
+    ch.b = (scalar)chan[5 * m + 3];
+    ch.c = (scalar)chan[5 * m + 4];
+    return ch;
+}
+#undef PB_G
+
+/* The channel's terms (tn, *td) of P = R_out M^s R_in per unit K (pb_mueller_at, pb_channel_terms). */
+inline real pb_chan_terms(pb_fresnel_t f, pb_frames fr, const pb_chan *ch, real *td)
+{
+    real m[16];
+    pb_mueller_at(f, fr, (real)1, (real)0, m);
+    return pb_channel_terms(m, ch->u, ch->v, ch->comp, ch->kind, td);
+}
+
+/* The channel's value from its terms, 1/K and fd (pb_channel_combine). */
+inline real pb_chan_value(const pb_chan *ch, real tn, real td, real inv_K, real fd)
+{
+    return pb_channel_combine(tn, td, inv_K, fd, ch->a, ch->b, ch->c, ch->aop);
+}
+#endif
+
 /* Residuals (DOP, and F00 with intensities) of one measurement and their forward differences
  * along each free parameter, accumulated into sse, A = J^T J (row-major PB_D x PB_D), gr = J^T r. */
 inline void pb_accumulate(real res, const real *col, real *sse, real *A, real *gr)
@@ -197,6 +356,10 @@ inline void pb_accumulate(real res, const real *col, real *sse, real *A, real *g
     }
 }
 
+#ifndef PB_NQ
+#define PB_NQ 1
+#endif
+
 /* Evaluate the weighted residuals at x (and the Jacobian's normal equations) for the lanes'
  * problems; h: the forward steps in x (internal coordinates). */
 inline void pb_evaluate(const real *x, const real *h, __global const scalar *base,
@@ -204,7 +367,7 @@ inline void pb_evaluate(const real *x, const real *h, __global const scalar *bas
                         __global const scalar *obs, __global const scalar *w,
                         __global const scalar *fobs, __global const scalar *fw,
                         const int P, const int M, const int p0, real *sse, real *A, real *gr,
-                        __global scalar *rows, const int Q, const int q0)
+                        __global scalar *rows, const int Q, const int q0, __global const scalar *chan)
 {
     *sse = (real)0;
     for (int i = 0; i < PB_D; i++) {
@@ -221,6 +384,66 @@ inline void pb_evaluate(const real *x, const real *h, __global const scalar *bas
             xs[j] = x[j] + (i == j ? h[j] : (real)0);
         ps[i] = pb_params(xs, base);
     }
+#ifdef PB_CHANNELS
+    /* M polarimetric channels in groups of PB_NQ consecutive channels at one geometry (the quantities
+     * measured at one measurement): per group the geometry's factors and P = R_out M^s R_in once (and
+     * once per column that moves n or k), per channel its terms and value, the forward differences
+     * of its wrapped residual (an AoP's) along each free parameter.  (Written here, not as a function
+     * of ps: Oclgrind cannot create the kernel with one.) */
+    for (int m0 = 0; m0 < M; m0 += PB_NQ) {
+        const pb_geom g = pb_geom_at(geo, m0, p0, M, P);
+        const pb_frames fr = pb_frames_at(geo, m0, p0, M, P);
+        const pb_fresnel_t f = pb_fresnel(p.n, p.k, g.cb, g.sb);
+        const real logK = pb_log_specular_scale(g, p.sigma, p.ks, pb_shadowing_factor(g, p.sigma, PBRDF_SHADOWING));
+        const real inv_K = pb_exp(-logK), mn = pb_minnaert(g, p.c);
+        const real fd = pb_diffuse_of(p.kd, mn);
+        real P0[16];
+        pb_mueller_at(f, fr, (real)1, (real)0, P0);
+        /* per channel of the group (its pb_chan read again where it is needed) */
+        real sw[PB_NQ], tn0[PB_NQ], td0[PB_NQ], v0[PB_NQ], col[PB_NQ * PB_D];
+        for (int j = 0; j < PB_NQ; j++) {
+            const pb_chan ch = pb_chan_at(geo, chan, m0 + j, p0, M, P);
+            sw[j] = sqrt(pb_vl(0, w + (m0 + j) * P + p0));
+            tn0[j] = pb_channel_terms(P0, ch.u, ch.v, ch.comp, ch.kind, &td0[j]);
+            v0[j] = pb_chan_value(&ch, tn0[j], td0[j], inv_K, fd);
+        }
+        for (int i = 0; i < PB_D; i++) {
+            const pb_par q = ps[i];
+            /* only the factors the moved parameter enters are recomputed */
+            const int moves_f = i == PB_X_N || i == PB_X_K;
+            const int moves_s = i == PB_X_SIGMA || i == PB_X_KS;
+            const real inv_Ki = moves_s ? pb_exp(-pb_log_specular_scale(g, q.sigma, q.ks,
+                                                                          pb_shadowing_factor(g, q.sigma,
+                                                                                              PBRDF_SHADOWING)))
+                                        : inv_K;
+            const real fdi = i == PB_X_C ? pb_diffuse(g, q.kd, q.c)
+                                         : ((i == PB_X_KD || i == PB_X_KS) ? pb_diffuse_of(q.kd, mn) : fd);
+            real Pi[16];
+            if (moves_f)
+                pb_mueller_at(pb_fresnel(q.n, q.k, g.cb, g.sb), fr, (real)1, (real)0, Pi);
+            for (int j = 0; j < PB_NQ; j++) {
+                const pb_chan ch = pb_chan_at(geo, chan, m0 + j, p0, M, P);
+                real tni = tn0[j], tdi = td0[j];
+                if (moves_f)
+                    tni = pb_channel_terms(Pi, ch.u, ch.v, ch.comp, ch.kind, &tdi);
+                col[j * PB_D + i] = sw[j] * pb_channel_residual(pb_chan_value(&ch, tni, tdi, inv_Ki, fdi), v0[j],
+                                                                ch.aop) / h[i];
+            }
+        }
+        for (int j = 0; j < PB_NQ; j++) {
+            const int m = m0 + j;
+            const int aop = (int)chan[5 * m + 1] == PB_CHANNEL_AOP;
+            const real res0 = sw[j] * pb_channel_residual(v0[j], pb_vl(0, obs + m * P + p0), aop);
+            pb_accumulate(res0, col + j * PB_D, sse, A, gr);
+#ifdef PB_GEODESIC
+            /* this channel's Jacobian row and residual, for the geodesic acceleration */
+            for (int i = 0; i < PB_D; i++)
+                pb_vs(col[j * PB_D + i], 0, rows + (size_t)(m * (PB_D + 1) + i) * PB_N);
+            pb_vs(res0, 0, rows + (size_t)(m * (PB_D + 1) + PB_D) * PB_N);
+#endif
+        }
+    }
+#else
     for (int m = 0; m < M; m++) {
         const int o = m * P + p0;
         const pb_geom g = pb_geom_at(geo, m, p0, M, P);
@@ -265,6 +488,7 @@ inline void pb_evaluate(const real *x, const real *h, __global const scalar *bas
         pb_accumulate(swf * (f000 - pb_vl(0, fobs + o)), fcol, sse, A, gr);
 #endif
     }
+#endif
     for (int i = 0; i < PB_D; i++)
         for (int j = i + 1; j < PB_D; j++)
             A[i * PB_D + j] = A[j * PB_D + i];
@@ -282,7 +506,7 @@ inline void pb_accel_rhs(const real *x, const real *du, const real *span, const 
                          __global const scalar *geo,
                          __global const scalar *obs, __global const scalar *w,
                          const int P, const int M, const int p0, __global const scalar *rows, const int Q,
-                         const int q0, real *b)
+                         const int q0, real *b, __global const scalar *chan)
 {
     real xv[PB_D];
     for (int i = 0; i < PB_D; i++) {
@@ -295,7 +519,15 @@ inline void pb_accel_rhs(const real *x, const real *du, const real *span, const 
         const pb_geom g = pb_geom_at(geo, m, p0, M, P);
         const pb_fresnel_t f = pb_fresnel(p.n, p.k, g.cb, g.sb);
         const real logK = pb_log_specular_scale(g, p.sigma, p.ks, pb_shadowing_factor(g, p.sigma, PBRDF_SHADOWING));
+#ifdef PB_CHANNELS
+        const pb_chan ch = pb_chan_at(geo, chan, m, p0, M, P);
+        real td;
+        const real tn = pb_chan_terms(f, pb_frames_at(geo, m, p0, M, P), &ch, &td);
+        const real rv = sqrt(pb_vl(0, w + o)) * pb_channel_residual(
+            pb_chan_value(&ch, tn, td, pb_exp(-logK), pb_diffuse(g, p.kd, p.c)), pb_vl(0, obs + o), ch.aop);
+#else
         const real rv = sqrt(pb_vl(0, w + o)) * (pb_dop(f, logK, pb_diffuse(g, p.kd, p.c)) - pb_vl(0, obs + o));
+#endif
         real jrow[PB_D], jdu = (real)0;
         for (int i = 0; i < PB_D; i++) {
             jrow[i] = pb_vl(0, rows + (size_t)(m * (PB_D + 1) + i) * PB_N) * span[i];
@@ -422,7 +654,8 @@ __kernel void batch_lm(__global scalar *X, __global scalar *sse_out, __global sc
                        __global const scalar *base, __global const scalar *lo, __global const scalar *hi,
                        __global const scalar *geo,
                        __global const scalar *obs, __global const scalar *w,
-                       __global const scalar *fobs, __global const scalar *fw, __global scalar *rows)
+                       __global const scalar *fobs, __global const scalar *fw, __global scalar *rows,
+                       __global const scalar *chan)
 {
     const int q0 = get_global_id(0) * PB_N;
     /* rows: two slots of M x (PB_D + 1) lane vectors per work-item, contiguous (the current
@@ -439,7 +672,7 @@ __kernel void batch_lm(__global scalar *X, __global scalar *sse_out, __global sc
         x[i] = clamp(pb_vl(0, X + i * Q + q0), (real)lo[i], (real)hi[i]);
     }
     pb_steps(x, hi, h);
-    pb_evaluate(x, h, base, geo, obs, w, fobs, fw, P, M, p0, &sse, A, gr, cur, Q, q0);
+    pb_evaluate(x, h, base, geo, obs, w, fobs, fw, P, M, p0, &sse, A, gr, cur, Q, q0, chan);
     real lam = (real)1e-3 * pb_scaled_trace(A, span) / (real)PB_D;
     lam = isfinite(lam) && lam > (real)0 ? lam : (real)1e-3;
     /* 1 while this lane descends, 0 once it has settled or its damping saturated: a lane stops
@@ -489,7 +722,7 @@ __kernel void batch_lm(__global scalar *X, __global scalar *sse_out, __global sc
          * (else the plain step): the step is du + a / 2, which follows a curved valley */
         {
             real b[PB_D], a[PB_D], fixed[PB_D], ok3 = (real)1;
-            pb_accel_rhs(x, du, span, (real)0.1, lo, hi, base, geo, obs, w, P, M, p0, cur, Q, q0, b);
+            pb_accel_rhs(x, du, span, (real)0.1, lo, hi, base, geo, obs, w, P, M, p0, cur, Q, q0, b, chan);
             for (int i = 0; i < PB_D; i++) {
                 fixed[i] = (held[i] > (real)0 || hit[i] > (real)0) ? (real)1 : (real)0;
                 b[i] = fixed[i] > (real)0 ? (real)0 : b[i];
@@ -510,7 +743,7 @@ __kernel void batch_lm(__global scalar *X, __global scalar *sse_out, __global sc
         for (int i = 0; i < PB_D; i++)
             xt[i] = clamp(x[i] + du[i] * span[i], (real)lo[i], (real)hi[i]);
         pb_steps(xt, hi, ht);
-        pb_evaluate(xt, ht, base, geo, obs, w, fobs, fw, P, M, p0, &sset, At, grt, trial, Q, q0);
+        pb_evaluate(xt, ht, base, geo, obs, w, fobs, fw, P, M, p0, &sset, At, grt, trial, Q, q0, chan);
         const real better = (sset < sse ? (real)1 : (real)0) * active;
         const int any_better = any(better > (real)0);
         if (any_better) {

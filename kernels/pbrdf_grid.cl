@@ -254,16 +254,6 @@ __kernel void objective_channels(__global real *sse, const pbidx start, const pb
 }
 
 #ifdef PB_OBJECTIVE
-/* the residual of PB_VW values (pb_channel_residual, element by element) */
-inline realv pb_channel_residual_v(realv value, real ob, int is_aop)
-{
-    const realv r = value - (realv)ob;
-    if (!is_aop)
-        return r;
-    const realv wr = r - (realv)180 * rint(r / (realv)180);
-    return isnan(wr) ? (realv)90 : wr;
-}
-
 __kernel void objective_channel_rows(__global real *sse, const pbidx row_start, const pbidx rows, PB_CHANNEL_TABLES)
 {
     const pbidx gid = get_global_id(0);
@@ -283,7 +273,7 @@ __kernel void objective_channel_rows(__global real *sse, const pbidx row_start, 
             const realv v = pb_channel_combine_v((realv)tn[m * PB_NNK + nk], (realv)td[m * PB_NNK + nk],
                                                  (realv)scale[m * PB_NM + s], pb_vload(0, dif + m * PB_NI + q0),
                                                  abc[3 * m], abc[3 * m + 1], abc[3 * m + 2], aop[m]);
-            const realv r = pb_channel_residual_v(v, obs[m], aop[m]);
+            const realv r = pb_channel_residual_v(v, (realv)obs[m], aop[m]);
             acc += (realv)w[m] * r * r;
         }
         pb_vstore(acc, 0, o + q0);

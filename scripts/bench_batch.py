@@ -17,9 +17,13 @@ One run prints, on the default device (or --backend numpy):
    95% interval contains the truth, per parameter.
 5. Memory: the peak of host allocations (tracemalloc) of fit_batch at a fixed memory_budget for
    two image sizes.
+6. A polarization camera under a 45-degree source: s1, s2 (noise 0.002 given) of --camera-size
+   squared random pixels (parameters uniform in the default bounds) at the paper's geometry, and
+   the DOP of the same pixels and geometry: pixels/s of each, their stages' shares and the ratio.
 
     python scripts/bench_batch.py                       # everything (about 15 min on 2 cores)
     python scripts/bench_batch.py --match 0 --coverage-size 64   # a quick look
+    python scripts/bench_batch.py --only camera --camera-size 32 --repeats 3   # the camera's rate only
 """
 import argparse
 import time
@@ -172,6 +176,43 @@ def memory(args, eng):
           + ", ".join(out))
 
 
+def camera_rate(args, eng):
+    ti, tr = GEOMETRIES["paper (theta_i 30/40/50 x theta_r 20..65)"]
+    n = args.camera_size ** 2
+    rng = np.random.default_rng(5)
+    x = LO + rng.random((n, 5)) * (HI - LO)
+    truth = {name: x[:, j:j + 1] for j, name in enumerate(NAMES)}
+    S = pbrdf_cl.stokes(ti, tr, 180.0, backend="numpy", incident=(0.0, 1.0, 0.0), **truth)
+    shape = (args.camera_size, args.camera_size, ti.size)
+    cam = {f"s{j}": (S[..., j] / S[..., 0] + rng.normal(0, NOISE, S.shape[:-1])).reshape(shape) for j in (1, 2)}
+    cam.update(s1_std=NOISE, s2_std=NOISE, theta_i=ti, theta_r=tr, in_s1=np.zeros(ti.size), in_s2=np.ones(ti.size),
+               in_s3=np.zeros(ti.size))
+    dop = np.clip(pbrdf_cl.dop(ti, tr, backend="numpy", **truth) + rng.normal(0, NOISE, (n, ti.size)), 0, 1)
+    stacks = {"camera s1, s2 (45-degree source)": cam,
+              "DOP (unpolarised)": dict(dop=dop.reshape(shape), dop_std=NOISE, theta_i=ti, theta_r=tr)}
+    rates = {}
+    for name, data in stacks.items():
+        pbrdf_cl.fit_batch({k: (v[:1] if np.ndim(v) == 3 else v) for k, v in data.items()}, engine=eng)  # build
+        best = None
+        for _ in range(args.repeats):
+            with StageClock() as clock:
+                t0 = time.perf_counter()
+                pbrdf_cl.fit_batch(data, engine=eng)
+                dt = time.perf_counter() - t0
+            if best is None or dt < best[0]:
+                best = (dt, dict(clock.seconds))
+        dt, seconds = best
+        rates[name] = n / dt
+        shares = ", ".join(f"{k} {v / dt:.0%}" for k, v in seconds.items())
+        print(f"{name}, paper geometry, {args.camera_size} x {args.camera_size} random pixels: {n / dt:.0f} px/s "
+              f"(best of {args.repeats}; stages: {shares})")
+    (a, ra), (b, rb) = rates.items()
+    print(f"  the camera's rate is {ra / rb:.2f} of the DOP's")
+
+
+SECTIONS = ("rate", "per-pixel", "match", "coverage", "memory", "camera")
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--pixels", type=int, default=8192)
@@ -181,16 +222,25 @@ def main():
     ap.add_argument("--coverage-size", type=int, default=256)
     ap.add_argument("--budget", default="32 MiB")
     ap.add_argument("--backend", default="auto")
+    ap.add_argument("--camera-size", type=int, default=32, help="pixels per side of section 6 (0 skips it)")
+    ap.add_argument("--repeats", type=int, default=1, help="runs of section 6, the best counted")
+    ap.add_argument("--only", nargs="+", choices=SECTIONS, help="run only these sections")
     args = ap.parse_args()
     eng = pbrdf_cl.device.engine.resolve_engine(None, args.backend)
     print("device:", getattr(eng, "description", "numpy"))
-    rate(args, eng)
-    per_pixel_rate(args, eng)
-    if args.match:
+    run = set(args.only or SECTIONS)
+    if "rate" in run:
+        rate(args, eng)
+    if "per-pixel" in run:
+        per_pixel_rate(args, eng)
+    if args.match and "match" in run:
         match(args, eng)
-    if args.coverage_size:
+    if args.coverage_size and "coverage" in run:
         coverage(args, eng)
-    memory(args, eng)
+    if "memory" in run:
+        memory(args, eng)
+    if args.camera_size and "camera" in run:
+        camera_rate(args, eng)
 
 
 if __name__ == "__main__":

@@ -30,7 +30,8 @@ import numpy as np
 from scipy.optimize import least_squares
 
 import pbrdf_cl
-from pbrdf_cl.fitting.sample.polarimetric import ChannelModel, ChannelResiduals, channel_stds
+from pbrdf_cl.fitting.channels import ChannelModel
+from pbrdf_cl.fitting.sample.polarimetric import ChannelResiduals, channel_stds
 from pbrdf_cl.io.measurements import as_measurements
 
 TI = np.repeat([30.0, 40.0, 50.0], 10)

@@ -1,6 +1,7 @@
 #!/usr/bin/env python3
-"""Write the bundled example data (examples/*.csv): DOP generated from the six-parameter model
-with stated parameters and Gaussian noise; each file says so in its header."""
+"""Write the bundled example data (examples/*.csv, *.npz): DOP, and s1, s2 of a polarization camera
+under a polarized source, generated from the six-parameter model with stated parameters and
+Gaussian noise; each file says so (a CSV in its header, a stack in its attributes)."""
 from pathlib import Path
 
 import numpy as np
@@ -38,6 +39,14 @@ def main():
     # a small camera stack (per-pixel geometry, two materials, a roughness gradient) for fit-image
     from pbrdf_cl.io import imagestack
     imagestack.save_stack(imagestack.synthetic_stack(size=16, seed=0), OUT / "camera_stack_16.npz")
+    # linear-polarization-camera stacks (s1, s2, shared geometry) under a polarized source, noise 0.005: at
+    # 45 degrees at the paper's 30 geometries, and under four states (linear at 0, 45, 90 degrees, circular)
+    # at every third of them (10: theta_i 30, 40, 50, theta_r 20..65)
+    imagestack.save_stack(imagestack.polarimetric_stack(16, imagestack.SOURCE_45, seed=0), OUT / "camera_45deg_16.npz")
+    imagestack.save_stack(imagestack.polarimetric_stack(16, imagestack.SOURCE_FOUR, seed=1,
+                                                        theta_i=imagestack.PAPER_THETA_I[::3],
+                                                        theta_r=imagestack.PAPER_THETA_R[::3]),
+                          OUT / "camera_four_states_16.npz")
     camera_csv(ti, tr)
 
 

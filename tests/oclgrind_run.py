@@ -131,6 +131,36 @@ def main():
     if not np.isfinite(res.sse.values).all():
         raise SystemExit("fit_batch's corner stage under Oclgrind: non-finite results")
     batches += 1
+    # polarimetric channels (s1, s2 under a 45-degree source and an AoP, out of plane): the value table
+    # and the channel minima (shared geometry and states: also the ranking table of the corner stage,
+    # whose trigger is still infinite, and its PB_LOG_* builds with PB_CHANNELS), the per-pixel channel
+    # tables (per-pixel geometry and states), the PB_CHANNELS builds of the descent; the grid kernels
+    # in float64 too
+    from pbrdf_cl.fitting.images import pixel_stages as Bs
+    from pbrdf_cl.fitting.images.job import BatchJob
+    from pbrdf_cl.fitting.images.pixels import Block
+    S = pbrdf_cl.stokes(m_ti, m_tr, 150.0, backend="numpy", incident=(0, 1, 0), **truth)
+    pol = {f"s{j}": np.broadcast_to(S[:, j] / S[:, 0], (3, 8)).copy() for j in (1, 2)}
+    pol["aop"] = np.broadcast_to(0.5 * np.degrees(np.arctan2(S[:, 2], S[:, 1])), (3, 8)).copy()
+    pol.update(s1_std=0.01, s2_std=0.01, aop_std=1.0, theta_i=m_ti, theta_r=m_tr, phi=np.full(8, 150.0),
+               in_s1=np.zeros(8), in_s2=np.ones(8), in_s3=np.zeros(8))
+    per_pixel = dict(pol, **{k: np.broadcast_to(pol[k], (3, 8)) for k in ("theta_i", "theta_r", "in_s2")})
+    channel_grids = 0
+    for data in (pol, per_pixel):
+        res = pbrdf_cl.fit_batch(data, engine=eng, grid_shape=shape, n_starts=2)
+        if not np.isfinite(res.sse.values).all():
+            raise SystemExit("fit_batch of channels under Oclgrind: non-finite results")
+        batches += 1
+        Bs.GRID_DTYPE = "float64"
+        job = BatchJob(data, grid_shape=shape, n_starts=2)
+        blk = Block(job.read_rows(0, 3), job.setup, eng.call("batch_lanes"))
+        best, _ = eng.call("batch_grid", job.setup, blk, job.order, job.rstart)
+        ref, _ = engine_mod.NumpyEngine().call("batch_grid", job.setup, Block(job.read_rows(0, 3), job.setup, 1),
+                                               job.order, job.rstart)
+        if not np.allclose(best, ref, rtol=1e-10):
+            raise SystemExit("the float64 channel grid under Oclgrind differs from the reference")
+        Bs.GRID_DTYPE = "float32"
+        channel_grids += 1
     # the outer kernels (parameter sets x geometries: sensitivity maps, design Jacobians): the vector
     # kernels with padded sets (21 sets: not a multiple of the vector width) and several launches,
     # the generic one for the other quantities
@@ -148,7 +178,8 @@ def main():
                 raise SystemExit(f"outer {quantity} {dtype}: Oclgrind result differs from the reference")
             outers += 1
     print("ran", 2 * 3 * 5, "kernel configurations and", bcasts, "broadcast evaluations and", configs,
-          "grid configurations and", batches, "batch fits and", outers, "outer evaluations")
+          "grid configurations and", batches, "batch fits and", channel_grids, "float64 channel grids and", outers,
+          "outer evaluations")
 
 
 if __name__ == "__main__":

@@ -206,7 +206,7 @@ def cmd_fit_image(args) -> int:
             args.stack, store=args.out, model=args.model, bounds=bounds or None, fixed=fixed or None,
             shadowing=args.shadowing, memory_budget=args.memory_budget, progress=not args.no_progress, engine=engine,
             backend=args.backend, device=args.device, workers=args.workers, scheduler=args.scheduler,
-            allow_large=args.allow_large, **_label_options(args))
+            allow_large=args.allow_large, quantities=args.quantities, **_label_options(args))
         counts = image_store.status_counts(ds)
         if args.png:
             from ..plots.images import plot_batch_maps
@@ -221,6 +221,8 @@ def cmd_fit_image(args) -> int:
     rate = f", {px / fit_s:.4g} pixels/s" if px and fit_s > 0 else ""
     print(f"fit-image: {px} of {total} pixels fitted in {fit_s:.3g} s{rate} ({total - px} already in the store; "
           f"{seconds:.3g} s in all)")
+    if "incident" in ds.attrs:  # polarimetric channels
+        print(f"fitted: {', '.join(ds.attrs['quantities'].split())} (source: {ds.attrs['incident']})")
     print("status: " + ", ".join(f"{n} {c}" for n, c in counts.items()))
     if "goodness" in ds.attrs:
         print(ds.attrs["goodness"])
@@ -303,11 +305,14 @@ def fit_parser(sub):
 def fit_image_parser(sub):
     """The `pbrdf-cl fit-image` sub-command."""
     from ..fitting.images.job import BLOCK_BUDGET as DEFAULT_BUDGET
-    f = sub.add_parser("fit-image", help="fit every pixel of a DOP image stack into a Zarr store (resumable; dask)",
+    f = sub.add_parser("fit-image", help="fit every pixel of a DOP or polarimetric image stack into a Zarr store "
+                       "(resumable; dask)",
                        description="Fit the model to every pixel of a polarization image stack (.npz, .nc or "
                        ".zarr with dop (y, x, m), theta_i, theta_r[, phi, dop_std, f00|s0, f00_std, mask]; angles "
-                       "shared (m) or per pixel) block by block into a Zarr store. Run the same command again "
-                       "after an interruption: only the missing blocks are fitted.")
+                       "shared (m) or per pixel; or a polarization camera's s1, s2 (normalised Stokes) with the "
+                       "source's state in_s1, in_s2, in_s3 per measurement, s3, aop, Mueller elements m01..m33, "
+                       "each with an optional <name>_std) block by block into a Zarr store. Run the same command "
+                       "again after an interruption: only the missing blocks are fitted.")
     f.add_argument("stack", help="image stack: .npz, .nc or .zarr")
     f.add_argument("--out", required=True, metavar="STORE", help="Zarr store to create or resume (e.g. params.zarr)")
     model_option(f)
@@ -324,4 +329,7 @@ def fit_image_parser(sub):
                    "file or a variable of the stack: the pixels of a label share --shared (docs/joint_images.md)")
     f.add_argument("--shared", metavar="NAMES", help="parameters the pixels of a label share, separated by commas or "
                    "spaces (default n,k, less a fixed one; '' shares nothing: every pixel on its own)")
+    f.add_argument("--quantities", metavar="NAMES", help="the measured quantities to fit, separated by commas or "
+                   "spaces (e.g. s1,s2; default: the stack's polarimetric ones where it gives the source's state "
+                   "in_s1..in_s3 or has no dop, else dop)")
     f.set_defaults(func=cmd_fit_image)

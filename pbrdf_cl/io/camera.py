@@ -1,4 +1,4 @@
-"""From a division-of-focal-plane (DoFP) polarization camera to a DOP image stack.
+"""From a division-of-focal-plane (DoFP) polarization camera to a polarimetric image stack.
 
 A monochrome DoFP sensor such as Sony's IMX250MZR puts a wire-grid polarizer on every pixel, in
 2x2 super-pixels of the angles
@@ -11,9 +11,19 @@ A monochrome DoFP sensor such as Sony's IMX250MZR puts a wire-grid polarizer on 
 geometry) into the four polarizer images with ``polanalyser.demosaicing``, fits the linear
 Stokes vector (S0, S1, S2) per pixel with ``polanalyser.calcStokes`` (Malus' law
 I(a) = (S0 + S1 cos 2a + S2 sin 2a) / 2) and takes the degree of linear polarization with
-``polanalyser.cvtStokesToDoLP``.  The model's reflected light has S3 = 0 (SPEC.md), so its DoLP
-is its DOP.  :func:`camera_dataset` adds the geometry and returns the Dataset that a per-pixel
+``polanalyser.cvtStokesToDoLP``.  For unpolarised incidence the model's reflected light has S3 = 0
+(SPEC.md), so its DoLP is its DOP.  :func:`camera_dataset` keeps S1 and S2 normalised by S0 (``s1``,
+``s2``: what a linear polarization camera measures, also under a polarized source, whose state per
+frame it takes as ``incident``), adds the geometry and returns the Dataset that a per-pixel
 inversion takes.
+
+**Frames.**  The polarizer angles are counted from the sensor's x axis towards its y axis, so S1 and
+S2 are in the sensor's frame.  They are the model's (the outgoing beam's s/p frame, SPEC.md) only
+where the sensor's x axis is the beam's s axis (perpendicular to the plane of reflection) and its y
+axis the beam's p axis: ``roll`` (degrees, the angle from the beam's s axis to the sensor's x axis,
+counted from s towards p; per frame or per pixel) rotates them into the beam's frame, and a sensor
+mirrored against that sense needs s2 negated.  Without ``roll`` the sensor's frame is taken as the
+beam's; the dataset's ``attrs["stokes_frame"]`` says which.
 
 ``polanalyser`` (and OpenCV, which it imports but does not declare) is an optional dependency:
 ``pip install 'pbrdf-cl[camera]'``.
@@ -175,6 +185,65 @@ def dop_from_frames(frames, *, demosaic="bilinear", dark=None, saturation=None, 
     >>> dop.shape  # doctest: +SKIP
     (2048, 2448, 3)
     """
+    return stokes_from_frames(frames, demosaic=demosaic, dark=dark, saturation=saturation,
+                              min_intensity=min_intensity, dtype=dtype, axis=axis)[:2]
+
+
+def stokes_from_frames(frames, *, demosaic="bilinear", dark=None, saturation=None, min_intensity=0.0,
+                       dtype="float64", axis=None):
+    """DOP (DoLP), intensity S0 and normalised S1, S2 image stacks from raw DoFP polarization-camera
+    frames (:func:`dop_from_frames` returns the first two).
+
+    Parameters
+    ----------
+    frames : sequence of 2-D arrays, or one 3-D array
+        One raw mosaic per illumination geometry (M frames of shape (H, W), H and W even), in
+        the IMX250MZR layout of ``SUPERPIXEL``; uint8 or uint16 as the camera writes them
+        (other integers in [0, 65535] are converted to uint16; float frames are scaled to uint16
+        by polanalyser, by their maximum, which costs precision in dark pixels).  One 3-D array
+        holds them along ``axis``; without it, along the axis (first or last) under which every
+        frame has even sides, a shape that fits both being refused as ambiguous.
+    demosaic : {"bilinear", "vng", "ea"}, default "bilinear"
+        polanalyser's demosaicing (OpenCV's bilinear, variable number of gradients or
+        edge-aware Bayer conversions); the output has the full resolution (H, W).
+    dark : float or array_like, optional
+        Black level subtracted from the four polarizer images before the Stokes fit: a number, a
+        raw dark frame (H, W) or one per frame (M, H, W) (demosaiced the same way).
+    saturation : float, optional
+        Raw value at which the sensor saturates: every output pixel whose demosaicing footprint
+        (3x3 raw pixels for bilinear, 5x5 otherwise) reaches it is NaN.  Default: the largest value
+        of the frames' integer dtype (255, 65535; a 12-bit camera's 4095 must be given), no check
+        for float frames.
+    min_intensity : float, default 0
+        Pixels with S0 <= this (after ``dark``) are NaN: no light, no DOP.
+    dtype : {"float64", "float32"}, default "float64"
+        Of the outputs.
+    axis : {0, -1}, optional
+        For one 3-D array of frames: the axis that holds the measurements, 0 for (M, H, W), -1 for
+        (H, W, M) (the outputs' layout).
+
+    Returns
+    -------
+    dop, s0, s1, s2 : numpy.ndarray, shape (H, W, M)
+        The degree of linear polarization sqrt(S1^2 + S2^2) / S0, the intensity S0 (in raw
+        counts, after ``dark``) and S1 / S0, S2 / S0 in the sensor's frame (polarizer angles
+        from its x axis).  NaN marks a missing measurement: saturated, at or below
+        ``min_intensity``, or a DoLP above 1 (noise or misregistration at edges), in dop, s1 and s2;
+        S0 is NaN only where saturated.
+
+    Raises
+    ------
+    ImportError
+        Without polanalyser or OpenCV (``pip install 'pbrdf-cl[camera]'``).
+    ValueError
+        For frames of the wrong shape or dtype, or bad options, naming them.
+
+    Examples
+    --------
+    >>> dop, s0, s1, s2 = stokes_from_frames([raw0, raw1, raw2], saturation=4095)  # doctest: +SKIP
+    >>> s1.shape  # doctest: +SKIP
+    (2048, 2448, 3)
+    """
     if demosaic not in DEMOSAIC:
         raise ValueError(f"demosaic must be one of {sorted(DEMOSAIC)}, got {demosaic!r}")
     if dtype not in ("float64", "float32", np.float64, np.float32):
@@ -191,6 +260,7 @@ def dop_from_frames(frames, *, demosaic="bilinear", dark=None, saturation=None, 
         raise ValueError(f"saturation must be a finite number, got {saturation!r}")
     dop = np.empty(shape + (m,), dtype=dtype)
     s0 = np.empty(shape + (m,), dtype=dtype)
+    s1, s2 = np.empty(shape + (m,), dtype=dtype), np.empty(shape + (m,), dtype=dtype)
     angles = np.radians(POLARIZER_ANGLES)
     for j, raw in enumerate(raws):
         images = _demosaic(pa, raw, demosaic)
@@ -208,7 +278,10 @@ def dop_from_frames(frames, *, demosaic="bilinear", dark=None, saturation=None, 
             intensity = np.where(hot, np.nan, intensity)
         dop[..., j] = np.where(bad, np.nan, np.minimum(dolp, 1.0))
         s0[..., j] = intensity
-    return dop, s0
+        with np.errstate(divide="ignore", invalid="ignore"):
+            for out, c in ((s1, 1), (s2, 2)):
+                out[..., j] = np.where(bad, np.nan, stokes[..., c] / stokes[..., 0])
+    return dop, s0, s1, s2
 
 
 def _darks(pa, dark, shape, m, method):
@@ -244,8 +317,10 @@ def _angle(name, value, shape):
 
 
 def camera_dataset(frames, theta_i, theta_r, phi=180.0, *, dop_std=None, mask=None, irradiance=None,
-                   demosaic="bilinear", dark=None, saturation=None, min_intensity=0.0, axis=None):
-    """The Dataset of a per-pixel inversion from raw DoFP frames and their geometry.
+                   demosaic="bilinear", dark=None, saturation=None, min_intensity=0.0, axis=None, incident=None,
+                   roll=None, s_std=None):
+    """The Dataset of a per-pixel inversion from raw DoFP frames, their geometry and the source's
+    polarization state.
 
     Parameters
     ----------
@@ -265,30 +340,50 @@ def camera_dataset(frames, theta_i, theta_r, phi=180.0, *, dop_std=None, mask=No
     irradiance : float or array_like, optional
         The irradiance of each frame at the sample (e.g. source power cos(theta_i) / r^2, in any
         one unit), broadcastable to (H, W, M).  With it the dataset has ``s0`` = S0 / irradiance,
-        proportional to the BRDF F00 (what the fit's intensity column must be); without it
-        only ``intensity`` (raw S0), which the fit does not read.
+        proportional to the BRDF F00 for unpolarised light (what the fit's intensity column must
+        be); without it only ``intensity`` (raw S0), which the fit does not read.
     demosaic, dark, saturation, min_intensity, axis
         As for :func:`dop_from_frames`.
+    incident : array_like, shape (3,) or (M, 3), optional
+        The source's normalised Stokes vector (s1, s2, s3) per frame, in the incoming beam's s/p
+        frame (SPEC.md): (0, 1, 0) is linear polarization at 45 degrees from s towards p, (1, 0, 0)
+        along s, (0, 0, 1) circular.  Given (even (0, 0, 0)), the dataset holds it as ``in_s1``,
+        ``in_s2``, ``in_s3`` over the frames, and :func:`pbrdf_cl.fit_batch` fits ``s1`` and ``s2``
+        by default; without it the light is unpolarised and the fit takes ``dop`` as before.
+    roll : float or array_like, optional
+        Degrees: the angle from the outgoing beam's s axis to the sensor's x axis (counted from s
+        towards p), per frame (M,) or per pixel, broadcastable to (H, W, M): S1 and S2 are rotated by
+        it from the sensor's frame into the beam's.  Default: none, the sensor's x axis taken as the
+        beam's s axis (see the module's note on frames).
+    s_std : float or array_like, optional
+        The standard deviation of ``s1`` and ``s2`` (normalised), broadcastable to (H, W, M): their
+        weights (``s1_std``, ``s2_std``).
 
     Returns
     -------
     xarray.Dataset
-        Dims (y, x, m): ``dop`` and ``intensity`` (y, x, m); ``theta_i``, ``theta_r``, ``phi``
-        with dims (m,) or (y, x, m) as given; ``dop_std``, ``mask`` and ``s0`` where given;
-        attrs naming the camera layout, the demosaicing and the count of missing measurements.
+        Dims (y, x, m): ``dop``, ``s1``, ``s2`` (S1 / S0, S2 / S0; NaN where dop is) and
+        ``intensity`` (y, x, m); ``theta_i``, ``theta_r``, ``phi`` with dims (m,) or (y, x, m) as
+        given; ``dop_std``, ``s1_std`` and ``s2_std``, ``mask``, ``s0`` and ``in_s1``, ``in_s2``,
+        ``in_s3`` (m,) where given; attrs naming the camera layout, the demosaicing, the frame of
+        s1 and s2 (``stokes_frame``) and the count of missing measurements.
 
     Raises
     ------
     ImportError
         Without polanalyser or OpenCV (``pip install 'pbrdf-cl[camera]'``).
     ValueError
-        For frames, angles, dop_std, mask or irradiance of the wrong shape or out of range.
+        For frames, angles, dop_std, s_std, mask, irradiance, incident or roll of the wrong shape
+        or out of range (an incident state that is not a Stokes vector, one line).
 
     Examples
     --------
     >>> ds = camera_dataset(frames, theta_i=[30, 40, 50], theta_r=45, phi=180)  # doctest: +SKIP
     >>> ds.dop.dims  # doctest: +SKIP
     ('y', 'x', 'm')
+    >>> ds = camera_dataset(frames, [30, 40, 50], 45, incident=(0, 1, 0))  # doctest: +SKIP
+    >>> float(ds.in_s2[0]), ds.s1.dims  # doctest: +SKIP
+    (1.0, ('y', 'x', 'm'))
     """
     import xarray as xr
 
@@ -302,6 +397,21 @@ def camera_dataset(frames, theta_i, theta_r, phi=180.0, *, dop_std=None, mask=No
             bad = std[~(np.isfinite(std) & (std > 0))]
             raise ValueError(f"dop_std must be finite and > 0, got {float(bad.flat[0])!r}")
         extra["dop_std"] = _broadcast("dop_std", std, shape)
+    if s_std is not None:
+        std = np.asarray(s_std, dtype=np.float64)
+        if not (np.isfinite(std).all() and (std > 0).all()):
+            bad = std[~(np.isfinite(std) & (std > 0))]
+            raise ValueError(f"s_std must be finite and > 0, got {float(bad.flat[0])!r}")
+        extra["s1_std"] = extra["s2_std"] = _broadcast("s_std", std, shape)
+    if incident is not None:
+        inc = _incident(incident, shape[-1])
+        for j, name in enumerate(("in_s1", "in_s2", "in_s3")):
+            extra[name] = (("m",), inc[:, j], {"units": "1", "long_name": f"the source's normalised Stokes s{j + 1}"})
+    if roll is not None:
+        r = np.asarray(roll, dtype=np.float64)
+        if not np.isfinite(r).all():
+            raise ValueError(f"roll must be finite (degrees), got {float(r[~np.isfinite(r)].flat[0])!r}")
+        _, roll_deg = _broadcast("roll", r, shape)
     if mask is not None:
         mk = np.asarray(mask)
         if mk.dtype != bool or mk.shape != shape[:2]:
@@ -313,9 +423,17 @@ def camera_dataset(frames, theta_i, theta_r, phi=180.0, *, dop_std=None, mask=No
             raise ValueError("irradiance must be finite and > 0, got "
                              f"{float(irr[~(np.isfinite(irr) & (irr > 0))].flat[0])!r}")
         irr_dims, irr = _broadcast("irradiance", irr, shape)
-    dop, s0 = dop_from_frames(raws, demosaic=demosaic, dark=dark, saturation=saturation, min_intensity=min_intensity)
+    dop, s0, s1, s2 = stokes_from_frames(raws, demosaic=demosaic, dark=dark, saturation=saturation,
+                                         min_intensity=min_intensity)
+    frame = "the sensor's (polarizer angles from its x axis), taken as the outgoing beam's s/p frame"
+    if roll is not None:  # S1 + i S2 of the beam's frame is the sensor's turned by 2 roll
+        c2, s2r = np.cos(np.radians(2.0 * roll_deg)), np.sin(np.radians(2.0 * roll_deg))
+        s1, s2 = s1 * c2 - s2 * s2r, s1 * s2r + s2 * c2
+        frame = "the outgoing beam's s/p frame (the sensor's rotated by roll)"
     yxm = ("y", "x", "m")
     variables = {"dop": (yxm, dop, {"units": "1", "long_name": "degree of linear polarization (DoLP)"}),
+                 "s1": (yxm, s1, {"units": "1", "long_name": f"S1 / S0 in {frame}"}),
+                 "s2": (yxm, s2, {"units": "1", "long_name": f"S2 / S0 in {frame}"}),
                  "intensity": (yxm, s0, {"units": "raw counts", "long_name": "Stokes S0 (not read by the fit)"})}
     if irradiance is not None:
         variables["s0"] = (yxm, s0 / np.broadcast_to(irr, shape),
@@ -326,9 +444,29 @@ def camera_dataset(frames, theta_i, theta_r, phi=180.0, *, dop_std=None, mask=No
     missing = int(np.count_nonzero(np.isnan(dop)))
     attrs = {"source": "DoFP polarization camera (IMX250MZR layout: 90 45 / 135 0), via polanalyser",
              "demosaic": demosaic, "angles": "degrees; phi = phi_i - phi_r, 180 = in-plane (mirror) geometry",
+             "stokes_frame": frame,
+             "incident": "given (in_s1, in_s2, in_s3)" if incident is not None else "unpolarised",
              "missing": missing,
              "missing_means": "NaN dop: saturated, S0 <= min_intensity, or DoLP > 1"}
     return xr.Dataset(variables, attrs=attrs)
+
+
+def _incident(incident, m):
+    """The source's states as an (M, 3) array, or a one-line ValueError."""
+    inc = np.asarray(incident, dtype=np.float64)
+    if inc.shape == (3,):
+        inc = np.broadcast_to(inc, (m, 3))
+    if inc.shape != (m, 3):
+        raise ValueError(f"incident must be the source's normalised Stokes vector (s1, s2, s3), shape (3,), or one "
+                         f"per frame, shape ({m}, 3), got shape {np.shape(incident)}")
+    if not np.isfinite(inc).all():
+        raise ValueError(f"incident must be finite, got {inc[~np.isfinite(inc).all(axis=1)][0].tolist()}")
+    norm2 = (inc * inc).sum(axis=1)
+    if (norm2 > 1.0 + 1e-9).any():
+        j = int(np.argmax(norm2 > 1.0 + 1e-9))
+        raise ValueError(f"incident[{j}] = ({', '.join(f'{v:g}' for v in inc[j])}) is not a Stokes vector: "
+                         f"s1^2 + s2^2 + s3^2 = {norm2[j]:.4g} > 1 (normalised by S0)")
+    return np.array(inc)
 
 
 def _geometry_count(*angles):

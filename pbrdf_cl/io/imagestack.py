@@ -1,12 +1,14 @@
-"""Synthetic polarization image stacks: a flat sample of two materials under a moving point light.
+"""Synthetic polarization image stacks: a flat sample of two materials under a moving point light,
+and (:func:`polarimetric_stack`) what a linear polarization camera sees of it under a polarized
+source.
 
 :func:`synthetic_stack` renders the DOP that a fixed camera sees of a flat, rectified sample
 (pixel (y, x) images one patch of the plane z = 0) while a point source takes ``n_lights``
 positions.  Each pixel sees its own geometry, computed from the 3-D positions by
 :func:`angles_from_positions` (theta = angle to the surface normal, phi = azimuth of the light
 direction minus azimuth of the view direction, in [0, 360): phi = 180 is the mirror plane, as in
-SPEC.md).  The DOP comes from :func:`pbrdf_cl.dop` on the float64 numpy reference; nothing here
-evaluates the model itself.
+SPEC.md).  The DOP comes from :func:`pbrdf_cl.dop`, the Stokes vectors from :func:`pbrdf_cl.stokes`,
+on the float64 numpy reference; nothing here evaluates the model itself.
 
 The parameter maps are known, so the stack tests a per-pixel inversion end to end: a metal (the
 paper's 45# steel, n = 1.6, k = 2.139) around a disc of a dielectric-like coating, each with its
@@ -18,6 +20,7 @@ import numpy as np
 
 from .. import sizes
 from ..compute.pointwise import dop as _dop
+from ..compute.pointwise import stokes as _stokes
 from ..model import inputs
 
 #: The two materials of :func:`synthetic_stack`: name -> n, k, kd (= kd/ks with ks = 1), c.
@@ -356,6 +359,92 @@ def synthetic_stack(size=256, n_lights=30, noise=0.005, seed=0, *, sample_mm=100
                "noise": f"Gaussian DOP noise of std {noise}, numpy default_rng(seed {seed}), then clipped to [0, 1]",
                "noise_std": float(noise), "seed": int(seed), "clipped": clipped})
     return ds
+
+
+#: The paper's geometry (SPEC: 45# steel at 435 nm): theta_i 30, 40, 50 by theta_r 20 .. 65 step 5, in plane.
+PAPER_THETA_I = np.repeat([30.0, 40.0, 50.0], 10)
+PAPER_THETA_R = np.tile(np.arange(20.0, 66.0, 5.0), 3)
+#: Source states of :func:`polarimetric_stack`'s examples (normalised Stokes s1, s2, s3 in the incoming
+#: beam's frame): linear at 45 degrees; linear at 0, 45, 90 degrees from s and right circular.
+SOURCE_45 = ((0.0, 1.0, 0.0),)
+SOURCE_FOUR = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (-1.0, 0.0, 0.0), (0.0, 0.0, 1.0))
+
+
+def polarimetric_stack(size=16, states=SOURCE_45, noise=0.005, seed=0, *, theta_i=PAPER_THETA_I,
+                       theta_r=PAPER_THETA_R, phi=180.0, shadowing="paper"):
+    """A synthetic linear-polarization-camera stack under a polarized source, with known parameter maps.
+
+    The sample of :func:`truth_maps` (two materials, a roughness gradient, ks = 1) seen at a shared
+    geometry (every pixel the same angles, as a collimated source and a telecentric camera give) under
+    each source state in turn: s1 = S1 / S0 and s2 = S2 / S0 of the reflected light (the psps frame of
+    the outgoing beam) from :func:`pbrdf_cl.stokes`, plus Gaussian noise.
+
+    Parameters
+    ----------
+    size : int, default 16
+        Pixels along each side.
+    states : sequence of (s1, s2, s3), default SOURCE_45
+        The source's normalised Stokes vectors, each at every geometry (``SOURCE_FOUR``: linear at
+        0, 45 and 90 degrees and circular).
+    noise : float, default 0.005
+        Standard deviation of the Gaussian noise added to s1 and s2 (their ``s1_std``, ``s2_std``).
+    seed : int, default 0
+        Seed of the noise (numpy's ``default_rng``).
+    theta_i, theta_r, phi : array_like, default the paper's 30 in-plane geometries
+        Degrees, one value per geometry (phi may be one number).
+    shadowing : {"paper", "smith", "none"}, default "paper"
+        The shadowing function of the model rendered.
+
+    Returns
+    -------
+    xarray.Dataset
+        Dims (y, x, m), M = geometries x states (the states vary fastest): ``s1``, ``s2`` (y, x, m),
+        ``s1_std``, ``s2_std`` (scalars), ``theta_i``, ``theta_r``, ``phi``, ``in_s1``, ``in_s2``,
+        ``in_s3`` (m), the truth ``true_n`` .. ``true_c`` and ``material`` (y, x), attrs saying so.
+
+    Examples
+    --------
+    >>> ds = polarimetric_stack(4, states=SOURCE_FOUR)
+    >>> ds.s1.shape, float(ds.in_s3[3])
+    ((4, 4, 120), 1.0)
+    """
+    import xarray as xr
+
+    size = _check_size(size)
+    if not (np.isfinite(noise) and noise > 0):
+        raise ValueError(f"noise must be a finite number > 0 (the stds of s1 and s2), got {noise!r}")
+    inc = np.asarray(states, dtype=np.float64)
+    if inc.ndim != 2 or inc.shape[1] != 3:
+        raise ValueError(f"states must be (s1, s2, s3) vectors, shape (S, 3), got shape {inc.shape}")
+    ti, tr = (np.asarray(a, dtype=np.float64).ravel() for a in (theta_i, theta_r))
+    ph = np.broadcast_to(np.asarray(phi, dtype=np.float64), ti.shape)
+    S = len(inc)
+    geo = [np.repeat(a, S) for a in (ti, tr, ph)]
+    inc = np.tile(inc, (ti.size, 1))
+    truth = truth_maps(size)
+    par = {name: truth[name][:, :, None] for name in FIT_PARAMETERS}
+    st = _stokes(*geo, ks=1.0, shadowing=shadowing, backend="numpy", incident=inc, **par)
+    rng = np.random.default_rng(seed)
+    yxm, yx, m = ("y", "x", "m"), ("y", "x"), ("m",)
+    data = {f"s{j}": (yxm, st[..., j] / st[..., 0] + rng.normal(0.0, noise, st.shape[:-1]),
+                      {"units": "1", "long_name": f"S{j} / S0 of the reflected light (psps frame)"}) for j in (1, 2)}
+    data.update({f"s{j}_std": ((), float(noise), {"units": "1"}) for j in (1, 2)})
+    data.update({name: (m, a, {"units": "degree"}) for name, a in zip(("theta_i", "theta_r", "phi"), geo)})
+    data.update({f"in_s{j + 1}": (m, inc[:, j], {"units": "1", "long_name": f"the source's normalised Stokes "
+                                                                              f"s{j + 1}"}) for j in range(3)})
+    data.update({f"true_{n}": (yx, truth[n], {"units": "1"}) for n in FIT_PARAMETERS})
+    data["material"] = (yx, truth["material"], {"long_name": "0 = metal, 1 = dielectric"})
+    states_text = "; ".join("(" + ", ".join(f"{v:g}" for v in row) + ")" for row in np.asarray(states, float))
+    return xr.Dataset(data, attrs={
+        "title": "synthetic linear-polarization-camera stack under a polarized source "
+                 "(pbrdf_cl.io.imagestack.polarimetric_stack)",
+        "angles": "degrees; phi = phi_i - phi_r, 180 = in-plane (mirror) geometry; shared by every pixel",
+        "states": "the source's normalised Stokes vectors (in_s1, in_s2, in_s3), each at every geometry: "
+                  + states_text,
+        "model": f"six-parameter pBRDF, shadowing {shadowing!r}, ks = 1 (true_kd is kd/ks)",
+        "materials": "; ".join(f"{k}: " + ", ".join(f"{a} = {b}" for a, b in p.items()) for k, p in MATERIALS.items()),
+        "sigma": f"linear in x from {SIGMA_RANGE[0]} (left) to {SIGMA_RANGE[1]} (right)",
+        "noise": f"Gaussian noise of std {noise} on s1 and s2, numpy default_rng(seed {seed})", "seed": int(seed)})
 
 
 def save_stack(ds, path):

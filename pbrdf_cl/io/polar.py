@@ -168,14 +168,22 @@ def _warn_aop_radians(cols, where):
                       "they in radians? pbrdf-cl takes degrees (np.degrees(...) converts)", UnitsWarning, stacklevel=5)
 
 
+def check_normalised(cols, locate):
+    """Refuse, in one line naming ``locate(i)`` and the column, a Stokes vector longer than 1 (or its
+    S0) and a Mueller element beyond 1 (or M00) in magnitude, beyond their noise: ``cols`` maps the
+    names of (M,) arrays (NaN: not measured) to them, their ``<name>_std`` too (image stacks run it
+    over their flattened pixels)."""
+    _check_stokes(cols, locate)
+    _check_mueller(cols, locate)
+
+
 def check_polar(cols, locate):
     """Check the polarimetric columns of ``cols`` (name -> (M,) arrays, NaN where not measured)
     in one-line errors; returns the :class:`~pbrdf_cl.io.measurements.Measurements` fields
     ``quantities``, ``stds`` and ``incident``."""
     _check_stds(cols, locate)
     incident = _check_incident(cols, locate)
-    _check_stokes(cols, locate)
-    _check_mueller(cols, locate)
+    check_normalised(cols, locate)
     _check_states(cols, locate)
     where = locate(0).split(",")[0] + ": "
     _warn_aop_radians(cols, where)

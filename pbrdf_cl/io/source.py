@@ -7,9 +7,21 @@ from __future__ import annotations
 import numpy as np
 
 from ..compute import pointwise
+from ..model import measurables
 
-VARIABLES = ("dop", "theta_i", "theta_r", "phi", "dop_std", "f00", "s0", "f00_std", "mask")
 ANGLES = ("theta_i", "theta_r", "phi")
+#: The incident light's normalised Stokes vector per measurement (shared (M,) or per pixel; absent:
+#: 0, unpolarised light).
+INCIDENT = measurables.INCIDENT
+#: The polarimetric quantities a stack may hold over the measurements (normalised: S1..S3 over S0,
+#: M_ij over M00; the AoP in degrees), fitted as channels (:mod:`pbrdf_cl.model.measurables`).
+POLARIMETRIC = ("aop", "s1", "s2", "s3") + tuple(m for m in measurables.MUELLER if m != "m00")
+#: Every measured quantity a stack may hold (NaN: not measured at that pixel and measurement).
+MEASURED = ("dop",) + POLARIMETRIC
+VARIABLES = (MEASURED + ANGLES + tuple(f"{n}_std" for n in MEASURED) + INCIDENT
+             + ("f00", "s0", "f00_std", "mask"))
+#: Variables that may be shared over the pixels, shape (M,).
+SHARED = ANGLES + INCIDENT
 #: Variables over the measurements that fit_batch does not read and accepts without a warning:
 #: :func:`pbrdf_cl.io.camera.camera_dataset`'s raw S0 (``intensity``; the fit reads ``s0``, S0 /
 #: irradiance, which is proportional to F00).
@@ -27,11 +39,11 @@ AXIS_STEP_MIN = 1.0
 AXIS_SAMPLE = 9
 
 
-def _axis_of_lengths(shape, lengths, dims=None):
-    """The axis of ``shape`` (dop's) holding the measurements, from the lengths of the shared
-    (1-d) angles ``lengths`` (name -> length); None without any.  The last axis when its length
-    matches (the documented layout), else the one axis that does; one-line errors for lengths
-    that differ, match no axis, or match several (ambiguous)."""
+def _axis_of_lengths(shape, lengths, dims=None, ref="dop"):
+    """The axis of ``shape`` (dop's, or the measured variable ``ref``'s) holding the measurements,
+    from the lengths of the shared (1-d) angles ``lengths`` (name -> length); None without any.  The
+    last axis when its length matches (the documented layout), else the one axis that does;
+    one-line errors for lengths that differ, match no axis, or match several (ambiguous)."""
     if not lengths:
         return None
     if len(set(lengths.values())) > 1:
@@ -41,19 +53,19 @@ def _axis_of_lengths(shape, lengths, dims=None):
     axes = [a for a, size in enumerate(shape) if size == m]
     named = (lambda a: f"{dims[a]!r}") if dims else (lambda a: str(a))
     if not axes:
-        raise ValueError(f"data: {name} has {m} values (one per measurement) but no axis of dop {tuple(shape)} has "
-                         f"{m}; give dop's measurements along one axis (last: shape (..., {m}))")
+        raise ValueError(f"data: {name} has {m} values (one per measurement) but no axis of {ref} {tuple(shape)} has "
+                         f"{m}; give {ref}'s measurements along one axis (last: shape (..., {m}))")
     if len(shape) - 1 in axes:
         return len(shape) - 1
     if len(axes) > 1:
         which = ", ".join(map(named, axes))
-        raise ValueError(f"data: dop {tuple(shape)} has {len(axes)} axes of length {m} ({which}), the number of "
-                         f"{name} values: which holds the measurements is ambiguous; put them last (dop of shape "
+        raise ValueError(f"data: {ref} {tuple(shape)} has {len(axes)} axes of length {m} ({which}), the number of "
+                         f"{name} values: which holds the measurements is ambiguous; put them last ({ref} of shape "
                          f"(..., {m}))")
     return axes[0]
 
 
-def _check_measurement_axis(samples, axis, dims, shape):
+def _check_measurement_axis(samples, axis, dims, shape, ref="dop"):
     """Refuse a measurement axis (``axis`` of dop's ``dims``/``shape``) that the per-pixel angles
     contradict: ``samples`` maps each angle to a corner of it (up to AXIS_SAMPLE values per
     axis, dop's axes in order, size 1 where the angle does not vary).  Only for images (two or
@@ -75,17 +87,28 @@ def _check_measurement_axis(samples, axis, dims, shape):
             return f"axis {ax} ({f'{dims[ax]!r}, ' if dims else ''}{shape[ax]} values)"
         fix = f"np.moveaxis(a, {worst}, -1)" + (f" (ds.transpose(..., {dims[worst]!r}) for a Dataset)" if dims else "")
         raise ValueError(
-            f"data: dop's {name(axis)} is taken for the measurements, but the per-pixel angles change along it as "
+            f"data: {ref}'s {name(axis)} is taken for the measurements, but the per-pixel angles change along it as "
             f"across an image's pixels (neighbours differ by {steps[axis]:.2g} degrees, median) and along "
             f"{name(worst)} as between measurements ({steps[worst]:.3g} degrees); put the measurements last: "
-            f"{fix} for dop and the per-pixel angles (or give the angles shared, shape (M,))")
+            f"{fix} for {ref} and the per-pixel angles (or give the angles shared, shape (M,))")
+
+
+def measured_of(names):
+    """The measured quantities among ``names`` (:data:`MEASURED`), in that order."""
+    return [n for n in MEASURED if n in names]
+
+
+#: The variables of a stack, for messages.
+VARIABLES_TEXT = ("dop, aop, s1, s2, s3, m01 .. m33 (each with its optional <name>_std), theta_i, theta_r, phi, "
+                  "in_s1, in_s2, in_s3, f00 or s0, f00_std, mask")
 
 
 class Source:
-    """The input stack: variables as arrays (numpy or lazy xarray/dask) of the shape of ``dop``
-    (leading pixel dimensions, then M measurements) or, for the angles, shared (M,).
+    """The input stack: variables as arrays (numpy or lazy xarray/dask) of the shape of its first
+    measured quantity ``ref`` (``dop``, or ``s1``, ...: :data:`MEASURED`; leading pixel dimensions,
+    then M measurements) or, for the angles and the incident state, shared (M,).
 
-    The measurement axis of ``dop`` is the one the shared (1-d) angles run along (a Dataset's
+    The measurement axis of ``ref`` is the one the shared (1-d) angles run along (a Dataset's
     dimension, or an array's axis of their length: the last when it has it); without shared
     angles, a Dataset's dimension named ``m`` or ``measurement``, else the last; images whose
     per-pixel angles contradict it are refused (:func:`_check_measurement_axis`).  It is moved
@@ -107,17 +130,20 @@ class Source:
 
     def _read_dataset(self, data):
         """The variables of a Dataset, the measurement dimension moved last (lazy where they are)."""
-        if "dop" not in data:
-            raise ValueError(f"data: no 'dop' variable; the dataset has {', '.join(map(str, data.data_vars))}")
-        dop = data["dop"]
+        measured = measured_of(data.data_vars)
+        if not measured:
+            raise ValueError(f"data: no measured variable ({', '.join(MEASURED[:5])}, ...); the dataset has "
+                             f"{', '.join(map(str, data.data_vars))}")
+        self.ref = ref = measured[0]
+        dop = data[ref]
         if dop.ndim < 2:
-            raise ValueError(f"data: dop must have pixel dimensions and a measurement dimension, got dims "
+            raise ValueError(f"data: {ref} must have pixel dimensions and a measurement dimension, got dims "
                              f"{dop.dims}")
-        for name in VARIABLES[1:]:
-            if name in data:
+        for name in VARIABLES:
+            if name in data and name != ref:
                 extra = set(data[name].dims) - set(dop.dims)
                 if extra:
-                    raise ValueError(f"data: {name} has dimensions {sorted(extra)} that dop does not have")
+                    raise ValueError(f"data: {name} has dimensions {sorted(extra)} that {ref} does not have")
         shared = {a: str(data[a].dims[0]) for a in ANGLES if a in data and data[a].ndim == 1
                   and data[a].size > 1}
         if len(set(shared.values())) > 1:
@@ -136,7 +162,7 @@ class Source:
                     v = data[a].isel({d: slice(0, AXIS_SAMPLE) for d in data[a].dims})
                     v = v.transpose(*[d for d in dims if d in v.dims])
                     samples[a] = np.asarray(v.values, float).reshape([v.sizes.get(d, 1) for d in dims])
-            _check_measurement_axis(samples, dims.index(mdim), dims, tuple(dop.shape))
+            _check_measurement_axis(samples, dims.index(mdim), dims, tuple(dop.shape), ref)
         if mdim != dims[-1]:
             dop = dop.transpose(*[d for d in dims if d != mdim], mdim)
         self.dims = tuple(map(str, dop.dims[:-1]))
@@ -148,7 +174,7 @@ class Source:
         for name in VARIABLES:
             if name not in data:
                 continue
-            v = dop if name == "dop" else data[name]
+            v = dop if name == ref else data[name]
             if name != "mask" and v.dims == (self.mdim,):
                 vars_[name] = v.values
             else:  # kept lazy: rows() reads a block of rows at a time
@@ -163,7 +189,7 @@ class Source:
 
             from ..errors import DataWarning
             warnings.warn(f"data: variable{'s' if len(unread) > 1 else ''} {', '.join(unread)} "
-                          f"over the measurements not read (fit_batch reads {', '.join(VARIABLES)})",
+                          f"over the measurements not read (fit_batch reads {VARIABLES_TEXT})",
                           DataWarning, stacklevel=5)
         self.shape = tuple(dop.shape[:-1])
         self.M = int(dop.shape[-1])
@@ -172,57 +198,63 @@ class Source:
         """The arrays of a dict, the measurement axis moved last."""
         unknown = set(data) - set(VARIABLES) - set(ACCEPTED) - {"mdim", "dims"}
         if unknown:
-            raise ValueError(f"data: unknown variable {sorted(unknown)[0]!r}; variables are {', '.join(VARIABLES)}")
-        if "dop" not in data:
-            raise ValueError("data: no 'dop' array")
+            from ..ranges import did_you_mean
+            bad = sorted(unknown)[0]
+            near = did_you_mean(bad, VARIABLES)
+            raise ValueError(f"data: unknown variable {bad!r}" + (f" (did you mean {near!r}?)" if near else "")
+                             + f"; variables are {VARIABLES_TEXT}")
+        measured = measured_of(data)
+        if not measured:
+            raise ValueError(f"data: no measured array ({', '.join(MEASURED[:5])}, ...)")
+        self.ref = ref = measured[0]
         arrays = {}
         for name in VARIABLES:
             v = data.get(name)
             if v is not None:
                 arrays[name] = v if hasattr(v, "shape") else np.asarray(v, float)
-        dop = arrays["dop"]
+        dop = arrays[ref]
         if len(dop.shape) < 2:
-            raise ValueError(f"data: dop must have shape (..., M): pixel dimensions then M measurements, "
+            raise ValueError(f"data: {ref} must have shape (..., M): pixel dimensions then M measurements, "
                              f"got shape {tuple(dop.shape)}")
         nd = len(dop.shape)
         lengths = {a: int(arrays[a].shape[0]) for a in ANGLES
                    if a in arrays and len(arrays[a].shape) == 1 and arrays[a].shape[0] > 1}
-        axis = _axis_of_lengths(tuple(dop.shape), lengths)
+        axis = _axis_of_lengths(tuple(dop.shape), lengths, ref=ref)
         if axis is None:
             axis = nd - 1
             samples = {a: np.asarray(arrays[a][(slice(0, AXIS_SAMPLE),) * len(arrays[a].shape)], float)
                        .reshape((1,) * (nd - len(arrays[a].shape)) + tuple(min(s, AXIS_SAMPLE)
                                                                            for s in arrays[a].shape))
                        for a in ANGLES if a in arrays and 1 < len(arrays[a].shape) <= nd}
-            _check_measurement_axis(samples, axis, None, tuple(dop.shape))
+            _check_measurement_axis(samples, axis, None, tuple(dop.shape), ref)
         if axis != nd - 1:  # the measurements last; every array over dop's axes moved alike
             for name, v in list(arrays.items()):
-                if name == "mask" or (name in ANGLES and len(v.shape) == 1) or len(v.shape) == 0:
+                if name == "mask" or (name in SHARED and len(v.shape) == 1) or len(v.shape) == 0:
                     continue
                 if len(v.shape) > nd:
                     continue  # refused below, with its shape
                 v = v.reshape((1,) * (nd - len(v.shape)) + tuple(v.shape))
                 arrays[name] = np.moveaxis(v, axis, -1)
-            dop = arrays["dop"]
+            dop = arrays[ref]
         self.shape, self.M = tuple(dop.shape[:-1]), int(dop.shape[-1])
         nd = len(self.shape)
         self.dims = tuple(data.get("dims") or (("y", "x") if nd == 2 else ("pixel",) if nd == 1
                                                 else tuple(f"dim_{i}" for i in range(nd))))
         self.mdim = data.get("mdim", "measurement")
-        self.vars = {"dop": dop}
-        for name in VARIABLES[1:]:
+        self.vars = {ref: dop}
+        for name in VARIABLES:
             v = arrays.get(name)
-            if v is None:
+            if v is None or name == ref:
                 continue
             full = self.shape if name == "mask" else tuple(dop.shape)
-            if name != "mask" and tuple(v.shape) in ((self.M,), ()) and name in ANGLES:
+            if name != "mask" and tuple(v.shape) in ((self.M,), ()) and name in SHARED:
                 v = np.broadcast_to(np.asarray(v, float), (self.M,))
             else:
                 try:
                     np.broadcast_shapes(tuple(v.shape), full)
                 except ValueError:
                     raise ValueError(f"data: {name} of shape {tuple(v.shape)} does not broadcast to "
-                                     f"{'the pixel shape' if name == 'mask' else 'dop'}'s shape {full}") from None
+                                     f"{'the pixel shape' if name == 'mask' else ref}'s shape {full}") from None
             self.vars[name] = v
 
     def _check_variables(self):
@@ -240,18 +272,22 @@ class Source:
             self.vars["f00"] = self.vars.pop("s0")
         if "f00_std" in self.vars and "f00" not in self.vars:
             raise ValueError("data: f00_std is given without f00")
-        for name in ("dop_std", "f00_std"):
+        for name in tuple(f"{n}_std" for n in MEASURED) + ("f00_std",):
             v = self.vars.get(name)
+            if v is not None and name != "f00_std" and name[:-4] not in self.vars:
+                raise ValueError(f"data: {name} is given without {name[:-4]}")
             if v is not None and np.ndim(v) == 0 and np.isnan(float(np.asarray(v))):
                 raise ValueError(f"data: {name} is NaN (one value for every measurement): give the noise std (> 0)"
-                                 + (", or leave dop_std out to estimate each pixel's noise from its residuals"
-                                    if name == "dop_std" else ""))
+                                 + (f", or leave {name} out to estimate each pixel's noise from its residuals"
+                                    if name != "f00_std" else ""))
         if len(self.dims) != len(self.shape):
-            raise ValueError(f"data: dims {self.dims} do not match dop's pixel dimensions {self.shape}")
-        self.shared = all(np.ndim(self.vars[a]) == 1 for a in ANGLES)
+            raise ValueError(f"data: dims {self.dims} do not match {self.ref}'s pixel dimensions {self.shape}")
+        #: the measured quantities of the stack (:data:`MEASURED`), in that order
+        self.measured = measured_of(self.vars)
+        self.shared = all(np.ndim(self.vars[a]) == 1 for a in SHARED if a in self.vars)
         self.n_pixels = int(np.prod(self.shape, dtype=np.int64))
         if self.M < 2:
-            raise ValueError(f"data: dop has {self.M} measurement per pixel; a fit needs several")
+            raise ValueError(f"data: {self.ref} has {self.M} measurement per pixel; a fit needs several")
 
     def rows(self, r0, r1):
         """The pixels of rows r0..r1 of the first pixel dimension, flat: dict name -> (p, M) float64
@@ -259,7 +295,7 @@ class Source:
         import xarray as xr
         out = {}
         for name, v in self.vars.items():
-            if np.ndim(v) == 1 and name in ANGLES:
+            if np.ndim(v) == 1 and name in SHARED:
                 out[name] = np.asarray(v, float)
                 continue
             full = self.shape if name == "mask" else self.shape + (self.M,)
@@ -381,7 +417,7 @@ def check_block(block, r0, source):
     """Validate a block's values; errors name the variable and the first offending index (of the
     full stack)."""
     def where(name, flat_index):
-        if np.ndim(block[name]) == 1 and name in ANGLES:
+        if np.ndim(block[name]) == 1 and name in SHARED:
             return f"[{flat_index}]"
         pix, m = divmod(int(flat_index), source.M) if name != "mask" else (int(flat_index), None)
         idx = list(np.unravel_index(pix, (block[name].shape[0] // max(1, int(np.prod(source.shape[1:]))),)
@@ -394,10 +430,11 @@ def check_block(block, r0, source):
     def first(name, bad):
         i = int(np.argmax(bad.reshape(-1)))
         return f"{float(block[name].reshape(-1)[i])!r} at index {where(name, i)}"
-    dop = block["dop"]
-    bad = ~(np.isnan(dop) | ((dop >= 0) & (dop <= 1)))
-    if bad.any():
-        raise ValueError(f"dop must be in [0, 1] (NaN for a missing measurement), got {first('dop', bad)}")
+    if "dop" in block:
+        dop = block["dop"]
+        bad = ~(np.isnan(dop) | ((dop >= 0) & (dop <= 1)))
+        if bad.any():
+            raise ValueError(f"dop must be in [0, 1] (NaN for a missing measurement), got {first('dop', bad)}")
     for name in ("theta_i", "theta_r"):
         a = block[name]
         bad = ~(np.isfinite(a) & (a >= 0) & (a < 90))
@@ -407,16 +444,17 @@ def check_block(block, r0, source):
     bad = ~np.isfinite(a)
     if bad.any():
         raise ValueError(f"phi must be finite, got {first('phi', bad)}")
-    for name, rule, ok in (("dop_std", "> 0 (NaN for a missing measurement)", lambda a: np.isnan(a) | (a > 0)),
-                           ("f00", ">= 0 (NaN for a missing measurement)", lambda a: np.isnan(a) | (a >= 0)),
-                           ("f00_std", "> 0", lambda a: np.isnan(a) | (a > 0))):
+    rules = [(f"{n}_std", "> 0 (NaN for a missing measurement)", lambda a: np.isnan(a) | (a > 0)) for n in MEASURED]
+    rules += [("f00", ">= 0 (NaN for a missing measurement)", lambda a: np.isnan(a) | (a >= 0)),
+              ("f00_std", "> 0", lambda a: np.isnan(a) | (a > 0))]
+    for name, rule, ok in rules:
         if name in block:
             bad = ~ok(block[name])
             if bad.any():
                 raise ValueError(f"{name} must be {rule}, got {first(name, bad)}")
     # a NaN std marks a missing measurement only where the value is missing too: a measured value
     # without its std is refused (as pbrdf_cl.fit refuses it), not silently left out
-    for name, value in (("dop_std", "dop"), ("f00_std", "f00")):
+    for name, value in [(f"{n}_std", n) for n in MEASURED] + [("f00_std", "f00")]:
         if name in block and value in block:
             bad = np.isnan(block[name]) & ~np.isnan(block[value])
             if bad.any():
@@ -424,6 +462,37 @@ def check_block(block, r0, source):
                 raise ValueError(f"{name} is NaN at index {where(name, i)} where {value} is "
                                  f"{float(block[value].reshape(-1)[i])!r}: give that measurement's std (> 0), or "
                                  f"NaN in {value} too to leave it out as missing")
+    _check_polarimetric(block, where, first, source)
+
+
+def _check_polarimetric(block, where, first, source):
+    """The checks of a block's polarimetric values and incident states (:mod:`pbrdf_cl.io.polar`'s,
+    each refusal naming the first offending index)."""
+    from ..io import polar
+    if "aop" in block:
+        bad = np.isinf(block["aop"])
+        if bad.any():
+            raise ValueError(f"aop must be finite (degrees; NaN for a missing measurement), got {first('aop', bad)}")
+    given = sorted((n for n in INCIDENT if n in block), key=lambda n: -np.ndim(block[n]))  # per pixel first
+    if given:
+        inc = [np.broadcast_to(block[n], block[given[0]].shape) for n in given]
+        for n, a in zip(given, inc):
+            bad = ~np.isfinite(a)
+            if bad.any():
+                raise ValueError(f"{n} must be finite (the incident state of every measurement; 0, 0, 0 for "
+                                 f"unpolarised light), got {first(n, bad)}")
+        norm2 = sum(a * a for a in inc)
+        bad = norm2 > 1.0 + 1e-9
+        if bad.any():
+            i = int(np.argmax(bad.reshape(-1)))
+            state = ", ".join(f"{n} = {float(a.reshape(-1)[i]):g}" for n, a in sorted(zip(given, inc)))
+            raise ValueError(f"the incident state at index {where(given[0], i)} ({state}) is not a Stokes vector: "
+                             f"in_s1^2 + in_s2^2 + in_s3^2 = {float(norm2.reshape(-1)[i]):.4g} > 1 (normalised by S0)")
+    names = [n for n in POLARIMETRIC if n in block and n != "aop"]
+    if names:
+        cols = {k: np.broadcast_to(block[k], block[names[0]].shape).reshape(-1)
+                for k in names + [f"{n}_std" for n in names if f"{n}_std" in block]}
+        polar.check_normalised(cols, lambda i: f"data at index {where(names[0], int(i))}")
 
 
 def data_notes(source):

@@ -2,7 +2,9 @@
 or block by block into a resumable Zarr store with ``store=``, on ``dask.distributed`` workers
 with ``workers=``/``scheduler=``/``client=``).
 
-Every pixel of a stack has its own M measurements of DOP (and optionally intensity) and is
+Every pixel of a stack has its own M measurements of DOP (and optionally intensity), or of
+polarimetric quantities (normalised Stokes parameters s1, s2, s3 under the source's polarization
+state per measurement, Mueller elements, DOP, AoP: :mod:`pbrdf_cl.model.measurables`' channels), and is
 fitted on its own, by the stages of :func:`pbrdf_cl.fit` reshaped for many pixels at once
 (:mod:`pbrdf_cl.fitting.images.pixel_fit`):
 
@@ -36,13 +38,13 @@ from ...io.source import open_stack_lazily
 from ..setup import FitSetup
 from . import store as image_store
 from .dataset import goodness_summary, interval_summary
-from .job import BLOCK_BUDGET, N_STARTS, BatchJob
+from .job import BLOCK_BUDGET, N_STARTS, BatchJob, choose_quantities
 from .labels import LabelJob, UnsharedLabelJob, label_shared, read_labels
 
 
 def fit_batch(data, model="six-param", bounds=None, fixed=None, shadowing="paper", *, memory_budget=BLOCK_BUDGET,
               progress=False, n_starts=N_STARTS, grid_shape=None, engine=None, backend="auto", device=None, store=None,
-              workers=None, scheduler=None, client=None, allow_large=False, labels=None, shared=None):
+              workers=None, scheduler=None, client=None, allow_large=False, labels=None, shared=None, quantities=None):
     """Fit the model to every pixel of a polarization image stack, batched on the device.
 
     Parameters
@@ -58,6 +60,14 @@ def fit_batch(data, model="six-param", bounds=None, fixed=None, shadowing="paper
         along another axis where the geometry says which (the shared angles' axis or
         dimension, or a Dataset dimension named ``m``; see ``pbrdf_cl.io.source.Source``); ambiguous layouts
         are refused.  Without ``phi`` every measurement is in plane (``attrs["data_notes"]``).
+        Polarimetric stacks hold, like ``dop`` (instead of it or beside it), ``s1``, ``s2``, ``s3``
+        (the reflected Stokes vector normalised by S0, in the psps frame of the outgoing beam),
+        ``aop`` (degrees), normalised Mueller elements ``m01`` .. ``m33`` and their optional
+        ``<name>_std`` (for every fitted quantity or none; an AoP among others needs its own), and
+        the source's normalised Stokes vector per measurement ``in_s1``, ``in_s2``, ``in_s3``
+        (shared, shape ``(M,)``, or per pixel; absent: unpolarised light); NaN marks a value not
+        measured.  Intensities (``f00``, ``s0``) are not fitted with polarimetric quantities (a note
+        says so).
     model, bounds, fixed, shadowing
         As for :func:`pbrdf_cl.fit`.
     memory_budget : int or str, default "512 MiB"
@@ -98,6 +108,11 @@ def fit_batch(data, model="six-param", bounds=None, fixed=None, shadowing="paper
         The parameters the pixels of a label share (free parameters, not all of them), as a
         sequence or one string (``"n,k"``, ``"n k"``); by default ("n", "k"), less a fixed one;
         empty (``()``, ``""``): nothing, every pixel is fitted on its own.
+    quantities : sequence of str or str, optional
+        The measured quantities fitted, names of the stack's (``"s1,s2"``, ``("dop",)``). Default:
+        the stack's polarimetric quantities where it gives the source's state (``in_s1`` ..
+        ``in_s3``) or has no ``dop``, else its ``dop`` (as for unpolarised light); the quantities
+        left out are named in ``attrs["data_notes"]``.  With ``labels`` only the DOP.
 
     Returns
     -------
@@ -125,7 +140,8 @@ def fit_batch(data, model="six-param", bounds=None, fixed=None, shadowing="paper
         goodness-of-fit test: chi2 with dop_std, else an F test against the pixels' own fits;
         ``attrs["label_goodness"]``, and ``attrs["label_goodness_warning"]`` naming the labels
         that fail) and ``label_status`` (codes in its attrs); pixels of label 0 are masked
-        (status -1).
+        (status -1).  ``attrs["quantities"]`` names the quantities
+        fitted (``sse``, ``r2`` and ``n_valid`` are of them).
 
     Raises
     ------
@@ -145,6 +161,8 @@ def fit_batch(data, model="six-param", bounds=None, fixed=None, shadowing="paper
     ((2, 3), True)
     """
     settings = dict(memory_budget=memory_budget, n_starts=n_starts, grid_shape=grid_shape)
+    if quantities is not None:
+        settings["quantities"] = quantities
     if shared is not None and labels is None:
         raise ValueError("shared= needs labels= (the label image that says which pixels share them)")
     if store is not None:
@@ -185,10 +203,16 @@ def _job(data, model, bounds, fixed, shadowing, settings, labels, shared):
     every labelled pixel on its own, label 0 not fitted, as a note says)."""
     if labels is None:
         return BatchJob(data, model, bounds, fixed, shadowing, **settings)
+    quantities = settings.pop("quantities", None)
     data, given = read_labels(data, labels)
     if label_shared(FitSetup.check(model, bounds, fixed, shadowing), shared):
-        return LabelJob(data, model, bounds, fixed, shadowing, labels=given, shared=shared, **settings)
-    return UnsharedLabelJob(data, model, bounds, fixed, shadowing, labels=given, **settings)
+        job = LabelJob(data, model, bounds, fixed, shadowing, labels=given, shared=shared, **settings)
+    else:
+        job = UnsharedLabelJob(data, model, bounds, fixed, shadowing, labels=given, **settings)
+    if job.setup.channels or (quantities is not None and choose_quantities(job.source, quantities)[0] != ("dop",)):
+        raise ValueError("labels=: image fits with labels fit the DOP under unpolarised light only, not polarimetric "
+                         "quantities or incident states; fit those without labels (every pixel on its own)")
+    return job
 
 
 def _bar(total, enabled):

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from ...compute import pointwise
-from ...io.source import Source, check_block, data_notes
+from ...io.source import INCIDENT, MEASURED, POLARIMETRIC, Source, check_block, data_notes
 from ..common import DOP_NOISE_FLOOR
 from ..setup import FitSetup, check_model
 from .dataset import empty_outputs, make_dataset
@@ -27,7 +27,7 @@ class BatchJob:
     block (:meth:`fit_rows`), so that a store or a Dask worker can run blocks on their own."""
 
     def __init__(self, data, model="six-param", bounds=None, fixed=None, shadowing="paper", *,
-                 memory_budget=BLOCK_BUDGET, n_starts=N_STARTS, grid_shape=None):
+                 memory_budget=BLOCK_BUDGET, n_starts=N_STARTS, grid_shape=None, quantities=None):
         from ...ranges import parse_bytes
         check_model(model, shadowing)
         n_starts = int(n_starts)
@@ -44,28 +44,41 @@ class BatchJob:
         axes = fs.grid_axes(shape)
         if int(np.prod([a.size for a in axes.values()])) >= 2 ** 24:
             raise ValueError("grid_shape: at most 2**24 grid points")
-        sigma_known = "dop_std" in self.source.vars
+        src = self.source
+        fitted, notes = choose_quantities(src, quantities)
+        channels = fitted != ("dop",) or any(n in src.vars for n in INCIDENT)
+        sigma_known = check_stds(src, fitted)
         floor = DOP_NOISE_FLOOR  # each pixel's own floor may be higher: Block.noise_floor
-        use_f00 = fs.fits_intensity("f00" in self.source.vars)
+        use_f00 = fs.fits_intensity("f00" in src.vars) and not channels
+        if channels and "f00" in src.vars:
+            notes.append("the intensities (f00 or s0) are not fitted with polarimetric channels per pixel: ks is "
+                         "held and kd is kd/ks (pbrdf_cl.fit of one pixel's rows separates them)")
         self.setup = BatchSetup(fs.model, fs.shadowing, fs.bounds, fs.fixed, axes, use_f00, n_starts, sigma_known,
-                                floor)
+                                floor, fitted, channels)
         self.order, self.rstart = regions(grid_values(self.setup), free)
         #: What the data show of the usual mistakes (phi not given, phi = 0, radians), from the
-        #: first row of pixels: the result's ``attrs["data_notes"]`` and the goodness summary's causes.
-        self.notes = data_notes(self.source)
+        #: first row of pixels, and which measured quantities are fitted: the result's
+        #: ``attrs["data_notes"]`` and the goodness summary's causes.
+        self.notes = data_notes(src) + notes
 
     @property
     def names(self):
         """The fitted parameters, in the order of the outputs."""
         return self.setup.free + (["ks"] if self.setup.use_f00 else [])
 
+    @property
+    def width(self):
+        """The residuals per pixel: M measurements, or, with polarimetric channels, M per fitted quantity."""
+        return self.source.M * (len(self.setup.quantities) if self.setup.channels else 1)
+
     def pixel_bytes(self):
         """Host and device bytes one pixel of a block needs (the largest stage)."""
-        M, D, S = self.source.M, len(self.names), self.setup.n_starts
+        M, D, S = self.width, len(self.names), self.setup.n_starts
         v = grid_values(self.setup)
         # the block's data (float64 and the kernels' copies), the descents' vectors and J^T J, and
         # the geodesic acceleration's scratch (two slots of M Jacobian rows per float32 start)
-        per = 8 * M * 12 + 8 * S * D * (D + 3) * 2 + (4 * 2 * M * (D + 1) * S if GEODESIC else 0)
+        per = 8 * M * (36 if self.setup.channels else 12) + 8 * S * D * (D + 3) * 2 + (
+            4 * 2 * M * (D + 1) * S if GEODESIC else 0)
         if not self.source.shared:
             nnk, nm, ni = v["n"].size * v["k"].size, v["sigma"].size, v["kd"].size * v["c"].size
             per += 4 * M * (2 * nnk + nm + ni)
@@ -76,7 +89,7 @@ class BatchJob:
         """Bytes a block needs whatever its size: with shared geometry the grid's DOP table and its
         making (the per-point path's inputs and output; measured with tracemalloc: 26 MB at the
         default grid and 30 measurements)."""
-        return 32 * len(self.order) * self.source.M if self.source.shared else 0
+        return 32 * len(self.order) * self.width if self.source.shared else 0
 
     def rows_per_block(self):
         """Rows of the first pixel dimension per block within the memory budget (at least one)."""
@@ -89,7 +102,7 @@ class BatchJob:
         px = (self.memory_budget - fixed) // self.pixel_bytes()
         if not self.source.shared:  # 32-bit indices of the per-pixel tables
             v = grid_values(self.setup)
-            px = min(px, (2 ** 31 - 1) // (self.source.M * v["n"].size * v["k"].size) - 64)
+            px = min(px, (2 ** 31 - 1) // (self.width * v["n"].size * v["k"].size) - 64)
         return int(max(1, min(self.source.shape[0], px // max(row, 1))))
 
     def blocks(self):
@@ -118,14 +131,75 @@ class BatchJob:
 
     def store_settings(self):
         """What a store's settings (:func:`pbrdf_cl.fitting.images.store.settings`) add for this
-        kind of job: nothing (a :class:`pbrdf_cl.fitting.images.labels.LabelJob` adds its labels)."""
-        return {}
+        kind of job: the fitted quantities where they are polarimetric channels (a
+        :class:`pbrdf_cl.fitting.images.labels.LabelJob` adds its labels)."""
+        return {"quantities": list(self.setup.quantities)} if self.setup.channels else {}
 
     def dataset(self, out, seconds=None):
-        """The result Dataset from the concatenated outputs of :meth:`fit_rows`."""
-        return make_dataset(self, out, seconds)
+        """The result Dataset from the concatenated outputs of :meth:`fit_rows`; ``attrs["quantities"]``
+        names the quantities fitted."""
+        ds = make_dataset(self, out, seconds)
+        ds.attrs["quantities"] = " ".join(self.setup.quantities)
+        if self.setup.channels:
+            what = ", ".join(self.setup.quantities)
+            ds.attrs["incident"] = ("the incident states in_s1, in_s2, in_s3 of the stack" if any(
+                n in self.source.vars for n in INCIDENT) else "unpolarised")
+            for name, text in (("sse", f"sum of squared residuals of {what}"),
+                               ("n_valid", f"valid measured numbers ({what})"),
+                               ("r2", f"share of the variance of {what} the fit explains (R^2)")):
+                ds[name].attrs["long_name"] = text
+            ds["chi2"].attrs["long_name"] = "weighted sum of squared residuals" + (
+                " (chi2)" if self.setup.sigma_known else " (std = 1: no uncertainties given)")
+        return ds
 
     def empty_outputs(self, rows):
         """Outputs of :meth:`fit_rows` for ``rows`` rows not fitted, with the right keys, shapes and
         dtypes (a store's template)."""
         return empty_outputs(rows * int(np.prod(self.source.shape[1:], dtype=np.int64)), len(self.names))
+
+
+def choose_quantities(source, quantities):
+    """The measured quantities fitted (a tuple in :data:`~pbrdf_cl.io.source.MEASURED`'s order)
+    and notes on those left out: ``quantities`` as given (a sequence, or one string of names
+    separated by commas or spaces), else the stack's polarimetric quantities where it gives the
+    source's state (``in_s1``..``in_s3``) or has no ``dop``, else its ``dop``."""
+    measured = source.measured
+    polar = [n for n in measured if n in POLARIMETRIC]
+    incident = any(n in source.vars for n in INCIDENT)
+    if quantities is None:
+        chosen = polar if polar and ("dop" not in measured or incident) else ["dop"]
+    else:
+        names = quantities.replace(",", " ").split() if isinstance(quantities, str) else [str(q) for q in quantities]
+        for n in names:
+            if n not in MEASURED:
+                from ...ranges import did_you_mean
+                near = did_you_mean(n, MEASURED)
+                raise ValueError(f"quantities: {n!r} is not a measured quantity" + (f"; did you mean {near!r}?" if near
+                                 else "") + f" ({', '.join(MEASURED[:5])}, m01 .. m33)")
+            if n not in measured:
+                raise ValueError(f"quantities: {n!r} is not in the stack, which has {', '.join(measured)}")
+        if not names:
+            raise ValueError(f"quantities: give at least one of the stack's {', '.join(measured)}")
+        chosen = [n for n in measured if n in names]
+    left = [n for n in measured if n not in chosen]
+    notes = []
+    if left and quantities is None:
+        why = ("the source's state is not given (in_s1, in_s2, in_s3): the DOP is fitted, as for unpolarised light"
+               if chosen == ["dop"] else f"{', '.join(chosen)} are fitted (a camera's dop is sqrt(s1^2 + s2^2) of "
+               "the same frames)")
+        notes.append(f"{', '.join(left)} not fitted: {why}; quantities= (fit-image --quantities) chooses")
+    return tuple(chosen), notes
+
+
+def check_stds(source, fitted):
+    """Whether every fitted quantity has its standard deviation (``<name>_std``; the fit's weights
+    and chi2): all of them or none, an AoP among other quantities needs its own (one line each)."""
+    have = [n for n in fitted if f"{n}_std" in source.vars]
+    if have and len(have) < len(fitted):
+        lack = [n for n in fitted if n not in have]
+        raise ValueError(f"data: standard deviations are given for {', '.join(have)} but not for {', '.join(lack)}; "
+                         "give <name>_std for every fitted quantity or for none")
+    if "aop" in fitted and len(fitted) > 1 and not have:
+        raise ValueError(f"data: aop_std is needed where the AoP is fitted with other quantities "
+                         f"({', '.join(n for n in fitted if n != 'aop')}): degrees are not their units")
+    return bool(have)

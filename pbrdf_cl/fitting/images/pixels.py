@@ -11,8 +11,9 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ...io.source import ANGLES
-from ...model import reference
+from ...io.source import ANGLES, INCIDENT
+from ...model import measurables, reference
+from ..channels import ChannelModel
 from ..common import dop_resolution
 from ..setup import F00_REL_STD, PARAMETERS, FitSetup
 
@@ -29,12 +30,16 @@ class BatchSetup(FitSetup):
     image fit's own: the grid stage's ``axes`` (free parameter -> nodes), ``use_f00`` (the
     intensities enter the fit: ks free, kd as kd/ks), ``n_starts`` (descents per pixel),
     ``sigma_known`` (dop_std given) and ``noise_floor`` (the least DOP noise assumed without it;
-    each pixel's own may be higher: :attr:`Block.noise_floor`)."""
+    each pixel's own may be higher: :attr:`Block.noise_floor`), the measured ``quantities`` fitted
+    (names of :data:`pbrdf_cl.io.source.MEASURED`) and whether they are fitted as polarimetric
+    ``channels`` (:mod:`pbrdf_cl.model.measurables`: anything but the DOP under unpolarised light)."""
     axes: dict
     use_f00: bool
     n_starts: int
     sigma_known: bool
     noise_floor: float
+    quantities: tuple = ("dop",)
+    channels: bool = False
 
 
 class Descent(NamedTuple):
@@ -85,16 +90,51 @@ def grid_points(setup, order, flat):
     return np.stack([v[n][unr[names.index(n)]] for n in setup.free], axis=-1)
 
 
+def channel_spec(raw, quantities, shared):
+    """The polarimetric channels of a block's measurements (:func:`pbrdf_cl.model.measurables.channels`,
+    obs 0): ``quantities`` at every measurement m, channel m * len(quantities) + j for the j-th
+    quantity in the registry's order; arrays over the C channels where the geometry and incident
+    states are ``shared`` ((M,) in ``raw``), else over (pixels, C)."""
+    names = [n for n in measurables.REGISTRY if n in quantities]
+    p, M = raw[names[0]].shape
+    shape = (M,) if shared else (p, M)
+    geo = [np.broadcast_to(raw[a], shape).reshape(-1) for a in ANGLES]
+    inc = np.stack([np.broadcast_to(raw[n], shape).reshape(-1) if n in raw else np.zeros(int(np.prod(shape)))
+                    for n in INCIDENT], axis=-1)
+    ch = measurables.channels(*geo, {n: np.zeros(inc.shape[0]) for n in names}, incident=inc)
+    if shared:
+        return ch
+    C = M * len(names)
+    return type(ch)(**{f: getattr(ch, f).reshape((p, C) + getattr(ch, f).shape[1:]) for f in ch.__dataclass_fields__})
+
+
 class Block:
-    """One block of pixels prepared for the stages: flat (p, M) arrays, weights, validity."""
+    """One block of pixels prepared for the stages: flat (p, M) arrays, weights, validity; with
+    polarimetric quantities (``setup.channels``) the M measurements are C channels (one number
+    measured at one measurement index, :func:`channel_spec`: ``spec``) and the arrays (p, C)."""
 
     def __init__(self, raw, setup, lanes):
         self.raw, self.setup, self.lanes = raw, setup, lanes
-        self.p = raw["dop"].shape[0]
+        self._model = None  # channel_model's, made once
+        shared_names = ANGLES + tuple(n for n in INCIDENT if n in raw)
+        self.shared = all(raw[a].ndim == 1 for a in shared_names)
+        if setup.channels:
+            self.spec = channel_spec(raw, setup.quantities, self.shared)
+            names = [n for n in measurables.REGISTRY if n in setup.quantities]
+            self.nq = len(names)  # channels per measurement, consecutive: channel m * nq + j
+            dop = np.stack([raw[n] for n in names], axis=2).reshape(raw[names[0]].shape[0], -1)
+            stds = [raw.get(f"{n}_std") for n in names]
+            std = None if stds[0] is None else np.stack([np.broadcast_to(s, raw[n].shape) for n, s in
+                                                         zip(names, stds)], axis=2).reshape(dop.shape)
+            self.angles = [getattr(self.spec, a) for a in ANGLES]
+        else:
+            self.spec = None
+            dop = raw["dop"]
+            std = raw.get("dop_std")
+            self.angles = [raw[a] if self.shared else np.broadcast_to(raw[a], dop.shape) for a in ANGLES]
+        self.p = dop.shape[0]
         self.P = -(-self.p // lanes) * lanes  # padded
-        dop = raw["dop"]
         mask = raw.get("mask", np.ones(self.p, bool))
-        std = raw.get("dop_std")
         valid = np.isfinite(dop) & mask[:, None]
         if std is not None:
             valid &= np.isfinite(std)
@@ -102,8 +142,6 @@ class Block:
             valid &= np.isfinite(raw["f00"])
         self.mask = mask
         self.valid = valid
-        self.shared = all(raw[a].ndim == 1 for a in ANGLES)
-        self.angles = [raw[a] if self.shared else np.broadcast_to(raw[a], dop.shape) for a in ANGLES]
         self.obs = np.where(valid, dop, 0.0)
         w = valid / (std ** 2 if std is not None else 1.0)
         self.w = np.where(valid, w, 0.0)
@@ -128,19 +166,34 @@ class Block:
         return np.maximum(floor, dop_resolution(self.obs, axis=1) / np.sqrt(12.0))
 
     def _distinct_geometries(self):
-        """Distinct valid (theta_i, theta_r, phi) per pixel."""
-        ti, tr, ph = (np.broadcast_to(a, self.valid.shape) for a in self.angles)
-        key = np.stack([ti, tr, ph], axis=-1)
+        """Distinct valid (theta_i, theta_r, phi) per pixel; of channels, distinct valid (geometry,
+        incident and normalising vectors, component, kind): distinct numbers measured."""
+        cols = [np.broadcast_to(a, self.valid.shape) for a in self.angles]
+        if self.spec is not None:
+            sp = self.spec
+            cols += [np.broadcast_to(x, self.valid.shape) for x in (*np.moveaxis(sp.u, -1, 0),
+                                                                    *np.moveaxis(sp.v, -1, 0), sp.comp, sp.kind)]
+        key = np.stack(cols, axis=-1).astype(np.float64)
         key = np.where(self.valid[..., None], key, np.nan)
-        s = np.ascontiguousarray(key).view(np.dtype((np.void, 24)))[..., 0]
+        s = np.ascontiguousarray(key).view(np.dtype((np.void, 8 * len(cols))))[..., 0]
         s = np.sort(s, axis=1)
         distinct = 1 + (s[:, 1:] != s[:, :-1]).sum(axis=1)
         return distinct - (~self.valid).any(axis=1)
 
     def subset(self, idx):
         """The block of pixels ``idx`` (repeats allowed) of this one."""
-        raw = {k: (v if (v.ndim == 1 and k in ANGLES) else v[idx]) for k, v in self.raw.items()}
+        raw = {k: (v if (v.ndim == 1 and k in ANGLES + INCIDENT) else v[idx]) for k, v in self.raw.items()}
         return Block(raw, self.setup, self.lanes)
+
+    def channel_model(self, pix):
+        """The reference model of this block's channels for the pixels ``pix`` (repeats allowed):
+        :class:`~pbrdf_cl.fitting.channels.ChannelModel` over every channel (shared), or over each
+        pixel's (per pixel)."""
+        if self.shared:
+            if self._model is None:
+                self._model = ChannelModel(self.spec, self.setup.shadowing)
+            return self._model
+        return ChannelModel(self.spec.take(pix), self.setup.shadowing)
 
     def padded(self, a, fill=0.0):
         """(p, ...) -> (P, ...) padded with ``fill``."""
@@ -211,14 +264,18 @@ class PixelResiduals:
         rep = X.shape[0] // self.pix.size
         pix = np.repeat(self.pix, rep)
         blk, setup = self.blk, self.setup
-        ang = [a[None, :] if blk.shared else a[pix] for a in blk.angles]
-        g = reference.geometry(*ang)
         p = dict(setup.base)
         ext = external(X, self.names)
         for j, n in enumerate(self.names):
             p[n] = ext[:, j:j + 1]
         if self.intensity:
             p["kd"] = p["kd"] * p["ks"]
+        if blk.spec is not None:  # polarimetric channels (no intensities: job.py)
+            aop = blk.spec.aop if blk.shared else blk.spec.aop[pix]
+            r = reference.channel_residual(blk.channel_model(pix).rows(p), blk.obs[pix], aop) * np.sqrt(self.w[pix])
+            return np.where(np.isfinite(r), r, 1e150)
+        ang = [a[None, :] if blk.shared else a[pix] for a in blk.angles]
+        g = reference.geometry(*ang)
         f = reference.fresnel(p["n"], p["k"], g.cb, g.sb)
         variant = reference.SHADOWING[setup.shadowing]
         log_k = reference.log_specular_scale(g, p["sigma"], p["ks"], reference.shadowing_factor(g, p["sigma"], variant))
