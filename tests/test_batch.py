@@ -147,6 +147,13 @@ def test_result_layout_follows_the_input_dataset(dev):
         assert res[f"{name}_stderr"].attrs["long_name"].startswith("standard error")
     assert res.attrs["sigma_known"] == 1 and "kd/ks" in res.attrs["note"]
     assert set(res.status.attrs["flag_values"]) == set(PIXEL_STATUS)
+    # the per-pixel fields of the fits' one protocol, under its names, and the parameters' units
+    # and long names from the registry of the model's inputs (kd relative to ks without intensities)
+    from pbrdf_cl.fitting.report import PIXEL_FIELDS
+    from pbrdf_cl.model.inputs import LONG_NAMES
+    assert all(res[f].dims == ("row", "col") for f in PIXEL_FIELDS)
+    assert res.n.attrs["long_name"] == LONG_NAMES["n"] and res.n.attrs["units"] == "1"
+    assert res.kd.attrs["long_name"] == LONG_NAMES["kd"] + " relative to ks (kd/ks)"
 
 
 def test_intervals_cover_the_truth(dev):

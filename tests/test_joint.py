@@ -116,6 +116,24 @@ def test_separate_fits_beside_joint(noisy):
     assert np.isfinite(res.separate_aic) and np.isfinite(res.separate_bic)
 
 
+def test_joint_and_sample_fits_report_the_same_fields(noisy):
+    """One protocol (pbrdf_cl.fitting.report.FitReport): every field in both results, with the
+    same kind of value; the joint fit's per-parameter dicts per set."""
+    from pbrdf_cl.fitting.report import RESULT_FIELDS
+    _, res = noisy
+    alone = res.separate["532"]
+    for f in RESULT_FIELDS:
+        assert f in res and f in alone, f
+    for f in ("success", "fits_data", "sigma_known"):
+        assert isinstance(res[f], (bool, np.bool_)) and isinstance(alone[f], (bool, np.bool_)), f
+    for f in ("chi2", "sse", "aic", "bic", "p_value", "r2", "condition_number"):
+        assert np.isscalar(res[f]) and np.isscalar(alone[f]), f
+    assert res.dof == res.n_points - len(res.free) and alone.dof == alone.n_points - len(alone.free)
+    assert res.cov.shape == (len(res.free),) * 2 and alone.cov.shape == (len(alone.free),) * 2
+    assert set(res.x) == set(res.sets) and set(res.x["532"]) == set(alone.x)
+    assert set(res.ci95["532"]) == set(alone.ci95)
+
+
 def test_to_dataset_has_set_dimension(noisy):
     _, res = noisy
     ds = res.to_dataset()

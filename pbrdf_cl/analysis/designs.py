@@ -67,7 +67,7 @@ PAPER_GEOMETRY = {"theta_i": [30.0, 40.0, 50.0], "theta_r": "20:65:5", "phi": 18
 PAPER_INCIDENCE = 40.0
 DEFAULT_CANDIDATES = {"theta_i": "10:80:5", "theta_r": "0:85:5", "phi": 180.0}
 #: The paper's fit at theta_i = 40 (SPEC.md "Numbers from the paper").
-PAPER_MATERIAL = {"n": 1.6, "k": 2.139, "sigma": 0.5, "ks": 0.9, "kd": 0.15, "c": -0.3}
+PAPER_MATERIAL = dict(n=1.6, k=2.139, sigma=0.5, ks=0.9, kd=0.15, c=-0.3)
 Z95 = 1.959963984540054  # scipy.stats.norm.ppf(0.975)
 #: Prior precision (in parameters scaled by their bound ranges) of the greedy start while singular.
 PRIOR = 1.0

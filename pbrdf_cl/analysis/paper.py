@@ -40,9 +40,10 @@ from ..io.measurements import from_arrays
 from ..plots import paper as figures
 from ..plots.maps import plot_map
 from . import maps
+from .designs import PAPER_MATERIAL
 
 #: The paper's fit to 45# steel at 435 nm, theta_i = 40 deg (SPEC).
-STEEL = dict(n=1.6, k=2.139, sigma=0.5, ks=0.9, kd=0.15, c=-0.3)
+STEEL = PAPER_MATERIAL
 STEEL_THETA_I = (30.0, 40.0, 50.0)
 STEEL_THETA_R = np.arange(20.0, 65.0 + 1e-9, 5.0)
 SIGMAS = (0.35, 0.5, 0.65)
@@ -60,7 +61,7 @@ FIG2_SAMPLES = {"aluminum": dict(n=1.24, k=6.6, sigma=0.25, ks=1.0, kd=0.2, c=-0
 #: Fig. 2's 0.05, 0.2 and the steel fit's kd/ks = 0.15/0.9 = 0.17; c: -0.3 (steel, aluminum) and
 #: -0.5 (black paint) up to 0 (Lambert).  (The Fig. 2 samples' sigma, kd and c are our choice: the
 #: paper gives only their n, k.)
-SOBOL_RANGES = {"n": (1.2, 1.7), "k": (0.2, 7.0, "log"), "sigma": (0.2, 0.7), "kd": (0.0, 0.25), "c": (-0.6, 0.0)}
+SOBOL_RANGES = dict(n=(1.2, 1.7), k=(0.2, 7.0, "log"), sigma=(0.2, 0.7), kd=(0.0, 0.25), c=(-0.6, 0.0))
 #: Base samples of the Sobol' map: N (D + 2) = 3584 model runs per geometry, a second or so on a CPU
 #: device at 32 x 32 geometries; intervals of about +-0.05 on the dominant indices.
 SOBOL_N = 512

@@ -47,6 +47,15 @@ QUANTITIES = {n: quantities.REGISTRY[n].long_name for n in quantities.names("gri
 DEFAULT_BUDGET = 1 << 30
 #: Family (0 geometry, 1 n-k, 2 sigma-ks, 3 kd-c) of each canonical axis.
 FAMILY = {n: inputs.family_index(n) for n in AXES}
+#: The model's parameters that a grid or a list of points may leave out, with their values then.
+PARAMETER_DEFAULTS = {n: v for n, v in DEFAULTS.items() if n in PARAMETERS}
+
+
+def family_strides(counts):
+    """The stride of each canonical axis within its family's factor table (row-major over the
+    family's axes in canonical order: theta_i's stride is the count of theta_r times phi's)."""
+    return {n: int(np.prod([counts[m] for m in AXES[i + 1:] if FAMILY[m] == FAMILY[n]], dtype=np.int64))
+            for i, n in enumerate(AXES)}
 
 
 class GridPlan:
@@ -565,8 +574,7 @@ def _device_reduce(eng, plan, kept, red, quantity, dtype, shadowing, memory_budg
     itemsize = np.dtype(npdt).itemsize
     ng, nnk, nm, ni = family_sizes(plan)
     s = plan.sizes
-    coef = {"theta_i": s["theta_r"] * s["phi"], "theta_r": s["phi"], "phi": 1, "n": s["k"], "k": 1,
-            "sigma": s["ks"], "ks": 1, "kd": s["c"], "c": 1}
+    coef = family_strides(s)
     red_total = int(np.prod([s[n] for n in red], dtype=np.int64))
     out_total = int(np.prod([s[n] for n in kept], dtype=np.int64))
     idx_name, idx_np = _index_type(max(plan.size, red_total))
@@ -719,7 +727,7 @@ def objective(data, grid=None, points=None, *, k_best=10, dtype="float32", shado
         return _objective_points(eng, points, payload, k_best, dtype, shadowing, return_sse, t0, memory_budget)
     axes = {n: v for n, v in grid.items() if np.ndim(v) > 0}
     fixed = {n: v for n, v in grid.items() if np.ndim(v) == 0}
-    plan = GridPlan(axes, fixed, names=PARAMETERS, defaults={"ks": 1.0, "kd": 0.0, "c": 0.0})
+    plan = GridPlan(axes, fixed, names=PARAMETERS, defaults=PARAMETER_DEFAULTS)
     v = plan.values
     _, nnk, nm, ni = family_sizes(plan)
     tables_size = table_bytes(M, nnk, nm, ni, itemsize)
@@ -827,7 +835,7 @@ def _objective_points(eng, points, meas, k_best, dtype, shadowing, return_sse, t
     unknown = set(points) - set(PARAMETERS)
     if unknown:
         raise ValueError(f"points: unknown parameter {sorted(unknown)[0]!r}; valid names are {', '.join(PARAMETERS)}")
-    defaults = {"ks": 1.0, "kd": 0.0, "c": 0.0}
+    defaults = PARAMETER_DEFAULTS
     vals = {}
     for n in PARAMETERS:
         if n not in points and n not in defaults:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..model import reference
+from ..model.inputs import MEMBERS
 
 
 class ChannelModel:
@@ -46,7 +47,7 @@ class ChannelModel:
             P = self.spread(reference.mueller_at(f, self.fr, 1.0, 0.0), matrix=True)  # per distinct geometry
             ch = self.ch
             return reference.channel_terms(P, ch.u, ch.v, ch.comp, ch.kind)
-        return self.per_distinct(compute, p, ("n", "k"))
+        return self.per_distinct(compute, p, MEMBERS["index"])
 
     def inv_scale(self, p):
         def compute(q):
@@ -55,11 +56,11 @@ class ChannelModel:
                                                  reference.shadowing_factor(g, q["sigma"], self.variant))
             with np.errstate(over="ignore"):
                 return self.spread(np.exp(-log_k))
-        return self.per_distinct(compute, p, ("sigma", "ks"))
+        return self.per_distinct(compute, p, MEMBERS["specular"])
 
     def rows(self, p):
         tn, td = self.terms(p)
-        fd = self.per_distinct(lambda q: self.spread(reference.diffuse(self.g, q["kd"], q["c"])), p, ("kd", "c"))
+        fd = self.per_distinct(lambda q: self.spread(reference.diffuse(self.g, q["kd"], q["c"])), p, MEMBERS["diffuse"])
         ch = self.ch
         return reference.channel_combine(tn, td, self.inv_scale(p), fd, *np.moveaxis(ch.abc, -1, 0), ch.aop)
 

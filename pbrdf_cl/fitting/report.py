@@ -6,12 +6,60 @@ they test against (``GOODNESS_P``, ``GOODNESS_R2``, ``MISTAKE_CAUSES``) are
 :mod:`pbrdf_cl.fitting.common`'s."""
 from __future__ import annotations
 
+from typing import Protocol
+
 import numpy as np
 
 from .common import GOODNESS_P, GOODNESS_R2, MISTAKE_CAUSES
 
 #: How many of the strongest correlations the notes name.
 MAX_CORR_NOTES = 3
+
+
+class FitReport(Protocol):
+    """What a sample's fit (:class:`~pbrdf_cl.fitting.sample.result.FitResult`) and a joint fit of
+    several sets (:class:`~pbrdf_cl.fitting.sets.result.JointResult`) both report, under one name
+    and with one meaning (their keys, also attributes).  A joint fit's ``x``, ``stderr``, ``ci95``
+    and ``outside_ci95`` are per set (set -> the sample's dict); everything else has the sample's
+    shape.  An image fit's ``xarray.Dataset`` holds the per-pixel fields of :data:`PIXEL_FIELDS`
+    under the same names."""
+
+    success: bool            #: ``status > 0``
+    status: int              #: 1 converged, 2 converged after a budget ran out on a flat valley, 0 a
+                             #: budget ran out while the objective still fell, -1 no finite residuals
+    message: str             #: what ``status`` means here
+    model: str               #: "six-param" or "specular"
+    shadowing: str           #: the shadowing variant
+    free: list               #: the names of the fitted coordinates (order of ``corr`` and ``cov``)
+    x: dict                  #: every model parameter as the model takes it (fitted and held)
+    stderr: dict             #: standard errors (NaN where the variance cannot be computed)
+    ci95: dict               #: 95% intervals (lo, hi) of the fitted parameters (the posterior mixture)
+    outside_ci95: object     #: the parameters whose best value lies outside their ci95
+    sse: float               #: sum of squared residuals
+    chi2: float              #: weighted sum of squared residuals
+    dof: int                 #: measurements minus free parameters
+    p_value: float           #: of chi2 on dof (NaN without given uncertainties)
+    r2: float                #: share of the data's variance the fit explains
+    fits_data: bool          #: the goodness-of-fit test (:func:`goodness`)
+    aic: float               #: Akaike's information criterion (:func:`information`)
+    bic: float               #: the Bayesian information criterion
+    sigma_known: bool        #: whether the data gave their uncertainties
+    n_points: int            #: measurements fitted
+    corr: np.ndarray         #: correlation matrix over ``free`` (valid, or NaN rows and a note)
+    cov: np.ndarray          #: covariance matrix over ``free``
+    condition_number: float  #: of the scaled J^T J
+    profiles: dict           #: the grid's profile of each free parameter
+    notes: list              #: sentences on what the data do and do not determine
+    nfev: dict               #: model evaluations per stage
+    seconds: dict            #: wall time per stage and in total
+
+
+#: The fields of :class:`FitReport`, in its order.
+RESULT_FIELDS = tuple(FitReport.__annotations__)
+#: The fields of :class:`FitReport` an image fit's Dataset holds per pixel (variables of the same
+#: names; the parameters' values, ``stderr``, ``ci95`` and ``outside_ci95`` as ``n``,
+#: ``n_stderr``, ``n_ci95``, ``n_outside_ci95``, ...).
+PIXEL_FIELDS = ("status", "sse", "chi2", "p_value", "r2", "fits_data", "nfev")
 
 
 def chi2_p_value(chi2, dof):

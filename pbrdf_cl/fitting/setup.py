@@ -34,6 +34,10 @@ MODEL_FIXED = {model: {p: inputs.DEFAULTS.get(p, SPECULAR_SIGMA) for p in PARAME
 #: Default relative uncertainty of intensities without an f00_std column (the fit's weights and
 #: the design's intensity noise).
 F00_REL_STD = 0.05
+#: The parameters of the index corner, where a surface is almost index-matched and has a small
+#: diffuse share (n = 1, k = 0, kd = 0 at their lower bounds): there the DOP changes fastest and
+#: its minima are narrowest, so the grid is denser there and image fits descend there too.
+INDEX_CORNER = inputs.INDEX + ("kd",)
 
 
 class Parameter(NamedTuple):
@@ -176,7 +180,7 @@ def grid_axis(name, bounds, count):
     if name == "sigma" and bounds[0] > 0:
         return np.geomspace(bounds[0], bounds[1], count)
     u = np.linspace(0.0, 1.0, count)
-    if name in ("n", "k", "kd"):
+    if name in INDEX_CORNER:
         u = u * u
     return bounds[0] + (bounds[1] - bounds[0]) * u
 

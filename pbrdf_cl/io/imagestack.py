@@ -186,7 +186,7 @@ def truth_maps(size=256):
     yy, xx = np.meshgrid(centre, centre, indexing="ij")
     material = (np.hypot(xx, yy) < 0.3).astype(np.int8)
     maps = {"material": material}
-    for name in ("n", "k", "kd", "c"):
+    for name in MATERIALS["metal"]:
         values = np.array([MATERIALS["metal"][name], MATERIALS["dielectric"][name]])
         maps[name] = values[material]
     lo, hi = SIGMA_RANGE

@@ -99,6 +99,8 @@ FITTED = tuple(n for n, i in REGISTRY.items() if i.fitted)
 #: The parameters of the Fresnel factors alone: what the specular reference model (ref. [7]) fits.
 INDEX = tuple(n for n, i in REGISTRY.items() if i.family == "index")
 FAMILIES = ("geometry", "index", "specular", "diffuse")
+#: The inputs of each family, in their order: ``MEMBERS["specular"] == ("sigma", "ks")``.
+MEMBERS = {f: tuple(n for n, i in REGISTRY.items() if i.family == f) for f in FAMILIES}
 DEFAULTS = {n: i.default for n, i in REGISTRY.items() if i.default is not None}
 UNITS = {n: i.units for n, i in REGISTRY.items()}
 LONG_NAMES = {n: i.long_name for n, i in REGISTRY.items()}

@@ -10,7 +10,7 @@ import numpy as np
 
 from ...device import ops
 from ..common import lm_batch
-from ..setup import PARAMETERS
+from ..setup import INDEX_CORNER, PARAMETERS
 from .pixel_stages import device_lm
 from .pixels import BATCH_GRID, PixelResiduals, descent_bounds
 
@@ -76,7 +76,7 @@ class Corner(NamedTuple):
         return _from_corner(U, names, self)
 
 
-CORNERS = (Corner("index", ("n", "k", "kd"), ("n", "k", "kd"), ("n", "k", "kd"), (1.0, 0.0, 0.0), 200),
+CORNERS = (Corner("index", INDEX_CORNER, INDEX_CORNER, INDEX_CORNER, (1.0, 0.0, 0.0), 200),
            Corner("mirror", ("sigma", "kd"), ("kd",), ("kd",), (0.0,), 60))
 
 
@@ -90,10 +90,10 @@ def _corner_table(setup, names, corner):
     if corner.name == "index":
         E, KD, SG, C = np.meshgrid(np.arange(len(CORNER_EPS)), CORNER_KD, nodes("sigma"), nodes("c"), indexing="ij")
         eps = np.array(CORNER_EPS)[E.ravel()]
-        return {"n": 1.0 + eps[:, 0], "k": eps[:, 1], "kd": KD.ravel(), "sigma": SG.ravel(), "c": C.ravel()}
+        return dict(n=1.0 + eps[:, 0], k=eps[:, 1], kd=KD.ravel(), sigma=SG.ravel(), c=C.ravel())
     N, K, KD, C = np.meshgrid(nodes("n"), nodes("k"), MIRROR_KD, nodes("c"), indexing="ij")
-    return {"n": N.ravel(), "k": K.ravel(), "kd": KD.ravel(), "sigma": np.full(N.size, setup.lo[names.index("sigma")]),
-            "c": C.ravel()}
+    return dict(n=N.ravel(), k=K.ravel(), kd=KD.ravel(), sigma=np.full(N.size, setup.lo[names.index("sigma")]),
+                c=C.ravel())
 
 
 def _corner_table_starts(eng, setup, blk, names, corner, sb):

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ...model import inputs
 from ..common import (
     GOODNESS_P,
     GOODNESS_R2,
@@ -189,10 +190,10 @@ def make_dataset(job, out, seconds):
     shape, dims = src.shape, src.dims
     names = job.names
     ds = xr.Dataset(coords=dict(src.coords))  # the stack's coordinates over pixel dimensions (x_mm, y_mm, ...)
-    units = {"n": "1", "k": "1", "sigma": "1", "kd": "1", "c": "1", "ks": "1"}
-    long = {"n": "refractive index (real part)", "k": "extinction coefficient", "sigma": "slope std per axis",
-            "kd": "diffuse coefficient" + ("" if setup.use_f00 else " relative to ks (kd/ks)"),
-            "c": "Minnaert exponent", "ks": "specular coefficient"}
+    units = inputs.UNITS
+    long = dict(inputs.LONG_NAMES)
+    if not setup.use_f00:
+        long["kd"] += " relative to ks (kd/ks)"
     for j, n in enumerate(names):
         ds[n] = (dims, out["x"][:, j].reshape(shape), {"units": units[n], "long_name": long[n]})
         ds[f"{n}_stderr"] = (dims, out["stderr"][:, j].reshape(shape),

@@ -19,8 +19,8 @@ from ..setup import F00_REL_STD, PARAMETERS, FitSetup
 
 #: Grid nodes per free parameter of the batched grid stage (coarser than :func:`pbrdf_cl.fit`'s: the
 #: regions' minima only seed the descents).
-BATCH_GRID = {"n": 12, "k": 12, "sigma": 8, "kd": 8, "c": 4}
-BATCH_SPECULAR_GRID = {"n": 48, "k": 48}
+BATCH_GRID = dict(n=12, k=12, sigma=8, kd=8, c=4)
+BATCH_SPECULAR_GRID = dict(n=48, k=48)
 
 
 @dataclass(frozen=True)

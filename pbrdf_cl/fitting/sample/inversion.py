@@ -18,7 +18,7 @@ import numpy as np
 from ...compute import pointwise
 from ...io.measurements import as_measurements
 from ..common import dop_noise_floor
-from ..setup import F00_REL_STD, FitSetup, check_model
+from ..setup import F00_REL_STD, MODEL_PARAMS, FitSetup, check_model
 from .polarimetric import fit_channels
 from .result import ComparisonResult, fit_result, fit_status, model_notes
 from .stages import (
@@ -33,8 +33,8 @@ from .stages import (
 from .uncertainty import uncertainty_stage
 
 #: Grid points per free parameter for the device stage.
-DEFAULT_GRID = {"n": 24, "k": 32, "sigma": 16, "kd": 16, "c": 8}
-SPECULAR_GRID = {"n": 160, "k": 200}
+DEFAULT_GRID = dict(n=24, k=32, sigma=16, kd=16, c=8)
+SPECULAR_GRID = dict(n=160, k=200)
 
 
 def check_fit_args(data, model, bounds, fixed, shadowing):
@@ -192,8 +192,8 @@ def compare_models(data, shadowing="paper", bounds=None, fixed=None, engine=None
     meas = as_measurements(data)
     six = fit(meas, "six-param", bounds=bounds, fixed=fixed, shadowing=shadowing, engine=engine, backend=backend,
               progress=progress)
-    spec_fixed = {k: v for k, v in (fixed or {}).items() if k in ("n", "k")}
-    spec_bounds = {k: v for k, v in (bounds or {}).items() if k in ("n", "k")}
+    spec_fixed = {k: v for k, v in (fixed or {}).items() if k in MODEL_PARAMS["specular"]}
+    spec_bounds = {k: v for k, v in (bounds or {}).items() if k in MODEL_PARAMS["specular"]}
     spec = fit(meas, "specular", bounds=spec_bounds, fixed=spec_fixed, shadowing=shadowing, engine=engine,
                backend=backend, progress=progress)
     rows = ["| model | n | k | free params | SSE | AIC | BIC |", "|---|---|---|---|---|---|---|"]

@@ -12,7 +12,7 @@ from ...io.measurements import duplicates_note
 from ...results import Result
 from .. import report
 from ..common import DOP_NOISE_FLOOR, OUTSIDE_MARK, dop_resolution, outside_interval, outside_note
-from ..setup import F00_REL_STD, PARAMETERS
+from ..setup import F00_REL_STD, MODEL_PARAMS, PARAMETERS
 
 #: FitResult.status -> message (scipy's convention: success is status > 0).
 FIT_STATUS = {
@@ -213,7 +213,7 @@ def fit_result(meas, model, shadowing, resid, x, lo, hi, unc, cands, grid, stage
     x_out = {n: float(p[n]) for n in PARAMETERS}
     kd_ratio = x_out["kd"] / x_out["ks"]
     if model == "specular":
-        x_out = {n: x_out[n] for n in ("n", "k")}
+        x_out = {n: x_out[n] for n in MODEL_PARAMS["specular"]}
     return FitResult(
         model=model, shadowing=shadowing, x=x_out, kd_ratio=float(kd_ratio) if model == "six-param" else None,
         free=names, sse=float(dop_resid @ dop_resid), chi2=unc.chi2,
