@@ -114,7 +114,7 @@ def cmd_fit_joint(args, fixed, bounds) -> int:
     except (OSError, ValueError, _engine.OpenCLUnavailableError) as exc:
         return error(exc)
     if not args.quiet:
-        print("data: " + ", ".join(f"{s}: {m.source} ({len(m)} points)" for s, m in r.measurements.items()))
+        print("data: " + ", ".join(f"{s}: {m.source} ({_data_text(m)})" for s, m in r.measurements.items()))
     print(_joint_brief(r) if args.quiet else r.summary())
     if args.json:
         with open(args.json, "w") as fh:
@@ -163,8 +163,10 @@ def cmd_fit(args) -> int:
             fits, best = {args.model: both[args.model], other: both[other]}, both["preferred"]
         else:
             if args.model == "specular":
-                kw["fixed"] = {k: v for k, v in fixed.items() if k in ("n", "k")}
-                kw["bounds"] = {k: v for k, v in bounds.items() if k in ("n", "k")}
+                from ..fitting.setup import MODEL_PARAMS
+                fitted = MODEL_PARAMS["specular"]
+                kw["fixed"] = {k: v for k, v in fixed.items() if k in fitted}
+                kw["bounds"] = {k: v for k, v in bounds.items() if k in fitted}
             fits, best = {args.model: _fit.fit(meas, args.model, **kw)}, None
     except (OSError, ValueError, _engine.OpenCLUnavailableError) as exc:
         return error(exc)

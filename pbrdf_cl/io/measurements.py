@@ -442,14 +442,19 @@ def read_csv(path) -> Measurements:
 
 
 def write_csv(path, meas: Measurements, header_comment: str = ""):
-    """Write measurements as a CSV readable by :func:`read_csv`."""
-    cols = [("theta_i", meas.theta_i), ("theta_r", meas.theta_r), ("phi", meas.phi), ("dop", meas.dop)]
-    if meas.dop_std is not None:
-        cols.append(("dop_std", meas.dop_std))
-    if meas.f00 is not None:
-        cols.append(("f00", meas.f00))
-    if meas.f00_std is not None:
-        cols.append(("f00_std", meas.f00_std))
+    """Write measurements as a CSV readable by :func:`read_csv`: the geometry, every measured
+    quantity (DOP, F00, and the polarimetric ones) with its ``<name>_std`` where given, and the
+    incident state (``in_s1, in_s2, in_s3``) where the light is polarized; NaN where a quantity is
+    not measured at a row."""
+    stds = {**meas.stds, **({"dop": meas.dop_std} if meas.dop_std is not None else {}),
+            **({"f00": meas.f00_std} if meas.f00_std is not None else {})}
+    cols = [("theta_i", meas.theta_i), ("theta_r", meas.theta_r), ("phi", meas.phi)]
+    for name, values in meas.columns().items():
+        cols.append((name, values))
+        if name in stds:
+            cols.append((f"{name}_std", stds[name]))
+    if meas.incident is not None:
+        cols += [(f"in_s{i + 1}", meas.incident[:, i]) for i in range(3)]
     with open(path, "w", encoding="utf-8") as fh:
         for line in header_comment.strip().splitlines():
             fh.write(f"# {line}\n")

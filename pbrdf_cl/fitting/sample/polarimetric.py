@@ -52,14 +52,24 @@ class ChannelResiduals:
             p["kd"] = p["kd"] * p["ks"]
         return p
 
+    @property
+    def observed(self):
+        """The measured values fitted (one per channel)."""
+        return self.model.ch.obs
+
     def raw(self, p):
         """The unweighted residuals (value - measured; an AoP's wrapped) at parameters ``p``."""
         ch = self.model.ch
         return reference.channel_residual(self.model.rows(p), ch.obs, ch.aop)
 
-    def rows(self, X):
-        p = self._with((n, X[:, j:j + 1]) for j, n in enumerate(self.free))
+    def weighted(self, p, runs=()):
+        """The weighted residuals at every model parameter ``p`` (name -> scalars or (B, 1) arrays;
+        ``runs`` as :meth:`~pbrdf_cl.fitting.sample.stages.Residuals.weighted`'s, unused: the channel
+        model finds the rows that share factors itself)."""
         return finite_rows(self.raw(p) / self.std)
+
+    def rows(self, X):
+        return self.weighted(self._with((n, X[:, j:j + 1]) for j, n in enumerate(self.free)))
 
 
 def channel_stds(ch, what):
@@ -111,15 +121,11 @@ def _label(ch):
     return ", ".join(dict.fromkeys(ch.name))
 
 
-def fit_channels(meas, setup, axes, n_basins=6, *, engine=None, backend="auto", progress=False):
-    """:func:`pbrdf_cl.fit` of polarimetric measurements ``meas`` (``meas.polarimetric``) with the
-    checked ``setup``: the device grid ``axes`` and the local stages on the normalised channels,
-    then the intensity stage where absolute channels are measured; the :class:`FitResult`."""
-    from ..common import dop_noise_floor
-    from .result import Observed, fit_result, fit_status, model_notes
-    from .stages import INTENSITY_MAXEVAL, grid_stage, intensity_stage, local_stages
-    from .uncertainty import uncertainty_stage
-    free, base, lo, hi = setup.free, setup.base, setup.lo, setup.hi
+def normalised_channels(meas, free):
+    """The channels of polarimetric measurements ``meas`` that the grid and the local stages fit:
+    (every channel, the normalised ones, their stds, whether the stds are given), with one-line
+    refusals (stds for some quantities only, intensities alone, fewer numbers than the ``free``
+    parameters)."""
     every = meas.channels()
     channel_stds(every, meas.source)  # refuses stds given for some quantities only, before any work
     ch = every.normalised()
@@ -130,16 +136,41 @@ def fit_channels(meas, setup, axes, n_basins=6, *, engine=None, backend="auto", 
         raise ValueError(f"{meas.source}: {len(ch)} measured numbers for {len(free)} free parameters "
                          f"({', '.join(free)}); at least {len(free) + 1} are needed")
     std, known = channel_stds(ch, meas.source)
-    grid_result = grid_stage(meas, free, axes, base, setup.shadowing, engine=engine, backend=backend,
-                             progress=progress, channels=ch)
+    return every, ch, std, known
+
+
+def channel_residuals(meas, setup):
+    """The weighted residuals of the normalised channels of ``meas`` over ``setup``'s free
+    parameters (ks held, kd as kd/ks): a :class:`ChannelResiduals`."""
+    _, ch, std, _ = normalised_channels(meas, setup.free)
+    return ChannelResiduals(ChannelModel(ch, setup.shadowing), setup.free, setup.base, std)
+
+
+def fit_channels(meas, setup, axes, n_basins=6, *, engine=None, backend="auto", progress=False, grid_result=None,
+                 derivative_free=True, absolute=True):
+    """:func:`pbrdf_cl.fit` of polarimetric measurements ``meas`` (``meas.polarimetric``) with the
+    checked ``setup``: the device grid ``axes`` (or its ``grid_result``, computed already: what
+    :func:`pbrdf_cl.fit_joint` shares between its joint and separate fits) and the local stages on
+    the normalised channels (``derivative_free`` as
+    :func:`~pbrdf_cl.fitting.sample.inversion.fit_on_grid`'s), then, with ``absolute``, the intensity
+    stage where absolute channels are measured; the :class:`FitResult`."""
+    from ..common import dop_noise_floor
+    from .result import Observed, fit_result, fit_status, model_notes
+    from .stages import INTENSITY_MAXEVAL, grid_stage, intensity_stage, local_stages
+    from .uncertainty import uncertainty_stage
+    free, base, lo, hi = setup.free, setup.base, setup.lo, setup.hi
+    every, ch, std, known = normalised_channels(meas, free)
+    if grid_result is None:
+        grid_result = grid_stage(meas, free, axes, base, setup.shadowing, engine=engine, backend=backend,
+                                 progress=progress, channels=ch)
     grid = grid_result.value
     resid = ChannelResiduals(ChannelModel(ch, setup.shadowing), free, base, std)
     rise = 1.0 if known else float(grid.sse.min()) / (len(ch) - len(free))
-    cands, final_ran, st = local_stages(resid.rows, lo, hi, grid, free, n_basins, rise)
+    cands, final_ran, st = local_stages(resid.rows, lo, hi, grid, free, n_basins, rise, derivative_free)
     st = {"grid": grid_result, **st}
     best = cands[0]
     final, x_final, lo_f, hi_f = resid, best.x, lo, hi
-    use_abs = every.absolute.any() and setup.fits_intensity(True)
+    use_abs = absolute and every.absolute.any() and setup.fits_intensity(True)
     if use_abs:
         std_all, _ = channel_stds(every, meas.source)
         model_all = ChannelModel(every, setup.shadowing)
@@ -161,7 +192,7 @@ def fit_channels(meas, setup, axes, n_basins=6, *, engine=None, backend="auto", 
     if not use_abs:
         notes.insert(0, "normalised Stokes parameters, Mueller elements, the DOP and the AoP depend on ks and kd only "
                         "through kd/ks: ks is fixed at 1 and kd is the ratio kd/ks (absolute S0 or M00 separate them)")
-        if every.absolute.any():
+        if every.absolute.any() and absolute:
             notes.append(f"the absolute channels ({_label(every.take(every.absolute))}) entered only as ratios: "
                          "ks or kd is fixed, so they cannot separate ks")
     observed = Observed(ch.obs, raw, known, _label(ch))

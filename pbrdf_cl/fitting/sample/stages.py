@@ -15,6 +15,7 @@ import numpy as np
 
 from ...compute import dense, pointwise
 from ...model import reference
+from ...model.inputs import MEMBERS
 from ..common import fd_jacobian, lm_batch
 from . import basins
 
@@ -79,8 +80,8 @@ class Model:
             if all(n in runs or np.ndim(p[n]) == 0 for n in names) and any(n in runs for n in names):
                 return per_run(compute, p, names)
             return compute(p)
-        return reference.dop(factor(self._fresnel, ("n", "k")), factor(self._log_scale, ("sigma", "ks")),
-                             factor(self._diffuse, ("kd", "c")))
+        return reference.dop(factor(self._fresnel, MEMBERS["index"]), factor(self._log_scale, MEMBERS["specular"]),
+                             factor(self._diffuse, MEMBERS["diffuse"]))
 
     def f00(self, p):
         return reference.brdf(*self.parts(p))
@@ -265,6 +266,21 @@ class Residuals:
     def params(self, x):
         """Every model parameter at the free parameters ``x`` (a dict of scalars)."""
         return self._with(zip(self.free, x))
+
+    @property
+    def observed(self):
+        """The measured values fitted: the DOP (the channels' values, for
+        :class:`~pbrdf_cl.fitting.sample.polarimetric.ChannelResiduals`)."""
+        return self.dop
+
+    def raw(self, p):
+        """The unweighted DOP residuals (model - measured) at every model parameter ``p`` (scalars)."""
+        return self.model.dop(p) - self.dop
+
+    def weighted(self, p, runs=()):
+        """The weighted DOP residuals at every model parameter ``p`` (name -> scalars or (B, 1)
+        arrays); ``runs`` as :meth:`Model.dop_rows`'s."""
+        return finite_rows((self.model.dop_rows(p, runs=runs) - self.dop) / self.dop_std)
 
     def rows(self, X):
         p = self._with((n, X[:, j:j + 1]) for j, n in enumerate(self.free))

@@ -19,7 +19,7 @@ import numpy as np
 
 from ..common import lm_batch
 from ..sample import basins
-from ..sample.stages import Candidate, StageResult, finite_rows, least_squares_stage
+from ..sample.stages import Candidate, StageResult, least_squares_stage
 
 #: Local minima of each set's own grid slice that seed its own fit.
 EXCHANGE_SEEDS = 6
@@ -115,7 +115,7 @@ class OwnResiduals:
         p.update({n: X[:, j:j + 1] for j, n in enumerate(self.names)})
         # shared values held per problem change only from one problem to the next: the factors
         # of shared (and held) parameters alone once per problem
-        return finite_rows((self.part.model.dop_rows(p, runs=self.runs) - self.part.dop) / self.part.dop_std)
+        return self.part.weighted(p, runs=self.runs)
 
 
 def own_columns(setup, name):

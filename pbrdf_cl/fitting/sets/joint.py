@@ -38,6 +38,7 @@ from ...io.measurements import split_sets
 from ..common import dop_noise_floor
 from ..sample import basins
 from ..sample.inversion import check_fit_args, fit_on_grid, grid_shape_of
+from ..sample.polarimetric import channel_residuals, fit_channels, normalised_channels
 from ..sample.result import fit_status
 from ..sample.stages import (
     FINAL_BOBYQA,
@@ -114,7 +115,7 @@ class JointSetup:
 
     @property
     def sigma_known(self):
-        return self.meas[self.names[0]].dop_std is not None
+        return stds_given(self.meas[self.names[0]], self.setups[self.names[0]])
 
 
 class JointResiduals:
@@ -138,9 +139,34 @@ class JointResiduals:
 
 
 def set_residuals(meas, setup):
-    """The DOP residuals of one set (weights 1/dop_std^2 where given), as :func:`pbrdf_cl.fit`'s."""
+    """The residuals of one set, as :func:`pbrdf_cl.fit`'s: of the DOP (weights 1/dop_std^2 where
+    given), or of the normalised channels of polarimetric data (Stokes parameters, Mueller
+    elements, ...: :func:`~pbrdf_cl.fitting.sample.polarimetric.channel_residuals`)."""
+    if meas.polarimetric:
+        return channel_residuals(meas, setup)
     std = meas.dop_std if meas.dop_std is not None else np.ones(len(meas))
     return Residuals(Model(meas, setup.shadowing), setup.free, setup.base, meas.dop, std)
+
+
+def stds_given(meas, setup):
+    """Whether the set ``meas`` gives the standard deviations of what it measures."""
+    return normalised_channels(meas, setup.free)[3] if meas.polarimetric else meas.dop_std is not None
+
+
+def set_grid(meas, setup, axes, shadowing, engine, backend, progress):
+    """:func:`~pbrdf_cl.fitting.sample.stages.grid_stage` of one set: its DOP, or its normalised channels."""
+    ch = normalised_channels(meas, setup.free)[1] if meas.polarimetric else None
+    return grid_stage(meas, setup.free, axes, setup.base, shadowing, engine=engine, backend=backend,
+                      progress=progress, channels=ch)
+
+
+def separate_fit(meas, setup, grid_result, n_basins):
+    """One set fitted alone on its grid (the lighter schedule: no DIRECT-L and BOBYQA stages), on
+    what the joint fit uses of it (no intensities)."""
+    if meas.polarimetric:
+        return fit_channels(meas, setup, None, n_basins, grid_result=grid_result, derivative_free=False,
+                            absolute=False)
+    return fit_on_grid(meas, setup, grid_result, n_basins, derivative_free=False)
 
 
 def _as_sets(sets, set_column):
@@ -217,21 +243,29 @@ def check_joint_args(sets, shared, model, bounds, fixed, shadowing, set_column=N
     bd = _per_set(bounds, names, "bounds", lambda v: not isinstance(v, Mapping) and np.ndim(v) == 1)
     unlike = {p for f in fx.values() for p in f if len({repr(fx[s].get(p)) for s in names}) > 1}
     shared = check_shared(shared, model, DEFAULT_SHARED, unlike)
-    meas, setups, notes = {}, {}, []
+    meas, setups, notes, given = {}, {}, [], []
     for s in names:
         try:
             meas[s], setups[s] = check_fit_args(data[s], model, bd[s], fx[s], shadowing)
+            if stds_given(meas[s], setups[s]):  # polarimetric data: also refuses too few numbers
+                given.append(s)
         except ValueError as exc:
             raise ValueError(f"set {s!r}: {exc}") from None
-    given = [s for s in names if meas[s].dop_std is not None]
     if given and len(given) < len(names):
-        raise ValueError(f"dop_std: given for set{'s' if len(given) > 1 else ''} {', '.join(given)} but not for "
-                         f"{', '.join(s for s in names if s not in given)}; give it for every set or for none")
-    with_f00 = [s for s in names if meas[s].f00 is not None]
+        what, them = (("standard deviations (<name>_std)", "them") if any(m.polarimetric for m in meas.values())
+                      else ("dop_std", "it"))
+        raise ValueError(f"{what}: given for set{'s' if len(given) > 1 else ''} {', '.join(given)} but not for "
+                         f"{', '.join(s for s in names if s not in given)}; give {them} for every set or for none")
+    with_f00 = [s for s in names if meas[s].f00 is not None and not meas[s].polarimetric]
     if with_f00:
         notes.append(f"the intensities (f00) of set{'s' if len(with_f00) > 1 else ''} {', '.join(with_f00)} were "
                      "not used: fit_joint fits the DOP only, and so do the separate fits beside it")
-        meas = {s: replace(m, f00=None, f00_std=None) for s, m in meas.items()}
+        meas = {s: replace(m, f00=None, f00_std=None) if s in with_f00 else m for s, m in meas.items()}
+    absolute = [s for s in names if meas[s].polarimetric and meas[s].channels().absolute.any()]
+    if absolute:
+        notes.append(f"the absolute channels (S0, M00, F00) of set{'s' if len(absolute) > 1 else ''} "
+                     f"{', '.join(absolute)} entered only as ratios: fit_joint fits normalised quantities (ks held, "
+                     "kd as kd/ks), and so do the separate fits beside it")
     free_shared, held = _shared_split(shared, setups)
     if not free_shared:
         why = (f" (by default the sets share {', '.join(DEFAULT_SHARED)} where the {model} model fits them and "
@@ -340,7 +374,9 @@ def fit_joint(sets, shared=None, model="six-param", bounds=None, fixed=None, sha
     Parameters
     ----------
     sets : dict, list of CSV paths, or one table
-        Set name -> anything :func:`pbrdf_cl.fit` takes (Measurements, CSV path, dict, DataFrame);
+        Set name -> anything :func:`pbrdf_cl.fit` takes (Measurements, CSV path, dict, DataFrame):
+        DOP, or polarimetric data (normalised Stokes parameters under polarized light, Mueller
+        elements, AoP; the sets may mix them; absolute S0, M00 and F00 enter as ratios only);
         a list of CSV paths (each set named by its file name); or, with ``set_column``, one table
         (CSV path, dict, DataFrame, Dataset) whose column ``set_column`` names each row's set.
     shared : sequence of str or str, optional
@@ -384,13 +420,11 @@ def fit_joint(sets, shared=None, model="six-param", bounds=None, fixed=None, sha
     t0 = time.perf_counter()
     setup = check_joint_args(sets, shared, model, bounds, fixed, shadowing, set_column)
     shape = grid_shape_of(model, grid_shape)
-    grid_results = {s: grid_stage(setup.meas[s], setup.setups[s].free, setup.setups[s].grid_axes(shape),
-                                  setup.setups[s].base, shadowing, engine=engine, backend=backend, progress=progress)
-                    for s in setup.names}
+    grid_results = {s: set_grid(setup.meas[s], setup.setups[s], setup.setups[s].grid_axes(shape), shadowing,
+                                engine, backend, progress) for s in setup.names}
     grids = {s: g.value for s, g in grid_results.items()}
     t_sep = time.perf_counter()
-    separate = {s: fit_on_grid(setup.meas[s], setup.setups[s], grid_results[s], n_basins, derivative_free=False)
-                for s in setup.names}
+    separate = {s: separate_fit(setup.meas[s], setup.setups[s], grid_results[s], n_basins) for s in setup.names}
     st = {"grid": StageResult(None, sum(g.nfev for g in grid_results.values()),
                               sum(g.seconds for g in grid_results.values())),
           "separate": StageResult(None, sum(sum(r.nfev.values()) for r in separate.values()) -
@@ -404,8 +438,8 @@ def fit_joint(sets, shared=None, model="six-param", bounds=None, fixed=None, sha
     cands, final_ran, local = _local_stages(setup, resid, grids, points, own)
     st.update(local)
     best = cands[0]
-    n_points = sum(len(m) for m in setup.meas.values())
-    floor = None if setup.sigma_known else dop_noise_floor(np.concatenate([m.dop for m in setup.meas.values()]))
+    n_points = sum(part.observed.size for part in resid.parts)
+    floor = None if setup.sigma_known else dop_noise_floor(np.concatenate([part.observed for part in resid.parts]))
     axes = {p: grids[setup.names[0]].axes[p] for p in setup.shared}
     axes.update({f"{p}[{s}]": grids[s].axes[p] for s in setup.names for p in setup.own(s)})
     jgrid = GridStage(total, axes, profiles)

@@ -37,7 +37,8 @@ class JointResult(Result):
     free
         the joint parameter vector's labels: the shared parameters, then ``"n[a]"``, ...
     sse, set_sse, chi2, dof, aic, bic, p_value, r2, fits_data
-        the DOP sum of squares (all sets, and per set), chi2 (weighted), the information criteria
+        the sum of squares of the DOP, or of polarimetric sets' normalised channels (all sets, and
+        per set), chi2 (weighted), the information criteria
         of the joint model (same formulas as :class:`FitResult`'s, on the stacked residuals) and
         the goodness-of-fit test.
     separate, separate_aic, separate_bic, width_ratio
@@ -160,17 +161,19 @@ class JointResult(Result):
                 "the report)")
 
 
-def _goodness(setup, dop_resid, unc):
+def _goodness(setup, resid, raw, unc):
     """(fits, p-value or None, R^2, notes) of the joint fit, as :func:`pbrdf_cl.fit` tests one
-    (:func:`pbrdf_cl.fitting.report.goodness`; R^2 against each set's own mean DOP)."""
-    sse = sum(float(r @ r) for r in dop_resid.values())
-    sst = sum(float(((m.dop - m.dop.mean()) ** 2).sum()) for m in setup.meas.values())
+    (:func:`pbrdf_cl.fitting.report.goodness`; R^2 against each set's own mean of what it measures:
+    the DOP, or its channels)."""
+    sse = sum(float(r @ r) for r in raw.values())
+    sst = sum(float(((part.observed - part.observed.mean()) ** 2).sum()) for part in resid.parts)
     fits, p, r2 = report.goodness(unc.chi2, unc.dof, sse, sst, setup.sigma_known)
     p, r2 = (float(v) if np.isfinite(v) else None for v in (p, r2))
     if fits:
         return True, p, r2, []
     if p is None:
-        return False, p, r2, [report.not_described(np.nan, r2, unc.chi2, unc.dof)]
+        label = "data" if any(m.polarimetric for m in setup.meas.values()) else "DOP"
+        return False, p, r2, [report.not_described(np.nan, r2, unc.chi2, unc.dof, label=label)]
     return False, p, r2, [report.not_described(p, r2, unc.chi2, unc.dof, "these data with the shared parameters",
                                                advice="compare separate_aic (the sets fitted alone), and the ")]
 
@@ -205,7 +208,9 @@ def _joint_notes(setup, labels, x, lo, hi, unc):
 def _model_notes(setup):
     notes = list(setup.notes)
     if setup.setups[setup.names[0]].model == "six-param":
-        notes.append("DOP depends on ks and kd only through kd/ks: ks is held (at 1 unless fixed) and each set's kd "
+        what = ("normalised Stokes parameters, Mueller elements, the DOP and the AoP depend"
+                if any(m.polarimetric for m in setup.meas.values()) else "DOP depends")
+        notes.append(f"{what} on ks and kd only through kd/ks: ks is held (at 1 unless fixed) and each set's kd "
                      "is the ratio kd/ks")
     no_phi = [s for s in setup.names if not setup.meas[s].phi_given]
     if no_phi:
@@ -237,7 +242,7 @@ def joint_result(setup, resid, best, cands, unc, jgrid, separate, stages, status
     params = {s: part.params(xs[s]) for s, part in zip(setup.names, resid.parts)}
     reported = PARAMETERS if model == "six-param" else ("n", "k")
     x = {s: {p: float(params[s][p]) for p in reported} for s in setup.names}
-    dop_resid = {s: part.model.dop(params[s]) - setup.meas[s].dop for s, part in zip(setup.names, resid.parts)}
+    raw = {s: part.raw(params[s]) for s, part in zip(setup.names, resid.parts)}  # the DOP's, or the channels'
     stderr = _per_set(setup, labels, [float(v) for v in reported_stderr(unc)])
     ci95 = _per_set(setup, labels, [tuple(map(float, unc.ci95[n])) for n in labels])
     ratio = {s: {p: _width(ci95[s][p]) / _width(separate[s].ci95[p]) for p in ci95[s]
@@ -246,7 +251,7 @@ def joint_result(setup, resid, best, cands, unc, jgrid, separate, stages, status
     aic, bic = report.information(unc.chi2, m_obs, n_free, setup.sigma_known)
     sep_aic, sep_bic = report.information(sum(r.chi2 for r in separate.values()), m_obs,
                                     sum(len(r.free) for r in separate.values()), setup.sigma_known)
-    fits, p_value, r2, first = _goodness(setup, dop_resid, unc)
+    fits, p_value, r2, first = _goodness(setup, resid, raw, unc)
     notes = first + _model_notes(setup) + _joint_notes(setup, labels, best.x, lo, hi, unc)
     exchanged = tuple(stages["exchange"].value[1]) if "exchange" in stages else ()
     moved = sorted({s for rnd in exchanged for s in rnd}, key=list(setup.names).index)
@@ -269,9 +274,9 @@ def joint_result(setup, resid, best, cands, unc, jgrid, separate, stages, status
         model=model, shadowing=setup.setups[setup.names[0]].shadowing, sets=list(setup.names),
         measurements=dict(setup.meas),
         shared=[p for p in PARAMETERS if p in setup.shared or p in setup.shared_fixed], shared_x=shared_x,
-        free=labels, x=x, stderr=stderr, ci95=ci95, sse=float(sum(r @ r for r in dop_resid.values())),
-        set_sse={s: float(r @ r) for s, r in dop_resid.items()}, chi2=float(unc.chi2), dof=int(unc.dof),
-        n_points=int(sum(len(m) for m in setup.meas.values())), aic=aic, bic=bic, p_value=p_value, r2=r2,
+        free=labels, x=x, stderr=stderr, ci95=ci95, sse=float(sum(r @ r for r in raw.values())),
+        set_sse={s: float(r @ r) for s, r in raw.items()}, chi2=float(unc.chi2), dof=int(unc.dof),
+        n_points=int(sum(part.observed.size for part in resid.parts)), aic=aic, bic=bic, p_value=p_value, r2=r2,
         fits_data=fits, sigma_known=setup.sigma_known, separate=separate, separate_aic=sep_aic,
         separate_bic=sep_bic, width_ratio=ratio, corr=corr, cov=cov,
         outside_ci95={s: [p for p, (a, b) in ci95[s].items() if outside_interval(x[s][p], a, b)] for s in setup.names},
