@@ -6,7 +6,8 @@ most and never comparing a backend's name (``backend == "numpy"``: the device la
 ``engine_for`` and ``resolve_engine`` decide what a name means); no module importing the package
 root (``from .. import __version__``, ``import pbrdf_cl``: it imports every public name, and
 ``pbrdf_cl.version`` holds the version); every exception and warning class defined in
-``pbrdf_cl/errors.py`` and exported."""
+``pbrdf_cl/errors.py`` and exported; the rooms' layers (``LAYERS``, ARCHITECTURE.md's) and no literal list
+of the model's parameter names outside its registry."""
 import ast
 import io
 import tokenize
@@ -281,3 +282,23 @@ def test_every_exception_is_defined_in_errors_and_exported():
         obj = getattr(errors, name)
         if isinstance(obj, type) and issubclass(obj, BaseException) and obj.__module__ == errors.__name__:
             assert name in pbrdf_cl.__all__ and getattr(pbrdf_cl, name) is obj, f"{name} is not exported"
+
+
+def test_parameter_names_are_listed_once_in_the_registry():
+    """No tuple, list, set or dict display names three or more of the model's parameters outside
+    ``model/inputs.py`` (issue #35): a path that needs several of them reads the registry
+    (``PARAMETERS``, ``FITTED``, ``MEMBERS[family]``, ``DEFAULTS``, ``UNITS``, ...), so that adding an
+    input is one record.  (Values for one material or one grid are data, written ``dict(n=..., ...)``.)"""
+    from pbrdf_cl.model.inputs import PARAMETERS
+    names = set(PARAMETERS)
+    found = []
+    for path in MODULES:
+        if path == PKG / "model" / "inputs.py":
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            elts = (node.elts if isinstance(node, (ast.Tuple, ast.List, ast.Set))
+                    else [k for k in node.keys if k is not None] if isinstance(node, ast.Dict) else [])
+            listed = {e.value for e in elts if isinstance(e, ast.Constant) and isinstance(e.value, str)} & names
+            if len(listed) >= 3:
+                found.append(f"{path.relative_to(PKG)}:{node.lineno}: {sorted(listed)}")
+    assert not found, "literal lists of parameter names:\n" + "\n".join(found)
