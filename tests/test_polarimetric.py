@@ -106,6 +106,25 @@ def _mixed_channels(rng, M=24):
     return measurables.channels(ti, tr, phi, cols, stds, inc)
 
 
+def test_channel_terms_per_distinct_geometry_equal_the_spread_ones():
+    """``channel_terms(at=)`` (P per distinct geometry, each channel taking its own) gives the
+    numbers of P spread to every channel first, bit for bit, for every kind of channel."""
+    rng = np.random.default_rng(7)
+    ch = _mixed_channels(rng)
+    geo = np.column_stack([ch.theta_i, ch.theta_r, ch.phi])
+    first, at = np.unique(geo, axis=0, return_index=True, return_inverse=True)[1:]
+    at = at.reshape(-1)
+    g = reference.geometry(ch.theta_i[first], ch.theta_r[first], ch.phi[first])
+    f = reference.fresnel(np.array([[1.4], [2.5]]), np.array([[0.3], [3.0]]), g.cb, g.sb)
+    P = reference.mueller_at(f, reference.frame_rotations(g, ch.phi[first]), 1.0, 0.0)  # (2, G, 4, 4)
+    assert len(first) < len(ch) and set(ch.kind.tolist()) == {0, 1, 2}
+    spread = reference.channel_terms(P[:, at], ch.u, ch.v, ch.comp, ch.kind)
+    gathered = reference.channel_terms(P, ch.u, ch.v, ch.comp, ch.kind, at=at)
+    for a, b in zip(spread, gathered):
+        assert a.shape == b.shape == (2, len(ch))
+        np.testing.assert_array_equal(a, b)
+
+
 def test_channel_objective_on_every_device_equals_the_reference(engine):
     """The device objective of mixed channels (objective_channel_rows at both row levels and
     objective_channels) equals the float64 reference's to 1e-12 in float64, 1e-4 in float32."""

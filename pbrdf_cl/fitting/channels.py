@@ -35,18 +35,16 @@ class ChannelModel:
         geometry, whose rows are each a pixel's)."""
         return compute(p) if self.at is None else per_distinct(compute, p, names)
 
-    def spread(self, a, matrix=False):
-        """Values per distinct geometry to the channels (last axis, or the one before a matrix's two)."""
-        if self.at is None:
-            return a
-        return a[..., self.at, :, :] if matrix else a[..., self.at]
+    def spread(self, a):
+        """Values per distinct geometry (last axis) to the channels."""
+        return a if self.at is None else a[..., self.at]
 
     def terms(self, p):
         def compute(q):
             f = reference.fresnel(q["n"], q["k"], self.g.cb, self.g.sb)
-            P = self.spread(reference.mueller_at(f, self.fr, 1.0, 0.0), matrix=True)  # per distinct geometry
+            P = reference.mueller_at(f, self.fr, 1.0, 0.0)  # per distinct geometry; each channel takes its own
             ch = self.ch
-            return reference.channel_terms(P, ch.u, ch.v, ch.comp, ch.kind)
+            return reference.channel_terms(P, ch.u, ch.v, ch.comp, ch.kind, at=self.at)
         return self.per_distinct(compute, p, MEMBERS["index"])
 
     def inv_scale(self, p):

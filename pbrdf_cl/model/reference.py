@@ -229,20 +229,27 @@ def mueller(f, fr, logK, fd):
 CHANNEL_RATIO, CHANNEL_DOP, CHANNEL_AOP = 0, 1, 2
 
 
-def channel_terms(m, u, v, comp, kind):
+def channel_terms(m, u, v, comp, kind, at=None):
     """The terms (tn, td) of a polarimetric channel from P = R_out M^s R_in per unit K (``m``,
     (..., 4, 4): :func:`mueller_at` with K = 1, fd = 0) and the channel's incident vectors ``u``,
     ``v`` ((..., 4)), output component ``comp`` and ``kind`` (scalars, or arrays over the
     channels) (``pb_channel_terms``): ratio: (P u)_comp and (P v)_0; DOP: |(P u)_123| and (P u)_0;
-    AoP: the AoP of P u (degrees) and 1."""
+    AoP: the AoP of P u (degrees) and 1.  ``at`` (int array over the channels): ``m`` holds P per
+    distinct geometry ((..., G, 4, 4)) and channel i takes ``m[..., at[i], :, :]`` (the same
+    numbers, without spreading P to every channel first)."""
     m = np.asarray(m, dtype=np.float64)
     u, v = np.asarray(u, dtype=np.float64), np.asarray(v, dtype=np.float64)
     comp, kind = np.asarray(comp), np.asarray(kind)
-    shape = np.broadcast_shapes(m.shape[:-2], u.shape[:-1], v.shape[:-1], comp.shape, kind.shape)
-    rows = np.broadcast_to(np.broadcast_to(comp, shape)[..., None, None], shape + (1, 4))
-    row = np.take_along_axis(np.broadcast_to(m, shape + (4, 4)), rows, axis=-2)[..., 0, :]
+    if at is not None:  # the rows needed, gathered per channel: (..., C, 4)
+        row, r0 = m[..., at, comp, :], m[..., at, 0, :]
+        if np.any(kind != CHANNEL_RATIO):
+            m = m[..., at, :, :]
+    else:
+        shape = np.broadcast_shapes(m.shape[:-2], u.shape[:-1], v.shape[:-1], comp.shape, kind.shape)
+        rows = np.broadcast_to(np.broadcast_to(comp, shape)[..., None, None], shape + (1, 4))
+        row = np.take_along_axis(np.broadcast_to(m, shape + (4, 4)), rows, axis=-2)[..., 0, :]
+        r0 = m[..., 0, :]
     tn = row[..., 0] * u[..., 0] + row[..., 1] * u[..., 1] + row[..., 2] * u[..., 2] + row[..., 3] * u[..., 3]
-    r0 = m[..., 0, :]
     td = r0[..., 0] * v[..., 0] + r0[..., 1] * v[..., 1] + r0[..., 2] * v[..., 2] + r0[..., 3] * v[..., 3]
     if np.any(kind != CHANNEL_RATIO):  # the DOP and the AoP take the whole of P u
         t = [m[..., i, 0] * u[..., 0] + m[..., i, 1] * u[..., 1] + m[..., i, 2] * u[..., 2] + m[..., i, 3] * u[..., 3]
