@@ -173,6 +173,8 @@ def test_polarimetric_columns_are_read_from_csv_dict_and_dataset(tmp_path):
     (dict(s0=[0.1, 0.1], s1=[0.08, 0.2], s2=[0.0, 0.05]), ["row 1", "longer than s0", "> s0 = 0.1"]),
     (dict(m01=[0.2, -1.4]), ["row 1", "m01 = -1.4 is outside [-1, 1]"]),
     (dict(m00=[0.2, 0.2], m12=[0.1, 0.3]), ["row 1", "|m12| = 0.3 exceeds m00 = 0.2"]),
+    (dict(s0=[0.1, -0.1], s1=[0.0, 0.0]), ["row 1", "s0 = -0.1 is not >= 0 (an intensity)"]),
+    (dict(m00=[-0.2, 0.2], m12=[0.1, 0.1]), ["row 0", "m00 = -0.2 is not >= 0 (the BRDF)"]),
     (dict(s1=[0.1, 0.2], in_s1=[0.8, 0.0], in_s2=[0.8, 0.0]), ["row 0", "is not a Stokes vector", "1.28 > 1"]),
     (dict(s1=[0.1, 0.2], in_s1=[0.0, np.nan]), ["row 1", "in_s1 is empty", "incident state of every row"]),
     (dict(s1_1=[0.1, 0.2]), ["column 's1_1'", "did you mean 's1'"]),

@@ -85,23 +85,28 @@ def _check_incident(cols, locate):
     return inc
 
 
+def _intensity(cols, name, what, locate):
+    """The rows' intensity column ``name`` (s0, m00), refused in one line where negative (``what``
+    it is), or 1 where the data are normalised (no such column)."""
+    if name not in cols:
+        return 1.0
+    v = cols[name]
+    bad = v < 0
+    if bad.any():
+        i = _first(bad)
+        raise ValueError(f"{locate(i)}: {name} = {float(v[i])!r} is not >= 0 ({what})")
+    return v
+
+
 def _check_stokes(cols, locate):
     comps = [n for n in ("s1", "s2", "s3") if n in cols]
     if not comps:
         return
-    if "s0" in cols:
-        s0 = cols["s0"]
-        bad = s0 < 0
-        if bad.any():
-            i = _first(bad)
-            raise ValueError(f"{locate(i)}: s0 = {float(s0[i])!r} is not >= 0 (an intensity)")
-    else:
-        s0 = 1.0
+    s0 = _intensity(cols, "s0", "an intensity", locate)
     length = np.sqrt(np.nansum(np.column_stack([cols[n] ** 2 for n in comps]), axis=1))
     with np.errstate(divide="ignore", invalid="ignore"):
         rel = length / s0
-    bad = np.isfinite(rel) & (rel > 1.0 + _slack(cols, comps + (["s0"] if "s0" in cols else []),
-                                                  s0 if "s0" in cols else 1.0))
+    bad = np.isfinite(rel) & (rel > 1.0 + _slack(cols, comps + (["s0"] if "s0" in cols else []), s0))
     if bad.any():
         i = _first(bad)
         what = "s0" if "s0" in cols else "1 (normalised)"
@@ -113,19 +118,11 @@ def _check_stokes(cols, locate):
 
 def _check_mueller(cols, locate):
     names = [n for n in measurables.MUELLER if n in cols and n != "m00"]
-    if "m00" in cols:
-        m00 = cols["m00"]
-        bad = m00 < 0
-        if bad.any():
-            i = _first(bad)
-            raise ValueError(f"{locate(i)}: m00 = {float(m00[i])!r} is not >= 0 (the BRDF)")
-    else:
-        m00 = 1.0
+    m00 = _intensity(cols, "m00", "the BRDF", locate)
     for n in names:
         with np.errstate(divide="ignore", invalid="ignore"):
             rel = np.abs(cols[n]) / m00
-        bad = np.isfinite(rel) & (rel > 1.0 + _slack(cols, [n] + (["m00"] if "m00" in cols else []),
-                                                      m00 if "m00" in cols else 1.0))
+        bad = np.isfinite(rel) & (rel > 1.0 + _slack(cols, [n] + (["m00"] if "m00" in cols else []), m00))
         if bad.any():
             i = _first(bad)
             if "m00" in cols:
