@@ -77,14 +77,16 @@ class JointSetup:
     """The checked setup of :func:`fit_joint`: ``names`` (the sets, in order), per set its
     ``meas`` and :class:`~pbrdf_cl.fitting.setup.FitSetup` (``setups``); ``shared`` (the
     shared parameters the fit varies, model order) and ``shared_fixed`` (shared and held, name
-    -> value); ``notes`` about the inputs.  The joint parameter vector is :attr:`labels`: the
-    shared parameters, then each set's own free parameters (``"n[a]"``)."""
+    -> value); ``notes`` about the inputs; whether the sets give the standard deviations of what
+    they measure (``sigma_known``: every set or none).  The joint parameter vector is
+    :attr:`labels`: the shared parameters, then each set's own free parameters (``"n[a]"``)."""
     names: tuple
     meas: dict
     setups: dict
     shared: tuple
     shared_fixed: dict
     notes: tuple
+    sigma_known: bool
 
     def own(self, name):
         """The free parameters of set ``name`` that are not shared."""
@@ -112,10 +114,6 @@ class JointSetup:
         for s in self.names:
             out[self.index(s)] = (self.setups[s].lo, self.setups[s].hi)[end]
         return out
-
-    @property
-    def sigma_known(self):
-        return stds_given(self.meas[self.names[0]], self.setups[self.names[0]])
 
 
 class JointResiduals:
@@ -153,9 +151,10 @@ def stds_given(meas, setup):
     return normalised_channels(meas, setup.free)[3] if meas.polarimetric else meas.dop_std is not None
 
 
-def set_grid(meas, setup, axes, shadowing, engine, backend, progress):
-    """:func:`~pbrdf_cl.fitting.sample.stages.grid_stage` of one set: its DOP, or its normalised channels."""
-    ch = normalised_channels(meas, setup.free)[1] if meas.polarimetric else None
+def set_grid(meas, setup, part, axes, shadowing, engine, backend, progress):
+    """:func:`~pbrdf_cl.fitting.sample.stages.grid_stage` of one set: its DOP, or the normalised
+    channels its residuals ``part`` fit."""
+    ch = part.model.ch if meas.polarimetric else None
     return grid_stage(meas, setup.free, axes, setup.base, shadowing, engine=engine, backend=backend,
                       progress=progress, channels=ch)
 
@@ -272,7 +271,7 @@ def check_joint_args(sets, shared, model, bounds, fixed, shadowing, set_column=N
                "no set holds them apart)" if shared_given is None and not shared else "")
         notes.append(f"nothing is shared{why}" + (f" but held ({', '.join(held)})" if held else "")
                      + ": the joint fit is each set fitted on its own (the separate fits), reported together")
-    return JointSetup(names, meas, setups, free_shared, held, tuple(notes))
+    return JointSetup(names, meas, setups, free_shared, held, tuple(notes), bool(given))
 
 
 def joint_profiles(setup, grids):
@@ -420,8 +419,9 @@ def fit_joint(sets, shared=None, model="six-param", bounds=None, fixed=None, sha
     t0 = time.perf_counter()
     setup = check_joint_args(sets, shared, model, bounds, fixed, shadowing, set_column)
     shape = grid_shape_of(model, grid_shape)
-    grid_results = {s: set_grid(setup.meas[s], setup.setups[s], setup.setups[s].grid_axes(shape), shadowing,
-                                engine, backend, progress) for s in setup.names}
+    resid = JointResiduals(setup)
+    grid_results = {s: set_grid(setup.meas[s], setup.setups[s], part, setup.setups[s].grid_axes(shape), shadowing,
+                                engine, backend, progress) for s, part in zip(setup.names, resid.parts)}
     grids = {s: g.value for s, g in grid_results.items()}
     t_sep = time.perf_counter()
     separate = {s: separate_fit(setup.meas[s], setup.setups[s], grid_results[s], n_basins) for s in setup.names}
@@ -433,7 +433,6 @@ def fit_joint(sets, shared=None, model="six-param", bounds=None, fixed=None, sha
     total, _, profiles = joint_profiles(setup, grids)
     points, own = joint_points(setup, grids, total, separate)
     st["seeds"] = StageResult(None, 0, time.perf_counter() - t1)
-    resid = JointResiduals(setup)
     lo, hi = setup.lo, setup.hi
     cands, final_ran, local = _local_stages(setup, resid, grids, points, own)
     st.update(local)
