@@ -240,9 +240,10 @@ def channel_terms(m, u, v, comp, kind, at=None):
     m = np.asarray(m, dtype=np.float64)
     u, v = np.asarray(u, dtype=np.float64), np.asarray(v, dtype=np.float64)
     comp, kind = np.asarray(comp), np.asarray(kind)
+    whole = np.any(kind != CHANNEL_RATIO)  # the DOP and the AoP take the whole of P u
     if at is not None:  # the rows needed, gathered per channel: (..., C, 4)
         row, r0 = m[..., at, comp, :], m[..., at, 0, :]
-        if np.any(kind != CHANNEL_RATIO):
+        if whole:
             m = m[..., at, :, :]
     else:
         shape = np.broadcast_shapes(m.shape[:-2], u.shape[:-1], v.shape[:-1], comp.shape, kind.shape)
@@ -251,7 +252,7 @@ def channel_terms(m, u, v, comp, kind, at=None):
         r0 = m[..., 0, :]
     tn = row[..., 0] * u[..., 0] + row[..., 1] * u[..., 1] + row[..., 2] * u[..., 2] + row[..., 3] * u[..., 3]
     td = r0[..., 0] * v[..., 0] + r0[..., 1] * v[..., 1] + r0[..., 2] * v[..., 2] + r0[..., 3] * v[..., 3]
-    if np.any(kind != CHANNEL_RATIO):  # the DOP and the AoP take the whole of P u
+    if whole:
         t = [m[..., i, 0] * u[..., 0] + m[..., i, 1] * u[..., 1] + m[..., i, 2] * u[..., 2] + m[..., i, 3] * u[..., 3]
              for i in range(4)]
         with np.errstate(invalid="ignore"):
