@@ -18,6 +18,7 @@ import numpy as np
 from ..device import ops
 from ..device.engine import DTYPES
 from ..model import reference
+from .tables import factor_table
 
 
 def channel_weights(ch):
@@ -87,11 +88,7 @@ def device_channel_tables(eng, ch, v, dtype, shadowing):
     geo = [eng.to_device(a, dtype) for a in (ch.theta_i, ch.theta_r, ch.phi)]
 
     def table(kname, outs, p1, p2, *extra):
-        n = p1.size * p2.size
-        bufs = [eng.empty(C * n * np.dtype(npdt).itemsize) for _ in range(outs)]
-        eng.launch(kern[kname], (C, n), *bufs, np.int32(C), np.int32(n), np.int32(1), *geo,
-                   eng.to_device(p1, dtype), eng.to_device(p2, dtype), np.int32(p2.size), *extra)
-        return bufs
+        return factor_table(eng, kern, kname, outs, geo, C, p1, p2, npdt, *extra)
     ints = [eng.to_device(a, np.int32) for a in (ch.comp, ch.kind)]
     tn, td = table("channel_table", 2, v["n"], v["k"], eng.to_device(np.ascontiguousarray(ch.u).ravel(), dtype),
                    eng.to_device(np.ascontiguousarray(ch.v).ravel(), dtype), *ints)

@@ -37,6 +37,7 @@ from ..device.engine import DTYPES, VECTOR_LOCAL_SIZE, aligned_empty, resolve_en
 from ..model import inputs, quantities, reference
 from ..model.measurables import Channels
 from . import channels, pointwise
+from .tables import factor_table
 
 #: The grid's canonical axes: every input of the model (:mod:`pbrdf_cl.model.inputs`), in its order.
 AXES = inputs.NAMES
@@ -140,11 +141,7 @@ class Tables:
         geo = [engine.to_device(a, dtype) for a in (ti, tr, ph)]
 
         def table(kname, outs, p1, p2, *extra):
-            np_ = p1.size * p2.size
-            bufs = [engine.empty(ng * np_ * np.dtype(npdt).itemsize) for _ in range(outs)]
-            engine.launch(kern[kname], (ng, np_), *bufs, np.int32(ng), np.int32(np_), np.int32(1), *geo,
-                          engine.to_device(p1, dtype), engine.to_device(p2, dtype), np.int32(p2.size), *extra)
-            return bufs
+            return factor_table(engine, kern, kname, outs, geo, ng, p1, p2, npdt, *extra)
 
         self.sum, self.diff = table("fresnel_table", 2, v["n"], v["k"])
         self.scale, = table("scale_table", 1, v["sigma"], v["ks"], npdt(q.scale_sign))

@@ -27,6 +27,7 @@ import numpy as np
 
 from ...compute import dense, pointwise
 from ...compute.channels import device_channel_tables, numpy_channel_tables
+from ...compute.tables import factor_table
 from ...device import ops
 from ...device.engine import DTYPES
 from ...io.source import ANGLES
@@ -92,11 +93,7 @@ def _grid_opencl(eng, setup, blk, order, rstart):
     geo = [eng.to_device(blk.pixel_major(a, np.float64), npdt) for a in blk.angles]
 
     def table(kname, outs, p1, p2, *extra):
-        np_ = p1.size * p2.size
-        bufs = [eng.empty(ng * np_ * np.dtype(npdt).itemsize) for _ in range(outs)]
-        eng.launch(tab[kname], (ng, np_), *bufs, np.int32(ng), np.int32(1), np.int32(ng), *geo,
-                   eng.to_device(p1, npdt), eng.to_device(p2, npdt), np.int32(p2.size), *extra)
-        return bufs
+        return factor_table(eng, tab, kname, outs, geo, ng, p1, p2, npdt, *extra, parameter_major=True)
     s_, d_ = table("fresnel_table", 2, v["n"], v["k"])
     sc, = table("scale_table", 1, v["sigma"], v["ks"], npdt(-1))
     fd, = table("diffuse_table", 1, v["kd"], v["c"], npdt(2))
@@ -367,10 +364,7 @@ def _channel_factors_opencl(eng, setup, blk, v, order, rstart, dtype):
     geo = [eng.to_device(blk.pixel_major(a, np.float64), npdt) for a in blk.angles]
 
     def table(kname, outs, p1, p2, *extra):
-        bufs = [eng.empty(ng * p1.size * p2.size * np.dtype(npdt).itemsize) for _ in range(outs)]
-        eng.launch(tab[kname], (ng, p1.size * p2.size), *bufs, np.int32(ng), np.int32(1), np.int32(ng), *geo,
-                   eng.to_device(p1, npdt), eng.to_device(p2, npdt), np.int32(p2.size), *extra)
-        return bufs
+        return factor_table(eng, tab, kname, outs, geo, ng, p1, p2, npdt, *extra, parameter_major=True)
     vec = [np.ascontiguousarray(np.stack([blk.pixel_major(a[..., j], np.float64) for j in range(4)], axis=-1))
            for a in (sp.u, sp.v)]  # (C, P, 4): channel c * P + p's vector
     kinds = [np.repeat(a[0], P).astype(np.int32) for a in (sp.comp, sp.kind)]
