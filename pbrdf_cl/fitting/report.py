@@ -111,6 +111,15 @@ def ambiguous(cands, unit, se):
     return [c for c in cands[1:] if c.sse - best.sse <= unit and np.any(np.abs(c.x - best.x) > 2 * se)]
 
 
+def uncertainty_notes(names, unc, x, scale):
+    """The notes of a fit's uncertainty stage ``unc`` (a
+    :class:`~pbrdf_cl.fitting.sample.uncertainty.Uncertainties` over ``names``, at the optimum ``x``,
+    ``scale`` the bound ranges): :func:`identifiability_notes`, then what was done to make the
+    covariance valid (``cov_note``), as a sample's and a joint fit both report them."""
+    notes = identifiability_notes(names, unc.jacobian, unc.condition_number, unc.eig, x, unc.stderr, unc.corr, scale)
+    return notes + ([unc.cov_note] if unc.cov_note else [])
+
+
 def identifiability_notes(names, J, cond, eig, x, se, corr, scale):
     """The notes on what the data do not determine: a near-degenerate direction (condition number
     ``cond`` of the scaled J^T J, eigen-decomposition ``eig``), parameters the data do not change

@@ -192,10 +192,7 @@ def fit_result(meas, model, shadowing, resid, x, lo, hi, unc, cands, grid, stage
     aic, bic = report.information(unc.chi2, unc.residuals.size, len(names), sigma_known)
     fits_data, p_value, r2, first = _goodness(observed, unc)
     notes = first + _convention_notes(meas) + notes + _bound_notes(names, x, lo, hi, unc.ci95)
-    notes += report.identifiability_notes(names, unc.jacobian, unc.condition_number, unc.eig, x, unc.stderr, unc.corr,
-                                    hi - lo)
-    if unc.cov_note:
-        notes.append(unc.cov_note)
+    notes += report.uncertainty_notes(names, unc, x, hi - lo)
     if unc.noise_floor is not None:
         notes.append(f"the fit is (nearly) exact: the noise estimated from the residuals (std "
                      f"{np.sqrt(unc.chi2 / unc.dof):.2g}) is below the noise floor, so the uncertainties assume "

@@ -195,10 +195,7 @@ def _joint_notes(setup, labels, x, lo, hi, unc):
                for i, n in enumerate(labels) if outside_interval(x[i], *unc.ci95[n])]
     if outside:
         notes.append(outside_note(outside))
-    notes += report.identifiability_notes(labels, unc.jacobian, unc.condition_number, unc.eig, x, unc.stderr, unc.corr,
-                                   hi - lo)
-    if unc.cov_note:
-        notes.append(unc.cov_note)
+    notes += report.uncertainty_notes(labels, unc, x, hi - lo)
     if unc.noise_floor is not None:
         notes.append(f"the joint fit is (nearly) exact: the uncertainties assume DOP noise of std "
                      f"{unc.noise_floor:.2g} (at least {DOP_NOISE_FLOOR:g}); give a dop_std column to set it")
