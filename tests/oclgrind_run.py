@@ -111,6 +111,7 @@ def main():
     from pbrdf_cl.fitting.images import corners as Bc
     from pbrdf_cl.fitting.images import pixel_fit as Bt
     Bt.SCREEN_SCHEDULE, Bt.POLISH_ITERATIONS, Bt.EXTRA_ROUNDS, Bt.INTENSITY_ITERATIONS = ((2, 2), (1, 2)), 2, 1, 2
+    Bt.ONE_INCIDENCE_SCHEDULE, Bt.ONE_INCIDENCE_POLISH_STARTS = ((2, 2), (1, 2)), 1
     m_ti, m_tr = np.repeat([30.0, 50.0], 4), np.tile([20.0, 35.0, 50.0, 65.0], 2)
     truth = dict(n=1.6, k=2.139, sigma=0.5, ks=0.9, kd=0.15, c=-0.3)
     d = np.broadcast_to(pbrdf_cl.dop(m_ti, m_tr, backend="numpy", **truth), (3, 8)).copy()

@@ -257,6 +257,36 @@ def check_corner_pixels(eng, monkeypatch, corner):
         assert np.all(res[n].values - lo < corners.CORNER * (hi - lo)), (n, res[n].values)
 
 
+#: Pixels of scripts/bench_batch.py's one-incidence geometry (theta_i 45, theta_r 5..80; the
+#: bench's random pixels of seed 7) whose optimum lies at the end of a long valley onto the bounds
+#: (n = 1 or 5, kd = 5, c = -1): the default schedule's one polished start stops in another basin.
+VALLEY_PIXELS = (179, 250, 322, 356, 434, 441, 458)
+
+
+def test_one_incidence_valleys_reach_the_single_fit(dev, monkeypatch):
+    """Pixels of one angle of incidence descend on pixel_fit.ONE_INCIDENCE_SCHEDULE (more starts,
+    longer, four polished): on these valley pixels the batched fit reaches pbrdf_cl.fit's objective
+    (1e-6 relative, or lower); with the default schedule most of them do not."""
+    from pbrdf_cl.fitting.images import pixel_fit
+    names = ("n", "k", "sigma", "kd", "c")
+    lo, hi = (np.array([DEFAULT_BOUNDS[n][i] for n in names]) for i in (0, 1))
+    rng = np.random.default_rng(7)
+    x = lo + rng.random((500, 5)) * (hi - lo)
+    d = pbrdf_cl.dop(TI1, TR1, backend="numpy", **{n: x[:, j:j + 1] for j, n in enumerate(names)})
+    dop = np.clip(d + rng.normal(0, 0.002, d.shape), 0, 1)[list(VALLEY_PIXELS)]
+    data = dict(dop=dop, theta_i=TI1, theta_r=TR1, dop_std=0.002)
+    res = pbrdf_cl.fit_batch(data, engine=dev)
+    with monkeypatch.context() as mp:
+        mp.setattr(pixel_fit, "ONE_INCIDENCE_SCHEDULE", pixel_fit.SCREEN_SCHEDULE)
+        mp.setattr(pixel_fit, "ONE_INCIDENCE_POLISH_STARTS", pixel_fit.POLISH_STARTS)
+        old = pbrdf_cl.fit_batch(data, engine=dev)
+    single = np.array([pbrdf_cl.fit(dict(theta_i=TI1, theta_r=TR1, dop=v, dop_std=np.full(v.size, 0.002)),
+                                    engine=dev).chi2 for v in dop])
+    rel, rel_old = ((r.chi2.values - single) / single for r in (res, old))
+    assert np.all(rel <= 1e-6), rel
+    assert np.sum(rel_old > 1e-6) >= 4, rel_old
+
+
 def test_corner_stage_with_sigma_and_c_fixed(dev):
     """With sigma and c fixed the index corner's table has one sigma and one c, and the mirror
     corner (sigma at its lower bound) is not one of this box: two pixels whose optimum is the

@@ -156,6 +156,7 @@ class Block:
             self.fobs = self.fw = None
         self.count = valid.sum(axis=1)
         self.distinct = self._distinct_geometries()
+        self.one_incidence = self._one_incidence()
         self.noise_floor = self._noise_floor(setup.noise_floor)
 
     def _noise_floor(self, floor):
@@ -179,6 +180,15 @@ class Block:
         s = np.sort(s, axis=1)
         distinct = 1 + (s[:, 1:] != s[:, :-1]).sum(axis=1)
         return distinct - (~self.valid).any(axis=1)
+
+    def _one_incidence(self):
+        """Per pixel, whether its valid measurements share one angle of incidence (their valleys
+        are long: :data:`pbrdf_cl.fitting.images.pixel_fit.ONE_INCIDENCE_SCHEDULE`)."""
+        ti = np.broadcast_to(self.angles[0], self.valid.shape)
+        with np.errstate(invalid="ignore"):
+            lo = np.where(self.valid, ti, np.inf).min(axis=1)
+            hi = np.where(self.valid, ti, -np.inf).max(axis=1)
+        return lo == hi
 
     def subset(self, idx):
         """The block of pixels ``idx`` (repeats allowed) of this one."""
