@@ -54,6 +54,12 @@
 
 #ifndef PB_VECTOR_REAL
 
+/* The grid kernels' sums are written a * b + c, which the compiler contracts into one fused
+ * multiply-add (the pragma; OpenCL C's default too), bit for bit fma(a, b, c): PoCL 3.0 (LLVM 14,
+ * the PyPI wheel) calls the fma() builtin on float8 out of its library, 4-5 times slower than the
+ * contracted instruction (scripts/bench_batch.py --only profile), where PoCL 3.1 inlines both. */
+#pragma OPENCL FP_CONTRACT ON
+
 /* Grid points per tile of batch_grid_table: each measurement's data are loaded once per tile. */
 #define PB_TILE 4
 
@@ -79,7 +85,7 @@ __kernel void batch_grid_table(__global real *best, __global real *arg, const in
                 /* a2 = -2 w dop: acc += (w T - 2 w dop) T */
                 for (int u = 0; u < PB_TILE; u++) {
                     const realv tm = (realv)t[u][m];
-                    acc[u] = fma(fma(bm, tm, am), tm, acc[u]);
+                    acc[u] = (bm * tm + am) * tm + acc[u];  /* two FMAs (FP_CONTRACT, above) */
                 }
             }
             for (int u = 0; u < PB_TILE && q0 + u < q1; u++) {
@@ -114,7 +120,7 @@ __kernel void batch_grid_channels(__global real *best, __global real *arg, const
                 const int is_aop = aop[c];
                 for (int u = 0; u < PB_TILE; u++) {
                     const realv res = pb_channel_residual_v((realv)t[u][c], oc, is_aop);
-                    acc[u] = fma(wc * res, res, acc[u]);
+                    acc[u] = wc * res * res + acc[u];
                 }
             }
             for (int u = 0; u < PB_TILE && q0 + u < q1; u++) {
@@ -167,7 +173,7 @@ __kernel void batch_grid_factors(__global real *best, __global real *arg, const 
                 const int o = m * P;
                 const realv res = pb_dop_combine_v(pb_vload(0, su + o), pb_vload(0, di + o), pb_vload(0, fd + o),
                                                    pb_vload(0, sc + o)) - pb_vload(0, obs + o + p0);
-                acc = fma(pb_vload(0, w + o + p0) * res, res, acc);
+                acc = pb_vload(0, w + o + p0) * res * res + acc;
             }
             const realv q_ = (realv)(real)q;
             /* a NaN sum never wins: acc < bs is false */
@@ -204,7 +210,7 @@ __kernel void batch_grid_channel_factors(__global real *best, __global real *arg
                                                      pb_vload(0, fd + o), abc[3 * c], abc[3 * c + 1], abc[3 * c + 2],
                                                      is_aop);
                 const realv res = pb_channel_residual_v(v, pb_vload(0, obs + o + p0), is_aop);
-                acc = fma(pb_vload(0, w + o + p0) * res, res, acc);
+                acc = pb_vload(0, w + o + p0) * res * res + acc;
             }
             const realv q_ = (realv)(real)q;
             bq = acc < bs ? q_ : bq;
@@ -403,7 +409,7 @@ inline void pb_evaluate(const real *x, const real *h, __global const scalar *bas
         real sw[PB_NQ], tn0[PB_NQ], td0[PB_NQ], v0[PB_NQ], col[PB_NQ * PB_D];
         for (int j = 0; j < PB_NQ; j++) {
             const pb_chan ch = pb_chan_at(geo, chan, m0 + j, p0, M, P);
-            sw[j] = sqrt(pb_vl(0, w + (m0 + j) * P + p0));
+            sw[j] = pb_sqrt(pb_vl(0, w + (m0 + j) * P + p0));
             tn0[j] = pb_channel_terms(P0, ch.u, ch.v, ch.comp, ch.kind, &td0[j]);
             v0[j] = pb_chan_value(&ch, tn0[j], td0[j], inv_K, fd);
         }
@@ -447,7 +453,7 @@ inline void pb_evaluate(const real *x, const real *h, __global const scalar *bas
     for (int m = 0; m < M; m++) {
         const int o = m * P + p0;
         const pb_geom g = pb_geom_at(geo, m, p0, M, P);
-        const real sw = sqrt(pb_vl(0, w + o));
+        const real sw = pb_sqrt(pb_vl(0, w + o));
         const pb_fresnel_t f = pb_fresnel(p.n, p.k, g.cb, g.sb);
         const real logK = pb_log_specular_scale(g, p.sigma, p.ks, pb_shadowing_factor(g, p.sigma, PBRDF_SHADOWING));
         /* 1/K and the Minnaert factor, shared by the columns that do not move them */
@@ -456,7 +462,7 @@ inline void pb_evaluate(const real *x, const real *h, __global const scalar *bas
         const real dop0 = pb_dop_at(f, inv_K, fd);
         real col[PB_D];
 #ifdef PB_INTENSITY
-        const real swf = sqrt(pb_vl(0, fw + o));
+        const real swf = pb_sqrt(pb_vl(0, fw + o));
         const real f000 = pb_brdf(f, logK, fd);
         real fcol[PB_D];
 #endif
@@ -523,10 +529,10 @@ inline void pb_accel_rhs(const real *x, const real *du, const real *span, const 
         const pb_chan ch = pb_chan_at(geo, chan, m, p0, M, P);
         real td;
         const real tn = pb_chan_terms(f, pb_frames_at(geo, m, p0, M, P), &ch, &td);
-        const real rv = sqrt(pb_vl(0, w + o)) * pb_channel_residual(
+        const real rv = pb_sqrt(pb_vl(0, w + o)) * pb_channel_residual(
             pb_chan_value(&ch, tn, td, pb_exp(-logK), pb_diffuse(g, p.kd, p.c)), pb_vl(0, obs + o), ch.aop);
 #else
-        const real rv = sqrt(pb_vl(0, w + o)) * (pb_dop(f, logK, pb_diffuse(g, p.kd, p.c)) - pb_vl(0, obs + o));
+        const real rv = pb_sqrt(pb_vl(0, w + o)) * (pb_dop(f, logK, pb_diffuse(g, p.kd, p.c)) - pb_vl(0, obs + o));
 #endif
         real jrow[PB_D], jdu = (real)0;
         for (int i = 0; i < PB_D; i++) {
@@ -561,7 +567,7 @@ inline void pb_solve(real *Mx, const real *g, real *u, real *ok)
             d -= Mx[j * PB_D + k] * Mx[j * PB_D + k];
         const real good = (d > (real)0 && isfinite(d)) ? (real)1 : (real)0;
         *ok = fmin(*ok, good);
-        const real l = sqrt(d > (real)0 ? d : (real)1);
+        const real l = pb_sqrt(d > (real)0 ? d : (real)1);
         Mx[j * PB_D + j] = l;
         for (int i = j + 1; i < PB_D; i++) {
             real s = Mx[i * PB_D + j];

@@ -20,6 +20,9 @@ One run prints, on the default device (or --backend numpy):
 6. A polarization camera under a 45-degree source: s1, s2 (noise 0.002 given) of --camera-size
    squared random pixels (parameters uniform in the default bounds) at the paper's geometry, and
    the DOP of the same pixels and geometry: pixels/s of each, their stages' shares and the ratio.
+7. Profile per driver: the rate of section 1 (--profile-pixels) on every usable OpenCL CPU device
+   (or --profile-devices) with a profiling queue: device seconds per kernel and launches, and the
+   host's share (wall time less the kernels': Python, numpy, transfers).
 
     python scripts/bench_batch.py                       # everything (about 15 min on 2 cores)
     python scripts/bench_batch.py --match 0 --coverage-size 64   # a quick look
@@ -97,6 +100,63 @@ class StageClock:
     def __exit__(self, *exc):
         for owner, name, func in reversed(self.saved):
             setattr(owner, name, func)
+
+
+class KernelClock:
+    """Device time per kernel of a run on a profiling engine (``Engine(..., profiling=True)``):
+    every launch's event is kept and its start-to-end time added to its kernel's name, with the
+    launches counted, so that the device time of each program and the host time (the wall time
+    less the kernels') can be printed per driver."""
+
+    def __init__(self, eng):
+        self.eng, self.events, self.saved = eng, [], None
+
+    def __enter__(self):
+        self.saved = launch = self.eng.launch
+
+        def timed(kernel, *a, **k):
+            ev = launch(kernel, *a, **k)
+            self.events.append((kernel.function_name, ev))
+            return ev
+        self.eng.launch = timed
+        return self
+
+    def __exit__(self, *exc):
+        self.eng.launch = self.saved
+        self.eng.queue.finish()
+
+    def seconds(self):
+        """Kernel name -> (launches, device seconds), largest first."""
+        out = {}
+        for name, ev in self.events:
+            n, t = out.get(name, (0, 0.0))
+            out[name] = (n + 1, t + (ev.profile.end - ev.profile.start) * 1e-9)
+        return dict(sorted(out.items(), key=lambda kv: -kv[1][1]))
+
+
+def profile(args, eng):
+    """Section 7: where an image fit's time goes on each OpenCL device (``--profile-devices``, default
+    every usable PoCL CPU device): device time per kernel, and the host's share (wall time less
+    the kernels': Python, numpy, transfers, waits)."""
+    from pbrdf_cl.device import choice
+    ti, tr = GEOMETRIES["paper (theta_i 30/40/50 x theta_r 20..65)"]
+    dop = pixels(args.profile_pixels, ti, tr, seed=1)
+    data = dict(dop=dop, theta_i=ti, theta_r=tr, dop_std=NOISE)
+    devices = args.profile_devices or [d for d in choice.candidates() if d.type & 2 and choice.probe(d).usable]
+    for dev in devices:
+        peng = Engine(dev, profiling=True)
+        pbrdf_cl.fit_batch(dict(dop=dop[:16], theta_i=ti, theta_r=tr, dop_std=NOISE), engine=peng)  # build kernels
+        with KernelClock(peng) as clock:
+            t0 = time.perf_counter()
+            pbrdf_cl.fit_batch(data, engine=peng)
+            wall = time.perf_counter() - t0
+        kernels = clock.seconds()
+        device_s = sum(t for _, t in kernels.values())
+        print(f"profile, {peng.description} (vector widths {peng.vector_width}, LM lanes {peng.lm_lanes}): "
+              f"{args.profile_pixels} px in {wall:.2f} s = {args.profile_pixels / wall:.0f} px/s; kernels "
+              f"{device_s:.2f} s ({device_s / wall:.0%}), host {wall - device_s:.2f} s ({1 - device_s / wall:.0%})")
+        for name, (n, t) in kernels.items():
+            print(f"    {name:28s} {n:6d} launches {t:8.3f} s  {t / wall:6.1%}")
 
 
 def rate(args, eng):
@@ -210,7 +270,7 @@ def camera_rate(args, eng):
     print(f"  the camera's rate is {ra / rb:.2f} of the DOP's")
 
 
-SECTIONS = ("rate", "per-pixel", "match", "coverage", "memory", "camera")
+SECTIONS = ("rate", "per-pixel", "match", "coverage", "memory", "camera", "profile")
 
 
 def main():
@@ -224,6 +284,9 @@ def main():
     ap.add_argument("--backend", default="auto")
     ap.add_argument("--camera-size", type=int, default=32, help="pixels per side of section 6 (0 skips it)")
     ap.add_argument("--repeats", type=int, default=1, help="runs of section 6, the best counted")
+    ap.add_argument("--profile-pixels", type=int, default=4096, help="pixels of section 7, the per-kernel profile")
+    ap.add_argument("--profile-devices", nargs="+", help="devices of section 7 (P:D or a name; default every "
+                    "usable CPU device)")
     ap.add_argument("--only", nargs="+", choices=SECTIONS, help="run only these sections")
     args = ap.parse_args()
     eng = pbrdf_cl.device.engine.resolve_engine(None, args.backend)
@@ -241,6 +304,8 @@ def main():
         memory(args, eng)
     if args.camera_size and "camera" in run:
         camera_rate(args, eng)
+    if args.profile_pixels and "profile" in run:
+        profile(args, eng)
 
 
 if __name__ == "__main__":
