@@ -212,10 +212,15 @@ inline real pb_dop_combine(real sum, real diff, real fd2, real inv_K) PB_DOP_COM
 #ifndef PB_VW
 #define PB_VW 8
 #endif
-#define pb_vload PB_CAT(vload, PB_VW)
-#define pb_vstore PB_CAT(vstore, PB_VW)
 #if !defined(PB_VECTOR_REAL) && !defined(PB_HOST_C)  /* PB_HOST_C: compiled as C (the bench's C loop) */
 typedef PB_CAT(PB_SCALAR, PB_VW) realv;
+/* vloadN / vstoreN of PB_VW values at any element-aligned global address, as a vector access
+ * through an under-aligned type (pbrdf_points.cl's pb_vstoren): PoCL 3.0 (LLVM 14, the PyPI
+ * wheel) calls the builtins out of line, each call spilling the live vector registers of the loops
+ * that read the pixels' data per measurement.  The same values bit for bit. */
+typedef realv __attribute__((aligned(sizeof(PB_SCALAR)))) pb_realv_unaligned;
+#define pb_vload(i, p) (((const __global pb_realv_unaligned *)(p))[i])
+#define pb_vstore(v, i, p) (((__global pb_realv_unaligned *)(p))[i] = (v))
 /* pb_dop_combine on PB_VW values at once (the same body). */
 inline realv pb_dop_combine_v(realv sum, realv diff, realv fd2, realv inv_K) PB_DOP_COMBINE_BODY(realv)
 #endif

@@ -225,8 +225,10 @@ __kernel void batch_grid_channel_factors(__global real *best, __global real *arg
 #else /* PB_VECTOR_REAL: the LM stage */
 
 #define PB_N PB_VECTOR_REAL
-#define pb_vl PB_CAT(vload, PB_VECTOR_REAL)
-#define pb_vs PB_CAT(vstore, PB_VECTOR_REAL)
+/* vloadN / vstoreN of the N lanes (pbrdf.h's pb_vload: PoCL 3.0 calls the builtins out of line) */
+typedef real __attribute__((aligned(sizeof(PB_SCALAR)))) pb_real_unaligned;
+#define pb_vl(i, p) (((const __global pb_real_unaligned *)(p))[i])
+#define pb_vs(v, i, p) (((__global pb_real_unaligned *)(p))[i] = (v))
 typedef PB_SCALAR scalar;
 
 #ifdef PBRDF_DOUBLE
