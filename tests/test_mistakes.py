@@ -253,3 +253,76 @@ def test_eval_rows_are_the_product_in_order(capsys):
     np.testing.assert_allclose([r["dop"] for r in rows],
                                [float(pbrdf_cl.dop(a, b, n=1.6, k=2, sigma=s, backend="numpy")) for a, b, s in want],
                                rtol=1e-12)
+
+
+# ---- issue #39, item 3: what is held in memory at once is refused before it is allocated
+
+DESIGN_10E8 = ["design", "--params", "n=1.6,k=2.139,sigma=0.5,kd=0.15,c=-0.3", "--candidates", "theta_i=0:89@10000",
+               "theta_r=0:89@10000", "--backend", "numpy"]
+
+
+def test_a_design_over_1e8_candidates_is_refused_in_one_line_before_any_work():
+    proc = run_cli(*DESIGN_10E8)
+    assert proc.returncode == 1 and proc.stdout == ""
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(
+        "pbrdf-cl: error: design: 100000000 candidate geometries x 1 material needs 208.6 GiB, "), lines
+    assert "give fewer candidates" in lines[0]
+    with pytest.raises(sizes.TooLargeError, match=r"^design: 400 candidate geometries x 16 materials needs 13.67 MiB, "
+                       r"more than memory_budget = 100 KiB; give fewer candidates \(a coarser grid\), fewer materials "
+                       r"or raise memory_budget \(pbrdf-cl design --memory-budget\)$"):
+        pbrdf_cl.design(dict(n=(1.2, 2.0), k=2.1, sigma=0.5), dict(theta_i="10:80@20", theta_r="0:85@20"),
+                        memory_budget="100 KiB", backend="numpy")
+
+
+def test_maps_and_grids_beyond_their_limits_are_refused_before_any_work(monkeypatch):
+    def no_work(*a, **k):
+        raise AssertionError("the work started before the size was checked")
+    monkeypatch.setattr(pbrdf_cl.compute.dense, "aligned_empty", no_work)
+    with pytest.raises(sizes.TooLargeError, match=r"^the map of 10000 x 10000 points needs 13.41 GiB, more than "
+                       r"memory_budget = 1 GiB; use fewer points per axis .* or raise memory_budget \(pbrdf-cl map "
+                       r"--memory-budget\)$"):
+        maps.make_map(("theta_r", np.linspace(0, 85, 10000)), ("sigma", np.linspace(0.05, 1, 10000)),
+                      dict(theta_i=40, n=1.6, k=2.1), backend="numpy")
+    axes = dict(theta_r=np.linspace(0, 85, 2000), sigma=np.linspace(0.05, 1, 2000), kd=np.linspace(0, 1, 200))
+    with pytest.raises(sizes.TooLargeError, match=r"^the grid of 2000 x 2000 x 200 = 800000000 points needs 2.98 GiB, "
+                       r"more than the 2 GiB an in-memory result may take; .*pbrdf-cl sweep .*, or pass allow_large="):
+        pbrdf_cl.grid(axes, dict(theta_i=40, n=1.6, k=2.1), backend="numpy")
+    monkeypatch.undo()
+    monkeypatch.setattr(sizes, "LARGE_RESULT", 1000)
+    small = dict(theta_r=np.linspace(0, 85, 30), sigma=np.linspace(0.05, 1, 20))
+    with pytest.raises(sizes.TooLargeError, match=r"the grid of 30 x 20 = 600 points needs 4.688 KiB"):
+        pbrdf_cl.grid(small, dict(theta_i=40, n=1.6, k=2.1), dtype="float64", backend="numpy")
+    assert pbrdf_cl.grid(small, dict(theta_i=40, n=1.6, k=2.1), backend="numpy", allow_large=True).shape == (30, 20)
+    proc = run_cli("map", "--x", "theta_r=0:85@4000", "--y", "sigma=0.05:1@4000", "--fix", "theta_i=40", "n=1.6",
+                   "k=2", "--memory-budget", "256 MiB", "--out", "never.png")
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 1 and len(lines) == 1 and "more than memory_budget = 256 MiB" in lines[0], lines
+
+
+def lazy_stack(shape):
+    """A lazy (dask) DOP stack of ``shape`` pixels at shared geometry: nothing is computed unless read."""
+    da = pytest.importorskip("dask.array")
+    import xarray as xr
+    ti, tr = np.repeat([30.0, 40.0, 50.0], 10), np.tile(np.arange(20.0, 66.0, 5.0), 3)
+    dims = tuple(f"d{i}" for i in range(len(shape)))
+    dop = da.full(shape + (30,), 0.3, chunks=tuple(max(1000, s // 100) for s in shape) + (30,))
+    return xr.Dataset({"dop": (dims + ("m",), dop), "theta_i": (("m",), ti), "theta_r": (("m",), tr)})
+
+
+def test_an_image_fit_of_1e12_pixels_is_refused_before_any_pixel_is_read(tmp_path):
+    """A 10^12-pixel lazy stack: its blocks' bookkeeping (a list of row ranges, their done marks)
+    alone would pass the memory; refused in one line, in memory and into a store (nothing created);
+    a row of 10^6 pixels too large for one block likewise."""
+    from pbrdf_cl.fitting.images import batch
+    for store in (None, tmp_path / "fit.zarr"):
+        with pytest.raises(sizes.TooLargeError, match=r"^the bookkeeping of 1000000000000 pixels in 139508929 blocks "
+                           r"of 7168 rows needs 33.26 GiB, (but .* of memory is available|more than memory_budget)"):
+            batch.fit_batch(lazy_stack((10 ** 12,)), store=store, backend="numpy", progress=False)
+    assert list(tmp_path.iterdir()) == []
+    with pytest.raises(ValueError, match=r"memory_budget=536870912 bytes is too small for one row of 1000000 pixels"):
+        batch.fit_batch(lazy_stack((10 ** 6, 10 ** 6)), backend="numpy", progress=False)
+    with pytest.raises(sizes.TooLargeError, match=r"^the result of 1000000000 pixels needs .*; write it into a Zarr "
+                       r"store block by block \(store=; pbrdf-cl fit-image\)$"):
+        batch.fit_batch(lazy_stack((10 ** 5, 10 ** 4)), backend="numpy", progress=False, memory_budget="4 GiB")
+

@@ -394,24 +394,19 @@ def open_stack(path):
                           f"nor its measurements): {', '.join(skipped)}", DataWarning, stacklevel=2)
         return ds
     if suffix in (".nc", ".h5", ".netcdf"):
-        return xr.open_dataset(p)
+        # lazily, and without keeping what is read: a block of rows read is dropped once used,
+        # never the whole variable loaded (xarray's cache would keep every variable read whole)
+        return xr.open_dataset(p, cache=False)
     if suffix == ".zarr" or (p / ".zgroup").exists() or (p / "zarr.json").exists():
         return xr.open_zarr(p)
     raise ValueError(f"stack {str(p)!r}: unknown format {suffix!r}; use .npz, .nc or .zarr")
 
 
 def open_stack_lazily(path):
-    """A stack path as a Dataset read a block at a time (for a store's fit): ``.nc`` through dask
-    (:func:`open_stack` reads it lazily, but the fit would load the whole of it); the others as
-    :func:`open_stack`."""
-    from pathlib import Path
-    ds = open_stack(path)
-    if Path(path).suffix.lower() in (".nc", ".h5", ".netcdf"):
-        try:
-            ds = ds.chunk()
-        except (ImportError, ValueError):  # pragma: no cover - no dask: read it whole
-            pass
-    return ds
+    """A stack path as a Dataset read a block at a time (for a store's fit): :func:`open_stack`,
+    whose ``.nc`` and ``.zarr`` stacks are read lazily, a block of rows at a time (a ``.nc`` stack
+    is not made one dask chunk, which every block would read whole)."""
+    return open_stack(path)
 
 def check_block(block, r0, source):
     """Validate a block's values; errors name the variable and the first offending index (of the
