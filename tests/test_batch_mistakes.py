@@ -296,3 +296,61 @@ def test_a_netcdf_stack_is_read_a_block_of_rows_at_a_time(tmp_path):
     np.testing.assert_array_equal(rows["dop"], dop[10:14].reshape(-1, 30))
     assert not ds.dop.variable._in_memory  # the rows read are not cached
 
+
+def _bad_files(tmp_path):
+    """Files that are not what their suffix says, and stacks without pixels or measurements."""
+    import xarray as xr
+    (tmp_path / "empty.npz").write_bytes(b"")
+    (tmp_path / "random.npz").write_bytes(np.random.default_rng(0).bytes(2000))
+    (tmp_path / "zip.npz").write_bytes(b"PK\x03\x04 not a zip")
+    np.save(tmp_path / "lone.npy", np.zeros(3))
+    (tmp_path / "lone.npz").write_bytes((tmp_path / "lone.npy").read_bytes())
+    (tmp_path / "garbage.nc").write_bytes(np.random.default_rng(1).bytes(2000))
+    (tmp_path / "empty.nc").write_bytes(b"")
+    (tmp_path / "hdf5.nc").write_bytes(b"\x89HDF\r\n\x1a\n" + bytes(100))
+    xr.Dataset({"a": (("x",), [1.0, 2.0])}).to_netcdf(tmp_path / "whole.nc")
+    (tmp_path / "truncated.nc").write_bytes((tmp_path / "whole.nc").read_bytes()[:40])
+    for name, shape in (("zero_rows", (0, 4, 30)), ("zero_columns", (4, 0, 30))):
+        np.savez(tmp_path / f"{name}.npz", dop=np.zeros(shape), theta_i=TI, theta_r=TR)
+    np.savez(tmp_path / "zero_m.npz", dop=np.zeros((4, 4, 0)))
+
+
+@pytest.mark.parametrize("name, message", [
+    ("empty.npz", "empty.npz: the file is empty (0 bytes), not a .npz archive of arrays"),
+    ("random.npz", "random.npz: not a .npz archive of arrays (a .npz is a zip file; this one starts with"),
+    ("zip.npz", "zip.npz: not a readable .npz archive of arrays (BadZipFile: File is not a zip file)"),
+    ("lone.npz", "lone.npz: not a .npz archive of arrays (a .npz is a zip file; this one starts with b'\\x93NUM')"),
+    ("garbage.nc", "garbage.nc: not a netCDF file (it starts with"),
+    ("empty.nc", "empty.nc: not a netCDF file (the file is empty (0 bytes))"),
+    ("hdf5.nc", "hdf5.nc: a netCDF-4 (HDF5) file, which needs the netCDF4 or h5netcdf package to be read"),
+    ("truncated.nc", "truncated.nc: a netCDF-3 file that cannot be read ("),
+    ("zero_rows.npz", "data: dop has no pixels (shape (0, 4, 30): pixel dimensions (0, 4)); give a stack with at "
+                      "least one pixel"),
+    ("zero_columns.npz", "data: dop has no pixels (shape (4, 0, 30)"),
+    ("zero_m.npz", "data: dop has 0 measurements per pixel; a fit needs several"),
+])
+def test_a_stack_that_is_no_stack_is_refused_in_one_line_of_ours(name, message, tmp_path, capsys):
+    """Issue #39, item 6: a 0-byte or random .npz, a garbage .nc and a zero-pixel stack are refused by
+    fit-image in one line naming the file, not a traceback or a library's message; no store is made."""
+    from pbrdf_cl import cli
+    if name == "hdf5.nc":
+        import importlib.util
+        if importlib.util.find_spec("h5netcdf") or importlib.util.find_spec("netCDF4"):
+            pytest.skip("a netCDF-4 library is installed: the file is read by it")
+    _bad_files(tmp_path)
+    assert cli.main(["fit-image", str(tmp_path / name), "--out", str(tmp_path / "fit.zarr"), "--no-progress"]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("pbrdf-cl: error: ") and message in err, err
+    assert not (tmp_path / "fit.zarr").exists()
+
+
+def test_a_label_file_that_is_no_array_is_refused_in_one_line(tmp_path, capsys):
+    from pbrdf_cl import cli
+    np.savez(tmp_path / "stack.npz", dop=shared_stack(), theta_i=TI, theta_r=TR)
+    (tmp_path / "random.npy").write_bytes(np.random.default_rng(0).bytes(300))
+    (tmp_path / "empty.npy").write_bytes(b"")
+    for name, why in (("random.npy", "it starts with"), ("empty.npy", "the file is empty (0 bytes)")):
+        assert cli.main(["fit-image", str(tmp_path / "stack.npz"), "--out", str(tmp_path / "fit.zarr"), "--labels",
+                         str(tmp_path / name)]) == 1
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and f"--labels {tmp_path / name}: not a .npy file ({why}" in err, err

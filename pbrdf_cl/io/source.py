@@ -8,6 +8,7 @@ import numpy as np
 
 from ..compute import pointwise
 from ..model import measurables
+from . import files
 
 ANGLES = ("theta_i", "theta_r", "phi")
 #: The incident light's normalised Stokes vector per measurement (shared (M,) or per pixel; absent:
@@ -259,6 +260,12 @@ class Source:
 
     def _check_variables(self):
         """The checks of the variables every kind of input has once read."""
+        if 0 in self.shape:
+            raise ValueError(f"data: {self.ref} has no pixels (shape {self.shape + (self.M,)}: pixel dimensions "
+                             f"{self.shape}); give a stack with at least one pixel")
+        if self.M < 2:
+            raise ValueError(f"data: {self.ref} has {self.M} measurement{'' if self.M == 1 else 's'} per pixel; "
+                             "a fit needs several")
         for a in ANGLES[:2]:
             if a not in self.vars:
                 raise ValueError(f"data: no {a!r} (degrees): give it shared, shape ({self.M},), or per pixel")
@@ -286,8 +293,6 @@ class Source:
         self.measured = measured_of(self.vars)
         self.shared = all(np.ndim(self.vars[a]) == 1 for a in SHARED if a in self.vars)
         self.n_pixels = int(np.prod(self.shape, dtype=np.int64))
-        if self.M < 2:
-            raise ValueError(f"data: {self.ref} has {self.M} measurement per pixel; a fit needs several")
 
     def rows(self, r0, r1):
         """The pixels of rows r0..r1 of the first pixel dimension, flat: dict name -> (p, M) float64
@@ -355,8 +360,7 @@ def open_stack(path):
         raise ValueError(f"stack {str(p)!r} does not exist")
     suffix = p.suffix.lower()
     if suffix == ".npz":
-        with np.load(p) as z:
-            arrays = {k: z[k] for k in z.files}
+        arrays = files.read_npz(p)
         if any(k.endswith(".dims") for k in arrays):  # written by pbrdf_cl.io.imagestack.save_stack
             from .imagestack import load_stack
             return load_stack(p)
@@ -396,9 +400,12 @@ def open_stack(path):
     if suffix in (".nc", ".h5", ".netcdf"):
         # lazily, and without keeping what is read: a block of rows read is dropped once used,
         # never the whole variable loaded (xarray's cache would keep every variable read whole)
-        return xr.open_dataset(p, cache=False)
+        return files.open_netcdf(p, cache=False)
     if suffix == ".zarr" or (p / ".zgroup").exists() or (p / "zarr.json").exists():
-        return xr.open_zarr(p)
+        try:
+            return xr.open_zarr(p)
+        except Exception as exc:  # noqa: BLE001 - zarr's many errors of a folder that is no store: one line of ours
+            raise ValueError(f"{p}: not a readable Zarr store ({files.first_line(exc)})") from None
     raise ValueError(f"stack {str(p)!r}: unknown format {suffix!r}; use .npz, .nc or .zarr")
 
 
