@@ -326,3 +326,40 @@ def test_an_image_fit_of_1e12_pixels_is_refused_before_any_pixel_is_read(tmp_pat
                        r"store block by block \(store=; pbrdf-cl fit-image\)$"):
         batch.fit_batch(lazy_stack((10 ** 5, 10 ** 4)), backend="numpy", progress=False, memory_budget="4 GiB")
 
+
+# ---- issue #39, item 6: the remaining bad inputs, one line of ours each
+
+C_SPEC = "[axes]\ntheta_r = \"0:85@16\"\n{axis}[fixed]\ntheta_i = 40\nn = 1.6\nk = 2.0\nsigma = 0.3\nkd = 0.1\n{fixed}"
+
+
+@pytest.mark.parametrize("argv, line", [
+    (["eval", "--theta-i", "40", "--theta-r", "30", "--n", "1.6", "--k", "2", "--sigma", "0.3", "--kd", "0.1", "--c",
+      "5"], "c must be in [-1, 0], got 5.0"),
+    (["eval", "--theta-i", "40", "--theta-r", "30", "--n", "1.6", "--k", "2", "--sigma", "0.3", "--kd", "0.1", "--c",
+      "5", "--backend", "numpy"], "c must be in [-1, 0], got 5.0"),
+    (["sweep", "{fixed}", "--out", "{tmp}/a.zarr"], "fixed.c: c must be in [-1, 0], got 5.0"),
+    (["sweep", "{axis}", "--out", "{tmp}/b.zarr"], "axes.c: c must be in [-1, 0], got 1.0 at index [2]"),
+    (["fit", "examples/steel_435nm.csv", "--fix", "c=5"], "--fix c=5: c must be in [-1, 0], got 5.0"),
+    (["fit", "examples/steel_435nm.csv", "--bounds", "c=-2:0"],
+     "bounds: c low = -2.0 is outside the model's domain (c must be in [-1, 0])"),
+    (["fit-image", "{tmp}/stack.npz", "--out", "{tmp}/f.zarr", "--fix", "c=5"], "--fix c=5: c must be in [-1, 0]"),
+    (["map", "--x", "theta_r=0:85@8", "--y", "sigma=0.1:1@4", "--fix", "theta_i=40", "n=1.6", "k=2", "kd=0.1", "c=5",
+      "--out", "{tmp}/m.png"], "--fix c=5: c must be in [-1, 0], got 5.0"),
+    (["design", "--params", "n=1.6,k=2.139,sigma=0.5,kd=0.15,c=5"], "--params c=5: c must be in [-1, 0], got 5.0"),
+])
+def test_c_outside_the_model_is_refused_on_every_path(argv, line, tmp_path, capsys, monkeypatch):
+    """c = 5 (the model defines the Minnaert exponent in (-1, 0]) is refused in one line by eval
+    (on the device, whose kernel checks the domain itself, and in numpy), a sweep's fixed value and
+    axis, fit's and fit-image's --fix and --bounds, map and design; nothing is written."""
+    root = __import__("pathlib").Path(__file__).resolve().parents[1]
+    monkeypatch.chdir(root)
+    (tmp_path / "fixed.toml").write_text(C_SPEC.format(axis="", fixed="c = 5\n"))
+    (tmp_path / "axis.toml").write_text(C_SPEC.format(axis="c = \"-1:5@7\"\n", fixed=""))
+    np.savez(tmp_path / "stack.npz", dop=np.full((2, 2, 30), 0.3), theta_i=np.repeat([30.0, 40, 50], 10),
+             theta_r=np.tile(np.arange(20.0, 66, 5), 3))
+    argv = [a.format(tmp=tmp_path, fixed=tmp_path / "fixed.toml", axis=tmp_path / "axis.toml") for a in argv]
+    assert cli.main(argv) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("pbrdf-cl: error: ") and line in err, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["axis.toml", "fixed.toml", "stack.npz"]
+

@@ -86,7 +86,7 @@ REGISTRY = {i.name: i for i in (
     Input("kd", "material", "diffuse", "diffuse weight", "1", "kd", "diffuse weight kd", 0.0, (0.0, 5.0),
           (0.0, 5.0), Domain(0.0), ">= 0", fitted=True),
     Input("c", "material", "diffuse", "Minnaert exponent", "1", "c", "Minnaert exponent c", 0.0, (-1.0, 0.0),
-          (-1.0, 0.0), Domain(), "finite", fitted=True),
+          (-1.0, 0.0), Domain(-1.0, 0.0, hi_included=True), "in [-1, 0]", fitted=True),
 )}
 
 #: Every input, in the kernels' argument order (geometry, then the parameters).
