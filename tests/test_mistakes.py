@@ -363,3 +363,39 @@ def test_c_outside_the_model_is_refused_on_every_path(argv, line, tmp_path, caps
     assert err.count("\n") == 1 and err.startswith("pbrdf-cl: error: ") and line in err, err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["axis.toml", "fixed.toml", "stack.npz"]
 
+
+@pytest.mark.parametrize("argv, option", [
+    (["fit", "examples/steel_435nm.csv", "--plot", "{missing}/fit.png"], "--plot"),
+    (["fit", "examples/steel_435nm.csv", "--json", "{missing}/fit.json"], "--json"),
+    (["fit-image", "stack.npz", "--out", "{tmp}/params.zarr", "--png", "{missing}/maps.png"], "--png"),
+    (["map", "--x", "theta_r=0:85@8", "--y", "sigma=0.1:1@4", "--fix", "theta_i=40", "n=1.6", "k=2", "--out",
+      "{missing}/m.png"], "--out"),
+    (["map", "--x", "theta_r=0:85@8", "--y", "sigma=0.1:1@4", "--fix", "theta_i=40", "n=1.6", "k=2", "--out",
+      "{tmp}/m.png", "--npz", "{missing}/m.npz"], "--npz"),
+    (["sobol", "examples/sobol.toml", "--png", "{missing}/sobol.png"], "--png"),
+    (["design", "--params", "n=1.6,k=2.139,sigma=0.5", "--png", "{missing}/design.png"], "--png"),
+    (["design", "--params", "n=1.6,k=2.139,sigma=0.5", "--out", "{missing}/design.nc"], "--out"),
+    (["bench", "--quick", "--json", "{missing}/bench.json"], "--json"),
+])
+def test_an_output_in_a_folder_that_does_not_exist_is_refused_not_made(argv, option, tmp_path, capsys, monkeypatch):
+    """--plot /nonexist/x.png made /nonexist: a file's folder that does not exist is refused in one
+    line naming the option and the folder, before any work, and nothing is made."""
+    from pbrdf_cl.analysis import designs, sensitivity
+    from pbrdf_cl.device import engine
+    from pbrdf_cl.fitting.images import batch
+    from pbrdf_cl.fitting.sample import inversion
+    root = __import__("pathlib").Path(__file__).resolve().parents[1]
+    monkeypatch.chdir(root)
+
+    def no_work(*a, **k):
+        raise AssertionError("the work started before the output was checked")
+    for module, name in ((batch, "fit_batch"), (maps, "make_map"), (inversion, "fit"), (sensitivity, "sobol"),
+                         (designs, "design"), (engine, "resolve_engine")):
+        monkeypatch.setattr(module, name, no_work)
+    missing = tmp_path / "nonexist"
+    argv = [a.format(tmp=tmp_path, missing=missing) for a in argv]
+    assert cli.main(argv) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith(f"pbrdf-cl: error: {option} {missing}/"), err
+    assert f"the folder {missing} does not exist; create it first or choose another {option}" in err
+    assert list(tmp_path.iterdir()) == []
