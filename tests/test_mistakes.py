@@ -399,3 +399,25 @@ def test_an_output_in_a_folder_that_does_not_exist_is_refused_not_made(argv, opt
     assert err.count("\n") == 1 and err.startswith(f"pbrdf-cl: error: {option} {missing}/"), err
     assert f"the folder {missing} does not exist; create it first or choose another {option}" in err
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("argv", [
+    ["fit", "examples/steel_435nm.csv", "--bounds", "n=1:1e300"],
+    ["fit-image", "{tmp}/stack.npz", "--out", "{tmp}/f.zarr", "--bounds", "n=1:1e300"],
+    ["design", "--params", "n=1.6,k=2.139,sigma=0.5", "--bounds", "n=1:1e300"],
+])
+def test_bounds_beyond_what_a_fit_searches_are_refused(argv, tmp_path, capsys, monkeypatch):
+    """--bounds n=1:1e300 returned a wrong fit labelled as a model misfit (overflow in the grid and
+    the descents): refused in one line with the range a fit searches (the registry's limits)."""
+    monkeypatch.chdir(__import__("pathlib").Path(__file__).resolve().parents[1])
+    np.savez(tmp_path / "stack.npz", dop=np.full((2, 2, 30), 0.3), theta_i=np.repeat([30.0, 40, 50], 10),
+             theta_r=np.tile(np.arange(20.0, 66, 5), 3))
+    assert cli.main([a.format(tmp=tmp_path) for a in argv]) == 1
+    err = capsys.readouterr().err
+    assert err == ("pbrdf-cl: error: bounds: n = (1, 1e+300) reaches beyond what a fit searches (n in [0.01, 100]: "
+                   "the model's arithmetic and the search's resolution); give bounds within it\n"), err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["stack.npz"]
+    for name, (lo, hi) in {"sigma": (1e-9, 1.0), "k": (0.0, 1e5), "ks": (1e-3, 1e9), "kd": (0.0, 1e4)}.items():
+        with pytest.raises(ValueError, match=rf"^bounds: {name} = .* reaches beyond what a fit searches"):
+            pbrdf_cl.fitting.setup.FitSetup.check(bounds={name: (lo, hi)})
+    pbrdf_cl.fitting.setup.FitSetup.check(bounds=dict(n=(0.01, 100), k=(0, 100), sigma=(1e-3, 10), kd=(0, 1e3)))
