@@ -354,3 +354,25 @@ def test_a_label_file_that_is_no_array_is_refused_in_one_line(tmp_path, capsys):
                          str(tmp_path / name)]) == 1
         err = capsys.readouterr().err
         assert err.count("\n") == 1 and f"--labels {tmp_path / name}: not a .npy file ({why}" in err, err
+
+
+def test_repeated_measurements_of_a_stack_are_said(tmp_path, capsys):
+    """Issue #39, item 6: measurements of a stack that repeat an earlier one exactly (a stack
+    appended to itself) were counted as independent without a word; fit-image now says so (as fit
+    and fit_joint say of a CSV's repeated rows) and that each pixel's chi2 counts them; a stack
+    whose measurements differ in one pixel only is not noted."""
+    from pbrdf_cl import cli
+    from pbrdf_cl.fitting.images.job import BatchJob
+    dop = shared_stack((1, 2))
+    twice = dict(dop=np.concatenate([dop, dop], axis=-1), theta_i=np.r_[TI, TI], theta_r=np.r_[TR, TR], dop_std=0.003)
+    np.savez(tmp_path / "twice.npz", **twice)
+    assert cli.main(["fit-image", str(tmp_path / "twice.npz"), "--out", str(tmp_path / "fit.zarr"), "--no-progress",
+                     "--backend", "numpy"]) == 0
+    out = capsys.readouterr().out
+    assert ("note: 30 of the 60 measurements repeat an earlier one exactly (geometry and the values of every pixel of "
+            "the first row; e.g. measurement 30 repeats 0), up to 2 copies: each pixel's fit counts each as an "
+            "independent measurement (in its chi2, p-value and intervals)") in out, out
+    differ = dict(twice, dop=twice["dop"].copy())
+    differ["dop"][0, 1, 30:] += 1e-3
+    assert not any("repeat" in n for n in BatchJob(differ).notes)
+    assert any("repeat" in n for n in BatchJob(twice).notes)

@@ -512,4 +512,27 @@ def data_notes(source):
         notes.append("phi = 0 for every measurement of the first row: that is the plane of incidence on the source's "
                      "side (back-scattering); in-plane specular data have phi = 180 here (SCATMECH's phi = 0 is our "
                      "180)")
+    dup = repeated_measurements_note(raw, source.M)
+    if dup:
+        notes.append(dup)
     return notes
+
+
+def repeated_measurements_note(raw, M):
+    """A note where measurements of the stack repeat an earlier one exactly (the geometry, the
+    incident state and every measured value of every pixel of the rows ``raw``), else None: each
+    pixel's fit counts every measurement as an independent one (its chi2, p-value and intervals),
+    as :func:`pbrdf_cl.io.measurements.duplicates_note` says of a CSV's rows."""
+    cols = [np.asarray(a, np.float64).reshape(-1, M).T for name, a in raw.items() if name != "mask"]
+    table = np.ascontiguousarray(np.concatenate(cols, axis=1))  # (M, values per measurement)
+    _, first, counts = np.unique(table, axis=0, return_index=True, return_counts=True)
+    repeats = M - first.size
+    if not repeats:
+        return None
+    j = int(np.flatnonzero(np.isin(np.arange(M), first, invert=True))[0])
+    same = (table == table[j]) | (np.isnan(table) & np.isnan(table[j]))
+    i = int(np.flatnonzero(same.all(axis=1))[0])
+    return (f"{repeats} of the {M} measurements repeat an earlier one exactly (geometry and the values of every pixel "
+            f"of the first row; e.g. measurement {j} repeats {i}), up to {int(counts.max())} copies: each pixel's fit "
+            "counts each as an independent measurement (in its chi2, p-value and intervals); if they are copies of one "
+            "measurement, remove them (the intervals are otherwise too narrow)")
