@@ -225,8 +225,8 @@ inline real pb_in_rule(__global const PB_SCALAR *x, __constant const uint *r, co
 
 #define PB_VEC_ARGS const int nvec, PB_INPUT_ARGS(PB_SCALAR)
 
-/* The domain of the inputs, as pbrdf_cl.api.RULES states it: theta_i, theta_r in [0, 90); n, sigma,
- * ks > 0; k, kd >= 0; everything finite (NaN fails every comparison).  A point outside it gets NaN,
+/* The domain of the inputs, as pbrdf_cl.model.inputs.RULES states it: theta_i, theta_r in [0, 90); n,
+ * sigma, ks > 0; k, kd >= 0; c in [-1, 0]; everything finite (NaN fails every comparison).  A point outside it gets NaN,
  * which the host's check of the result finds; only then does it look for (and name) the offender,
  * so it reads no input before the launch. */
 #define PB_INF ((real)INFINITY)
@@ -235,7 +235,7 @@ inline real pb_in_rule(__global const PB_SCALAR *x, __constant const uint *r, co
     ((v_ti >= (real)0) & (v_ti < (real)90) & (v_tr >= (real)0) & (v_tr < (real)90) & PB_FINITE(v_ph) & \
      (v_n > (real)0) & (v_n < PB_INF) & (v_k >= (real)0) & (v_k < PB_INF) & (sigma > (real)0) &     \
      (sigma < PB_INF) & (v_ks > (real)0) & (v_ks < PB_INF) & (v_kd >= (real)0) & (v_kd < PB_INF) &   \
-     PB_FINITE(v_c))
+     (v_c >= (real)-1) & (v_c <= (real)0))
 
 /* The N points of work-item i, their inputs read by IN(buffer, stride, rule number). */
 #define PB_VEC_BODY_OF(IN)                                                   \

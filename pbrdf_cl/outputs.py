@@ -12,12 +12,17 @@ from .errors import CommandError
 
 def check_output(option, path, folder=False):
     """Refuse an output that cannot be written before any work is done (:class:`CommandError`):
-    its folder (``path`` itself with ``folder``) is a file or not writable.  URLs are not checked."""
+    its folder (``path`` itself with ``folder``) is a file or not writable; a file's folder that
+    does not exist (a mistyped path: it is not made).  A folder output (``folder``) is made with
+    its parents.  URLs are not checked."""
     if path is None or "://" in str(path):
         return
     target = Path(path) if folder else (Path(path).parent if str(Path(path).parent) else Path("."))
     if target.exists() and not target.is_dir():
         raise CommandError(f"{option} {path}: {target} is a file, not a folder; choose another {option}")
+    if not folder and not target.exists():
+        raise CommandError(f"{option} {path}: the folder {target} does not exist; create it first or choose "
+                           f"another {option}")
     why = drivers.writable_dir(target)
     if why is not None:
         raise CommandError(f"{option} {path}: cannot write into {target} ({why}); choose a writable {option}")

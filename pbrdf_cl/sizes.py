@@ -5,6 +5,10 @@ functions, :func:`pbrdf_cl.grid`, maps, ``pbrdf-cl eval``, ``pbrdf-cl reproduce`
 stacks) estimates it
 first and refuses, with a one-line ``MemoryError`` subclass naming the size, what is available and
 what to do, a result that cannot fit in memory; a sweep compares its store with the free disk.
+The calls whose whole work is held in memory at once (:func:`pbrdf_cl.design`, maps, the image
+fit's bookkeeping of its blocks) also refuse what exceeds their ``memory_budget``
+(:func:`check_budget`), and :func:`pbrdf_cl.grid` a result above :data:`LARGE_RESULT` unless
+``allow_large=True`` (:func:`check_result`).
 """
 from __future__ import annotations
 
@@ -44,6 +48,30 @@ def check_memory(nbytes, what, advice):
     avail = available_memory()
     if avail is not None and nbytes > avail:
         raise TooLargeError(f"{what} needs {human(nbytes)}, but {human(avail)} of memory is available; {advice}")
+
+
+def check_budget(nbytes, what, budget, advice, raise_it="raise memory_budget"):
+    """Raise :class:`TooLargeError` if ``nbytes`` (an estimate of ``what``) exceeds the available
+    memory (:func:`check_memory`) or ``budget``: ``"<what> needs 206 GiB, more than memory_budget =
+    1 GiB; <advice> or <raise_it>"``."""
+    check_memory(nbytes, what, advice)
+    if nbytes > budget:
+        raise TooLargeError(f"{what} needs {human(nbytes)}, more than memory_budget = {human(budget)}; {advice} "
+                            f"or {raise_it}")
+
+
+#: The largest result an in-memory call returns without ``allow_large=True`` (2 GiB): above it the
+#: chunked paths (a sweep into a Zarr store, reductions on the device) are the way.
+LARGE_RESULT = 2 << 30
+
+
+def check_result(nbytes, what, advice, allow_large=False):
+    """Raise :class:`TooLargeError` if the result ``what`` of ``nbytes`` exceeds the available memory
+    (:func:`check_memory`), or :data:`LARGE_RESULT` unless ``allow_large``."""
+    check_memory(nbytes, what, advice)
+    if nbytes > LARGE_RESULT and not allow_large:
+        raise TooLargeError(f"{what} needs {human(nbytes)}, more than the {human(LARGE_RESULT)} an in-memory result "
+                            f"may take; {advice}, or pass allow_large=True")
 
 
 def free_disk(path):

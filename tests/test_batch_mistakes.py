@@ -279,3 +279,100 @@ def test_a_singular_problem_does_not_stop_the_others_of_its_batch():
         np.testing.assert_array_equal(X[1], Xs[0])
         assert sse[1] == sses[0]
     assert abs(X[1, 0] - 0.3) < 1e-6 and np.array_equal(X[0], X0[0])
+
+
+def test_a_netcdf_stack_is_read_a_block_of_rows_at_a_time(tmp_path):
+    """Issue #39, item 3: a .nc stack opened for a store's fit is read lazily by xarray's own
+    indexing, a block of rows at a time, never made one dask chunk that every block reads whole
+    (fit-image of a 240 MB stack at 128 MiB: peak RSS 533 MB that way, 377 MB now, as a 4 MB
+    stack's), and nothing read is kept."""
+    from pbrdf_cl.io.source import Source, open_stack_lazily
+    dop = np.broadcast_to(pbrdf_cl.dop(TI, TR, **STEEL, backend="numpy"), (64, 32, 30))
+    xr.Dataset({"dop": (("y", "x", "m"), dop), "theta_i": (("m",), TI), "theta_r": (("m",), TR)}).to_netcdf(
+        tmp_path / "stack.nc")
+    ds = open_stack_lazily(tmp_path / "stack.nc")
+    assert ds.dop.chunks is None and not ds.dop.variable._in_memory
+    rows = Source(ds).rows(10, 14)
+    np.testing.assert_array_equal(rows["dop"], dop[10:14].reshape(-1, 30))
+    assert not ds.dop.variable._in_memory  # the rows read are not cached
+
+
+def _bad_files(tmp_path):
+    """Files that are not what their suffix says, and stacks without pixels or measurements."""
+    import xarray as xr
+    (tmp_path / "empty.npz").write_bytes(b"")
+    (tmp_path / "random.npz").write_bytes(np.random.default_rng(0).bytes(2000))
+    (tmp_path / "zip.npz").write_bytes(b"PK\x03\x04 not a zip")
+    np.save(tmp_path / "lone.npy", np.zeros(3))
+    (tmp_path / "lone.npz").write_bytes((tmp_path / "lone.npy").read_bytes())
+    (tmp_path / "garbage.nc").write_bytes(np.random.default_rng(1).bytes(2000))
+    (tmp_path / "empty.nc").write_bytes(b"")
+    (tmp_path / "hdf5.nc").write_bytes(b"\x89HDF\r\n\x1a\n" + bytes(100))
+    xr.Dataset({"a": (("x",), [1.0, 2.0])}).to_netcdf(tmp_path / "whole.nc")
+    (tmp_path / "truncated.nc").write_bytes((tmp_path / "whole.nc").read_bytes()[:40])
+    for name, shape in (("zero_rows", (0, 4, 30)), ("zero_columns", (4, 0, 30))):
+        np.savez(tmp_path / f"{name}.npz", dop=np.zeros(shape), theta_i=TI, theta_r=TR)
+    np.savez(tmp_path / "zero_m.npz", dop=np.zeros((4, 4, 0)))
+
+
+@pytest.mark.parametrize("name, message", [
+    ("empty.npz", "empty.npz: the file is empty (0 bytes), not a .npz archive of arrays"),
+    ("random.npz", "random.npz: not a .npz archive of arrays (a .npz is a zip file; this one starts with"),
+    ("zip.npz", "zip.npz: not a readable .npz archive of arrays (BadZipFile: File is not a zip file)"),
+    ("lone.npz", "lone.npz: not a .npz archive of arrays (a .npz is a zip file; this one starts with b'\\x93NUM')"),
+    ("garbage.nc", "garbage.nc: not a netCDF file (it starts with"),
+    ("empty.nc", "empty.nc: not a netCDF file (the file is empty (0 bytes))"),
+    ("hdf5.nc", "hdf5.nc: a netCDF-4 (HDF5) file, which needs the netCDF4 or h5netcdf package to be read"),
+    ("truncated.nc", "truncated.nc: a netCDF-3 file that cannot be read ("),
+    ("zero_rows.npz", "data: dop has no pixels (shape (0, 4, 30): pixel dimensions (0, 4)); give a stack with at "
+                      "least one pixel"),
+    ("zero_columns.npz", "data: dop has no pixels (shape (4, 0, 30)"),
+    ("zero_m.npz", "data: dop has 0 measurements per pixel; a fit needs several"),
+])
+def test_a_stack_that_is_no_stack_is_refused_in_one_line_of_ours(name, message, tmp_path, capsys):
+    """Issue #39, item 6: a 0-byte or random .npz, a garbage .nc and a zero-pixel stack are refused by
+    fit-image in one line naming the file, not a traceback or a library's message; no store is made."""
+    from pbrdf_cl import cli
+    if name == "hdf5.nc":
+        import importlib.util
+        if importlib.util.find_spec("h5netcdf") or importlib.util.find_spec("netCDF4"):
+            pytest.skip("a netCDF-4 library is installed: the file is read by it")
+    _bad_files(tmp_path)
+    assert cli.main(["fit-image", str(tmp_path / name), "--out", str(tmp_path / "fit.zarr"), "--no-progress"]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("pbrdf-cl: error: ") and message in err, err
+    assert not (tmp_path / "fit.zarr").exists()
+
+
+def test_a_label_file_that_is_no_array_is_refused_in_one_line(tmp_path, capsys):
+    from pbrdf_cl import cli
+    np.savez(tmp_path / "stack.npz", dop=shared_stack(), theta_i=TI, theta_r=TR)
+    (tmp_path / "random.npy").write_bytes(np.random.default_rng(0).bytes(300))
+    (tmp_path / "empty.npy").write_bytes(b"")
+    for name, why in (("random.npy", "it starts with"), ("empty.npy", "the file is empty (0 bytes)")):
+        assert cli.main(["fit-image", str(tmp_path / "stack.npz"), "--out", str(tmp_path / "fit.zarr"), "--labels",
+                         str(tmp_path / name)]) == 1
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and f"--labels {tmp_path / name}: not a .npy file ({why}" in err, err
+
+
+def test_repeated_measurements_of_a_stack_are_said(tmp_path, capsys):
+    """Issue #39, item 6: measurements of a stack that repeat an earlier one exactly (a stack
+    appended to itself) were counted as independent without a word; fit-image now says so (as fit
+    and fit_joint say of a CSV's repeated rows) and that each pixel's chi2 counts them; a stack
+    whose measurements differ in one pixel only is not noted."""
+    from pbrdf_cl import cli
+    from pbrdf_cl.fitting.images.job import BatchJob
+    dop = shared_stack((1, 2))
+    twice = dict(dop=np.concatenate([dop, dop], axis=-1), theta_i=np.r_[TI, TI], theta_r=np.r_[TR, TR], dop_std=0.003)
+    np.savez(tmp_path / "twice.npz", **twice)
+    assert cli.main(["fit-image", str(tmp_path / "twice.npz"), "--out", str(tmp_path / "fit.zarr"), "--no-progress",
+                     "--backend", "numpy"]) == 0
+    out = capsys.readouterr().out
+    assert ("note: 30 of the 60 measurements repeat an earlier one exactly (geometry and the values of every pixel of "
+            "the first row; e.g. measurement 30 repeats 0), up to 2 copies: each pixel's fit counts each as an "
+            "independent measurement (in its chi2, p-value and intervals)") in out, out
+    differ = dict(twice, dop=twice["dop"].copy())
+    differ["dop"][0, 1, 30:] += 1e-3
+    assert not any("repeat" in n for n in BatchJob(differ).notes)
+    assert any("repeat" in n for n in BatchJob(twice).notes)

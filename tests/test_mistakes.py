@@ -253,3 +253,171 @@ def test_eval_rows_are_the_product_in_order(capsys):
     np.testing.assert_allclose([r["dop"] for r in rows],
                                [float(pbrdf_cl.dop(a, b, n=1.6, k=2, sigma=s, backend="numpy")) for a, b, s in want],
                                rtol=1e-12)
+
+
+# ---- issue #39, item 3: what is held in memory at once is refused before it is allocated
+
+DESIGN_10E8 = ["design", "--params", "n=1.6,k=2.139,sigma=0.5,kd=0.15,c=-0.3", "--candidates", "theta_i=0:89@10000",
+               "theta_r=0:89@10000", "--backend", "numpy"]
+
+
+def test_a_design_over_1e8_candidates_is_refused_in_one_line_before_any_work():
+    proc = run_cli(*DESIGN_10E8)
+    assert proc.returncode == 1 and proc.stdout == ""
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(
+        "pbrdf-cl: error: design: 100000000 candidate geometries x 1 material needs 208.6 GiB, "), lines
+    assert "give fewer candidates" in lines[0]
+    with pytest.raises(sizes.TooLargeError, match=r"^design: 400 candidate geometries x 16 materials needs 13.67 MiB, "
+                       r"more than memory_budget = 100 KiB; give fewer candidates \(a coarser grid\), fewer materials "
+                       r"or raise memory_budget \(pbrdf-cl design --memory-budget\)$"):
+        pbrdf_cl.design(dict(n=(1.2, 2.0), k=2.1, sigma=0.5), dict(theta_i="10:80@20", theta_r="0:85@20"),
+                        memory_budget="100 KiB", backend="numpy")
+
+
+def test_maps_and_grids_beyond_their_limits_are_refused_before_any_work(monkeypatch):
+    def no_work(*a, **k):
+        raise AssertionError("the work started before the size was checked")
+    monkeypatch.setattr(pbrdf_cl.compute.dense, "aligned_empty", no_work)
+    with pytest.raises(sizes.TooLargeError, match=r"^the map of 10000 x 10000 points needs 13.41 GiB, more than "
+                       r"memory_budget = 1 GiB; use fewer points per axis .* or raise memory_budget \(pbrdf-cl map "
+                       r"--memory-budget\)$"):
+        maps.make_map(("theta_r", np.linspace(0, 85, 10000)), ("sigma", np.linspace(0.05, 1, 10000)),
+                      dict(theta_i=40, n=1.6, k=2.1), backend="numpy")
+    axes = dict(theta_r=np.linspace(0, 85, 2000), sigma=np.linspace(0.05, 1, 2000), kd=np.linspace(0, 1, 200))
+    with pytest.raises(sizes.TooLargeError, match=r"^the grid of 2000 x 2000 x 200 = 800000000 points needs 2.98 GiB, "
+                       r"more than the 2 GiB an in-memory result may take; .*pbrdf-cl sweep .*, or pass allow_large="):
+        pbrdf_cl.grid(axes, dict(theta_i=40, n=1.6, k=2.1), backend="numpy")
+    monkeypatch.undo()
+    monkeypatch.setattr(sizes, "LARGE_RESULT", 1000)
+    small = dict(theta_r=np.linspace(0, 85, 30), sigma=np.linspace(0.05, 1, 20))
+    with pytest.raises(sizes.TooLargeError, match=r"the grid of 30 x 20 = 600 points needs 4.688 KiB"):
+        pbrdf_cl.grid(small, dict(theta_i=40, n=1.6, k=2.1), dtype="float64", backend="numpy")
+    assert pbrdf_cl.grid(small, dict(theta_i=40, n=1.6, k=2.1), backend="numpy", allow_large=True).shape == (30, 20)
+    proc = run_cli("map", "--x", "theta_r=0:85@4000", "--y", "sigma=0.05:1@4000", "--fix", "theta_i=40", "n=1.6",
+                   "k=2", "--memory-budget", "256 MiB", "--out", "never.png")
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 1 and len(lines) == 1 and "more than memory_budget = 256 MiB" in lines[0], lines
+
+
+def lazy_stack(shape):
+    """A lazy (dask) DOP stack of ``shape`` pixels at shared geometry: nothing is computed unless read."""
+    da = pytest.importorskip("dask.array")
+    import xarray as xr
+    ti, tr = np.repeat([30.0, 40.0, 50.0], 10), np.tile(np.arange(20.0, 66.0, 5.0), 3)
+    dims = tuple(f"d{i}" for i in range(len(shape)))
+    dop = da.full(shape + (30,), 0.3, chunks=tuple(max(1000, s // 100) for s in shape) + (30,))
+    return xr.Dataset({"dop": (dims + ("m",), dop), "theta_i": (("m",), ti), "theta_r": (("m",), tr)})
+
+
+def test_an_image_fit_of_1e12_pixels_is_refused_before_any_pixel_is_read(tmp_path):
+    """A 10^12-pixel lazy stack: its blocks' bookkeeping (a list of row ranges, their done marks)
+    alone would pass the memory; refused in one line, in memory and into a store (nothing created);
+    a row of 10^6 pixels too large for one block likewise."""
+    from pbrdf_cl.fitting.images import batch
+    for store in (None, tmp_path / "fit.zarr"):
+        with pytest.raises(sizes.TooLargeError, match=r"^the bookkeeping of 1000000000000 pixels in 139508929 blocks "
+                           r"of 7168 rows needs 33.26 GiB, (but .* of memory is available|more than memory_budget)"):
+            batch.fit_batch(lazy_stack((10 ** 12,)), store=store, backend="numpy", progress=False)
+    assert list(tmp_path.iterdir()) == []
+    with pytest.raises(ValueError, match=r"memory_budget=536870912 bytes is too small for one row of 1000000 pixels"):
+        batch.fit_batch(lazy_stack((10 ** 6, 10 ** 6)), backend="numpy", progress=False)
+    with pytest.raises(sizes.TooLargeError, match=r"^the result of 1000000000 pixels needs .*; write it into a Zarr "
+                       r"store block by block \(store=; pbrdf-cl fit-image\)$"):
+        batch.fit_batch(lazy_stack((10 ** 5, 10 ** 4)), backend="numpy", progress=False, memory_budget="4 GiB")
+
+
+# ---- issue #39, item 6: the remaining bad inputs, one line of ours each
+
+C_SPEC = "[axes]\ntheta_r = \"0:85@16\"\n{axis}[fixed]\ntheta_i = 40\nn = 1.6\nk = 2.0\nsigma = 0.3\nkd = 0.1\n{fixed}"
+
+
+@pytest.mark.parametrize("argv, line", [
+    (["eval", "--theta-i", "40", "--theta-r", "30", "--n", "1.6", "--k", "2", "--sigma", "0.3", "--kd", "0.1", "--c",
+      "5"], "c must be in [-1, 0], got 5.0"),
+    (["eval", "--theta-i", "40", "--theta-r", "30", "--n", "1.6", "--k", "2", "--sigma", "0.3", "--kd", "0.1", "--c",
+      "5", "--backend", "numpy"], "c must be in [-1, 0], got 5.0"),
+    (["sweep", "{fixed}", "--out", "{tmp}/a.zarr"], "fixed.c: c must be in [-1, 0], got 5.0"),
+    (["sweep", "{axis}", "--out", "{tmp}/b.zarr"], "axes.c: c must be in [-1, 0], got 1.0 at index [2]"),
+    (["fit", "examples/steel_435nm.csv", "--fix", "c=5"], "--fix c=5: c must be in [-1, 0], got 5.0"),
+    (["fit", "examples/steel_435nm.csv", "--bounds", "c=-2:0"],
+     "bounds: c low = -2.0 is outside the model's domain (c must be in [-1, 0])"),
+    (["fit-image", "{tmp}/stack.npz", "--out", "{tmp}/f.zarr", "--fix", "c=5"], "--fix c=5: c must be in [-1, 0]"),
+    (["map", "--x", "theta_r=0:85@8", "--y", "sigma=0.1:1@4", "--fix", "theta_i=40", "n=1.6", "k=2", "kd=0.1", "c=5",
+      "--out", "{tmp}/m.png"], "--fix c=5: c must be in [-1, 0], got 5.0"),
+    (["design", "--params", "n=1.6,k=2.139,sigma=0.5,kd=0.15,c=5"], "--params c=5: c must be in [-1, 0], got 5.0"),
+])
+def test_c_outside_the_model_is_refused_on_every_path(argv, line, tmp_path, capsys, monkeypatch):
+    """c = 5 (the model defines the Minnaert exponent in (-1, 0]) is refused in one line by eval
+    (on the device, whose kernel checks the domain itself, and in numpy), a sweep's fixed value and
+    axis, fit's and fit-image's --fix and --bounds, map and design; nothing is written."""
+    root = __import__("pathlib").Path(__file__).resolve().parents[1]
+    monkeypatch.chdir(root)
+    (tmp_path / "fixed.toml").write_text(C_SPEC.format(axis="", fixed="c = 5\n"))
+    (tmp_path / "axis.toml").write_text(C_SPEC.format(axis="c = \"-1:5@7\"\n", fixed=""))
+    np.savez(tmp_path / "stack.npz", dop=np.full((2, 2, 30), 0.3), theta_i=np.repeat([30.0, 40, 50], 10),
+             theta_r=np.tile(np.arange(20.0, 66, 5), 3))
+    argv = [a.format(tmp=tmp_path, fixed=tmp_path / "fixed.toml", axis=tmp_path / "axis.toml") for a in argv]
+    assert cli.main(argv) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("pbrdf-cl: error: ") and line in err, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["axis.toml", "fixed.toml", "stack.npz"]
+
+
+@pytest.mark.parametrize("argv, option", [
+    (["fit", "examples/steel_435nm.csv", "--plot", "{missing}/fit.png"], "--plot"),
+    (["fit", "examples/steel_435nm.csv", "--json", "{missing}/fit.json"], "--json"),
+    (["fit-image", "stack.npz", "--out", "{tmp}/params.zarr", "--png", "{missing}/maps.png"], "--png"),
+    (["map", "--x", "theta_r=0:85@8", "--y", "sigma=0.1:1@4", "--fix", "theta_i=40", "n=1.6", "k=2", "--out",
+      "{missing}/m.png"], "--out"),
+    (["map", "--x", "theta_r=0:85@8", "--y", "sigma=0.1:1@4", "--fix", "theta_i=40", "n=1.6", "k=2", "--out",
+      "{tmp}/m.png", "--npz", "{missing}/m.npz"], "--npz"),
+    (["sobol", "examples/sobol.toml", "--png", "{missing}/sobol.png"], "--png"),
+    (["design", "--params", "n=1.6,k=2.139,sigma=0.5", "--png", "{missing}/design.png"], "--png"),
+    (["design", "--params", "n=1.6,k=2.139,sigma=0.5", "--out", "{missing}/design.nc"], "--out"),
+    (["bench", "--quick", "--json", "{missing}/bench.json"], "--json"),
+])
+def test_an_output_in_a_folder_that_does_not_exist_is_refused_not_made(argv, option, tmp_path, capsys, monkeypatch):
+    """--plot /nonexist/x.png made /nonexist: a file's folder that does not exist is refused in one
+    line naming the option and the folder, before any work, and nothing is made."""
+    from pbrdf_cl.analysis import designs, sensitivity
+    from pbrdf_cl.device import engine
+    from pbrdf_cl.fitting.images import batch
+    from pbrdf_cl.fitting.sample import inversion
+    root = __import__("pathlib").Path(__file__).resolve().parents[1]
+    monkeypatch.chdir(root)
+
+    def no_work(*a, **k):
+        raise AssertionError("the work started before the output was checked")
+    for module, name in ((batch, "fit_batch"), (maps, "make_map"), (inversion, "fit"), (sensitivity, "sobol"),
+                         (designs, "design"), (engine, "resolve_engine")):
+        monkeypatch.setattr(module, name, no_work)
+    missing = tmp_path / "nonexist"
+    argv = [a.format(tmp=tmp_path, missing=missing) for a in argv]
+    assert cli.main(argv) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith(f"pbrdf-cl: error: {option} {missing}/"), err
+    assert f"the folder {missing} does not exist; create it first or choose another {option}" in err
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("argv", [
+    ["fit", "examples/steel_435nm.csv", "--bounds", "n=1:1e300"],
+    ["fit-image", "{tmp}/stack.npz", "--out", "{tmp}/f.zarr", "--bounds", "n=1:1e300"],
+    ["design", "--params", "n=1.6,k=2.139,sigma=0.5", "--bounds", "n=1:1e300"],
+])
+def test_bounds_beyond_what_a_fit_searches_are_refused(argv, tmp_path, capsys, monkeypatch):
+    """--bounds n=1:1e300 returned a wrong fit labelled as a model misfit (overflow in the grid and
+    the descents): refused in one line with the range a fit searches (the registry's limits)."""
+    monkeypatch.chdir(__import__("pathlib").Path(__file__).resolve().parents[1])
+    np.savez(tmp_path / "stack.npz", dop=np.full((2, 2, 30), 0.3), theta_i=np.repeat([30.0, 40, 50], 10),
+             theta_r=np.tile(np.arange(20.0, 66, 5), 3))
+    assert cli.main([a.format(tmp=tmp_path) for a in argv]) == 1
+    err = capsys.readouterr().err
+    assert err == ("pbrdf-cl: error: bounds: n = (1, 1e+300) reaches beyond what a fit searches (n in [0.01, 100]: "
+                   "the model's arithmetic and the search's resolution); give bounds within it\n"), err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["stack.npz"]
+    for name, (lo, hi) in {"sigma": (1e-9, 1.0), "k": (0.0, 1e5), "ks": (1e-3, 1e9), "kd": (0.0, 1e4)}.items():
+        with pytest.raises(ValueError, match=rf"^bounds: {name} = .* reaches beyond what a fit searches"):
+            pbrdf_cl.fitting.setup.FitSetup.check(bounds={name: (lo, hi)})
+    pbrdf_cl.fitting.setup.FitSetup.check(bounds=dict(n=(0.01, 100), k=(0, 100), sigma=(1e-3, 10), kd=(0, 1e3)))

@@ -26,6 +26,8 @@ GOOD = dict(n=1.6, k=2.1, sigma=0.5, ks=0.9, kd=0.15, c=-0.3)
     ((40.0, 20.0), {"ks": 0.0}, r"ks must be > 0, got 0\.0"),
     ((40.0, 20.0), {"kd": -1.0}, r"kd must be >= 0, got -1\.0"),
     ((40.0, 20.0), {"c": np.nan}, r"c must be finite, got nan"),
+    ((40.0, 20.0), {"c": 5.0}, r"^c must be in \[-1, 0\], got 5\.0$"),
+    ((40.0, [20.0, 30.0]), {"c": [-0.3, -1.5]}, r"^c must be in \[-1, 0\], got -1\.5 at index \[1\]$"),
     ((40.0, 20.0), {"n": "glass"}, r"n must be a number or an array of numbers, got 'glass'"),
     ((40.0, 20.0), {"shadowing": "torrance"}, r"shadowing must be one of .*'torrance'"),
     ((40.0, 20.0), {"dtype": "float16"}, r"dtype must be 'float32' or 'float64', got 'float16'"),

@@ -51,7 +51,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..compute.dense import PARAMETERS, outer
+from ..compute.dense import DEFAULT_BUDGET, PARAMETERS, outer
 from ..device.engine import resolve_engine
 from ..fitting.common import X_RESOLUTION, fd_jacobian
 from ..fitting.setup import F00_REL_STD, FitSetup
@@ -95,14 +95,17 @@ def _positive(name, v):
     return float(v)
 
 
-def check_points(where, spec, default_phi=180.0):
+def check_points(where, spec, default_phi=180.0, check_count=None):
     """A candidate or reference set: a geometry dict (the product grid of
     :func:`pbrdf_cl.analysis.sensitivity.check_geometry`) or explicit points, a sequence of
     (theta_i, theta_r) or (theta_i, theta_r, phi) or an (N, 2|3) array.  Returns
-    (dict theta_i/theta_r/phi -> 1-d arrays, grid axes dict or None)."""
+    (dict theta_i/theta_r/phi -> 1-d arrays, grid axes dict or None).  ``check_count``: called
+    with the number of points before their arrays are made (a size check)."""
     from ..compute import pointwise
     if isinstance(spec, dict):
         axes, scalars = check_geometry(spec, where)
+        if check_count is not None:
+            check_count(int(np.prod([a.size for a in axes.values()], dtype=np.int64)))
         geo, shape = geometry_list(axes, scalars)
         return geo, axes
     try:
@@ -113,6 +116,8 @@ def check_points(where, spec, default_phi=180.0):
     if a.ndim != 2 or a.shape[1] not in (2, 3) or a.shape[0] == 0:
         raise ValueError(f"{where}: points must be an (N, 2) or (N, 3) array of (theta_i, theta_r[, phi]) "
                          f"in degrees, got shape {a.shape}")
+    if check_count is not None:
+        check_count(a.shape[0])
     if not np.all(np.isfinite(a)):
         raise ValueError(f"{where}: the points must be finite numbers")
     geo = {"theta_i": a[:, 0].copy(), "theta_r": a[:, 1].copy(),
@@ -666,9 +671,35 @@ def _fix_materials(mat, fx, names, lo, hi):
     return X
 
 
+def design_bytes(candidates, materials, rows, free):
+    """An estimate of the memory of a design over ``candidates`` geometries for ``materials``
+    materials, ``rows`` whitened rows per geometry (1: the DOP; an instrument's channels; + 1 with
+    intensities) and ``free`` fitted coordinates: the Jacobians' values and steps, the rows and the
+    search's forms, about 8 (256 + 4 rows free) bytes per candidate and material (measured peak
+    RSS: 2.1 KiB per candidate for one material and the DOP, 26 KiB for 16, 2.6 KiB with the
+    Mueller matrix's 15 channels)."""
+    return int(candidates) * int(materials) * 8 * (256 + 4 * int(rows) * int(free))
+
+
+def _size_check(memory_budget, materials, rows, free):
+    """The check of the candidates' count against ``memory_budget`` (:func:`design_bytes`)."""
+    from .. import sizes
+
+    def check(count):
+        plural = "s" if materials > 1 else ""
+        sizes.check_budget(design_bytes(count, materials, rows, free),
+                           f"design: {count} candidate geometries x {materials} material{plural}", memory_budget,
+                           "give fewer candidates (a coarser grid)" + (", fewer materials" if materials > 1 else ""),
+                           "raise memory_budget (pbrdf-cl design --memory-budget)")
+    return check
+
+
 def _problem(params, candidates, noise, n_measurements, target, intensity, fixed, criterion, reference,
-             intensity_noise, bounds, materials, repeats, seed, shadowing, instrument=None):
+             intensity_noise, bounds, materials, repeats, seed, shadowing, instrument=None,
+             memory_budget=DEFAULT_BUDGET):
     """Check every input of :func:`design` (in the order its errors are reported) into a :class:`_Problem`."""
+    from ..ranges import parse_bytes
+    memory_budget = parse_bytes("memory_budget", memory_budget)
     noise, intensity_noise = _check_options(criterion, noise, intensity_noise, intensity, materials, shadowing)
     inst = [] if instrument is None else instruments_of(instrument, noise)
     setup = _fit_setup(bounds, dict(fixed or {}), intensity)  # first: the same refusals as fit's
@@ -677,7 +708,9 @@ def _problem(params, candidates, noise, n_measurements, target, intensity, fixed
     names, free = _coordinates(setup, intensity)
     target = _check_target(target, free, fx)
     n = _check_count(n_measurements, free)
-    cand, cand_axes = check_points("candidates", DEFAULT_CANDIDATES if candidates is None else candidates)
+    rows = (inst[0].per_geometry if inst else 1) + bool(intensity)
+    cand, cand_axes = check_points("candidates", DEFAULT_CANDIDATES if candidates is None else candidates,
+                                   check_count=_size_check(memory_budget, mat["n"].size, rows, len(names)))
     ref, _ = check_points("reference", PAPER_GEOMETRY if reference is None else reference)
     N = cand["theta_i"].size
     if not repeats and n > N:
@@ -882,7 +915,8 @@ def _subset(geo, idx):
 
 def design(params, candidates=None, noise=0.005, n_measurements=30, target=("n", "k"), intensity=False, fixed=None,
            *, criterion="A", reference=None, intensity_noise=F00_REL_STD, bounds=None, materials=16,
-           repeats=False, seed=0, shadowing="paper", instrument=None, engine=None, backend="auto"):
+           repeats=False, seed=0, shadowing="paper", instrument=None, engine=None, backend="auto",
+           memory_budget=DEFAULT_BUDGET):
     """Choose the measurement geometries that best determine the target parameters.
 
     Parameters
@@ -936,6 +970,10 @@ def design(params, candidates=None, noise=0.005, n_measurements=30, target=("n",
         (``instrument_comparisons``, a table in :meth:`pbrdf_cl.DesignResult.summary`).  None (default):
         the DOP, as ``"dop"``, without the instrument table.
     shadowing, engine, backend : as for :func:`pbrdf_cl.fit`
+    memory_budget : int or str, default "1 GiB"
+        The memory the design may take (bytes, or a size such as "4 GiB"): the Jacobians and the
+        search over every candidate are held at once, about 2 KiB per candidate and material
+        (:func:`design_bytes`); more candidates are refused before any work.
 
     Returns
     -------
@@ -958,7 +996,7 @@ def design(params, candidates=None, noise=0.005, n_measurements=30, target=("n",
     """
     t0 = time.perf_counter()
     p = _problem(params, candidates, noise, n_measurements, target, intensity, fixed, criterion, reference,
-                 intensity_noise, bounds, materials, repeats, seed, shadowing, instrument)
+                 intensity_noise, bounds, materials, repeats, seed, shadowing, instrument, memory_budget)
     eng = resolve_engine(engine, backend)
     lin = _Linearisation(p, eng, shadowing)
     N = p.cand["theta_i"].size

@@ -46,7 +46,7 @@ def _axis(option, value):
 
 
 def make_map(x, y, fixed=None, quantity="dop", derivative=None, *, dtype="float64", shadowing="paper",
-             engine=None, backend="auto"):
+             engine=None, backend="auto", memory_budget=dense.DEFAULT_BUDGET):
     """The model over (y, x) with ``fixed`` inputs; optionally its derivative along ``derivative``.
 
     Parameters
@@ -59,6 +59,9 @@ def make_map(x, y, fixed=None, quantity="dop", derivative=None, *, dtype="float6
         h = ``FD_STEP`` x ``step_scale`` at every node, central, or second-order one-sided
         at a bound of the model's domain (``stencil``), in float64 (where the device has it)
     dtype, shadowing, engine, backend : as for :func:`pbrdf_cl.grid` (dtype defaults to float64 here)
+    memory_budget : int or str, default "1 GiB"
+        The memory the map may take (its arrays and its figure, :func:`map_bytes`: about 144 bytes a
+        point, 400 with a derivative); a larger map is refused before any work.
 
     Returns
     -------
@@ -84,13 +87,15 @@ def make_map(x, y, fixed=None, quantity="dop", derivative=None, *, dtype="float6
         if v.size < 2:
             raise ValueError(f"{option}: {name} has one value ({float(v[0]):g}); a map axis needs at least 2 "
                              f"(e.g. {name}=<start>:<stop>@256), or fix it with --fix {name}={float(v[0]):g}")
-    check_map_size(xv.size, yv.size, derivative is not None)
+    check_map_size(xv.size, yv.size, derivative is not None,
+                   memory_budget=ranges.parse_bytes("memory_budget", memory_budget))
     fixed = dict(fixed or {})
     for name in (xname, yname):
         if name in fixed:
             raise ValueError(f"{name} is both a map axis and a fixed value")
     axes = {xname: xv, yname: yv}
-    kw = dict(quantity=quantity, dtype=dtype, shadowing=shadowing, engine=resolve_engine(engine, backend))
+    kw = dict(quantity=quantity, dtype=dtype, shadowing=shadowing, engine=resolve_engine(engine, backend),
+              allow_large=True)  # within the map's own budget, checked above
     da = dense.grid(axes, fixed, **kw).transpose(yname, xname)
     ds = da.to_dataset(name=quantity)
     ds.attrs = dict(da.attrs)
@@ -213,11 +218,16 @@ def map_bytes(nx, ny, derivative):
     return int(nx) * int(ny) * (8 * (2 + 12 * (panels - 1)) + 128 * panels)
 
 
-def check_map_size(nx, ny, derivative, what="the map"):
-    """Refuse (:class:`pbrdf_cl.sizes.TooLargeError`) a map that cannot fit in memory, before any work."""
-    sizes.check_memory(map_bytes(nx, ny, derivative), f"{what} of {nx} x {ny} points",
-                       "use fewer points per axis (a PNG shows a few thousand at most); pbrdf-cl sweep writes "
-                       "larger grids chunk by chunk into a Zarr store")
+def check_map_size(nx, ny, derivative, what="the map", memory_budget=None):
+    """Refuse (:class:`pbrdf_cl.sizes.TooLargeError`) a map that cannot fit in memory, or in
+    ``memory_budget`` bytes where one is given, before any work."""
+    advice = ("use fewer points per axis (a PNG shows a few thousand at most); pbrdf-cl sweep writes larger grids "
+              "chunk by chunk into a Zarr store")
+    nbytes, what = map_bytes(nx, ny, derivative), f"{what} of {nx} x {ny} points"
+    if memory_budget is None:
+        sizes.check_memory(nbytes, what, advice)
+    else:
+        sizes.check_budget(nbytes, what, memory_budget, advice, "raise memory_budget (pbrdf-cl map --memory-budget)")
 
 
 #: Why a quantity may not depend on an input: (quantity, input, condition on the fixed inputs, reason).

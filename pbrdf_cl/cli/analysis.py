@@ -104,7 +104,7 @@ def cmd_map(args) -> int:
         check_output("--npz", args.npz)
         engine = engine_for(args)
         ds = maps.make_map(x, y, fixed, quantity=args.quantity, derivative=args.derivative, dtype=args.dtype,
-                           shadowing=args.shadowing, engine=engine)
+                           shadowing=args.shadowing, engine=engine, memory_budget=args.memory_budget)
         plot_map(ds, args.out)
         if args.npz:
             maps.save_npz(ds, args.npz)
@@ -142,7 +142,8 @@ def cmd_design(args) -> int:
         res = design(params, cand, noise=args.noise, n_measurements=args.n, target=target, intensity=args.intensity,
                      fixed=fixed, criterion=args.criterion, reference=ref, intensity_noise=args.intensity_noise,
                      bounds=bounds, materials=args.materials, repeats=args.repeats, seed=args.seed,
-                     shadowing=args.shadowing, instrument=instrument, engine=engine_for(args))
+                     shadowing=args.shadowing, instrument=instrument, engine=engine_for(args),
+                     memory_budget=args.memory_budget)
     except (ValueError, _engine.OpenCLUnavailableError) as exc:
         return error(exc)
     print(res.summary())
@@ -210,6 +211,8 @@ def map_parser(sub):
     m.add_argument("--dtype", choices=("float32", "float64"), default="float64", help="precision")
     m.add_argument("--shadowing", choices=sorted(SHADOWING), default="paper", help=SHADOWING_HELP)
     device_options(m)
+    m.add_argument("--memory-budget", default="1 GiB", metavar="SIZE", help="the memory the map may take (about 144 "
+                   "bytes a point, 400 with --derivative); a larger map is refused before any work (default: 1 GiB)")
     m.add_argument("--out", default="map.png", help="PNG to write (default map.png)")
     m.add_argument("--npz", metavar="NPZ", help="also save the arrays (coordinates, values, derivative)")
     m.set_defaults(func=cmd_map)
@@ -268,6 +271,8 @@ def design_parser(sub):
     d.add_argument("--materials", type=int, default=16, help="materials drawn from --box")
     d.add_argument("--seed", type=int, default=0, help="seed of the materials drawn from --box")
     d.add_argument("--repeats", action="store_true", help="allow a geometry to be chosen more than once")
+    d.add_argument("--memory-budget", default="1 GiB", metavar="SIZE", help="the memory the design may take (about "
+                   "2 KiB per candidate and material); more candidates are refused before any work (default: 1 GiB)")
     fit_settings(d)
     device_options(d)
     d.add_argument("--out", metavar="FILE", help="write the design: .nc (netCDF) or .zarr (a Zarr store)")

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from ..device import engine as _engine
+from ..io import files
 from ..outputs import check_figure, check_output, check_store, check_suffix
 from .common import (
     cluster_options,
@@ -273,7 +274,7 @@ def _label_options(args):
     if labels.endswith(".npy"):
         if not Path(labels).is_file():
             raise ValueError(f"--labels: no such file {labels!r}")
-        labels = np.load(labels)
+        labels = files.read_npy(labels, "--labels")
     elif Path(labels).is_file():
         raise ValueError(f"--labels {labels}: a file, but not a .npy one; save the label image with numpy.save "
                          "(a .npy file), or give the name of a variable of the stack")

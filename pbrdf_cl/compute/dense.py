@@ -346,7 +346,7 @@ def progress_bar(total, enabled, desc, unit="pt"):
 
 @_engine.falls_back
 def grid(axes, fixed=None, quantity="dop", dtype="float32", shadowing="paper", *, engine=None, backend="auto",
-         memory_budget=DEFAULT_BUDGET, progress=False):
+         memory_budget=DEFAULT_BUDGET, progress=False, allow_large=False):
     """Evaluate ``quantity`` ("dop", "brdf" (alias "f00"), "aop" or "stokes") over the Cartesian
     product of ``axes``.
 
@@ -367,6 +367,10 @@ def grid(axes, fixed=None, quantity="dop", dtype="float32", shadowing="paper", *
     shadowing : {"paper", "smith", "none"}, default "paper"
     progress : bool, default False
         A progress bar (tqdm) when the grid takes more than a second.
+    allow_large : bool, default False
+        Return a result larger than :data:`pbrdf_cl.sizes.LARGE_RESULT` (2 GiB); without it such a
+        grid is refused before any work (:func:`reduce_grid` and ``pbrdf-cl sweep`` run in chunks).
+        A result larger than the available memory is refused either way.
 
     Returns
     -------
@@ -378,7 +382,7 @@ def grid(axes, fixed=None, quantity="dop", dtype="float32", shadowing="paper", *
     ------
     ValueError
         Naming the axis and the bad value; :class:`pbrdf_cl.TooLargeError` when the result
-        cannot fit in memory (found before any work).
+        cannot fit in memory, or exceeds 2 GiB without ``allow_large`` (found before any work).
 
     Warns
     -----
@@ -401,10 +405,10 @@ def grid(axes, fixed=None, quantity="dop", dtype="float32", shadowing="paper", *
     dtype = pointwise.check_options(shadowing, dtype)
     plan = GridPlan(axes, fixed)
     plan.check_degrees()
-    sizes.check_memory(plan.size * q.width * np.dtype(DTYPES[dtype]).itemsize,
+    sizes.check_result(plan.size * q.width * np.dtype(DTYPES[dtype]).itemsize,
                        f"the grid of {' x '.join(map(str, plan.shape + q.trailing))} = {plan.size} points",
                        "use fewer values per axis, pbrdf_cl.reduce_grid (reductions on the device), or pbrdf-cl "
-                       "sweep (chunk by chunk into a Zarr store)")
+                       "sweep (chunk by chunk into a Zarr store)", allow_large)
     eng = resolve_engine(engine, backend)
     out = aligned_empty(plan.size * q.width, DTYPES[dtype])  # page-aligned: written in place by any CPU driver
     for _ in grid_blocks(eng, plan, q.name, dtype, shadowing, memory_budget, progress, out=out):

@@ -208,7 +208,7 @@ _POINT_PARAMETERS = """
     ks, kd : float or array_like, default 1 and 0
         Weights of the specular (> 0) and diffuse (>= 0) terms.
     c : float or array_like, default 0
-        Minnaert exponent of the diffuse term.
+        Minnaert exponent of the diffuse term, in [-1, 0] (0: Lambertian).
     shadowing : {"paper", "smith", "none"}, default "paper"
         The shadowing function: the paper's eq. 7-9, Smith's, or none.
     dtype : {"float64", "float32"}, default "float64"

@@ -60,7 +60,8 @@ def check_model(model, shadowing):
 def _checked_bounds(model, bounds):
     """Bounds (name -> (lo, hi)) of the model's parameters (defaults where not given) and of any
     other parameter given, checked against the domain rules of
-    :data:`pbrdf_cl.compute.pointwise.RULES`."""
+    :data:`pbrdf_cl.compute.pointwise.RULES` and the widest bounds a fit searches
+    (:data:`pbrdf_cl.model.inputs.BOUND_LIMITS`)."""
     b = {n: DEFAULT_BOUNDS[n] for n in MODEL_PARAMS[model]}
     for name, v in (bounds or {}).items():
         if name not in DEFAULT_BOUNDS:
@@ -77,6 +78,11 @@ def _checked_bounds(model, bounds):
         for end, v in (("low", lo), ("high", hi)):
             if not ok(v):
                 raise ValueError(f"bounds: {name} {end} = {v} is outside the model's domain ({name} must be {rule})")
+        lim = inputs.BOUND_LIMITS.get(name)
+        if lim is not None and not (lim[0] <= lo and hi <= lim[1]):
+            raise ValueError(f"bounds: {name} = ({lo:g}, {hi:g}) reaches beyond what a fit searches ({name} in "
+                             f"[{lim[0]:g}, {lim[1]:g}]: the model's arithmetic and the search's resolution); give "
+                             f"bounds within it")
     return b
 
 

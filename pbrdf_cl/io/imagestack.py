@@ -22,6 +22,7 @@ from .. import sizes
 from ..compute.pointwise import dop as _dop
 from ..compute.pointwise import stokes as _stokes
 from ..model import inputs
+from . import files
 
 #: The two materials of :func:`synthetic_stack`: name -> n, k, kd (= kd/ks with ks = 1), c.
 MATERIALS = {
@@ -512,14 +513,18 @@ def load_stack(path):
 
     path = Path(path)
     if path.suffix == ".nc":
-        return xr.load_dataset(path)
+        with files.open_netcdf(path) as ds:
+            return ds.load()
     if path.suffix != ".npz":
         raise ValueError(f"path must end in .nc or .npz, got {str(path)!r}")
-    with np.load(path) as z:
-        names = [k for k in z.files if "." not in k and k != "coords"]
+    z = files.read_npz(path)
+    try:
+        names = [k for k in z if "." not in k and k != "coords"]
         coords = set(z["coords"].tolist())
         var = {k: (tuple(z[f"{k}.dims"].tolist()), z[k], json.loads(str(z[f"{k}.attrs"]))) for k in names}
         attrs = json.loads(str(z["attrs.json"]))
+    except (KeyError, ValueError) as exc:
+        raise ValueError(f"{path}: not a stack written by save_stack ({files.first_line(exc)})") from None
     return xr.Dataset({k: v for k, v in var.items() if k not in coords},
                       coords={k: v for k, v in var.items() if k in coords}, attrs=attrs)
 

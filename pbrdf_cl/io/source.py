@@ -8,6 +8,7 @@ import numpy as np
 
 from ..compute import pointwise
 from ..model import measurables
+from . import files
 
 ANGLES = ("theta_i", "theta_r", "phi")
 #: The incident light's normalised Stokes vector per measurement (shared (M,) or per pixel; absent:
@@ -259,6 +260,12 @@ class Source:
 
     def _check_variables(self):
         """The checks of the variables every kind of input has once read."""
+        if 0 in self.shape:
+            raise ValueError(f"data: {self.ref} has no pixels (shape {self.shape + (self.M,)}: pixel dimensions "
+                             f"{self.shape}); give a stack with at least one pixel")
+        if self.M < 2:
+            raise ValueError(f"data: {self.ref} has {self.M} measurement{'' if self.M == 1 else 's'} per pixel; "
+                             "a fit needs several")
         for a in ANGLES[:2]:
             if a not in self.vars:
                 raise ValueError(f"data: no {a!r} (degrees): give it shared, shape ({self.M},), or per pixel")
@@ -286,8 +293,6 @@ class Source:
         self.measured = measured_of(self.vars)
         self.shared = all(np.ndim(self.vars[a]) == 1 for a in SHARED if a in self.vars)
         self.n_pixels = int(np.prod(self.shape, dtype=np.int64))
-        if self.M < 2:
-            raise ValueError(f"data: {self.ref} has {self.M} measurement per pixel; a fit needs several")
 
     def rows(self, r0, r1):
         """The pixels of rows r0..r1 of the first pixel dimension, flat: dict name -> (p, M) float64
@@ -355,8 +360,7 @@ def open_stack(path):
         raise ValueError(f"stack {str(p)!r} does not exist")
     suffix = p.suffix.lower()
     if suffix == ".npz":
-        with np.load(p) as z:
-            arrays = {k: z[k] for k in z.files}
+        arrays = files.read_npz(p)
         if any(k.endswith(".dims") for k in arrays):  # written by pbrdf_cl.io.imagestack.save_stack
             from .imagestack import load_stack
             return load_stack(p)
@@ -394,24 +398,22 @@ def open_stack(path):
                           f"nor its measurements): {', '.join(skipped)}", DataWarning, stacklevel=2)
         return ds
     if suffix in (".nc", ".h5", ".netcdf"):
-        return xr.open_dataset(p)
+        # lazily, and without keeping what is read: a block of rows read is dropped once used,
+        # never the whole variable loaded (xarray's cache would keep every variable read whole)
+        return files.open_netcdf(p, cache=False)
     if suffix == ".zarr" or (p / ".zgroup").exists() or (p / "zarr.json").exists():
-        return xr.open_zarr(p)
+        try:
+            return xr.open_zarr(p)
+        except Exception as exc:  # noqa: BLE001 - zarr's many errors of a folder that is no store: one line of ours
+            raise ValueError(f"{p}: not a readable Zarr store ({files.first_line(exc)})") from None
     raise ValueError(f"stack {str(p)!r}: unknown format {suffix!r}; use .npz, .nc or .zarr")
 
 
 def open_stack_lazily(path):
-    """A stack path as a Dataset read a block at a time (for a store's fit): ``.nc`` through dask
-    (:func:`open_stack` reads it lazily, but the fit would load the whole of it); the others as
-    :func:`open_stack`."""
-    from pathlib import Path
-    ds = open_stack(path)
-    if Path(path).suffix.lower() in (".nc", ".h5", ".netcdf"):
-        try:
-            ds = ds.chunk()
-        except (ImportError, ValueError):  # pragma: no cover - no dask: read it whole
-            pass
-    return ds
+    """A stack path as a Dataset read a block at a time (for a store's fit): :func:`open_stack`,
+    whose ``.nc`` and ``.zarr`` stacks are read lazily, a block of rows at a time (a ``.nc`` stack
+    is not made one dask chunk, which every block would read whole)."""
+    return open_stack(path)
 
 def check_block(block, r0, source):
     """Validate a block's values; errors name the variable and the first offending index (of the
@@ -510,4 +512,27 @@ def data_notes(source):
         notes.append("phi = 0 for every measurement of the first row: that is the plane of incidence on the source's "
                      "side (back-scattering); in-plane specular data have phi = 180 here (SCATMECH's phi = 0 is our "
                      "180)")
+    dup = repeated_measurements_note(raw, source.M)
+    if dup:
+        notes.append(dup)
     return notes
+
+
+def repeated_measurements_note(raw, M):
+    """A note where measurements of the stack repeat an earlier one exactly (the geometry, the
+    incident state and every measured value of every pixel of the rows ``raw``), else None: each
+    pixel's fit counts every measurement as an independent one (its chi2, p-value and intervals),
+    as :func:`pbrdf_cl.io.measurements.duplicates_note` says of a CSV's rows."""
+    cols = [np.asarray(a, np.float64).reshape(-1, M).T for name, a in raw.items() if name != "mask"]
+    table = np.ascontiguousarray(np.concatenate(cols, axis=1))  # (M, values per measurement)
+    _, first, counts = np.unique(table, axis=0, return_index=True, return_counts=True)
+    repeats = M - first.size
+    if not repeats:
+        return None
+    j = int(np.flatnonzero(np.isin(np.arange(M), first, invert=True))[0])
+    same = (table == table[j]) | (np.isnan(table) & np.isnan(table[j]))
+    i = int(np.flatnonzero(same.all(axis=1))[0])
+    return (f"{repeats} of the {M} measurements repeat an earlier one exactly (geometry and the values of every pixel "
+            f"of the first row; e.g. measurement {j} repeats {i}), up to {int(counts.max())} copies: each pixel's fit "
+            "counts each as an independent measurement (in its chi2, p-value and intervals); if they are copies of one "
+            "measurement, remove them (the intervals are otherwise too narrow)")

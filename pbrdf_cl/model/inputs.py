@@ -49,6 +49,9 @@ class Input(NamedTuple):
     domain, rule : the valid values (a :class:`Domain`) and the words that say them in a refusal
     fitted : whether the six-parameter fit varies it (ks is held: DOP sees kd/ks only, and only
         intensities free it)
+    limits : the widest bounds a fit searches (None: the domain's): beyond them the grid stage's
+        nodes and the descents' steps leave the range where the model's arithmetic and the search
+        resolve it (``n`` up to 1e300 overflowed into a wrong fit labelled as a misfit)
     """
 
     name: str
@@ -64,6 +67,7 @@ class Input(NamedTuple):
     domain: Domain
     rule: str
     fitted: bool = False
+    limits: tuple | None = None
 
 
 _ZENITH = Domain(0.0, 90.0)
@@ -76,17 +80,17 @@ REGISTRY = {i.name: i for i in (
     Input("phi", "geometry", "geometry", "relative azimuth (180 = in plane)", "deg", "phi",
           "relative azimuth phi (deg, 180 = in plane)", 180.0, None, (0.0, 360.0), Domain(), "finite"),
     Input("n", "material", "index", "refractive index", "1", "n", "refractive index n", None, (1.0, 5.0),
-          (1.0, 5.0), Domain(0.0, lo_included=False), "> 0", fitted=True),
+          (1.0, 5.0), Domain(0.0, lo_included=False), "> 0", fitted=True, limits=(0.01, 100.0)),
     Input("k", "material", "index", "extinction coefficient", "1", "k", "extinction coefficient k", None,
-          (0.0, 10.0), (0.0, 10.0), Domain(0.0), ">= 0", fitted=True),
+          (0.0, 10.0), (0.0, 10.0), Domain(0.0), ">= 0", fitted=True, limits=(0.0, 100.0)),
     Input("sigma", "material", "specular", "per-axis rms slope", "1", "sigma", "per-axis rms slope sigma", None,
-          (0.05, 1.0), (0.05, 1.0), Domain(0.0, lo_included=False), "> 0", fitted=True),
+          (0.05, 1.0), (0.05, 1.0), Domain(0.0, lo_included=False), "> 0", fitted=True, limits=(1e-3, 10.0)),
     Input("ks", "material", "specular", "specular weight", "1", "ks", "specular weight ks", 1.0, (1e-3, 1e3),
-          (0.05, 5.0), Domain(0.0, lo_included=False), "> 0"),
+          (0.05, 5.0), Domain(0.0, lo_included=False), "> 0", limits=(1e-6, 1e6)),
     Input("kd", "material", "diffuse", "diffuse weight", "1", "kd", "diffuse weight kd", 0.0, (0.0, 5.0),
-          (0.0, 5.0), Domain(0.0), ">= 0", fitted=True),
+          (0.0, 5.0), Domain(0.0), ">= 0", fitted=True, limits=(0.0, 1e3)),
     Input("c", "material", "diffuse", "Minnaert exponent", "1", "c", "Minnaert exponent c", 0.0, (-1.0, 0.0),
-          (-1.0, 0.0), Domain(), "finite", fitted=True),
+          (-1.0, 0.0), Domain(-1.0, 0.0, hi_included=True), "in [-1, 0]", fitted=True, limits=(-1.0, 0.0)),
 )}
 
 #: Every input, in the kernels' argument order (geometry, then the parameters).
@@ -108,6 +112,8 @@ LABELS = {n: i.label for n, i in REGISTRY.items()}
 #: The fit's default search bounds: the fitted parameters first, then ks (freed by intensities).
 DEFAULT_BOUNDS = {n: REGISTRY[n].bounds for n in FITTED + tuple(n for n in PARAMETERS if n not in FITTED)
                   if REGISTRY[n].bounds is not None}
+#: The widest bounds a fit searches, per parameter (:attr:`Input.limits`).
+BOUND_LIMITS = {n: i.limits for n, i in REGISTRY.items() if i.limits is not None}
 VIEWS = {n: i.view for n, i in REGISTRY.items() if i.kind == "material"}
 #: The valid range of each input, as (test, words); every input must also be finite.  The vector
 #: kernels of ``kernels/pbrdf_points.cl`` check the same (``PB_IN_DOMAIN``).

@@ -34,6 +34,7 @@ import time
 
 import numpy as np
 
+from ... import sizes
 from ...io.source import open_stack_lazily
 from ..setup import FitSetup
 from . import store as image_store
@@ -179,6 +180,8 @@ def fit_batch(data, model="six-param", bounds=None, fixed=None, shadowing="paper
     if allow_large:
         raise ValueError("allow_large= needs store= (it allows a store larger than the free disk)")
     job = _job(data, model, bounds, fixed, shadowing, settings, labels, shared)
+    sizes.check_memory(job.result_bytes(), f"the result of {job.source.n_pixels} pixels",
+                       "write it into a Zarr store block by block (store=; pbrdf-cl fit-image)")
     eng = image_store.local_engine(engine, backend, device)
     t0 = time.perf_counter()
     job.prepare(eng, progress)

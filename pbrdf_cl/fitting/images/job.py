@@ -19,6 +19,9 @@ N_STARTS = 32
 #: The memory of one block of pixels (host and device) by default: the image fit's own budget
 #: (a block's descents and tables), not the grids' (``pbrdf_cl.compute.dense.DEFAULT_BUDGET``, 1 GiB).
 BLOCK_BUDGET = "512 MiB"
+#: Bytes a run keeps per block whatever its size (its row range, its done mark, its place in the
+#: work list; a store's marks and digests): a stack of more blocks than the budget holds is refused.
+BLOCK_BOOK_BYTES = 256
 
 
 class BatchJob:
@@ -56,6 +59,7 @@ class BatchJob:
         self.setup = BatchSetup(fs.model, fs.shadowing, fs.bounds, fs.fixed, axes, use_f00, n_starts, sigma_known,
                                 floor, fitted, channels)
         self.order, self.rstart = regions(grid_values(self.setup), free)
+        self.check_size()  # before any pixel is read
         #: What the data show of the usual mistakes (phi not given, phi = 0, radians), from the
         #: first row of pixels, and which measured quantities are fitted: the result's
         #: ``attrs["data_notes"]`` and the goodness summary's causes.
@@ -104,6 +108,24 @@ class BatchJob:
             v = grid_values(self.setup)
             px = min(px, (2 ** 31 - 1) // (self.width * v["n"].size * v["k"].size) - 64)
         return int(max(1, min(self.source.shape[0], px // max(row, 1))))
+
+    def check_size(self):
+        """Refuse, in one line and before any pixel is read, a stack whose blocks cannot keep within
+        the memory budget: a row of pixels too large for one block (:meth:`rows_per_block`), or so
+        many blocks that a run's bookkeeping of them (:data:`BLOCK_BOOK_BYTES` each: the row range,
+        the done mark, the work list) exceeds the budget."""
+        from ... import sizes
+        step = self.rows_per_block()
+        n = -(-self.source.shape[0] // step)
+        sizes.check_budget(n * BLOCK_BOOK_BYTES, f"the bookkeeping of {self.source.n_pixels} pixels in {n} blocks "
+                           f"of {step} rows", self.memory_budget, "fit a part of the stack at a time (ds.isel(...))",
+                           "raise memory_budget (larger blocks, fewer of them; fit-image --memory-budget)")
+
+    def result_bytes(self):
+        """Bytes of the in-memory result of every pixel (its outputs, and their blocks while they are
+        joined)."""
+        per = sum(a.nbytes for a in empty_outputs(1, len(self.names)).values())
+        return 2 * per * self.source.n_pixels
 
     def blocks(self):
         """(r0, r1) row ranges of the blocks, in order."""
