@@ -87,6 +87,9 @@ log = logging.getLogger(__name__)
 SPEC_VERSION = 2
 #: Values per chunk of a coordinate array (8 MiB of float64).
 COORD_CHUNK = 1 << 20
+#: Points of an automatic chunk at most (4 MiB of float32 values): a one-axis sweep of 10^7
+#: values then runs in 10 chunks within 450 MB, where one chunk of 10^7 took 1 GB (issue 39).
+MAX_CHUNK_POINTS = 1 << 20
 DEFAULT_MEMORY_BUDGET = 256 << 20
 #: Blosc compresses at most 2 GiB per call.
 MAX_CHUNK_BYTES = (1 << 31) - 1024
@@ -216,8 +219,7 @@ class SweepSpec:
                 a = pointwise.check_values(name, a)
             except ValueError as exc:
                 raise SpecError(f"{field}: {exc}") from None
-            d = np.diff(a)
-            if a.size > 1 and not (np.all(d > 0) or np.all(d < 0)):
+            if a.size > 1 and not (np.all(a[1:] > a[:-1]) or np.all(a[1:] < a[:-1])):  # 1 byte a value, not 8
                 raise SpecError(f"{field}: values must be strictly increasing or decreasing, got "
                                 f"{', '.join(_fmt(float(v)) for v in a[:6])}{', ...' if a.size > 6 else ''}")
             axes[name] = a
@@ -304,8 +306,8 @@ class SweepSpec:
             for n in self.dims:
                 out.append(min(int(spec.get(n, self.axes[n].size)), self.axes[n].size))
             return tuple(out)
-        else:
-            target = max(1, half // self.itemsize)
+        else:  # at most MAX_CHUNK_POINTS: the device's working memory and Zarr's buffers follow the chunk
+            target = max(1, min(half // self.itemsize, MAX_CHUNK_POINTS))
         # leading axes split, trailing ones whole (reduced axes are whole inside every chunk)
         per, out = self.reduced_points, [1] * len(self.dims)
         for j in range(len(self.dims) - 1, -1, -1):
@@ -473,7 +475,8 @@ def _write_skeleton(spec, store):
         c = zarr_store.create_array(g, n, a.shape, (min(a.size, COORD_CHUNK),), "f8", None, None,
                                     {"_ARRAY_DIMENSIONS": [n], "units": dense.UNITS[n],
                                      "long_name": dense.LONG_NAMES[n]})
-        c[...] = a
+        for j in range(0, a.size, COORD_CHUNK):  # a chunk at a time: zarr 3 writes one call's chunks at once
+            c[j:j + COORD_CHUNK] = a[j:j + COORD_CHUNK]
     npdt = np.dtype(DTYPES[spec.dtype])
     dims = list(spec.dims)
     q = quantities.get(spec.quantity)
