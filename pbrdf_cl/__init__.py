@@ -36,6 +36,7 @@ from .errors import (
     SensitivityWarning,
     SpecError,
     StoreError,
+    StoreWarning,
     TooLargeError,
     TrialError,
     UnitsWarning,
@@ -48,15 +49,16 @@ from .fitting.sets.joint import fit_joint
 from .fitting.sets.result import JointResult
 from .io.measurements import Measurements, as_measurements, read_csv
 from .model import quantities
+from .store.verify import verify_store
 from .version import __version__
 
 __all__ = ["dop", "brdf", "aop", "stokes", "mueller", "evaluate", "quantities", "validate", "MODELS",
            "grid", "reduce_grid", "objective", "ObjectiveResult",
-           "sweep", "load_spec", "SweepSpec", "SweepResult", "SpecError",
+           "sweep", "load_spec", "SweepSpec", "SweepResult", "SpecError", "verify_store",
            "fit", "fit_joint", "JointResult",
            "fit_batch", "sobol", "morris", "design", "DesignResult", "compare_models", "FitResult", "explore",
            "read_csv", "as_measurements", "Measurements", "DataWarning", "Engine", "NumpyEngine", "probe",
            "OpenCLUnavailableError", "DeviceUnusableError", "DeviceWarning", "KernelBuildError", "ProgramUnusableError",
-           "TrialError", "UnitsWarning", "RangeError", "TooLargeError", "StoreError", "CommandError",
+           "TrialError", "UnitsWarning", "RangeError", "TooLargeError", "StoreError", "StoreWarning", "CommandError",
            "SensitivityWarning",
            "get_default_engine", "set_default_engine", "list_devices", "select_device", "__version__"]

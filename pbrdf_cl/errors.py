@@ -82,6 +82,11 @@ class StoreError(ValueError):
     kernels); the message names what differs."""
 
 
+class StoreWarning(UserWarning):
+    """A store was repaired or taken over while resuming (damaged chunks recomputed, metadata
+    rewritten from the spec, a dead run's lock taken over, another device): one line naming it."""
+
+
 class CommandError(Exception):
     """A command refused before any work (an option, an output that cannot be written, an
     environment problem): the message is the whole report."""

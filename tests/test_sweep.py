@@ -88,7 +88,9 @@ def test_spec_forms_and_canonical_hash():
     assert SweepSpec(dict(base, dtype="float64")).sha256 != spec.sha256
     assert SweepSpec(dict(base, memory_budget="1.5 MiB")).memory_budget == 3 << 19
     assert spec.fixed == dict(theta_i=40.0, phi=180.0, **STEEL)  # defaults filled in
-    assert json.loads(spec.canonical_json)["axes"]["theta_r"] == [0.0, 20.0, 40.0, 60.0, 80.0]
+    ident = json.loads(spec.canonical_json)["axes"]["theta_r"]  # count, ends and SHA-256: the values are coordinates
+    assert ident == S.axis_identity([0.0, 20.0, 40.0, 60.0, 80.0]) and ident["count"] == 5 and ident["last"] == 80.0
+    assert S.axis_identity([0.0, 20.0, 40.0, 60.0, 80.0 + 1e-12])["sha256"] != ident["sha256"]
 
 
 def test_auto_chunks_split_leading_axes_within_budget():
@@ -98,9 +100,9 @@ def test_auto_chunks_split_leading_axes_within_budget():
     # 4096 points per chunk at most: sigma whole (100), theta_r split into 40s, theta_i into 1s
     assert spec.chunks == (1, 40, 100) and spec.chunk_grid == (8, 2, 1) and spec.n_chunks == 16
     assert spec.chunk_points * 8 <= spec.memory_budget // 2
-    pts = SweepSpec(dict(axes=spec.canonical()["axes"], fixed=dict(n=1.6, k=2.1), chunks=dict(points=700)))
+    pts = SweepSpec(dict(axes=spec.axes, fixed=dict(n=1.6, k=2.1), chunks=dict(points=700)))
     assert pts.chunks == (1, 7, 100)
-    red = SweepSpec(dict(axes=spec.canonical()["axes"], fixed=dict(n=1.6, k=2.1), reduce=dict(over=["theta_r"]),
+    red = SweepSpec(dict(axes=spec.axes, fixed=dict(n=1.6, k=2.1), reduce=dict(over=["theta_r"]),
                          chunks=dict(points=700)))
     assert red.dims == ("theta_i", "sigma") and red.chunks == (1, 10) and red.chunk_points == 640
 

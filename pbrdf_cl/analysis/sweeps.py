@@ -32,11 +32,19 @@ Layout of the store (Zarr format 2, consolidated metadata; ``xarray.open_zarr`` 
   the axes not reduced; each Zarr chunk is exactly one compute chunk (a sub-box of the axes,
   evaluated as a small grid), so no two writers ever share a Zarr chunk;
 - ``_sweep/done``: one uint8 per chunk, written (1) only after that chunk's values are in the
-  store (write-then-mark); a resumed sweep computes the chunks not marked;
-- root attrs: the canonical spec as JSON (``sweep_spec``), its SHA-256 (``sweep_spec_sha256``),
-  the TOML it came from, the SHA-256 of the OpenCL sources (``sweep_kernels_sha256``: a store is
-  resumed, or written by a cluster worker, only with the kernels that started it), the fixed
-  values, and ``sweep_complete``.
+  store (write-then-mark); a resumed sweep computes the chunks not marked; ``_sweep/digest``: per
+  chunk the SHA-256 of its decoded values and ``_sweep/device`` the device that computed it, both
+  written before the mark (:mod:`pbrdf_cl.store.verify`: a resume recomputes the chunks that no
+  longer match their digests and rewrites damaged metadata and coordinates from the spec);
+- root attrs: the canonical spec as JSON (``sweep_spec``: each axis by its count, ends and
+  SHA-256, :func:`axis_identity`; the values are in the coordinate arrays only), its SHA-256
+  (``sweep_spec_sha256``), the TOML it came from, the SHA-256 of the OpenCL sources
+  (``sweep_kernels_sha256``: a store is resumed, or written by a cluster worker, only with the
+  kernels that started it), the fixed values, the devices (``store_devices``), the units
+  (``store_units``), the skeleton's manifest (``store_manifest``) and ``sweep_complete`` (set
+  only when every chunk is done and matches its digest).
+
+A run holds the lock ``STORE.lock`` beside a local store (:mod:`pbrdf_cl.store.lock`).
 
 Testing aid: ``PBRDF_SWEEP_CHUNK_DELAY=<seconds>`` sleeps that long per chunk (half before the
 values are written, half between writing them and marking the chunk done), so that an
@@ -51,6 +59,7 @@ import numbers
 import os
 import sys
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -58,11 +67,11 @@ import numpy as np
 from .. import ranges, sizes
 from ..compute import dense, pointwise
 from ..device.engine import DTYPES, kernels_sha256
-from ..errors import SpecError
+from ..errors import SpecError, StoreWarning
 from ..model import quantities
 from ..model.reference import SHADOWING
 from ..results import Result
-from ..store import cluster, runner
+from ..store import cluster, runner, verify
 from ..store import zarr as zarr_store
 from ..version import __version__
 
@@ -73,8 +82,14 @@ except ModuleNotFoundError:  # pragma: no cover - Python < 3.11
 
 log = logging.getLogger(__name__)
 
-#: Version of the canonical spec (part of the hash).
-SPEC_VERSION = 1
+#: Version of the canonical spec (part of the hash).  2: each axis by its count, ends and SHA-256
+#: (the values are in the coordinate arrays only); the stores' digests, devices and manifest.
+SPEC_VERSION = 2
+#: Values per chunk of a coordinate array (8 MiB of float64).
+COORD_CHUNK = 1 << 20
+#: Points of an automatic chunk at most (4 MiB of float32 values): a one-axis sweep of 10^7
+#: values then runs in 10 chunks within 450 MB, where one chunk of 10^7 took 1 GB (issue 39).
+MAX_CHUNK_POINTS = 1 << 20
 DEFAULT_MEMORY_BUDGET = 256 << 20
 #: Blosc compresses at most 2 GiB per call.
 MAX_CHUNK_BYTES = (1 << 31) - 1024
@@ -204,8 +219,7 @@ class SweepSpec:
                 a = pointwise.check_values(name, a)
             except ValueError as exc:
                 raise SpecError(f"{field}: {exc}") from None
-            d = np.diff(a)
-            if a.size > 1 and not (np.all(d > 0) or np.all(d < 0)):
+            if a.size > 1 and not (np.all(a[1:] > a[:-1]) or np.all(a[1:] < a[:-1])):  # 1 byte a value, not 8
                 raise SpecError(f"{field}: values must be strictly increasing or decreasing, got "
                                 f"{', '.join(_fmt(float(v)) for v in a[:6])}{', ...' if a.size > 6 else ''}")
             axes[name] = a
@@ -292,8 +306,8 @@ class SweepSpec:
             for n in self.dims:
                 out.append(min(int(spec.get(n, self.axes[n].size)), self.axes[n].size))
             return tuple(out)
-        else:
-            target = max(1, half // self.itemsize)
+        else:  # at most MAX_CHUNK_POINTS: the device's working memory and Zarr's buffers follow the chunk
+            target = max(1, min(half // self.itemsize, MAX_CHUNK_POINTS))
         # leading axes split, trailing ones whole (reduced axes are whole inside every chunk)
         per, out = self.reduced_points, [1] * len(self.dims)
         for j in range(len(self.dims) - 1, -1, -1):
@@ -359,9 +373,10 @@ class SweepSpec:
 
     # -- identity -----------------------------------------------------------------------------
     def canonical(self):
-        """Everything that determines the stored bytes (not the memory budget or the title)."""
+        """Everything that determines the stored bytes (not the memory budget or the title); each
+        axis by :func:`axis_identity` (its values are in the store's coordinate arrays)."""
         return {"pbrdf_sweep": SPEC_VERSION, "quantity": self.quantity, "dtype": self.dtype,
-                "shadowing": self.shadowing, "axes": {n: [float(v) for v in a] for n, a in self.axes.items()},
+                "shadowing": self.shadowing, "axes": {n: axis_identity(a) for n, a in self.axes.items()},
                 "fixed": self.fixed, "reduce_over": list(self.over), "chunks": dict(zip(self.dims, self.chunks))}
 
     @property
@@ -375,6 +390,21 @@ class SweepSpec:
         return (f"SweepSpec({self.points} points of {self.quantity} ({self.dtype}) over "
                 f"{' x '.join(f'{n}[{a.size}]' for n, a in self.axes.items())}, {kind}, "
                 f"{self.n_chunks} chunks of {' x '.join(map(str, self.chunks)) or '1'}, sha256 {self.sha256[:12]})")
+
+
+def axis_identity(values):
+    """An axis in the canonical spec: ``{"count", "first", "last", "sha256"}`` (SHA-256 of its
+    float64 bytes, little-endian), a few bytes whatever its length.
+
+    Examples
+    --------
+    >>> d = axis_identity(np.linspace(0, 85, 18))
+    >>> d["count"], d["first"], d["last"], len(d["sha256"])
+    (18, 0.0, 85.0, 64)
+    """
+    a = np.ascontiguousarray(values, "<f8")
+    return {"count": int(a.size), "first": float(a[0]), "last": float(a[-1]),
+            "sha256": hashlib.sha256(memoryview(a).cast("B")).hexdigest()}
 
 
 def load_spec(spec):
@@ -429,17 +459,24 @@ def _root_attrs(spec, complete=False):
     attrs.update(pbrdf_cl_version=__version__, sweep_spec=spec.canonical_json, sweep_spec_sha256=spec.sha256,
                  sweep_spec_toml=spec.text or "", sweep_kernels_sha256=kernels_sha256(), sweep_chunks=spec.n_chunks,
                  sweep_complete=complete)
+    attrs[verify.UNITS] = {"count": spec.n_chunks, "variables": list(spec.variables), "job": "sweep_spec",
+                           "complete": "sweep_complete"}
     return attrs
+
+
+#: Root attrs that runs change, or that are not the spec's identity: not rewritten on resuming.
+VOLATILE = ("sweep_complete", "pbrdf_cl_version", "title", "sweep_spec_toml", zarr_store.DEVICES)
 
 
 def _write_skeleton(spec, store):
     """Coordinates, empty variables, the done record, then (last: the commit point) the root attrs."""
     g = zarr_store.open_group(store, "w")
     for n, a in spec.axes.items():
-        c = zarr_store.create_array(g, n, a.shape, a.shape, "f8", None, None,
+        c = zarr_store.create_array(g, n, a.shape, (min(a.size, COORD_CHUNK),), "f8", None, None,
                                     {"_ARRAY_DIMENSIONS": [n], "units": dense.UNITS[n],
                                      "long_name": dense.LONG_NAMES[n]})
-        c[...] = a
+        for j in range(0, a.size, COORD_CHUNK):  # a chunk at a time: zarr 3 writes one call's chunks at once
+            c[j:j + COORD_CHUNK] = a[j:j + COORD_CHUNK]
     npdt = np.dtype(DTYPES[spec.dtype])
     dims = list(spec.dims)
     q = quantities.get(spec.quantity)
@@ -460,19 +497,22 @@ def _write_skeleton(spec, store):
     sub.attrs.update(description="done[i] = 1 once chunk i (C order over the chunk grid) is in the store",
                      chunk_grid=list(spec.chunk_grid))
     zarr_store.create_done(g, spec.n_chunks)
-    g.attrs.update(_root_attrs(spec))
-    zarr_store.consolidate(store)
+    verify.seal(store, _root_attrs(spec))
 
 
 def open_store(spec, store):
     """Create the store for ``spec``, or check that an existing one was started with the same
-    spec (and kernels); returns (absolute store name, whether it existed before)."""
+    spec (and kernels) and rewrite from the spec whatever of its skeleton is missing or altered
+    (:func:`pbrdf_cl.store.verify.repair_skeleton`, said in one warning line); returns (absolute
+    store name, whether it existed before)."""
     name, attrs = zarr_store.create_or_read(
         store, lambda where: _write_skeleton(spec, where),
         not_a_store=lambda name: SpecError(f"{name} exists and is not a pbrdf-cl sweep store; choose another "
                                            "--out or delete it"))
     if attrs is None:
         return name, False
+    if not attrs and zarr_store.Files(name).get(".zattrs") is not None:
+        verify.refuse_unidentified(name, None, "sweep_spec_sha256", "a pbrdf-cl sweep store")
     if not attrs or "sweep_spec_sha256" not in attrs:
         raise SpecError(f"{name} exists and is not a pbrdf-cl sweep store (or its creation was interrupted); "
                         "choose another --out or delete it")
@@ -481,6 +521,11 @@ def open_store(spec, store):
         raise SpecError(f"{name} was started with a different spec ({'; '.join(diffs) or 'sha256 differs'}); "
                         f"choose another --out, or delete {name} to start over")
     zarr_store.check_kernels(name, attrs)
+    verify.refuse_unidentified(name, attrs, "sweep_spec_sha256", "a pbrdf-cl sweep store")
+    fixed = verify.repair_skeleton(name, lambda where: _write_skeleton(spec, where), VOLATILE)
+    if fixed:
+        warnings.warn(StoreWarning(f"{name}: rewrote from the spec what was missing or altered: "
+                                   f"{verify.first(fixed)}"), stacklevel=3)
     return name, True
 
 
@@ -519,20 +564,18 @@ class _Runner(runner.Writer):
     delay_env = DELAY_ENV
 
     def __init__(self, spec, name):
-        super().__init__(name)  # a worker with another pbrdf-cl would mix values
+        super().__init__(name, "sweep_spec_sha256", spec.sha256)  # a worker with another pbrdf-cl would mix values
         self.spec = spec
-        self.arrays = {v: self.group[v] for v in spec.variables}
 
     def compute(self, eng, i):
         return compute_chunk(self.spec, eng, i)
 
-    def write(self, i, values):
+    def pieces(self, i, values):
         region = self.spec.region(i)
-        for v, a in values.items():
-            self.arrays[v][region] = a  # one whole Zarr chunk
+        return [(v, region, values[v]) for v in self.spec.variables]  # each one whole Zarr chunk
 
     def result(self, eng, i, values, seconds):
-        return int(i), self.spec.box_points(i), seconds
+        return int(i), self.spec.box_points(i), seconds, eng.description
 
 
 def _runner(spec, name):
@@ -541,7 +584,7 @@ def _runner(spec, name):
 
 def run_chunk(spec, name, i, device=None, backend="auto"):
     """Dask task: compute chunk ``i`` of ``spec`` with this worker's engine and write it into the
-    store ``name``; returns (i, points, seconds)."""
+    store ``name``; returns (i, points, seconds, device description)."""
     return _runner(spec, name).run(cluster.worker_engine(device, backend), i)
 
 
@@ -617,8 +660,18 @@ def sweep(spec, store, *, engine=None, device=None, backend="auto", workers=None
     runner.check_cluster(workers, scheduler, client, engine, "sweep")
     runner.check_free_disk(store, store_bytes(spec), f"{spec.points} points, uncompressed; Blosc usually saves a "
                            "factor 1.5-3", allow_large, "sweep", hint="reduce axes with [reduce], ")
+    with runner.session(store, zarr_store.store_name(store)):
+        return _run(spec, store, dict(engine=engine, device=device, backend=backend, workers=workers,
+                                      scheduler=scheduler, client=client), progress)
+
+
+def _run(spec, store, where, progress):
+    """:func:`sweep` under the store's lock: create or resume (checked against the digests), run
+    the chunks not done, then mark the store complete if every chunk is there and intact."""
     name, existed = open_store(spec, store)
     done = zarr_store.resume(store, name, spec.n_chunks, existed)
+    if existed:
+        done = runner.resume_units(name, spec.n_chunks, spec.variables, "chunks")
     todo = np.flatnonzero(~done)
     skipped = spec.n_chunks - todo.size
     stats = dict(chunks=0, points=0)
@@ -628,10 +681,14 @@ def sweep(spec, store, *, engine=None, device=None, backend="auto", workers=None
     bar = runner.progress_bar(progress and todo.size > 0, total=spec.n_chunks, initial=skipped, unit="chunk",
                               desc="sweep")
     t0 = time.perf_counter()
+    devices = set()
 
     def finished(result):
         stats["chunks"] += 1
         stats["points"] += result[1]
+        if result[3] not in devices:
+            devices.add(result[3])
+            runner.note_device(name, result[3], "chunks")
         if stats["chunks"] == 1:
             stats["first"] = time.perf_counter()
         if stats["chunks"] == 2 and progress and todo.size > 2:  # the first chunk also built the kernels
@@ -643,13 +700,16 @@ def sweep(spec, store, *, engine=None, device=None, backend="auto", workers=None
             bar.update(1)
             bar.set_postfix_str(f"{stats['points'] / max(time.perf_counter() - t0, 1e-9):.3g} points/s", refresh=False)
 
-    runner.run_units(todo, lambda: _Runner(spec, name), finished, task=run_chunk, shared=spec,
-                     args_of=lambda i: (name, i, device, backend), key="pbrdf-sweep", engine=engine, device=device,
-                     backend=backend, workers=workers, scheduler=scheduler, client=client, bar=bar)
+    with runner.discard_if_empty(store, name, not existed, spec.n_chunks, ("sweep_spec_sha256", spec.sha256)):
+        runner.run_units(todo, lambda: _Runner(spec, name), finished, task=run_chunk, shared=spec,
+                         args_of=lambda i: (name, i, where["device"], where["backend"]), key="pbrdf-sweep",
+                         bar=bar, **where)
     seconds = time.perf_counter() - t0
-    complete = skipped + stats["chunks"] == spec.n_chunks
-    if complete:
-        zarr_store.mark_complete(name, spec.n_chunks, "sweep_complete")
+    bad = verify.complete(name, spec.n_chunks, "sweep_complete", spec.variables)
+    if bad:
+        warnings.warn(StoreWarning(f"{name}: {len(bad)} chunks were damaged after they were written (chunks "
+                                   f"{verify.first(bad)}); run the same command again to compute them"), stacklevel=3)
+    complete = skipped + stats["chunks"] == spec.n_chunks and not bad
     res = SweepResult(store=name, spec=spec, chunks_total=spec.n_chunks, chunks_computed=stats["chunks"],
                       chunks_skipped=int(skipped), points_computed=stats["points"], seconds=seconds,
                       points_per_s=stats["points"] / seconds if stats["points"] else 0.0, complete=complete)

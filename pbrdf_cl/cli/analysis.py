@@ -43,6 +43,30 @@ def cmd_sweep(args) -> int:
     return 0
 
 
+def cmd_verify(args) -> int:
+    """`pbrdf-cl verify STORE ...`: check sweep or fit-image stores against their digests and
+    manifests; exit 0 when every one is intact, 1 with one line per kind of damage."""
+    from ..store.verify import verify_store
+    rc = 0
+    for store in args.store:
+        try:
+            rep = verify_store(store)
+        except (OSError, ValueError) as exc:
+            rc = error(exc)
+            continue
+        for note in rep["notes"]:
+            print(f"note: {rep['store']}: {note}")
+        if rep["ok"]:
+            print(f"{rep['store']}: intact ({rep['done']} of {rep['units']} units verified against their digests)")
+            continue
+        for problem in rep["problems"]:
+            print(f"pbrdf-cl: error: {rep['store']}: {problem}", file=sys.stderr)
+        print(f"pbrdf-cl: run the command that wrote {rep['store']} again to recompute what is damaged",
+              file=sys.stderr)
+        rc = 1
+    return rc
+
+
 def cmd_sobol(args) -> int:
     """`pbrdf-cl sobol SPEC.toml`: a Sobol' (or Morris) sensitivity map, its file, figure and summary."""
     from ..analysis import sensitivity
@@ -174,6 +198,19 @@ def sweep_parser(sub):
     s.add_argument("--allow-large", action="store_true",
                    help="start even when the store (uncompressed) would not fit on the free disk")
     s.set_defaults(func=cmd_sweep)
+
+
+def verify_parser(sub):
+    """The `pbrdf-cl verify` sub-command."""
+    v = sub.add_parser("verify", help="check a sweep or fit-image store: every chunk against its digest",
+                       description="Check a store of `pbrdf-cl sweep` or `pbrdf-cl fit-image` without its spec: "
+                       "its metadata and coordinates against the manifest in its root attributes, every done "
+                       "chunk's values against the digest written with it, the consolidated metadata and the "
+                       "completion mark; removes the .partial files of interrupted writes. Exit status 0 when "
+                       "intact, 1 with one line per kind of damage (counts and the first chunks); running the "
+                       "command that wrote the store again recomputes what is damaged.")
+    v.add_argument("store", metavar="STORE", nargs="+", help="Zarr stores (paths or fsspec URLs)")
+    v.set_defaults(func=cmd_verify)
 
 
 def reproduce_parser(sub):

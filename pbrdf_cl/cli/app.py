@@ -93,6 +93,7 @@ def build_parser() -> argparse.ArgumentParser:
     devices.devices_parser(sub)
     evaluate.eval_parser(sub)
     analysis.sweep_parser(sub)
+    analysis.verify_parser(sub)
     fit.fit_parser(sub)
     fit.fit_image_parser(sub)
     analysis.reproduce_parser(sub)

@@ -13,6 +13,9 @@ done is :data:`DONE`: one uint8 per unit, set to 1 only after that unit's values
 A store is a local path (``file://`` allowed) or the URL of an fsspec store.  Locally a new
 store is written beside its place and renamed into it (:func:`create_in_place`), and the
 ``*.partial`` files of writes interrupted by a kill are removed on resuming (:func:`resume`).
+Beside each done mark are the unit's digest (:data:`DIGEST`) and device (:data:`DEVICE`), which
+:mod:`pbrdf_cl.store.verify` writes and checks; the groups are opened from their own files, not
+from the consolidated metadata, which a damaged store may contradict.
 """
 from __future__ import annotations
 
@@ -28,6 +31,13 @@ from ..errors import SpecError
 
 #: The done marks: one uint8 per unit of work (C order), 1 once its values are in the store.
 DONE = "_sweep/done"
+#: Per unit: the SHA-256 of its decoded values (:mod:`pbrdf_cl.store.verify`), written before its mark.
+DIGEST = "_sweep/digest"
+#: Per unit: the device that computed it, as a key of the root attribute :data:`DEVICES`
+#: (the first 8 bytes of the SHA-256 of its description, as an int; 0: not recorded).
+DEVICE = "_sweep/device"
+#: The root attribute of the devices that computed units: key (a decimal string) -> description.
+DEVICES = "store_devices"
 #: The root attribute holding the SHA-256 of the OpenCL sources that wrote a store.
 KERNELS_ATTR = "sweep_kernels_sha256"
 
@@ -86,8 +96,8 @@ def store_name(store):
 def open_group(store, mode):
     """The root group of a Zarr format 2 store (``mode`` as :func:`zarr.open_group`'s)."""
     zarr = _zarr()
-    if _zarr3():
-        return zarr.open_group(store, mode=mode, zarr_format=2)
+    if _zarr3():  # the files themselves, not the consolidated copy (which a damaged store may contradict)
+        return zarr.open_group(store, mode=mode, zarr_format=2, **({} if mode == "w" else {"use_consolidated": False}))
     return zarr.open_group(store, mode=mode)
 
 
@@ -116,9 +126,67 @@ def consolidate(store):
 
 
 def create_done(group, n_units):
-    """The done marks (:data:`DONE`) of ``n_units`` units of work in ``group``, all 0."""
+    """The done marks (:data:`DONE`) of ``n_units`` units of work in ``group``, all 0, their
+    digests (:data:`DIGEST`, 32 bytes each) and devices (:data:`DEVICE`)."""
     sub = group.require_group(DONE.split("/")[0])
+    create_array(sub, DIGEST.split("/")[1], (n_units, 32), (1, 32), "u1", 0, None, {})
+    create_array(sub, DEVICE.split("/")[1], (n_units,), (1,), "u8", 0, None, {})
     return create_array(sub, DONE.split("/")[1], (n_units,), (1,), "u1", 0, None, {})
+
+
+def device_key(description):
+    """The key of a device description in :data:`DEVICE` (an int of 63 bits, never 0)."""
+    import hashlib
+    return int.from_bytes(hashlib.sha256(description.encode()).digest()[:8], "little") >> 1 | 1
+
+
+class Files:
+    """The files (keys) of a store, read and written as bytes: a local folder, or an fsspec URL."""
+
+    def __init__(self, name):
+        self.local = is_local(name)
+        if self.local:
+            self.root = Path(store_name(name))
+        else:
+            import fsspec
+            self.map = fsspec.get_mapper(name)
+
+    def get(self, key):
+        """The bytes of ``key``, or None."""
+        try:
+            if self.local:
+                return (self.root / key).read_bytes()
+            return self.map[key]
+        except (OSError, KeyError):
+            return None
+
+    def put(self, key, data):
+        """Write ``key`` (locally through a ``.partial`` file renamed into place)."""
+        if self.local:
+            path = self.root / key
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_name(path.name + ".partial")
+            tmp.write_bytes(data)
+            os.replace(tmp, path)
+        else:
+            self.map[key] = data
+
+    def keys(self):
+        """Every key, sorted."""
+        if not self.local:
+            return sorted(self.map.keys())
+        return sorted(p.relative_to(self.root).as_posix() for p in self.root.rglob("*") if p.is_file())
+
+
+def read_root_attrs(name):
+    """The root attrs read from ``.zattrs`` itself (not the consolidated copy): a dict, or None
+    when absent or unreadable."""
+    data = Files(name).get(".zattrs")
+    try:
+        attrs = json.loads(data) if data is not None else None
+    except ValueError:
+        return None
+    return attrs if isinstance(attrs, dict) else None
 
 
 def check_kernels(name, attrs, error=SpecError):
@@ -133,14 +201,16 @@ def check_kernels(name, attrs, error=SpecError):
 
 def differences(old, new):
     """What differs between two canonical settings (JSON-ready dicts, one level of sub-dicts), as
-    readable lines ``"key.sub: <old> in the store, <new> now"``; long lists of floats are shown
-    by their count and ends."""
+    readable lines ``"key.sub: <old> in the store, <new> now"``; long lists of floats, and axes
+    given by their identity (count, ends, SHA-256), are shown by their count and ends."""
     def fmt(v):
         return f"{v:g}" if isinstance(v, float) else repr(v)
 
     def describe(v):
         if isinstance(v, list) and len(v) > 4 and all(isinstance(x, float) for x in v):
             return f"{len(v)} values {fmt(v[0])}..{fmt(v[-1])}"
+        if isinstance(v, dict) and set(v) == {"count", "first", "last", "sha256"}:  # an axis by its identity
+            return f"{v['count']} values {fmt(v['first'])}..{fmt(v['last'])} (sha256 {str(v['sha256'])[:12]})"
         return json.dumps(v)
     out = []
     for key in sorted(set(old) | set(new)):
@@ -174,7 +244,7 @@ def create_in_place(path, write):
     beside it and renamed into place, so that a store exists whole or not at all.  True when this
     call created it; False when another process created it meanwhile (``path`` then holds a Zarr
     group, for the caller to check)."""
-    tmp = path.with_name(f"{path.name}.creating-{uuid.uuid4().hex[:8]}")
+    tmp = path.with_name(f"{path.name}.creating-{os.getpid()}-{uuid.uuid4().hex[:8]}")
     try:
         write(str(tmp))
         if path.exists():
@@ -212,8 +282,8 @@ def create_or_read(store, write, not_a_store, unreadable=None):
     Returns
     -------
     tuple
-        (the store's name, :func:`store_name`; its root attrs as a dict, or None when this call
-        created it).
+        (the store's name, :func:`store_name`; its root attrs as a dict (``{}`` when missing or
+        unreadable), or None when this call created it).
     """
     name = store_name(store)
     if is_local(store):
@@ -224,56 +294,54 @@ def create_or_read(store, write, not_a_store, unreadable=None):
             # else another process created it just now: read it below
         elif not (path / ".zgroup").exists():
             raise not_a_store(name)
-    try:
-        return name, dict(open_group(name, "r").attrs)
-    except Exception:  # noqa: BLE001 - zarr raises various errors for a missing group
-        if not is_local(store):
-            write(name)
-            return name, None
-        if unreadable is not None:
-            raise unreadable(name) from None
-        return name, {}
+    attrs = read_root_attrs(name)  # the file itself: the consolidated copy may contradict it
+    if attrs is None and not is_local(store) and Files(name).get(".zgroup") is None:
+        write(name)
+        return name, None
+    if attrs is None and unreadable is not None:
+        raise unreadable(name)
+    return name, attrs or {}
 
 
 def clean_partials(name):
-    """Remove the temporary files of writes interrupted by a kill (zarr writes ``*.partial`` then renames)."""
+    """Remove the temporary files of writes interrupted by a kill (zarr writes ``*.partial`` then
+    renames; a Dask worker killed mid-write leaves one); returns how many were removed."""
+    n = 0
     for root, _, files in os.walk(name):
         for f in files:
             if f.endswith(".partial"):
                 try:
                     os.unlink(os.path.join(root, f))
+                    n += 1
                 except OSError:
                     pass
+    return n
 
 
 def read_done(store, n_units):
     """Which of the ``n_units`` units of work are marked done (:data:`DONE`): a boolean array.  A
-    local store's marks are read from the names of its chunk files."""
+    local store's marks are read from its chunk files (a mark whose byte is not 1 is not done)."""
     name = store_name(store)
     done = np.zeros(n_units, bool)
     folder = Path(name, *DONE.split("/"))
-    if is_local(store) and folder.is_dir():
-        idx = [int(f) for f in os.listdir(folder) if f.isdigit()]
-        idx = [i for i in idx if i < n_units]
-        done[idx] = True
+    if is_local(store):
+        for f in os.listdir(folder) if folder.is_dir() else ():
+            if f.isdigit() and int(f) < n_units:
+                try:
+                    done[int(f)] = (folder / f).read_bytes() == b"\x01"
+                except OSError:
+                    pass
         return done
-    return open_group(name, "r")[DONE][:] == 1
+    try:
+        return open_group(name, "r")[DONE][:] == 1
+    except Exception:  # noqa: BLE001 - unreadable marks: nothing is done
+        return done
 
 
 def resume(store, name, n_units, existed):
     """The done marks of a store about to be (re)started (:func:`read_done`), after removing the
-    ``*.partial`` files of interrupted writes from a local store that ``existed`` before."""
+    ``*.partial`` files of interrupted writes from a local store that ``existed`` before (their
+    digests are checked by :func:`pbrdf_cl.store.verify.check_units`)."""
     if existed and is_local(store):
         clean_partials(name)
     return read_done(name, n_units)
-
-
-def mark_complete(name, n_units, key):
-    """Set the root attribute ``key`` (``sweep_complete``, ``batch_complete``) once every unit is
-    marked done, and consolidate the metadata."""
-    g = open_group(name, "r+")
-    if not g.attrs.get(key):
-        if not read_done(name, n_units).all():
-            return
-        g.attrs[key] = True
-    consolidate(name)

@@ -34,6 +34,11 @@ PIXEL_STATUS = {
 }
 
 
+#: The fill value of a store's ``status`` array: (code, name, meaning) of a pixel whose block is
+#: not written (not computed yet, or its chunk lost); never a status of :data:`PIXEL_STATUS`.
+NOT_COMPUTED = (-128, "not_computed", "not computed: its block is not in the store")
+
+
 def _status_attrs():
     return {"status_codes": "; ".join(f"{c}: {n} ({m})" for c, (n, m) in PIXEL_STATUS.items()),
             "flag_values": list(PIXEL_STATUS), "flag_meanings": " ".join(n for n, _ in PIXEL_STATUS.values())}

@@ -19,12 +19,16 @@ Dataset :func:`pbrdf_cl.fit_batch` returns in memory):
 - ``_sweep/done``: one uint8 per block, set (1) only after that block's values are in the store
   (write-then-mark: a block without its mark is computed again), the record of a sweep store,
   read by :func:`pbrdf_cl.store.zarr.read_done`; ``_sweep/input_sha256``: per block, the SHA-256 of
-  the input rows it was fitted from (written before the mark);
+  the input rows it was fitted from; ``_sweep/digest`` and ``_sweep/device``: the SHA-256 of the
+  block's values and the device that fitted it (all three written before the mark;
+  :mod:`pbrdf_cl.store.verify`); ``status`` has the fill value ``NOT_COMPUTED`` (-128), never a status;
 - root attrs: the Dataset's attrs (model, bounds, grid, ...), the canonical job settings as JSON
   (``batch_settings``) and their SHA-256 (``batch_settings_sha256``), the SHA-256 of the OpenCL
   sources (``sweep_kernels_sha256``, checked as a sweep's: :func:`pbrdf_cl.store.zarr.check_kernels`), the memory budget
   that chose the blocks (``batch_memory_budget``, not part of the settings: the block size is),
-  the devices that computed blocks (``batch_devices``) and ``batch_complete``.
+  the devices that computed blocks (``batch_devices``, ``store_devices``), ``batch_complete`` (set
+  only when every block is done and matches its digest) and then the whole input's SHA-256
+  (``batch_input_sha256``, from the blocks').
 
 No timing is stored, so that a resumed store is byte for byte the store of an uninterrupted run
 (on the same device); the returned Dataset carries this run's ``seconds`` in its attrs.
@@ -40,20 +44,21 @@ import hashlib
 import json
 import re
 import time
+import warnings
 
 import numpy as np
 
 from ... import sizes
 from ...device.engine import kernels_sha256
-from ...errors import StoreError
-from ...store import cluster, runner
+from ...errors import StoreError, StoreWarning
+from ...store import cluster, runner, verify
 from ...store import zarr as zarr_store
 from ...store.cluster import local_engine  # noqa: F401 (store.local_engine: the image fit's local engine)
 from ...version import __version__
-from .dataset import PIXEL_STATUS, goodness_summary, interval_summary
+from .dataset import NOT_COMPUTED, PIXEL_STATUS, goodness_summary, interval_summary
 
 #: Version of the canonical settings (part of their hash).
-SETTINGS_VERSION = 2  # 2: the goodness-of-fit variables (r2, p_value, fits_data)
+SETTINGS_VERSION = 3  # 2: the goodness-of-fit variables (r2, p_value, fits_data); 3: digests, status fill
 DELAY_ENV = "PBRDF_BATCH_BLOCK_DELAY"
 DONE = zarr_store.DONE
 HASHES = "_sweep/input_sha256"
@@ -175,15 +180,12 @@ class _Writer(runner.Writer):
     delay_env = DELAY_ENV
 
     def __init__(self, name, digest):
-        super().__init__(name, error=StoreError)  # a worker with other kernels would mix values
+        # a worker with other kernels would mix values; a store of another job is never written into
+        super().__init__(name, "batch_settings_sha256", digest, error=StoreError)
         g = self.group
-        if g.attrs.get("batch_settings_sha256") != digest:
-            raise StoreError(f"{name} holds another job now (settings sha256 {g.attrs.get('batch_settings_sha256')})")
         self.all = json.loads(g.attrs["batch_variables"])
         whole = json.loads(g.attrs.get("batch_whole_variables", "[]"))
         self.variables = [v for v in self.all if v not in whole]  # written block by block
-        self.arrays = {v: g[v] for v in self.variables}
-        self.hashes = g[HASHES]
 
     def compute(self, eng, i, job, r0, r1):
         """Fit block ``i`` (rows r0..r1): (its input's SHA-256, the fit's outputs, their Dataset)."""
@@ -195,14 +197,16 @@ class _Writer(runner.Writer):
                                f"{sorted(self.all)}")
         return digest, out, ds
 
-    def write(self, i, values, job, r0, r1):
+    def pieces(self, i, values, job, r0, r1):
+        """Each variable's rows r0..r1 (one whole Zarr chunk), then the input's SHA-256 (:data:`HASHES`)."""
         digest, _, ds = values
+        out = []
         for v in self.variables:
-            a, arr = ds[v].values, self.arrays[v]
-            if a.dtype != arr.dtype:
-                raise RuntimeError(f"internal: the fit gives {v} as {a.dtype}, the store holds {arr.dtype}")
-            arr[r0:r1] = a  # one whole Zarr chunk
-        self.hashes[int(i)] = np.frombuffer(bytes.fromhex(digest), np.uint8)
+            a = ds[v].values
+            if a.dtype != self.group[v].dtype:
+                raise RuntimeError(f"internal: the fit gives {v} as {a.dtype}, the store holds {self.group[v].dtype}")
+            out.append((v, (slice(r0, r1),), a))
+        return out + [(HASHES, (slice(int(i), int(i) + 1),), np.frombuffer(bytes.fromhex(digest), np.uint8)[None])]
 
     def result(self, eng, i, values, seconds):
         """(i, pixels, seconds, device)."""
@@ -274,7 +278,8 @@ def _write_skeleton(job, blocks, block_rows, the_settings, memory_budget, store)
             arr[...] = var.values
             continue
         shape = (n0,) + var.shape[1:]
-        fill = np.nan if var.dtype.kind == "f" else None  # no _FillValue on integers: 0 is a status
+        # no _FillValue on other integers; status: NOT_COMPUTED, never a status, where no block was written
+        fill = np.nan if var.dtype.kind == "f" else (NOT_COMPUTED[0] if v == "status" else None)
         mine = [c for c in aux if set(template[c].dims) <= set(var.dims)]
         zarr_store.create_array(g, v, shape, (block_rows,) + var.shape[1:], var.dtype, fill, zarr_store.compressor(),
                              {"_ARRAY_DIMENSIONS": list(var.dims), **var.attrs,
@@ -286,13 +291,18 @@ def _write_skeleton(job, blocks, block_rows, the_settings, memory_budget, store)
     zarr_store.create_done(g, len(blocks))
     zarr_store.create_array(sub, "input_sha256", (len(blocks), 32), (1, 32), "u1", 0, None, {})
     text, digest = _canonical(the_settings)
-    g.attrs.update({**template.attrs, "title": "pbrdf-cl per-pixel fit", "pbrdf_cl_version": __version__,
-                    "batch_settings": text, "batch_settings_sha256": digest, "sweep_kernels_sha256": kernels_sha256(),
-                    "batch_variables": json.dumps(variables), "batch_whole_variables": json.dumps(whole),
-                    "batch_blocks": len(blocks),
-                    "batch_block_rows": int(block_rows), "batch_memory_budget": int(memory_budget),
-                    "batch_devices": [], "batch_complete": False})
-    zarr_store.consolidate(store)
+    units = {"count": len(blocks), "variables": [v for v in variables if v not in whole] + [HASHES],
+             "job": "batch_settings", "complete": "batch_complete"}
+    verify.seal(store, {**template.attrs, "title": "pbrdf-cl per-pixel fit", "pbrdf_cl_version": __version__,
+                        "batch_settings": text, "batch_settings_sha256": digest,
+                        "sweep_kernels_sha256": kernels_sha256(), "batch_variables": json.dumps(variables),
+                        "batch_whole_variables": json.dumps(whole), "batch_blocks": len(blocks),
+                        "batch_block_rows": int(block_rows), "batch_memory_budget": int(memory_budget),
+                        "batch_devices": [], "batch_complete": False, verify.UNITS: units})
+
+
+#: Root attrs that runs change (or that are not the settings): not rewritten on resuming.
+VOLATILE = ("batch_complete", "batch_devices", "pbrdf_cl_version", "batch_memory_budget", zarr_store.DEVICES)
 
 
 def _open_store(job, blocks, block_rows, the_settings, memory_budget, store):
@@ -319,6 +329,12 @@ def _open_store(job, blocks, block_rows, the_settings, memory_budget, store):
         raise StoreError(f"{name} was started with other settings ({'; '.join(diffs) or 'sha256 differs'}){hint}; "
                          f"choose another --out, or delete {name} to start over")
     _check_kernels(name, attrs)
+    verify.refuse_unidentified(name, attrs, "batch_settings_sha256", "a pbrdf-cl fit store")
+    fixed = verify.repair_skeleton(
+        name, lambda where: _write_skeleton(job, blocks, block_rows, the_settings, memory_budget, where), VOLATILE)
+    if fixed:
+        warnings.warn(StoreWarning(f"{name}: rewrote from the settings what was missing or altered: "
+                                   f"{verify.first(fixed)}"), stacklevel=3)
     return name, True
 
 
@@ -329,7 +345,8 @@ def _check_kernels(name, attrs):
 
 def _check_inputs(job, name, blocks, done):
     """The blocks marked done were fitted from these rows of the stack: compare each one's
-    SHA-256 (read one block at a time)."""
+    SHA-256 (read one block at a time; every row of every done block, not only the settings'
+    sample rows).  Returns the SHA-256 of the input's done blocks (:func:`input_sha256`)."""
     hashes = zarr_store.open_group(name, "r")[HASHES]
     first = job.source.dims[0]
     for i in np.flatnonzero(done):
@@ -342,8 +359,17 @@ def _check_inputs(job, name, blocks, done):
                              f"choose another --out, or delete {name} to start over")
 
 
-def _mark_complete(name, n_blocks):
-    zarr_store.mark_complete(name, n_blocks, "batch_complete")
+def _mark_complete(name, n_blocks, variables):
+    """Mark the store complete if every block is done and intact (:func:`pbrdf_cl.store.verify.complete`)."""
+    bad = verify.complete(name, n_blocks, "batch_complete", variables)
+    g = zarr_store.open_group(name, "r+")
+    if g.attrs.get("batch_complete") and "batch_input_sha256" not in g.attrs:
+        # the whole input, from its blocks' SHA-256s (each checked against the stack when it was fitted)
+        g.attrs["batch_input_sha256"] = hashlib.sha256(np.asarray(g[HASHES][:], np.uint8).tobytes()).hexdigest()
+        zarr_store.consolidate(name)
+    if bad:
+        warnings.warn(StoreWarning(f"{name}: {len(bad)} blocks were damaged after they were written (blocks "
+                                   f"{verify.first(bad)}); run the same command again to fit them"), stacklevel=3)
 
 
 def _add_goodness(name, ds):
@@ -424,7 +450,8 @@ def status_counts(ds):
     -------
     dict
         Status name (``pbrdf_cl.fitting.images.dataset.PIXEL_STATUS``) -> pixels, for the codes present, in
-        the order of ``PIXEL_STATUS``.
+        the order of ``PIXEL_STATUS``; then ``not_computed``, the pixels of a store's blocks not
+        written (``pbrdf_cl.fitting.images.dataset.NOT_COMPUTED``, the status array's fill value).
 
     Examples
     --------
@@ -432,6 +459,8 @@ def status_counts(ds):
     {'converged': 200, 'underdetermined': 56}
     """
     st = ds["status"]
+    if st.dtype.kind == "f":  # a store opened by xarray.open_zarr itself: its fill value read as NaN
+        st = st.fillna(NOT_COMPUTED[0]).astype(np.int8)
     counts = np.zeros(256, np.int64)
     if st.chunks:
         first = st.chunks[0]
@@ -442,6 +471,8 @@ def status_counts(ds):
     else:
         counts += np.bincount(np.asarray(st.values, np.int64).ravel() + 128, minlength=256)
     out = {PIXEL_STATUS[c][0]: int(counts[c + 128]) for c in PIXEL_STATUS if counts[c + 128]}
+    if counts[NOT_COMPUTED[0] + 128]:  # the store's fill value: blocks not written (or lost)
+        out[NOT_COMPUTED[1]] = int(counts[NOT_COMPUTED[0] + 128])
     other = int(counts.sum()) - sum(out.values())
     if other:
         out["unknown"] = other
@@ -496,8 +527,13 @@ def write_store(job, store, *, progress=False, engine=None, backend="auto", devi
     a SHA-256 of 5 of its rows (every variable; at the start, before any work), and then, for
     every block already done, the SHA-256 of its rows of the input against the one recorded when
     it was fitted (this reads the done part of the stack once more, one block at a time; a
-    changed value anywhere in it is found).  The device is not checked: a store resumed on
-    another device mixes both devices' last bits (``attrs["batch_devices"]`` lists them).
+    changed value anywhere in it is found); every done block's values against their digest (a
+    damaged block is fitted again, said in one :class:`pbrdf_cl.StoreWarning` line), and the
+    store's metadata against a fresh skeleton (rewritten where missing or altered).  A store
+    resumed on another device is allowed and said in one warning line: it mixes both devices'
+    last bits (``_sweep/device`` records each block's, ``attrs["store_devices"]`` and
+    ``attrs["batch_devices"]`` list them).  The run holds the store's lock
+    (:mod:`pbrdf_cl.store.lock`; a second run is refused).
 
     Memory: one block in flight per engine, sized by ``memory_budget``: the input is read a block
     of rows at a time (with the chunks of a lazy stack that hold them), the outputs written a
@@ -545,7 +581,9 @@ def write_store(job, store, *, progress=False, engine=None, backend="auto", devi
     Raises
     ------
     StoreError
-        The store holds another job, or another input; a ``ValueError``.
+        The store holds another job, or another input, or its root attributes are damaged;
+        another run holds its lock; the disk is full (a ``ValueError``; one line naming the
+        store and how to resume).
     ValueError
         More than one of ``workers``, ``scheduler`` and ``client`` (:func:`check_cluster`).
     RuntimeError
@@ -562,16 +600,27 @@ def write_store(job, store, *, progress=False, engine=None, backend="auto", devi
     >>> ds.n.shape, ds.attrs["batch_complete"], bool(abs(ds.n - 1.6).max() < 1e-3)
     ((2, 3), True, True)
     """
-    import xarray as xr
     check_cluster(workers, scheduler, client, engine)
     blocks = job.blocks()
     block_rows = blocks[0][1] - blocks[0][0]
     runner.check_free_disk(store, store_bytes(job), f"{job.source.n_pixels} pixels, uncompressed", allow_large,
                            "fit-image")
-    the_settings = settings(job, block_rows)
+    the_settings = settings(job, block_rows)  # reads the sample rows: a refused input leaves no store
+    with runner.session(store, zarr_store.store_name(store)):
+        return _run(job, store, blocks, block_rows, the_settings, progress,
+                    dict(engine=engine, device=device, backend=backend, workers=workers, scheduler=scheduler,
+                         client=client))
+
+
+def _run(job, store, blocks, block_rows, the_settings, progress, where):
+    """:func:`write_store` under the store's lock: create or resume (checked against the digests and
+    the input), fit the blocks not done, mark the store complete if every block is there and intact."""
     digest = _canonical(the_settings)[1]
     name, existed = _open_store(job, blocks, block_rows, the_settings, job.memory_budget, store)
     done = zarr_store.resume(store, name, len(blocks), existed)
+    variables = zarr_store.read_root_attrs(name)[verify.UNITS]["variables"]
+    if existed:
+        done = runner.resume_units(name, len(blocks), variables, "blocks")
     if existed and done.any():
         _check_inputs(job, name, blocks, done)
     todo = np.flatnonzero(~done)
@@ -585,26 +634,56 @@ def write_store(job, store, *, progress=False, engine=None, backend="auto", devi
         _, pixels, _, dev = result
         stats["blocks"] += 1
         stats["pixels"] += pixels
-        stats["devices"].add(dev)
+        if dev not in stats["devices"]:
+            stats["devices"].add(dev)
+            runner.note_device(name, dev, "blocks")
         if bar is not None:
             bar.update(pixels)
     try:
-        runner.run_units(todo, lambda: _Writer(name, digest), finished, task=run_block, shared=job,
-                         args_of=lambda i: (name, digest, i, *blocks[i], device, backend), key="pbrdf-fit",
-                         local_args=lambda i: (job, *blocks[i]), engine=engine, device=device, backend=backend,
-                         workers=workers, scheduler=scheduler, client=client, bar=bar,
-                         started=lambda eng: _add_devices(name, [eng.description]))
+        with runner.discard_if_empty(store, name, not existed, len(blocks), ("batch_settings_sha256", digest)):
+            runner.run_units(todo, lambda: _Writer(name, digest), finished, task=run_block, shared=job,
+                             args_of=lambda i: (name, digest, i, *blocks[i], where["device"], where["backend"]),
+                             key="pbrdf-fit", local_args=lambda i: (job, *blocks[i]), bar=bar,
+                             started=lambda eng: _add_devices(name, [eng.description]), **where)
     finally:
-        if stats["devices"]:
+        if stats["devices"] and zarr_store.Files(name).get(".zattrs") is not None:
             _add_devices(name, stats["devices"])
     seconds = time.perf_counter() - t0
-    _mark_complete(name, len(blocks))
-    ds = xr.open_zarr(name)
-    ds = ds[[v for v in json.loads(ds.attrs["batch_variables"]) if v in ds]]  # fit_batch's order
+    _mark_complete(name, len(blocks), variables)
+    ds = open_result(name)
     if ds.attrs.get("batch_complete") and "goodness" not in ds.attrs:
         ds.attrs.update(_add_goodness(name, ds))
     ds.attrs.update(seconds=seconds, blocks_computed=stats["blocks"], blocks_skipped=int(len(blocks) - todo.size),
                     pixels_computed=stats["pixels"], store=name)
+    return ds
+
+
+def open_result(store):
+    """The Dataset of a fit store as :func:`pbrdf_cl.fit_batch` returns it.
+
+    ``xarray.open_zarr`` reads ``status`` as floats, its fill value (``NOT_COMPUTED``, -128: the
+    pixels of blocks not written) as NaN; here it stays an integer as in memory, and the
+    variables are in :func:`pbrdf_cl.fit_batch`'s order.
+
+    Parameters
+    ----------
+    store : str or path
+        A store of :func:`pbrdf_cl.fit_batch` (``store=``).
+
+    Returns
+    -------
+    xarray.Dataset
+        Lazy (dask), ``status`` an ``int8``.
+
+    Examples
+    --------
+    >>> open_result("params.zarr").status.dtype  # doctest: +SKIP
+    dtype('int8')
+    """
+    import xarray as xr
+    ds = xr.open_zarr(store, mask_and_scale={"status": False})
+    ds = ds[[v for v in json.loads(ds.attrs["batch_variables"]) if v in ds]]  # fit_batch's order
+    ds["status"].attrs.pop("_FillValue", None)
     return ds
 
 
