@@ -32,6 +32,9 @@ LS_MAX_NFEV = 100
 FINAL_BOBYQA = 80
 #: Evaluations (in all, not per parameter) of the intensity stage's BOBYQA run.
 INTENSITY_MAXEVAL = 6000
+#: The default memory budget of the grid stage (``memory_budget`` of :func:`pbrdf_cl.fit`,
+#: ``--memory-budget`` of ``pbrdf-cl fit``): its tables of the measurements, in blocks, and its sums.
+MEMORY_BUDGET = "512 MiB"
 
 
 class Model:
@@ -336,17 +339,18 @@ def run_stage(resid_rows, jobs):
 
 
 def grid_stage(meas, free, axes, base, shadowing="paper", *, engine=None, backend="auto", progress=False,
-               channels=None):
+               channels=None, memory_budget=MEMORY_BUDGET):
     """(a) The objective on the grid ``axes`` (name -> nodes, one per free parameter) with the
     other parameters at ``base``, on the OpenCL device (float32), and its profiles: of the DOP of
-    ``meas``, or of polarimetric ``channels`` (:class:`~pbrdf_cl.model.measurables.Channels`)."""
+    ``meas``, or of polarimetric ``channels`` (:class:`~pbrdf_cl.model.measurables.Channels`); the
+    measurements' tables in blocks within ``memory_budget`` (:func:`pbrdf_cl.objective`'s)."""
     import warnings
     t0 = time.perf_counter()
     with warnings.catch_warnings():  # fit's argument check gives the radians warning, once
         warnings.simplefilter("ignore", pointwise.UnitsWarning)
         obj = dense.objective(meas if channels is None else channels, grid={**base, **axes}, k_best=1,
                               dtype="float32", shadowing=shadowing, engine=engine, backend=backend,
-                              progress=progress)
+                              progress=progress, memory_budget=memory_budget)
     sse = obj.sse.transpose(*free).values
     profiles = basins.grid_profiles(sse, free)
     return StageResult(GridStage(sse, axes, profiles), int(sse.size), time.perf_counter() - t0)
