@@ -101,3 +101,43 @@ def test_polarimetric_and_joint_fits_take_the_budget():
 def test_default_budget_is_a_size():
     from pbrdf_cl.ranges import parse_bytes
     assert parse_bytes("memory_budget", stages.MEMORY_BUDGET) == 512 << 20
+
+
+def test_residual_rows_of_a_big_data_set_share_factors_and_come_in_parts_bit_for_bit(rng, monkeypatch):
+    """A finite-difference batch over 5,000 measurements (each problem and its steps, one parameter
+    moved each): each factor is computed once per distinct row (3 of each problem's 6 Fresnel
+    rows), the rows come a few at a time, and every value is the one of the row computed alone."""
+    from pbrdf_cl.fitting.common import fd_jacobian
+    from pbrdf_cl.io.measurements import from_arrays
+    from pbrdf_cl.model import reference
+    data = measurements(rng, 5000)
+    meas = from_arrays(data["theta_i"], data["theta_r"], data["dop"], data["phi"], data["dop_std"])
+    free = ("n", "k", "sigma", "kd", "c")
+    res = stages.Residuals(stages.Model(meas, "paper"), free, {"ks": 1.0}, meas.dop, meas.dop_std)
+    lo, hi = np.array([1, 0, 0.05, 0, -1.0]), np.array([5, 10, 1, 5, 0.0])
+    X = lo + rng.random((4, 5)) * (hi - lo)
+    fresnel_rows, real = [], reference.fresnel
+    monkeypatch.setattr(reference, "fresnel", lambda n, *a: fresnel_rows.append(np.shape(n)[0]) or real(n, *a))
+    R, J = fd_jacobian(res.rows, X, lo, hi)
+    assert sum(fresnel_rows) == 4 * 3  # the base point and its n and k steps; sigma, kd and c share its terms
+    monkeypatch.setattr(stages, "ROWS_VALUES", 5 * 5000)  # 5 rows at a time
+    R5, J5 = fd_jacobian(res.rows, X, lo, hi)
+    alone = np.array([res.rows_of(x[None])[0] for x in X])
+    assert R.tobytes() == R5.tobytes() == alone.tobytes() and J.tobytes() == J5.tobytes()
+
+
+@requires_opencl
+def test_local_stages_run_with_blas_on_one_thread(monkeypatch):
+    """BLAS's threads, woken by every dot product of a residual vector over 10,000 measurements,
+    spun between the local stages' calls and took the cores of the model's values."""
+    from threadpoolctl import threadpool_info
+
+    from pbrdf_cl.fitting.sample import inversion
+    seen, real = [], inversion.local_stages
+
+    def spy(*args, **kwargs):
+        seen.append([lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"])
+        return real(*args, **kwargs)
+    monkeypatch.setattr(inversion, "local_stages", spy)
+    pbrdf_cl.fit("examples/steel_435nm.csv")
+    assert seen and seen[0] and all(n == 1 for n in seen[0])

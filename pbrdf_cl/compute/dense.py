@@ -851,13 +851,16 @@ def _objective_chunks(eng, plan, dtype, room, out, kernels, make_args, n_rows, *
         count = min(chunk, P - start)
         host = out[start:start + count] if out is not None else np.empty(count, npdt)
         buf, done = eng.output(host, accumulate=len(blocks) > 1)
+        ran = None
         for b, (m0, m1) in enumerate(blocks):
+            if ran is not None and b % 2 == 0:
+                ran.wait()  # the tables of two blocks at most at a time (launches are queued)
             more = (*(args or make_args(m0, m1)), np.int32(b > 0))
             if level:
-                eng.launch(prog[kernels[0]], (count // row_len,), buf, idx_np(start // row_len),
-                           idx_np(count // row_len), *more)
+                ran = eng.launch(prog[kernels[0]], (count // row_len,), buf, idx_np(start // row_len),
+                                 idx_np(count // row_len), *more)
             else:
-                eng.launch(prog[kernels[1]], (count,), buf, idx_np(start), idx_np(count), *more)
+                ran = eng.launch(prog[kernels[1]], (count,), buf, idx_np(start), idx_np(count), *more)
         done()
         yield start, host
 

@@ -16,6 +16,7 @@ in spirit), and :func:`pbrdf_cl.design` with them:
   marked and explained in one wording (:data:`OUTSIDE_MARK`, :func:`outside_note`,
   :data:`OUTSIDE_FOOTNOTE`).
 """
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -42,6 +43,20 @@ MISTAKE_CAUSES = ("angles in radians (pbrdf-cl takes degrees), the phi conventio
 #: What usually makes a label of an image fit fail its goodness-of-fit test: its pixels do not
 #: share one material, then the causes of any fit.
 LABEL_MISTAKE_CAUSES = ("two materials under one label (split it: its pixels do not share one n, k), " + MISTAKE_CAUSES)
+
+
+def one_blas_thread(func):
+    """``func`` with BLAS (numpy's OpenBLAS) on one thread while it runs: the local stages' BLAS
+    calls (a residual vector's dot product, least squares' J^T J) are small and many, and BLAS's
+    threads, woken by each of those over 10,000 measurements, spin between them: on two cores
+    that took more time than the model's values (the same sums: below that size BLAS runs on one
+    thread anyway, and on one thread its sums do not depend on the machine's cores)."""
+    @functools.wraps(func)
+    def wrapper(*args, **kwargs):
+        from threadpoolctl import threadpool_limits
+        with threadpool_limits(1, user_api="blas"):
+            return func(*args, **kwargs)
+    return wrapper
 
 
 def _fd_steps(x, hi):

@@ -17,7 +17,7 @@ import numpy as np
 
 from ...compute import pointwise
 from ...io.measurements import as_measurements
-from ..common import dop_noise_floor
+from ..common import dop_noise_floor, one_blas_thread
 from ..setup import F00_REL_STD, MODEL_PARAMS, FitSetup, check_model
 from .polarimetric import fit_channels
 from .result import ComparisonResult, fit_result, fit_status, model_notes
@@ -135,6 +135,7 @@ def grid_shape_of(model, grid_shape=None):
     return {**(SPECULAR_GRID if model == "specular" else DEFAULT_GRID), **(grid_shape or {})}
 
 
+@one_blas_thread
 def fit_on_grid(meas, setup, grid_result, n_basins=6, derivative_free=True):
     """:func:`fit`'s stages after its grid stage: ``meas`` and ``setup`` as :func:`check_fit_args`
     returns them, ``grid_result`` the :class:`~pbrdf_cl.fitting.sample.stages.StageResult` of

@@ -23,6 +23,7 @@ import numpy as np
 
 from ...model import reference
 from ..channels import ChannelModel
+from ..common import one_blas_thread
 from ..setup import F00_REL_STD
 from .stages import MEMORY_BUDGET, finite_rows
 
@@ -146,6 +147,7 @@ def channel_residuals(meas, setup):
     return ChannelResiduals(ChannelModel(ch, setup.shadowing), setup.free, setup.base, std)
 
 
+@one_blas_thread
 def fit_channels(meas, setup, axes, n_basins=6, *, engine=None, backend="auto", progress=False, grid_result=None,
                  derivative_free=True, absolute=True, memory_budget=MEMORY_BUDGET):
     """:func:`pbrdf_cl.fit` of polarimetric measurements ``meas`` (``meas.polarimetric``) with the

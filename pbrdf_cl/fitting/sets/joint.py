@@ -35,7 +35,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ...io.measurements import split_sets
-from ..common import dop_noise_floor
+from ..common import dop_noise_floor, one_blas_thread
 from ..sample import basins
 from ..sample.inversion import check_fit_args, fit_on_grid, grid_shape_of
 from ..sample.polarimetric import channel_residuals, fit_channels, normalised_channels
@@ -367,6 +367,7 @@ def _local_stages(setup, resid, grids, points, own):
     return cands, final_ran, st
 
 
+@one_blas_thread
 def fit_joint(sets, shared=None, model="six-param", bounds=None, fixed=None, shadowing="paper", *,
               set_column=None, grid_shape=None, n_basins=6, engine=None, backend="auto", progress=False,
               memory_budget=MEMORY_BUDGET):
