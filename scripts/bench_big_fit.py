@@ -8,7 +8,8 @@ The data: the DOP of the paper's steel (n 1.6, k 2.139, sigma 0.5, ks 0.9, kd 0.
 5..75, phi 120..240 degrees (seeded), plus Gaussian noise of std 0.002 given as dop_std, written
 by ``pbrdf_cl.io.measurements.write_csv`` (the examples' writer).  Each fit runs as a child process
 (``python -m pbrdf_cl fit CSV --quiet --json OUT``); its peak RSS is the child's own
-(``os.wait4``'s ru_maxrss), its time the wall time of the whole command (reading the CSV, building
+(``os.wait4``'s ru_maxrss), its CPU time the child's user + system seconds (what a shared machine does not
+stretch), its time the wall time of the whole command (reading the CSV, building
 or loading the kernels, every stage, writing the JSON)."""
 import argparse
 import json
@@ -40,7 +41,8 @@ def write_data(path, rows, seed=20260439):
 
 
 def run_fit(csv, out_json, extra=()):
-    """(seconds, peak RSS in bytes, return code, stderr) of ``pbrdf-cl fit`` on ``csv``."""
+    """(seconds, CPU seconds (user + system), peak RSS in bytes, return code, stderr) of ``pbrdf-cl fit``
+    on ``csv``."""
     cmd = [sys.executable, "-m", "pbrdf_cl", "fit", str(csv), "--quiet", "--json", str(out_json), *extra]
     t = time.perf_counter()
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
@@ -48,7 +50,7 @@ def run_fit(csv, out_json, extra=()):
     _, status, usage = os.wait4(proc.pid, 0)
     seconds = time.perf_counter() - t
     proc.returncode = os.waitstatus_to_exitcode(status)
-    return seconds, usage.ru_maxrss * 1024, proc.returncode, err
+    return seconds, usage.ru_utime + usage.ru_stime, usage.ru_maxrss * 1024, proc.returncode, err
 
 
 def main(argv=None):
@@ -64,21 +66,22 @@ def main(argv=None):
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(args.dir or tmp)
         folder.mkdir(parents=True, exist_ok=True)
-        print(f"{'rows':>9s} {'seconds':>8s} {'rows/s':>8s} {'peak RSS':>9s}  load average (1, 5 min) before")
+        print(f"{'rows':>9s} {'seconds':>8s} {'rows/s':>8s} {'CPU s':>7s} {'peak RSS':>9s}  load average (1, 5 min) "
+              "before")
         for rows in args.rows:
             csv = folder / f"big_fit_{rows}.csv"
             if not csv.exists():
                 write_data(csv, rows)
             for _ in range(args.repeat):
                 load = os.getloadavg()[:2]
-                seconds, rss, rc, err = run_fit(csv, folder / f"big_fit_{rows}.json", extra)
+                seconds, cpu, rss, rc, err = run_fit(csv, folder / f"big_fit_{rows}.json", extra)
                 if rc != 0:
                     raise SystemExit(f"pbrdf-cl fit of {rows} rows failed (rc {rc}): {err.strip()[-400:]}")
                 fit = json.loads((folder / f"big_fit_{rows}.json").read_text())["fits"]["six-param"]
-                row = dict(rows=rows, seconds=seconds, rows_per_second=rows / seconds, peak_rss_bytes=rss,
-                           load_before=load, x=fit["x"], stage_seconds=fit["seconds"])
+                row = dict(rows=rows, seconds=seconds, rows_per_second=rows / seconds, cpu_seconds=cpu,
+                           peak_rss_bytes=rss, load_before=load, x=fit["x"], stage_seconds=fit["seconds"])
                 report.append(row)
-                print(f"{rows:9d} {seconds:8.1f} {rows / seconds:8.0f} {rss / 2 ** 20:7.0f} MiB  "
+                print(f"{rows:9d} {seconds:8.1f} {rows / seconds:8.0f} {cpu:7.1f} {rss / 2 ** 20:7.0f} MiB  "
                       f"{load[0]:.2f}, {load[1]:.2f}   n = {fit['x']['n']:.4f}, k = {fit['x']['k']:.4f}", flush=True)
     if args.json:
         Path(args.json).write_text(json.dumps(report, indent=2))

@@ -141,3 +141,29 @@ def test_local_stages_run_with_blas_on_one_thread(monkeypatch):
     monkeypatch.setattr(inversion, "local_stages", spy)
     pbrdf_cl.fit("examples/steel_435nm.csv")
     assert seen and seen[0] and all(n == 1 for n in seen[0])
+
+
+@requires_opencl
+def test_cli_fit_takes_memory_budget_and_refuses_bad_ones_in_one_line(tmp_path):
+    import json
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    def run(*args):
+        return subprocess.run([sys.executable, "-m", "pbrdf_cl", "fit", "examples/steel_435nm.csv", "--quiet", *args],
+                              capture_output=True, text=True, timeout=300,
+                              env=dict(os.environ, PYTHONWARNINGS="ignore",
+                                       PYTHONPATH=str(Path(pbrdf_cl.__file__).resolve().parent.parent)))
+    small, default = run("--memory-budget", "20kB", "--json", str(tmp_path / "small.json")), \
+        run("--json", str(tmp_path / "default.json"))
+    assert small.returncode == 0 == default.returncode, small.stderr + default.stderr
+    fits = [json.loads((tmp_path / f"{n}.json").read_text())["fits"]["six-param"] for n in ("small", "default")]
+    assert fits[0]["x"] == fits[1]["x"] and small.stdout == default.stdout.replace(f"wrote {tmp_path}/default",
+                                                                                  f"wrote {tmp_path}/small")
+    for value, words in (("lots", "--memory-budget: 'lots' is not a size"), ("0", "--memory-budget: must be > 0"),
+                         ("10kB", "give at least 13712 bytes")):
+        proc = run("--memory-budget", value)
+        assert proc.returncode == 1 and proc.stderr.count("\n") == 1 and words in proc.stderr, proc.stderr
+        assert "Traceback" not in proc.stderr
