@@ -100,9 +100,12 @@ __kernel void grid_reduce(__global real *vmin, __global pbidx *vargmin, __global
 
 /* Weighted sum of squared DOP residuals for a grid of parameter vectors
  * p = (nk * PB_NM + s) * PB_NI + j over M measurements, one work-item per vector (used when the
- * rows of objective_rows would be too long).  Tables as for objective_rows. */
+ * rows of objective_rows would be too long).  Tables as for objective_rows.  The objective kernels
+ * add to what sse holds where more is not 0 (the next block of measurements, in the same order
+ * and the same precision as one launch over all of them: the same sums, bit for bit). */
 __kernel void objective_grid(__global real *sse, const pbidx start, const pbidx count,
-                             PB_TABLES, __global const real *obs, __global const real *w, const int M)
+                             PB_TABLES, __global const real *obs, __global const real *w, const int M,
+                             const int more)
 {
     const pbidx gid = get_global_id(0);
     if (gid >= count) return;
@@ -110,7 +113,7 @@ __kernel void objective_grid(__global real *sse, const pbidx start, const pbidx 
     const pbidx j = p % PB_NI; p /= PB_NI;
     const pbidx s = p % PB_NM;
     const pbidx nk = p / PB_NM;
-    real acc = (real)0;
+    real acc = more ? sse[gid] : (real)0;
     for (int m = 0; m < M; m++) {
         const real r = pb_dop_combine(sum[m * PB_NNK + nk], diff[m * PB_NNK + nk], dif[m * PB_NI + j],
                                       scale[m * PB_NM + s]) - obs[m];
@@ -173,7 +176,7 @@ __kernel void grid_rows(__global real *out, const pbidx row_start, const pbidx r
 #ifdef PB_OBJECTIVE
 #define PB_QB 16
 __kernel void objective_rows(__global real *sse, const pbidx row_start, const pbidx rows, PB_TABLES,
-                             __global const real *obs, __global const real *w, const int M)
+                             __global const real *obs, __global const real *w, const int M, const int more)
 {
     const pbidx gid = get_global_id(0);
     if (gid >= rows) return;
@@ -188,7 +191,7 @@ __kernel void objective_rows(__global real *sse, const pbidx row_start, const pb
 #if PB_ROW_LEVEL == 1
     /* whole vectors first, the tail below */
     for (int q0 = 0; q0 + PB_VW <= PB_ROW_LEN; q0 += PB_VW) {
-        realv acc = (realv)0;
+        realv acc = more ? pb_vload(0, o + q0) : (realv)0;
         for (int m = 0; m < M; m++) {
             const realv r = pb_dop_combine_v((realv)sum[m * PB_NNK + nk], (realv)diff[m * PB_NNK + nk],
                                              pb_vload(0, dif + m * PB_NI + q0), (realv)scale[m * PB_NM + s])
@@ -203,7 +206,7 @@ __kernel void objective_rows(__global real *sse, const pbidx row_start, const pb
 #endif
         real acc[PB_QB];
         for (int q = 0; q < PB_QB; q++)
-            acc[q] = (real)0;
+            acc[q] = more ? o[min(q0 + q, PB_ROW_LEN - 1)] : (real)0;
         for (int m = 0; m < M; m++) {
             const real su = sum[m * PB_NNK + nk], di = diff[m * PB_NNK + nk];
             const real ob = obs[m], wm = w[m];
@@ -235,7 +238,8 @@ __kernel void objective_rows(__global real *sse, const pbidx row_start, const pb
     __global const real *tn, __global const real *td, __global const real *scale, __global const real *dif, \
     __global const real *obs, __global const real *w, __global const real *abc, __global const int *aop, const int M
 
-__kernel void objective_channels(__global real *sse, const pbidx start, const pbidx count, PB_CHANNEL_TABLES)
+__kernel void objective_channels(__global real *sse, const pbidx start, const pbidx count, PB_CHANNEL_TABLES,
+                                 const int more)
 {
     const pbidx gid = get_global_id(0);
     if (gid >= count) return;
@@ -243,7 +247,7 @@ __kernel void objective_channels(__global real *sse, const pbidx start, const pb
     const pbidx j = p % PB_NI; p /= PB_NI;
     const pbidx s = p % PB_NM;
     const pbidx nk = p / PB_NM;
-    real acc = (real)0;
+    real acc = more ? sse[gid] : (real)0;
     for (int m = 0; m < M; m++) {
         const real v = pb_channel_combine(tn[m * PB_NNK + nk], td[m * PB_NNK + nk], scale[m * PB_NM + s],
                                           dif[m * PB_NI + j], abc[3 * m], abc[3 * m + 1], abc[3 * m + 2], aop[m]);
@@ -254,7 +258,8 @@ __kernel void objective_channels(__global real *sse, const pbidx start, const pb
 }
 
 #ifdef PB_OBJECTIVE
-__kernel void objective_channel_rows(__global real *sse, const pbidx row_start, const pbidx rows, PB_CHANNEL_TABLES)
+__kernel void objective_channel_rows(__global real *sse, const pbidx row_start, const pbidx rows, PB_CHANNEL_TABLES,
+                                     const int more)
 {
     const pbidx gid = get_global_id(0);
     if (gid >= rows) return;
@@ -268,7 +273,7 @@ __kernel void objective_channel_rows(__global real *sse, const pbidx row_start, 
     __global real *o = sse + gid * PB_ROW_LEN;
 #if PB_ROW_LEVEL == 1
     for (int q0 = 0; q0 + PB_VW <= PB_ROW_LEN; q0 += PB_VW) {
-        realv acc = (realv)0;
+        realv acc = more ? pb_vload(0, o + q0) : (realv)0;
         for (int m = 0; m < M; m++) {
             const realv v = pb_channel_combine_v((realv)tn[m * PB_NNK + nk], (realv)td[m * PB_NNK + nk],
                                                  (realv)scale[m * PB_NM + s], pb_vload(0, dif + m * PB_NI + q0),
@@ -284,7 +289,7 @@ __kernel void objective_channel_rows(__global real *sse, const pbidx row_start, 
 #endif
         real acc[PB_QB];
         for (int q = 0; q < PB_QB; q++)
-            acc[q] = (real)0;
+            acc[q] = more ? o[min(q0 + q, PB_ROW_LEN - 1)] : (real)0;
         for (int m = 0; m < M; m++) {
             const real n_ = tn[m * PB_NNK + nk], d_ = td[m * PB_NNK + nk];
             const real a = abc[3 * m], b = abc[3 * m + 1], c = abc[3 * m + 2], ob = obs[m], wm = w[m];

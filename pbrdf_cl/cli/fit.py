@@ -10,6 +10,7 @@ import numpy as np
 from ..device import engine as _engine
 from ..io import files
 from ..outputs import check_figure, check_output, check_store, check_suffix
+from ..ranges import parse_bytes
 from .common import (
     cluster_options,
     device_options,
@@ -111,7 +112,8 @@ def cmd_fit_joint(args, fixed, bounds) -> int:
             sets = joint.set_names_of_paths(args.data)
         engine = engine_for(args)
         r = joint.fit_joint(sets, args.shared, args.model, bounds=bounds, fixed=fixed, shadowing=args.shadowing,
-                            set_column=args.set_column, engine=engine, progress=not args.quiet)
+                            set_column=args.set_column, engine=engine, progress=not args.quiet,
+                            memory_budget=args.memory_budget)
     except (OSError, ValueError, _engine.OpenCLUnavailableError) as exc:
         return error(exc)
     if not args.quiet:
@@ -148,6 +150,7 @@ def cmd_fit(args) -> int:
                      "COLUMN; to fit one data set, leave out --shared")
     is_joint = len(args.data) > 1 or bool(args.set_column)
     fixed, bounds = fit_assignments(args, sets=is_joint)
+    args.memory_budget = parse_bytes("--memory-budget", args.memory_budget)
     check_suffix("--json", args.json, (".json",), "JSON is written here", allow_none=True)
     check_figure("--plot", args.plot)
     check_output("--json", args.json)
@@ -157,7 +160,8 @@ def cmd_fit(args) -> int:
     try:
         meas = read_csv(args.data[0])
         engine = engine_for(args)
-        kw = dict(shadowing=args.shadowing, bounds=bounds, fixed=fixed, engine=engine, progress=not args.quiet)
+        kw = dict(shadowing=args.shadowing, bounds=bounds, fixed=fixed, engine=engine, progress=not args.quiet,
+                  memory_budget=args.memory_budget)
         if args.compare:
             both = _fit.compare_models(meas, **kw)
             other = "specular" if args.model == "six-param" else "six-param"
@@ -283,6 +287,7 @@ def _label_options(args):
 
 def fit_parser(sub):
     """The `pbrdf-cl fit` sub-command."""
+    from ..fitting.sample.stages import MEMORY_BUDGET
     f = sub.add_parser("fit", help="invert n, k, sigma, kd/ks, c from measured DOP (CSV; several: a joint fit)",
                        description="Fit the six-parameter model (or, with --model specular, the ref. [7] "
                        "specular model; --compare: both) to a CSV of measurements (columns theta_i, theta_r, "
@@ -297,6 +302,9 @@ def fit_parser(sub):
     f.add_argument("--compare", action="store_true",
                    help="fit both models and compare them by AIC/BIC (--model's is listed first)")
     fit_settings(f, joint=True)
+    f.add_argument("--memory-budget", default=MEMORY_BUDGET, metavar="SIZE",
+                   help="memory of the grid stage's tables of the measurements (more run block by block, with the "
+                   f"same result), e.g. 256MiB (default {MEMORY_BUDGET.replace(' ', '')})")
     device_options(f, " for the grid stage")
     f.add_argument("--json", metavar="OUT", help="write both fits as JSON")
     f.add_argument("--plot", metavar="PNG", help="plot data, both models and residuals")

@@ -18,7 +18,7 @@ import numpy as np
 from ..device import ops
 from ..device.engine import DTYPES
 from ..model import reference
-from .tables import factor_table
+from .tables import factor_table, summed_over_rows
 
 
 def channel_weights(ch):
@@ -57,9 +57,14 @@ NUMPY_BYTES = 64
 
 
 @ops.implements("objective_channel_blocks", "numpy")
-def _numpy_blocks(eng, plan, ch, dtype, shadowing, room, out):
+def _numpy_blocks(eng, plan, ch, dtype, shadowing, room, out, rows):
     """(flat start, SSE) of the parameter grid ``plan`` over channels ``ch`` on the numpy backend,
-    in blocks of (n, k) rows within ``room`` bytes."""
+    in blocks of (n, k) rows within ``room`` bytes; where the tables of all channels do not fit
+    (``rows`` fewer), channel block by block (:func:`pbrdf_cl.compute.tables.summed_over_rows`)."""
+    if rows < len(ch):
+        yield from summed_over_rows(plan.size, len(ch), rows, lambda m0, m1: _numpy_blocks(
+            eng, plan, ch.take(slice(m0, m1)), "float64", shadowing, room, None, m1 - m0), out, dtype)
+        return
     v = plan.values
     tn, td, K, fd = numpy_channel_tables(ch, v, shadowing)
     w = channel_weights(ch)[:, None, None, None]

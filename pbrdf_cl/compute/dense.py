@@ -37,7 +37,7 @@ from ..device.engine import DTYPES, VECTOR_LOCAL_SIZE, aligned_empty, resolve_en
 from ..model import inputs, quantities, reference
 from ..model.measurables import Channels
 from . import channels, pointwise
-from .tables import factor_table
+from .tables import factor_table, row_blocks, summed_over_rows
 
 #: The grid's canonical axes: every input of the model (:mod:`pbrdf_cl.model.inputs`), in its order.
 AXES = inputs.NAMES
@@ -731,16 +731,12 @@ def objective(data, grid=None, points=None, *, k_best=10, dtype="float32", shado
     fixed = {n: v for n, v in grid.items() if np.ndim(v) == 0}
     plan = GridPlan(axes, fixed, names=PARAMETERS, defaults=PARAMETER_DEFAULTS)
     v = plan.values
-    _, nnk, nm, ni = family_sizes(plan)
-    tables_size = table_bytes(M, nnk, nm, ni, itemsize)
-    if tables_size > memory_budget // 2:
-        raise ValueError(f"the objective's tables need {tables_size} bytes, more than half of "
-                         f"memory_budget={memory_budget}; raise it or use fewer n, k values")
+    rows, tables_size = objective_rows(plan, M, memory_budget, itemsize)
     P = plan.size
     sse = np.empty(P, npdt) if return_sse else None
     best_idx, best_sse = np.empty(0, np.int64), np.empty(0, npdt)
     bar = progress_bar(P, progress, "objective")
-    blocks = eng.call(op, plan, payload, dtype, shadowing, memory_budget - tables_size, sse)
+    blocks = eng.call(op, plan, payload, dtype, shadowing, memory_budget - tables_size, sse, rows)
     for start, host in blocks:  # host: the block's slice of sse (or a temporary without it)
         count = host.size
         best_idx, best_sse = _update_best(best_idx, best_sse, start, host, k_best)
@@ -763,14 +759,42 @@ def objective(data, grid=None, points=None, *, k_best=10, dtype="float32", shado
     return ObjectiveResult(sse=sse_da, best=best, n_pairs=P * M, seconds=time.perf_counter() - t0)
 
 
+#: Bytes of the factor tables of one block of measurements of the objective on an OpenCL device
+#: (at least OBJECTIVE_BLOCK_ROWS measurements, where the memory budget allows them): a block's
+#: tables stay in the caches while every parameter vector goes through it (at 20,000 measurements
+#: ten times the pairs per second of one launch over all), the sums running on from block to block.
+OBJECTIVE_BLOCK_BYTES, OBJECTIVE_BLOCK_ROWS = 1 << 18, 32
+
+
+def objective_rows(plan, n_rows, memory_budget, itemsize):
+    """(measurements per block, bytes of a block's tables) of the objective over ``n_rows``
+    measurements (or channels) and the parameter grid ``plan`` within ``memory_budget``: a block's
+    tables take at most half of it, the rest the sums (64 at least).  A
+    :class:`pbrdf_cl.RangeError` naming the least budget where one measurement does not fit."""
+    from ..errors import RangeError
+    _, nnk, nm, ni = family_sizes(plan)
+    row = table_bytes(1, nnk, nm, ni, itemsize)
+    least = 2 * row + 64 * itemsize
+    if memory_budget < least:
+        raise RangeError(f"a memory budget of {memory_budget} bytes is too small for the objective of this grid: one "
+                         f"measurement's tables need {row} bytes; give at least {least} bytes (or fewer n, k values)")
+    rows = int(min(n_rows, (memory_budget // 2) // row))
+    return rows, rows * row
+
+
 @ops.implements("objective_blocks", "numpy")
-def _numpy_objective_blocks(eng, plan, meas, dtype, shadowing, room, out):
+def _numpy_objective_blocks(eng, plan, meas, dtype, shadowing, room, out, rows):
     """(flat start, SSE) of the parameter grid in boxes, on the numpy backend, written into
     ``out`` when given: the measurements are the tables' geometry list, and a box holds every
-    measurement of its parameter vectors."""
+    measurement of its parameter vectors; where the tables of all measurements do not fit
+    (``rows`` fewer), block by block (:func:`summed_over_rows`)."""
     npdt = DTYPES[dtype]
     ti, tr, ph, obs, w = meas
     M = ti.size
+    if rows < M:
+        yield from summed_over_rows(plan.size, M, rows, lambda m0, m1: _numpy_objective_blocks(
+            eng, plan, [a[m0:m1] for a in meas], "float64", shadowing, room, None, m1 - m0), out, dtype)
+        return
     tables = NumpyTables(shadowing, "dop", ti, tr, ph, plan.values)
     sizes = _param_sizes(plan)
     obs = obs.reshape((M,) + (1,) * 6)
@@ -784,30 +808,36 @@ def _numpy_objective_blocks(eng, plan, meas, dtype, shadowing, room, out):
 
 
 @ops.implements("objective_blocks", "opencl")
-def _device_objective_blocks(eng, plan, meas, dtype, shadowing, room, out):
+def _device_objective_blocks(eng, plan, meas, dtype, shadowing, room, out, rows):
     """(flat start, SSE) of the parameter grid in chunks, on the device, read straight into
-    ``out`` when given."""
+    ``out`` when given; the measurements in blocks of at most ``rows``."""
     ti, tr, ph, obs, w = meas
 
-    def tables():
-        t = Tables(eng, dtype, shadowing, "dop", ti, tr, ph, plan.values)
-        return (*t.args(), eng.to_device(obs, dtype), eng.to_device(w, dtype), np.int32(ti.size))
-    yield from _objective_chunks(eng, plan, dtype, room, out, ("objective_rows", "objective_grid"), tables)
+    def tables(m0, m1):
+        t = Tables(eng, dtype, shadowing, "dop", ti[m0:m1], tr[m0:m1], ph[m0:m1], plan.values)
+        return (*t.args(), eng.to_device(obs[m0:m1], dtype), eng.to_device(w[m0:m1], dtype), np.int32(m1 - m0))
+    yield from _objective_chunks(eng, plan, dtype, room, out, ("objective_rows", "objective_grid"), tables,
+                                 (ti.size, rows))
 
 
 @ops.implements("objective_channel_blocks", "opencl")
-def _device_channel_blocks(eng, plan, ch, dtype, shadowing, room, out):
+def _device_channel_blocks(eng, plan, ch, dtype, shadowing, room, out, rows):
     """As ``objective_blocks`` for polarimetric channels (:mod:`pbrdf_cl.compute.channels`)."""
+    def tables(m0, m1):
+        return channels.device_channel_tables(eng, ch.take(slice(m0, m1)), plan.values, dtype, shadowing)
     yield from _objective_chunks(eng, plan, dtype, room, out, ("objective_channel_rows", "objective_channels"),
-                                 lambda: channels.device_channel_tables(eng, ch, plan.values, dtype, shadowing),
-                                 PB_CHANNELS=None)
+                                 tables, (len(ch), rows), PB_CHANNELS=None)
 
 
-def _objective_chunks(eng, plan, dtype, room, out, kernels, make_args, **defines):
+def _objective_chunks(eng, plan, dtype, room, out, kernels, make_args, n_rows, **defines):
     """(flat start, SSE) of the grid ``plan`` in chunks of ``room`` bytes: the row kernel
     ``kernels[0]`` (or, where rows would be too long, the per-vector ``kernels[1]``) of
-    ``pbrdf_grid.cl`` with the tables and data that ``make_args()`` returns (made once the program
-    is built: its trial comes first)."""
+    ``pbrdf_grid.cl`` with the tables and data of measurements m0..m1 that ``make_args(m0, m1)``
+    returns (made once the program is built: its trial comes first).  ``n_rows``: (measurements,
+    most per block); blocks of :data:`OBJECTIVE_BLOCK_BYTES` of tables (OBJECTIVE_BLOCK_ROWS at least), each launch
+    adding to the sums of the blocks before it, in the same order as one launch over all (the
+    same sums, bit for bit); with several chunks, the tables of several blocks are made again
+    for each chunk."""
     npdt = DTYPES[dtype]
     itemsize = np.dtype(npdt).itemsize
     _, nnk, nm, ni = family_sizes(plan)
@@ -818,16 +848,24 @@ def _objective_chunks(eng, plan, dtype, room, out, kernels, make_args, **defines
     prog = grid_program(eng, dtype, (nnk, nm, ni), idx_name, "dop", PB_OBJECTIVE=None, PB_ROW_LEVEL=level,
                         PB_ROW_LEN=row_len, **defines)
     chunk = max(row_len, chunk // row_len * row_len)
-    args = make_args()
+    M, rows = n_rows
+    per_block = max(OBJECTIVE_BLOCK_ROWS, OBJECTIVE_BLOCK_BYTES // table_bytes(1, nnk, nm, ni, itemsize))
+    blocks = row_blocks(M, min(rows, per_block))
+    args = make_args(*blocks[0]) if len(blocks) == 1 else None
     for start in range(0, P, chunk):
         count = min(chunk, P - start)
         host = out[start:start + count] if out is not None else np.empty(count, npdt)
-        buf, done = eng.output(host)
-        if level:
-            eng.launch(prog[kernels[0]], (count // row_len,), buf, idx_np(start // row_len),
-                       idx_np(count // row_len), *args)
-        else:
-            eng.launch(prog[kernels[1]], (count,), buf, idx_np(start), idx_np(count), *args)
+        buf, done = eng.output(host, accumulate=len(blocks) > 1)
+        ran = None
+        for b, (m0, m1) in enumerate(blocks):
+            if ran is not None and b % 2 == 0:
+                ran.wait()  # the tables of two blocks at most at a time (launches are queued)
+            more = (*(args or make_args(m0, m1)), np.int32(b > 0))
+            if level:
+                ran = eng.launch(prog[kernels[0]], (count // row_len,), buf, idx_np(start // row_len),
+                                 idx_np(count // row_len), *more)
+            else:
+                ran = eng.launch(prog[kernels[1]], (count,), buf, idx_np(start), idx_np(count), *more)
         done()
         yield start, host
 

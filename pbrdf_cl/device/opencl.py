@@ -265,14 +265,16 @@ class Engine:
         return (self.host_memory and a.ndim == 1 and a.dtype == npdt and a.flags.c_contiguous
                 and a.ctypes.data % self.zero_copy_alignment == 0)
 
-    def output(self, view):
+    def output(self, view, accumulate=False):
         """A device buffer whose values end up in the contiguous host array ``view``: on a CPU
         device a buffer over ``view`` itself (the kernel writes there), elsewhere a device
-        buffer copied into it.  Returns ``(buffer, done)``; call ``done()`` after the launch:
-        it blocks until the values are in ``view``."""
+        buffer copied into it.  Returns ``(buffer, done)``; call ``done()`` after the launch
+        (or the launches: with ``accumulate`` the kernels may also read what the launches before
+        them wrote): it blocks until the values are in ``view``."""
         mf = cl.mem_flags
         if self.host_memory:
-            buf = cl.Buffer(self.context, mf.WRITE_ONLY | mf.USE_HOST_PTR, hostbuf=view)
+            buf = cl.Buffer(self.context, (mf.READ_WRITE if accumulate else mf.WRITE_ONLY) | mf.USE_HOST_PTR,
+                            hostbuf=view)
 
             def done():  # mapping makes the kernel's writes visible to the host (a no-op on PoCL)
                 mapped, _ = cl.enqueue_map_buffer(self.queue, buf, cl.map_flags.READ, 0, view.shape, view.dtype)

@@ -16,6 +16,7 @@ in spirit), and :func:`pbrdf_cl.design` with them:
   marked and explained in one wording (:data:`OUTSIDE_MARK`, :func:`outside_note`,
   :data:`OUTSIDE_FOOTNOTE`).
 """
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -42,6 +43,20 @@ MISTAKE_CAUSES = ("angles in radians (pbrdf-cl takes degrees), the phi conventio
 #: What usually makes a label of an image fit fail its goodness-of-fit test: its pixels do not
 #: share one material, then the causes of any fit.
 LABEL_MISTAKE_CAUSES = ("two materials under one label (split it: its pixels do not share one n, k), " + MISTAKE_CAUSES)
+
+
+def one_blas_thread(func):
+    """``func`` with BLAS (numpy's OpenBLAS) on one thread while it runs: the local stages' BLAS
+    calls (a residual vector's dot product, least squares' J^T J) are small and many, and BLAS's
+    threads, woken by each of those over 10,000 measurements, spin between them: on two cores a
+    fifth of a 20,000-row fit's CPU time, taken from the model's values (the same sums: below that
+    size BLAS runs on one thread anyway, and on one thread its sums do not depend on the cores)."""
+    @functools.wraps(func)
+    def wrapper(*args, **kwargs):
+        from threadpoolctl import threadpool_limits
+        with threadpool_limits(1, user_api="blas"):
+            return func(*args, **kwargs)
+    return wrapper
 
 
 def _fd_steps(x, hi):
@@ -71,7 +86,9 @@ def fd_jacobian(rows, X, lo, hi, scheme="2-point"):
         h = _fd_steps(X, hi)
         pts = np.concatenate([base, base + h[:, :, None] * np.eye(d)[None]], axis=1)
         R = rows(pts.reshape(-1, d)).reshape(P, d + 1, -1)
-        return R[:, 0], (R[:, 1:] - R[:, :1]) / h[:, :, None]
+        J = R[:, 1:] - R[:, :1]
+        J /= h[:, :, None]  # in place: of a big data set each (P, d, M) array is tens of MB
+        return R[:, 0], J
     if scheme != "central":
         raise ValueError(f"scheme must be '2-point' or 'central', got {scheme!r}")
     h = CENTRAL_STEP * (hi - lo)
@@ -111,7 +128,7 @@ def lm_batch(resid_rows, X0, lo, hi, iterations, rows_apart=True, extra=None):
             more = np.repeat(extra if lanes is None else extra[lanes], d + 1, axis=0)
             rows = lambda Y: resid_rows(np.concatenate([Y, more], axis=1))  # noqa: E731
         r, J = fd_jacobian(rows, X, lo, hi)
-        J = J * span[None, :, None]  # in coordinates scaled to the bounds
+        J *= span[None, :, None]  # in coordinates scaled to the bounds
         return r, J, np.einsum("pm,pm->p", r, r)
 
     r, J, sse = evaluate(X)
@@ -121,7 +138,7 @@ def lm_batch(resid_rows, X0, lo, hi, iterations, rows_apart=True, extra=None):
     for _ in range(iterations):
         g = np.einsum("pim,pm->pi", J, r)
         held = ((X <= lo + tol) & (g > 0)) | ((X >= hi - tol) & (g < 0))
-        Jf = np.where(held[:, :, None], 0.0, J)
+        Jf = np.where(held[:, :, None], 0.0, J) if held.any() else J
         g = np.where(held, 0.0, g)
         A = np.einsum("pim,pjm->pij", Jf, Jf) + (lam[:, None] + held)[:, :, None] * eye[None]
         with np.errstate(all="ignore"):

@@ -29,7 +29,9 @@ def objective(data, grid=None, points=None, *, k_best=10, dtype="float32", shado
     k_best : int
         How many of the best parameter vectors to return.
     dtype, shadowing, engine, backend, memory_budget, progress
-        As for :func:`pbrdf_cl.grid`.
+        As for :func:`pbrdf_cl.grid`; the measurements' tables run in blocks within ``memory_budget``
+        (on an OpenCL device the same sums as one block's, bit for bit; on the numpy backend the
+        blocks' sums added in float64), and a budget below one measurement's tables is refused.
     return_sse : bool, default True
         Keep the SSE of every parameter vector (False: only the best).
 

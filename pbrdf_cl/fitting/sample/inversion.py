@@ -17,12 +17,13 @@ import numpy as np
 
 from ...compute import pointwise
 from ...io.measurements import as_measurements
-from ..common import dop_noise_floor
+from ..common import dop_noise_floor, one_blas_thread
 from ..setup import F00_REL_STD, MODEL_PARAMS, FitSetup, check_model
 from .polarimetric import fit_channels
 from .result import ComparisonResult, fit_result, fit_status, model_notes
 from .stages import (
     INTENSITY_MAXEVAL,
+    MEMORY_BUDGET,
     Model,
     Residuals,
     grid_stage,
@@ -64,7 +65,7 @@ def distinct_geometries(meas):
 
 
 def fit(data, model="six-param", bounds=None, fixed=None, shadowing="paper", *, grid_shape=None, n_basins=6,
-        engine=None, backend="auto", progress=False):
+        engine=None, backend="auto", progress=False, memory_budget=MEMORY_BUDGET):
     """Fit the model to measured DOP (and F00 where given), or to any polarimetric data: the
     pipeline of stages of ``pbrdf_cl.fitting.sample.stages``.
 
@@ -92,6 +93,10 @@ def fit(data, model="six-param", bounds=None, fixed=None, shadowing="paper", *, 
         As for :func:`pbrdf_cl.dop`.
     progress : bool, default False
         A progress bar for the grid stage.
+    memory_budget : int or str, default "512 MiB"
+        Bytes the grid stage's tables of the measurements may take (with its sums), or a size such
+        as "256 MiB" (:func:`pbrdf_cl.ranges.parse_bytes`): more measurements than fit run block by
+        block, with the same result (``docs/performance.md``).
 
     Returns
     -------
@@ -104,7 +109,9 @@ def fit(data, model="six-param", bounds=None, fixed=None, shadowing="paper", *, 
     ------
     ValueError
         For bad arguments, and for data that cannot determine the free parameters (fewer distinct
-        geometries than free parameters), naming the counts.
+        geometries than free parameters), naming the counts; a :class:`pbrdf_cl.RangeError` for a
+        ``memory_budget`` that is not a size or too small for one measurement's tables (naming the
+        least).
 
     Examples
     --------
@@ -115,9 +122,10 @@ def fit(data, model="six-param", bounds=None, fixed=None, shadowing="paper", *, 
     meas, setup = check_fit_args(data, model, bounds, fixed, shadowing)
     axes = setup.grid_axes(grid_shape_of(model, grid_shape))
     if meas.polarimetric:
-        return fit_channels(meas, setup, axes, n_basins, engine=engine, backend=backend, progress=progress)
+        return fit_channels(meas, setup, axes, n_basins, engine=engine, backend=backend, progress=progress,
+                            memory_budget=memory_budget)
     grid = grid_stage(meas, setup.free, axes, setup.base, shadowing, engine=engine, backend=backend,
-                      progress=progress)
+                      progress=progress, memory_budget=memory_budget)
     return fit_on_grid(meas, setup, grid, n_basins)
 
 
@@ -127,6 +135,7 @@ def grid_shape_of(model, grid_shape=None):
     return {**(SPECULAR_GRID if model == "specular" else DEFAULT_GRID), **(grid_shape or {})}
 
 
+@one_blas_thread
 def fit_on_grid(meas, setup, grid_result, n_basins=6, derivative_free=True):
     """:func:`fit`'s stages after its grid stage: ``meas`` and ``setup`` as :func:`check_fit_args`
     returns them, ``grid_result`` the :class:`~pbrdf_cl.fitting.sample.stages.StageResult` of
@@ -169,12 +178,13 @@ def fit_on_grid(meas, setup, grid_result, n_basins=6, derivative_free=True):
                       model_notes(model, setup.fixed, use_f00, meas))
 
 
-def compare_models(data, shadowing="paper", bounds=None, fixed=None, engine=None, backend="auto", progress=False):
+def compare_models(data, shadowing="paper", bounds=None, fixed=None, engine=None, backend="auto", progress=False,
+                   memory_budget=MEMORY_BUDGET):
     """Fit the six-parameter model and the ref. [7] specular model to the same data and compare them.
 
     Parameters
     ----------
-    data, shadowing, bounds, fixed, engine, backend, progress
+    data, shadowing, bounds, fixed, engine, backend, progress, memory_budget
         As for :func:`fit`; the specular fit takes the bounds and fixed values of n and k only.
 
     Returns
@@ -191,11 +201,11 @@ def compare_models(data, shadowing="paper", bounds=None, fixed=None, engine=None
     """
     meas = as_measurements(data)
     six = fit(meas, "six-param", bounds=bounds, fixed=fixed, shadowing=shadowing, engine=engine, backend=backend,
-              progress=progress)
+              progress=progress, memory_budget=memory_budget)
     spec_fixed = {k: v for k, v in (fixed or {}).items() if k in MODEL_PARAMS["specular"]}
     spec_bounds = {k: v for k, v in (bounds or {}).items() if k in MODEL_PARAMS["specular"]}
     spec = fit(meas, "specular", bounds=spec_bounds, fixed=spec_fixed, shadowing=shadowing, engine=engine,
-               backend=backend, progress=progress)
+               backend=backend, progress=progress, memory_budget=memory_budget)
     rows = ["| model | n | k | free params | SSE | AIC | BIC |", "|---|---|---|---|---|---|---|"]
     for name, r in (("six-param", six), ("specular (ref. [7])", spec)):
         rows.append(f"| {name} | {r.x['n']:.4g} | {r.x['k']:.4g} | {len(r.free)} | {r.sse:.4g} | {r.aic:.2f} | "

@@ -23,8 +23,9 @@ import numpy as np
 
 from ...model import reference
 from ..channels import ChannelModel
+from ..common import one_blas_thread
 from ..setup import F00_REL_STD
-from .stages import finite_rows
+from .stages import MEMORY_BUDGET, finite_rows
 
 #: What the intervals of a polarimetric fit without given uncertainties assume at least: the noise
 #: floor of the DOP (a normalised Stokes parameter or Mueller element is as resolved).
@@ -146,14 +147,16 @@ def channel_residuals(meas, setup):
     return ChannelResiduals(ChannelModel(ch, setup.shadowing), setup.free, setup.base, std)
 
 
+@one_blas_thread
 def fit_channels(meas, setup, axes, n_basins=6, *, engine=None, backend="auto", progress=False, grid_result=None,
-                 derivative_free=True, absolute=True):
+                 derivative_free=True, absolute=True, memory_budget=MEMORY_BUDGET):
     """:func:`pbrdf_cl.fit` of polarimetric measurements ``meas`` (``meas.polarimetric``) with the
     checked ``setup``: the device grid ``axes`` (or its ``grid_result``, computed already: what
     :func:`pbrdf_cl.fit_joint` shares between its joint and separate fits) and the local stages on
     the normalised channels (``derivative_free`` as
     :func:`~pbrdf_cl.fitting.sample.inversion.fit_on_grid`'s), then, with ``absolute``, the intensity
-    stage where absolute channels are measured; the :class:`FitResult`."""
+    stage where absolute channels are measured; the :class:`FitResult`.  ``memory_budget``: the grid
+    stage's (:func:`~pbrdf_cl.fitting.sample.stages.grid_stage`)."""
     from ..common import dop_noise_floor
     from .result import Observed, fit_result, fit_status, model_notes
     from .stages import INTENSITY_MAXEVAL, grid_stage, intensity_stage, local_stages
@@ -162,7 +165,7 @@ def fit_channels(meas, setup, axes, n_basins=6, *, engine=None, backend="auto", 
     every, ch, std, known = normalised_channels(meas, free)
     if grid_result is None:
         grid_result = grid_stage(meas, free, axes, base, setup.shadowing, engine=engine, backend=backend,
-                                 progress=progress, channels=ch)
+                                 progress=progress, channels=ch, memory_budget=memory_budget)
     grid = grid_result.value
     resid = ChannelResiduals(ChannelModel(ch, setup.shadowing), free, base, std)
     rise = 1.0 if known else float(grid.sse.min()) / (len(ch) - len(free))

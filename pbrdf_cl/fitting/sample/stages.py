@@ -32,6 +32,9 @@ LS_MAX_NFEV = 100
 FINAL_BOBYQA = 80
 #: Evaluations (in all, not per parameter) of the intensity stage's BOBYQA run.
 INTENSITY_MAXEVAL = 6000
+#: The default memory budget of the grid stage (``memory_budget`` of :func:`pbrdf_cl.fit`,
+#: ``--memory-budget`` of ``pbrdf-cl fit``): its tables of the measurements, in blocks, and its sums.
+MEMORY_BUDGET = "512 MiB"
 
 
 class Model:
@@ -75,38 +78,54 @@ class Model:
         """DOP for many parameter vectors at once: ``p`` maps names to (B, 1) arrays (or
         scalars); returns (B, M).  The same factors, without the cache.  ``runs``: the parameters
         whose rows come in long runs of one value (held per problem of a batch); a factor whose
-        parameters are all among them (or scalars) is computed once per run (:func:`per_run`)."""
+        parameters are all among them (or scalars) is computed once per run (:func:`per_run`), and
+        of a batch of at least :data:`DISTINCT_VALUES` values (B M), once per distinct row."""
+        return reference.dop(*self.factors(p, runs))
+
+    def factors(self, p, runs=()):
+        """The Fresnel terms, the log specular scale and the diffuse term of parameter rows ``p``,
+        as :meth:`dop_rows` computes them."""
+        rows = max((np.shape(v)[0] for v in p.values() if np.ndim(v)), default=1)
+        many = rows * self.g.cb.size >= DISTINCT_VALUES
+
         def factor(compute, names):
-            if all(n in runs or np.ndim(p[n]) == 0 for n in names) and any(n in runs for n in names):
+            if many or (all(n in runs or np.ndim(p[n]) == 0 for n in names) and any(n in runs for n in names)):
                 return per_run(compute, p, names)
             return compute(p)
-        return reference.dop(factor(self._fresnel, MEMBERS["index"]), factor(self._log_scale, MEMBERS["specular"]),
-                             factor(self._diffuse, MEMBERS["diffuse"]))
+        return (factor(self._fresnel, MEMBERS["index"]), factor(self._log_scale, MEMBERS["specular"]),
+                factor(self._diffuse, MEMBERS["diffuse"]))
 
     def f00(self, p):
         return reference.brdf(*self.parts(p))
 
     def f00_rows(self, p):
         """F00 for many parameter vectors at once, like :meth:`dop_rows`."""
-        return reference.brdf(self._fresnel(p), self._log_scale(p), self._diffuse(p))
+        return reference.brdf(*self.factors(p))
+
+
+#: Batches of parameter rows times measurements from which :meth:`Model.dop_rows` computes each
+#: factor once per distinct row (the finite-difference steps move one parameter at a time).
+DISTINCT_VALUES = 1 << 16
+#: Residuals (parameter rows times measurements) :meth:`Residuals.rows` computes at once: of a big
+#: data set a few rows at a time, so that the model's temporaries (a dozen arrays) take ~16 MiB each.
+ROWS_VALUES = 1 << 21
 
 
 def per_run(compute, p, names):
     """``compute(p)`` for parameter rows ``p`` (name -> (B, 1) array or scalar) that depends only
-    on the parameters ``names``, computed once per run of consecutive rows whose values of
-    ``names`` are the same bits and spread back: ``compute(p)``'s result bit for bit.  A result
-    with fields (the Fresnel terms) is spread field by field."""
+    on the parameters ``names``, computed once per distinct row of their values (the same bits:
+    runs of consecutive rows, or rows apart) and spread back: ``compute(p)``'s result bit for bit.
+    A result with fields (the Fresnel terms) is spread field by field."""
     cols = [np.asarray(p[n], dtype=np.float64) for n in names]
     rows = max((c.shape[0] for c in cols if c.ndim), default=0)
     if rows < 2:
         return compute(p)
     key = np.concatenate([np.broadcast_to(c.reshape(-1, 1) if c.ndim else c, (rows, 1)) for c in cols], axis=1)
     bits = np.ascontiguousarray(key).view(np.int64)
-    starts = np.concatenate([[True], np.any(bits[1:] != bits[:-1], axis=1)])
-    if starts.all():
+    _, first, inverse = np.unique(bits, axis=0, return_index=True, return_inverse=True)
+    if first.size == rows:
         return compute(p)
-    first = np.flatnonzero(starts)
-    inverse = np.cumsum(starts) - 1
+    inverse = inverse.reshape(-1)
     out = compute({**p, **{n: key[first, j:j + 1] for j, n in enumerate(names)}})
     if isinstance(out, np.ndarray):
         return out[inverse]
@@ -283,6 +302,19 @@ class Residuals:
         return finite_rows((self.model.dop_rows(p, runs=runs) - self.dop) / self.dop_std)
 
     def rows(self, X):
+        per = max(1, ROWS_VALUES // self.dop.size)
+        if len(X) <= per:
+            return self.rows_of(X)
+        out = None
+        for a in range(0, len(X), per):  # a big data set: a few rows at a time, into one array
+            r = self.rows_of(X[a:a + per])
+            if out is None:
+                out = np.empty((len(X), r.shape[1]))
+            out[a:a + len(r)] = r
+        return out
+
+    def rows_of(self, X):
+        """:meth:`rows` at once."""
         p = self._with((n, X[:, j:j + 1]) for j, n in enumerate(self.free))
         r = (self.model.dop_rows(p) - self.dop) / self.dop_std
         if self.f00 is not None:
@@ -336,17 +368,18 @@ def run_stage(resid_rows, jobs):
 
 
 def grid_stage(meas, free, axes, base, shadowing="paper", *, engine=None, backend="auto", progress=False,
-               channels=None):
+               channels=None, memory_budget=MEMORY_BUDGET):
     """(a) The objective on the grid ``axes`` (name -> nodes, one per free parameter) with the
     other parameters at ``base``, on the OpenCL device (float32), and its profiles: of the DOP of
-    ``meas``, or of polarimetric ``channels`` (:class:`~pbrdf_cl.model.measurables.Channels`)."""
+    ``meas``, or of polarimetric ``channels`` (:class:`~pbrdf_cl.model.measurables.Channels`); the
+    measurements' tables in blocks within ``memory_budget`` (:func:`pbrdf_cl.objective`'s)."""
     import warnings
     t0 = time.perf_counter()
     with warnings.catch_warnings():  # fit's argument check gives the radians warning, once
         warnings.simplefilter("ignore", pointwise.UnitsWarning)
         obj = dense.objective(meas if channels is None else channels, grid={**base, **axes}, k_best=1,
                               dtype="float32", shadowing=shadowing, engine=engine, backend=backend,
-                              progress=progress)
+                              progress=progress, memory_budget=memory_budget)
     sse = obj.sse.transpose(*free).values
     profiles = basins.grid_profiles(sse, free)
     return StageResult(GridStage(sse, axes, profiles), int(sse.size), time.perf_counter() - t0)

@@ -35,7 +35,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ...io.measurements import split_sets
-from ..common import dop_noise_floor
+from ..common import dop_noise_floor, one_blas_thread
 from ..sample import basins
 from ..sample.inversion import check_fit_args, fit_on_grid, grid_shape_of
 from ..sample.polarimetric import channel_residuals, fit_channels, normalised_channels
@@ -43,6 +43,7 @@ from ..sample.result import fit_status
 from ..sample.stages import (
     FINAL_BOBYQA,
     LS_POLISH,
+    MEMORY_BUDGET,
     SCREEN_ITERATIONS,
     GridStage,
     Model,
@@ -151,12 +152,12 @@ def stds_given(meas, setup):
     return normalised_channels(meas, setup.free)[3] if meas.polarimetric else meas.dop_std is not None
 
 
-def set_grid(meas, setup, part, axes, shadowing, engine, backend, progress):
+def set_grid(meas, setup, part, axes, shadowing, engine, backend, progress, memory_budget=MEMORY_BUDGET):
     """:func:`~pbrdf_cl.fitting.sample.stages.grid_stage` of one set: its DOP, or the normalised
     channels its residuals ``part`` fit."""
     ch = part.model.ch if meas.polarimetric else None
     return grid_stage(meas, setup.free, axes, setup.base, shadowing, engine=engine, backend=backend,
-                      progress=progress, channels=ch)
+                      progress=progress, channels=ch, memory_budget=memory_budget)
 
 
 def separate_fit(meas, setup, grid_result, n_basins):
@@ -366,8 +367,10 @@ def _local_stages(setup, resid, grids, points, own):
     return cands, final_ran, st
 
 
+@one_blas_thread
 def fit_joint(sets, shared=None, model="six-param", bounds=None, fixed=None, shadowing="paper", *,
-              set_column=None, grid_shape=None, n_basins=6, engine=None, backend="auto", progress=False):
+              set_column=None, grid_shape=None, n_basins=6, engine=None, backend="auto", progress=False,
+              memory_budget=MEMORY_BUDGET):
     """Fit the model to several data sets at once, some parameters shared by every set.
 
     Parameters
@@ -391,7 +394,7 @@ def fit_joint(sets, shared=None, model="six-param", bounds=None, fixed=None, sha
         parameter has one bounds for all, and is held in every set at one value or in none.
     set_column : str, optional
         The column naming the sets when ``sets`` is one table (e.g. ``"wavelength"``).
-    grid_shape, n_basins, engine, backend, progress
+    grid_shape, n_basins, engine, backend, progress, memory_budget
         As for :func:`pbrdf_cl.fit` (each set's grid stage, and its separate fit's basins).
 
     Returns
@@ -421,7 +424,7 @@ def fit_joint(sets, shared=None, model="six-param", bounds=None, fixed=None, sha
     shape = grid_shape_of(model, grid_shape)
     resid = JointResiduals(setup)
     grid_results = {s: set_grid(setup.meas[s], setup.setups[s], part, setup.setups[s].grid_axes(shape), shadowing,
-                                engine, backend, progress) for s, part in zip(setup.names, resid.parts)}
+                                engine, backend, progress, memory_budget) for s, part in zip(setup.names, resid.parts)}
     grids = {s: g.value for s, g in grid_results.items()}
     t_sep = time.perf_counter()
     separate = {s: separate_fit(setup.meas[s], setup.setups[s], grid_results[s], n_basins) for s in setup.names}
