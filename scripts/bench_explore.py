@@ -188,7 +188,7 @@ def main(argv=None):
         report("idle server", *run(driver, handle, args.presses, keys))
         for label in ("Sobol' map around this set", "Fit"):
             if label == "Fit":
-                drive.deep_find(driver, "input[type=file]")[0].send_keys(
+                drive.file_input(driver).send_keys(
                     str(Path(__file__).resolve().parents[1] / "examples" / "steel_435nm.csv"))
                 drive.wait(lambda: drive.source_data(driver, "data_points")["x"], 60, what="the measurements")
             t0 = time.time()
