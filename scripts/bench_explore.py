@@ -13,6 +13,15 @@ the same while a Sobol' map and a fit run in the background, to see that the sli
 
 Prints the latencies (median, 90th percentile, max) and the server's own compute time per update
 (the page's "views updated in ... ms" line).  Not a test: the numbers depend on the machine's load.
+
+    python scripts/bench_explore.py --loads 500 [--client bokeh|browser] [--every 50]
+
+The server's memory over many pages (issue #39: a server that stays up for a day): opens the page
+and closes it ``--loads`` times, one after the other, and prints the server's RSS every ``--every``
+loads, then once the closed pages' sessions have had time to be released.  ``--client bokeh``
+(default) opens each page as BokehJS does, over the websocket (``bokeh.client.pull_session``: the
+server creates the session and sends the whole document, then the connection closes); ``browser``
+loads it in headless chromium and leaves it for ``about:blank`` (slower: the browser's own work).
 """
 from __future__ import annotations
 
@@ -111,13 +120,62 @@ def report(label, lat, srv):
              if np.isfinite(srv).any() else ""))
 
 
+def rss_mb(pid):
+    """The resident memory of process ``pid`` in MB (Linux: /proc/PID/status)."""
+    with open(f"/proc/{pid}/status") as fh:
+        for line in fh:
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+    return float("nan")
+
+
+def page_loads(loads, every, client, device=None, settle=60.0):
+    """Open and close the page ``loads`` times on one server; print its RSS every ``every`` loads
+    and after ``settle`` seconds without pages."""
+    proc, url = drive.start_server(extra=["--device", device] if device else ())
+    driver = None
+    try:
+        if client == "browser":
+            driver = drive.open_browser()
+        else:
+            from bokeh.client import pull_session
+
+            from pbrdf_cl.app import upload  # noqa: F401 - its and Panel's models: the pulled document holds them
+        print(f"page {url}, {loads} loads through {client}; server RSS at start {rss_mb(proc.pid):.0f} MB",
+              flush=True)
+        t0 = time.time()
+        for i in range(1, loads + 1):
+            if driver is not None:
+                driver.get(url)
+                drive.wait_loaded(driver)
+                driver.get("about:blank")  # the page closes: its websocket with it
+            else:
+                pull_session(url=url).close()
+            if i % every == 0 or i == loads:
+                print(f"  {i:4d} loads: RSS {rss_mb(proc.pid):6.0f} MB  ({time.time() - t0:.0f} s)", flush=True)
+        time.sleep(settle)
+        print(f"  {settle:.0f} s after the last page closed: RSS {rss_mb(proc.pid):.0f} MB", flush=True)
+    finally:
+        if driver is not None:
+            driver.quit()
+        drive.stop_server(proc)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--loads", type=int, default=0,
+                    help="open and close the page this many times and print the server's RSS (no latencies)")
+    ap.add_argument("--every", type=int, default=50, help="with --loads: print the RSS every this many loads")
+    ap.add_argument("--client", choices=("bokeh", "browser"), default="bokeh",
+                    help="with --loads: open the pages over Bokeh's websocket client, or in chromium")
     ap.add_argument("--presses", type=int, default=40)
     ap.add_argument("--quantity", default="dop", help="dop, aop (the DOP map with AoP ticks), brdf, s0, s1, s2")
     ap.add_argument("--sets", type=int, default=1, help="parameter sets shown (1-4)")
     ap.add_argument("--device", help="the server's --device")
     args = ap.parse_args(argv)
+    if args.loads:
+        page_loads(args.loads, args.every, args.client, args.device)
+        return
     from selenium.webdriver.common.keys import Keys
     with drive.session(extra=["--device", args.device] if args.device else ()) as (driver, url):
         show = "ABCD"[:max(1, min(4, args.sets))]
@@ -130,7 +188,7 @@ def main(argv=None):
         report("idle server", *run(driver, handle, args.presses, keys))
         for label in ("Sobol' map around this set", "Fit"):
             if label == "Fit":
-                drive.deep_find(driver, "input[type=file]")[0].send_keys(
+                drive.file_input(driver).send_keys(
                     str(Path(__file__).resolve().parents[1] / "examples" / "steel_435nm.csv"))
                 drive.wait(lambda: drive.source_data(driver, "data_points")["x"], 60, what="the measurements")
             t0 = time.time()

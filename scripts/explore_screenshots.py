@@ -34,7 +34,7 @@ def shot(driver, url, path, actions=()):
 
 
 def load_and_fit(driver, csv="steel_435nm.csv"):
-    drive.deep_find(driver, "input[type=file]")[0].send_keys(str(ROOT / "examples" / csv))
+    drive.file_input(driver).send_keys(str(ROOT / "examples" / csv))
     drive.wait(lambda: drive.source_data(driver, "data_points")["x"], 60, what="the measurements")
     drive.button(driver, "Fit").click()
     drive.wait(lambda: drive.source_data(driver, "fit_table")["value"], 120, what="the fit")

@@ -497,7 +497,7 @@ def test_in_the_browser_slider_fit_and_url(browser, tmp_path):
         return q if "A" in q and abs(float(q["A"].split(",")[0]) - n) < 1e-6 else None
     drive.wait(query, 30, what="the URL holding the new n")
 
-    upload = drive.deep_find(driver, "input[type=file]")[0]
+    upload = drive.file_input(driver)
     bad = tmp_path / "steel_bad.csv"
     bad.write_text("theta_i,theta_r,dop\n30,20,0.05\n30,x,0.1\n")
     upload.send_keys(str(bad))
@@ -563,7 +563,7 @@ def test_in_the_browser_bad_input_is_said_and_undone(browser, tmp_path):
     drive.wait(lambda: _slider_values(driver)[1] == 8.4e-07, 30, what="k = 8.4e-07 on its slider")
     assert k.get_attribute("value") == "8.4e-7"
 
-    upload = drive.deep_find(driver, "input[type=file]")[0]
+    upload = drive.file_input(driver)
     empty, radians = tmp_path / "empty.csv", tmp_path / "radians.csv"
     empty.write_text("")
     radians.write_text("theta_i,theta_r,dop\n0.5,0.3,0.1\n0.5,0.6,0.2\n0.7,0.9,0.3\n")
@@ -724,7 +724,7 @@ def test_in_the_browser_a_camera_csv_is_shown_and_fitted(browser):
     driver, url = browser
     driver.get(url)
     drive.wait_loaded(driver)
-    drive.deep_find(driver, "input[type=file]")[0].send_keys(str(CAMERA))
+    drive.file_input(driver).send_keys(str(CAMERA))
     y = drive.wait(lambda: drive.source_data(driver, "data_points")["y"], 60, what="the camera's points")
     assert np.array_equal(y, pbrdf_cl.read_csv(CAMERA).quantities["s1"])
     drive.button(driver, "Fit").click()
@@ -738,3 +738,123 @@ def test_in_the_browser_a_camera_csv_is_shown_and_fitted(browser):
     query = drive.wait(lambda: (lambda q: q if q.get("inc") else None)(
         {k: v[0] for k, v in parse_qs(urlparse(driver.current_url).query).items()}), 30, what="the URL's source")
     assert query["q"] == "s1n" and query["inc"] == "0,1,0"
+
+
+@pytest.fixture
+def in_process_server():
+    """The explorer's server (``app.server.make_server``, its own settings) on a free port, run
+    in a thread of this process: yields the Bokeh server."""
+    pytest.importorskip("panel", reason="the explore extra (panel) is not installed")
+    import asyncio
+    import threading
+
+    from pbrdf_cl.app.server import make_server
+    box, ready = {}, threading.Event()
+
+    def run():
+        asyncio.set_event_loop(asyncio.new_event_loop())
+        try:
+            box["server"] = make_server(0)
+            box["server"].start()
+        finally:
+            ready.set()
+        box["server"].io_loop.start()
+    thread = threading.Thread(target=run, daemon=True)
+    thread.start()
+    assert ready.wait(120) and "server" in box, "the explorer's server did not start"
+    server = box["server"]
+    yield server
+    server.io_loop.add_callback(server.stop)
+    server.io_loop.add_callback(server.io_loop.stop)
+    thread.join(30)
+
+
+def _live_explorers():
+    import gc
+
+    from pbrdf_cl.app.page import Explorer
+    gc.collect()
+    return sum(isinstance(o, Explorer) for o in gc.get_objects())
+
+
+def test_closed_pages_sessions_are_released(in_process_server):
+    """Pages opened and closed one after another (over the websocket, as BokehJS opens them): each
+    session is released soon after its page closes (issue #39: a server up for a day grew by
+    ~5 MB a page), its page leaves the registry of live pages and no Explorer is left behind."""
+    import time
+
+    from bokeh.client import pull_session
+
+    from pbrdf_cl.app import upload  # noqa: F401 - its and Panel's models: the pulled document holds them
+    server = in_process_server
+    url = f"http://localhost:{server.port}/explore"
+    before = _live_explorers()
+    seen = 0
+    for _ in range(6):
+        session = pull_session(url=url)
+        seen = max(seen, len(st.PAGES))
+        assert session.document.roots, "the page's document came"
+        session.close()
+    assert seen >= 1 and len(server.get_sessions("/explore")) >= 1  # each load made a served page
+    t0 = time.time()
+    limit = 12.0  # s: Bokeh's own defaults keep a closed page's session 15 to 32 s
+    while (st.PAGES or server.get_sessions("/explore")) and time.time() - t0 < limit:
+        time.sleep(0.2)
+    assert not server.get_sessions("/explore") and not st.PAGES, (
+        f"{len(server.get_sessions('/explore'))} sessions, {len(st.PAGES)} pages still live "
+        f"{time.time() - t0:.1f} s after the last page closed")
+    assert _live_explorers() <= before  # nothing holds a closed page's Explorer
+
+
+def test_server_takes_every_upload_the_page_takes(in_process_server):
+    """The websocket's limit is set, above the base64 message of the largest file the page takes."""
+    from pbrdf_cl.app.upload import MAX_UPLOAD
+    limit = in_process_server._tornado.settings["websocket_max_message_size"]
+    assert limit >= 4 * MAX_UPLOAD // 3 + 2**20
+
+
+def test_upload_above_the_limit_is_one_line_and_the_page_stays(tmp_path):
+    """Without a browser: a file above the page's limit (the browser sends only its name and size)
+    is one red line naming it and the limit, nothing loaded; a file within it loads as before."""
+    pytest.importorskip("panel", reason="the explore extra (panel) is not installed")
+    import base64
+
+    from pbrdf_cl.app.upload import MAX_UPLOAD
+    ex = pbrdf_cl.explore().explorer
+    ex.upload.receive({"name": "big.csv", "size": 31 * 10**6})
+    assert ('">error: big.csv is 29.6 MiB, above the page\'s upload limit of 16 MiB; nothing was sent: start the '
+            'explorer with --data big.csv (read on the server), or fit it with pbrdf-cl fit</span>') in _red(ex.status)
+    assert MAX_UPLOAD == 16 * 2**20 and ex.meas is None and "upload limit" in _red(ex.data_info)
+    data = EXAMPLE.read_bytes()
+    ex.upload.receive({"name": "steel.csv", "size": len(data), "data": base64.b64encode(data).decode()})
+    assert ex.meas is not None and len(ex.meas) == len(pbrdf_cl.read_csv(EXAMPLE))
+    ex.meas = None
+    ex.upload.receive({"name": "steel.csv", "size": len(data), "data": base64.b64encode(data).decode()})
+    assert ex.meas is not None  # the same file again: read again
+    ex.upload.receive({"name": "empty.csv", "size": 0, "data": ""})
+    assert "error: empty.csv: empty file (no header line)" in _red(ex.status)
+
+
+def test_in_the_browser_an_upload_above_the_limit_is_refused_and_the_page_lives(browser, tmp_path):
+    """In the page: a 31 MB file (above the limit; it used to close the page's connection, the
+    page dead) is one red line saying the limit, and the page stays live: a slider still moves the
+    curves and a good file still loads."""
+    from selenium.webdriver.common.keys import Keys
+
+    from pbrdf_cl.app import drive
+    driver, url = browser
+    driver.get(url)
+    before = drive.wait_loaded(driver)
+    big = tmp_path / "big.csv"
+    with open(big, "wb") as fh:
+        fh.write(EXAMPLE.read_bytes())
+        fh.truncate(31 * 10**6)
+    drive.file_input(driver).send_keys(str(big))
+    line = drive.wait(lambda: _said(driver, "error: big.csv is 29.6 MiB, above the page's upload limit of 16 MiB"),
+                      60, what="the big file's refusal")
+    assert "nothing was sent" in line
+    drive.deep_find(driver, ".noUi-handle")[0].send_keys(Keys.ARROW_RIGHT)
+    drive.wait(lambda: drive.source_data(driver, "curve_A")["ys"] != before["ys"], 60,
+               what="the curves following the slider after the refusal")
+    drive.file_input(driver).send_keys(str(EXAMPLE))
+    drive.wait(lambda: drive.source_data(driver, "data_points")["x"], 60, what="the measurements")

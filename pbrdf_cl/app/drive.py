@@ -142,6 +142,12 @@ def wait_loaded(driver, timeout=120):
     return wait(ready, timeout, what="the explorer's curves")
 
 
+def file_input(driver, timeout=60):
+    """The page's file input (the measurements' *Choose File*), once the browser has drawn it: it
+    comes after the curves (its component's module loads in the browser first)."""
+    return wait(lambda: deep_find(driver, "input[type=file]"), timeout, what="the file input")[0]
+
+
 def button(driver, text):
     """The button whose label is ``text``."""
     for b in deep_find(driver, "button"):

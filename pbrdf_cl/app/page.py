@@ -36,6 +36,7 @@ from ..plots.explorer import plot_view
 from . import state as st
 from .entries import NumberEntry
 from .figures import Figures
+from .upload import MAX_UPLOAD, Upload, upload_refusal
 
 #: Background jobs (fit, Sobol', design) of every session: one at a time per server, in a thread.
 POOL = ThreadPoolExecutor(max_workers=1, thread_name_prefix="pbrdf-explore")
@@ -110,6 +111,10 @@ class Explorer:
         self.state = st.from_query(query, self.refused) if query else st.State()
         self.figs = Figures()
         self.doc = pn.state.curdoc  # the session's document: background results are drawn under its lock
+        self.closed = False
+        if self.doc is not None and self.doc.session_context is not None:  # served: released with the session
+            st.PAGES.add(self.doc.session_context.id)
+            pn.state.on_session_destroyed(self._session_destroyed)
         self._widgets()
         self.layout = self._layout()
         self.refresh()
@@ -162,7 +167,7 @@ class Explorer:
         self._export_widgets()
 
     def _data_widgets(self):
-        self.upload = pn.widgets.FileInput(accept=".csv,.txt,.tsv", width=260)
+        self.upload = Upload(self._refuse_upload, accept=".csv,.txt,.tsv", limit=MAX_UPLOAD, width=260, height=30)
         self.upload.param.watch(self._on_upload, ["value", "filename"])  # an empty file changes only the name
         self.data_info = pn.pane.HTML("no measurements loaded", width=420)
         self.fit_button = pn.widgets.Button(label="Fit", color="primary", width=120, disabled=True)
@@ -451,6 +456,12 @@ class Explorer:
             self._quiet = False
         self.refresh()
 
+    def _refuse_upload(self, name, size):
+        """A file above the upload limit (not sent by the browser): one line, as a bad file's."""
+        line = one_line(upload_refusal(os.path.basename(name), size, self.upload.limit))
+        self.data_info.object = f'<span style="color:#b00020">{html.escape(line, quote=False)}</span>'
+        self.say(line, error=True)
+
     def _on_upload(self, *events):
         if self.upload.filename is None:
             return
@@ -465,10 +476,23 @@ class Explorer:
         """Call ``fn(*args)`` with the document's lock (next tick) in a served session, else now:
         the figures' Bokeh sources may change only under it."""
         doc = self.doc
+        if self.closed:  # the page has closed: nothing to draw into
+            return
         if doc is not None and doc.session_context is not None:
             doc.add_next_tick_callback(lambda: fn(*args))
         else:
             fn(*args)
+
+    def _session_destroyed(self, session_context):
+        st.PAGES.discard(session_context.id)
+        self.close()
+
+    def close(self):
+        """Let go of what the page holds (its data, results and upload): its session has ended.  A
+        background job still running finishes, and its result is dropped."""
+        self.closed = True
+        self.meas, self.fit_result, self.sobol_ds, self.design_result = None, None, None, None
+        self.upload.param.update(filename=None, value=None)
 
     async def _background(self, button, label, job, *args):
         """Run ``job(*args)`` in the background thread with the progress bar shown; returns its

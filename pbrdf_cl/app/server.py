@@ -7,6 +7,13 @@ import errno
 from ..errors import CommandError
 from . import require_panel
 
+#: A session whose page has closed (or that no page has connected to yet) is released once it has
+#: been unused this long (ms): long enough for a slow browser to connect to the page it loaded;
+#: a session released before its page connected is made again when it does.
+SESSION_LINGER_MS = 5000
+#: How often the server looks for such sessions (ms).
+SESSION_CHECK_MS = 1000
+
 
 def _query_args():
     """The page's URL query (name -> str) in a served session, else {}."""
@@ -75,6 +82,34 @@ def bind_error(exc, address, port):
     return f"cannot listen on {address}{f':{port}' if port else ''}: {why}; check --address and --port"
 
 
+def make_server(port=0, data=None, engine=None, address="localhost", linger_ms=SESSION_LINGER_MS,
+                check_ms=SESSION_CHECK_MS):
+    """The explorer's Bokeh server, bound to ``address:port`` and not started (``start()`` it on
+    the current IO loop): one page per session at ``/explore``, only its own origins allowed,
+    a closed page's session released ``linger_ms`` after its page closed (looked for every
+    ``check_ms``), websocket messages up to :data:`.upload.MESSAGE_LIMIT` bytes.  The arguments
+    as :func:`serve`'s; raises :class:`pbrdf_cl.CommandError` in one line when the port cannot
+    be had."""
+    require_panel()
+    import panel as pn
+
+    from .upload import MESSAGE_LIMIT
+    pn.extension()
+
+    def page():
+        return explore_app(data, engine=engine)
+    try:  # binds the port now
+        server = pn.serve({"explore": page}, port=port, address=address, show=False, start=False,
+                          title="pbrdf-cl explore", websocket_origin=origins(address, port) if port else None,
+                          websocket_max_message_size=MESSAGE_LIMIT, unused_session_lifetime_milliseconds=linger_ms,
+                          check_unused_sessions_milliseconds=check_ms)
+    except OSError as exc:
+        raise CommandError(bind_error(exc, address, port)) from None
+    if not port:  # the free port bound, known only now
+        allow_only(server, origins(address, server.port))
+    return server
+
+
 def serve(port=0, data=None, open_browser=True, engine=None, address="localhost"):
     """Serve the explorer on ``address:port`` until interrupted (one page per browser session,
     every session sharing ``engine``).
@@ -105,26 +140,16 @@ def serve(port=0, data=None, open_browser=True, engine=None, address="localhost"
     Notes
     -----
     Only pages served from ``address``, ``localhost`` or ``127.0.0.1`` at the port bound (the
-    free one found for ``port=0``) may connect to the server.
+    free one found for ``port=0``) may connect to the server.  A page's session, and what it
+    holds, is released :data:`SESSION_LINGER_MS` after the page closes; a file above
+    :data:`pbrdf_cl.app.upload.MAX_UPLOAD` bytes is refused by the page before it is sent.
 
     Examples
     --------
     >>> from pbrdf_cl.app.server import serve
     >>> serve(5006, open_browser=False)                         # doctest: +SKIP
     """
-    require_panel()
-    import panel as pn
-    pn.extension()
-
-    def page():
-        return explore_app(data, engine=engine)
-    try:  # binds the port now (the server starts below)
-        server = pn.serve({"explore": page}, port=port, address=address, show=False, start=False,
-                          title="pbrdf-cl explore", websocket_origin=origins(address, port) if port else None)
-    except OSError as exc:
-        raise CommandError(bind_error(exc, address, port)) from None
-    if not port:  # the free port bound, known only now
-        allow_only(server, origins(address, server.port))
+    server = make_server(port, data, engine, address)
     server.start()
     url = f"http://{address}:{server.port}/explore"
     print(f"pbrdf-cl explore: serving {url} (Ctrl-C stops it)", flush=True)

@@ -56,6 +56,9 @@ MAP_KINDS = ("incidence", "hemisphere")
 THETA_MAX = 89.0  # the views' largest zenith angle (the model's domain is [0, 90))
 PHI_LIMITS = (0.0, 359.5)  # the curves' azimuth (deg): the slider's range
 DIGITS = 6  # the significant digits of the numbers the page prints (the values keep all of theirs)
+#: The Bokeh session ids of the served pages alive: a page adds its own when made, and its session's
+#: end removes it (a closed page's session ends once the server has seen it unused for a while).
+PAGES = set()
 
 
 def number_text(value):
