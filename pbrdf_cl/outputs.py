@@ -20,6 +20,10 @@ def check_output(option, path, folder=False):
     target = Path(path) if folder else (Path(path).parent if str(Path(path).parent) else Path("."))
     if target.exists() and not target.is_dir():
         raise CommandError(f"{option} {path}: {target} is a file, not a folder; choose another {option}")
+    above = next((a for a in target.parents if a.exists()), None)
+    if not target.exists() and above is not None and not above.is_dir():
+        raise CommandError(f"{option} {path}: cannot write into {target} ({above} is a file, not a folder); "
+                           f"choose a writable {option}")
     if not folder and not target.exists():
         raise CommandError(f"{option} {path}: the folder {target} does not exist; create it first or choose "
                            f"another {option}")

@@ -292,5 +292,5 @@ def test_bounds_and_fixed_values_follow_the_api_domain_rules():
         pbrdf_cl.fit(data, bounds=dict(n=(0, 2)))
     with pytest.raises(ValueError, match=r"^fixed: k = -1.0 is outside the model's domain \(k must be >= 0\)$"):
         pbrdf_cl.fit(data, fixed=dict(k=-1))
-    with pytest.raises(ValueError, match=r"^fixed: c = inf is outside the model's domain \(c must be finite\)$"):
+    with pytest.raises(ValueError, match=r"^fixed: c = inf is outside the model's domain \(c must be in \[-1, 0\]\)$"):
         pbrdf_cl.fit(data, fixed=dict(c=float("inf")))

@@ -973,7 +973,7 @@ def design(params, candidates=None, noise=0.005, n_measurements=30, target=("n",
     memory_budget : int or str, default "1 GiB"
         The memory the design may take (bytes, or a size such as "4 GiB"): the Jacobians and the
         search over every candidate are held at once, about 2 KiB per candidate and material
-        (:func:`design_bytes`); more candidates are refused before any work.
+        (``design_bytes``); more candidates are refused before any work.
 
     Returns
     -------

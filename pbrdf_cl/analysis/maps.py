@@ -60,7 +60,7 @@ def make_map(x, y, fixed=None, quantity="dop", derivative=None, *, dtype="float6
         at a bound of the model's domain (``stencil``), in float64 (where the device has it)
     dtype, shadowing, engine, backend : as for :func:`pbrdf_cl.grid` (dtype defaults to float64 here)
     memory_budget : int or str, default "1 GiB"
-        The memory the map may take (its arrays and its figure, :func:`map_bytes`: about 144 bytes a
+        The memory the map may take (its arrays and its figure, ``map_bytes``: about 144 bytes a
         point, 400 with a derivative); a larger map is refused before any work.
 
     Returns

@@ -369,7 +369,7 @@ def grid(axes, fixed=None, quantity="dop", dtype="float32", shadowing="paper", *
     progress : bool, default False
         A progress bar (tqdm) when the grid takes more than a second.
     allow_large : bool, default False
-        Return a result larger than :data:`pbrdf_cl.sizes.LARGE_RESULT` (2 GiB); without it such a
+        Return a result larger than ``pbrdf_cl.sizes.LARGE_RESULT`` (2 GiB); without it such a
         grid is refused before any work (:func:`reduce_grid` and ``pbrdf-cl sweep`` run in chunks).
         A result larger than the available memory is refused either way.
 

@@ -533,7 +533,7 @@ def write_store(job, store, *, progress=False, engine=None, backend="auto", devi
     resumed on another device is allowed and said in one warning line: it mixes both devices'
     last bits (``_sweep/device`` records each block's, ``attrs["store_devices"]`` and
     ``attrs["batch_devices"]`` list them).  The run holds the store's lock
-    (:mod:`pbrdf_cl.store.lock`; a second run is refused).
+    (``pbrdf_cl.store.lock``; a second run is refused).
 
     Memory: one block in flight per engine, sized by ``memory_budget``: the input is read a block
     of rows at a time (with the chunks of a lazy stack that hold them), the outputs written a
