@@ -85,15 +85,7 @@ def _grid_opencl(eng, setup, blk, order, rstart):
     best = np.empty((R, P), npdt)
     arg = np.empty((R, P), npdt)
     bbest, barg = eng.empty(best.nbytes), eng.empty(arg.nbytes)
-    nnk, nm, ni = v["n"].size * v["k"].size, v["sigma"].size * v["ks"].size, v["kd"].size * v["c"].size
-    ng = M * P
-    if ng * max(nnk, nm, ni) >= 2 ** 31:
-        raise ValueError("internal: a block of pixels too large for 32-bit table indices")
-    tab = eng.program("pbrdf_tables.cl", dtype, {"PBRDF_SHADOWING": shadow})
-    geo = [eng.to_device(blk.pixel_major(a, np.float64), npdt) for a in blk.angles]
-
-    def table(kname, outs, p1, p2, *extra):
-        return factor_table(eng, tab, kname, outs, geo, ng, p1, p2, npdt, *extra, parameter_major=True)
+    table, (nnk, nm, ni) = _pixel_tables(eng, blk, v, M * P, shadow, dtype)
     s_, d_ = table("fresnel_table", 2, v["n"], v["k"])
     sc, = table("scale_table", 1, v["sigma"], v["ks"], npdt(-1))
     fd, = table("diffuse_table", 1, v["kd"], v["c"], npdt(2))
@@ -350,13 +342,13 @@ def _channel_minima_opencl(eng, blk, T, rstart, dtype):
     return best[:, :blk.p].astype(float), arg[:, :blk.p].astype(np.int64)
 
 
-def _channel_factors_opencl(eng, setup, blk, v, order, rstart, dtype):
-    """(best, arg) of channels with per-pixel geometry or states: the channel, 1/K and fd tables of
-    ``pbrdf_tables.cl`` over the list c * P + p, combined per pixel (``batch_grid_channel_factors``)."""
+def _pixel_tables(eng, blk, v, ng, shadow, dtype):
+    """The factor tables of ``pbrdf_tables.cl`` over a block's per-pixel geometry list of ``ng``
+    entries (measurements or channels, times P), parameter-major: (``table(kernel, outputs, p1,
+    p2, *extra)``, which launches one (:func:`pbrdf_cl.compute.tables.factor_table`), and the
+    tables' sizes (n k, sigma ks, kd c) for the combining kernel's build); refuses a block whose
+    tables outgrow 32-bit indices."""
     npdt = DTYPES[dtype]
-    shadow = reference.SHADOWING[setup.shadowing]
-    R, P, C, sp = rstart.size - 1, blk.P, blk.valid.shape[1], blk.spec
-    ng = C * P
     nnk, nm, ni = v["n"].size * v["k"].size, v["sigma"].size * v["ks"].size, v["kd"].size * v["c"].size
     if ng * max(nnk, nm, ni) >= 2 ** 31:
         raise ValueError("internal: a block of pixels too large for 32-bit table indices")
@@ -365,6 +357,16 @@ def _channel_factors_opencl(eng, setup, blk, v, order, rstart, dtype):
 
     def table(kname, outs, p1, p2, *extra):
         return factor_table(eng, tab, kname, outs, geo, ng, p1, p2, npdt, *extra, parameter_major=True)
+    return table, (nnk, nm, ni)
+
+
+def _channel_factors_opencl(eng, setup, blk, v, order, rstart, dtype):
+    """(best, arg) of channels with per-pixel geometry or states: the channel, 1/K and fd tables of
+    ``pbrdf_tables.cl`` over the list c * P + p, combined per pixel (``batch_grid_channel_factors``)."""
+    npdt = DTYPES[dtype]
+    shadow = reference.SHADOWING[setup.shadowing]
+    R, P, C, sp = rstart.size - 1, blk.P, blk.valid.shape[1], blk.spec
+    table, (nnk, nm, ni) = _pixel_tables(eng, blk, v, C * P, shadow, dtype)
     vec = [np.ascontiguousarray(np.stack([blk.pixel_major(a[..., j], np.float64) for j in range(4)], axis=-1))
            for a in (sp.u, sp.v)]  # (C, P, 4): channel c * P + p's vector
     kinds = [np.repeat(a[0], P).astype(np.int32) for a in (sp.comp, sp.kind)]
