@@ -48,6 +48,13 @@ class Model:
         self.variant = reference.SHADOWING[shadowing]
         self._cache = {}
 
+    def with_geometry(self, g):
+        """This model (its shadowing variant) at the geometry ``g`` (the fields of
+        :func:`~pbrdf_cl.model.reference.geometry`, of any shapes that broadcast), with its own cache."""
+        other = copy.copy(self)
+        other.g, other._cache = g, {}
+        return other
+
     def _factor(self, name, key, compute):
         hit = self._cache.get(name)
         if hit is None or hit[0] != key:
@@ -84,7 +91,10 @@ class Model:
 
     def factors(self, p, runs=()):
         """The Fresnel terms, the log specular scale and the diffuse term of parameter rows ``p``,
-        as :meth:`dop_rows` computes them."""
+        as :meth:`dop_rows` computes them.  At a geometry of more than one axis (several sets side
+        by side, or one per row: :meth:`with_geometry`) every row is computed as it comes."""
+        if self.g.cb.ndim > 1:
+            return self._fresnel(p), self._log_scale(p), self._diffuse(p)
         rows = max((np.shape(v)[0] for v in p.values() if np.ndim(v)), default=1)
         many = rows * self.g.cb.size >= DISTINCT_VALUES
 

@@ -59,6 +59,7 @@ from ..sample.uncertainty import uncertainty_stage
 from ..setup import check_model, check_shared
 from .exchange import exchange_stage, profile_stage
 from .result import joint_result
+from .stack import SetStack
 
 #: The parameters shared by default: the surface's geometry (roughness and the diffuse lobe's
 #: shape), the same at every wavelength; n, k and kd/ks change with it.
@@ -127,9 +128,12 @@ class JointResiduals:
         self.free = tuple(setup.labels)
         self.parts = [set_residuals(setup.meas[s], setup.setups[s]) for s in setup.names]
         self.index = [setup.index(s) for s in setup.names]
+        self.stack = SetStack.of(self.parts)  # every set in one model call, where they can be
 
     def rows(self, X):
         X = np.atleast_2d(X)
+        if self.stack is not None and self.stack.fits(len(X)):
+            return self.stack.joint_rows(X, self.index)
         return np.concatenate([r.rows(X[:, ix]) for r, ix in zip(self.parts, self.index)], axis=1)
 
     def split(self, x):
@@ -358,7 +362,10 @@ def _local_stages(setup, resid, grids, points, own):
     top = min(LS_POLISH, len(cands))
     st["least_squares"] = least_squares_stage(resid.rows, lo, hi, cands[:top], JOINT_LS_NFEV)
     cands = ranked(st["least_squares"].value + cands[top:])
-    st["exchange"] = exchange_stage(setup, resid, grids, cands[0], lo, hi, JOINT_LS_NFEV)
+    # the objective's unit of chi^2: 1 with the data's standard deviations, else estimated from the fit
+    dof = max(1, sum(part.observed.size for part in resid.parts) - lo.size)
+    unit = 1.0 if setup.sigma_known else cands[0].sse / dof
+    st["exchange"] = exchange_stage(setup, resid, grids, cands[0], lo, hi, JOINT_LS_NFEV, unit)
     cands[0] = st["exchange"].value[0]
     final_ran = cands[0].converged is False
     st["final_bobyqa"] = (final_bobyqa_stage(resid.rows, lo, hi, cands[0], FINAL_BOBYQA) if final_ran
