@@ -136,14 +136,16 @@ def grid_shape_of(model, grid_shape=None):
 
 
 @one_blas_thread
-def fit_on_grid(meas, setup, grid_result, n_basins=6, derivative_free=True):
+def fit_on_grid(meas, setup, grid_result, n_basins=6, derivative_free=True, rows=None):
     """:func:`fit`'s stages after its grid stage: ``meas`` and ``setup`` as :func:`check_fit_args`
     returns them, ``grid_result`` the :class:`~pbrdf_cl.fitting.sample.stages.StageResult` of
     :func:`~pbrdf_cl.fitting.sample.stages.grid_stage` on ``setup.grid_axes(...)`` (what
     :func:`pbrdf_cl.fit_joint` computes once for its joint and its separate fits).  Returns the
     :class:`FitResult`.  ``derivative_free`` False skips the DIRECT-L and BOBYQA stages: the
     grid's basins go straight to the Levenberg-Marquardt screen (the lighter schedule of
-    :func:`pbrdf_cl.fit_joint`'s separate fits, about half the local stages' time)."""
+    :func:`pbrdf_cl.fit_joint`'s separate fits, about half the local stages' time).  ``rows``:
+    what the local stages evaluate, the DOP residuals' rows of the free parameters (by default
+    computed here; :func:`pbrdf_cl.fit_joint` passes them batched with its other sets')."""
     model, shadowing = setup.model, setup.shadowing
     free, base, lo, hi = setup.free, setup.base, setup.lo, setup.hi
     std = meas.dop_std if meas.dop_std is not None else np.ones(len(meas))
@@ -153,7 +155,8 @@ def fit_on_grid(meas, setup, grid_result, n_basins=6, derivative_free=True):
     # a ridge of at least one unit of chi^2 between valleys; without given uncertainties the
     # unit is estimated from the grid
     rise = 1.0 if meas.dop_std is not None else float(grid.sse.min()) / (len(meas) - len(free))
-    cands, final_ran, st = local_stages(dop_resid.rows, lo, hi, grid, free, n_basins, rise, derivative_free)
+    cands, final_ran, st = local_stages(dop_resid.rows if rows is None else rows, lo, hi, grid, free, n_basins, rise,
+                                        derivative_free)
     st = {"grid": grid_result, **st}
     best = cands[0]
     axes = grid.axes

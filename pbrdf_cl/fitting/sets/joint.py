@@ -53,6 +53,7 @@ from ..sample.stages import (
     grid_stage,
     least_squares_stage,
     ranked,
+    run_stage,
     screen_stage,
 )
 from ..sample.uncertainty import uncertainty_stage
@@ -164,13 +165,36 @@ def set_grid(meas, setup, part, axes, shadowing, engine, backend, progress, memo
                       progress=progress, channels=ch, memory_budget=memory_budget)
 
 
-def separate_fit(meas, setup, grid_result, n_basins):
+def separate_fit(meas, setup, grid_result, n_basins, rows=None):
     """One set fitted alone on its grid (the lighter schedule: no DIRECT-L and BOBYQA stages), on
-    what the joint fit uses of it (no intensities)."""
+    what the joint fit uses of it (no intensities); ``rows`` as :func:`fit_on_grid`'s."""
     if meas.polarimetric:
         return fit_channels(meas, setup, None, n_basins, grid_result=grid_result, derivative_free=False,
                             absolute=False)
-    return fit_on_grid(meas, setup, grid_result, n_basins, derivative_free=False)
+    return fit_on_grid(meas, setup, grid_result, n_basins, derivative_free=False, rows=rows)
+
+
+def separate_fits(setup, resid, grid_results, n_basins):
+    """Every set fitted alone (:func:`separate_fit`): set -> its FitResult.  Where the sets'
+    residuals stack (:class:`~pbrdf_cl.fitting.sets.stack.SetStack`) the fits run side by side in
+    lockstep (:func:`~pbrdf_cl.fitting.sample.stages.run_stage`), each step's evaluations of
+    every set in one model call; each fit sees the numbers it would alone, bit for bit."""
+    names = setup.names
+    if resid.stack is None:
+        return {s: separate_fit(setup.meas[s], setup.setups[s], grid_results[s], n_basins) for s in names}
+    stack = resid.stack
+
+    def stacked(Y):  # rows of every set, each with its set as its last column
+        return stack.own_rows(Y[:, :-1], Y[:, -1].astype(np.intp))
+
+    def job(i, s):
+        def run(rows):
+            def own(X):
+                X = np.atleast_2d(X)
+                return rows(np.column_stack([X, np.full(len(X), float(i))]))[:, :stack.sizes[i]]
+            return separate_fit(setup.meas[s], setup.setups[s], grid_results[s], n_basins, rows=own)
+        return run
+    return dict(zip(names, run_stage(stacked, [job(i, s) for i, s in enumerate(names)]).value))
 
 
 def _as_sets(sets, set_column):
@@ -434,7 +458,7 @@ def fit_joint(sets, shared=None, model="six-param", bounds=None, fixed=None, sha
                                 engine, backend, progress, memory_budget) for s, part in zip(setup.names, resid.parts)}
     grids = {s: g.value for s, g in grid_results.items()}
     t_sep = time.perf_counter()
-    separate = {s: separate_fit(setup.meas[s], setup.setups[s], grid_results[s], n_basins) for s in setup.names}
+    separate = separate_fits(setup, resid, grid_results, n_basins)
     st = {"grid": StageResult(None, sum(g.nfev for g in grid_results.values()),
                               sum(g.seconds for g in grid_results.values())),
           "separate": StageResult(None, sum(sum(r.nfev.values()) for r in separate.values()) -
