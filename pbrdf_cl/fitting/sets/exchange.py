@@ -43,7 +43,7 @@ VALLEY_SWAPS = 2
 VALLEY_MARGIN = 4.0
 #: ... and which lie this fraction of the bounds (in some own parameter) away from the set's
 #: values and from each other.
-VALLEY_APART = 0.05
+VALLEY_APART = 0.2
 
 
 def own_grid_seeds(setup, grid, name, shared_values):
