@@ -41,10 +41,11 @@ in passes over the blocks of the stack (a label's pixels may lie in every block)
    label's estimator inverted as a test on the subsample
    (:func:`pbrdf_cl.fitting.images.label_search.binding_correction`: the estimator's expected
    value as a linear function of the true shared values, the pixels' own parameters refitted at
-   each; solved for the values whose expected estimate is the one found, the covariance
-   transformed alike).  Off by default: the pixels' own parameters fitted from noisy data do not
-   reproduce the bias of the truth's (docs/joint_images.md), so the default intervals leave out
-   the incidental parameters' bias.
+   each and drawn towards their mean to the truth's spread; solved for the values whose
+   expected estimate is the one found, the covariance transformed alike).  Off by default: its
+   intervals of steel's k on the two-material bench are too wide (a binding slope of 0.2-0.45)
+   and it costs several times the label fit (docs/joint_images.md), so the default intervals
+   leave out the incidental parameters' bias.
 
 The derivatives and the objective of the refinement are the float64 reference model's
 (:class:`~pbrdf_cl.fitting.images.pixels.PixelResiduals`, forward differences on the host): the same on
