@@ -85,6 +85,67 @@ def test_label_intervals_cover_the_truth_over_seeds(dev):
                      "probability 0.99): the incidental parameters' bias (docs/joint_images.md)")
 
 
+def test_the_bootstrap_inverted_as_a_test_is_opt_in_and_reproducible(dev):
+    """``LabelJob.bias_replicates`` (off by default: docs/joint_images.md) moves each label's values
+    by the correction it reports (``bias``) from those of the label stage without it, gives finite
+    intervals around the moved values, and the same result in every run."""
+    data, lab = two_materials(8, 8, 0.003, seed=5)
+    plain = LabelJob(data, labels=lab).prepare(dev)
+    assert np.all(plain.bias == 0)
+    runs = []
+    for _ in range(2):
+        job = LabelJob(data, labels=lab)
+        job.bias_replicates = 2
+        runs.append(job.prepare(dev))
+    a, b = runs
+    np.testing.assert_array_equal(a.theta, b.theta)
+    np.testing.assert_array_equal(a.ci95, b.ci95)
+    np.testing.assert_allclose(a.theta + a.bias, plain.theta, rtol=0, atol=1e-12)
+    assert np.any(a.bias != 0)
+    assert np.all((a.ci95[..., 0] <= a.theta) & (a.theta <= a.ci95[..., 1]))
+    assert np.all(np.isfinite(a.stderr)) and np.all(a.stderr > 0)
+
+
+def test_the_binding_function_is_inverted(monkeypatch):
+    """``label_search.binding_correction`` on a label whose estimator has a known linear binding
+    function g(t) = a + G (t - theta) (a stand-in for the refits, no noise): the corrected values
+    solve g = theta and their covariance is G^-1 (V + W) G^-T, W the bootstrap mean's variance
+    (here its floor, V over the replicates); the own parameters reach the refits unchanged when
+    the simulated refit says they carry no noise (the ensemble factor is then 1)."""
+    from types import SimpleNamespace
+
+    from pbrdf_cl.fitting.images import label_search
+
+    theta = np.array([[1.5, 2.0]])
+    a = theta[0] + np.array([0.01, -0.05])
+    G = np.array([[0.9, 0.1], [0.2, 0.5]])
+    V = np.array([[1e-4, 2e-4], [2e-4, 25e-4]])
+    P, replicates = 12, 3
+    beta = np.column_stack([np.linspace(0.3, 0.6, P), np.full(P, 0.2), np.linspace(-0.5, -0.1, P)])
+    seen = []
+
+    def local_fit(raw, t, rounds, beta=None):
+        if rounds == 0:
+            return t, None, beta
+        seen.append(beta.copy())
+        return a + G @ (raw["truth"] - theta[0]), None, beta
+
+    st = SimpleNamespace(ids=np.array([1]), beta=beta, fitted=np.ones(P, bool), lab=np.zeros(P, np.int64),
+                         si=[0, 1], bi=[2, 3, 4], lo=np.array([1.0, 0.0, 0.0, 0.0, -1.0]),
+                         hi=np.array([4.0, 5.0, 1.0, 1.0, 0.0]), local_fit=local_fit)
+    st.span = st.hi - st.lo
+    monkeypatch.setattr(label_search, "simulate", lambda st, raw, t, b, s2, rng: {"truth": np.array(t)})
+    out, cov, slope = label_search.binding_correction(st, [{"dop": np.zeros((P, 30))}], [np.arange(P)], theta,
+                                                      V[None], np.ones(1), np.array([True]), replicates)
+    Gi = np.linalg.inv(G)
+    np.testing.assert_allclose(out[0], theta[0] + Gi @ (theta[0] - a), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(cov[0], Gi @ (V + np.diag(np.diag(V)) / replicates) @ Gi.T, rtol=1e-10)
+    np.testing.assert_allclose(slope[0], np.diag(G), rtol=1e-10)
+    assert len(seen) == 5 * replicates
+    for b in seen:
+        np.testing.assert_allclose(b, beta, rtol=0, atol=1e-12)
+
+
 def test_the_label_search_finds_the_best_basin(dev):
     """The configuration where the profile's seeds all lay in another basin of the dielectric
     (n = 3.12, k = 0.08, a label chi2 four times the truth's, reported as converged): the

@@ -37,12 +37,15 @@ in passes over the blocks of the stack (a label's pixels may lie in every block)
    p-value below ``GOODNESS_P``
    says the label's pixels do not share one material (each pixel's own parameters absorb the
    misfit, so the pixels' own tests pass);
-6. optionally (``LabelJob.bias_replicates`` > 0; default 0) a parametric bootstrap of the bias
-   on the subsample (:func:`pbrdf_cl.fitting.images.label_search.bootstrap_bias`), taken off theta,
-   its uncertainty added to the variance.  Off by default: measured on the two-material bench,
-   the bias at the fitted point (the pixels' noisy fitted own parameters) did not estimate the
-   estimator's bias at the truth (-0.03 against +0.12 in the dielectric's k at DOP noise 0.01),
-   so the intervals do not include the incidental parameters' bias (docs/joint_images.md).
+6. optionally (``LabelJob.bias_replicates`` > 0; default 0) the parametric bootstrap of the
+   label's estimator inverted as a test on the subsample
+   (:func:`pbrdf_cl.fitting.images.label_search.binding_correction`: the estimator's expected
+   value as a linear function of the true shared values, the pixels' own parameters refitted at
+   each and drawn towards their mean to the truth's spread; solved for the values whose
+   expected estimate is the one found, the covariance transformed alike).  Off by default: its
+   intervals of steel's k on the two-material bench are too wide (a binding slope of 0.2-0.45)
+   and it costs several times the label fit (docs/joint_images.md), so the default intervals
+   leave out the incidental parameters' bias.
 
 The derivatives and the objective of the refinement are the float64 reference model's
 (:class:`~pbrdf_cl.fitting.images.pixels.PixelResiduals`, forward differences on the host): the same on
@@ -444,39 +447,48 @@ class _Stage:
             return np.ones(sums.shape[0])
         return np.maximum(sums[:, 3] / self.dof(sums), sums[:, 2] / np.maximum(sums[:, 0], 1))
 
-    def covariance(self, sums):
+    def covariance(self, sums, given=None):
         """Each label's covariance of the shared parameters, in coordinates scaled to the bounds:
-        the inverse of its summed Schur complements times its chi2 scale, made valid
-        (:func:`pbrdf_cl.fitting.common.valid_covariance`; NaN where a variance cannot be computed)."""
+        the inverse of its summed Schur complements times its chi2 scale, or ``given`` (L, S, S,
+        scaled coordinates: the bootstrap's, :func:`pbrdf_cl.fitting.images.label_search.binding_correction`)
+        where given, made valid (:func:`pbrdf_cl.fitting.common.valid_covariance`; NaN where a
+        variance cannot be computed)."""
+        if given is not None:
+            return valid_covariance(given)
         A = self.unpack(sums)[5]
         with np.errstate(all="ignore"):
             return valid_covariance(np.linalg.pinv(A, rcond=1e-12, hermitian=True) * self.scale(sums)[:, None, None])
 
-    def gauss(self, theta, sums, extra_var=None):
+    def natural(self, cov, inverse=False):
+        """A covariance (L, S, S) scaled to the bounds in the shared parameters' units (or back)."""
+        span = self.span[self.si]
+        f = np.outer(span, span)
+        return cov / f if inverse else cov * f
+
+    def gauss(self, theta, sums, given=None):
         """Standard errors and the central 95% intervals (truncated to the bounds; Student's t
-        without dop_std) of every label at ``theta`` from its sums, the variance ``extra_var``
-        (L, S) added to each parameter's; returns (se, ci, dof, chi2 scale).  A variance that
-        cannot be computed gives an infinite standard error (the interval spans the bounds)."""
+        without dop_std) of every label at ``theta`` from its sums (or the covariance ``given``,
+        see :meth:`covariance`); returns (se, ci, dof, chi2 scale).  A variance that cannot be
+        computed gives an infinite standard error (the interval spans the bounds)."""
         setup = self.job.setup
         s, span = self.si, self.span[self.si]
         dof, s2 = self.dof(sums), self.scale(sums)
-        se = np.sqrt(np.clip(np.einsum("lii->li", self.covariance(sums).cov), 0, None)) * span
-        if extra_var is not None:
-            se = np.sqrt(se ** 2 + extra_var)
+        with np.errstate(invalid="ignore"):
+            se = np.sqrt(np.clip(np.einsum("lii->li", self.covariance(sums, given).cov), 0, None)) * span
         se = np.where(np.isfinite(se), se, np.inf)
         ci = np.stack(truncated_interval(theta, np.maximum(se, X_RESOLUTION * span), self.lo[s], self.hi[s],
                                          None if setup.sigma_known else dof[:, None]), axis=-1)
         return se, ci, dof, s2
 
-    def intervals(self, theta, sums, profile, active, extra_var=None, other=None):
+    def intervals(self, theta, sums, profile, active, given=None, other=None):
         """Standard errors, 95% intervals, ``determined`` and the status of every label (see the
-        module's docstring): :meth:`gauss` with ``extra_var``, widened to the profile's nodes
+        module's docstring): :meth:`gauss` with the covariance ``given``, widened to the profile's nodes
         the data allow and to ``other`` (L, S, 2: another basin's interval, NaN where none) where
         given, either marking the label ambiguous."""
         chi2 = self.unpack(sums)[3]
         s, span = self.si, self.span[self.si]
         lo, hi = self.lo[s], self.hi[s]
-        se, ci, dof, s2 = self.gauss(theta, sums, extra_var)
+        se, ci, dof, s2 = self.gauss(theta, sums, given)
         # the profile on the grid is an upper bound of the true one: a node within the threshold
         # of the minimum is a value the data allow
         near = profile <= (chi2 + CHI2_95 * s2)[:, None]
@@ -548,17 +560,22 @@ def run_label_stage(job, eng, progress=False):
     if second.any():
         theta, sums, active, other, more = refit_runner_up(st, theta, sums, active, runner, second)
         rounds += more
-    se, _, _, s2 = st.gauss(theta, sums)
     p_value, fits, test = label_goodness(st, sums, subs, picks, theta, ok, pixels)
-    bias, extra = (search.bootstrap_bias(st, subs, picks, theta, se, s2, ok, job.bias_replicates)
-                   if job.bias_replicates else (np.zeros_like(theta), None))
     s = st.si
+    given = None
+    if job.bias_replicates:
+        cov = st.natural(st.covariance(sums).cov)
+        corrected, cov, _ = search.binding_correction(st, subs, picks, theta, cov, st.scale(sums), ok,
+                                                      job.bias_replicates)
+        bias, given = theta - corrected, st.natural(cov, inverse=True)
+    else:
+        bias = np.zeros_like(theta)
     theta = np.where(ok[:, None], np.clip(theta - bias, st.lo[s], st.hi[s]), 0.0)
-    se, ci, determined, status, dof = st.intervals(theta, sums, profile, active, extra, other)
+    se, ci, determined, status, dof = st.intervals(theta, sums, profile, active, given, other)
     status[~ok] = -2
     nan = np.where(ok[:, None], 1.0, np.nan)
     _, _, _, chi2, sse, _, _ = st.unpack(sums)
-    valid = st.covariance(sums)
+    valid = st.covariance(sums, given)
     notes = [valid.note(st.shared, L, f"the covariance of label {st.ids[L]}'s {', '.join(st.shared)}") if ok[L]
              else None for L in range(st.ids.size)]
     return LabelResult(st.ids, st.shared, theta * nan, se * nan, ci * nan[..., None], determined & ok[:, None],
