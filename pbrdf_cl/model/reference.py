@@ -42,7 +42,7 @@ def geometry(ti, tr, phi):
     g.str, g.ctr = sincosd(tr)
     sh, ch = sincosd(0.5 * phi)
     cp, _ = sincosd(0.5 * ((90.0 - ti) + (90.0 - tr)))  # cos((ti+tr)/2)
-    sm, _ = sincosd(0.5 * (ti - tr))
+    sm, _ = sincosd(0.5 * (ti - tr))  # in (-45, 45): pb_geometry skips the reduction, the identity there
     q = g.sti * g.str
     g.cb = np.sqrt(cp * cp + q * ch * ch)
     g.sb = np.sqrt(sm * sm + q * sh * sh)
