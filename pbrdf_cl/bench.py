@@ -253,16 +253,18 @@ MITSUBA_MATERIAL = dict(n=1.5, k=2.125, sigma=0.3, ks=1.0, kd=0.0, c=0.0)
 MITSUBA_VARIANT = "llvm_ad_mono_polarized"
 
 
-def interleaved_rates(funcs, work, repeats):
+def interleaved_rates(funcs, work, repeats, settle=0.2):
     """``{name: (wall rate, CPU rate)}`` of the ``funcs`` (``{name: callable}``), called in turn
-    ``repeats`` times after one warm-up each: medians of ``work`` per wall second, and per CPU
-    second of this process (all its threads) times ``os.cpu_count()`` (the rate of a machine
-    given to this process alone: the fairer figure where other work shares the cores)."""
+    ``repeats`` times after one warm-up each, ``settle`` seconds apart (a thread pool that spins
+    after its work, as Dr.Jit's does, slowed the next call by 7-10%): medians of ``work`` per wall
+    second, and per CPU second of this process (all its threads) times ``os.cpu_count()`` (the rate
+    of a machine given to this process alone: the fairer figure where other work shares the cores)."""
     times = {name: [] for name in funcs}
     for func in funcs.values():
         func()
     for _ in range(repeats):
         for name, func in funcs.items():
+            time.sleep(settle)
             w, c = time.perf_counter(), time.process_time()
             func()
             times[name].append((time.perf_counter() - w, time.process_time() - c))
