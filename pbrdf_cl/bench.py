@@ -246,6 +246,141 @@ def _fractions_of_earlier_limits(rows, row, dtype, bytes_per_unit):
         row["of_roofline"] = row["rate"] * bytes_per_unit / write[-1]
 
 
+#: The material of the Mitsuba comparison: one rough conductor (no diffuse term), Mitsuba's Beckmann
+#: alpha = sqrt(2) sigma (docs/model.md).  With kd = 0 the DOP is (Rs - Rp) / (Rs + Rp) at the facet
+#: angle in both models, whatever their shadowing: the two must agree to float32 rounding.
+MITSUBA_MATERIAL = dict(n=1.5, k=2.125, sigma=0.3, ks=1.0, kd=0.0, c=0.0)
+MITSUBA_VARIANT = "llvm_ad_mono_polarized"
+
+
+def interleaved_rates(funcs, work, repeats, settle=0.2):
+    """``{name: (wall rate, CPU rate)}`` of the ``funcs`` (``{name: callable}``), called in turn
+    ``repeats`` times after one warm-up each, ``settle`` seconds apart (a thread pool that spins
+    after its work, as Dr.Jit's does, slowed the next call by 7-10%): medians of ``work`` per wall
+    second, and per CPU second of this process (all its threads) times ``os.cpu_count()`` (the rate
+    of a machine given to this process alone: the fairer figure where other work shares the cores)."""
+    times = {name: [] for name in funcs}
+    for func in funcs.values():
+        func()
+    for _ in range(repeats):
+        for name, func in funcs.items():
+            time.sleep(settle)
+            w, c = time.perf_counter(), time.process_time()
+            func()
+            times[name].append((time.perf_counter() - w, time.process_time() - c))
+    cpus = os.cpu_count() or 1
+    return {name: (work / float(np.median([t[0] for t in ts])), work * cpus / float(np.median([t[1] for t in ts])))
+            for name, ts in times.items()}
+
+
+def mitsuba_setup(threads):
+    """``(mitsuba, drjit)`` with the variant :data:`MITSUBA_VARIANT` set and Dr.Jit on ``threads``
+    threads, or ``(None, why not)``.  Where ``DRJIT_LIBLLVM_PATH`` is unset, a system libLLVM
+    (Debian's libllvm19: /usr/lib/<arch>/libLLVM-19.so) is looked for."""
+    if not os.environ.get("DRJIT_LIBLLVM_PATH"):
+        import glob
+        found = sorted(glob.glob("/usr/lib/*/libLLVM-1[5-9].so") + glob.glob("/usr/lib/*/libLLVM-2[0-9].so"))
+        if found:
+            os.environ["DRJIT_LIBLLVM_PATH"] = found[-1]
+    try:
+        import drjit as dr
+        import mitsuba as mi
+    except ImportError:
+        return None, "mitsuba is not installed (pip install mitsuba drjit)"
+    try:
+        mi.set_variant(MITSUBA_VARIANT)
+        dr.set_thread_count(threads)
+    except Exception as exc:  # noqa: BLE001 - an ImportError without libLLVM, or whatever Dr.Jit raises
+        return None, f"Mitsuba's {MITSUBA_VARIANT} variant is unavailable ({str(exc).splitlines()[0]}; " \
+                     "it needs a libLLVM, e.g. apt-get install libllvm19, DRJIT_LIBLLVM_PATH naming it)"
+    return mi, dr
+
+
+def mitsuba_dop_function(mi, dr):
+    """``(directions, dop)``: ``directions(theta_i, theta_r, phi)`` (Dr.Jit arrays of degrees) gives
+    Mitsuba's local ``(wi, wo)``, and ``dop(wi, wo)`` the DOP of its polarized ``roughconductor`` with
+    :data:`MITSUBA_MATERIAL` (and S0 too with ``with_s0=True``): the reflected Stokes vector of
+    unpolarised light is the Mueller matrix's first column, DOP = |(S1, S2, S3)| / S0."""
+    m = MITSUBA_MATERIAL
+    bsdf = mi.load_dict(dict(type="roughconductor", distribution="beckmann", alpha=float(np.sqrt(2) * m["sigma"]),
+                             eta=m["n"], k=m["k"], sample_visible=False))
+    ctx = mi.BSDFContext()
+
+    def directions(ti, tr, ph):
+        d = np.pi / 180
+        sti = dr.sin(ti * d)
+        return (mi.Vector3f(sti * dr.cos(ph * d), sti * dr.sin(ph * d), dr.cos(ti * d)),
+                mi.Vector3f(dr.sin(tr * d), 0, dr.cos(tr * d)))
+
+    def dop(wi, wo, with_s0=False):
+        si = dr.zeros(mi.SurfaceInteraction3f)
+        si.sh_frame = mi.Frame3f(mi.Vector3f(0, 0, 1))
+        si.wi = wi
+        mm = bsdf.eval(ctx, si, wo)
+        d = dr.sqrt(dr.square(mm[1, 0]) + dr.square(mm[2, 0]) + dr.square(mm[3, 0])) / mm[0, 0]
+        return (d, mm[0, 0]) if with_s0 else d
+    return directions, dop
+
+
+def bench_mitsuba(eng, rows, rng, size, repeats):
+    """Rows of Mitsuba 3's polarized rough conductor (Dr.Jit LLVM, :data:`MITSUBA_VARIANT`) beside
+    ours on the same points (random theta_i, theta_r, phi; :data:`MITSUBA_MATERIAL`), float32, on
+    as many threads as the OpenCL device has compute units, timed in turn: the kernels alone (Dr.Jit
+    arrays of the directions already evaluated, timing the BSDF evaluation, the DOP and ``dr.eval``;
+    our per-point kernel on resident buffers) and end to end (numpy float32 degrees in, numpy DOP
+    out).  Skipped with a note where mitsuba or a libLLVM is missing."""
+    if not eng.has_kernels:
+        return
+    threads = getattr(getattr(eng, "device", None), "max_compute_units", None) or os.cpu_count() or 1
+    mi, dr = mitsuba_setup(threads)
+    if mi is None:
+        print(f"note: the Mitsuba rows are skipped: {dr}")
+        return
+    directions, mdop = mitsuba_dop_function(mi, dr)
+    lanes = eng.vector_width["float32"]
+    size = size // lanes * lanes
+    geo = {n: v.astype(np.float32) for n, v in random_points(rng, size).items() if n in INPUTS[:3]}
+    pts = dict(geo, **{n: np.full(size, v, np.float32) for n, v in MITSUBA_MATERIAL.items()})
+    wi, wo = directions(*(mi.Float(geo[n]) for n in INPUTS[:3]))
+    dr.eval(wi, wo)
+    kern = eng.kernel("dop_points_vec", "float32", "paper")
+    out = eng.empty(size * 4)
+    args = [out, np.int32(size // lanes)]
+    for n in INPUTS:
+        args += [eng.to_device(pts[n], "float32"), np.int32(1)]
+
+    def ours_kernel():
+        eng.launch(kern, (size // lanes,), *args, local_size=(_engine.VECTOR_LOCAL_SIZE,))
+        eng.queue.finish()
+
+    def mitsuba_kernel():
+        dr.eval(mdop(wi, wo))
+        dr.sync_thread()
+
+    def ours_e2e():
+        return api_dop(pts["theta_i"], pts["theta_r"], pts["phi"], dtype="float32", engine=eng,
+                       **{n: pts[n] for n in INPUTS[3:]})
+
+    def mitsuba_e2e():
+        return np.asarray(mdop(*directions(*(mi.Float(geo[n]) for n in INPUTS[:3])))).reshape(-1)
+    want, s0 = (np.asarray(a).reshape(-1) for a in mdop(wi, wo, with_s0=True))
+    lit = s0 > 1e-10  # where S1^2 + S2^2 of Mitsuba's float32 lobe stays clear of underflow
+    agree = float(np.max(np.abs(ours_e2e()[lit] - want[lit]))) if lit.any() else float("nan")
+    rates = interleaved_rates(dict(ours_kernel=ours_kernel, mitsuba_kernel=mitsuba_kernel, ours_e2e=ours_e2e,
+                                   mitsuba_e2e=mitsuba_e2e), size, repeats)
+    labels = dict(ours_kernel="per-point kernel, Mitsuba's points (kernel)",
+                  mitsuba_kernel=f"Mitsuba {mi.__version__} roughconductor, Dr.Jit LLVM resident (kernel)",
+                  ours_e2e="pbrdf_cl.dop, Mitsuba's points (end-to-end)",
+                  mitsuba_e2e=f"Mitsuba {mi.__version__} roughconductor from numpy (end-to-end)")
+    for name, (rate, cpu_rate) in rates.items():
+        other = name.replace("ours", "mitsuba") if name.startswith("ours") else name.replace("mitsuba", "ours")
+        ours, theirs = (name, other) if name.startswith("ours") else (other, name)
+        rows.append(dict(path=labels[name], dtype="float32", rate=rate, unit="evals/s", seconds=size / rate, n=size,
+                         max_abs_err=agree, cpu_rate=cpu_rate, threads=threads,
+                         ours_over_mitsuba=rates[ours][0] / rates[theirs][0],
+                         ours_over_mitsuba_cpu=rates[ours][1] / rates[theirs][1]))
+
+
 GRID_AXES = dict(theta_i=np.linspace(10, 80, 16), theta_r=np.linspace(0, 85, 64), n=np.linspace(1, 3, 16),
                  k=np.linspace(0, 5, 16), sigma=np.linspace(0.05, 1, 32), kd=np.linspace(0, 1, 16),
                  c=np.linspace(-1, 0, 2))  # 268M points
@@ -410,7 +545,7 @@ def bench_sweep(eng, device, rows, rng, scale, repeats, workers=2, backend="auto
 
 
 #: The sections of a run, in order (``--only`` picks some).
-SECTIONS = ("points", "grid", "objective", "sweep")
+SECTIONS = ("points", "mitsuba", "grid", "objective", "sweep")
 
 
 def main(argv=None):
@@ -426,8 +561,9 @@ def main(argv=None):
     p.add_argument("--sweep-workers", type=int, default=2,
                    help="LocalCluster processes for the sweep row (default 2; 0 skips it; --quick skips it)")
     p.add_argument("--only", nargs="+", choices=SECTIONS, default=list(SECTIONS),
-                   help="run only these sections (default: all): points (the per-point and broadcast rows), grid, "
-                        "objective, sweep")
+                   help="run only these sections (default: all): points (the per-point and broadcast rows), mitsuba "
+                        "(Mitsuba 3's polarized rough conductor beside the per-point kernel, where mitsuba is "
+                        "installed), grid, objective, sweep")
     args = p.parse_args(argv)
     from .errors import CommandError
     from .outputs import check_json_output
@@ -448,6 +584,8 @@ def main(argv=None):
     t0 = time.perf_counter()
     if "points" in args.only:
         bench_points(eng, rows, rng, size, repeats, min(size, 1 << 18))
+    if "mitsuba" in args.only:
+        bench_mitsuba(eng, rows, rng, size, repeats)
     if "grid" in args.only:
         bench_grid(eng, rows, rng, scale, repeats)
     if "objective" in args.only:
@@ -462,6 +600,9 @@ def main(argv=None):
         extra = ""
         if "of_c_loop" in r or "of_roofline" in r:
             extra += f"  {r.get('of_c_loop', float('nan')):.2f} / {r.get('of_roofline', float('nan')):.2f}"
+        if "ours_over_mitsuba" in r:
+            extra += (f"  ours/Mitsuba {r['ours_over_mitsuba']:.2f}x (per CPU-s: {r['cpu_rate'] / 1e6:.1f} M, "
+                      f"{r['ours_over_mitsuba_cpu']:.2f}x)")
         if "peak_extra_mb" in r:
             extra += f", peak +{r['peak_extra_mb']:.0f} MB (output {r['output_mb']:.0f} MB)"
         print(f"{r['path']:58s} {r['dtype']:8s} {r['rate'] / 1e6:10.1f} M {r['unit']:14s} "

@@ -79,3 +79,34 @@ def test_bench_skips_the_cluster_row_without_dask_distributed(monkeypatch, capsy
     bench.bench_sweep(pbrdf_cl.NumpyEngine(), None, rows, np.random.default_rng(0), 0.25, 1, workers=2)
     assert [r["path"] for r in rows] == ["sweep -> Zarr store, here, numpy backend (end-to-end)"]
     assert "dask.distributed is not installed" in capsys.readouterr().out
+
+
+@requires_opencl
+def test_bench_skips_the_mitsuba_rows_without_mitsuba(monkeypatch, capsys):
+    import numpy as np
+
+    from pbrdf_cl import bench
+    monkeypatch.setitem(sys.modules, "mitsuba", None)  # mitsuba is never a dependency
+    rows = []
+    bench.bench_mitsuba(pbrdf_cl.get_default_engine(), rows, np.random.default_rng(0), 1 << 12, 1)
+    assert rows == []
+    out = capsys.readouterr().out
+    assert out.count("\n") == 1 and "Mitsuba rows are skipped: mitsuba is not installed" in out
+
+
+@requires_opencl
+def test_bench_mitsuba_rows_agree_with_the_model(tmp_path):
+    """Where mitsuba (and a libLLVM) is installed: its rough conductor and our DOP side by side, both
+    ways, agreeing where kd = 0 makes the two models the same DOP; speed is not asserted."""
+    pytest.importorskip("mitsuba")
+    import numpy as np
+
+    from pbrdf_cl import bench
+    mi, _ = bench.mitsuba_setup(1)
+    if mi is None:
+        pytest.skip("Mitsuba's LLVM variant is unavailable here")
+    rows = []
+    bench.bench_mitsuba(pbrdf_cl.get_default_engine(), rows, np.random.default_rng(0), 1 << 14, 1)
+    assert len(rows) == 4 and all(r["rate"] > 0 and r["cpu_rate"] > 0 for r in rows)
+    assert {r["path"].split(" (")[-1] for r in rows} == {"kernel)", "end-to-end)"}
+    assert all(r["max_abs_err"] <= 2e-5 for r in rows), rows

@@ -42,7 +42,7 @@ def geometry(ti, tr, phi):
     g.str, g.ctr = sincosd(tr)
     sh, ch = sincosd(0.5 * phi)
     cp, _ = sincosd(0.5 * ((90.0 - ti) + (90.0 - tr)))  # cos((ti+tr)/2)
-    sm, _ = sincosd(0.5 * (ti - tr))
+    sm, _ = sincosd(0.5 * (ti - tr))  # in (-45, 45): pb_geometry skips the reduction, the identity there
     q = g.sti * g.str
     g.cb = np.sqrt(cp * cp + q * ch * ch)
     g.sb = np.sqrt(sm * sm + q * sh * sh)
@@ -110,6 +110,21 @@ def log_specular_scale(g, sigma, ks, G):
     inv_cos2a = 1.0 + g.tan2a
     return (np.log(ks * G * inv_cos2a * inv_cos2a / (8.0 * np.pi * g.cti * g.ctr))
             - 2.0 * np.log(sigma) - 0.5 * u2)
+
+
+def inv_specular_scale(g, sigma, ks, G):
+    """1/K of eq. 6 without logarithms, = exp(-:func:`log_specular_scale`): 8 pi sigma^2 cos ti cos tr
+    / (ks G (1 + tan^2 a)^2) exp(tan^2 a / (2 sigma^2)), inf where the exponential overflows
+    (``pb_inv_specular_scale``, the per-point DOP kernels' form)."""
+    inv_s = 1.0 / sigma
+    with np.errstate(invalid="ignore"):
+        u2 = np.where(g.tan2a > 0.0, g.tan2a * inv_s * inv_s, 0.0)  # tan^2 a / sigma^2
+    inv_cos2a = 1.0 + g.tan2a
+    with np.errstate(over="ignore"):
+        e = np.exp(0.5 * u2)
+    r = 8.0 * np.pi * g.cti * g.ctr * sigma * sigma / (ks * G * inv_cos2a * inv_cos2a)
+    with np.errstate(over="ignore", invalid="ignore"):
+        return np.where(e < np.inf, r * e, e)
 
 
 def minnaert(g, c):
