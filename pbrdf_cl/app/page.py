@@ -354,9 +354,10 @@ class Explorer:
 
     def _refresh_pending(self):
         """The views after the slider moves since the last redraw.  Run as a callback of its own,
-        after the server has answered the slider's message: its reply is then written, and the
-        views go out at once (written while the reply is, Panel would send them 10 ms later or
-        more, after the next message from the browser)."""
+        after the server has answered the slider's message: its reply has usually been written
+        by then, and the views go out at once (built while the reply is being written, Panel
+        finds the connection busy and sends them 10 ms later or more, after the browser's next
+        message)."""
         self._pending = False
         if not self.closed:
             self.refresh()
