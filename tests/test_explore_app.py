@@ -858,3 +858,89 @@ def test_in_the_browser_an_upload_above_the_limit_is_refused_and_the_page_lives(
                what="the curves following the slider after the refusal")
     drive.file_input(driver).send_keys(str(EXAMPLE))
     drive.wait(lambda: drive.source_data(driver, "data_points")["x"], 60, what="the measurements")
+
+
+def _sent(doc):
+    """The document's changes as the server would send them: (source name, columns sent; None:
+    the whole data) of each ColumnDataChanged, and the names of other models changed."""
+    from bokeh.document.events import ColumnDataChangedEvent, ModelChangedEvent
+    out = []
+    doc.on_change(lambda e: out.append((e.model.name, e.cols) if isinstance(e, ColumnDataChangedEvent) else
+                                       (e.model.name, e.attr) if isinstance(e, ModelChangedEvent) else None))
+    return out
+
+
+def test_an_update_sends_only_what_changed():
+    """Issue #37: a slider's move sends the new values only: set A's curves their ys (not the same
+    theta_r again), the map its image (not its corner and size), and the hidden sets' empty
+    sources nothing; their numbers are those drawn before (the curves and map of the new set)."""
+    pytest.importorskip("panel", reason="the explore extra (panel) is not installed")
+    from bokeh.document import Document
+
+    from pbrdf_cl.app.figures import Figures
+    eng = pbrdf_cl.get_default_engine()
+    view = st.State()
+    figs, doc = Figures(), Document()
+    for model in (figs.curves_fig, figs.polar_fig, figs.map_fig):
+        doc.add_root(model)
+    tr = st.theta_r_axis()
+
+    def draw():
+        figs.update_curves(tr, view.settings.theta_i, st.curves(eng, view, tr), "dop")
+        a, b, v = st.incidence_map(eng, view)
+        figs.update_map("incidence", a, b, v, "dop")
+    draw()
+    sent = _sent(doc)
+    view.sets[0]["n"] = 1.7
+    draw()
+    data = [s for s in sent if s and s[0] in ("curve_A", "curve_B", "curve_C", "curve_D", "map")]
+    assert data == [("curve_A", ["ys"]), ("map", ["image"])]
+    assert np.array_equal(np.asarray(figs.curve_src[0].data["ys"]), st.curves(eng, view, tr)[0])
+    assert np.array_equal(figs.map_src.data["image"][0], st.incidence_map(eng, view)[2].astype(np.float32))
+    view.settings.theta_i = (20.0, 60.0)  # other curves: their axes too
+    draw()
+    assert ("curve_A", None) in sent
+    assert figs.curve_src[0].data["ti"] == [20.0, 60.0] and len(figs.curve_src[0].data["xs"]) == 2
+
+
+def test_the_value_axis_bounds_do_not_travel_back_to_the_server():
+    """Issue #37: the curves' and residuals' value axes follow the data in the browser; their bounds
+    are not sent back to the server after every update (nothing there reads them)."""
+    pytest.importorskip("panel", reason="the explore extra (panel) is not installed")
+    from bokeh.models import DataRange1d
+
+    from pbrdf_cl.app.figures import Figures
+    figs = Figures()
+    for fig in (figs.curves_fig, figs.res_fig):
+        assert isinstance(fig.y_range, DataRange1d) and fig.y_range.syncable is False
+
+
+def test_served_slider_moves_are_drawn_once_on_the_next_tick():
+    """Issue #37: in a served page a slider's move is drawn in a callback of its own on the next
+    tick (after the server's reply to the slider's message), once for every move made until then."""
+    pytest.importorskip("panel", reason="the explore extra (panel) is not installed")
+    from bokeh.document import Document
+
+    class Served(Document):  # a served session's document: next-tick callbacks kept to be run by hand
+        session_context = object()
+
+        def add_next_tick_callback(self, callback):
+            self.ticks.append(callback)
+
+        def add_timeout_callback(self, callback, timeout_milliseconds):
+            pass
+
+    ex = _page()
+    ex.doc = Served()
+    ex.doc.ticks = []
+    before = [np.array(y) for y in ex.figs.curve_src[0].data["ys"]]
+    ex.sliders["n"].value = 1.7
+    ex.sliders["k"].value = 2.5
+    assert len(ex.doc.ticks) == 1  # one redraw for both moves
+    assert all(np.array_equal(a, b) for a, b in zip(before, ex.figs.curve_src[0].data["ys"]))  # not yet
+    ex.doc.ticks.pop()()
+    moved = st.State()
+    moved.sets[0].update(n=1.7, k=2.5)
+    assert np.array_equal(np.asarray(ex.figs.curve_src[0].data["ys"]), st.curves(ex.engine, moved)[0])
+    ex.sliders["n"].value = 1.8
+    assert len(ex.doc.ticks) == 1  # the next move: a redraw of its own

@@ -69,6 +69,14 @@ def spread(y, gap):
     return out
 
 
+def same_axes(data, theta_r, theta_i):
+    """Whether a curves' source (``data``: its xs, ys, ti) holds curves at ``theta_i`` over
+    ``theta_r`` already, so that new values need send only its ``ys``."""
+    ti = data["ti"]
+    return (len(ti) == len(theta_i) and all(float(a) == float(b) for a, b in zip(ti, theta_i))
+            and all(np.array_equal(x, theta_r) for x in data["xs"]))
+
+
 class Figures:
     """The page's figures and their sources; ``update_*`` methods take numbers and write them."""
 
@@ -94,6 +102,9 @@ class Figures:
         self.curves_fig.legend.background_fill_alpha = 0.7
         self.curves_fig.legend.click_policy = "hide"
         self.curves_fig.x_range = Range1d(0, THETA_MAX + 8)
+        # the value axis follows the curves in the browser (Bokeh's DataRange1d); its bounds need not
+        # travel back to the server after every update: nothing there reads them
+        self.curves_fig.y_range.syncable = False
         self.curves_fig.add_tools(HoverTool(tooltips=[("theta_r", "$x{0.0}"), ("value", "$y{0.0000}")]))
 
         self.res_fig = _figure("Residuals: data - set shown in the sliders (DOP)", "theta_r (deg)",
@@ -103,6 +114,7 @@ class Figures:
         self.res_fig.scatter("x", "res", source=self.data_src, color="black", size=5)
         self.res_fig.line([0, THETA_MAX], [0, 0], line_color="grey", line_dash="dotted")
         self.res_fig.x_range = self.curves_fig.x_range
+        self.res_fig.y_range.syncable = False
 
         self.polar_fig = _figure("Polar: radius = |value|, angle = theta_r from the normal",
                                  "|DOP| sin(theta_r) (1)", "|DOP| cos(theta_r) (1)", width=height + 40, height=height,
@@ -189,10 +201,14 @@ class Figures:
         for i, src in enumerate(self.curve_src):
             v = values.get(i)
             if v is None:
-                src.data = dict(xs=[], ys=[], ti=[])
-                self.polar_src[i].data = dict(xs=[], ys=[])
+                if len(src.data["ys"]):  # an empty one stays as it is: nothing to send
+                    src.data = dict(xs=[], ys=[], ti=[])
+                    self.polar_src[i].data = dict(xs=[], ys=[])
                 continue
-            src.data = dict(xs=[theta_r] * len(theta_i), ys=list(v), ti=list(theta_i))
+            if same_axes(src.data, theta_r, theta_i):  # only the values change: send only them
+                src.data["ys"] = list(v)
+            else:
+                src.data = dict(xs=[theta_r] * len(theta_i), ys=list(v), ti=list(theta_i))
             rad = np.radians(theta_r)
             self.polar_src[i].data = dict(xs=[np.abs(row) * np.sin(rad) for row in v],
                                           ys=[np.abs(row) * np.cos(rad) for row in v])
@@ -261,14 +277,14 @@ class Figures:
         img = np.asarray(v, dtype=np.float32)
         h = (float(b[-1]) - float(b[0])) / (img.shape[1] - 1)  # the nodes are the cells' centres
         if kind == MAP_KINDS[0]:
-            self.map_src.data = dict(image=[img], x=[-h / 2], y=[-h / 2], dw=[THETA_MAX + h], dh=[THETA_MAX + h])
+            self._map_data(img, -h / 2, THETA_MAX + h)
             self.map_fig.title.text = f"Set {set_name} over (theta_i, theta_r) at the curves' phi"
             self.map_fig.xaxis.axis_label, self.map_fig.yaxis.axis_label = "theta_r (deg)", "theta_i (deg)"
             lim = (0.0, THETA_MAX)
             if len(self.rim_src.data["x"]):
                 self.rim_src.data = dict(x=[], y=[])
         else:
-            self.map_src.data = dict(image=[img], x=[-1.0 - h / 2], y=[-1.0 - h / 2], dw=[2.0 + h], dh=[2.0 + h])
+            self._map_data(img, -1.0 - h / 2, 2.0 + h)
             self.map_fig.title.text = f"Set {set_name}: hemisphere from above at the first theta_i (source left)"
             self.map_fig.xaxis.axis_label = "x = (theta_r / 90°) cos(phi_r) (1)"
             self.map_fig.yaxis.axis_label = "y = (theta_r / 90°) sin(phi_r) (1)"
@@ -290,6 +306,16 @@ class Figures:
         self.map_image.glyph.color_mapper = mapper
         self.colour_bar.color_mapper = mapper
         self.colour_bar.title = axis_label(quantity) + (" (log scale)" if mapper is self.log else "")
+
+    def _map_data(self, img, corner, width):
+        """The map's image, its lower left corner at (corner, corner) and ``width`` wide and high;
+        only the image is sent where the rest stays."""
+        d = self.map_src.data
+        if (list(d["x"]), list(d["y"]), list(d["dw"]), list(d["dh"])) == ([corner], [corner], [width], [width]) \
+                and d["image"][0].shape == img.shape:
+            d["image"] = [img]
+        else:
+            self.map_src.data = dict(image=[img], x=[corner], y=[corner], dw=[width], dh=[width])
 
     def update_ticks(self, ticks):
         if ticks is None and not len(self.tick_src.data["x0"]):

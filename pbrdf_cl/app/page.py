@@ -106,7 +106,7 @@ class Explorer:
     def __init__(self, engine=None, data=None, query=None):
         self.engine = engine if engine is not None else get_default_engine()
         self.meas, self.fit_result, self.sobol_ds, self.design_result = None, None, None, None
-        self.last_ms, self._quiet, self._generation = float("nan"), False, 0
+        self.last_ms, self._quiet, self._generation, self._pending = float("nan"), False, 0, False
         self.refused = {}  # the URL's refused keys -> their lines: those keys keep their defaults
         self.state = st.from_query(query, self.refused) if query else st.State()
         self.figs = Figures()
@@ -346,7 +346,21 @@ class Explorer:
         if self._quiet:
             return
         self.state.sets[self.state.active][name] = float(value)
-        self.refresh()
+        if self.doc is None or self.doc.session_context is None:
+            self.refresh()
+        elif not self._pending:  # served: redrawn on the next tick, once for every move until then
+            self._pending = True
+            self.doc.add_next_tick_callback(self._refresh_pending)
+
+    def _refresh_pending(self):
+        """The views after the slider moves since the last redraw.  Run as a callback of its own,
+        after the server has answered the slider's message: its reply has usually been written
+        by then, and the views go out at once (built while the reply is being written, Panel
+        finds the connection busy and sends them 10 ms later or more, after the browser's next
+        message)."""
+        self._pending = False
+        if not self.closed:
+            self.refresh()
 
     def _set_sliders(self, values):
         self._quiet = True
