@@ -99,7 +99,7 @@ def fd_jacobian(rows, X, lo, hi, scheme="2-point"):
     return R[:, 0], (R[:, 1:d + 1] - R[:, d + 1:]) / (up - dn)[:, :, None]
 
 
-def lm_batch(resid_rows, X0, lo, hi, iterations, rows_apart=True, extra=None):
+def lm_batch(resid_rows, X0, lo, hi, iterations, rows_apart=True, extra=None, per_problem=False):
     """Bounded Levenberg-Marquardt from P starts at once, every problem's trial point and its
     forward-difference Jacobian (:func:`fd_jacobian`, "2-point") in one batched call per
     iteration.  Levenberg damping in coordinates scaled to the bounds (a coordinate whose
@@ -115,7 +115,8 @@ def lm_batch(resid_rows, X0, lo, hi, iterations, rows_apart=True, extra=None):
     ``rows_apart`` False: ``resid_rows`` needs every problem's row in its place (the image
     fits' rows are their pixels), so the frozen are evaluated too, until all are.  ``extra``
     (P, k): values of k more parameters per problem, not varied, appended to its rows as the
-    last columns of what ``resid_rows`` gets (its width is d + k)."""
+    last columns of what ``resid_rows`` gets (its width is d + k).  ``per_problem``: the rows
+    evaluated are returned per problem (an array), not in all."""
     X = np.clip(np.array(X0, float), lo, hi)
     P, d = X.shape
     span = hi - lo
@@ -132,7 +133,7 @@ def lm_batch(resid_rows, X0, lo, hi, iterations, rows_apart=True, extra=None):
         return r, J, np.einsum("pm,pm->p", r, r)
 
     r, J, sse = evaluate(X)
-    evaluated = P
+    evaluated = np.ones(P, dtype=np.int64)
     lam = 1e-3 * np.einsum("pim,pim->p", J, J) / d
     live = np.ones(P, bool)
     for _ in range(iterations):
@@ -159,13 +160,13 @@ def lm_batch(resid_rows, X0, lo, hi, iterations, rows_apart=True, extra=None):
         ok = np.zeros(P, bool)
         idx = np.flatnonzero(live) if rows_apart else np.arange(P)
         rt, Jt, sset = evaluate(Xt[idx], idx)
-        evaluated += idx.size
+        evaluated[idx] += 1
         better = sset < sse[idx]
         won = idx[better]
         ok[won] = True
         X[won], r[won], J[won], sse[won] = Xt[won], rt[better], Jt[better], sset[better]
         lam = np.clip(np.where(ok, lam * 0.3, lam * 6.0), 1e-300, 1e300)
-    return X, sse, evaluated * (d + 1)
+    return X, sse, evaluated * (d + 1) if per_problem else int(evaluated.sum()) * (d + 1)
 
 
 def _frozen(X, Xt, du, span, held):

@@ -135,8 +135,20 @@ def grid_shape_of(model, grid_shape=None):
     return {**(SPECULAR_GRID if model == "specular" else DEFAULT_GRID), **(grid_shape or {})}
 
 
+def local_inputs(meas, setup, grid_result):
+    """What :func:`fit_on_grid`'s local stages take from ``meas``, ``setup`` and the grid stage's
+    result: (the model, the DOP residuals, the grid, the ridge between valleys ``rise``: one
+    unit of chi^2, estimated from the grid without given uncertainties)."""
+    std = meas.dop_std if meas.dop_std is not None else np.ones(len(meas))
+    mdl = Model(meas, setup.shadowing)
+    dop_resid = Residuals(mdl, setup.free, setup.base, meas.dop, std)
+    grid = grid_result.value
+    rise = 1.0 if meas.dop_std is not None else float(grid.sse.min()) / (len(meas) - len(setup.free))
+    return mdl, dop_resid, grid, rise
+
+
 @one_blas_thread
-def fit_on_grid(meas, setup, grid_result, n_basins=6, derivative_free=True, rows=None):
+def fit_on_grid(meas, setup, grid_result, n_basins=6, derivative_free=True, rows=None, screened=None):
     """:func:`fit`'s stages after its grid stage: ``meas`` and ``setup`` as :func:`check_fit_args`
     returns them, ``grid_result`` the :class:`~pbrdf_cl.fitting.sample.stages.StageResult` of
     :func:`~pbrdf_cl.fitting.sample.stages.grid_stage` on ``setup.grid_axes(...)`` (what
@@ -145,18 +157,15 @@ def fit_on_grid(meas, setup, grid_result, n_basins=6, derivative_free=True, rows
     grid's basins go straight to the Levenberg-Marquardt screen (the lighter schedule of
     :func:`pbrdf_cl.fit_joint`'s separate fits, about half the local stages' time).  ``rows``:
     what the local stages evaluate, the DOP residuals' rows of the free parameters (by default
-    computed here; :func:`pbrdf_cl.fit_joint` passes them batched with its other sets')."""
+    computed here; :func:`pbrdf_cl.fit_joint` passes them batched with its other sets');
+    ``screened``: the local stages up to the screen, done already (as
+    :func:`~pbrdf_cl.fitting.sample.stages.local_stages` takes them)."""
     model, shadowing = setup.model, setup.shadowing
     free, base, lo, hi = setup.free, setup.base, setup.lo, setup.hi
-    std = meas.dop_std if meas.dop_std is not None else np.ones(len(meas))
-    mdl = Model(meas, shadowing)
-    dop_resid = Residuals(mdl, free, base, meas.dop, std)
-    grid = grid_result.value
-    # a ridge of at least one unit of chi^2 between valleys; without given uncertainties the
-    # unit is estimated from the grid
-    rise = 1.0 if meas.dop_std is not None else float(grid.sse.min()) / (len(meas) - len(free))
+    mdl, dop_resid, grid, rise = local_inputs(meas, setup, grid_result)
+    std = dop_resid.dop_std
     cands, final_ran, st = local_stages(dop_resid.rows if rows is None else rows, lo, hi, grid, free, n_basins, rise,
-                                        derivative_free)
+                                        derivative_free, screened)
     st = {"grid": grid_result, **st}
     best = cands[0]
     axes = grid.axes

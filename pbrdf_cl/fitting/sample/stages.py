@@ -486,12 +486,28 @@ def final_bobyqa_stage(resid_rows, lo, hi, cand, evals=FINAL_BOBYQA):
 LS_POLISH = 2
 
 
-def local_stages(rows, lo, hi, grid, free, n_basins, rise, derivative_free=True):
+def local_stages(rows, lo, hi, grid, free, n_basins, rise, derivative_free=True, screened=None):
     """:func:`fit`'s stages between the grid and the intensities, on the residual rows ``rows``:
     the grid's basins (``n_basins``, valleys behind a ridge of ``rise``), DIRECT-L and BOBYQA from
     each (unless not ``derivative_free``), the Levenberg-Marquardt screen of them and of the bound
-    slices' best nodes, least squares from the best, the final BOBYQA where it ran out.  Returns
-    (candidates best first, whether the final BOBYQA ran, the stages' results by name)."""
+    slices' best nodes (:func:`seed_stages`), least squares from the best, the final BOBYQA where
+    it ran out (:func:`polish_stages`).  ``screened``: the stages up to the screen done already
+    (their results by name, the screen's among them: :func:`pbrdf_cl.fit_joint` screens all its
+    sets' candidates at once).  Returns (candidates best first, whether the final BOBYQA ran, the
+    stages' results by name)."""
+    if screened is None:
+        st, starts = seed_stages(rows, lo, hi, grid, free, n_basins, rise, derivative_free)
+        st["screen"] = screen_stage(rows, lo, hi, starts, SCREEN_ITERATIONS)
+    else:
+        st = dict(screened)
+    cands, final_ran, polish = polish_stages(rows, lo, hi, st["screen"].value)
+    return cands, final_ran, {**st, **polish}
+
+
+def seed_stages(rows, lo, hi, grid, free, n_basins, rise, derivative_free=True):
+    """:func:`local_stages`'s first stages: the grid's basins, DIRECT-L and BOBYQA from each
+    (unless not ``derivative_free``); returns (their results by name, the candidates the screen
+    descends: those, and the best grid point of each bound slice)."""
     st = {"basins": basin_stage(grid, free, n_basins, rise, PROFILE_SEEDS)}
     found = st["basins"].value
     # the basins' optimisers of each stage run in lockstep, their evaluations batched
@@ -504,10 +520,16 @@ def local_stages(rows, lo, hi, grid, free, n_basins, rise, derivative_free=True)
     # every candidate, and the best grid point of each bound slice (this model's optimum often
     # sits on a bound: k = 0, n = 1, sigma = 1, kd = 0), descends its valley
     edges = [basins.grid_point(grid.axes, free, idx) for idx in basins.bound_seeds(grid.sse, found.indices)]
-    st["screen"] = screen_stage(rows, lo, hi, starts + [Candidate(np.inf, x, x) for x in edges], SCREEN_ITERATIONS)
-    cands = ranked(st["screen"].value)
+    return st, starts + [Candidate(np.inf, x, x) for x in edges]
+
+
+def polish_stages(rows, lo, hi, screened):
+    """:func:`local_stages` after the screen (``screened``: its candidates): least squares from
+    the best, the final BOBYQA where it ran out; (candidates best first, whether the final
+    BOBYQA ran, the stages' results by name)."""
+    cands = ranked(screened)
     top = min(LS_POLISH, len(cands))  # the best candidates, least squares to the end
-    st["least_squares"] = least_squares_stage(rows, lo, hi, cands[:top], LS_MAX_NFEV)
+    st = {"least_squares": least_squares_stage(rows, lo, hi, cands[:top], LS_MAX_NFEV)}
     cands = ranked(st["least_squares"].value + cands[top:])
     final_ran = cands[0].converged is False
     st["final_bobyqa"] = (final_bobyqa_stage(rows, lo, hi, cands[0], FINAL_BOBYQA) if final_ran

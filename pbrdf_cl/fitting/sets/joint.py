@@ -29,15 +29,16 @@ done beside it, so that the result shows what sharing bought.  The result is a
 from __future__ import annotations
 
 import os
+import time
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
 
 import numpy as np
 
 from ...io.measurements import split_sets
-from ..common import dop_noise_floor, one_blas_thread
+from ..common import dop_noise_floor, lm_batch, one_blas_thread
 from ..sample import basins
-from ..sample.inversion import check_fit_args, fit_on_grid, grid_shape_of
+from ..sample.inversion import check_fit_args, fit_on_grid, grid_shape_of, local_inputs
 from ..sample.polarimetric import channel_residuals, fit_channels, normalised_channels
 from ..sample.result import fit_status
 from ..sample.stages import (
@@ -55,6 +56,7 @@ from ..sample.stages import (
     ranked,
     run_stage,
     screen_stage,
+    seed_stages,
 )
 from ..sample.uncertainty import uncertainty_stage
 from ..setup import check_model, check_shared
@@ -165,24 +167,26 @@ def set_grid(meas, setup, part, axes, shadowing, engine, backend, progress, memo
                       progress=progress, channels=ch, memory_budget=memory_budget)
 
 
-def separate_fit(meas, setup, grid_result, n_basins, rows=None):
+def separate_fit(meas, setup, grid_result, n_basins):
     """One set fitted alone on its grid (the lighter schedule: no DIRECT-L and BOBYQA stages), on
-    what the joint fit uses of it (no intensities); ``rows`` as :func:`fit_on_grid`'s."""
+    what the joint fit uses of it (no intensities)."""
     if meas.polarimetric:
         return fit_channels(meas, setup, None, n_basins, grid_result=grid_result, derivative_free=False,
                             absolute=False)
-    return fit_on_grid(meas, setup, grid_result, n_basins, derivative_free=False, rows=rows)
+    return fit_on_grid(meas, setup, grid_result, n_basins, derivative_free=False)
 
 
 def separate_fits(setup, resid, grid_results, n_basins):
     """Every set fitted alone (:func:`separate_fit`): set -> its FitResult.  Where the sets'
     residuals stack (:class:`~pbrdf_cl.fitting.sets.stack.SetStack`) the fits run side by side in
     lockstep (:func:`~pbrdf_cl.fitting.sample.stages.run_stage`), each step's evaluations of
-    every set in one model call; each fit sees the numbers it would alone, bit for bit."""
+    every set in one model call, and where the sets also have the same size and bounds their
+    screens run as one (:func:`screen_sets`); each fit sees the numbers it would alone, bit for bit."""
     names = setup.names
     if resid.stack is None:
         return {s: separate_fit(setup.meas[s], setup.setups[s], grid_results[s], n_basins) for s in names}
     stack = resid.stack
+    screened = screen_sets(setup, stack, grid_results, n_basins)
 
     def stacked(Y):  # rows of every set, each with its set as its last column
         return stack.own_rows(Y[:, :-1], Y[:, -1].astype(np.intp))
@@ -192,9 +196,38 @@ def separate_fits(setup, resid, grid_results, n_basins):
             def own(X):
                 X = np.atleast_2d(X)
                 return rows(np.column_stack([X, np.full(len(X), float(i))]))[:, :stack.sizes[i]]
-            return separate_fit(setup.meas[s], setup.setups[s], grid_results[s], n_basins, rows=own)
+            return fit_on_grid(setup.meas[s], setup.setups[s], grid_results[s], n_basins, derivative_free=False,
+                               rows=own, screened=screened and screened[s])
         return run
     return dict(zip(names, run_stage(stacked, [job(i, s) for i, s in enumerate(names)]).value))
+
+
+def screen_sets(setup, stack, grid_results, n_basins):
+    """The separate fits' stages up to their screen (:func:`~pbrdf_cl.fitting.sample.stages.seed_stages`,
+    the lighter schedule), every set's screen in one batched descent (its set a last, held
+    column): set -> the stages' results by name, as
+    :func:`~pbrdf_cl.fitting.sample.stages.local_stages` takes them (``screened``; the screen's
+    time is that of all sets' together); None where the sets differ in size or bounds."""
+    names, sus = setup.names, [setup.setups[s] for s in setup.names]
+    if stack.ragged or any(not (np.array_equal(su.lo, sus[0].lo) and np.array_equal(su.hi, sus[0].hi)) for su in sus):
+        return None
+    t0 = time.perf_counter()
+    seeds = {}
+    for s, su in zip(names, sus):
+        _, dop_resid, grid, rise = local_inputs(setup.meas[s], su, grid_results[s])
+        seeds[s] = seed_stages(dop_resid.rows, su.lo, su.hi, grid, su.free, n_basins, rise, derivative_free=False)
+    starts = [c for s in names for c in seeds[s][1]]
+    which = np.repeat(np.arange(len(names)), [len(seeds[s][1]) for s in names])
+    X, sse, rows = lm_batch(lambda Y: stack.own_rows(Y[:, :-1], Y[:, -1].astype(np.intp)),
+                            np.array([c.x for c in starts]), sus[0].lo, sus[0].hi, SCREEN_ITERATIONS,
+                            extra=which[:, None].astype(np.float64), per_problem=True)
+    seconds = time.perf_counter() - t0
+    out = {}
+    for i, s in enumerate(names):
+        lanes = np.flatnonzero(which == i)
+        cands = [starts[j].better(sse[j], X[j]) for j in lanes]
+        out[s] = {**seeds[s][0], "screen": StageResult(cands, int(rows[lanes].sum()), seconds)}
+    return out
 
 
 def _as_sets(sets, set_column):
@@ -449,7 +482,6 @@ def fit_joint(sets, shared=None, model="six-param", bounds=None, fixed=None, sha
     >>> res = pbrdf_cl.fit_joint({"435": "a.csv", "532": "b.csv", "633": "c.csv"})  # doctest: +SKIP
     >>> res.shared_x["sigma"], res.ci95["435"]["n"], res.width_ratio["435"]["n"]  # doctest: +SKIP
     """
-    import time
     t0 = time.perf_counter()
     setup = check_joint_args(sets, shared, model, bounds, fixed, shadowing, set_column)
     shape = grid_shape_of(model, grid_shape)
