@@ -360,3 +360,30 @@ def test_cli_names_the_label_that_does_not_fit(dev, tmp_path, capsys):
     printed = capsys.readouterr().out
     assert "WARNING" not in printed and "does not fit" not in printed
     assert "label goodness of fit: 0 of 2 tested labels fail" in printed
+
+
+def test_the_per_pixel_pass_starts_from_the_label_stage(dev, monkeypatch):
+    """The per-pixel pass descends each pixel from its own parameters as the label stage's
+    refinement left them (``LabelResult.beta``, at the label's values), polished and kept where it
+    ends lower than the grid's starts: no pixel's chi2 higher than from the grid's starts alone,
+    and the grid's result bit for bit where the own start does not end lower."""
+    from pbrdf_cl.fitting.images import labels as labels_module
+    data, lab = two_materials(6, 6, 0.006, seed=3)
+    job = LabelJob(data, labels=lab)
+    res = job.prepare(dev)
+    fitted = res.status[job.label_index] >= 0
+    assert res.beta.shape == (lab.size, len(job.own))
+    assert np.all(np.isfinite(res.beta[fitted]))
+    given, fit_block = [], labels_module.fit_block
+    monkeypatch.setattr(labels_module, "fit_block", lambda *a: given.append(a[6]) or fit_block(*a))
+    started = job.fit_rows(dev, 0, 6)
+    assert len(given) == 2 and all(s is not None for s in given)
+    np.testing.assert_array_equal(np.concatenate(given), res.beta[np.argsort(job.label_index, kind="stable")])
+    res.beta = None  # every pixel from the grid's starts alone
+    full = job.fit_rows(dev, 0, 6)
+    assert np.all(started["chi2"][fitted] <= full["chi2"][fitted])
+    same = started["chi2"] == full["chi2"]  # where the own start does not end lower: the grid's result
+    assert same.sum() >= fitted.sum() - 3
+    for k in ("x", "stderr", "ci95", "chi2", "status", "fits_data"):
+        np.testing.assert_array_equal(started[k][same], full[k][same], err_msg=k)
+    assert np.all(started["nfev"][fitted] > full["nfev"][fitted])  # the own start's polish
