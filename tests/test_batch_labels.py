@@ -387,3 +387,27 @@ def test_the_per_pixel_pass_starts_from_the_label_stage(dev, monkeypatch):
     for k in ("x", "stderr", "ci95", "chi2", "status", "fits_data"):
         np.testing.assert_array_equal(started[k][same], full[k][same], err_msg=k)
     assert np.all(started["nfev"][fitted] > full["nfev"][fitted])  # the own start's polish
+
+
+def test_the_label_sums_compute_fresnel_once_per_n_k(monkeypatch):
+    """The label stage's residual rows (a label's pixels, all at its n, k, and their finite
+    differences) compute the Fresnel terms once per distinct (n, k): the same numbers bit for
+    bit as row by row, on 3 rows of Fresnel terms instead of every row's."""
+    from pbrdf_cl.fitting.common import fd_jacobian
+    from pbrdf_cl.fitting.images import pixels as P
+    from pbrdf_cl.model import reference
+    data, lab = two_materials(4, 4, 0.003, seed=1)
+    job = LabelJob(data, labels=lab)
+    blk = P.Block(job.source.rows(0, 4), job.setup, 1)
+    rng = np.random.default_rng(0)
+    X = np.column_stack([np.full(blk.p, 1.6), np.full(blk.p, 2.1), rng.uniform(0.3, 0.6, blk.p),
+                         rng.uniform(0.1, 0.3, blk.p), rng.uniform(-0.5, -0.1, blk.p)])
+    assert job.names == ["n", "k", "sigma", "kd", "c"]
+    lo, hi = P.descent_bounds(job.setup, job.names)
+    rows, fresnel = [], reference.fresnel
+    monkeypatch.setattr(reference, "fresnel", lambda n, *a: rows.append(np.shape(n)[0]) or fresnel(n, *a))
+    out = [fd_jacobian(P.PixelResiduals(job.setup, blk, job.names, np.arange(blk.p), False, few_nk=few).rows, X, lo, hi)
+           for few in (False, True)]
+    np.testing.assert_array_equal(out[0][0], out[1][0])
+    np.testing.assert_array_equal(out[0][1], out[1][1])
+    assert rows == [blk.p * 6, 3]

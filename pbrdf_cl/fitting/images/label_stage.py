@@ -255,7 +255,8 @@ class _Stage:
         X = np.empty((sub.p, D))
         X[:, self.si], X[:, self.bi] = theta_px, beta
         Xi = internal(X, job.names)
-        res = PixelResiduals(setup, sub, job.names, np.arange(sub.p), setup.use_f00)
+        few = all(n in self.shared or n not in job.names for n in ("n", "k"))  # n, k the label's
+        res = PixelResiduals(setup, sub, job.names, np.arange(sub.p), setup.use_f00, few_nk=few)
         r, J = fd_jacobian(res.rows, Xi, self.lo, self.hi)
         chi2 = np.einsum("pm,pm->p", r, r)
         M = sub.valid.shape[1]
