@@ -411,3 +411,18 @@ def test_the_label_sums_compute_fresnel_once_per_n_k(monkeypatch):
     np.testing.assert_array_equal(out[0][0], out[1][0])
     np.testing.assert_array_equal(out[0][1], out[1][1])
     assert rows == [blk.p * 6, 3]
+
+
+def test_labels_on_workers_equal_in_memory(tmp_path):
+    """With workers the label stage runs here and the per-pixel pass on the workers, which get
+    each pixel's own parameters of the label stage with the job: the result is the in-memory one
+    (both on the default device)."""
+    from conftest import DEVICES
+    pytest.importorskip("distributed")
+    if not DEVICES:
+        pytest.skip("no OpenCL device")
+    data, lab = two_materials(6, 4, 0.003, seed=5)
+    mem = pbrdf_cl.fit_batch(data, labels=lab)
+    ds = pbrdf_cl.fit_batch(data, labels=lab, store=tmp_path / "fit.zarr", workers=2)
+    for name in ("label_n", "label_k", "label_n_ci95", "label_chi2", "n", "k", "sigma", "kd", "c", "chi2", "status"):
+        np.testing.assert_array_equal(ds[name].values, mem[name].values, err_msg=name)
