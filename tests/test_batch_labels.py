@@ -360,3 +360,69 @@ def test_cli_names_the_label_that_does_not_fit(dev, tmp_path, capsys):
     printed = capsys.readouterr().out
     assert "WARNING" not in printed and "does not fit" not in printed
     assert "label goodness of fit: 0 of 2 tested labels fail" in printed
+
+
+def test_the_per_pixel_pass_starts_from_the_label_stage(dev, monkeypatch):
+    """The per-pixel pass descends each pixel from its own parameters as the label stage's
+    refinement left them (``LabelResult.beta``, at the label's values), polished and kept where it
+    ends lower than the grid's starts: no pixel's chi2 higher than from the grid's starts alone,
+    and the grid's result bit for bit where the own start does not end lower."""
+    from pbrdf_cl.fitting.images import labels as labels_module
+    data, lab = two_materials(6, 6, 0.006, seed=3)
+    job = LabelJob(data, labels=lab)
+    res = job.prepare(dev)
+    fitted = res.status[job.label_index] >= 0
+    assert res.beta.shape == (lab.size, len(job.own))
+    assert np.all(np.isfinite(res.beta[fitted]))
+    given, fit_block = [], labels_module.fit_block
+    monkeypatch.setattr(labels_module, "fit_block", lambda *a: given.append(a[6]) or fit_block(*a))
+    started = job.fit_rows(dev, 0, 6)
+    assert len(given) == 2 and all(s is not None for s in given)
+    np.testing.assert_array_equal(np.concatenate(given), res.beta[np.argsort(job.label_index, kind="stable")])
+    res.beta = None  # every pixel from the grid's starts alone
+    full = job.fit_rows(dev, 0, 6)
+    assert np.all(started["chi2"][fitted] <= full["chi2"][fitted])
+    same = started["chi2"] == full["chi2"]  # where the own start does not end lower: the grid's result
+    assert same.sum() >= fitted.sum() - 3
+    for k in ("x", "stderr", "ci95", "chi2", "status", "fits_data"):
+        np.testing.assert_array_equal(started[k][same], full[k][same], err_msg=k)
+    assert np.all(started["nfev"][fitted] > full["nfev"][fitted])  # the own start's polish
+
+
+def test_the_label_sums_compute_fresnel_once_per_n_k(monkeypatch):
+    """The label stage's residual rows (a label's pixels, all at its n, k, and their finite
+    differences) compute the Fresnel terms once per distinct (n, k): the same numbers bit for
+    bit as row by row, on 3 rows of Fresnel terms instead of every row's."""
+    from pbrdf_cl.fitting.common import fd_jacobian
+    from pbrdf_cl.fitting.images import pixels as P
+    from pbrdf_cl.model import reference
+    data, lab = two_materials(4, 4, 0.003, seed=1)
+    job = LabelJob(data, labels=lab)
+    blk = P.Block(job.source.rows(0, 4), job.setup, 1)
+    rng = np.random.default_rng(0)
+    X = np.column_stack([np.full(blk.p, 1.6), np.full(blk.p, 2.1), rng.uniform(0.3, 0.6, blk.p),
+                         rng.uniform(0.1, 0.3, blk.p), rng.uniform(-0.5, -0.1, blk.p)])
+    assert job.names == ["n", "k", "sigma", "kd", "c"]
+    lo, hi = P.descent_bounds(job.setup, job.names)
+    rows, fresnel = [], reference.fresnel
+    monkeypatch.setattr(reference, "fresnel", lambda n, *a: rows.append(np.shape(n)[0]) or fresnel(n, *a))
+    out = [fd_jacobian(P.PixelResiduals(job.setup, blk, job.names, np.arange(blk.p), False, few_nk=few).rows, X, lo, hi)
+           for few in (False, True)]
+    np.testing.assert_array_equal(out[0][0], out[1][0])
+    np.testing.assert_array_equal(out[0][1], out[1][1])
+    assert rows == [blk.p * 6, 3]
+
+
+def test_labels_on_workers_equal_in_memory(tmp_path):
+    """With workers the label stage runs here and the per-pixel pass on the workers, which get
+    each pixel's own parameters of the label stage with the job: the result is the in-memory one
+    (both on the default device)."""
+    from conftest import DEVICES
+    pytest.importorskip("distributed")
+    if not DEVICES:
+        pytest.skip("no OpenCL device")
+    data, lab = two_materials(6, 4, 0.003, seed=5)
+    mem = pbrdf_cl.fit_batch(data, labels=lab)
+    ds = pbrdf_cl.fit_batch(data, labels=lab, store=tmp_path / "fit.zarr", workers=2)
+    for name in ("label_n", "label_k", "label_n_ci95", "label_chi2", "n", "k", "sigma", "kd", "c", "chi2", "status"):
+        np.testing.assert_array_equal(ds[name].values, mem[name].values, err_msg=name)

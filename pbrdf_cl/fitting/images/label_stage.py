@@ -52,7 +52,8 @@ The derivatives and the objective of the refinement are the float64 reference mo
 every backend.  Sums over a label's pixels are taken row by row of the stack in row order, so the
 result does not depend on the blocks (the memory budget).  Memory beyond a block: the pixels'
 own parameters at the current and the trial theta (two floats per parameter and pixel) and the
-labels' sums.
+labels' sums; the current ones are kept in the result (``LabelResult.beta``): the per-pixel pass
+starts each pixel from them too.
 """
 from __future__ import annotations
 
@@ -110,7 +111,9 @@ class LabelResult:
     not, -1: not fitted or not tested) and ``goodness_test`` ("chi2" or "F"), and ``corr``
     (L, S, S) the correlations of the shared parameters (valid or NaN,
     :func:`pbrdf_cl.fitting.common.valid_covariance`) with ``cov_notes`` (a sentence per label
-    where the covariance needed one, else None)."""
+    where the covariance needed one, else None); ``beta`` (pixels, own parameters) each pixel's
+    own parameters at its label's values as the refinement left them (the descent's coordinates:
+    kd as kd/ks with intensities; NaN where not fitted), the start of its per-pixel fit."""
     ids: np.ndarray
     shared: tuple
     theta: np.ndarray
@@ -131,6 +134,7 @@ class LabelResult:
     goodness_test: str
     corr: np.ndarray
     cov_notes: list
+    beta: np.ndarray = None
 
 
 def node_regions(setup, shared):
@@ -251,7 +255,8 @@ class _Stage:
         X = np.empty((sub.p, D))
         X[:, self.si], X[:, self.bi] = theta_px, beta
         Xi = internal(X, job.names)
-        res = PixelResiduals(setup, sub, job.names, np.arange(sub.p), setup.use_f00)
+        few = all(n in self.shared or n not in job.names for n in ("n", "k"))  # n, k the label's
+        res = PixelResiduals(setup, sub, job.names, np.arange(sub.p), setup.use_f00, few_nk=few)
         r, J = fd_jacobian(res.rows, Xi, self.lo, self.hi)
         chi2 = np.einsum("pm,pm->p", r, r)
         M = sub.valid.shape[1]
@@ -582,7 +587,8 @@ def run_label_stage(job, eng, progress=False):
                        sums[:, 0].astype(np.int64), np.where(ok, chi2, np.nan), np.where(ok, sse, np.nan),
                        np.where(ok, dof, 0).astype(np.int64), status, rounds, profile, st.nodes, bias * nan,
                        np.where(ok, p_value, np.nan), np.where(ok, fits, -1).astype(np.int8),
-                       test, valid.corr * nan[:, :, None], notes)
+                       test, valid.corr * nan[:, :, None], notes,
+                       np.where((st.fitted & np.isin(st.lab, np.flatnonzero(ok)))[:, None], st.beta, np.nan))
 
 
 def label_goodness(st, sums, subs, picks, theta, ok, pixels):

@@ -164,7 +164,9 @@ class LabelJob(BatchJob):
         return self.result
 
     def fit_rows(self, eng, r0, r1):
-        """Fit the pixels of rows r0..r1 with their label's shared values held: a dict of flat
+        """Fit the pixels of rows r0..r1 with their label's shared values held, each from its own
+        parameters as the label stage left them (``LabelResult.beta``) and the grid's best
+        (:func:`~pbrdf_cl.fitting.images.pixel_fit.fit_block`'s ``starts``): a dict of flat
         per-pixel result arrays (those of :meth:`BatchJob.fit_rows`, and ``label``)."""
         if self.result is None:
             raise RuntimeError("internal: LabelJob.prepare() must run before its blocks")
@@ -182,8 +184,9 @@ class LabelJob(BatchJob):
             if res.status[L] == -2:
                 out["status"][idx] = -2
                 continue
-            o = fit_block(eng, held_setup(self.setup, self.shared, res.theta[L]), take(raw, idx), self.order_own,
-                          self.rstart_own, self.own)
+            held = held_setup(self.setup, self.shared, res.theta[L])
+            starts = None if res.beta is None else res.beta[off + idx][:, [self.own.index(n) for n in held.free]]
+            o = fit_block(eng, held, take(raw, idx), self.order_own, self.rstart_own, self.own, starts)
             for k, v in o.items():
                 if k in ("x", "stderr", "ci95", "determined"):
                     out[k][idx[:, None], bi] = v

@@ -44,14 +44,19 @@ EXTRA_ITERATIONS = 60
 SNAP = 0.05
 #: Iterations of the float64 run with intensities (ks free).
 INTENSITY_ITERATIONS = 40
+#: A pixel's own start (:func:`fit_block`'s ``starts``) replaces the grid's best where it ends
+#: lower by more than this fraction of its chi2: less is the float64 polish's convergence.
+OWN_START_GAIN = 1e-6
 
 
 @_engine.falls_back
-def fit_block(eng, setup, raw, order, rstart, names):
+def fit_block(eng, setup, raw, order, rstart, names, starts=None):
     """The flat per-pixel results of one block of pixels (``raw``: :meth:`pbrdf_cl.io.source.Source.rows`)
     for :class:`~pbrdf_cl.fitting.images.pixels.BatchSetup` ``setup``, the grid's region order ``order``,
     ``rstart`` (:func:`pbrdf_cl.fitting.images.pixels.regions`) and the fitted parameters ``names``: the
-    pixels that can be fitted go through the stages, the others get their status."""
+    pixels that can be fitted go through the stages, the others get their status.  ``starts``
+    (p, free parameters; optional): a start of each pixel's own, polished and kept where it ends
+    lower than the grid's starts (:func:`_own_starts`; a row with a NaN: none)."""
     D = len(setup.free)
     blk = Block(raw, setup, eng.call("batch_lanes"))
     p, n_out = blk.p, len(names)
@@ -61,20 +66,23 @@ def fit_block(eng, setup, raw, order, rstart, names):
     out = empty_outputs(p, n_out)
     out["status"], out["n_valid"] = status, blk.count.astype(np.int64)
     # the pixels of one angle of incidence descend on their own schedule (ONE_INCIDENCE_SCHEDULE)
-    for one in (False, True):
-        todo = np.flatnonzero((status > 0) & (blk.one_incidence == one))
+    own = np.zeros(p, bool) if starts is None else np.all(np.isfinite(starts), axis=1)
+    for one, mine in ((False, False), (True, False), (False, True), (True, True)):
+        todo = np.flatnonzero((status > 0) & (blk.one_incidence == one) & (own == mine))
         if not todo.size:
             continue
         schedule = (ONE_INCIDENCE_SCHEDULE, ONE_INCIDENCE_POLISH_STARTS) if one else (SCREEN_SCHEDULE, POLISH_STARTS)
-        done = _fit_pixels(eng, setup, blk if todo.size == p else blk.subset(todo), order, rstart, names, schedule)
+        done = _fit_pixels(eng, setup, blk if todo.size == p else blk.subset(todo), order, rstart, names, schedule,
+                           starts[todo] if mine else None)
         for k, v in done.items():
             out[k][todo] = v
     return out
 
 
-def _fit_pixels(eng, setup, blk, order, rstart, names, schedule):
+def _fit_pixels(eng, setup, blk, order, rstart, names, schedule, starts=None):
     """The stages for every pixel of ``blk`` (each has enough valid measurements); ``schedule``:
-    (the float32 descents' schedule, how many of their best are polished) on a device."""
+    (the float32 descents' schedule, how many of their best are polished) on a device;
+    ``starts`` (p, D): each pixel's own start (:func:`_own_starts`)."""
     p = blk.p
     # (a) grid: each region's minimum; the best n_starts per pixel seed the descents
     best, arg = eng.call("batch_grid", setup, blk, order, rstart)
@@ -85,6 +93,8 @@ def _fit_pixels(eng, setup, blk, order, rstart, names, schedule):
     fit, X_all, sse_all = eng.call("batch_descents", setup, blk, X0, nfev, schedule)
     sse = np.where(np.isfinite(fit.sse) & (fit.sse < 1e299), fit.sse, np.inf)
     sse_all = np.where(np.isfinite(sse_all) & (sse_all < 1e299), sse_all, np.inf)
+    if starts is not None:
+        fit, sse, X_all, sse_all = _own_starts(eng, setup, blk, starts, fit, sse, X_all, sse_all, nfev)
     b = np.argmin(sse, axis=0)
     ar = np.arange(p)
     xb, sb, jb, setb = fit.x[b, ar], sse[b, ar], fit.jtj[b, ar], fit.settled[b, ar]
@@ -100,6 +110,20 @@ def _fit_pixels(eng, setup, blk, order, rstart, names, schedule):
         names_out = names
     # (c) covariance, intervals, status
     return statistics(setup, blk, names_out, xb, sb, jb, setb, X_all, sse_all, nfev)
+
+
+def _own_starts(eng, setup, blk, starts, fit, sse, X_all, sse_all, nfev):
+    """Each pixel's own start (p, D) polished in float64 (:func:`_polish`) and added to the
+    descents' ends where it ends lower than all of them by more than OWN_START_GAIN of their
+    chi2 (not the polish's rounding; elsewhere as not finite, so that a
+    pixel's result and ambiguity test are those of the grid's starts): (fit, sse, X_all,
+    sse_all) with one more row."""
+    own = _polish(eng, setup, blk, np.asarray(starts, float)[None], "float64" if eng.fp64 else "float32", nfev)
+    s = np.where(np.isfinite(own.sse) & (own.sse < 1e299), own.sse, np.inf)
+    wins = s[0] < sse.min(axis=0) * (1 - OWN_START_GAIN)
+    s = np.where(wins[None], s, np.inf)
+    own = own._replace(sse=np.where(wins[None], own.sse, np.inf))
+    return fit.concat(own), np.concatenate([sse, s]), np.concatenate([X_all, own.x]), np.concatenate([sse_all, s])
 
 
 @ops.implements("batch_descents", "opencl")

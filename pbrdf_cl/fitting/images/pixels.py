@@ -266,9 +266,12 @@ class PixelResiduals:
     of a (B, D) batch belong to pixels ``pix`` repeated ``B // len(pix)`` times each, as
     :func:`fd_jacobian` lays them out."""
 
-    def __init__(self, setup, blk, names, pix, intensity, weights=None):
+    def __init__(self, setup, blk, names, pix, intensity, weights=None, few_nk=False):
         self.setup, self.blk, self.names, self.pix, self.intensity = setup, blk, names, pix, intensity
         self.w = blk.w if weights is None else weights  # of the DOP residuals
+        #: the rows share a few values of (n, k) (a label's pixels and their finite differences):
+        #: the Fresnel terms are computed once per value where the geometry is shared
+        self.few_nk = few_nk
 
     def rows(self, X):
         rep = X.shape[0] // self.pix.size
@@ -286,7 +289,8 @@ class PixelResiduals:
             return np.where(np.isfinite(r), r, 1e150)
         ang = [a[None, :] if blk.shared else a[pix] for a in blk.angles]
         g = reference.geometry(*ang)
-        f = reference.fresnel(p["n"], p["k"], g.cb, g.sb)
+        f = fresnel_rows(p["n"], p["k"], g) if self.few_nk and blk.shared else reference.fresnel(p["n"], p["k"], g.cb,
+                                                                                                  g.sb)
         variant = reference.SHADOWING[setup.shadowing]
         log_k = reference.log_specular_scale(g, p["sigma"], p["ks"], reference.shadowing_factor(g, p["sigma"], variant))
         fd = reference.diffuse(g, p["kd"], p["c"])
@@ -294,3 +298,18 @@ class PixelResiduals:
         if self.intensity:
             r = np.concatenate([r, (reference.brdf(f, log_k, fd) - blk.fobs[pix]) * np.sqrt(blk.fw[pix])], axis=1)
         return np.where(np.isfinite(r), r, 1e150)
+
+
+def fresnel_rows(n, k, g):
+    """:func:`pbrdf_cl.model.reference.fresnel` of rows of (n, k) (each (B, 1) or a number) over
+    the geometry ``g`` shared by the rows ((1, M)), computed once per distinct (n, k) and taken
+    back to the rows: element by element the same numbers (every operation is elementwise)."""
+    B = max(np.size(n), np.size(k))
+    nk = np.stack([np.broadcast_to(np.asarray(n, float), (B, 1))[:, 0],
+                   np.broadcast_to(np.asarray(k, float), (B, 1))[:, 0]], axis=1)
+    u, inv = np.unique(nk, axis=0, return_inverse=True)
+    f = reference.fresnel(u[:, :1], u[:, 1:], g.cb, g.sb)
+    inv = inv.ravel()
+    for name, v in vars(f).items():
+        setattr(f, name, v[inv])
+    return f
