@@ -396,6 +396,27 @@ def test_stacked_sets_give_each_sets_residuals_bit_for_bit():
     assert joint.JointResiduals(held_in_one).stack is None  # the sets fit different parameters: one by one
 
 
+def test_stacked_own_rows_of_big_sets_come_in_blocks(monkeypatch):
+    """The stack's own rows of big data sets are computed a few rows at a time, as a set's
+    residuals alone (stages.in_row_blocks, ROWS_VALUES values at a time): the same values,
+    and no call of the model sees more rows than a block."""
+    from pbrdf_cl.fitting.sample import stages
+    setup = joint.check_joint_args(three_sets(), ("sigma", "c"), "six-param", None, None, "paper")
+    stack = joint.JointResiduals(setup).stack
+    rng = np.random.default_rng(2)
+    lo, hi = setup.setups["435"].lo, setup.setups["435"].hi
+    X = lo + rng.random((9, lo.size)) * (hi - lo)
+    which = rng.integers(0, 3, 9)
+    whole = stack.own_rows(X, which)
+    seen = []
+    dop_rows = stages.Model.dop_rows
+    monkeypatch.setattr(stages.Model, "dop_rows", lambda self, p, runs=(): seen.append(len(p["n"])) or
+                        dop_rows(self, p, runs))
+    monkeypatch.setattr(stages, "ROWS_VALUES", 2 * stack.width)
+    np.testing.assert_array_equal(stack.tagged_rows(np.column_stack([X, which])), whole)
+    assert seen == [2, 2, 2, 2, 1]
+
+
 def test_the_result_says_which_sets_the_basin_exchange_moved():
     """Problem 4 of the bench: set c's own parameters are moved by the exchange (and the result
     says so, in ``exchanged`` and a note); problem 0: nothing moves, nothing is said."""

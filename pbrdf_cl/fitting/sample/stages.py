@@ -121,6 +121,22 @@ DISTINCT_VALUES = 1 << 16
 ROWS_VALUES = 1 << 21
 
 
+def in_row_blocks(rows_of, n, width):
+    """Residual rows 0..n of ``width`` values each, ``rows_of(a, b)`` giving rows a..b: at once,
+    or, for a big data set, :data:`ROWS_VALUES` values at a time into one array (the model's
+    temporaries, a dozen arrays, then take ~16 MiB each)."""
+    per = max(1, ROWS_VALUES // max(1, width))
+    if n <= per:
+        return rows_of(0, n)
+    out = None
+    for a in range(0, n, per):
+        r = rows_of(a, min(n, a + per))
+        if out is None:
+            out = np.empty((n, r.shape[1]))
+        out[a:a + len(r)] = r
+    return out
+
+
 def per_run(compute, p, names):
     """``compute(p)`` for parameter rows ``p`` (name -> (B, 1) array or scalar) that depends only
     on the parameters ``names``, computed once per distinct row of their values (the same bits:
@@ -312,16 +328,7 @@ class Residuals:
         return finite_rows((self.model.dop_rows(p, runs=runs) - self.dop) / self.dop_std)
 
     def rows(self, X):
-        per = max(1, ROWS_VALUES // self.dop.size)
-        if len(X) <= per:
-            return self.rows_of(X)
-        out = None
-        for a in range(0, len(X), per):  # a big data set: a few rows at a time, into one array
-            r = self.rows_of(X[a:a + per])
-            if out is None:
-                out = np.empty((len(X), r.shape[1]))
-            out[a:a + len(r)] = r
-        return out
+        return in_row_blocks(lambda a, b: self.rows_of(X[a:b]), len(X), self.dop.size)
 
     def rows_of(self, X):
         """:meth:`rows` at once."""

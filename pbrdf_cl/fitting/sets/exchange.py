@@ -70,7 +70,7 @@ def exchange_round(setup, resid, grids, x):
     descent's end as :func:`own_descents` gives it, residual rows evaluated)."""
     x = np.array(x, dtype=np.float64)
     mine = {s: [x[own_columns(setup, s)]] for s in setup.names}
-    X, sse, found, _, rows = _own_fits(setup, resid, grids, x[None, :len(setup.shared)], mine, EXCHANGE_ITERATIONS)
+    X, sse, found, rows = _own_fits(setup, resid, grids, x[None, :len(setup.shared)], mine, EXCHANGE_ITERATIONS)
     moved = []
     for name, part, ix in zip(setup.names, resid.parts, resid.index):
         cols = own_columns(setup, name)
@@ -183,13 +183,13 @@ def own_fits(setup, resid, grids, points, extra_own, iterations):
     the best of :func:`own_descents` at each point.  Returns (X: (K, joint labels), the points
     with each set's best own values; set -> (K,) its best chi2 at each point; residual rows
     evaluated)."""
-    X, sse_of, found, lane_point, rows = _own_fits(setup, resid, grids, points, extra_own, iterations)
+    X, sse_of, _, rows = _own_fits(setup, resid, grids, points, extra_own, iterations)
     return X, sse_of, rows
 
 
 def _own_fits(setup, resid, grids, points, extra_own, iterations):
     """:func:`own_fits`, and what it chose from: (X, set -> chi2 per point, set -> (own vectors,
-    chi2) per start, set -> each start's point, rows evaluated)."""
+    chi2) per start, rows evaluated)."""
     shared = list(setup.shared)
     points = np.asarray(points, dtype=np.float64).reshape(len(points), len(shared))  # (1, 0): nothing shared
     X = np.zeros((len(points), len(setup.labels)))
@@ -209,7 +209,7 @@ def _own_fits(setup, resid, grids, points, extra_own, iterations):
             best = lanes[int(np.argmin(sse[lanes]))]
             X[k, cols] = Xo[best]
             sse_of[name][k] = sse[best]
-    return X, sse_of, found, lane_point, rows
+    return X, sse_of, found, rows
 
 
 def own_descents(setup, resid, grids, points, extra_own, iterations):
@@ -267,11 +267,11 @@ def _stacked_descents(setup, resid, points, starts, lane_point, iterations):
     (each problem's shared values and set as its extra columns), returning what :func:`_descents` does."""
     stack, shared = resid.stack, list(setup.shared)
     own = setup.own(setup.names[0])
-    # where each of the stack's free parameters is in a row: own values, then shared values, then the set
-    where = [own.index(p) if p in own else len(own) + shared.index(p) for p in stack.free]
+    # where each of the stack's free parameters is in a row (own values, then shared values), then the set
+    where = [own.index(p) if p in own else len(own) + shared.index(p) for p in stack.free] + [-1]
 
     def rows(Y):
-        return stack.own_rows(Y[:, where], Y[:, -1].astype(np.intp))
+        return stack.tagged_rows(Y[:, where])
     names = list(starts)
     X0 = np.concatenate([np.array(starts[s]) for s in names])
     extra = np.concatenate([np.column_stack([points[np.array(lane_point[s])], np.full(len(starts[s]), i)])

@@ -188,9 +188,6 @@ def separate_fits(setup, resid, grid_results, n_basins):
     stack = resid.stack
     screened = screen_sets(setup, stack, grid_results, n_basins)
 
-    def stacked(Y):  # rows of every set, each with its set as its last column
-        return stack.own_rows(Y[:, :-1], Y[:, -1].astype(np.intp))
-
     def job(i, s):
         def run(rows):
             def own(X):
@@ -199,7 +196,7 @@ def separate_fits(setup, resid, grid_results, n_basins):
             return fit_on_grid(setup.meas[s], setup.setups[s], grid_results[s], n_basins, derivative_free=False,
                                rows=own, screened=screened and screened[s])
         return run
-    return dict(zip(names, run_stage(stacked, [job(i, s) for i, s in enumerate(names)]).value))
+    return dict(zip(names, run_stage(stack.tagged_rows, [job(i, s) for i, s in enumerate(names)]).value))
 
 
 def screen_sets(setup, stack, grid_results, n_basins):
@@ -218,9 +215,8 @@ def screen_sets(setup, stack, grid_results, n_basins):
         seeds[s] = seed_stages(dop_resid.rows, su.lo, su.hi, grid, su.free, n_basins, rise, derivative_free=False)
     starts = [c for s in names for c in seeds[s][1]]
     which = np.repeat(np.arange(len(names)), [len(seeds[s][1]) for s in names])
-    X, sse, rows = lm_batch(lambda Y: stack.own_rows(Y[:, :-1], Y[:, -1].astype(np.intp)),
-                            np.array([c.x for c in starts]), sus[0].lo, sus[0].hi, SCREEN_ITERATIONS,
-                            extra=which[:, None].astype(np.float64), per_problem=True)
+    X, sse, rows = lm_batch(stack.tagged_rows, np.array([c.x for c in starts]), sus[0].lo, sus[0].hi,
+                            SCREEN_ITERATIONS, extra=which[:, None].astype(np.float64), per_problem=True)
     seconds = time.perf_counter() - t0
     out = {}
     for i, s in enumerate(names):

@@ -21,7 +21,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from ..sample.stages import DISTINCT_VALUES, Residuals, finite_rows
+from ..sample.stages import DISTINCT_VALUES, Residuals, finite_rows, in_row_blocks
 
 
 class SetStack:
@@ -84,8 +84,17 @@ class SetStack:
 
     def own_rows(self, X, which):
         """The residuals of the parameter vectors ``X`` (B, free), row b one of set ``which[b]``:
-        (B, longest set), zero beyond its set's measurements."""
+        (B, longest set), zero beyond its set's measurements; of big sets a few rows at a time
+        (:func:`~pbrdf_cl.fitting.sample.stages.in_row_blocks`, as a set alone)."""
         which = np.asarray(which, dtype=np.intp)
+        return in_row_blocks(lambda a, b: self._own_rows_of(X[a:b], which[a:b]), len(X), self.width)
+
+    def tagged_rows(self, Y):
+        """:meth:`own_rows` of rows whose last column is their set (an ``extra`` column of
+        :func:`~pbrdf_cl.fitting.common.lm_batch`, or a lockstep's rows)."""
+        return self.own_rows(Y[:, :-1], Y[:, -1].astype(np.intp))
+
+    def _own_rows_of(self, X, which):
         mdl = self.model.with_geometry(SimpleNamespace(**{k: v[which] for k, v in vars(self.model.g).items()}))
         p = {n: v[which][:, None] for n, v in self.held.items()}
         p.update((n, X[:, j:j + 1]) for j, n in enumerate(self.free))
