@@ -325,10 +325,16 @@ def mitsuba_dop_function(mi, dr):
 def bench_mitsuba(eng, rows, rng, size, repeats):
     """Rows of Mitsuba 3's polarized rough conductor (Dr.Jit LLVM, :data:`MITSUBA_VARIANT`) beside
     ours on the same points (random theta_i, theta_r, phi; :data:`MITSUBA_MATERIAL`), float32, on
-    as many threads as the OpenCL device has compute units, timed in turn: the kernels alone (Dr.Jit
-    arrays of the directions already evaluated, timing the BSDF evaluation, the DOP and ``dr.eval``;
-    our per-point kernel on resident buffers) and end to end (numpy float32 degrees in, numpy DOP
-    out).  Skipped with a note where mitsuba or a libLLVM is missing."""
+    as many threads as the OpenCL device has compute units, timed in turn.  The material is one
+    value in both (Mitsuba's BSDF holds it; our kernel reads it with stride 0, as
+    :func:`pbrdf_cl.dop` sends a scalar).  Kernels alone, inputs resident: our per-point kernel on
+    device buffers of the three angle arrays (degrees); Mitsuba's BSDF evaluation, DOP and
+    ``dr.eval`` from Dr.Jit arrays of its local directions already evaluated (the trigonometry of
+    the angles left out of its time), and again from Dr.Jit arrays of the same degrees (the
+    directions computed in the same fused kernel: the same inputs as ours).  End to end: numpy
+    float32 degrees in, numpy DOP out.  Each row's ``ours_over_mitsuba`` compares it with its
+    counterpart (our kernel with Mitsuba's from directions; ``ours_over_mitsuba_degrees`` with
+    Mitsuba's from degrees).  Skipped with a note where mitsuba or a libLLVM is missing."""
     if not eng.has_kernels:
         return
     threads = getattr(getattr(eng, "device", None), "max_compute_units", None) or os.cpu_count() or 1
@@ -340,14 +346,16 @@ def bench_mitsuba(eng, rows, rng, size, repeats):
     lanes = eng.vector_width["float32"]
     size = size // lanes * lanes
     geo = {n: v.astype(np.float32) for n, v in random_points(rng, size).items() if n in INPUTS[:3]}
-    pts = dict(geo, **{n: np.full(size, v, np.float32) for n, v in MITSUBA_MATERIAL.items()})
-    wi, wo = directions(*(mi.Float(geo[n]) for n in INPUTS[:3]))
+    degrees = [mi.Float(geo[n]) for n in INPUTS[:3]]
+    dr.eval(*degrees)
+    wi, wo = directions(*degrees)
     dr.eval(wi, wo)
     kern = eng.kernel("dop_points_vec", "float32", "paper")
     out = eng.empty(size * 4)
     args = [out, np.int32(size // lanes)]
     for n in INPUTS:
-        args += [eng.to_device(pts[n], "float32"), np.int32(1)]
+        one = n not in geo  # the material: one value, stride 0
+        args += [eng.to_device(np.full(lanes, MITSUBA_MATERIAL[n]) if one else geo[n], "float32"), np.int32(not one)]
 
     def ours_kernel():
         eng.launch(kern, (size // lanes,), *args, local_size=(_engine.VECTOR_LOCAL_SIZE,))
@@ -357,28 +365,39 @@ def bench_mitsuba(eng, rows, rng, size, repeats):
         dr.eval(mdop(wi, wo))
         dr.sync_thread()
 
+    def mitsuba_degrees_kernel():
+        dr.eval(mdop(*directions(*degrees)))
+        dr.sync_thread()
+
     def ours_e2e():
-        return api_dop(pts["theta_i"], pts["theta_r"], pts["phi"], dtype="float32", engine=eng,
-                       **{n: pts[n] for n in INPUTS[3:]})
+        return api_dop(geo["theta_i"], geo["theta_r"], geo["phi"], dtype="float32", engine=eng, **MITSUBA_MATERIAL)
 
     def mitsuba_e2e():
         return np.asarray(mdop(*directions(*(mi.Float(geo[n]) for n in INPUTS[:3])))).reshape(-1)
     want, s0 = (np.asarray(a).reshape(-1) for a in mdop(wi, wo, with_s0=True))
     lit = s0 > 1e-10  # where S1^2 + S2^2 of Mitsuba's float32 lobe stays clear of underflow
     agree = float(np.max(np.abs(ours_e2e()[lit] - want[lit]))) if lit.any() else float("nan")
-    rates = interleaved_rates(dict(ours_kernel=ours_kernel, mitsuba_kernel=mitsuba_kernel, ours_e2e=ours_e2e,
+    rates = interleaved_rates(dict(ours_kernel=ours_kernel, mitsuba_kernel=mitsuba_kernel,
+                                   mitsuba_degrees_kernel=mitsuba_degrees_kernel, ours_e2e=ours_e2e,
                                    mitsuba_e2e=mitsuba_e2e), size, repeats)
+    version = mi.__version__
     labels = dict(ours_kernel="per-point kernel, Mitsuba's points (kernel)",
-                  mitsuba_kernel=f"Mitsuba {mi.__version__} roughconductor, Dr.Jit LLVM resident (kernel)",
+                  mitsuba_kernel=f"Mitsuba {version} roughconductor, resident directions (kernel)",
+                  mitsuba_degrees_kernel=f"Mitsuba {version} roughconductor, resident degrees (kernel)",
                   ours_e2e="pbrdf_cl.dop, Mitsuba's points (end-to-end)",
-                  mitsuba_e2e=f"Mitsuba {mi.__version__} roughconductor from numpy (end-to-end)")
+                  mitsuba_e2e=f"Mitsuba {version} roughconductor from numpy (end-to-end)")
+    pairs = dict(ours_kernel="mitsuba_kernel", mitsuba_kernel="ours_kernel", mitsuba_degrees_kernel="ours_kernel",
+                 ours_e2e="mitsuba_e2e", mitsuba_e2e="ours_e2e")
     for name, (rate, cpu_rate) in rates.items():
-        other = name.replace("ours", "mitsuba") if name.startswith("ours") else name.replace("mitsuba", "ours")
-        ours, theirs = (name, other) if name.startswith("ours") else (other, name)
-        rows.append(dict(path=labels[name], dtype="float32", rate=rate, unit="evals/s", seconds=size / rate, n=size,
-                         max_abs_err=agree, cpu_rate=cpu_rate, threads=threads,
-                         ours_over_mitsuba=rates[ours][0] / rates[theirs][0],
-                         ours_over_mitsuba_cpu=rates[ours][1] / rates[theirs][1]))
+        ours, theirs = (name, pairs[name]) if name.startswith("ours") else (pairs[name], name)
+        row = dict(path=labels[name], dtype="float32", rate=rate, unit="evals/s", seconds=size / rate, n=size,
+                   max_abs_err=agree, cpu_rate=cpu_rate, threads=threads,
+                   ours_over_mitsuba=rates[ours][0] / rates[theirs][0],
+                   ours_over_mitsuba_cpu=rates[ours][1] / rates[theirs][1])
+        if name == "ours_kernel":
+            row.update(ours_over_mitsuba_degrees=rate / rates["mitsuba_degrees_kernel"][0],
+                       ours_over_mitsuba_degrees_cpu=cpu_rate / rates["mitsuba_degrees_kernel"][1])
+        rows.append(row)
 
 
 GRID_AXES = dict(theta_i=np.linspace(10, 80, 16), theta_r=np.linspace(0, 85, 64), n=np.linspace(1, 3, 16),
@@ -603,6 +622,9 @@ def main(argv=None):
         if "ours_over_mitsuba" in r:
             extra += (f"  ours/Mitsuba {r['ours_over_mitsuba']:.2f}x (per CPU-s: {r['cpu_rate'] / 1e6:.1f} M, "
                       f"{r['ours_over_mitsuba_cpu']:.2f}x)")
+        if "ours_over_mitsuba_degrees" in r:
+            extra += (f"; over Mitsuba from degrees {r['ours_over_mitsuba_degrees']:.2f}x "
+                      f"(per CPU-s {r['ours_over_mitsuba_degrees_cpu']:.2f}x)")
         if "peak_extra_mb" in r:
             extra += f", peak +{r['peak_extra_mb']:.0f} MB (output {r['output_mb']:.0f} MB)"
         print(f"{r['path']:58s} {r['dtype']:8s} {r['rate'] / 1e6:10.1f} M {r['unit']:14s} "

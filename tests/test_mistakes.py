@@ -38,6 +38,29 @@ def test_angles_in_radians_are_flagged():
         "radians? pbrdf-cl takes degrees (np.degrees(...) converts)"]
 
 
+def test_radians_of_long_arrays_are_told_from_degrees_across_blocks():
+    """Arrays longer than one check block: the radians check stops at the first block holding an
+    angle of degrees' size, wherever that block lies, and reads everything only when there is none
+    (then the largest angle is told, NaN or a negative angle meaning no warning, as for short arrays)."""
+    B = api.CHECK_BLOCK
+    small = np.linspace(0.0, 1.5, 3 * B + 5)
+    assert api.radians_suspect(small, 0.2) == pytest.approx(1.5)
+    assert api.radians_suspect(0.2, small[::-1].copy()) == pytest.approx(1.5)
+    for at in (0, B - 1, B, 3 * B + 4):  # one angle of degrees in the first, a middle or the last block
+        late = small.copy()
+        late[at] = 45.0
+        assert api.radians_suspect(late, 0.2) is None and api.radians_suspect(0.2, late) is None
+    for bad in (np.nan, -0.1):
+        odd = small.copy()
+        odd[2 * B] = bad
+        assert api.radians_suspect(odd, 0.2) is None
+    assert api.radians_suspect(np.zeros(2 * B), 0.0) is None  # normal incidence and viewing
+    strided = np.repeat(small, 2)[::2]  # not contiguous
+    assert api.radians_suspect(strided, 0.2) == pytest.approx(1.5)
+    strided[B + 3] = 80.0
+    assert api.radians_suspect(strided, 0.2) is None
+
+
 def test_radians_are_flagged_on_the_grid_paths_too(tmp_path):
     """grid, reduce_grid, objective, map (once, though its derivative runs more grids) and sweep specs
     warn as eval and fit (once, though its grid stage runs objective) do, whether the zenith angles

@@ -83,15 +83,30 @@ def _check_domain(name, a):
 RADIANS_HINT = 1.6
 
 
+def _reaches(a, x):
+    """Whether some value of the non-empty array ``a`` is >= ``x``, read block by block in memory
+    order (as :func:`_min_max`) up to the first block that holds one."""
+    a = compact_values(a, a.ndim)
+    if a.size <= CHECK_BLOCK:
+        return bool(np.max(a) >= x)
+    return any(np.max(block) >= x for block in np.nditer(a, flags=["external_loop", "buffered"],
+                                                           buffersize=CHECK_BLOCK, order="K"))
+
+
 def radians_suspect(theta_i, theta_r, bounds=None):
     """The largest zenith angle when every one lies in [0, 1.6) and not all are 0 (such angles are
     almost always radians: pbrdf-cl takes degrees), else None.  ``bounds``: name -> (min, max)
-    already read (by :func:`_check_domain`); the other arrays are read once (:func:`_min_max`)."""
+    already read (by :func:`_check_domain`); the other arrays are read up to their first block
+    holding an angle >= 1.6 (usually the first: degrees), and only where there is none in full
+    (:func:`_min_max`)."""
     ranges = []
     for name, a in (("theta_i", theta_i), ("theta_r", theta_r)):
         known = (bounds or {}).get(name)
-        ranges.append(known if known is not None else
-                      (tuple(float(v) for v in _min_max(np.asarray(a))) if np.size(a) else (0.0, 0.0)))
+        if known is None and np.size(a):
+            if _reaches(np.asarray(a), RADIANS_HINT):
+                return None
+            known = tuple(float(v) for v in _min_max(np.asarray(a)))
+        ranges.append(known if known is not None else (0.0, 0.0))
     lo, hi = min(r[0] for r in ranges), max(r[1] for r in ranges)
     return hi if 0.0 < hi < RADIANS_HINT and lo >= 0.0 else None
 
