@@ -22,7 +22,7 @@ from ..sample import basins
 from ..sample.stages import SCREEN_ITERATIONS, Candidate, StageResult, least_squares_stage, screen_stage
 
 #: Local minima of each set's own grid slice that seed its own fit.
-EXCHANGE_SEEDS = 6
+EXCHANGE_SEEDS = 4
 #: The lowest nodes of a set's own grid slice searched first for its local minima (the whole
 #: slice where they hold too few).
 EXCHANGE_POOL = 256
