@@ -415,8 +415,8 @@ class _Stage(Passes):
         sums = [RowSums(self.ids.size, 5 + S * S + S) for _ in range(C)]
         self.trial_beta = np.full((C,) + self.beta.shape, np.nan)
 
-        def args(off, p):
-            return self.fitted[off:off + p], active, thetas, None if start else self.beta[off:off + p]
+        def args(off, p):  # copies: a worker's block may still be on its way when the driver moves on
+            return self.fitted[off:off + p].copy(), active, thetas, None if start else self.beta[off:off + p].copy()
         for off, (trial, parts) in self._blocks("start" if start else "refine", "evaluate", args):
             self.trial_beta[:, off:off + trial.shape[1]] = trial
             for c in range(C):
@@ -431,7 +431,7 @@ class _Stage(Passes):
         S = len(self.shared)
         sums = RowSums(self.ids.size, 5 + S * S + S)
         for off, (failed, kept, parts) in self._blocks("start", "start",
-                                                       lambda off, p: (self.fitted[off:off + p], active, theta)):
+                                                       lambda off, p: (self.fitted[off:off + p].copy(), active, theta)):
             self.fitted[off:off + failed.size] &= ~failed
             mine = np.all(np.isfinite(kept), axis=1)
             self.beta[off + np.flatnonzero(mine)] = kept[mine]
