@@ -157,7 +157,9 @@ def map_in_order(client, task, shared_future, items, key):
     queue = collections.deque()
 
     def submit():
-        for i, args in itertools.islice(pending, 1):
+        nxt = next(pending, None)
+        if nxt is not None:
+            i, args = nxt
             queue.append(client.submit(task, shared_future, *args, key=f"{key}-{token}-{i}", pure=False, retries=1))
     try:
         for _ in range(in_flight(client)):
