@@ -414,9 +414,9 @@ def test_the_label_sums_compute_fresnel_once_per_n_k(monkeypatch):
 
 
 def test_labels_on_workers_equal_in_memory(tmp_path):
-    """With workers the label stage runs here and the per-pixel pass on the workers, which get
-    each pixel's own parameters of the label stage with the job: the result is the in-memory one
-    (both on the default device)."""
+    """With workers the label stage's block passes and the per-pixel pass run on the workers (the
+    latter's job carries each pixel's own parameters of the label stage): the result is the
+    in-memory one (both on the default device; tests/test_label_workers.py: in several blocks)."""
     from conftest import DEVICES
     pytest.importorskip("distributed")
     if not DEVICES:

@@ -36,6 +36,7 @@ import numpy as np
 
 from ... import sizes
 from ...io.source import open_stack_lazily
+from ...store import cluster
 from ..setup import FitSetup
 from . import store as image_store
 from .dataset import goodness_summary, interval_summary
@@ -104,7 +105,8 @@ def fit_batch(data, model="six-param", bounds=None, fixed=None, shadowing="paper
         An integer label image over the pixel dimensions (0: not fitted), or the name of such a
         variable of the stack: the pixels of a label share the ``shared`` parameters, one value
         per label found from all its pixels (``pbrdf_cl.fitting.images.labels``, docs/joint_images.md);
-        the label stage runs here (with ``workers`` too), then the per-pixel pass.
+        the label stage, then the per-pixel pass (with ``workers``, ``scheduler`` or ``client``
+        the passes of both over the blocks run on the workers of one cluster).
     shared : sequence of str or str, optional, with ``labels``
         The parameters the pixels of a label share (free parameters, not all of them), as a
         sequence or one string (``"n,k"``, ``"n k"``); by default ("n", "k"), less a fixed one;
@@ -171,10 +173,16 @@ def fit_batch(data, model="six-param", bounds=None, fixed=None, shadowing="paper
         if isinstance(data, (str, os.PathLike)):
             data = open_stack_lazily(data)
         job = _job(data, model, bounds, fixed, shadowing, settings, labels, shared)
-        if job.prepares:  # a label job's label stage runs here, the per-pixel pass where the blocks go
-            job.prepare(image_store.local_engine(engine, backend, device), progress)
-        return image_store.write_store(job, store, progress=progress, engine=engine, backend=backend, device=device,
-                                       workers=workers, scheduler=scheduler, client=client, allow_large=allow_large)
+        if not job.prepares:
+            return image_store.write_store(job, store, progress=progress, engine=engine, backend=backend,
+                                           device=device, workers=workers, scheduler=scheduler, client=client,
+                                           allow_large=allow_large)
+        # a label job: its label stage's passes and the per-pixel pass where the blocks go, on one cluster
+        with cluster.connect(workers, scheduler, client) as client:
+            job.prepare(image_store.local_engine(engine, backend, device), progress, client=client, device=device,
+                        backend=backend)
+            return image_store.write_store(job, store, progress=progress, engine=engine, backend=backend,
+                                           device=device, client=client, allow_large=allow_large)
     if workers is not None or scheduler is not None or client is not None:
         raise ValueError("workers=, scheduler= and client= need store= (the workers write their blocks into it)")
     if allow_large:

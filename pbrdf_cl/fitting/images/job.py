@@ -140,12 +140,14 @@ class BatchJob:
             pointwise.check_degrees(raw["theta_i"], raw["theta_r"], "data: ")
         return raw
 
-    #: whether :meth:`prepare` does anything (it needs an engine in the calling process)
+    #: whether :meth:`prepare` does anything (it needs an engine in the calling process, and a
+    #: cluster's client where the blocks go to workers)
     prepares = False
 
-    def prepare(self, eng, progress=False):
-        """What must run before any block, in the calling process: nothing here (a
-        :class:`pbrdf_cl.fitting.images.labels.LabelJob` finds its labels' shared values)."""
+    def prepare(self, eng, progress=False, client=None, device=None, backend="auto"):
+        """What must run before any block, from the calling process (with ``client``, on the
+        workers of that cluster, each with its engine for ``device`` and ``backend``): nothing here
+        (a :class:`pbrdf_cl.fitting.images.labels.LabelJob` finds its labels' shared values)."""
 
     def fit_rows(self, eng, r0, r1):
         """Fit the pixels of rows r0..r1: a dict of flat per-pixel result arrays."""

@@ -50,10 +50,12 @@ in passes over the blocks of the stack (a label's pixels may lie in every block)
 The derivatives and the objective of the refinement are the float64 reference model's
 (:class:`~pbrdf_cl.fitting.images.pixels.PixelResiduals`, forward differences on the host): the same on
 every backend.  Sums over a label's pixels are taken row by row of the stack in row order, so the
-result does not depend on the blocks (the memory budget).  Memory beyond a block: the pixels'
-own parameters at the current and the trial theta (two floats per parameter and pixel) and the
-labels' sums; the current ones are kept in the result (``LabelResult.beta``): the per-pixel pass
-starts each pixel from them too.
+result does not depend on the blocks (the memory budget), nor on where they run: each pass's work
+on a block (:class:`Passes`) runs here or, with a cluster, on a ``dask.distributed`` worker
+(``pbrdf_cl.fitting.images.label_workers``), and its sums per row are added here in row order.
+Memory beyond a block: the pixels' own parameters at the current and the trial theta (two floats
+per parameter and pixel) and the labels' sums; the current ones are kept in the result
+(``LabelResult.beta``): the per-pixel pass starts each pixel from them too.
 """
 from __future__ import annotations
 
@@ -165,29 +167,42 @@ def take(raw, idx):
     return {k: (v if (v.ndim == 1 and k in ANGLES) else v[idx]) for k, v in raw.items()}
 
 
+def row_parts(rows, lab, values, n_labels):
+    """The sums of the per-pixel ``values`` (p, size) of pixels in ``rows`` (ascending) of labels
+    ``lab`` per (row, label), rows in order: (labels, sums) for :meth:`RowSums.add_parts`."""
+    uk, inv = np.unique(rows * n_labels + lab, return_inverse=True)
+    part = np.zeros((uk.size, values.shape[1]))
+    np.add.at(part, inv.ravel(), values)
+    return uk % n_labels, part
+
+
 class RowSums:
     """Sums over each label's pixels taken row by row of the stack, rows in order: the same
-    whatever the blocks (a row is never split between blocks)."""
+    whatever the blocks (a row is never split between blocks) and wherever they are computed
+    (a block's sums per row, :func:`row_parts`, are added here in row order)."""
 
     def __init__(self, n_labels, size):
         self.total = np.zeros((n_labels, size))
 
     def add(self, rows, lab, values):
         """Add the per-pixel ``values`` (p, size) of pixels in ``rows`` (ascending) of labels ``lab``."""
-        if not rows.size:
-            return
-        n = self.total.shape[0]
-        uk, inv = np.unique(rows * n + lab, return_inverse=True)
-        part = np.zeros((uk.size, self.total.shape[1]))
-        np.add.at(part, inv.ravel(), values)
-        np.add.at(self.total, uk % n, part)  # in key order: a label's rows in order
+        if rows.size:
+            self.add_parts(*row_parts(rows, lab, values, self.total.shape[0]))
+
+    def add_parts(self, labels, part):
+        """Add a block's sums per (row, label) (:func:`row_parts`), in their order."""
+        np.add.at(self.total, labels, part)  # in key order: a label's rows in order
 
 
-class _Stage:
-    """The passes of one label stage (see the module's docstring)."""
+class Passes:
+    """The label stage's work on one block of rows (``<pass>_block``: pure functions of the
+    block's rows and the pass's inputs, run here or on a ``dask.distributed`` worker,
+    :mod:`pbrdf_cl.fitting.images.label_workers`) and what every pass shares: the job's
+    constants and an engine.  Each returns the block's sums per row (:func:`row_parts`), added in
+    row order where the stage runs (:class:`RowSums`), and what the pass keeps per pixel."""
 
-    def __init__(self, job, eng, progress):
-        self.job, self.eng, self.progress = job, eng, progress
+    def __init__(self, job, eng):
+        self.job, self.eng = job, eng
         setup = job.setup
         self.shared = tuple(job.shared)
         self.own = [n for n in job.names if n not in self.shared]
@@ -198,54 +213,31 @@ class _Stage:
         self.ids = job.label_ids
         self.lab = job.label_index  # flat, -1: not fitted
         self.row = int(np.prod(job.source.shape[1:], dtype=np.int64))
-        self.fitted = np.zeros(self.lab.size, bool)
-        self.pixel_node = np.full(self.lab.size, -1, np.int64)  # each pixel's best node of the profile
-        n_own = len(self.own)
-        self.beta = np.full((self.lab.size, n_own), np.nan)
+        self.node_order, self.node_rstart, self.nodes = node_regions(setup, self.shared)
         self.order_own, self.rstart_own = regions(grid_values(held_setup(setup, self.shared, np.zeros(2))),
                                                   held_setup(setup, self.shared, np.zeros(2)).free)
         self.dtype = "float64" if getattr(eng, "fp64", True) else "float32"
         self.lanes = eng.call("batch_lanes")
 
-    def _bar(self, desc, total):
-        if not self.progress:
-            return None
-        from tqdm.auto import tqdm
-        return tqdm(total=total, desc=f"labels: {desc}", unit="px", unit_scale=True, smoothing=0.1)
-
-    def _blocks(self, desc, check=False):
-        """(r0, pixel offset, raw rows) of every block, with a progress bar in pixels; ``check``:
-        the rows' values checked (the first pass)."""
-        bar = self._bar(desc, self.job.source.n_pixels)
-        for r0, r1 in self.job.blocks():
-            raw = self.job.read_rows(r0, r1) if check else self.job.source.rows(r0, r1)
-            yield r0, r0 * self.row, raw
-            if bar is not None:
-                bar.update((r1 - r0) * self.row)
-        if bar is not None:
-            bar.close()
-
-    def profile(self):
-        """Pass 1: each label's chi2 profile over the shared parameters' grid nodes; marks the
-        pixels that can be fitted (label > 0, not masked, enough valid measurements)."""
+    def profile_block(self, r0, r1):
+        """Pass 1 on rows r0..r1 (their values checked): the pixels that can be fitted (label > 0,
+        not masked, enough valid measurements; indices in the block), each one's best node of the
+        shared parameters' grid and the block's sums of their least chi2 at every node:
+        (indices, nodes, [sums per row])."""
         setup = self.job.setup
-        order, rstart, self.nodes = node_regions(setup, self.shared)
-        sums = RowSums(self.ids.size, rstart.size - 1)
+        blk = Block(self.job.read_rows(r0, r1), setup, self.lanes)
+        lab = self.lab[r0 * self.row:r0 * self.row + blk.p]
         need = len(self.own)
-        for _, off, raw in self._blocks("grid", check=True):
-            blk = Block(raw, setup, self.lanes)
-            lab = self.lab[off:off + blk.p]
-            ok = (lab >= 0) & blk.mask & (blk.count >= need + 1) & (blk.distinct >= need)
-            idx = np.flatnonzero(ok)
-            if idx.size:
-                best, _ = self.eng.call("batch_grid", setup, blk.subset(idx), order, rstart)
-                best = np.asarray(best, float).T
-                good = np.all(np.isfinite(best), axis=1)
-                idx, best = idx[good], best[good]
-                self.fitted[off + idx] = True
-                self.pixel_node[off + idx] = np.argmin(best, axis=1)
-                sums.add(idx // self.row, lab[idx], best)
-        return sums.total
+        ok = (lab >= 0) & blk.mask & (blk.count >= need + 1) & (blk.distinct >= need)
+        idx = np.flatnonzero(ok)
+        if not idx.size:
+            return idx, np.zeros(0, np.int64), []
+        best, _ = self.eng.call("batch_grid", setup, blk.subset(idx), self.node_order, self.node_rstart)
+        best = np.asarray(best, float).T
+        good = np.all(np.isfinite(best), axis=1)
+        idx, best = idx[good], best[good]
+        parts = [row_parts(idx // self.row, lab[idx], best, self.ids.size)] if idx.size else []
+        return idx, np.argmin(best, axis=1), parts
 
     def values(self, setup, sub, theta_px, beta):
         """Per pixel of ``sub`` at (theta, beta): [1, residual rows, noise floor^2, chi2, DOP sse,
@@ -279,57 +271,60 @@ class _Stage:
         return np.concatenate([np.ones((sub.p, 1)), rows[:, None], sub.noise_floor[:, None] ** 2, chi2[:, None],
                                sse[:, None], schur.reshape(sub.p, -1), grad], axis=1)
 
-    def evaluate(self, thetas, active, start=False):
-        """One pass at candidate values ``thetas`` (C, L, S) of the ``active`` labels: each pixel's
-        own parameters descended (:meth:`descend`; ``start``: from its grid alone, else also from
-        its current ones) into ``trial_beta`` (C, pixels, own); returns the labels' sums of
-        :meth:`values` at each candidate, (C, L, sums)."""
+    def evaluate_block(self, r0, r1, fitted, active, thetas, previous=None):
+        """:meth:`_Stage.evaluate` on rows r0..r1 (``fitted``: their pixels' marks; ``previous``:
+        their own parameters, None: from the grid alone): (their own parameters at each candidate
+        (C, p, own), NaN where not fitted; per candidate the block's :meth:`values` summed per row)."""
         setup = self.job.setup
         C, S = thetas.shape[0], len(self.shared)
-        sums = [RowSums(self.ids.size, 5 + S * S + S) for _ in range(C)]
-        self.trial_beta = np.full((C,) + self.beta.shape, np.nan)
-        for _, off, raw in self._blocks("start" if start else "refine"):
-            lab = self.lab[off:off + raw["dop"].shape[0]]
-            fit = self.fitted[off:off + lab.size] & active[np.maximum(lab, 0)]
-            for L in np.unique(lab[fit]):
-                idx = np.flatnonzero(fit & (lab == L))
-                sub_raw = take(raw, idx)
-                sub = Block(sub_raw, setup, 1)
-                for c in range(C):
-                    held = held_setup(setup, self.shared, thetas[c, L])
-                    before = None if start else self.beta[off + idx]
-                    beta = self.descend(held, Block(sub_raw, held, self.lanes), before)
-                    self.trial_beta[c, off + idx] = beta
-                    vals = self.values(setup, sub, np.broadcast_to(thetas[c, L], (idx.size, S)), beta)
-                    sums[c].add((off + idx) // self.row, np.full(idx.size, L), vals)
-        return np.stack([t.total for t in sums])
+        raw = self.job.source.rows(r0, r1)
+        off = r0 * self.row
+        lab = self.lab[off:off + raw["dop"].shape[0]]
+        fit = fitted & active[np.maximum(lab, 0)]
+        trial = np.full((C, lab.size, len(self.own)), np.nan)
+        parts = [[] for _ in range(C)]
+        for L in np.unique(lab[fit]):
+            idx = np.flatnonzero(fit & (lab == L))
+            sub_raw = take(raw, idx)
+            sub = Block(sub_raw, setup, 1)
+            for c in range(C):
+                held = held_setup(setup, self.shared, thetas[c, L])
+                before = None if previous is None else previous[idx]
+                beta = self.descend(held, Block(sub_raw, held, self.lanes), before)
+                trial[c, idx] = beta
+                vals = self.values(setup, sub, np.broadcast_to(thetas[c, L], (idx.size, S)), beta)
+                parts[c].append(row_parts((off + idx) // self.row, np.full(idx.size, L), vals, self.ids.size))
+        return trial, parts
 
-    def start(self, theta, active):
-        """The pass at the seeds ``theta`` (L, S): every pixel's own parameters fitted from scratch
-        with theta held (:func:`pbrdf_cl.fitting.images.pixel_fit.fit_block`: the usual stages) into
-        ``beta`` (a pixel whose fit fails leaves the label stage); the labels' sums there."""
+    def start_block(self, r0, r1, fitted, active, theta):
+        """:meth:`_Stage.start` on rows r0..r1 (``fitted``: their pixels' marks): (the pixels whose
+        fit failed (p,), every pixel's own parameters (p, own; NaN where not fitted), the block's
+        :meth:`values` summed per row)."""
         setup = self.job.setup
         S = len(self.shared)
-        sums = RowSums(self.ids.size, 5 + S * S + S)
-        for _, off, raw in self._blocks("start"):
-            lab = self.lab[off:off + raw["dop"].shape[0]]
-            fit = self.fitted[off:off + lab.size] & active[np.maximum(lab, 0)]
-            for L in np.unique(lab[fit]):
-                idx = np.flatnonzero(fit & (lab == L))
-                held = held_setup(setup, self.shared, theta[L])
-                out = fit_block(self.eng, held, take(raw, idx), self.order_own, self.rstart_own, self.own)
-                beta = out["x"]
-                if setup.use_f00 and "kd" in self.own:  # reported kd to the descent's kd/ks
-                    beta[:, self.own.index("kd")] /= beta[:, self.own.index("ks")]
-                good = np.all(np.isfinite(beta), axis=1)
-                self.fitted[off + idx[~good]] = False
-                idx, beta = idx[good], beta[good]
-                if idx.size:
-                    self.beta[off + idx] = beta
-                    at = np.broadcast_to(theta[L], (idx.size, S))
-                    vals = self.values(setup, Block(take(raw, idx), setup, 1), at, beta)
-                    sums.add((off + idx) // self.row, np.full(idx.size, L), vals)
-        return sums.total
+        raw = self.job.source.rows(r0, r1)
+        off = r0 * self.row
+        lab = self.lab[off:off + raw["dop"].shape[0]]
+        fit = fitted & active[np.maximum(lab, 0)]
+        failed = np.zeros(lab.size, bool)
+        kept = np.full((lab.size, len(self.own)), np.nan)
+        parts = []
+        for L in np.unique(lab[fit]):
+            idx = np.flatnonzero(fit & (lab == L))
+            held = held_setup(setup, self.shared, theta[L])
+            out = fit_block(self.eng, held, take(raw, idx), self.order_own, self.rstart_own, self.own)
+            beta = out["x"]
+            if setup.use_f00 and "kd" in self.own:  # reported kd to the descent's kd/ks
+                beta[:, self.own.index("kd")] /= beta[:, self.own.index("ks")]
+            good = np.all(np.isfinite(beta), axis=1)
+            failed[idx[~good]] = True
+            idx, beta = idx[good], beta[good]
+            if idx.size:
+                kept[idx] = beta
+                at = np.broadcast_to(theta[L], (idx.size, S))
+                vals = self.values(setup, Block(take(raw, idx), setup, 1), at, beta)
+                parts.append(row_parts((off + idx) // self.row, np.full(idx.size, L), vals, self.ids.size))
+        return failed, kept, parts
 
     def descend(self, held, blk, previous):
         """Each pixel's own parameters at a trial theta (``held``): the best end of float32
@@ -353,16 +348,108 @@ class _Stage:
         return self.eng.call("batch_lm", held, blk, x[None], self.own, self.dtype, POLISH_ITERATIONS,
                              held.use_f00).x[0]
 
+    def gather_block(self, r0, r1, picks):
+        """The raw rows of the pixels ``picks`` of rows r0..r1 (per label, indices in the block):
+        one raw dict per label (None where none)."""
+        raw = self.job.source.rows(r0, r1)
+        return [take(raw, mine) if mine.size else None for mine in picks]
+
+
+class _Stage(Passes):
+    """The passes of one label stage (see the module's docstring): each block's work
+    (:class:`Passes`) here, or on the workers of ``workers``
+    (:class:`pbrdf_cl.fitting.images.label_workers.WorkerBlocks`: ``map(pass, items)`` yields the
+    blocks' results in block order), its results kept and summed here."""
+
+    def __init__(self, job, eng, progress, workers=None):
+        super().__init__(job, eng)
+        self.progress, self.workers = progress, workers
+        self.fitted = np.zeros(self.lab.size, bool)
+        self.pixel_node = np.full(self.lab.size, -1, np.int64)  # each pixel's best node of the profile
+        self.beta = np.full((self.lab.size, len(self.own)), np.nan)
+
+    def _bar(self, desc, total):
+        if not self.progress:
+            return None
+        from tqdm.auto import tqdm
+        return tqdm(total=total, desc=f"labels: {desc}", unit="px", unit_scale=True, smoothing=0.1)
+
+    def _blocks(self, desc, kind, args_of):
+        """(pixel offset, result) of every block in order: ``<kind>_block`` of :class:`Passes` on
+        its rows and ``args_of(offset, pixels)``, here or on the workers, with a progress bar in
+        pixels."""
+        blocks = self.job.blocks()
+        items = ((r0, r1, *args_of(r0 * self.row, (r1 - r0) * self.row)) for r0, r1 in blocks)
+        if self.workers is None:
+            results = (getattr(self, f"{kind}_block")(*item) for item in items)
+        else:
+            results = self.workers.map(kind, items)
+        bar = self._bar(desc, self.job.source.n_pixels)
+        try:
+            for (r0, r1), res in zip(blocks, results):
+                yield r0 * self.row, res
+                if bar is not None:
+                    bar.update((r1 - r0) * self.row)
+        finally:
+            results.close()
+            if bar is not None:
+                bar.close()
+
+    def profile(self):
+        """Pass 1: each label's chi2 profile over the shared parameters' grid nodes; marks the
+        pixels that can be fitted (label > 0, not masked, enough valid measurements)."""
+        sums = RowSums(self.ids.size, self.node_rstart.size - 1)
+        for off, (idx, node, parts) in self._blocks("grid", "profile", lambda off, p: ()):
+            self.fitted[off + idx] = True
+            self.pixel_node[off + idx] = node
+            for part in parts:
+                sums.add_parts(*part)
+        return sums.total
+
+    def evaluate(self, thetas, active, start=False):
+        """One pass at candidate values ``thetas`` (C, L, S) of the ``active`` labels: each pixel's
+        own parameters descended (:meth:`descend`; ``start``: from its grid alone, else also from
+        its current ones) into ``trial_beta`` (C, pixels, own); returns the labels' sums of
+        :meth:`values` at each candidate, (C, L, sums)."""
+        C, S = thetas.shape[0], len(self.shared)
+        sums = [RowSums(self.ids.size, 5 + S * S + S) for _ in range(C)]
+        self.trial_beta = np.full((C,) + self.beta.shape, np.nan)
+
+        def args(off, p):  # copies: a worker's block may still be on its way when the driver moves on
+            return self.fitted[off:off + p].copy(), active, thetas, None if start else self.beta[off:off + p].copy()
+        for off, (trial, parts) in self._blocks("start" if start else "refine", "evaluate", args):
+            self.trial_beta[:, off:off + trial.shape[1]] = trial
+            for c in range(C):
+                for part in parts[c]:
+                    sums[c].add_parts(*part)
+        return np.stack([t.total for t in sums])
+
+    def start(self, theta, active):
+        """The pass at the seeds ``theta`` (L, S): every pixel's own parameters fitted from scratch
+        with theta held (:func:`pbrdf_cl.fitting.images.pixel_fit.fit_block`: the usual stages) into
+        ``beta`` (a pixel whose fit fails leaves the label stage); the labels' sums there."""
+        S = len(self.shared)
+        sums = RowSums(self.ids.size, 5 + S * S + S)
+        for off, (failed, kept, parts) in self._blocks("start", "start",
+                                                       lambda off, p: (self.fitted[off:off + p].copy(), active, theta)):
+            self.fitted[off:off + failed.size] &= ~failed
+            mine = np.all(np.isfinite(kept), axis=1)
+            self.beta[off + np.flatnonzero(mine)] = kept[mine]
+            for part in parts:
+                sums.add_parts(*part)
+        return sums.total
+
     def gather(self, picks):
         """One pass over the stack: the raw rows of the pixels ``picks`` (a list per label of flat
         pixel indices, ascending), in memory, as one raw dict per label (None where empty)."""
         parts = [[] for _ in picks]
-        for _, off, raw in self._blocks("subsample"):
-            p = raw["dop"].shape[0]
-            for L, idx in enumerate(picks):
-                mine = idx[(idx >= off) & (idx < off + p)] - off
-                if mine.size:
-                    parts[L].append(take(raw, mine))
+
+        def args(off, p):
+            return ([idx[(idx >= off) & (idx < off + p)] - off for idx in picks],)
+        for _, got in self._blocks("subsample", "gather", args):
+            for L, part in enumerate(got):
+                if part is not None:
+                    parts[L].append(part)
         return [None if not ps else {k: (ps[0][k] if (ps[0][k].ndim == 1 and k in ANGLES) else
                                          np.concatenate([q[k] for q in ps])) for k in ps[0]} for ps in parts]
 
@@ -525,7 +612,7 @@ class _Stage:
         return theta, sums, ok, active, rounds
 
 
-def run_label_stage(job, eng, progress=False):
+def run_label_stage(job, eng, progress=False, workers=None):
     """The shared parameters of every label of ``job`` (a ``pbrdf_cl.fitting.images.labels.LabelJob``).
 
     Parameters
@@ -536,6 +623,10 @@ def run_label_stage(job, eng, progress=False):
         Where the grid and the pixels' descents run.
     progress : bool, default False
         A progress bar per pass over the stack.
+    workers : optional
+        Where the passes' blocks run: here with ``eng`` (None), or on a ``dask.distributed``
+        cluster's workers (a ``pbrdf_cl.fitting.images.label_workers.WorkerBlocks``); the same
+        result bit for bit (on the same device).  The subsample's search and the intervals run here.
 
     Returns
     -------
@@ -548,7 +639,7 @@ def run_label_stage(job, eng, progress=False):
     >>> run_label_stage(job, engine).theta  # doctest: +SKIP
     array([[1.601, 2.142], [1.398, 0.503]])
     """
-    st = _Stage(job, eng, progress)
+    st = _Stage(job, eng, progress, workers)
     L = st.ids.size
     profile = st.profile()
     pixels = np.bincount(st.lab[st.fitted], minlength=L)

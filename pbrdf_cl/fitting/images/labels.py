@@ -10,7 +10,8 @@ The job runs in two steps: the label stage (:func:`pbrdf_cl.fitting.images.label
 :meth:`LabelJob.prepare`: passes over the whole stack that find each label's shared values), then
 the usual per-pixel pass, block by block (:meth:`LabelJob.fit_rows`: each pixel fitted with its
 label's values held), in memory, into a store or on ``dask.distributed`` workers as any
-:class:`~pbrdf_cl.fitting.images.job.BatchJob`.
+:class:`~pbrdf_cl.fitting.images.job.BatchJob`; on workers the label stage's passes over the blocks
+run there too (:mod:`pbrdf_cl.fitting.images.label_workers`).
 """
 from __future__ import annotations
 
@@ -25,6 +26,7 @@ from . import label_search
 from .dataset import empty_outputs, make_dataset
 from .job import BLOCK_BUDGET, N_STARTS, BatchJob
 from .label_stage import LABEL_STATUS, held_setup, run_label_stage, take
+from .label_workers import WorkerBlocks
 from .pixel_fit import fit_block
 from .pixels import grid_values, regions
 
@@ -158,9 +160,16 @@ class LabelJob(BatchJob):
 
     prepares = True
 
-    def prepare(self, eng, progress=False):
-        """Run the label stage (the shared values of every label) with ``eng``; before any block."""
-        self.result = run_label_stage(self, eng, progress)
+    def prepare(self, eng, progress=False, client=None, device=None, backend="auto"):
+        """Run the label stage (the shared values of every label) before any block: its passes over
+        the blocks with ``eng``, or with ``client`` on the cluster's workers (each with its engine
+        for ``device`` and ``backend``, :mod:`pbrdf_cl.fitting.images.label_workers`; the same
+        result), the rest (the subsample's search, the intervals) with ``eng``."""
+        if client is None:
+            self.result = run_label_stage(self, eng, progress)
+        else:
+            with WorkerBlocks(client, self, device, backend) as blocks:
+                self.result = run_label_stage(self, eng, progress, blocks)
         return self.result
 
     def fit_rows(self, eng, r0, r1):
