@@ -179,9 +179,9 @@ def test_the_integrated_likelihood_steps_to_its_minimum():
     centre = rng.normal(0, 0.01, (P, 2)) + [0.4, 0.2]
     B = np.array([[30.0, 5.0], [5.0, 12.0]])
 
-    def terms(theta, rounds=0):
-        d = theta / span - centre
-        return np.einsum("pi,ij,pj->p", d, B, d)
+    def terms(thetas, rounds=0):
+        d = thetas[:, None, :] / span - centre
+        return np.einsum("kpi,ij,kpj->kp", d, B, d)
 
     t, se = np.array([0.41, 0.19]), np.array([0.01, 0.02])
     g, H, c = la.stencil(SimpleNamespace(terms=terms), t, se, np.zeros(2), np.ones(2), span)

@@ -29,7 +29,6 @@ from __future__ import annotations
 import numpy as np
 
 from ...io.source import ANGLES
-from ..common import fd_jacobian
 from .label_search import subsample
 from .pixels import Block, PixelResiduals
 
@@ -38,9 +37,9 @@ INTEGRATED = False
 #: Laplace EM iterations of the population's mean and variance at the label's values.
 EM_ROUNDS = 6
 #: Gauss-Newton (Levenberg-Marquardt) iterations of each pixel's mode, at most.
-MODE_ITERATIONS = 12
+MODE_ITERATIONS = 8
 #: ... stopping where no pixel's Q falls by more than this.
-MODE_TOL = 1e-5
+MODE_TOL = 1e-3
 #: The own parameters' fractions of their bounds the logit coordinates start from (at most this
 #: close to a bound) and the modes' logit coordinates' bound.
 EDGE = 1e-4
@@ -59,22 +58,25 @@ PIXELS = 512
 class Integrated:
     """The terms of one label's integrated chi2 G (see the module's docstring) on the pixels of
     ``raw`` (a raw dict of the label's pixels), own parameters from ``beta`` (pixels, own; the
-    profile's values at the label's), chi2 scale ``s2``."""
+    profile's values at the label's), chi2 scale ``s2``.  Its methods take K values of the shared
+    parameters at once (``thetas`` (K, S); the modes ``u`` (K, p, own), the population's mean
+    ``mu`` (K, own); its variance ``D`` (own,) is common): one call of the reference model per
+    iteration for all of them."""
 
     def __init__(self, setup, names, shared, raw, beta, s2, lo, hi):
-        self.names = list(names)
+        self.setup, self.names = setup, list(names)
         self.si = [self.names.index(n) for n in shared]
         self.bi = [self.names.index(n) for n in self.names if n not in shared]
         self.lo, self.hi = lo, hi
         self.s2 = float(s2)
-        blk = Block(raw, setup, 1)
-        self.p = blk.p
-        self.res = PixelResiduals(setup, blk, self.names, np.arange(blk.p), setup.use_f00, few_nk=True)
+        self.blk = Block(raw, setup, 1)
+        self.p = self.blk.p
+        self.rows = {}
         b = self.bi
         f = np.clip((beta - lo[b]) / (hi[b] - lo[b]), EDGE, 1 - EDGE)
-        self.u = np.log(f / (1 - f))
-        self.mu = self.u.mean(axis=0)
-        self.D = np.maximum(self.u.var(axis=0), 1e-2)
+        self.u = np.log(f / (1 - f))[None]
+        self.mu = self.u.mean(axis=1)
+        self.D = np.maximum(self.u[0].var(axis=0), 1e-2)
 
     def own(self, u):
         """The own parameters at logit coordinates ``u`` and their derivatives dx/du."""
@@ -83,34 +85,52 @@ class Integrated:
         w = self.hi[b] - self.lo[b]
         return self.lo[b] + w * s, w * s * (1.0 - s)
 
-    def _at(self, theta, u, mu, D):
-        X = np.empty((self.p, len(self.names)))
-        X[:, self.si] = theta
+    def residuals(self, K):
+        """The reference model's residual rows of K copies of the pixels (made once per K)."""
+        if K not in self.rows:
+            pix = np.tile(np.arange(self.p), K)
+            self.rows[K] = PixelResiduals(self.setup, self.blk, self.names, pix, self.setup.use_f00, few_nk=True).rows
+        return self.rows[K]
+
+    def _at(self, thetas, u, mu, D):
+        """(Q, H, g) of every copy and pixel: forward differences along the own parameters only
+        (scipy's steps, inwards at an upper bound)."""
+        K, p, o = u.shape
         x, dx = self.own(u)
-        X[:, self.bi] = x
-        r, J = fd_jacobian(self.res.rows, X, self.lo, self.hi)
-        r = r / np.sqrt(self.s2)
-        Ju = J[:, self.bi] * (dx[:, :, None] / np.sqrt(self.s2))
-        pr = (u - mu) / np.sqrt(D)
+        X = np.empty((K, p, len(self.names)))
+        X[..., self.si] = thetas[:, None, :]
+        X[..., self.bi] = x
+        X = X.reshape(K * p, -1)
+        xo = X[:, self.bi]
+        h = np.sqrt(np.finfo(float).eps) * np.maximum(1.0, np.abs(xo))
+        h = (xo + np.where(xo + h > self.hi[self.bi], -h, h)) - xo
+        pts = np.repeat(X[:, None, :], o + 1, axis=1)
+        for j, c in enumerate(self.bi):
+            pts[:, j + 1, c] += h[:, j]
+        R = self.residuals(K)(pts.reshape(-1, X.shape[1])).reshape(K * p, o + 1, -1) / np.sqrt(self.s2)
+        r = R[:, 0]
+        Ju = (R[:, 1:] - r[:, None]) * (dx.reshape(K * p, o) / h)[:, :, None]
+        pr = ((u - mu[:, None, :]) / np.sqrt(D)).reshape(K * p, o)
         Q = np.einsum("pm,pm->p", r, r) + np.einsum("pi,pi->p", pr, pr)
         H = np.einsum("pim,pjm->pij", Ju, Ju) + np.diag(1.0 / D)[None]
         g = np.einsum("pim,pm->pi", Ju, r) + pr / np.sqrt(D)
-        return Q, H, g
+        return Q.reshape(K, p), H.reshape(K, p, o, o), g.reshape(K, p, o)
 
-    def modes(self, theta, u, mu, D):
-        """Each pixel's mode of its own parameters at ``theta`` (Levenberg-Marquardt from ``u``):
-        (u, Q (p,), H (p, own, own))."""
-        lam = np.full(self.p, 1e-3)
-        Q, H, g = self._at(theta, u, mu, D)
-        eye = np.eye(H.shape[1])[None]
+    def modes(self, thetas, u, mu, D):
+        """Each pixel's mode of its own parameters at every theta (Levenberg-Marquardt from
+        ``u``): (u, Q (K, p), H (K, p, own, own))."""
+        lam = np.full(u.shape[:2], 1e-3)
+        Q, H, g = self._at(thetas, u, mu, D)
+        eye = np.eye(u.shape[2])
         for _ in range(MODE_ITERATIONS):
-            Hd = H + (lam[:, None] * np.einsum("pii->pi", H))[:, :, None] * eye
-            un = np.clip(u - np.linalg.solve(Hd, g[:, :, None])[:, :, 0], -U_MAX, U_MAX)
-            Qn, Hn, gn = self._at(theta, un, mu, D)
+            Hd = H + (lam[..., None] * np.einsum("kpii->kpi", H))[..., None] * eye
+            un = np.clip(u - np.linalg.solve(Hd, g[..., None])[..., 0], -U_MAX, U_MAX)
+            Qn, Hn, gn = self._at(thetas, un, mu, D)
             better = Qn < Q
             gain = np.where(better, Q - Qn, 0.0)
-            u = np.where(better[:, None], un, u)
-            Q, H, g = np.where(better, Qn, Q), np.where(better[:, None, None], Hn, H), np.where(better[:, None], gn, g)
+            u = np.where(better[..., None], un, u)
+            Q, g = np.where(better, Qn, Q), np.where(better[..., None], gn, g)
+            H = np.where(better[..., None, None], Hn, H)
             lam = np.where(better, lam / 5.0, lam * 10.0)
             if gain.max() < MODE_TOL:
                 break
@@ -121,31 +141,34 @@ class Integrated:
         Schur complement of their joint problem): (mu, the modes predicted there)."""
         Di = 1.0 / D
         Hi = np.linalg.inv(H)
-        M = u.shape[0] * np.diag(Di) - np.einsum("i,pij,j->ij", Di, Hi, Di)
-        dm = np.linalg.solve(M, Di * (u - mu).sum(axis=0))
-        return mu + dm, np.clip(u + np.einsum("pij,j->pi", Hi, Di * dm), -U_MAX, U_MAX)
+        M = u.shape[1] * np.diag(Di)[None] - np.einsum("i,kpij,j->kij", Di, Hi, Di)
+        dm = np.linalg.solve(M, (Di * (u - mu[:, None, :]).sum(axis=1))[..., None])[..., 0]
+        return mu + dm, np.clip(u + np.einsum("kpij,kj->kpi", Hi, Di * dm), -U_MAX, U_MAX)
 
-    def population(self, theta, u, mu, D, rounds, variance):
-        """The population's mean (and its ``variance`` with a Laplace EM update, else held) fitted
-        at ``theta`` by ``rounds`` of (modes, :meth:`mean_step`): (u, mu, D, Q, H), Q, H the
-        modes' at the end."""
+    def population(self, thetas, u, mu, D, rounds, variance):
+        """The population's mean (and its ``variance`` with a Laplace EM update, one theta only,
+        else held) fitted at ``thetas`` by ``rounds`` of (modes, :meth:`mean_step`):
+        (u, mu, D, Q, H), Q, H the modes' at the end."""
         for _ in range(rounds):
-            u, Q, H = self.modes(theta, u, mu, D)
+            u, Q, H = self.modes(thetas, u, mu, D)
             if variance:
-                D = np.maximum(u.var(axis=0) + np.einsum("pii->pi", np.linalg.inv(H)).mean(axis=0), 1e-4)
-                u, Q, H = self.modes(theta, u, mu, D)
+                D = np.maximum(u[0].var(axis=0) + np.einsum("pii->pi", np.linalg.inv(H[0])).mean(axis=0), 1e-4)
+                u, Q, H = self.modes(thetas, u, mu, D)
             mu, u = self.mean_step(u, mu, D, H)
-        u, Q, H = self.modes(theta, u, mu, D)
+        u, Q, H = self.modes(thetas, u, mu, D)
         return u, mu, D, Q, H
 
     def fit_population(self, theta, rounds=EM_ROUNDS):
-        """The population's mean and variance at ``theta`` (from the profile's values), stored."""
-        self.u, self.mu, self.D, _, _ = self.population(theta, self.u, self.mu, self.D, rounds, True)
+        """The population's mean and variance at ``theta`` (S,) (from the stored), stored."""
+        self.u, self.mu, self.D, _, _ = self.population(theta[None], self.u, self.mu, self.D, rounds, True)
 
-    def terms(self, theta, rounds=0):
-        """Each pixel's term Q_p + log det H_p + log det D / p of G at ``theta``, the population's
-        mean refitted by ``rounds`` of :meth:`population` from the stored one (which is kept)."""
-        u, mu, D, Q, H = self.population(theta, self.u, self.mu, self.D, rounds, False)
+    def terms(self, thetas, rounds=0):
+        """Each pixel's term Q_p + log det H_p + log det D / p of G at every theta of ``thetas``
+        (K, S): (K, p), the population's mean refitted by ``rounds`` of :meth:`population` from
+        the stored one (which is kept)."""
+        K = thetas.shape[0]
+        u, mu = np.repeat(self.u, K, axis=0), np.repeat(self.mu, K, axis=0)
+        _, _, D, Q, H = self.population(thetas, u, mu, self.D, rounds, False)
         return Q + np.linalg.slogdet(H)[1] + np.log(D).sum() / self.p
 
 
@@ -208,7 +231,7 @@ def stencil(itg, t, se, lo, hi, span):
     and every pixel's gradient (pixels, S) at t.  Two shared parameters."""
     offs = np.array([(a, b) for a in (-1, 0, 1) for b in (-1, 0, 1)], float)
     pts = np.clip(t + offs * STEP * se, lo, hi)
-    vals = np.stack([itg.terms(q * span, POPULATION_ROUNDS) for q in pts], axis=1)  # (p, 9)
+    vals = itg.terms(pts * span, POPULATION_ROUNDS).T  # (p, 9)
     d = pts - t
     X = np.column_stack([np.ones(len(d)), d[:, 0], d[:, 1], d[:, 0] ** 2 / 2, d[:, 1] ** 2 / 2, d[:, 0] * d[:, 1]])
     coef = np.linalg.lstsq(X, vals.T, rcond=None)[0]  # (6, p)
