@@ -168,7 +168,8 @@ def test_the_integrated_likelihood_is_opt_in_and_takes_the_bias_off(dev):
 
 def test_the_integrated_likelihood_steps_to_its_minimum():
     """:func:`label_adjust.stencil` fits the sum of the pixels' terms by a quadratic exactly where
-    they are quadratic (gradient, Hessian, each pixel's gradient), and :func:`label_adjust.newton`
+    they are quadratic (gradient, Hessian, each pixel's gradient; two shared parameters and one),
+    and :func:`label_adjust.newton`
     steps to its minimum (at most MAX_STEP standard errors per parameter)."""
     from types import SimpleNamespace
 
@@ -191,6 +192,10 @@ def test_the_integrated_likelihood_steps_to_its_minimum():
     d = la.newton(g, H, np.array([1.0, 1.0]))
     np.testing.assert_allclose(t + d, centre.mean(axis=0), rtol=0, atol=1e-12)
     assert np.all(np.abs(la.newton(g, H, se)) <= la.MAX_STEP * se + 1e-15)
+    g1, H1, c1 = la.stencil(SimpleNamespace(terms=lambda th, rounds=0: 3.0 * (th[:, :1] / 4.0 - centre[:, 0]) ** 2),
+                            t[:1], se[:1], np.zeros(1), np.ones(1), span[:1])  # one shared parameter
+    np.testing.assert_allclose(H1, [[6.0 * P]], rtol=1e-9)
+    np.testing.assert_allclose(c1[:, 0], 6.0 * (t[0] - centre[:, 0]), rtol=1e-9, atol=1e-12)
 
 
 def test_the_label_search_finds_the_best_basin(dev):

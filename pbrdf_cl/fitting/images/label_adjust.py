@@ -26,6 +26,8 @@ most PIXELS of the label's pixels, evenly spaced and gathered in one more pass o
 """
 from __future__ import annotations
 
+from itertools import product
+
 import numpy as np
 
 from ...io.source import ANGLES
@@ -226,18 +228,20 @@ def integrated_correction(st, theta, sums, ok, pixels=PIXELS, record=False):
 
 
 def stencil(itg, t, se, lo, hi, span):
-    """G's quadratic model at ``t`` (scaled) fitted per pixel over the 3 x 3 points t + (-1, 0, 1)
-    STEP standard errors ``se`` (inside the bounds ``lo``, ``hi``): (gradient, Hessian) of the sum
-    and every pixel's gradient (pixels, S) at t.  Two shared parameters."""
-    offs = np.array([(a, b) for a in (-1, 0, 1) for b in (-1, 0, 1)], float)
+    """G's quadratic model at ``t`` (scaled) fitted per pixel over the 3^S points t + (-1, 0, 1)
+    STEP standard errors ``se`` in every shared parameter (inside the bounds ``lo``, ``hi``):
+    (gradient, Hessian) of the sum and every pixel's gradient (pixels, S) at t."""
+    S = t.size
+    offs = np.array(list(product((-1.0, 0.0, 1.0), repeat=S)))
     pts = np.clip(t + offs * STEP * se, lo, hi)
-    vals = itg.terms(pts * span, POPULATION_ROUNDS).T  # (p, 9)
+    vals = itg.terms(pts * span, POPULATION_ROUNDS).T  # (p, 3^S)
     d = pts - t
-    X = np.column_stack([np.ones(len(d)), d[:, 0], d[:, 1], d[:, 0] ** 2 / 2, d[:, 1] ** 2 / 2, d[:, 0] * d[:, 1]])
-    coef = np.linalg.lstsq(X, vals.T, rcond=None)[0]  # (6, p)
-    c = coef[1:3].T
-    h = coef[3:].sum(axis=1)
-    H = np.array([[h[0], h[2]], [h[2], h[1]]])
+    i, j = np.triu_indices(S)
+    X = np.column_stack([np.ones(len(d)), d, d[:, i] * d[:, j] * np.where(i == j, 0.5, 1.0)])
+    coef = np.linalg.lstsq(X, vals.T, rcond=None)[0]  # (1 + S + S (S + 1) / 2, p)
+    c = coef[1:1 + S].T
+    H = np.zeros((S, S))
+    H[i, j] = H[j, i] = coef[1 + S:].sum(axis=1)
     return c.sum(axis=0), H, c
 
 
