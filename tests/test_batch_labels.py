@@ -146,6 +146,58 @@ def test_the_binding_function_is_inverted(monkeypatch):
         np.testing.assert_allclose(b, beta, rtol=0, atol=1e-12)
 
 
+def test_the_integrated_likelihood_is_opt_in_and_takes_the_bias_off(dev):
+    """``LabelJob.integrated`` (off by default: docs/joint_images.md) moves the labels' values to the
+    minimum of their integrated likelihood over the pixels' own parameters
+    (:mod:`pbrdf_cl.fitting.images.label_adjust`) and reports the move as ``bias``.  On a stack no
+    coverage test uses (seed 33, DOP noise 0.01) the profile's dielectric k lies 3 standard errors
+    above the truth, outside its interval; the integrated one's interval covers the truth, and
+    every other interval still does."""
+    data, lab = two_materials(12, 12, 0.01, seed=33)
+    plain = LabelJob(data, labels=lab).prepare(dev)
+    assert np.all(plain.bias == 0)
+    job = LabelJob(data, labels=lab)
+    job.integrated = True
+    adj = job.prepare(dev)
+    np.testing.assert_allclose(adj.theta + adj.bias, plain.theta, rtol=0, atol=1e-12)
+    truth = np.array([TRUTH[1], TRUTH[2]])
+    inside = lambda r: (r.ci95[..., 0] <= truth) & (truth <= r.ci95[..., 1])  # noqa: E731
+    assert not inside(plain)[1, 1] and inside(adj).all(), (plain.theta, adj.theta)
+    np.testing.assert_array_equal(adj.stderr, plain.stderr)  # the profile's covariance
+
+
+def test_the_integrated_likelihood_steps_to_its_minimum():
+    """:func:`label_adjust.stencil` fits the sum of the pixels' terms by a quadratic exactly where
+    they are quadratic (gradient, Hessian, each pixel's gradient; two shared parameters and one),
+    and :func:`label_adjust.newton`
+    steps to its minimum (at most MAX_STEP standard errors per parameter)."""
+    from types import SimpleNamespace
+
+    from pbrdf_cl.fitting.images import label_adjust as la
+
+    rng = np.random.default_rng(0)
+    P, span = 5, np.array([4.0, 10.0])
+    centre = rng.normal(0, 0.01, (P, 2)) + [0.4, 0.2]
+    B = np.array([[30.0, 5.0], [5.0, 12.0]])
+
+    def terms(thetas, rounds=0):
+        d = thetas[:, None, :] / span - centre
+        return np.einsum("kpi,ij,kpj->kp", d, B, d)
+
+    t, se = np.array([0.41, 0.19]), np.array([0.01, 0.02])
+    g, H, c = la.stencil(SimpleNamespace(terms=terms), t, se, np.zeros(2), np.ones(2), span)
+    np.testing.assert_allclose(H, 2 * P * B, rtol=1e-9)
+    np.testing.assert_allclose(c, 2 * (t - centre) @ B, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(g, c.sum(axis=0), rtol=1e-12)
+    d = la.newton(g, H, np.array([1.0, 1.0]))
+    np.testing.assert_allclose(t + d, centre.mean(axis=0), rtol=0, atol=1e-12)
+    assert np.all(np.abs(la.newton(g, H, se)) <= la.MAX_STEP * se + 1e-15)
+    g1, H1, c1 = la.stencil(SimpleNamespace(terms=lambda th, rounds=0: 3.0 * (th[:, :1] / 4.0 - centre[:, 0]) ** 2),
+                            t[:1], se[:1], np.zeros(1), np.ones(1), span[:1])  # one shared parameter
+    np.testing.assert_allclose(H1, [[6.0 * P]], rtol=1e-9)
+    np.testing.assert_allclose(c1[:, 0], 6.0 * (t[0] - centre[:, 0]), rtol=1e-9, atol=1e-12)
+
+
 def test_the_label_search_finds_the_best_basin(dev):
     """The configuration where the profile's seeds all lay in another basin of the dielectric
     (n = 3.12, k = 0.08, a label chi2 four times the truth's, reported as converged): the

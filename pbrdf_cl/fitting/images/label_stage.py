@@ -45,7 +45,10 @@ in passes over the blocks of the stack (a label's pixels may lie in every block)
    expected estimate is the one found, the covariance transformed alike).  Off by default: its
    intervals of steel's k on the two-material bench are too wide (a binding slope of 0.2-0.45)
    and it costs several times the label fit (docs/joint_images.md), so the default intervals
-   leave out the incidental parameters' bias.
+   leave out the incidental parameters' bias.  Or, also opt-in (``LabelJob.integrated``), the
+   values that minimise the label's integrated likelihood over its pixels' own parameters
+   (:func:`pbrdf_cl.fitting.images.label_adjust.integrated_correction`), with the profile's
+   covariance: it covers the truth far more often and costs several label fits.
 
 The derivatives and the objective of the refinement are the float64 reference model's
 (:class:`~pbrdf_cl.fitting.images.pixels.PixelResiduals`, forward differences on the host): the same on
@@ -68,6 +71,7 @@ from .. import report
 from ..common import GOODNESS_P, X_RESOLUTION, fd_jacobian, valid_covariance
 from ..setup import PARAMETERS
 from . import label_search as search
+from .label_adjust import integrated_correction
 from .pixel_fit import fit_block
 from .pixels import Block, PixelResiduals, descent_bounds, grid_points, grid_values, internal, regions
 from .statistics import DETERMINED_FRACTION, truncated_interval
@@ -108,7 +112,8 @@ class LabelResult:
     (L, S), ``pixels`` (fitted pixels), ``chi2`` (the label's F), ``sse`` (its unweighted DOP
     residuals), ``dof``, ``status`` (:data:`LABEL_STATUS`), ``rounds`` (refinement passes) and
     ``profile`` (L, nodes: the label's chi2 profile on the grid) with ``nodes`` (nodes, S),
-    ``bias`` (L, S): the bootstrap's estimate of the bias, already taken off ``theta``, the
+    ``bias`` (L, S): the bootstrap's (or the integrated likelihood's) estimate of the bias, already
+    taken off ``theta``, the
     goodness of fit (:func:`label_goodness`): ``p_value``, ``fits_data`` (1: fits, 0: does
     not, -1: not fitted or not tested) and ``goodness_test`` ("chi2" or "F"), and ``corr``
     (L, S, S) the correlations of the shared parameters (valid or NaN,
@@ -664,6 +669,9 @@ def run_label_stage(job, eng, progress=False, workers=None):
         corrected, cov, _ = search.binding_correction(st, subs, picks, theta, cov, st.scale(sums), ok,
                                                       job.bias_replicates)
         bias, given = theta - corrected, st.natural(cov, inverse=True)
+    elif job.integrated:
+        corrected = integrated_correction(st, theta, sums, ok)[0]  # the profile's covariance
+        bias = theta - corrected
     else:
         bias = np.zeros_like(theta)
     theta = np.where(ok[:, None], np.clip(theta - bias, st.lo[s], st.hi[s]), 0.0)

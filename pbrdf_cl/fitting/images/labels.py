@@ -22,7 +22,7 @@ import numpy as np
 from ...io.source import open_stack
 from ..common import GOODNESS_P, LABEL_MISTAKE_CAUSES, OUTSIDE_FOOTNOTE, outside_interval
 from ..setup import check_shared
-from . import label_search
+from . import label_adjust, label_search
 from .dataset import empty_outputs, make_dataset
 from .job import BLOCK_BUDGET, N_STARTS, BatchJob
 from .label_stage import LABEL_STATUS, held_setup, run_label_stage, take
@@ -138,6 +138,9 @@ class LabelJob(BatchJob):
         #: replicates of the label stage's parametric bootstrap of the bias (0: no correction, the
         #: intervals then leave out the incidental parameters' bias; see docs/joint_images.md)
         self.bias_replicates = label_search.BOOT_REPLICATES
+        #: correct the labels' values by their integrated likelihood
+        #: (:func:`~pbrdf_cl.fitting.images.label_adjust.integrated_correction`; see docs/joint_images.md)
+        self.integrated = label_adjust.INTEGRATED
         self._check_counts()
         held = held_setup(self.setup, self.shared, np.zeros(len(self.shared)))
         self.order_own, self.rstart_own = regions(grid_values(held), held.free)

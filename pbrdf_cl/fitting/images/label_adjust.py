@@ -1,0 +1,257 @@
+"""The correction of a label's shared values for the incidental parameters' bias by its integrated
+likelihood (:func:`integrated_correction`; opt-in: ``LabelJob.integrated``, see
+docs/joint_images.md for what it achieves and costs).
+
+The label stage's estimate minimises the profile F(theta) = sum_p min_beta chi2_p(theta, beta): every
+pixel's own parameters (sigma, kd, c) are fitted at each theta.  With ~30 measurements per pixel
+and bounded own parameters its bias does not shrink with the pixel count while its standard error
+does (the Neyman-Scott problem).  The integrated likelihood treats the own parameters as random
+effects instead: each pixel's own parameters in logit coordinates u = logit((x - lo) / (hi - lo))
+(smooth and unbounded, so nothing sticks to a bound) drawn from a Gaussian population
+N(mu, diag(D)) estimated from the pixels (empirical Bayes), and the label's objective is minus
+twice the log of the marginal likelihood in its Laplace approximation,
+
+    G(theta) = sum_p [Q_p(theta) + log det H_p(theta)] + P log det D,
+    Q_p = min_u chi2_p(theta, u) / s2 + (u - mu)^T D^-1 (u - mu),
+
+H_p = J_u^T J_u / s2 + D^-1 the Gauss-Newton Hessian of Q_p / 2 at the pixel's mode, s2 the label's
+chi2 scale.  The population's mean and variance are fitted at the profile's values (Laplace EM,
+the mean by Newton steps with the modes following it, :meth:`Integrated.mean_step`); at every
+other theta the mean is fitted again and the variance held.  From the profile's values, up to
+NEWTON_ROUNDS Newton steps on G, each from G's quadratic fitted over a 3 x 3 stencil of one
+profile standard error (:func:`stencil`, :func:`newton`).  The intervals stay the profile's
+(its covariance, centred on the corrected values).  Everything is evaluated with the reference
+model's residual rows (:class:`~pbrdf_cl.fitting.images.pixels.PixelResiduals`) on the host, on at
+most PIXELS of the label's pixels, evenly spaced and gathered in one more pass over the stack.
+"""
+from __future__ import annotations
+
+from itertools import product
+
+import numpy as np
+
+from ...io.source import ANGLES
+from .label_search import subsample
+from .pixels import Block, PixelResiduals
+
+#: Whether the label stage corrects its values by default (``LabelJob.integrated``).
+INTEGRATED = False
+#: Laplace EM iterations of the population's mean and variance at the label's values.
+EM_ROUNDS = 6
+#: Gauss-Newton (Levenberg-Marquardt) iterations of each pixel's mode, at most.
+MODE_ITERATIONS = 8
+#: ... stopping where no pixel's Q falls by more than this.
+MODE_TOL = 1e-3
+#: The own parameters' fractions of their bounds the logit coordinates start from (at most this
+#: close to a bound) and the modes' logit coordinates' bound.
+EDGE = 1e-4
+U_MAX = 12.0
+#: The step of the stencil of G, in standard errors of the label's profile values.
+STEP = 1.0
+#: Newton steps on G at most, each at most MAX_STEP standard errors per parameter; the population
+#: refitted (POPULATION_ROUNDS of EM) at each new point.
+NEWTON_ROUNDS = 2
+MAX_STEP = 3.0
+POPULATION_ROUNDS = 2
+#: Pixels of each label G is evaluated on (all of a smaller label; evenly spaced).
+PIXELS = 512
+
+
+class Integrated:
+    """The terms of one label's integrated chi2 G (see the module's docstring) on the pixels of
+    ``raw`` (a raw dict of the label's pixels), own parameters from ``beta`` (pixels, own; the
+    profile's values at the label's), chi2 scale ``s2``.  Its methods take K values of the shared
+    parameters at once (``thetas`` (K, S); the modes ``u`` (K, p, own), the population's mean
+    ``mu`` (K, own); its variance ``D`` (own,) is common): one call of the reference model per
+    iteration for all of them."""
+
+    def __init__(self, setup, names, shared, raw, beta, s2, lo, hi):
+        self.setup, self.names = setup, list(names)
+        self.si = [self.names.index(n) for n in shared]
+        self.bi = [self.names.index(n) for n in self.names if n not in shared]
+        self.lo, self.hi = lo, hi
+        self.s2 = float(s2)
+        self.blk = Block(raw, setup, 1)
+        self.p = self.blk.p
+        self.rows = {}
+        b = self.bi
+        f = np.clip((beta - lo[b]) / (hi[b] - lo[b]), EDGE, 1 - EDGE)
+        self.u = np.log(f / (1 - f))[None]
+        self.mu = self.u.mean(axis=1)
+        self.D = np.maximum(self.u[0].var(axis=0), 1e-2)
+
+    def own(self, u):
+        """The own parameters at logit coordinates ``u`` and their derivatives dx/du."""
+        b = self.bi
+        s = 1.0 / (1.0 + np.exp(-u))
+        w = self.hi[b] - self.lo[b]
+        return self.lo[b] + w * s, w * s * (1.0 - s)
+
+    def residuals(self, K):
+        """The reference model's residual rows of K copies of the pixels (made once per K)."""
+        if K not in self.rows:
+            pix = np.tile(np.arange(self.p), K)
+            self.rows[K] = PixelResiduals(self.setup, self.blk, self.names, pix, self.setup.use_f00, few_nk=True).rows
+        return self.rows[K]
+
+    def _at(self, thetas, u, mu, D):
+        """(Q, H, g) of every copy and pixel: forward differences along the own parameters only
+        (scipy's steps, inwards at an upper bound)."""
+        K, p, o = u.shape
+        x, dx = self.own(u)
+        X = np.empty((K, p, len(self.names)))
+        X[..., self.si] = thetas[:, None, :]
+        X[..., self.bi] = x
+        X = X.reshape(K * p, -1)
+        xo = X[:, self.bi]
+        h = np.sqrt(np.finfo(float).eps) * np.maximum(1.0, np.abs(xo))
+        h = (xo + np.where(xo + h > self.hi[self.bi], -h, h)) - xo
+        pts = np.repeat(X[:, None, :], o + 1, axis=1)
+        for j, c in enumerate(self.bi):
+            pts[:, j + 1, c] += h[:, j]
+        R = self.residuals(K)(pts.reshape(-1, X.shape[1])).reshape(K * p, o + 1, -1) / np.sqrt(self.s2)
+        r = R[:, 0]
+        Ju = (R[:, 1:] - r[:, None]) * (dx.reshape(K * p, o) / h)[:, :, None]
+        pr = ((u - mu[:, None, :]) / np.sqrt(D)).reshape(K * p, o)
+        Q = np.einsum("pm,pm->p", r, r) + np.einsum("pi,pi->p", pr, pr)
+        H = np.einsum("pim,pjm->pij", Ju, Ju) + np.diag(1.0 / D)[None]
+        g = np.einsum("pim,pm->pi", Ju, r) + pr / np.sqrt(D)
+        return Q.reshape(K, p), H.reshape(K, p, o, o), g.reshape(K, p, o)
+
+    def modes(self, thetas, u, mu, D):
+        """Each pixel's mode of its own parameters at every theta (Levenberg-Marquardt from
+        ``u``): (u, Q (K, p), H (K, p, own, own))."""
+        lam = np.full(u.shape[:2], 1e-3)
+        Q, H, g = self._at(thetas, u, mu, D)
+        eye = np.eye(u.shape[2])
+        for _ in range(MODE_ITERATIONS):
+            Hd = H + (lam[..., None] * np.einsum("kpii->kpi", H))[..., None] * eye
+            un = np.clip(u - np.linalg.solve(Hd, g[..., None])[..., 0], -U_MAX, U_MAX)
+            Qn, Hn, gn = self._at(thetas, un, mu, D)
+            better = Qn < Q
+            gain = np.where(better, Q - Qn, 0.0)
+            u = np.where(better[..., None], un, u)
+            Q, g = np.where(better, Qn, Q), np.where(better[..., None], gn, g)
+            H = np.where(better[..., None, None], Hn, H)
+            lam = np.where(better, lam / 5.0, lam * 10.0)
+            if gain.max() < MODE_TOL:
+                break
+        return u, Q, H
+
+    def mean_step(self, u, mu, D, H):
+        """The Newton step of the population's mean with the pixels' modes following it (the
+        Schur complement of their joint problem): (mu, the modes predicted there)."""
+        Di = 1.0 / D
+        Hi = np.linalg.inv(H)
+        M = u.shape[1] * np.diag(Di)[None] - np.einsum("i,kpij,j->kij", Di, Hi, Di)
+        dm = np.linalg.solve(M, (Di * (u - mu[:, None, :]).sum(axis=1))[..., None])[..., 0]
+        return mu + dm, np.clip(u + np.einsum("kpij,kj->kpi", Hi, Di * dm), -U_MAX, U_MAX)
+
+    def population(self, thetas, u, mu, D, rounds, variance):
+        """The population's mean (and its ``variance`` with a Laplace EM update, one theta only,
+        else held) fitted at ``thetas`` by ``rounds`` of (modes, :meth:`mean_step`):
+        (u, mu, D, Q, H), Q, H the modes' at the end."""
+        for _ in range(rounds):
+            u, Q, H = self.modes(thetas, u, mu, D)
+            if variance:
+                D = np.maximum(u[0].var(axis=0) + np.einsum("pii->pi", np.linalg.inv(H[0])).mean(axis=0), 1e-4)
+                u, Q, H = self.modes(thetas, u, mu, D)
+            mu, u = self.mean_step(u, mu, D, H)
+        u, Q, H = self.modes(thetas, u, mu, D)
+        return u, mu, D, Q, H
+
+    def fit_population(self, theta, rounds=EM_ROUNDS):
+        """The population's mean and variance at ``theta`` (S,) (from the stored), stored."""
+        self.u, self.mu, self.D, _, _ = self.population(theta[None], self.u, self.mu, self.D, rounds, True)
+
+    def terms(self, thetas, rounds=0):
+        """Each pixel's term Q_p + log det H_p + log det D / p of G at every theta of ``thetas``
+        (K, S): (K, p), the population's mean refitted by ``rounds`` of :meth:`population` from
+        the stored one (which is kept)."""
+        K = thetas.shape[0]
+        u, mu = np.repeat(self.u, K, axis=0), np.repeat(self.mu, K, axis=0)
+        _, _, D, Q, H = self.population(thetas, u, mu, self.D, rounds, False)
+        return Q + np.linalg.slogdet(H)[1] + np.log(D).sum() / self.p
+
+
+def integrated_correction(st, theta, sums, ok, pixels=PIXELS, record=False):
+    """The values of every label ``ok`` that minimise its integrated chi2 G (see the module's
+    docstring), from the label stage's values ``theta`` (L, S) and sums, on at most ``pixels`` of
+    each label's pixels (evenly spaced; one pass over the stack gathers them).
+
+    Returns (theta_c (L, S), cov, model), unchanged where the label has too few pixels, no
+    finite standard error or G no positive curvature: the covariances (L, S, S) in coordinates
+    scaled to the bounds (as ``st.covariance`` gives them) of the profile (the label stage's
+    intervals) and of G's curvature, 2 H^-1; with ``record`` the first is the sandwich
+    H^-1 (sum_p c_p c_p^T) H^-1 of the pixels' gradients c_p of G at theta_c instead (one more
+    stencil; for the record: both cover less than the profile's, docs/joint_images.md).  Beyond
+    ``pixels`` pixels G is the subsample's: the interval leaves its noise out."""
+    setup, names = st.job.setup, st.job.names
+    s, span = st.si, st.span[st.si]
+    s2 = st.scale(sums)
+    cov = st.covariance(sums).cov.copy()
+    picks = subsample(st, pixels)
+    subs = st.gather(picks)
+    out = theta.copy()
+    model = cov.copy()
+    for L in np.flatnonzero(ok):
+        beta = st.beta[picks[L]]
+        keep = np.all(np.isfinite(beta), axis=1)
+        se = np.sqrt(np.clip(np.diag(cov[L]), 0, None))  # scaled coordinates
+        if keep.sum() < 3 or not np.all(np.isfinite(se) & (se > 0)):
+            continue
+        raw = {k: (v if (v.ndim == 1 and k in ANGLES) else v[keep]) for k, v in subs[L].items()}
+        itg = Integrated(setup, names, st.shared, raw, beta[keep], s2[L], st.lo, st.hi)
+        itg.fit_population(theta[L])
+        t = theta[L] / span
+        lo, hi = st.lo[s] / span, st.hi[s] / span
+        for r in range(NEWTON_ROUNDS):
+            g, H, c = stencil(itg, t, se, lo, hi, span)
+            d = newton(g, H, se)
+            t = np.clip(t + d, lo, hi)
+            if np.all(np.abs(d) < 0.2 * se) or r == NEWTON_ROUNDS - 1:
+                break
+            itg.fit_population(t * span, POPULATION_ROUNDS)
+        if record:
+            itg.fit_population(t * span, POPULATION_ROUNDS)
+            g, H, c = stencil(itg, t, se, lo, hi, span)
+        with np.errstate(all="ignore"):
+            Hi = np.linalg.inv(H)
+        if not (np.all(np.isfinite(Hi)) and np.all(np.linalg.eigvalsh(H) > 0)):
+            continue
+        out[L] = t * span
+        model[L] = 2.0 * Hi
+        if record:
+            cc = c - c.mean(axis=0)
+            cov[L] = Hi @ (cc.T @ cc) @ Hi * c.shape[0] / max(c.shape[0] - 1, 1)
+    return out, cov, model
+
+
+def stencil(itg, t, se, lo, hi, span):
+    """G's quadratic model at ``t`` (scaled) fitted per pixel over the 3^S points t + (-1, 0, 1)
+    STEP standard errors ``se`` in every shared parameter (inside the bounds ``lo``, ``hi``):
+    (gradient, Hessian) of the sum and every pixel's gradient (pixels, S) at t."""
+    S = t.size
+    offs = np.array(list(product((-1.0, 0.0, 1.0), repeat=S)))
+    pts = np.clip(t + offs * STEP * se, lo, hi)
+    vals = itg.terms(pts * span, POPULATION_ROUNDS).T  # (p, 3^S)
+    d = pts - t
+    i, j = np.triu_indices(S)
+    X = np.column_stack([np.ones(len(d)), d, d[:, i] * d[:, j] * np.where(i == j, 0.5, 1.0)])
+    coef = np.linalg.lstsq(X, vals.T, rcond=None)[0]  # (1 + S + S (S + 1) / 2, p)
+    c = coef[1:1 + S].T
+    H = np.zeros((S, S))
+    H[i, j] = H[j, i] = coef[1 + S:].sum(axis=1)
+    return c.sum(axis=0), H, c
+
+
+def newton(g, H, se):
+    """The Newton step of G (in scaled coordinates), at most MAX_STEP standard errors ``se`` per
+    parameter; along the gradient scaled by the diagonal where H is not positive definite."""
+    with np.errstate(all="ignore"):
+        if np.all(np.linalg.eigvalsh(H) > 0):
+            d = -np.linalg.solve(H, g)
+        else:
+            d = -g / np.maximum(np.abs(np.diag(H)), 1e-300)
+    d = np.where(np.isfinite(d), d, 0.0)
+    return np.clip(d, -MAX_STEP * se, MAX_STEP * se)
