@@ -22,6 +22,10 @@ RANK_ROUNDS = 3
 #: Candidates whose subsample refinements end closer than this fraction of the bounds (in every
 #: shared parameter) are one basin.
 SAME_BASIN = 0.02
+#: An end of a candidate's refinement with a shared parameter on a bound is refined again from
+#: these fractions of the bounds inside it: at k = 0 the chi2's derivative in k vanishes (the model
+#: depends on k through k^2 there), so a descent cannot leave k = 0 even where k > 0 is far lower.
+INWARD = (0.02, 0.05, 0.1)
 #: The runner-up basin is refined on all the label's pixels too where its subsample chi2, scaled
 #: to the label's pixels, exceeds the best's by less than this (times the label's chi2 scale).
 RUNNER_UP_CHI2 = 50.0
@@ -84,6 +88,10 @@ def rank_seeds(st, subs, cand, ok, pixels):
             theta, sums, _ = st.local_fit(subs[L], t, RANK_ROUNDS)
             if np.isfinite(sums[3]) and sums[0] > 0:
                 ends.append((sums[3], theta, sums))
+        for t in inward_starts(st, [e[1] for e in ends]):
+            theta, sums, _ = st.local_fit(subs[L], t, RANK_ROUNDS)
+            if np.isfinite(sums[3]) and sums[0] > 0:
+                ends.append((sums[3], theta, sums))
         if not ends:
             best[L] = cand[0, L]
             continue
@@ -95,6 +103,22 @@ def rank_seeds(st, subs, cand, ok, pixels):
                 gap[L] = (chi2 - ends[0][0]) * pixels[L] / sums[0] / st.scale(ends[0][2][None])[0]
                 break
     return best, runner, gap
+
+
+def inward_starts(st, ends):
+    """Starts moved inside the bounds from the candidates' subsample ``ends`` (a list of (S,)) that
+    have a shared parameter on a bound: that parameter :data:`INWARD` fractions of its bounds
+    inside, the others as they are (each distinct end once)."""
+    lo, hi, span = st.lo[st.si], st.hi[st.si], st.span[st.si]
+    starts, seen = [], []
+    for t in ends:
+        low, high = t <= lo + 1e-6 * span, t >= hi - 1e-6 * span
+        if not (low | high).any() or any(np.array_equal(t, u) for u in seen):
+            continue
+        seen.append(t)
+        for f in INWARD:
+            starts.append(np.where(low, lo + f * span, np.where(high, hi - f * span, t)))
+    return starts
 
 
 def simulate(st, raw, theta, beta, s2, rng):
