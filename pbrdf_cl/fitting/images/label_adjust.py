@@ -1,5 +1,5 @@
 """The correction of a label's shared values for the incidental parameters' bias by its integrated
-likelihood (:func:`integrated_correction`; opt-in: ``LabelJob.integrated``, see
+likelihood (:func:`integrated_correction`; on by default, ``LabelJob.integrated``; see
 docs/joint_images.md for what it achieves and costs).
 
 The label stage's estimate minimises the profile F(theta) = sum_p min_beta chi2_p(theta, beta): every
@@ -37,7 +37,7 @@ from .label_search import subsample
 from .pixels import Block, PixelResiduals
 
 #: Whether the label stage corrects its values by default (``LabelJob.integrated``).
-INTEGRATED = False
+INTEGRATED = True
 #: Laplace EM iterations of the population's mean and variance at the label's values.
 EM_ROUNDS = 6
 #: Gauss-Newton (Levenberg-Marquardt) iterations of each pixel's mode, at most.
