@@ -1,5 +1,5 @@
 """The correction of a label's shared values for the incidental parameters' bias by its integrated
-likelihood (:func:`integrated_correction`; opt-in: ``LabelJob.integrated``, see
+likelihood (:func:`integrated_correction`; on by default, ``LabelJob.integrated``; see
 docs/joint_images.md for what it achieves and costs).
 
 The label stage's estimate minimises the profile F(theta) = sum_p min_beta chi2_p(theta, beta): every
@@ -22,7 +22,9 @@ NEWTON_ROUNDS Newton steps on G, each from G's quadratic fitted over a 3 x 3 ste
 profile standard error (:func:`stencil`, :func:`newton`).  The intervals stay the profile's
 (its covariance, centred on the corrected values).  Everything is evaluated with the reference
 model's residual rows (:class:`~pbrdf_cl.fitting.images.pixels.PixelResiduals`) on the host, on at
-most PIXELS of the label's pixels, evenly spaced and gathered in one more pass over the stack.
+most PIXELS of the label's pixels, evenly spaced and gathered in one more pass over the stack: on
+a larger label the correction is that subsample's, its sampling noise taken out by the profile's
+gradient there and its remaining noise added to the interval (:func:`integrated_correction`).
 """
 from __future__ import annotations
 
@@ -35,7 +37,7 @@ from .label_search import subsample
 from .pixels import Block, PixelResiduals
 
 #: Whether the label stage corrects its values by default (``LabelJob.integrated``).
-INTEGRATED = False
+INTEGRATED = True
 #: Laplace EM iterations of the population's mean and variance at the label's values.
 EM_ROUNDS = 6
 #: Gauss-Newton (Levenberg-Marquardt) iterations of each pixel's mode, at most.
@@ -76,6 +78,7 @@ class Integrated:
         self.rows = {}
         b = self.bi
         f = np.clip((beta - lo[b]) / (hi[b] - lo[b]), EDGE, 1 - EDGE)
+        self.beta = beta
         self.u = np.log(f / (1 - f))[None]
         self.mu = self.u.mean(axis=1)
         self.D = np.maximum(self.u[0].var(axis=0), 1e-2)
@@ -173,31 +176,65 @@ class Integrated:
         _, _, D, Q, H = self.population(thetas, u, mu, self.D, rounds, False)
         return Q + np.linalg.slogdet(H)[1] + np.log(D).sum() / self.p
 
+    def profile_gradient(self, theta):
+        """The gradient of the subsample's profile F = sum_p min_beta chi2_p / s2 at the label's
+        values ``theta`` (S,) (natural units), where every pixel's own parameters are the profile's
+        (its minimum at theta: the envelope theorem, bounds included): every pixel's 2 J_p^T r_p
+        (pixels, S), J_p the central differences of its residuals along the shared parameters."""
+        S = len(self.si)
+        X = np.empty((self.p, len(self.names)))
+        X[:, self.si], X[:, self.bi] = theta, self.beta
+        lo, hi = self.lo[self.si], self.hi[self.si]
+        h = np.cbrt(np.finfo(float).eps) * np.maximum(1.0, np.abs(theta))
+        up, down = np.minimum(theta + h, hi), np.maximum(theta - h, lo)
+        pts = np.repeat(X[:, None, :], 2 * S + 1, axis=1)
+        for j, c in enumerate(self.si):
+            pts[:, 1 + j, c], pts[:, 1 + S + j, c] = up[j], down[j]
+        R = self.residuals(1)(pts.reshape(-1, X.shape[1])).reshape(self.p, 2 * S + 1, -1) / np.sqrt(self.s2)
+        J = (R[:, 1:1 + S] - R[:, 1 + S:]) / (up - down)[None, :, None]
+        return 2.0 * np.einsum("psm,pm->ps", J, R[:, 0])
 
-def integrated_correction(st, theta, sums, ok, pixels=PIXELS, record=False):
+
+def integrated_correction(st, theta, sums, ok, pixels=None, record=False):
     """The values of every label ``ok`` that minimise its integrated chi2 G (see the module's
-    docstring), from the label stage's values ``theta`` (L, S) and sums, on at most ``pixels`` of
-    each label's pixels (evenly spaced; one pass over the stack gathers them).
+    docstring), from the label stage's values ``theta`` (L, S) and sums, on at most ``pixels``
+    (default PIXELS) of each label's pixels (evenly spaced; one pass over the stack gathers them).
+
+    On a subsample (a label of P > p pixels) G's minimum carries the subsample's sampling noise:
+    the subsample's profile F_sub has its minimum about sqrt(P / p) of the label's standard errors
+    off the label's values t0, where the label's F has its own.  There G_sub is tilted by F_sub's
+    gradient at t0, G_sub(t) - grad F_sub(t0) . (t - t0) (:meth:`Integrated.profile_gradient`):
+    the label's F is stationary at t0, so the tilt takes out
+    the part of G_sub's gradient that the subsample's noise puts in both (their pixels' gradients
+    nearly agree) and leaves the bias in.  (The difference of the two minima, argmin G_sub -
+    argmin F_sub, does not: G is the more curved along a correlated pair of shared parameters, so
+    the noise moves its minimum less than F's.)  What noise remains, that of the subsample's sum
+    of the pixels' gradient differences (:func:`spread`), is added to the label's covariance.  The
+    stencil's step and the steps' limit are then the subsample's standard errors, sqrt(P / p)
+    times the label's.  A label of at most ``pixels`` pixels is its own subsample, stationary in
+    F at t0: no tilt, and the profile's covariance.
 
     Returns (theta_c (L, S), cov, model), unchanged where the label has too few pixels, no
     finite standard error or G no positive curvature: the covariances (L, S, S) in coordinates
     scaled to the bounds (as ``st.covariance`` gives them) of the profile (the label stage's
-    intervals) and of G's curvature, 2 H^-1; with ``record`` the first is the sandwich
-    H^-1 (sum_p c_p c_p^T) H^-1 of the pixels' gradients c_p of G at theta_c instead (one more
-    stencil; for the record: both cover less than the profile's, docs/joint_images.md).  Beyond
-    ``pixels`` pixels G is the subsample's: the interval leaves its noise out."""
+    intervals; plus the correction's noise on a subsample) and of G's curvature, 2 H^-1; with
+    ``record`` the first is the sandwich H^-1 (sum_p c_p c_p^T) H^-1 of the pixels' gradients c_p
+    of G at theta_c instead (one more stencil; for the record: both cover less than the
+    profile's, docs/joint_images.md)."""
     setup, names = st.job.setup, st.job.names
     s, span = st.si, st.span[st.si]
     s2 = st.scale(sums)
     cov = st.covariance(sums).cov.copy()
-    picks = subsample(st, pixels)
+    picks = subsample(st, PIXELS if pixels is None else pixels)
     subs = st.gather(picks)
     out = theta.copy()
     model = cov.copy()
     for L in np.flatnonzero(ok):
         beta = st.beta[picks[L]]
         keep = np.all(np.isfinite(beta), axis=1)
-        se = np.sqrt(np.clip(np.diag(cov[L]), 0, None))  # scaled coordinates
+        total = np.count_nonzero(st.fitted & (st.lab == L))
+        thin = picks[L].size < total
+        se = np.sqrt(np.clip(np.diag(cov[L]), 0, None) * (total / picks[L].size))  # scaled coordinates
         if keep.sum() < 3 or not np.all(np.isfinite(se) & (se > 0)):
             continue
         raw = {k: (v if (v.ndim == 1 and k in ANGLES) else v[keep]) for k, v in subs[L].items()}
@@ -205,9 +242,13 @@ def integrated_correction(st, theta, sums, ok, pixels=PIXELS, record=False):
         itg.fit_population(theta[L])
         t = theta[L] / span
         lo, hi = st.lo[s] / span, st.hi[s] / span
+        cf = itg.profile_gradient(theta[L]) * span if thin else np.zeros((1, len(s)))
+        tilt, noise = cf.sum(axis=0), 0.0  # the subsample's noise in F's gradient
         for r in range(NEWTON_ROUNDS):
             g, H, c = stencil(itg, t, se, lo, hi, span)
-            d = newton(g, H, se)
+            if thin and r == 0:
+                noise = spread(c - cf, H, total)
+            d = newton(g - tilt, H, se)
             t = np.clip(t + d, lo, hi)
             if np.all(np.abs(d) < 0.2 * se) or r == NEWTON_ROUNDS - 1:
                 break
@@ -221,6 +262,8 @@ def integrated_correction(st, theta, sums, ok, pixels=PIXELS, record=False):
             continue
         out[L] = t * span
         model[L] = 2.0 * Hi
+        if thin:
+            cov[L] = cov[L] + noise
         if record:
             cc = c - c.mean(axis=0)
             cov[L] = Hi @ (cc.T @ cc) @ Hi * c.shape[0] / max(c.shape[0] - 1, 1)
@@ -243,6 +286,18 @@ def stencil(itg, t, se, lo, hi, span):
     H = np.zeros((S, S))
     H[i, j] = H[j, i] = coef[1 + S:].sum(axis=1)
     return c.sum(axis=0), H, c
+
+
+def spread(a, H, total):
+    """The covariance of the Newton step -H^-1 sum_p a_p of a subsample's pixels' gradients ``a``
+    (pixels, S) as an estimate of the label's (``total`` pixels; drawn without replacement), H the
+    subsample's Hessian; zero where H is not positive definite."""
+    p = a.shape[0]
+    with np.errstate(all="ignore"):
+        Hi = np.linalg.inv(H)
+    if p < 2 or not (np.all(np.isfinite(Hi)) and np.all(np.linalg.eigvalsh(H) > 0)):
+        return 0.0
+    return Hi @ (np.cov(a.T).reshape(H.shape) * p * (1.0 - p / total)) @ Hi
 
 
 def newton(g, H, se):

@@ -44,11 +44,13 @@ in passes over the blocks of the stack (a label's pixels may lie in every block)
    each and drawn towards their mean to the truth's spread; solved for the values whose
    expected estimate is the one found, the covariance transformed alike).  Off by default: its
    intervals of steel's k on the two-material bench are too wide (a binding slope of 0.2-0.45)
-   and it costs several times the label fit (docs/joint_images.md), so the default intervals
-   leave out the incidental parameters' bias.  Or, also opt-in (``LabelJob.integrated``), the
-   values that minimise the label's integrated likelihood over its pixels' own parameters
+   and it costs several times the label fit (docs/joint_images.md).  By default instead
+   (``LabelJob.integrated``; off: the profile's values, whose intervals leave out the
+   incidental parameters' bias) the values that minimise the label's integrated likelihood
+   over its pixels' own parameters
    (:func:`pbrdf_cl.fitting.images.label_adjust.integrated_correction`), with the profile's
-   covariance: it covers the truth far more often and costs several label fits.
+   covariance (plus the correction's sampling noise where it is estimated on a subsample of a
+   large label): it covers the truth far more often and costs several label fits.
 
 The derivatives and the objective of the refinement are the float64 reference model's
 (:class:`~pbrdf_cl.fitting.images.pixels.PixelResiduals`, forward differences on the host): the same on
@@ -670,8 +672,10 @@ def run_label_stage(job, eng, progress=False, workers=None):
                                                       job.bias_replicates)
         bias, given = theta - corrected, st.natural(cov, inverse=True)
     elif job.integrated:
-        corrected = integrated_correction(st, theta, sums, ok)[0]  # the profile's covariance
+        corrected, cov, _ = integrated_correction(st, theta, sums, ok)
         bias = theta - corrected
+        if not np.array_equal(cov, st.covariance(sums).cov, equal_nan=True):  # a label's subsample's noise
+            given = cov
     else:
         bias = np.zeros_like(theta)
     theta = np.where(ok[:, None], np.clip(theta - bias, st.lo[s], st.hi[s]), 0.0)
