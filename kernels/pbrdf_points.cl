@@ -251,42 +251,31 @@ inline real pb_in_rule(__global const PB_SCALAR *x, __constant const uint *r, co
     const real fd = pb_diffuse(g, v_kd, v_c);
 #define PB_VEC_BODY PB_VEC_BODY_OF(PB_IN_STRIDED)
 
-/* The N values v of work-item i into out, and *bad set to 1 where one of them is not finite (NaN
- * outside the domain, or an overflow): the host then need not read the result to know (an atomic
- * store, rare: only where a value is not finite). */
-#define PB_VEC_STORE(v)                                                      \
-    const real value = (v);                                                  \
-    pb_vstoren(value, i, out);                                               \
-    if (any(!PB_FINITE(value)))                                              \
-        atomic_xchg(bad, 1);
-
 /* nvec work-items of N points each: the arrays hold nvec * N points (the host pads). */
-__kernel void dop_points_vec(__global PB_SCALAR *out, __global int *bad, PB_VEC_ARGS)
+__kernel void dop_points_vec(__global PB_SCALAR *out, PB_VEC_ARGS)
 {
     PB_VEC_BODY
-    PB_VEC_STORE(PB_IN_DOMAIN ? pb_dop_at(f, pb_inv_specular_scale(g, sigma, v_ks, G), fd) : (real)NAN)
+    pb_vstoren(PB_IN_DOMAIN ? pb_dop_at(f, pb_inv_specular_scale(g, sigma, v_ks, G), fd) : (real)NAN, i, out);
 }
 
-__kernel void brdf_points_vec(__global PB_SCALAR *out, __global int *bad, PB_VEC_ARGS)
+__kernel void brdf_points_vec(__global PB_SCALAR *out, PB_VEC_ARGS)
 {
     PB_VEC_BODY
-    PB_VEC_STORE(PB_IN_DOMAIN ? pb_brdf(f, logK, fd) : (real)NAN)
+    pb_vstoren(PB_IN_DOMAIN ? pb_brdf(f, logK, fd) : (real)NAN, i, out);
 }
 
 /* The twins with inputs read through their rules (broadcast inputs sent once; kind 1 inputs
  * hold nvec * N points, padded by the host; kind 2 indices stay below mod for padding too). */
-__kernel void dop_bcast_points_vec(__global PB_SCALAR *out, __global int *bad, const int nvec,
-                                   PB_BCAST_ARGS(PB_SCALAR))
+__kernel void dop_bcast_points_vec(__global PB_SCALAR *out, const int nvec, PB_BCAST_ARGS(PB_SCALAR))
 {
     PB_VEC_BODY_OF(PB_IN_RULE)
-    PB_VEC_STORE(PB_IN_DOMAIN ? pb_dop_at(f, pb_inv_specular_scale(g, sigma, v_ks, G), fd) : (real)NAN)
+    pb_vstoren(PB_IN_DOMAIN ? pb_dop_at(f, pb_inv_specular_scale(g, sigma, v_ks, G), fd) : (real)NAN, i, out);
 }
 
-__kernel void brdf_bcast_points_vec(__global PB_SCALAR *out, __global int *bad, const int nvec,
-                                    PB_BCAST_ARGS(PB_SCALAR))
+__kernel void brdf_bcast_points_vec(__global PB_SCALAR *out, const int nvec, PB_BCAST_ARGS(PB_SCALAR))
 {
     PB_VEC_BODY_OF(PB_IN_RULE)
-    PB_VEC_STORE(PB_IN_DOMAIN ? pb_brdf(f, logK, fd) : (real)NAN)
+    pb_vstoren(PB_IN_DOMAIN ? pb_brdf(f, logK, fd) : (real)NAN, i, out);
 }
 
 /* quantity_outer's vector form for the vector quantities: N consecutive parameter sets (dimension 0,

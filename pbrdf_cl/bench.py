@@ -35,7 +35,6 @@ import numpy as np
 from .compute import dense
 from .compute.pointwise import dop as api_dop
 from .device import engine as _engine
-from .device import transfers as _transfers
 from .fitting.objective import objective
 from .model import reference
 
@@ -148,7 +147,7 @@ def bench_points(eng, rows, rng, size, repeats, sample):
         kern = eng.kernel("dop_points_vec", dtype, "paper")
         bufs = [eng.to_device(pts[n], dtype) for n in INPUTS]
         out = eng.empty(size * np.dtype(npdt).itemsize)
-        args = [out, _transfers.flag_buffer(eng)[0], np.int32(size // lanes)]
+        args = [out, np.int32(size // lanes)]
         for b in bufs:
             args += [b, np.int32(1)]
 
@@ -353,7 +352,7 @@ def bench_mitsuba(eng, rows, rng, size, repeats):
     dr.eval(wi, wo)
     kern = eng.kernel("dop_points_vec", "float32", "paper")
     out = eng.empty(size * 4)
-    args = [out, _transfers.flag_buffer(eng)[0], np.int32(size // lanes)]
+    args = [out, np.int32(size // lanes)]
     for n in INPUTS:
         one = n not in geo  # the material: one value, stride 0
         args += [eng.to_device(np.full(lanes, MITSUBA_MATERIAL[n]) if one else geo[n], "float32"), np.int32(not one)]

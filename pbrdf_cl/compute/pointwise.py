@@ -197,8 +197,8 @@ def _evaluate(quantity, theta_i, theta_r, phi, n, k, sigma, ks, kd, c, shadowing
                        "pbrdf-cl sweep (chunked into a Zarr store)")
     # the arrays as given: the reference broadcasts by itself, the device engine sends a short axis
     # once with its index rule (engine.input_plan) and gathers only other broadcast patterns
-    out, finite = eng.evaluate_checked(quantity, arrays, shape, dtype=dtype_name, shadowing=shadowing)
-    if not q.undefined_nan and not (_all_finite(out) if finite is None else finite):
+    out = eng.evaluate(quantity, arrays, shape, dtype=dtype_name, shadowing=shadowing)
+    if not q.undefined_nan and not _all_finite(out):
         if fused:  # the kernel marks points outside the domain with NaN: name the first
             validate(*args, **kw)
         raise FloatingPointError(

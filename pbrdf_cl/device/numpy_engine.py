@@ -76,7 +76,3 @@ class NumpyEngine:
             out = np.broadcast_to(out.reshape((-1,) + extra)[0], tuple(shape) + extra)
         out = np.asarray(out, dtype=DTYPES[dtype])
         return out if out.flags.writeable else out.copy()  # a copy only of the broadcast single point
-
-    def evaluate_checked(self, quantity, inputs, shape, dtype="float64", shadowing="paper"):
-        """``(values, None)``: :meth:`evaluate`'s result; whether it is finite is for the caller to read."""
-        return self.evaluate(quantity, inputs, shape, dtype, shadowing), None

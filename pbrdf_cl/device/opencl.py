@@ -245,12 +245,6 @@ class Engine:
         and the quantity's trailing axes (``shape + (4, 4)`` for "mueller", ``shape + (4,)`` for
         "stokes"), in ``dtype``.
         """
-        return transfers.evaluate(self, quantity, inputs, shape, dtype, shadowing)[0]
-
-    def evaluate_checked(self, quantity: str, inputs: dict, shape, dtype="float64", shadowing="paper"):
-        """``(values, finite)``: :meth:`evaluate`'s result and whether every value is finite, as the
-        vector kernels (DOP, F00) report it while they write; None from the other kernels (the
-        caller reads the values to know)."""
         return transfers.evaluate(self, quantity, inputs, shape, dtype, shadowing)
 
     @property

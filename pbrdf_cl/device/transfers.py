@@ -30,10 +30,8 @@ TABLE_POINTS = 1 << 19
 
 
 def evaluate(eng, quantity, inputs, shape, dtype, shadowing):
-    """``(values, finite)``: ``quantity`` at every point of ``shape`` on the OpenCL engine ``eng``
-    (the work of :meth:`pbrdf_cl.device.opencl.Engine.evaluate`, see there) and whether every value
-    is finite, as the vector kernels report it while they write (:func:`flag_buffer`); None for the
-    other kernels (the caller reads the values to know)."""
+    """``quantity`` at every point of ``shape`` on the OpenCL engine ``eng``: the work of
+    :meth:`pbrdf_cl.device.opencl.Engine.evaluate` (see there)."""
     npdt = np.dtype(DTYPES[dtype])
     q = quantities.get(quantity, "points")
     vec = eng.checks_domain(q.name)
@@ -43,8 +41,7 @@ def evaluate(eng, quantity, inputs, shape, dtype, shadowing):
     width = q.width
     out = aligned_empty(size * width, npdt)  # page-aligned: every driver writes it in place
     if size == 0:
-        return out.reshape(shape + q.trailing), True
-    bad, finite = flag_buffer(eng) if vec else (None, lambda: None)
+        return out.reshape(shape + q.trailing)
     plan, flat, values = point_inputs(eng, inputs, shape, npdt, lanes)
     if values:  # a broadcast input: the twin kernel, reading each input through its rule
         kern = (eng.kernel(f"{q.name}_bcast_points_vec", dtype, shadowing) if vec
@@ -54,8 +51,8 @@ def evaluate(eng, quantity, inputs, shape, dtype, shadowing):
                 else eng.kernel("quantity_points", dtype, shadowing, q.name))
         plan = None
     if eng.overlaps_transfers:
-        _TransferPipeline(eng, kern, flat, values, plan, npdt, lanes, vec, width, bad).run(size, out)
-        return out.reshape(shape + q.trailing), finite()
+        _TransferPipeline(eng, kern, flat, values, plan, npdt, lanes, vec, width).run(size, out)
+        return out.reshape(shape + q.trailing)
     host = eng.host_memory
     sent = {n: input_buffer(eng, v, npdt, host) for n, v in values.items()}  # once per call
     # inputs the device cannot read in place are converted launch by launch: smaller launches
@@ -88,28 +85,15 @@ def evaluate(eng, quantity, inputs, shape, dtype, shadowing):
         if whole:
             launch_points(eng, kern, parts_of(start, start + whole, whole), whole,
                           out[start * width:(start + whole) * width], npdt, lanes, vec, host,
-                          None if plan is None else rule_table(plan, start), bad=bad)
-        if whole < count:  # the last few points, padded (copies of the last point) to a whole vector
+                          None if plan is None else rule_table(plan, start))
+        if whole < count:  # the last few points, padded to a whole vector
             tail = count - whole
             padded = lanes if vec else tail
             tmp = np.empty(padded * width, npdt)
             launch_points(eng, kern, parts_of(start + whole, start + count, padded), padded, tmp, npdt, lanes,
-                          vec, host, None if plan is None else rule_table(plan, start + whole), bad=bad)
+                          vec, host, None if plan is None else rule_table(plan, start + whole))
             out[(start + whole) * width:(start + count) * width] = tmp[:tail * width]
-    return out.reshape(shape + q.trailing), finite()
-
-
-def flag_buffer(eng):
-    """``(buffer, finite)``: a device int, 0, that the vector per-point kernels set to 1 where a
-    value they write is not finite, and ``finite()``, which reads it after the launches: True where
-    every value was finite."""
-    flag = np.zeros(1, np.int32)
-    buf = cl.Buffer(eng.context, cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR, hostbuf=flag)
-
-    def finite():
-        cl.enqueue_copy(eng.queue, flag, buf)  # blocking, after every launch of the queue
-        return not flag[0]
-    return buf, finite
+    return out.reshape(shape + q.trailing)
 
 
 def point_inputs(eng, inputs, shape, npdt, lanes):
@@ -151,13 +135,12 @@ def input_buffer(eng, a, npdt, host):
     return cl.Buffer(eng.context, cl.mem_flags.READ_ONLY | cl.mem_flags.USE_HOST_PTR, hostbuf=a)
 
 
-def launch_points(eng, kern, parts, n, out, npdt, lanes, vec, host, rules=None, bad=None):
+def launch_points(eng, kern, parts, n, out, npdt, lanes, vec, host, rules=None):
     """One launch of a per-point kernel over ``n`` points (``parts``: name -> n values or one,
     or a buffer), its result in ``out`` (contiguous, n * width values) when this returns.
-    ``rules``: the launch's :func:`rule_table`, for the broadcast twins (None: strides); ``bad``:
-    the vector kernels' flag of a value not finite (:func:`flag_buffer`)."""
+    ``rules``: the launch's :func:`rule_table`, for the broadcast twins (None: strides)."""
     out_buf, done = eng.output(out)
-    args = [out_buf] + ([] if bad is None else [bad]) + [np.int32(n // lanes)]
+    args = [out_buf, np.int32(n // lanes)]
     for name in POINT_INPUTS:
         p = parts[name]
         args.append(input_buffer(eng, p, npdt, host))
@@ -186,8 +169,8 @@ class _TransferPipeline:
 
     SLOTS = 2
 
-    def __init__(self, eng, kern, flat, values, plan, npdt, lanes, vec, width, bad=None):
-        self.eng, self.kern, self.flat, self.npdt, self.plan, self.bad = eng, kern, flat, npdt, plan, bad
+    def __init__(self, eng, kern, flat, values, plan, npdt, lanes, vec, width):
+        self.eng, self.kern, self.flat, self.npdt, self.plan = eng, kern, flat, npdt, plan
         self.lanes, self.vec, self.width = lanes, vec, width
         self.names = [n for n in POINT_INPUTS if n in flat and flat[n].size != 1]
         self.single = {n: eng.to_device(a, npdt) for n, a in {**flat, **values}.items() if n not in self.names}
@@ -222,7 +205,7 @@ class _TransferPipeline:
                     _gather(dst, self.flat[n], start, start + count)
                     dst[count:] = dst[count - 1]  # padding: copies of the last point
                     uploads.append(cl.enqueue_copy(self.copies, slot["dev"][n], dst, is_blocking=False))
-                args = [slot["out"]] + ([] if self.bad is None else [self.bad]) + [np.int32(padded // self.lanes)]
+                args = [slot["out"], np.int32(padded // self.lanes)]
                 for n in POINT_INPUTS:
                     args.append(slot["dev"][n] if n in slot["dev"] else self.single[n])
                     if self.plan is None:
