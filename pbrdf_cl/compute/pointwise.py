@@ -35,16 +35,21 @@ def _as_array(name, value):
 CHECK_BLOCK = 1 << 16
 
 
-def _min_max(a):
-    """``(min, max)`` of the non-empty array ``a`` (NaN when it holds one: NaN propagates) in one
-    read and no temporary beyond a block: blocks of :data:`CHECK_BLOCK` elements in memory order
-    (a transposed or strided array too; a broadcast view's repeated axes are read once), the
-    minimum and maximum of each taken while it is in cache."""
+def _blocks(a):
+    """The values of the non-empty array ``a`` in blocks of at most :data:`CHECK_BLOCK` elements in
+    memory order (a transposed or strided array too; a broadcast view's repeated axes are read
+    once), no temporary beyond a block."""
     a = compact_values(a, a.ndim)
     if a.size <= CHECK_BLOCK:
-        return np.min(a), np.max(a)
+        return [a]
+    return np.nditer(a, flags=["external_loop", "buffered"], buffersize=CHECK_BLOCK, order="K")
+
+
+def _min_max(a):
+    """``(min, max)`` of the non-empty array ``a`` (NaN when it holds one: NaN propagates) in one
+    read (:func:`_blocks`), the minimum and maximum of each block taken while it is in cache."""
     lo = hi = None
-    for block in np.nditer(a, flags=["external_loop", "buffered"], buffersize=CHECK_BLOCK, order="K"):
+    for block in _blocks(a):
         b_lo, b_hi = np.min(block), np.max(block)
         lo = b_lo if lo is None else np.minimum(lo, b_lo)
         hi = b_hi if hi is None else np.maximum(hi, b_hi)
@@ -84,13 +89,9 @@ RADIANS_HINT = 1.6
 
 
 def _reaches(a, x):
-    """Whether some value of the non-empty array ``a`` is >= ``x``, read block by block in memory
-    order (as :func:`_min_max`) up to the first block that holds one."""
-    a = compact_values(a, a.ndim)
-    if a.size <= CHECK_BLOCK:
-        return bool(np.max(a) >= x)
-    return any(np.max(block) >= x for block in np.nditer(a, flags=["external_loop", "buffered"],
-                                                           buffersize=CHECK_BLOCK, order="K"))
+    """Whether some value of the non-empty array ``a`` is >= ``x``, read block by block
+    (:func:`_blocks`) up to the first block that holds one."""
+    return any(np.max(block) >= x for block in _blocks(a))
 
 
 def radians_suspect(theta_i, theta_r, bounds=None):
