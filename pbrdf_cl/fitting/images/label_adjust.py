@@ -195,7 +195,7 @@ class Integrated:
         return 2.0 * np.einsum("psm,pm->ps", J, R[:, 0])
 
 
-def integrated_correction(st, theta, sums, ok, pixels=None, record=False):
+def integrated_correction(st, theta, sums, ok, pixels=None):
     """The values of every label ``ok`` that minimise its integrated chi2 G (see the module's
     docstring), from the label stage's values ``theta`` (L, S) and sums, on at most ``pixels``
     (default PIXELS) of each label's pixels (evenly spaced; one pass over the stack gathers them).
@@ -214,13 +214,11 @@ def integrated_correction(st, theta, sums, ok, pixels=None, record=False):
     times the label's.  A label of at most ``pixels`` pixels is its own subsample, stationary in
     F at t0: no tilt, and the profile's covariance.
 
-    Returns (theta_c (L, S), cov, model), unchanged where the label has too few pixels, no
-    finite standard error or G no positive curvature: the covariances (L, S, S) in coordinates
-    scaled to the bounds (as ``st.covariance`` gives them) of the profile (the label stage's
-    intervals; plus the correction's noise on a subsample) and of G's curvature, 2 H^-1; with
-    ``record`` the first is the sandwich H^-1 (sum_p c_p c_p^T) H^-1 of the pixels' gradients c_p
-    of G at theta_c instead (one more stencil; for the record: both cover less than the
-    profile's, docs/joint_images.md)."""
+    Returns (theta_c (L, S), cov), unchanged where the label has too few pixels, no finite
+    standard error or G no positive curvature: cov (L, S, S) the profile's covariance (the label
+    stage's intervals; plus the correction's noise on a subsample) in coordinates scaled to the
+    bounds, as ``st.covariance`` gives it.  (G's own curvature, 2 H^-1, and the sandwich of the
+    pixels' gradients both covered less than the profile's: docs/joint_images.md.)"""
     setup, names = st.job.setup, st.job.names
     s, span = st.si, st.span[st.si]
     s2 = st.scale(sums)
@@ -228,7 +226,6 @@ def integrated_correction(st, theta, sums, ok, pixels=None, record=False):
     picks = subsample(st, PIXELS if pixels is None else pixels)
     subs = st.gather(picks)
     out = theta.copy()
-    model = cov.copy()
     for L in np.flatnonzero(ok):
         beta = st.beta[picks[L]]
         keep = np.all(np.isfinite(beta), axis=1)
@@ -253,21 +250,12 @@ def integrated_correction(st, theta, sums, ok, pixels=None, record=False):
             if np.all(np.abs(d) < 0.2 * se) or r == NEWTON_ROUNDS - 1:
                 break
             itg.fit_population(t * span, POPULATION_ROUNDS)
-        if record:
-            itg.fit_population(t * span, POPULATION_ROUNDS)
-            g, H, c = stencil(itg, t, se, lo, hi, span)
-        with np.errstate(all="ignore"):
-            Hi = np.linalg.inv(H)
-        if not (np.all(np.isfinite(Hi)) and np.all(np.linalg.eigvalsh(H) > 0)):
+        if positive_inverse(H) is None:
             continue
         out[L] = t * span
-        model[L] = 2.0 * Hi
         if thin:
             cov[L] = cov[L] + noise
-        if record:
-            cc = c - c.mean(axis=0)
-            cov[L] = Hi @ (cc.T @ cc) @ Hi * c.shape[0] / max(c.shape[0] - 1, 1)
-    return out, cov, model
+    return out, cov
 
 
 def stencil(itg, t, se, lo, hi, span):
@@ -293,11 +281,19 @@ def spread(a, H, total):
     (pixels, S) as an estimate of the label's (``total`` pixels; drawn without replacement), H the
     subsample's Hessian; zero where H is not positive definite."""
     p = a.shape[0]
-    with np.errstate(all="ignore"):
-        Hi = np.linalg.inv(H)
-    if p < 2 or not (np.all(np.isfinite(Hi)) and np.all(np.linalg.eigvalsh(H) > 0)):
+    Hi = positive_inverse(H)
+    if p < 2 or Hi is None:
         return 0.0
     return Hi @ (np.cov(a.T).reshape(H.shape) * p * (1.0 - p / total)) @ Hi
+
+
+def positive_inverse(H):
+    """H^-1 where the symmetric H is positive definite and its inverse finite, else None."""
+    with np.errstate(all="ignore"):
+        if not (np.all(np.isfinite(H)) and np.all(np.linalg.eigvalsh(H) > 0)):
+            return None
+        Hi = np.linalg.inv(H)
+    return Hi if np.all(np.isfinite(Hi)) else None
 
 
 def newton(g, H, se):

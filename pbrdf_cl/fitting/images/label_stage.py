@@ -191,11 +191,6 @@ class RowSums:
     def __init__(self, n_labels, size):
         self.total = np.zeros((n_labels, size))
 
-    def add(self, rows, lab, values):
-        """Add the per-pixel ``values`` (p, size) of pixels in ``rows`` (ascending) of labels ``lab``."""
-        if rows.size:
-            self.add_parts(*row_parts(rows, lab, values, self.total.shape[0]))
-
     def add_parts(self, labels, part):
         """Add a block's sums per (row, label) (:func:`row_parts`), in their order."""
         np.add.at(self.total, labels, part)  # in key order: a label's rows in order
@@ -672,7 +667,7 @@ def run_label_stage(job, eng, progress=False, workers=None):
                                                       job.bias_replicates)
         bias, given = theta - corrected, st.natural(cov, inverse=True)
     elif job.integrated:
-        corrected, cov, _ = integrated_correction(st, theta, sums, ok)
+        corrected, cov = integrated_correction(st, theta, sums, ok)
         bias = theta - corrected
         if not np.array_equal(cov, st.covariance(sums).cov, equal_nan=True):  # a label's subsample's noise
             given = cov
