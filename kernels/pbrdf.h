@@ -164,10 +164,14 @@ inline real pb_shadow_S(real ct, real st, real sigma, int variant)
 }
 
 /* G = 1 / (1 + S(ti) + S(tr)). */
+inline real pb_shadowing_of(real s_i, real s_r)
+{
+    return (real)1 / ((real)1 + s_i + s_r);
+}
+
 inline real pb_shadowing_factor(pb_geom g, real sigma, int variant)
 {
-    return (real)1 / ((real)1 + pb_shadow_S(g.cti, g.sti, sigma, variant)
-                              + pb_shadow_S(g.ctr, g.str, sigma, variant));
+    return pb_shadowing_of(pb_shadow_S(g.cti, g.sti, sigma, variant), pb_shadow_S(g.ctr, g.str, sigma, variant));
 }
 
 /* log of the scalar factor K of the specular term (eq. 6):

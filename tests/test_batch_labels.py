@@ -499,6 +499,36 @@ def test_the_label_sums_compute_fresnel_once_per_n_k(monkeypatch):
     assert rows == [blk.p * 6, 3]
 
 
+def test_the_correction_varies_each_part_of_the_model_only_with_its_parameters(monkeypatch):
+    """The integrated correction's rows (every pixel and its forward differences along sigma, kd
+    and c) are :meth:`PixelResiduals.rows` of the stacked points bit for bit, with the shadowing
+    computed for the base and the sigma step only, each beam's once per distinct angle (3 of
+    incidence, 10 of reflection); with a geometry per pixel, the rows of the stacked points."""
+    from pbrdf_cl.fitting.images import pixels as P
+    from pbrdf_cl.model import reference
+    data, lab = two_materials(4, 4, 0.003, seed=1)
+    job = LabelJob(data, labels=lab)
+    raw = job.source.rows(0, 4)
+    rng = np.random.default_rng(0)
+    X = np.column_stack([np.full(16, 1.6), np.full(16, 2.1), rng.uniform(0.3, 0.6, 16),
+                         rng.uniform(0.1, 0.3, 16), rng.uniform(-0.5, -0.1, 16)])
+    h = rng.uniform(1e-8, 1e-7, (16, 3))
+    seen, shadow = [], reference.shadow_S
+    monkeypatch.setattr(reference, "shadow_S", lambda ct, *a: seen.append(np.shape(ct)) or shadow(ct, *a))
+    for per_pixel in (False, True):
+        r = dict(raw, **{a: np.broadcast_to(raw[a], raw["dop"].shape) for a in ("theta_i", "theta_r", "phi")}) if per_pixel else raw
+        blk = P.Block(r, job.setup, 1)
+        assert blk.shared != per_pixel
+        res = P.PixelResiduals(job.setup, blk, job.names, np.arange(16), False, few_nk=True)
+        pts = np.repeat(X[:, None, :], 4, axis=1)
+        pts[:, 1:, 2:] += h[:, None, :] * np.eye(3)
+        seen.clear()
+        varied = res.varied(X, [2, 3, 4], h)
+        sizes = list(seen)
+        assert varied.tobytes() == res.rows(pts.reshape(-1, 5)).reshape(16, 4, -1).tobytes()
+        assert sizes == ([(16 * 4, 30)] * 2 if per_pixel else [(1, 3), (1, 10)] * 2)
+
+
 def test_labels_on_workers_equal_in_memory(tmp_path):
     """With workers the label stage's block passes and the per-pixel pass run on the workers (the
     latter's job carries each pixel's own parameters of the label stage): the result is the

@@ -99,7 +99,12 @@ def shadow_S(ct, st, sigma, variant):
 
 def shadowing_factor(g, sigma, variant):
     """G = 1 / (1 + S(ti) + S(tr)) (``pb_shadowing_factor``)."""
-    return 1.0 / (1.0 + shadow_S(g.cti, g.sti, sigma, variant) + shadow_S(g.ctr, g.str, sigma, variant))
+    return shadowing_of(shadow_S(g.cti, g.sti, sigma, variant), shadow_S(g.ctr, g.str, sigma, variant))
+
+
+def shadowing_of(s_i, s_r):
+    """G = 1 / (1 + S(ti) + S(tr)) from the two beams' :func:`shadow_S` (``pb_shadowing_of``)."""
+    return 1.0 / (1.0 + s_i + s_r)
 
 
 def log_specular_scale(g, sigma, ks, G):

@@ -91,10 +91,11 @@ class Integrated:
         return self.lo[b] + w * s, w * s * (1.0 - s)
 
     def residuals(self, K):
-        """The reference model's residual rows of K copies of the pixels (made once per K)."""
+        """The reference model's residual rows of K copies of the pixels
+        (:class:`~pbrdf_cl.fitting.images.pixels.PixelResiduals`, made once per K)."""
         if K not in self.rows:
             pix = np.tile(np.arange(self.p), K)
-            self.rows[K] = PixelResiduals(self.setup, self.blk, self.names, pix, self.setup.use_f00, few_nk=True).rows
+            self.rows[K] = PixelResiduals(self.setup, self.blk, self.names, pix, self.setup.use_f00, few_nk=True)
         return self.rows[K]
 
     def _at(self, thetas, u, mu, D):
@@ -109,10 +110,7 @@ class Integrated:
         xo = X[:, self.bi]
         h = np.sqrt(np.finfo(float).eps) * np.maximum(1.0, np.abs(xo))
         h = (xo + np.where(xo + h > self.hi[self.bi], -h, h)) - xo
-        pts = np.repeat(X[:, None, :], o + 1, axis=1)
-        for j, c in enumerate(self.bi):
-            pts[:, j + 1, c] += h[:, j]
-        R = self.residuals(K)(pts.reshape(-1, X.shape[1])).reshape(K * p, o + 1, -1) / np.sqrt(self.s2)
+        R = self.residuals(K).varied(X, self.bi, h) / np.sqrt(self.s2)
         r = R[:, 0]
         Ju = (R[:, 1:] - r[:, None]) * (dx.reshape(K * p, o) / h)[:, :, None]
         pr = ((u - mu[:, None, :]) / np.sqrt(D)).reshape(K * p, o)
@@ -190,7 +188,7 @@ class Integrated:
         pts = np.repeat(X[:, None, :], 2 * S + 1, axis=1)
         for j, c in enumerate(self.si):
             pts[:, 1 + j, c], pts[:, 1 + S + j, c] = up[j], down[j]
-        R = self.residuals(1)(pts.reshape(-1, X.shape[1])).reshape(self.p, 2 * S + 1, -1) / np.sqrt(self.s2)
+        R = self.residuals(1).rows(pts.reshape(-1, X.shape[1])).reshape(self.p, 2 * S + 1, -1) / np.sqrt(self.s2)
         J = (R[:, 1:1 + S] - R[:, 1 + S:]) / (up - down)[None, :, None]
         return 2.0 * np.einsum("psm,pm->ps", J, R[:, 0])
 

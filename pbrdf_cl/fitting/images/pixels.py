@@ -13,6 +13,7 @@ import numpy as np
 
 from ...io.source import ANGLES, INCIDENT
 from ...model import measurables, reference
+from ...model.inputs import MEMBERS
 from ..channels import ChannelModel
 from ..common import dop_resolution
 from ..setup import F00_REL_STD, PARAMETERS, FitSetup
@@ -261,6 +262,12 @@ class LogKs:
         return external(U, names)
 
 
+#: The parts of the model's DOP (and intensity) rows that :meth:`PixelResiduals.varied` computes
+#: again only when a parameter they depend on moves (the diffuse term, kd times the Minnaert
+#: factor, is made for every row).
+DEPENDS = dict(fresnel=MEMBERS["index"], specular=MEMBERS["specular"], minnaert=("c",))
+
+
 class PixelResiduals:
     """Weighted residual rows of the reference model for many pixels (the numpy backend): rows
     of a (B, D) batch belong to pixels ``pix`` repeated ``B // len(pix)`` times each, as
@@ -276,24 +283,76 @@ class PixelResiduals:
     def rows(self, X):
         rep = X.shape[0] // self.pix.size
         pix = np.repeat(self.pix, rep)
-        blk, setup = self.blk, self.setup
-        p = dict(setup.base)
+        blk = self.blk
+        p = self._params(X)
+        if blk.spec is not None:  # polarimetric channels (no intensities: job.py)
+            aop = blk.spec.aop if blk.shared else blk.spec.aop[pix]
+            r = reference.channel_residual(blk.channel_model(pix).rows(p), blk.obs[pix], aop) * np.sqrt(self.w[pix])
+            return np.where(np.isfinite(r), r, 1e150)
+        g = reference.geometry(*[a[None, :] if blk.shared else a[pix] for a in blk.angles])
+        return self._residuals(*[self._part(part, p, g) for part in DEPENDS], p["kd"], pix)
+
+    def varied(self, X, cols, h):
+        """The rows at the points ``X`` (B, D), one a pixel of ``pix``, and at each moved along
+        one coordinate, column ``cols[j]`` by ``h[:, j]`` (forward differences): (B, 1 + len(cols),
+        rows' width), the numbers :meth:`rows` gives of the stacked points.  Where the pixels share
+        their geometry and the DOP (and intensities) are fitted, each part of the model
+        (:data:`DEPENDS`) is computed again only for the moves of the parameters it depends on."""
+        B, D = X.shape
+        blk = self.blk
+        if blk.spec is not None or not blk.shared or B != self.pix.size:
+            pts = np.repeat(X[:, None, :], len(cols) + 1, axis=1)
+            for j, c in enumerate(cols):
+                pts[:, j + 1, c] += h[:, j]
+            return self.rows(pts.reshape(-1, D)).reshape(B, len(cols) + 1, -1)
+        g = reference.geometry(*[a[None, :] for a in blk.angles])
+        p = self._params(X)
+        base = {part: self._part(part, p, g) for part in DEPENDS}
+        out = [self._residuals(*base.values(), p["kd"], self.pix)]
+        for j, c in enumerate(cols):
+            Xj = X.copy()
+            Xj[:, c] += h[:, j]
+            pj = self._params(Xj)
+            parts = [self._part(part, pj, g) if self.names[c] in deps else base[part] for part, deps in DEPENDS.items()]
+            out.append(self._residuals(*parts, pj["kd"], self.pix))
+        return np.stack(out, axis=1)
+
+    def _params(self, X):
+        """The model's parameters (each (B, 1), or the setup's fixed value) at the points X."""
+        p = dict(self.setup.base)
         ext = external(X, self.names)
         for j, n in enumerate(self.names):
             p[n] = ext[:, j:j + 1]
         if self.intensity:
             p["kd"] = p["kd"] * p["ks"]
-        if blk.spec is not None:  # polarimetric channels (no intensities: job.py)
-            aop = blk.spec.aop if blk.shared else blk.spec.aop[pix]
-            r = reference.channel_residual(blk.channel_model(pix).rows(p), blk.obs[pix], aop) * np.sqrt(self.w[pix])
-            return np.where(np.isfinite(r), r, 1e150)
-        ang = [a[None, :] if blk.shared else a[pix] for a in blk.angles]
-        g = reference.geometry(*ang)
-        f = fresnel_rows(p["n"], p["k"], g) if self.few_nk and blk.shared else reference.fresnel(p["n"], p["k"], g.cb,
-                                                                                                  g.sb)
-        variant = reference.SHADOWING[setup.shadowing]
-        log_k = reference.log_specular_scale(g, p["sigma"], p["ks"], reference.shadowing_factor(g, p["sigma"], variant))
-        fd = reference.diffuse(g, p["kd"], p["c"])
+        return p
+
+    def _part(self, part, p, g):
+        """One part of the model (:data:`DEPENDS`) at the parameters ``p`` and geometry ``g``."""
+        if part == "fresnel":
+            return fresnel_rows(p["n"], p["k"], g) if self.few_nk and self.blk.shared else reference.fresnel(
+                p["n"], p["k"], g.cb, g.sb)
+        if part == "specular":
+            return reference.log_specular_scale(g, p["sigma"], p["ks"], self._shadowing(p["sigma"], g))
+        return reference.minnaert(g, p["c"])
+
+    def _shadowing(self, sigma, g):
+        """:func:`pbrdf_cl.model.reference.shadowing_factor` at ``sigma`` over the geometry ``g``;
+        where the pixels share it, each beam's S computed once per distinct angle of that beam
+        (the same numbers: every operation is elementwise)."""
+        variant = reference.SHADOWING[self.setup.shadowing]
+        if not self.blk.shared:
+            return reference.shadowing_factor(g, sigma, variant)
+        beams = []
+        for ct, st in ((g.cti, g.sti), (g.ctr, g.str)):
+            u, inv = np.unique(np.stack([np.ravel(ct), np.ravel(st)]), axis=1, return_inverse=True)
+            beams.append(reference.shadow_S(u[0][None], u[1][None], sigma, variant)[:, inv.ravel()])
+        return reference.shadowing_of(*beams)
+
+    def _residuals(self, f, log_k, minnaert, kd, pix):
+        """The weighted residual rows of the pixels ``pix`` from the model's parts and kd."""
+        blk = self.blk
+        fd = reference.diffuse_of(kd, minnaert)
         r = (reference.dop(f, log_k, fd) - blk.obs[pix]) * np.sqrt(self.w[pix])
         if self.intensity:
             r = np.concatenate([r, (reference.brdf(f, log_k, fd) - blk.fobs[pix]) * np.sqrt(blk.fw[pix])], axis=1)
@@ -307,9 +366,10 @@ def fresnel_rows(n, k, g):
     B = max(np.size(n), np.size(k))
     nk = np.stack([np.broadcast_to(np.asarray(n, float), (B, 1))[:, 0],
                    np.broadcast_to(np.asarray(k, float), (B, 1))[:, 0]], axis=1)
-    u, inv = np.unique(nk, axis=0, return_inverse=True)
+    starts = np.flatnonzero(np.concatenate([[True], np.any(nk[1:] != nk[:-1], axis=1)]))  # runs of equal rows
+    u, inv = np.unique(nk[starts], axis=0, return_inverse=True)
     f = reference.fresnel(u[:, :1], u[:, 1:], g.cb, g.sb)
-    inv = inv.ravel()
+    inv = np.repeat(inv.ravel(), np.diff(np.append(starts, B)))
     for name, v in vars(f).items():
         setattr(f, name, v[inv])
     return f
