@@ -516,8 +516,8 @@ def test_the_correction_varies_each_part_of_the_model_only_with_its_parameters(m
     seen, shadow = [], reference.shadow_S
     monkeypatch.setattr(reference, "shadow_S", lambda ct, *a: seen.append(np.shape(ct)) or shadow(ct, *a))
     for per_pixel in (False, True):
-        r = dict(raw, **{a: np.broadcast_to(raw[a], raw["dop"].shape) for a in ("theta_i", "theta_r", "phi")}) if per_pixel else raw
-        blk = P.Block(r, job.setup, 1)
+        own = {a: np.broadcast_to(raw[a], raw["dop"].shape) for a in ("theta_i", "theta_r", "phi")}
+        blk = P.Block(dict(raw, **own) if per_pixel else raw, job.setup, 1)
         assert blk.shared != per_pixel
         res = P.PixelResiduals(job.setup, blk, job.names, np.arange(16), False, few_nk=True)
         pts = np.repeat(X[:, None, :], 4, axis=1)
