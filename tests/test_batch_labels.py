@@ -186,6 +186,34 @@ def test_the_integrated_likelihood_on_a_subsample_leaves_its_noise_out(dev, monk
     assert np.all(sub.stderr >= full.stderr) and np.any(sub.stderr > full.stderr)
 
 
+def test_the_modes_of_the_own_parameters_end_pixel_by_pixel(dev, monkeypatch):
+    """:meth:`label_adjust.Integrated.modes` stops each pixel's Levenberg-Marquardt iterations
+    where its step changes its Q by less than MODE_TOL: every pixel's Q within 1e-4 of its mode's
+    (iterated to 1e-12), on fewer rows than every pixel at every iteration; from the modes, one
+    step each."""
+    from pbrdf_cl.fitting.images import label_adjust as la
+    from pbrdf_cl.fitting.images import pixels as P
+
+    made, init = [], la.Integrated.__init__
+    monkeypatch.setattr(la.Integrated, "__init__", lambda self, *a: made.append(self) or init(self, *a))
+    data, lab = two_materials(8, 8, 0.006, seed=3)
+    res = LabelJob(data, labels=lab).prepare(dev)
+    itg, th = made[0], res.theta[:1]
+    rows, varied = [], P.PixelResiduals.varied
+    monkeypatch.setattr(P.PixelResiduals, "varied", lambda self, X, *a: rows.append(len(X)) or varied(self, X, *a))
+    start = np.clip(itg.u + 0.5, -la.U_MAX, la.U_MAX)
+    u, Q, H = itg.modes(th, start, itg.mu, itg.D)
+    assert len(rows) > 2 and sum(rows) < len(rows) * itg.p, rows
+    monkeypatch.setattr(la, "MODE_TOL", 1e-12)
+    monkeypatch.setattr(la, "MODE_ITERATIONS", 40)
+    u_ref, Q_ref, _ = itg.modes(th, start, itg.mu, itg.D)
+    assert np.all(np.abs(Q - Q_ref) < 1e-4), np.abs(Q - Q_ref).max()
+    monkeypatch.setattr(la, "MODE_TOL", 1e-5)
+    rows.clear()
+    itg.modes(th, u_ref, itg.mu, itg.D)
+    assert rows == [itg.p, itg.p]
+
+
 def test_the_integrated_likelihood_steps_to_its_minimum():
     """:func:`label_adjust.stencil` fits the sum of the pixels' terms by a quadratic exactly where
     they are quadratic (gradient, Hessian, each pixel's gradient; two shared parameters and one),

@@ -42,8 +42,8 @@ INTEGRATED = True
 EM_ROUNDS = 6
 #: Gauss-Newton (Levenberg-Marquardt) iterations of each pixel's mode, at most.
 MODE_ITERATIONS = 8
-#: ... stopping where no pixel's Q falls by more than this.
-MODE_TOL = 1e-3
+#: ... a pixel's ending where its step changes its Q by less than this.
+MODE_TOL = 1e-5
 #: The own parameters' fractions of their bounds the logit coordinates start from (at most this
 #: close to a bound) and the modes' logit coordinates' bound.
 EDGE = 1e-4
@@ -75,7 +75,6 @@ class Integrated:
         self.s2 = float(s2)
         self.blk = Block(raw, setup, 1)
         self.p = self.blk.p
-        self.rows = {}
         b = self.bi
         f = np.clip((beta - lo[b]) / (hi[b] - lo[b]), EDGE, 1 - EDGE)
         self.beta = beta
@@ -90,54 +89,52 @@ class Integrated:
         w = self.hi[b] - self.lo[b]
         return self.lo[b] + w * s, w * s * (1.0 - s)
 
-    def residuals(self, K):
-        """The reference model's residual rows of K copies of the pixels
-        (:class:`~pbrdf_cl.fitting.images.pixels.PixelResiduals`, made once per K)."""
-        if K not in self.rows:
-            pix = np.tile(np.arange(self.p), K)
-            self.rows[K] = PixelResiduals(self.setup, self.blk, self.names, pix, self.setup.use_f00, few_nk=True)
-        return self.rows[K]
-
-    def _at(self, thetas, u, mu, D):
-        """(Q, H, g) of every copy and pixel: forward differences along the own parameters only
+    def _at(self, th, u, mu, D, pix):
+        """(Q, H, g) of rows of (shared values ``th`` (B, S), modes ``u`` (B, own), mean ``mu``
+        (B, own)) of the pixels ``pix``: forward differences along the own parameters only
         (scipy's steps, inwards at an upper bound)."""
-        K, p, o = u.shape
+        B, o = u.shape
         x, dx = self.own(u)
-        X = np.empty((K, p, len(self.names)))
-        X[..., self.si] = thetas[:, None, :]
-        X[..., self.bi] = x
-        X = X.reshape(K * p, -1)
-        xo = X[:, self.bi]
-        h = np.sqrt(np.finfo(float).eps) * np.maximum(1.0, np.abs(xo))
-        h = (xo + np.where(xo + h > self.hi[self.bi], -h, h)) - xo
-        R = self.residuals(K).varied(X, self.bi, h) / np.sqrt(self.s2)
+        X = np.empty((B, len(self.names)))
+        X[:, self.si] = th
+        X[:, self.bi] = x
+        h = np.sqrt(np.finfo(float).eps) * np.maximum(1.0, np.abs(x))
+        h = (x + np.where(x + h > self.hi[self.bi], -h, h)) - x
+        res = PixelResiduals(self.setup, self.blk, self.names, pix, self.setup.use_f00, few_nk=True)
+        R = res.varied(X, self.bi, h) / np.sqrt(self.s2)
         r = R[:, 0]
-        Ju = (R[:, 1:] - r[:, None]) * (dx.reshape(K * p, o) / h)[:, :, None]
-        pr = ((u - mu[:, None, :]) / np.sqrt(D)).reshape(K * p, o)
+        Ju = (R[:, 1:] - r[:, None]) * (dx / h)[:, :, None]
+        pr = (u - mu) / np.sqrt(D)
         Q = np.einsum("pm,pm->p", r, r) + np.einsum("pi,pi->p", pr, pr)
         H = np.einsum("pim,pjm->pij", Ju, Ju) + np.diag(1.0 / D)[None]
         g = np.einsum("pim,pm->pi", Ju, r) + pr / np.sqrt(D)
-        return Q.reshape(K, p), H.reshape(K, p, o, o), g.reshape(K, p, o)
+        return Q, H, g
 
     def modes(self, thetas, u, mu, D):
         """Each pixel's mode of its own parameters at every theta (Levenberg-Marquardt from
-        ``u``): (u, Q (K, p), H (K, p, own, own))."""
-        lam = np.full(u.shape[:2], 1e-3)
-        Q, H, g = self._at(thetas, u, mu, D)
-        eye = np.eye(u.shape[2])
+        ``u``, a pixel's iterations ending where its step changes its Q by less than MODE_TOL):
+        (u, Q (K, p), H (K, p, own, own))."""
+        K, p, o = u.shape
+        th, mu = np.repeat(thetas, p, axis=0), np.repeat(mu, p, axis=0)
+        pix = np.tile(np.arange(p), K)
+        u = u.reshape(K * p, o).copy()
+        Q, H, g = self._at(th, u, mu, D, pix)
+        lam = np.full(K * p, 1e-3)
+        eye = np.eye(o)
+        on = np.arange(K * p)
         for _ in range(MODE_ITERATIONS):
-            Hd = H + (lam[..., None] * np.einsum("kpii->kpi", H))[..., None] * eye
-            un = np.clip(u - np.linalg.solve(Hd, g[..., None])[..., 0], -U_MAX, U_MAX)
-            Qn, Hn, gn = self._at(thetas, un, mu, D)
-            better = Qn < Q
-            gain = np.where(better, Q - Qn, 0.0)
-            u = np.where(better[..., None], un, u)
-            Q, g = np.where(better, Qn, Q), np.where(better[..., None], gn, g)
-            H = np.where(better[..., None, None], Hn, H)
-            lam = np.where(better, lam / 5.0, lam * 10.0)
-            if gain.max() < MODE_TOL:
+            Hd = H[on] + (lam[on, None] * np.einsum("pii->pi", H[on]))[..., None] * eye
+            un = np.clip(u[on] - np.linalg.solve(Hd, g[on][..., None])[..., 0], -U_MAX, U_MAX)
+            Qn, Hn, gn = self._at(th[on], un, mu[on], D, pix[on])
+            better = Qn < Q[on]
+            done = np.abs(Q[on] - Qn) < MODE_TOL
+            b = on[better]
+            u[b], Q[b], H[b], g[b] = un[better], Qn[better], Hn[better], gn[better]
+            lam[on] = np.where(better, lam[on] / 5.0, lam[on] * 10.0)
+            on = on[~done]
+            if on.size == 0:
                 break
-        return u, Q, H
+        return u.reshape(K, p, o), Q.reshape(K, p), H.reshape(K, p, o, o)
 
     def mean_step(self, u, mu, D, H):
         """The Newton step of the population's mean with the pixels' modes following it (the
@@ -188,7 +185,8 @@ class Integrated:
         pts = np.repeat(X[:, None, :], 2 * S + 1, axis=1)
         for j, c in enumerate(self.si):
             pts[:, 1 + j, c], pts[:, 1 + S + j, c] = up[j], down[j]
-        R = self.residuals(1).rows(pts.reshape(-1, X.shape[1])).reshape(self.p, 2 * S + 1, -1) / np.sqrt(self.s2)
+        res = PixelResiduals(self.setup, self.blk, self.names, np.arange(self.p), self.setup.use_f00, few_nk=True)
+        R = res.rows(pts.reshape(-1, X.shape[1])).reshape(self.p, 2 * S + 1, -1) / np.sqrt(self.s2)
         J = (R[:, 1:1 + S] - R[:, 1 + S:]) / (up - down)[None, :, None]
         return 2.0 * np.einsum("psm,pm->ps", J, R[:, 0])
 
