@@ -75,6 +75,8 @@ class Integrated:
         self.s2 = float(s2)
         self.blk = Block(raw, setup, 1)
         self.p = self.blk.p
+        #: the reference model's residual rows of the pixels
+        self.res = PixelResiduals(setup, self.blk, self.names, np.arange(self.p), setup.use_f00, few_nk=True)
         b = self.bi
         f = np.clip((beta - lo[b]) / (hi[b] - lo[b]), EDGE, 1 - EDGE)
         self.beta = beta
@@ -100,8 +102,7 @@ class Integrated:
         X[:, self.bi] = x
         h = np.sqrt(np.finfo(float).eps) * np.maximum(1.0, np.abs(x))
         h = (x + np.where(x + h > self.hi[self.bi], -h, h)) - x
-        res = PixelResiduals(self.setup, self.blk, self.names, pix, self.setup.use_f00, few_nk=True)
-        R = res.varied(X, self.bi, h) / np.sqrt(self.s2)
+        R = self.res.varied(X, self.bi, h, pix) / np.sqrt(self.s2)
         r = R[:, 0]
         Ju = (R[:, 1:] - r[:, None]) * (dx / h)[:, :, None]
         pr = (u - mu) / np.sqrt(D)
@@ -185,8 +186,7 @@ class Integrated:
         pts = np.repeat(X[:, None, :], 2 * S + 1, axis=1)
         for j, c in enumerate(self.si):
             pts[:, 1 + j, c], pts[:, 1 + S + j, c] = up[j], down[j]
-        res = PixelResiduals(self.setup, self.blk, self.names, np.arange(self.p), self.setup.use_f00, few_nk=True)
-        R = res.rows(pts.reshape(-1, X.shape[1])).reshape(self.p, 2 * S + 1, -1) / np.sqrt(self.s2)
+        R = self.res.rows(pts.reshape(-1, X.shape[1])).reshape(self.p, 2 * S + 1, -1) / np.sqrt(self.s2)
         J = (R[:, 1:1 + S] - R[:, 1 + S:]) / (up - down)[None, :, None]
         return 2.0 * np.einsum("psm,pm->ps", J, R[:, 0])
 

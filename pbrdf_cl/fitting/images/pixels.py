@@ -279,6 +279,7 @@ class PixelResiduals:
         #: the rows share a few values of (n, k) (a label's pixels and their finite differences):
         #: the Fresnel terms are computed once per value where the geometry is shared
         self.few_nk = few_nk
+        self._geometry = None  # of pixels that share it: _shared_geometry's
 
     def rows(self, X):
         rep = X.shape[0] // self.pix.size
@@ -289,33 +290,48 @@ class PixelResiduals:
             aop = blk.spec.aop if blk.shared else blk.spec.aop[pix]
             r = reference.channel_residual(blk.channel_model(pix).rows(p), blk.obs[pix], aop) * np.sqrt(self.w[pix])
             return np.where(np.isfinite(r), r, 1e150)
-        g = reference.geometry(*[a[None, :] if blk.shared else a[pix] for a in blk.angles])
+        g = self._shared_geometry() if blk.shared else reference.geometry(*[a[pix] for a in blk.angles])
         return self._residuals(*[self._part(part, p, g) for part in DEPENDS], p["kd"], pix)
 
-    def varied(self, X, cols, h):
-        """The rows at the points ``X`` (B, D), one a pixel of ``pix``, and at each moved along
-        one coordinate, column ``cols[j]`` by ``h[:, j]`` (forward differences): (B, 1 + len(cols),
-        rows' width), the numbers :meth:`rows` gives of the stacked points.  Where the pixels share
-        their geometry and the DOP (and intensities) are fitted, each part of the model
-        (:data:`DEPENDS`) is computed again only for the moves of the parameters it depends on."""
+    def varied(self, X, cols, h, pix=None):
+        """The rows at the points ``X`` (B, D), one a pixel of ``pix`` (default: this object's),
+        and at each moved along one coordinate, column ``cols[j]`` by ``h[:, j]`` (forward
+        differences): (B, 1 + len(cols), rows' width), the numbers :meth:`rows` gives of the
+        stacked points.  Where the pixels share their geometry and the DOP (and intensities) are
+        fitted, each part of the model (:data:`DEPENDS`) is computed again only for the moves of
+        the parameters it depends on."""
         B, D = X.shape
+        pix = self.pix if pix is None else pix
         blk = self.blk
-        if blk.spec is not None or not blk.shared or B != self.pix.size:
+        if blk.spec is not None or not blk.shared or B != pix.size:
             pts = np.repeat(X[:, None, :], len(cols) + 1, axis=1)
             for j, c in enumerate(cols):
                 pts[:, j + 1, c] += h[:, j]
-            return self.rows(pts.reshape(-1, D)).reshape(B, len(cols) + 1, -1)
-        g = reference.geometry(*[a[None, :] for a in blk.angles])
+            return PixelResiduals(self.setup, blk, self.names, pix, self.intensity, self.w, self.few_nk).rows(
+                pts.reshape(-1, D)).reshape(B, len(cols) + 1, -1)
+        g = self._shared_geometry()
         p = self._params(X)
         base = {part: self._part(part, p, g) for part in DEPENDS}
-        out = [self._residuals(*base.values(), p["kd"], self.pix)]
+        out = [self._residuals(*base.values(), p["kd"], pix)]
         for j, c in enumerate(cols):
             Xj = X.copy()
             Xj[:, c] += h[:, j]
             pj = self._params(Xj)
             parts = [self._part(part, pj, g) if self.names[c] in deps else base[part] for part, deps in DEPENDS.items()]
-            out.append(self._residuals(*parts, pj["kd"], self.pix))
+            out.append(self._residuals(*parts, pj["kd"], pix))
         return np.stack(out, axis=1)
+
+    def _shared_geometry(self):
+        """The geometry the pixels share ((1, M) fields) and each beam's distinct angles (made
+        once)."""
+        if self._geometry is None:
+            g = reference.geometry(*[a[None, :] for a in self.blk.angles])
+            beams = []
+            for ct, st in ((g.cti, g.sti), (g.ctr, g.str)):
+                u, inv = np.unique(np.stack([np.ravel(ct), np.ravel(st)]), axis=1, return_inverse=True)
+                beams.append((u[0][None], u[1][None], inv.ravel()))
+            self._geometry = (g, beams)
+        return self._geometry[0]
 
     def _params(self, X):
         """The model's parameters (each (B, 1), or the setup's fixed value) at the points X."""
@@ -343,11 +359,9 @@ class PixelResiduals:
         variant = reference.SHADOWING[self.setup.shadowing]
         if not self.blk.shared:
             return reference.shadowing_factor(g, sigma, variant)
-        beams = []
-        for ct, st in ((g.cti, g.sti), (g.ctr, g.str)):
-            u, inv = np.unique(np.stack([np.ravel(ct), np.ravel(st)]), axis=1, return_inverse=True)
-            beams.append(reference.shadow_S(u[0][None], u[1][None], sigma, variant)[:, inv.ravel()])
-        return reference.shadowing_of(*beams)
+        self._shared_geometry()
+        return reference.shadowing_of(*[reference.shadow_S(ct, st, sigma, variant)[:, inv]
+                                        for ct, st, inv in self._geometry[1]])
 
     def _residuals(self, f, log_k, minnaert, kd, pix):
         """The weighted residual rows of the pixels ``pix`` from the model's parts and kd."""
