@@ -83,6 +83,43 @@ def test_label_intervals_cover_the_truth_over_seeds(dev):
     assert sum(covered) >= 13, f"label intervals cover the truth {sum(covered)} of 16 times"
 
 
+def test_large_label_intervals_cover_the_truth(dev):
+    """Labels of 512 pixels (32x32, DOP noise 0.01; seeds 80, 83, 86, 87, the first from 80 on
+    whose noisy DOP stays non-negative, measured once): the intervals, no narrower than those of
+    ``label_adjust.PRECISION_PIXELS`` pixels, cover the truth at least 14 of 16 times (16 when
+    written; their own intervals, half as wide, 12), each still at least 3 times narrower than the
+    median per-pixel interval."""
+    covered = []
+    for seed in (80, 83, 86, 87):
+        data, lab = two_materials(32, 32, 0.01, seed=seed)
+        res = pbrdf_cl.fit_batch(data, labels=lab, engine=dev)
+        plain = pbrdf_cl.fit_batch(data, engine=dev)
+        for j, L in enumerate((1, 2)):
+            for i, name in enumerate(("n", "k")):
+                lo, hi = res[f"label_{name}_ci95"].values[j]
+                covered.append(lo <= TRUTH[L][i] <= hi)
+                per_pixel = np.nanmedian(plain[f"{name}_ci95"].diff("bound").values[lab == L])
+                assert 3 * (hi - lo) <= per_pixel, (seed, L, name, hi - lo, per_pixel)
+    assert sum(covered) >= 14, f"label intervals cover the truth {sum(covered)} of 16 times"
+
+
+def test_a_large_label_claims_the_precision_of_precision_pixels(dev, monkeypatch):
+    """A corrected label of P > PRECISION_PIXELS pixels reports the covariance of PRECISION_PIXELS
+    of them: its standard errors sqrt(P / PRECISION_PIXELS) times its own, the values the same."""
+    from pbrdf_cl.fitting.images import label_adjust as la
+
+    data, lab = two_materials(16, 16, 0.006, seed=3)  # 128 pixels a label
+    floored = LabelJob(data, labels=lab).prepare(dev)
+    monkeypatch.setattr(la, "PRECISION_PIXELS", 32)
+    fewer = LabelJob(data, labels=lab).prepare(dev)
+    monkeypatch.setattr(la, "PRECISION_PIXELS", 10 ** 9)
+    own = LabelJob(data, labels=lab).prepare(dev)
+    np.testing.assert_array_equal(floored.theta, own.theta)
+    np.testing.assert_array_equal(fewer.theta, own.theta)
+    np.testing.assert_array_equal(floored.stderr, own.stderr)  # 128 pixels: no more than that
+    np.testing.assert_allclose(fewer.stderr, 2.0 * own.stderr, rtol=1e-12)
+
+
 def test_the_bootstrap_inverted_as_a_test_is_opt_in_and_reproducible(dev):
     """``LabelJob.bias_replicates`` (off by default: docs/joint_images.md) moves each label's values
     by the correction it reports (``bias``) from those of the label stage without it (and without
@@ -179,6 +216,8 @@ def test_the_integrated_likelihood_on_a_subsample_leaves_its_noise_out(dev, monk
     from pbrdf_cl.fitting.images import label_adjust as la
 
     data, lab = two_materials(24, 24, 0.006, seed=1)
+    monkeypatch.setattr(la, "PRECISION_PIXELS", 10 ** 9)  # the intervals' own (no floor)
+    monkeypatch.setattr(la, "PIXELS", 512)
     full = LabelJob(data, labels=lab).prepare(dev)  # 288 pixels a label: all of them
     monkeypatch.setattr(la, "PIXELS", 64)
     sub = LabelJob(data, labels=lab).prepare(dev)

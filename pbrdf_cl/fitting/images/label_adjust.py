@@ -25,6 +25,8 @@ model's residual rows (:class:`~pbrdf_cl.fitting.images.pixels.PixelResiduals`) 
 most PIXELS of the label's pixels, evenly spaced and gathered in one more pass over the stack: on
 a larger label the correction is that subsample's, its sampling noise taken out by the profile's
 gradient there and its remaining noise added to the interval (:func:`integrated_correction`).
+What bias G leaves does not shrink with the label's pixels while the profile's standard error
+does: a label of more than PRECISION_PIXELS pixels reports the covariance of that many of them.
 """
 from __future__ import annotations
 
@@ -56,7 +58,12 @@ NEWTON_ROUNDS = 2
 MAX_STEP = 3.0
 POPULATION_ROUNDS = 2
 #: Pixels of each label G is evaluated on (all of a smaller label; evenly spaced).
-PIXELS = 512
+PIXELS = 128
+#: The most pixels whose precision a corrected label's interval claims: a larger label's
+#: covariance is that of this many of its pixels (its own times pixels / PRECISION_PIXELS).  What
+#: bias G leaves is about the same whatever the label's size while its standard error shrinks
+#: (docs/joint_images.md), so a larger label's own interval would not hold it.
+PRECISION_PIXELS = 128
 
 
 class Integrated:
@@ -164,13 +171,13 @@ class Integrated:
         self.u, self.mu, self.D, _, _ = self.population(theta[None], self.u, self.mu, self.D, rounds, True)
 
     def terms(self, thetas, rounds=0):
-        """Each pixel's term Q_p + log det H_p + log det D / p of G at every theta of ``thetas``
+        """Each pixel's term Q_p + log det H_p + log det D of G at every theta of ``thetas``
         (K, S): (K, p), the population's mean refitted by ``rounds`` of :meth:`population` from
         the stored one (which is kept)."""
         K = thetas.shape[0]
         u, mu = np.repeat(self.u, K, axis=0), np.repeat(self.mu, K, axis=0)
         _, _, D, Q, H = self.population(thetas, u, mu, self.D, rounds, False)
-        return Q + np.linalg.slogdet(H)[1] + np.log(D).sum() / self.p
+        return Q + np.linalg.slogdet(H)[1] + np.log(D).sum()
 
     def profile_gradient(self, theta):
         """The gradient of the subsample's profile F = sum_p min_beta chi2_p / s2 at the label's
@@ -212,9 +219,10 @@ def integrated_correction(st, theta, sums, ok, pixels=None):
 
     Returns (theta_c (L, S), cov), unchanged where the label has too few pixels, no finite
     standard error or G no positive curvature: cov (L, S, S) the profile's covariance (the label
-    stage's intervals; plus the correction's noise on a subsample) in coordinates scaled to the
-    bounds, as ``st.covariance`` gives it.  (G's own curvature, 2 H^-1, and the sandwich of the
-    pixels' gradients both covered less than the profile's: docs/joint_images.md.)"""
+    stage's intervals; plus the correction's noise on a subsample; times pixels / PRECISION_PIXELS
+    on a label of more pixels) in coordinates scaled to the bounds, as ``st.covariance`` gives
+    it.  (G's own curvature, 2 H^-1, and the sandwich of the pixels' gradients both covered less
+    than the profile's: docs/joint_images.md.)"""
     setup, names = st.job.setup, st.job.names
     s, span = st.si, st.span[st.si]
     s2 = st.scale(sums)
@@ -251,6 +259,7 @@ def integrated_correction(st, theta, sums, ok, pixels=None):
         out[L] = t * span
         if thin:
             cov[L] = cov[L] + noise
+        cov[L] = cov[L] * max(1.0, total / PRECISION_PIXELS)
     return out, cov
 
 
