@@ -258,8 +258,8 @@ class UnsharedLabelJob(BatchJob):
 LABEL_INTERVAL_NOTE = ("the label values are corrected for the bias that the pixels' many own parameters give the "
                        "shared ones (their integrated likelihood); what bias remains does not shrink with the "
                        "label's pixels, so a label of more than 128 pixels has the interval of 128 of them; the "
-                       "intervals covered the truth 47 of 48 times on the two-material bench (128 pixels a label) "
-                       "and 96 of 104 on stacks of 72 to 1152 pixels a label (docs/joint_images.md)")
+                       "intervals covered the truth 48 of 48 times on the two-material bench (128 pixels a label) "
+                       "and 216 of 228 on stacks of 72 to 2048 pixels a label (docs/joint_images.md)")
 #: ... and with ``LabelJob.integrated`` off: the profile's values.
 PROFILE_INTERVAL_NOTE = ("the label intervals leave out the bias that the pixels' many own parameters give the shared "
                          "ones: on the two-material bench they covered the truth 16 of 16 times at DOP noise 0.003, "
