@@ -69,9 +69,16 @@ def test_label_intervals_cover_the_truth_over_seeds(dev):
     16 cover the truth (a correct 95% interval does with probability 0.99).  The profile's values
     alone (``LabelJob.integrated`` off) cover 12 of 16 (the incidental parameters' bias of k);
     the default integrated likelihood's 15 (docs/joint_images.md)."""
+    covered = label_coverage(dev, 12, 0.006, (21, 22, 23, 24))
+    assert sum(covered) >= 13, f"label intervals cover the truth {sum(covered)} of 16 times"
+
+
+def label_coverage(dev, size, std, seeds):
+    """Whether each label interval of n and k of :func:`two_materials` stacks covers the truth;
+    each asserted at least 3 times narrower than the median per-pixel interval of the plain fit."""
     covered = []
-    for seed in (21, 22, 23, 24):
-        data, lab = two_materials(12, 12, 0.006, seed=seed)
+    for seed in seeds:
+        data, lab = two_materials(size, size, std, seed=seed)
         res = pbrdf_cl.fit_batch(data, labels=lab, engine=dev)
         plain = pbrdf_cl.fit_batch(data, engine=dev)
         for j, L in enumerate((1, 2)):
@@ -80,7 +87,7 @@ def test_label_intervals_cover_the_truth_over_seeds(dev):
                 covered.append(lo <= TRUTH[L][i] <= hi)
                 per_pixel = np.nanmedian(plain[f"{name}_ci95"].diff("bound").values[lab == L])
                 assert 3 * (hi - lo) <= per_pixel, (seed, L, name, hi - lo, per_pixel)
-    assert sum(covered) >= 13, f"label intervals cover the truth {sum(covered)} of 16 times"
+    return covered
 
 
 def test_large_label_intervals_cover_the_truth(dev):
@@ -89,17 +96,7 @@ def test_large_label_intervals_cover_the_truth(dev):
     ``label_adjust.PRECISION_PIXELS`` pixels, cover the truth at least 14 of 16 times (16 when
     written; their own intervals, half as wide, 12), each still at least 3 times narrower than the
     median per-pixel interval."""
-    covered = []
-    for seed in (80, 83, 86, 87):
-        data, lab = two_materials(32, 32, 0.01, seed=seed)
-        res = pbrdf_cl.fit_batch(data, labels=lab, engine=dev)
-        plain = pbrdf_cl.fit_batch(data, engine=dev)
-        for j, L in enumerate((1, 2)):
-            for i, name in enumerate(("n", "k")):
-                lo, hi = res[f"label_{name}_ci95"].values[j]
-                covered.append(lo <= TRUTH[L][i] <= hi)
-                per_pixel = np.nanmedian(plain[f"{name}_ci95"].diff("bound").values[lab == L])
-                assert 3 * (hi - lo) <= per_pixel, (seed, L, name, hi - lo, per_pixel)
+    covered = label_coverage(dev, 32, 0.01, (80, 83, 86, 87))
     assert sum(covered) >= 14, f"label intervals cover the truth {sum(covered)} of 16 times"
 
 
