@@ -337,6 +337,27 @@ def test_store_round_trip_and_resume(dev, tmp_path):
         pbrdf_cl.fit_batch(data, labels=other, engine=dev, store=out)
 
 
+def test_a_store_refuses_a_label_job_before_its_label_stage(dev, tmp_path, monkeypatch):
+    """What the store refuses whatever the label stage finds (other settings, another run's lock)
+    is refused before the label stage runs; the same job then resumes."""
+    from pbrdf_cl.fitting.images import labels as label_module
+    from pbrdf_cl.store import lock
+
+    data, lab = two_materials(6, 4, 0.003, seed=5)
+    out = tmp_path / "labels.zarr"
+    pbrdf_cl.fit_batch(data, labels=lab, engine=dev, store=out)
+    ran, stage = [], label_module.run_label_stage
+    monkeypatch.setattr(label_module, "run_label_stage", lambda *a, **k: ran.append(1) or stage(*a, **k))
+    with pytest.raises(pbrdf_cl.StoreError, match="other settings.*bounds"):
+        pbrdf_cl.fit_batch(data, labels=lab, engine=dev, store=out, bounds={"n": (1.2, 4.0)})
+    with lock.holding(str(out)):
+        with pytest.raises(pbrdf_cl.StoreError, match="being written by another run"):
+            pbrdf_cl.fit_batch(data, labels=lab, engine=dev, store=out)
+    assert not ran
+    again = pbrdf_cl.fit_batch(data, labels=lab, engine=dev, store=out)
+    assert ran and again.attrs["blocks_computed"] == 0
+
+
 def test_labels_by_name_of_a_variable(dev):
     data, lab = two_materials(6, 4, 0.003, seed=5)
     a = pbrdf_cl.fit_batch({**data, "material": lab}, labels="material", shared="n,k", engine=dev)

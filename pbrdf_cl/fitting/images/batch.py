@@ -177,7 +177,9 @@ def fit_batch(data, model="six-param", bounds=None, fixed=None, shadowing="paper
             return image_store.write_store(job, store, progress=progress, engine=engine, backend=backend,
                                            device=device, workers=workers, scheduler=scheduler, client=client,
                                            allow_large=allow_large)
-        # a label job: its label stage's passes and the per-pixel pass where the blocks go, on one cluster
+        # a label job: its label stage's passes and the per-pixel pass where the blocks go, on one cluster;
+        # what the store refuses whatever the label stage finds, refused before it
+        image_store.check_before_stage(job, store, allow_large)
         with cluster.connect(workers, scheduler, client) as client:
             job.prepare(image_store.local_engine(engine, backend, device), progress, client=client, device=device,
                         backend=backend)

@@ -320,14 +320,7 @@ def _open_store(job, blocks, block_rows, the_settings, memory_budget, store):
         what = "a pbrdf-cl sweep store" if "sweep_spec_sha256" in attrs else "not a pbrdf-cl fit store"
         raise StoreError(f"{name} exists and is {what}; choose another --out or delete it")
     if attrs["batch_settings_sha256"] != digest:
-        diffs = zarr_store.stored_differences(attrs, "batch_settings", the_settings)
-        diffs = [re.sub(r'"([0-9a-f]{12})[0-9a-f]{52}"', r"\1...", d) for d in diffs]  # SHA-256s shortened
-        hint = ""
-        if any(d.startswith("block_rows") for d in diffs):
-            hint = (f" (the blocks follow the memory budget: the store's was "
-                    f"{sizes.human(int(attrs.get('batch_memory_budget', 0)))})")
-        raise StoreError(f"{name} was started with other settings ({'; '.join(diffs) or 'sha256 differs'}){hint}; "
-                         f"choose another --out, or delete {name} to start over")
+        _refuse_other_settings(name, attrs, zarr_store.stored_differences(attrs, "batch_settings", the_settings))
     _check_kernels(name, attrs)
     verify.refuse_unidentified(name, attrs, "batch_settings_sha256", "a pbrdf-cl fit store")
     fixed = verify.repair_skeleton(
@@ -336,6 +329,69 @@ def _open_store(job, blocks, block_rows, the_settings, memory_budget, store):
         warnings.warn(StoreWarning(f"{name}: rewrote from the settings what was missing or altered: "
                                    f"{verify.first(fixed)}"), stacklevel=3)
     return name, True
+
+
+def _refuse_other_settings(name, attrs, diffs):
+    """The :class:`StoreError` of a store started with other settings (``diffs``, the
+    differences :func:`pbrdf_cl.store.zarr.differences` lists)."""
+    diffs = [re.sub(r'"([0-9a-f]{12})[0-9a-f]{52}"', r"\1...", d) for d in diffs]  # SHA-256s shortened
+    hint = ""
+    if any(d.startswith("block_rows") for d in diffs):
+        hint = (f" (the blocks follow the memory budget: the store's was "
+                f"{sizes.human(int(attrs.get('batch_memory_budget', 0)))})")
+    raise StoreError(f"{name} was started with other settings ({'; '.join(diffs) or 'sha256 differs'}){hint}; "
+                     f"choose another --out, or delete {name} to start over")
+
+
+def check_before_stage(job, store, allow_large=False):
+    """What :func:`write_store` refuses that a job's preparing stage (a
+    :class:`~pbrdf_cl.fitting.images.labels.LabelJob`'s label stage, which can take long) does not
+    change, checked before it runs: the free disk, another run holding the store's lock, a store
+    started with other settings (all but the label stage's values, which :func:`write_store`
+    checks after it).
+
+    Parameters
+    ----------
+    job : pbrdf_cl.fitting.images.job.BatchJob
+        The checked job, not yet prepared.
+    store : str or path
+        The Zarr store :func:`write_store` will write.
+    allow_large : bool, default False
+        As :func:`write_store`'s.
+
+    Returns
+    -------
+    None
+        Nothing to refuse (yet).
+
+    Raises
+    ------
+    StoreError
+        As :func:`write_store`.
+
+    Examples
+    --------
+    >>> check_before_stage(LabelJob(stack, labels=L), "fit.zarr")  # doctest: +SKIP
+    """
+    from ...store import lock
+    blocks = job.blocks()
+    runner.check_free_disk(store, store_bytes(job), f"{job.source.n_pixels} pixels, uncompressed", allow_large,
+                           "fit-image")
+    name = zarr_store.store_name(store)
+    with lock.holding(name, zarr_store.is_local(store)):
+        pass  # another run holds it: refused here
+    attrs = zarr_store.read_root_attrs(name)
+    if not attrs or "batch_settings_sha256" not in attrs:
+        return  # none yet, or not a fit store: write_store's
+    the_settings = settings(job, blocks[0][1] - blocks[0][0])
+    try:
+        stored = json.loads(attrs.get("batch_settings", "{}"))
+    except ValueError:
+        return  # damaged: write_store's
+    the_settings["label_values"] = stored.get("label_values")  # the stage's: checked after it
+    diffs = zarr_store.differences(stored, the_settings)
+    if diffs:
+        _refuse_other_settings(name, attrs, diffs)
 
 
 def _check_kernels(name, attrs):
