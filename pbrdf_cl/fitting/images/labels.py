@@ -233,7 +233,6 @@ class LabelJob(BatchJob):
                 "label_values": None if res is None else np.asarray(res.theta, float).round(12).tolist()}
 
 
-#: What the labels' intervals leave out (the result's ``label_interval_note``; the CLI prints it).
 class UnsharedLabelJob(BatchJob):
     """The job of ``fit_batch(stack, labels=L, shared=())``: nothing is shared, so every pixel is
     fitted on its own, as without labels, but label 0 still means "not fitted" (it is masked) and a
@@ -255,6 +254,7 @@ class UnsharedLabelJob(BatchJob):
         return {"shared": [], "labels_sha256": hashlib.sha256(self.labels.tobytes()).hexdigest()}
 
 
+#: What the labels' intervals leave out (the result's ``label_interval_note``; the CLI prints it).
 LABEL_INTERVAL_NOTE = ("the label values are corrected for the bias that the pixels' many own parameters give the "
                        "shared ones (their integrated likelihood); what bias remains does not shrink with the "
                        "label's pixels, so a label of more than 128 pixels has the interval of 128 of them; the "
