@@ -34,6 +34,7 @@ def stack(size, std, seed):
     own = {a: rng.uniform(lo, hi, (size, size, 1)) for a, lo, hi in
            (("sigma", 0.3, 0.6), ("kd", 0.1, 0.3), ("c", -0.5, -0.1))}
     dop = pbrdf_cl.dop(TI, TR, n=n, k=k, **own, backend="numpy") + rng.normal(0, std, (size, size, TI.size))
+    dop = np.abs(dop)  # a measured DOP is a magnitude: noise that would take it below 0 folds back
     return dict(dop=dop, theta_i=TI, theta_r=TR, dop_std=np.full(dop.shape, std)), lab
 
 

@@ -28,7 +28,7 @@ def dev(engine):
 def two_materials(H, W, std, seed, unlabelled=0):
     """A stack of two materials (left and right halves; the first ``unlabelled`` pixels of row 0
     label 0), per-pixel sigma, kd, c, DOP from the numpy reference plus Gaussian noise ``std``
-    given as dop_std; returns (data, labels)."""
+    given as dop_std, folded at 0 (a measured DOP is a magnitude); returns (data, labels)."""
     rng = np.random.default_rng(seed)
     lab = np.ones((H, W), np.int64)
     lab[:, W // 2:] = 2
@@ -37,7 +37,7 @@ def two_materials(H, W, std, seed, unlabelled=0):
     own = dict(sigma=rng.uniform(0.3, 0.6, (H, W)), kd=rng.uniform(0.1, 0.3, (H, W)), c=rng.uniform(-0.5, -0.1, (H, W)))
     dop = pbrdf_cl.dop(TI, TR, n=n[..., None], k=k[..., None], **{a: v[..., None] for a, v in own.items()},
                        backend="numpy")
-    dop = dop + rng.normal(0, std, dop.shape)
+    dop = np.abs(dop + rng.normal(0, std, dop.shape))
     lab[0, :unlabelled] = 0
     return dict(dop=dop, theta_i=TI, theta_r=TR, dop_std=np.full(dop.shape, std)), lab
 
