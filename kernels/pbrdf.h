@@ -159,7 +159,8 @@ inline real pb_shadow_S(real ct, real st, real sigma, int variant)
     real den = a * a;
     if (variant == PB_SHADOW_SMITH)
         den = a;
-    real S = pb_exp(-a * a) / ((real)2 * PB_SQRT_PI * den) - (real)0.5 * pb_erfc(a);
+    real e = pb_exp_normal(-a * a);  /* a <= 9: exp(-81) is normal in float32 */
+    real S = e / ((real)2 * PB_SQRT_PI * den) - (real)0.5 * pb_erfc_e(a, e);
     return a < PB_SHADOW_ARG_MAX ? S : (real)0;
 }
 
@@ -197,7 +198,7 @@ inline real pb_diffuse2_over_K(pb_geom g, real sigma, real ks, real G, real kd, 
     real u2 = g.tan2a > (real)0 ? g.tan2a * inv_s * inv_s : (real)0;  /* tan^2 a / sigma^2 */
     real inv_cos2a = (real)1 + g.tan2a;
     real p = g.cti * g.ctr;
-    real e = pb_exp(c * pb_log(p) + (real)0.5 * u2);
+    real e = pb_exp(c * pb_log_normal(p) + (real)0.5 * u2);  /* p >= cos^2(90 - 1 ulp): normal */
     real r = (real)16 * kd * p * sigma * sigma / (ks * G * inv_cos2a * inv_cos2a);
     return kd == (real)0 ? (real)0 : (e < (real)INFINITY ? r * e : e);
 }
