@@ -25,6 +25,9 @@
  *   pb_hypot       f32 1.1e-7 [1.2e-7]  |x|, |y| in [1e-18, 1e18] (sqrt(x^2 + y^2): no rescaling)
  *                  f64 2.2e-16 [3e-16]  |x|, |y| in [1e-150, 1e150]
  *   pb_sqrt: correctly rounded, both precisions
+ *   pb_exp_normal, pb_log_normal: pb_exp and pb_log bit for bit where their results are normal
+ *                  (exp: x in [-87, 88] in float32, [-708, 709] in float64; log: normal x > 0),
+ *                  without the clamps and special cases (tests/test_fastmath.py checks the bits)
  * The float32 polynomial coefficients are weighted minimax fits (Lawson) in float64, rounded to
  * float32; float64 uses Taylor series (exp, sincos), FDLIBM's log polynomial and a Chebyshev
  * series for erfc.
@@ -86,33 +89,47 @@ inline real pb_sqrt(real x) { return sqrt(x); }
 /* float64: exp(x): x = n ln2 + r, |r| <= ln2/2 (Cody-Waite: ln2_hi has 21 trailing zero bits, so
  * n ln2_hi is exact), exp(r) = 1 + r + r^2 P(r) with P the Taylor series to r^11 (truncation
  * below 1e-17 relative), times 2^n in two factors (normal for every n in range). */
-inline real pb_exp(real x)
+inline real pb_exp_reduced(real x, pb_bits *pn)
 {
-    x = x < -746.0 ? (real)-746.0 : x;  /* exp(-746) < 2^-1075: rounds to 0 */
-    x = x > 710.0 ? (real)710.0 : x;    /* exp(710) > DBL_MAX: +inf */
     const real t = x * 1.4426950408889634 + PB_ROUND_MAGIC;  /* n = rint(x / ln2) in t's low bits */
     const real nf = t - PB_ROUND_MAGIC;
     const pb_bits n = PB_AS_BITS(t) - PB_AS_BITS(PB_ROUND_MAGIC);
+    *pn = n;
     const real r = (x - nf * 6.93147180369123816490e-01) - nf * 1.90821492927058770002e-10;
     const real P = 0.5 + r * (1.6666666666666666e-01 + r * (4.1666666666666664e-02 + r * (8.3333333333333332e-03
                    + r * (1.3888888888888889e-03 + r * (1.9841269841269841e-04 + r * (2.4801587301587302e-05
                    + r * (2.7557319223985893e-06 + r * (2.7557319223985888e-07 + r * (2.5052108385441720e-08
                    + r * (2.0876756987868100e-09 + r * 1.6059043836821613e-10))))))))));
-    const real p = (real)1 + (r + r * r * P);
+    return (real)1 + (r + r * r * P);
+}
+
+inline real pb_exp(real x)
+{
+    x = x < -746.0 ? (real)-746.0 : x;  /* exp(-746) < 2^-1075: rounds to 0 */
+    x = x > 710.0 ? (real)710.0 : x;    /* exp(710) > DBL_MAX: +inf */
+    pb_bits n;
+    const real p = pb_exp_reduced(x, &n);
     const pb_bits n1 = n >> 1;  /* n in [-1077, 1025]: both halves give normal powers of 2 */
     return p * PB_AS_REAL((n1 + 1023) << 52) * PB_AS_REAL((n - n1 + 1023) << 52);
+}
+
+/* pb_exp(x) for x in [-708, 709] (normal results: 2^n is one normal power of 2), bit for bit,
+ * without the clamps and the second factor. */
+inline real pb_exp_normal(real x)
+{
+    pb_bits n;
+    const real p = pb_exp_reduced(x, &n);
+    return p * PB_AS_REAL((n + 1023) << 52);
 }
 
 /* float64: log(x): x = 2^e m with m in [sqrt(1/2), sqrt(2)), f = m - 1, s = f / (2 + f),
  * log(1 + f) = f - f^2/2 + s (f^2/2 + R(s^2)) with R the minimax polynomial of FDLIBM's e_log.c
  * (error below 1 ulp), plus e ln2 (Cody-Waite split).  Denormals are scaled by 2^54 first;
  * log(0) = -inf, log(x < 0) = NaN, log(+inf) = +inf, NaN stays NaN. */
-inline real pb_log(real x)
+inline real pb_log_scaled(real xs, pb_bits e_sub)  /* log(xs 2^-e_sub), xs normal, > 0, finite */
 {
-    const pb_bits sub = x < 0x1p-1022;
-    const real xs = sub ? x * (real)0x1p54 : x;
     const pb_bits ix = PB_AS_BITS(xs) - (pb_bits)0x3fe6a09e667f3bcdL;  /* bits of sqrt(1/2) */
-    const pb_bits e = (ix >> 52) - (sub ? (pb_bits)54 : (pb_bits)0);
+    const pb_bits e = (ix >> 52) - e_sub;
     const real f = PB_AS_REAL((ix & (pb_bits)0x000fffffffffffffL) + (pb_bits)0x3fe6a09e667f3bcdL) - (real)1;
     const real ef = PB_AS_REAL(e + PB_AS_BITS(PB_ROUND_MAGIC)) - PB_ROUND_MAGIC;  /* (real)e */
     const real s = f / ((real)2 + f);
@@ -121,7 +138,14 @@ inline real pb_log(real x)
                    + w * 1.479819860511658591e-01)))
                    + w * (3.999999999940941908e-01 + w * (2.222219843214978396e-01 + w * 1.531383769920937332e-01));
     const real hfsq = (real)0.5 * f * f;
-    real r = ef * 6.93147180369123816490e-01 - ((hfsq - (s * (hfsq + R) + ef * 1.90821492927058770002e-10)) - f);
+    return ef * 6.93147180369123816490e-01 - ((hfsq - (s * (hfsq + R) + ef * 1.90821492927058770002e-10)) - f);
+}
+
+inline real pb_log(real x)
+{
+    const pb_bits sub = x < 0x1p-1022;
+    const real xs = sub ? x * (real)0x1p54 : x;
+    real r = pb_log_scaled(xs, sub ? (pb_bits)54 : (pb_bits)0);
     r = x < (real)INFINITY ? r : x;
     return x > (real)0 ? r : x == (real)0 ? (real)-INFINITY : (real)NAN;
 }
@@ -185,35 +209,56 @@ inline real pb_sincos_pi4(real y, real *c)
 /* exp(x): x = n ln2 + r, |r| <= ln2/2 (Cody-Waite, ln2 = 0.693359375 - 2.12194440e-4 with n ln2_hi
  * exact), exp(r) = 1 + r + r^2 P(r), times 2^n in two factors (normal for every n in range, so
  * denormal results round once; the clamps make exp(-inf) = 0 and exp(+inf) = +inf). */
+inline real pb_exp_reduced(real x, pb_bits *pn)
+{
+    const real t = x * 1.44269504f + PB_ROUND_MAGIC;  /* n = rint(x / ln2) in t's low bits */
+    const real nf = t - PB_ROUND_MAGIC;
+    const pb_bits n = PB_AS_BITS(t) - PB_AS_BITS(PB_ROUND_MAGIC);
+    *pn = n;
+    const real r = (x - nf * 0.693359375f) - nf * -2.12194440e-4f;
+    return (real)1 + (r + r * r * (0.49999994f + r * (0.16666521f + r * (0.04166839f
+           + r * (0.00836871f + r * 0.0013814613f)))));
+}
+
 inline real pb_exp(real x)
 {
     x = x < -104.0f ? (real)-104.0f : x;  /* exp(-104) < 2^-150: rounds to 0 */
     x = x > 89.0f ? (real)89.0f : x;      /* exp(89) > FLT_MAX: +inf */
-    const real t = x * 1.44269504f + PB_ROUND_MAGIC;  /* n = rint(x / ln2) in t's low bits */
-    const real nf = t - PB_ROUND_MAGIC;
-    const pb_bits n = PB_AS_BITS(t) - PB_AS_BITS(PB_ROUND_MAGIC);
-    const real r = (x - nf * 0.693359375f) - nf * -2.12194440e-4f;
-    const real p = (real)1 + (r + r * r * (0.49999994f + r * (0.16666521f + r * (0.04166839f
-                   + r * (0.00836871f + r * 0.0013814613f)))));
+    pb_bits n;
+    const real p = pb_exp_reduced(x, &n);
     const pb_bits n1 = n >> 1;  /* n in [-150, 128]: both halves give normal powers of 2 */
     return p * PB_AS_REAL((n1 + 127) << 23) * PB_AS_REAL((n - n1 + 127) << 23);
+}
+
+/* pb_exp(x) for x in [-87, 88] (normal results: 2^n is one normal power of 2), bit for bit,
+ * without the clamps and the second factor. */
+inline real pb_exp_normal(real x)
+{
+    pb_bits n;
+    const real p = pb_exp_reduced(x, &n);
+    return p * PB_AS_REAL((n + 127) << 23);
 }
 
 /* log(x): x = 2^e m with m in [sqrt(1/2), sqrt(2)), f = m - 1, log(1 + f) = f - f^2/2 + f^3 P(f),
  * plus e ln2 (Cody-Waite split).  Denormals are scaled by 2^23 first; log(0) = -inf,
  * log(x < 0) = NaN, log(+inf) = +inf, NaN stays NaN. */
-inline real pb_log(real x)
+inline real pb_log_scaled(real xs, pb_bits e_sub)  /* log(xs 2^-e_sub), xs normal, > 0, finite */
 {
-    const pb_bits sub = x < 0x1p-126f;
-    const real xs = sub ? x * (real)0x1p23f : x;
     const pb_bits ix = PB_AS_BITS(xs) - 0x3f3504f3;      /* bits of sqrt(1/2) */
-    const pb_bits e = (ix >> 23) - (sub ? (pb_bits)23 : (pb_bits)0);
+    const pb_bits e = (ix >> 23) - e_sub;
     const real f = PB_AS_REAL((ix & 0x007fffff) + 0x3f3504f3) - (real)1;
     const real ef = PB_AS_REAL(e + PB_AS_BITS(PB_ROUND_MAGIC)) - PB_ROUND_MAGIC;  /* (real)e */
     const real z = f * f;
     const real y = f * z * (0.3333333f + f * (-0.2500082f + f * (0.20001227f + f * (-0.16623357f
                    + f * (0.14201757f + f * (-0.13160183f + f * (0.12761576f + f * -0.07634497f)))))));
-    real r = ((y + ef * -2.12194440e-4f) - (real)0.5f * z + f) + ef * 0.693359375f;
+    return ((y + ef * -2.12194440e-4f) - (real)0.5f * z + f) + ef * 0.693359375f;
+}
+
+inline real pb_log(real x)
+{
+    const pb_bits sub = x < 0x1p-126f;
+    const real xs = sub ? x * (real)0x1p23f : x;
+    real r = pb_log_scaled(xs, sub ? (pb_bits)23 : (pb_bits)0);
     r = x < (real)INFINITY ? r : x;
     return x > (real)0 ? r : x == (real)0 ? (real)-INFINITY : (real)NAN;
 }
@@ -243,17 +288,27 @@ inline real pb_sincos_pi4(real y, real *c)
 inline real pb_exp(real x) { return exp(x); }
 inline real pb_log(real x) { return log(x); }
 inline real pb_erfc(real x) { return erfc(x); }
+inline real pb_erfc_e(real x, real e) { return erfc(x); }
+inline real pb_exp_normal(real x) { return exp(x); }
+inline real pb_log_normal(real x) { return log(x); }
 inline real pb_hypot(real x, real y) { return hypot(x, y); }
 inline real pb_sincos_pi4(real y, real *c) { return sincos(y, c); }
 
 #endif  /* PB_FAST_MATH */
 
 #ifdef PB_FAST_MATH
+/* pb_log(x) for normal finite x > 0, bit for bit, without the scaling of denormals and the special
+ * cases. */
+inline real pb_log_normal(real x)
+{
+    return pb_log_scaled(x, (pb_bits)0);
+}
+
 /* erfc(x) for x >= 0 (the shadowing function's argument) = exp(-x^2) erfcx(x), with
  * (1 + 2x) erfcx(x) = 1 + P(q), q = (x - 2) / (x + 2) (pb_erfc_series of each precision), and the
- * rounding error t of x^2 corrected: exp(-x^2) = exp(-fl(x^2)) (1 - t).  exp(-x * x) is written
- * as the callers write it, so that the compiler shares it with them. */
-inline real pb_erfc(real x)
+ * rounding error t of x^2 corrected: exp(-x^2) = exp(-fl(x^2)) (1 - t).  pb_erfc_e takes
+ * e = exp(-fl(x^2)) from its caller (pb_shadow_S, which needs it too), pb_erfc computes it. */
+inline real pb_erfc_e(real x, real e_x2)
 {
     const real d = (real)1 + (real)2 * x;
     const real rcp = (real)1 / ((x + (real)2) * d);
@@ -264,9 +319,14 @@ inline real pb_erfc(real x)
     const real xh = PB_AS_REAL(PB_AS_BITS(x) & PB_ERFC_SPLIT);
     const real xl = x - xh;
     const real t = ((xh * xh - s) + (real)2 * xh * xl) + xl * xl;
-    const real e = pb_exp(-x * x) * ex;
+    const real e = e_x2 * ex;
     const real r = e - e * t;
     return x > PB_ERFC_ZERO ? (real)0 : r;
+}
+
+inline real pb_erfc(real x)
+{
+    return pb_erfc_e(x, pb_exp(-x * x));
 }
 
 /* sqrt(x^2 + y^2), no rescaling: |x|, |y| must stay within about 1e-19 .. 1e19 in float32,

@@ -159,7 +159,8 @@ inline real pb_shadow_S(real ct, real st, real sigma, int variant)
     real den = a * a;
     if (variant == PB_SHADOW_SMITH)
         den = a;
-    real S = pb_exp(-a * a) / ((real)2 * PB_SQRT_PI * den) - (real)0.5 * pb_erfc(a);
+    real e = pb_exp_normal(-a * a);  /* a <= 9: exp(-81) is normal in float32 */
+    real S = e / ((real)2 * PB_SQRT_PI * den) - (real)0.5 * pb_erfc_e(a, e);
     return a < PB_SHADOW_ARG_MAX ? S : (real)0;
 }
 
@@ -185,19 +186,21 @@ inline real pb_log_specular_scale(pb_geom g, real sigma, real ks, real G)
            - (real)2 * pb_log(sigma) - (real)0.5 * u2;
 }
 
-/* 1/K of eq. 6 without logarithms, = exp(-pb_log_specular_scale(g, sigma, ks, G)):
- * 8 pi sigma^2 cos ti cos tr / (ks G (1 + tan^2 a)^2) exp(tan^2 a / (2 sigma^2)), +inf where the
- * exponential overflows (K underflows: the DOP is then diff / (sum + 2 fd inf), as from log K).  The
- * per-point DOP kernels take it: two logarithms and an exponential fewer than exp(-log K) (~13% of
- * the kernel's time in float32 and float64), and no rounding of a large log K in between. */
-inline real pb_inv_specular_scale(pb_geom g, real sigma, real ks, real G)
+/* 2 fd / K (eq. 6 and 15) in one exponential, = 2 pb_diffuse(g, kd, c) exp(-pb_log_specular_scale(g,
+ * sigma, ks, G)): 16 kd sigma^2 cos ti cos tr / (ks G (1 + tan^2 a)^2) exp(c log(cos ti cos tr)
+ * + tan^2 a / (2 sigma^2)) (the Minnaert factor's exponential and 1/K's in one), 0 where kd = 0,
+ * +inf where the exponential overflows (K underflows: the DOP is then diff / (sum + inf), as from
+ * log K).  The per-point DOP kernels take it (pb_dop_of): two logarithms and two exponentials fewer
+ * than exp(-log K) and the Minnaert factor apart, and no rounding of a large log K in between. */
+inline real pb_diffuse2_over_K(pb_geom g, real sigma, real ks, real G, real kd, real c)
 {
     real inv_s = (real)1 / sigma;
     real u2 = g.tan2a > (real)0 ? g.tan2a * inv_s * inv_s : (real)0;  /* tan^2 a / sigma^2 */
     real inv_cos2a = (real)1 + g.tan2a;
-    real e = pb_exp((real)0.5 * u2);
-    real r = (real)8 * PB_PI * g.cti * g.ctr * sigma * sigma / (ks * G * inv_cos2a * inv_cos2a);
-    return e < (real)INFINITY ? r * e : e;
+    real p = g.cti * g.ctr;
+    real e = pb_exp(c * pb_log_normal(p) + (real)0.5 * u2);  /* p >= cos^2(90 - 1 ulp): normal */
+    real r = (real)16 * kd * p * sigma * sigma / (ks * G * inv_cos2a * inv_cos2a);
+    return kd == (real)0 ? (real)0 : (e < (real)INFINITY ? r * e : e);
 }
 
 /* Eq. 15's Minnaert factor (cos ti cos tr)^c. */
@@ -256,6 +259,12 @@ inline real pb_brdf_combine(real sum, real K, real fd)
 inline real pb_dop_at(pb_fresnel_t f, real inv_K, real fd)
 {
     return pb_dop_combine(f.Rs + f.Rp, f.diff, (real)2 * fd, inv_K);
+}
+
+/* Eq. 17-18 from fd2_K = 2 fd / K (pb_diffuse2_over_K): (Rs - Rp) / (Rs + Rp + 2 fd / K). */
+inline real pb_dop_of(pb_fresnel_t f, real fd2_K)
+{
+    return pb_dop_combine(f.Rs + f.Rp, f.diff, fd2_K, (real)1);
 }
 
 /* Eq. 17-18: DOP for unpolarized incidence, = K (Rs - Rp) / (K (Rs + Rp) + 2 fd). */

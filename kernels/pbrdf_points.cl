@@ -255,7 +255,7 @@ inline real pb_in_rule(__global const PB_SCALAR *x, __constant const uint *r, co
 __kernel void dop_points_vec(__global PB_SCALAR *out, PB_VEC_ARGS)
 {
     PB_VEC_BODY
-    pb_vstoren(PB_IN_DOMAIN ? pb_dop_at(f, pb_inv_specular_scale(g, sigma, v_ks, G), fd) : (real)NAN, i, out);
+    pb_vstoren(PB_IN_DOMAIN ? pb_dop_of(f, pb_diffuse2_over_K(g, sigma, v_ks, G, v_kd, v_c)) : (real)NAN, i, out);
 }
 
 __kernel void brdf_points_vec(__global PB_SCALAR *out, PB_VEC_ARGS)
@@ -269,7 +269,7 @@ __kernel void brdf_points_vec(__global PB_SCALAR *out, PB_VEC_ARGS)
 __kernel void dop_bcast_points_vec(__global PB_SCALAR *out, const int nvec, PB_BCAST_ARGS(PB_SCALAR))
 {
     PB_VEC_BODY_OF(PB_IN_RULE)
-    pb_vstoren(PB_IN_DOMAIN ? pb_dop_at(f, pb_inv_specular_scale(g, sigma, v_ks, G), fd) : (real)NAN, i, out);
+    pb_vstoren(PB_IN_DOMAIN ? pb_dop_of(f, pb_diffuse2_over_K(g, sigma, v_ks, G, v_kd, v_c)) : (real)NAN, i, out);
 }
 
 __kernel void brdf_bcast_points_vec(__global PB_SCALAR *out, const int nvec, PB_BCAST_ARGS(PB_SCALAR))

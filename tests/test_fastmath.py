@@ -12,7 +12,8 @@ from scipy.special import erfc, erfcx
 from pbrdf_cl.device import engine as engine_mod
 from pbrdf_cl.model import reference
 
-FUNCS = {"exp": 0, "log": 1, "erfc": 2, "hypot": 3, "sincos_pi4": 4, "sincosd": 5, "sqrt": 6}
+FUNCS = {"exp": 0, "log": 1, "erfc": 2, "hypot": 3, "sincos_pi4": 4, "sincosd": 5, "sqrt": 6, "exp_normal": 7,
+         "log_normal": 8}
 
 SOURCE = """
 #include "pbrdf.h"
@@ -42,6 +43,10 @@ __kernel void fm(__global const PB_SCALAR *x, __global const PB_SCALAR *y,
     r = pb_sincos_pi4(a, &c);
 #elif FN == 5
     r = pb_sincosd(a, &c);
+#elif FN == 7
+    r = pb_exp_normal(a);
+#elif FN == 8
+    r = pb_log_normal(a);
 #else
     r = pb_sqrt(a);
 #endif
@@ -185,6 +190,22 @@ def test_sincosd(run, rng, width, dtype):
         exact = want == 0
         assert np.all(got[exact] == 0)
         assert rel_err(got[~exact], want[~exact]).max() <= bound
+
+
+@pytest.mark.parametrize("dtype", ["float32", "float64"])
+@pytest.mark.parametrize("width", WIDTHS)
+def test_exp_and_log_of_normal_results(run, rng, width, dtype):
+    """pb_exp_normal and pb_log_normal (no clamps, no special cases) are pb_exp and pb_log bit for bit
+    where the results and arguments are normal, as pb_math.h states."""
+    lo, hi = (-87.0, 88.0) if dtype == "float32" else (-708.0, 709.0)
+    x = np.concatenate([np.linspace(lo, hi, 200001), rng.uniform(-81, 0, 100000), [lo, hi, 0.0, -0.0]])
+    np.testing.assert_array_equal(run("exp_normal", x, dtype=dtype, width=width)[0],
+                                  run("exp", x, dtype=dtype, width=width)[0])
+    tiny, big = (np.finfo(np.dtype(dtype)).tiny, np.finfo(np.dtype(dtype)).max)
+    y = np.concatenate([np.exp(rng.uniform(np.log(tiny), np.log(big), 300000)), rng.uniform(1e-14, 1, 100000),
+                        [tiny, big, 1.0]]).astype(dtype)
+    np.testing.assert_array_equal(run("log_normal", y, dtype=dtype, width=width)[0],
+                                  run("log", y, dtype=dtype, width=width)[0])
 
 
 @pytest.mark.parametrize("width", WIDTHS)

@@ -197,25 +197,28 @@ def test_dop_falls_with_sigma_like_fig5():
     assert np.all(curves[0][off] > curves[1][off]) and np.all(curves[1][off] > curves[2][off])
 
 
-def test_inv_specular_scale_is_one_over_K(rng):
-    """The per-point DOP kernels' 1/K without logarithms (pb_inv_specular_scale) is exp(-log K) to
-    the rounding of log K, both beyond 1e250 where either overflows; the DOP from either is the same
-    to float64 rounding, K underflowing included (a sharp lobe far off specular)."""
+def test_diffuse2_over_K_is_2fd_over_K(rng):
+    """The per-point DOP kernels' 2 fd / K in one exponential (pb_diffuse2_over_K) is 2 fd exp(-log K)
+    to the rounding of the exponents, 0 where kd = 0, both beyond 1e250 where either overflows; the
+    DOP from either is the same to float64 rounding, K underflowing included (a sharp lobe far off
+    specular)."""
     x = random_inputs(rng, 20000)
     x["sigma"][:2000] = 0.02  # tan^2 a / (2 sigma^2) beyond 710: K underflows, 1/K is inf
     g = ref.geometry(x["theta_i"], x["theta_r"], x["phi"])
     G = ref.shadowing_factor(g, x["sigma"], 1)
     logK = ref.log_specular_scale(g, x["sigma"], x["ks"], G)
-    with np.errstate(over="ignore"):
-        want = np.exp(-logK)
-    got = ref.inv_specular_scale(g, x["sigma"], x["ks"], G)
-    assert np.all(got > 0)
-    finite = np.abs(logK) < 700
-    assert finite.sum() > 15000 and (~finite).sum() > 500
+    fd = ref.diffuse(g, x["kd"], x["c"])
+    with np.errstate(over="ignore", invalid="ignore"):  # 0 * inf where kd = 0
+        want = 2.0 * fd * np.exp(-logK)
+    got = ref.diffuse2_over_K(g, x["sigma"], x["ks"], G, x["kd"], x["c"])
+    lit = x["kd"] > 0
+    assert np.all(got[~lit] == 0) and np.all(got[lit] > 0) and (~lit).sum() > 1000
+    finite = lit & (np.abs(logK) < 700) & np.isfinite(got)
+    assert finite.sum() > 15000 and (lit & ~finite).sum() > 500
+    bound = (np.abs(logK) + np.abs(x["c"] * np.log(g.cti * g.ctr)) + 6) * 4.5e-16
     rel = np.abs(got[finite] / want[finite] - 1)
-    assert np.all(rel <= (np.abs(logK[finite]) + 4) * 4.5e-16), rel.max()
-    either = np.isinf(got) | np.isinf(want)  # 1/K beyond 1e250 where one overflows: DOP <= 1e-250 / fd
+    assert np.all(rel <= bound[finite]), rel.max()
+    either = np.isinf(got) | np.isinf(want)  # 2 fd / K beyond 1e250 where one overflows: DOP < 1e-250
     assert np.all(got[either] > 1e250) and np.all(want[either] > 1e250)
     f = ref.fresnel(x["n"], x["k"], g.cb, g.sb)
-    fd = ref.diffuse(g, x["kd"], x["c"])
-    np.testing.assert_allclose(ref.dop_at(f, got, fd), ref.dop(f, logK, fd), rtol=0, atol=1e-15)
+    np.testing.assert_allclose(ref.dop_of(f, got), ref.dop(f, logK, fd), rtol=0, atol=1e-15)

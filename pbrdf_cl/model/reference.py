@@ -117,19 +117,21 @@ def log_specular_scale(g, sigma, ks, G):
             - 2.0 * np.log(sigma) - 0.5 * u2)
 
 
-def inv_specular_scale(g, sigma, ks, G):
-    """1/K of eq. 6 without logarithms, = exp(-:func:`log_specular_scale`): 8 pi sigma^2 cos ti cos tr
-    / (ks G (1 + tan^2 a)^2) exp(tan^2 a / (2 sigma^2)), inf where the exponential overflows
-    (``pb_inv_specular_scale``, the per-point DOP kernels' form)."""
+def diffuse2_over_K(g, sigma, ks, G, kd, c):
+    """2 fd / K (eq. 6 and 15) in one exponential, = 2 :func:`diffuse` exp(-:func:`log_specular_scale`):
+    16 kd sigma^2 cos ti cos tr / (ks G (1 + tan^2 a)^2) exp(c log(cos ti cos tr) + tan^2 a / (2 sigma^2)),
+    0 where kd = 0, inf where the exponential overflows (``pb_diffuse2_over_K``, the per-point DOP
+    kernels' form)."""
     inv_s = 1.0 / sigma
     with np.errstate(invalid="ignore"):
         u2 = np.where(g.tan2a > 0.0, g.tan2a * inv_s * inv_s, 0.0)  # tan^2 a / sigma^2
     inv_cos2a = 1.0 + g.tan2a
+    p = g.cti * g.ctr
     with np.errstate(over="ignore"):
-        e = np.exp(0.5 * u2)
-    r = 8.0 * np.pi * g.cti * g.ctr * sigma * sigma / (ks * G * inv_cos2a * inv_cos2a)
+        e = np.exp(c * np.log(p) + 0.5 * u2)
+    r = 16.0 * kd * p * sigma * sigma / (ks * G * inv_cos2a * inv_cos2a)
     with np.errstate(over="ignore", invalid="ignore"):
-        return np.where(e < np.inf, r * e, e)
+        return np.where(kd == 0.0, 0.0, np.where(e < np.inf, r * e, e))
 
 
 def minnaert(g, c):
@@ -165,6 +167,12 @@ def brdf_combine(sum_, K, fd):
 def dop_at(f, inv_K, fd):
     """Eq. 17-18 at inv_K = 1/K: K (Rs - Rp) / (K (Rs + Rp) + 2 fd) (``pb_dop_at``)."""
     return dop_combine(f.Rs + f.Rp, f.diff, 2.0 * fd, inv_K)
+
+
+def dop_of(f, fd2_K):
+    """Eq. 17-18 from fd2_K = 2 fd / K (:func:`diffuse2_over_K`): (Rs - Rp) / (Rs + Rp + 2 fd / K)
+    (``pb_dop_of``)."""
+    return dop_combine(f.Rs + f.Rp, f.diff, fd2_K, 1.0)
 
 
 def dop(f, logK, fd):
