@@ -344,11 +344,10 @@ def _refuse_other_settings(name, attrs, diffs):
 
 
 def check_before_stage(job, store, allow_large=False):
-    """What :func:`write_store` refuses that a job's preparing stage (a
-    :class:`~pbrdf_cl.fitting.images.labels.LabelJob`'s label stage, which can take long) does not
-    change, checked before it runs: the free disk, another run holding the store's lock, a store
-    started with other settings (all but the label stage's values, which :func:`write_store`
-    checks after it).
+    """What :func:`write_store` refuses that a job's preparing stage (a ``LabelJob``'s label
+    stage, which can take long) does not change, checked before it runs: the free disk, another
+    run holding the store's lock, a store started with other settings (all but the label stage's
+    values, which :func:`write_store` checks after it).
 
     Parameters
     ----------
