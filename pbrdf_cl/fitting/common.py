@@ -59,7 +59,7 @@ def one_blas_thread(func):
     return wrapper
 
 
-def _fd_steps(x, hi):
+def fd_steps(x, hi):
     """scipy's '2-point' steps for ``x`` (any shape): relative step sqrt(eps), inwards at an
     upper bound, as actually taken (exactly representable)."""
     h = np.sqrt(np.finfo(float).eps) * np.maximum(1.0, np.abs(x))
@@ -75,7 +75,7 @@ def fd_jacobian(rows, X, lo, hi, scheme="2-point"):
     """Finite-difference Jacobians of a batched residual function at P points at once, the points
     and all their steps in one call of ``rows`` ((B, d) parameter vectors -> (B, M) residuals).
 
-    ``scheme`` "2-point": scipy's forward differences (:func:`_fd_steps`: relative step sqrt(eps),
+    ``scheme`` "2-point": scipy's forward differences (:func:`fd_steps`: relative step sqrt(eps),
     inwards at an upper bound); "central": steps of ``CENTRAL_STEP`` of each bound range either
     side, cut (one-sided) at a bound.  Returns (R, J): the residuals at ``X`` (P, M) and the
     Jacobians (P, d, M), ``J[p, j]`` the derivative along parameter j."""
@@ -83,7 +83,7 @@ def fd_jacobian(rows, X, lo, hi, scheme="2-point"):
     P, d = X.shape
     base = X[:, None, :]
     if scheme == "2-point":
-        h = _fd_steps(X, hi)
+        h = fd_steps(X, hi)
         pts = np.concatenate([base, base + h[:, :, None] * np.eye(d)[None]], axis=1)
         R = rows(pts.reshape(-1, d)).reshape(P, d + 1, -1)
         J = R[:, 1:] - R[:, :1]

@@ -35,6 +35,7 @@ from itertools import product
 import numpy as np
 
 from ...io.source import ANGLES
+from ..common import fd_steps
 from .label_search import subsample
 from .pixels import Block, PixelResiduals
 
@@ -75,15 +76,15 @@ class Integrated:
     iteration for all of them."""
 
     def __init__(self, setup, names, shared, raw, beta, s2, lo, hi):
-        self.setup, self.names = setup, list(names)
+        self.names = list(names)
         self.si = [self.names.index(n) for n in shared]
         self.bi = [self.names.index(n) for n in self.names if n not in shared]
         self.lo, self.hi = lo, hi
         self.s2 = float(s2)
-        self.blk = Block(raw, setup, 1)
-        self.p = self.blk.p
+        blk = Block(raw, setup, 1)
+        self.p = blk.p
         #: the reference model's residual rows of the pixels
-        self.res = PixelResiduals(setup, self.blk, self.names, np.arange(self.p), setup.use_f00, few_nk=True)
+        self.res = PixelResiduals(setup, blk, self.names, np.arange(self.p), setup.use_f00, few_nk=True)
         b = self.bi
         f = np.clip((beta - lo[b]) / (hi[b] - lo[b]), EDGE, 1 - EDGE)
         self.beta = beta
@@ -107,8 +108,7 @@ class Integrated:
         X = np.empty((B, len(self.names)))
         X[:, self.si] = th
         X[:, self.bi] = x
-        h = np.sqrt(np.finfo(float).eps) * np.maximum(1.0, np.abs(x))
-        h = (x + np.where(x + h > self.hi[self.bi], -h, h)) - x
+        h = fd_steps(x, self.hi[self.bi])
         R = self.res.varied(X, self.bi, h, pix) / np.sqrt(self.s2)
         r = R[:, 0]
         Ju = (R[:, 1:] - r[:, None]) * (dx / h)[:, :, None]

@@ -290,7 +290,7 @@ class PixelResiduals:
             aop = blk.spec.aop if blk.shared else blk.spec.aop[pix]
             r = reference.channel_residual(blk.channel_model(pix).rows(p), blk.obs[pix], aop) * np.sqrt(self.w[pix])
             return np.where(np.isfinite(r), r, 1e150)
-        g = self._shared_geometry() if blk.shared else reference.geometry(*[a[pix] for a in blk.angles])
+        g = self._shared_geometry()[0] if blk.shared else reference.geometry(*[a[pix] for a in blk.angles])
         return self._residuals(*[self._part(part, p, g) for part in DEPENDS], p["kd"], pix)
 
     def varied(self, X, cols, h, pix=None):
@@ -309,7 +309,7 @@ class PixelResiduals:
                 pts[:, j + 1, c] += h[:, j]
             return PixelResiduals(self.setup, blk, self.names, pix, self.intensity, self.w, self.few_nk).rows(
                 pts.reshape(-1, D)).reshape(B, len(cols) + 1, -1)
-        g = self._shared_geometry()
+        g = self._shared_geometry()[0]
         p = self._params(X)
         base = {part: self._part(part, p, g) for part in DEPENDS}
         out = [self._residuals(*base.values(), p["kd"], pix)]
@@ -322,8 +322,8 @@ class PixelResiduals:
         return np.stack(out, axis=1)
 
     def _shared_geometry(self):
-        """The geometry the pixels share ((1, M) fields) and each beam's distinct angles (made
-        once)."""
+        """(g, beams): the geometry the pixels share ((1, M) fields) and each beam's distinct
+        angles, (cos, sin, index of each measurement's), made once."""
         if self._geometry is None:
             g = reference.geometry(*[a[None, :] for a in self.blk.angles])
             beams = []
@@ -331,7 +331,7 @@ class PixelResiduals:
                 u, inv = np.unique(np.stack([np.ravel(ct), np.ravel(st)]), axis=1, return_inverse=True)
                 beams.append((u[0][None], u[1][None], inv.ravel()))
             self._geometry = (g, beams)
-        return self._geometry[0]
+        return self._geometry
 
     def _params(self, X):
         """The model's parameters (each (B, 1), or the setup's fixed value) at the points X."""
@@ -359,9 +359,8 @@ class PixelResiduals:
         variant = reference.SHADOWING[self.setup.shadowing]
         if not self.blk.shared:
             return reference.shadowing_factor(g, sigma, variant)
-        self._shared_geometry()
         return reference.shadowing_of(*[reference.shadow_S(ct, st, sigma, variant)[:, inv]
-                                        for ct, st, inv in self._geometry[1]])
+                                        for ct, st, inv in self._shared_geometry()[1]])
 
     def _residuals(self, f, log_k, minnaert, kd, pix):
         """The weighted residual rows of the pixels ``pix`` from the model's parts and kd."""

@@ -51,7 +51,7 @@ import numpy as np
 from ... import sizes
 from ...device.engine import kernels_sha256
 from ...errors import StoreError, StoreWarning
-from ...store import cluster, runner, verify
+from ...store import cluster, lock, runner, verify
 from ...store import zarr as zarr_store
 from ...store.cluster import local_engine  # noqa: F401 (store.local_engine: the image fit's local engine)
 from ...version import __version__
@@ -372,7 +372,6 @@ def check_before_stage(job, store, allow_large=False):
     --------
     >>> check_before_stage(LabelJob(stack, labels=L), "fit.zarr")  # doctest: +SKIP
     """
-    from ...store import lock
     blocks = job.blocks()
     runner.check_free_disk(store, store_bytes(job), f"{job.source.n_pixels} pixels, uncompressed", allow_large,
                            "fit-image")
