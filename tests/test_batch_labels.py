@@ -234,20 +234,46 @@ def test_the_modes_of_the_own_parameters_end_pixel_by_pixel(dev, monkeypatch):
     monkeypatch.setattr(la.Integrated, "__init__", lambda self, *a: made.append(self) or init(self, *a))
     data, lab = two_materials(8, 8, 0.006, seed=3)
     res = LabelJob(data, labels=lab).prepare(dev)
-    itg, th = made[0], res.theta[:1]
+    itg, th, ls = made[0], res.theta[None, :1], np.array([0])  # the first label's pixels
+    p = itg.pixels(0).stop
     rows, varied = [], P.PixelResiduals.varied
     monkeypatch.setattr(P.PixelResiduals, "varied", lambda self, X, *a: rows.append(len(X)) or varied(self, X, *a))
-    start = np.clip(itg.u + 0.5, -la.U_MAX, la.U_MAX)
-    u, Q, H = itg.modes(th, start, itg.mu, itg.D)
-    assert len(rows) > 2 and sum(rows) < len(rows) * itg.p, rows
+    start = np.clip(itg.u[None, :p] + 0.5, -la.U_MAX, la.U_MAX)
+    u, Q, H = itg.modes(th, start, itg.mu[None, :1], itg.D[:1], ls)
+    assert len(rows) > 2 and sum(rows) < len(rows) * p, rows
     monkeypatch.setattr(la, "MODE_TOL", 1e-12)
     monkeypatch.setattr(la, "MODE_ITERATIONS", 40)
-    u_ref, Q_ref, _ = itg.modes(th, start, itg.mu, itg.D)
+    u_ref, Q_ref, _ = itg.modes(th, start, itg.mu[None, :1], itg.D[:1], ls)
     assert np.all(np.abs(Q - Q_ref) < 1e-4), np.abs(Q - Q_ref).max()
     monkeypatch.setattr(la, "MODE_TOL", 1e-5)
     rows.clear()
-    itg.modes(th, u_ref, itg.mu, itg.D)
-    assert rows == [itg.p, itg.p]
+    itg.modes(th, u_ref, itg.mu[None, :1], itg.D[:1], ls)
+    assert rows == [p, p]
+
+
+def test_the_labels_are_corrected_together_as_each_alone(dev, monkeypatch):
+    """:func:`label_adjust.integrated_correction` corrects every label in the same calls of the
+    reference model, with the numbers each label has when it is corrected alone (bit for bit),
+    in fewer calls than one label after the other."""
+    from pbrdf_cl.fitting.images import label_adjust as la
+    from pbrdf_cl.fitting.images import label_stage as ls
+    from pbrdf_cl.fitting.images import pixels as P
+
+    seen, correct = [], ls.integrated_correction
+    monkeypatch.setattr(ls, "integrated_correction", lambda *a: seen.append(a) or correct(*a))
+    data, lab = two_materials(8, 8, 0.006, seed=2)
+    LabelJob(data, labels=lab).prepare(dev)
+    st, theta, sums, ok = seen[0]
+    calls, varied = [], P.PixelResiduals.varied
+    monkeypatch.setattr(P.PixelResiduals, "varied", lambda self, *a: calls.append(1) or varied(self, *a))
+    both = la.integrated_correction(st, theta, sums, ok)
+    together = len(calls)
+    for L in range(2):
+        alone = la.integrated_correction(st, theta, sums, ok & (np.arange(2) == L))
+        np.testing.assert_array_equal(alone[0][L], both[0][L])
+        np.testing.assert_array_equal(alone[1][L], both[1][L])
+    assert not np.array_equal(both[0], theta)  # corrected
+    assert together < len(calls) - together, (together, len(calls) - together)
 
 
 def test_the_integrated_likelihood_steps_to_its_minimum():
@@ -264,20 +290,22 @@ def test_the_integrated_likelihood_steps_to_its_minimum():
     centre = rng.normal(0, 0.01, (P, 2)) + [0.4, 0.2]
     B = np.array([[30.0, 5.0], [5.0, 12.0]])
 
-    def terms(thetas, rounds=0):
-        d = thetas[:, None, :] / span - centre
+    def terms(thetas, ls, rounds=0):  # one label of P pixels
+        d = thetas[:, 0, None, :] / span - centre
         return np.einsum("kpi,ij,kpj->kp", d, B, d)
 
+    one = SimpleNamespace(start=np.array([0, P]))
     t, se = np.array([0.41, 0.19]), np.array([0.01, 0.02])
-    g, H, c = la.stencil(SimpleNamespace(terms=terms), t, se, np.zeros(2), np.ones(2), span)
+    ((g, H, c),) = la.stencil(SimpleNamespace(terms=terms, **vars(one)), t[None], se[None], np.zeros(2), np.ones(2),
+                              span, [0])
     np.testing.assert_allclose(H, 2 * P * B, rtol=1e-9)
     np.testing.assert_allclose(c, 2 * (t - centre) @ B, rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(g, c.sum(axis=0), rtol=1e-12)
     d = la.newton(g, H, np.array([1.0, 1.0]))
     np.testing.assert_allclose(t + d, centre.mean(axis=0), rtol=0, atol=1e-12)
     assert np.all(np.abs(la.newton(g, H, se)) <= la.MAX_STEP * se + 1e-15)
-    g1, H1, c1 = la.stencil(SimpleNamespace(terms=lambda th, rounds=0: 3.0 * (th[:, :1] / 4.0 - centre[:, 0]) ** 2),
-                            t[:1], se[:1], np.zeros(1), np.ones(1), span[:1])  # one shared parameter
+    one_d = SimpleNamespace(terms=lambda th, ls, rounds=0: 3.0 * (th[:, 0, :1] / 4.0 - centre[:, 0]) ** 2, **vars(one))
+    ((g1, H1, c1),) = la.stencil(one_d, t[None, :1], se[None, :1], np.zeros(1), np.ones(1), span[:1], [0])  # one shared
     np.testing.assert_allclose(H1, [[6.0 * P]], rtol=1e-9)
     np.testing.assert_allclose(c1[:, 0], 6.0 * (t[0] - centre[:, 0]), rtol=1e-9, atol=1e-12)
 

@@ -27,6 +27,9 @@ a larger label the correction is that subsample's, its sampling noise taken out 
 gradient there and its remaining noise added to the interval (:func:`integrated_correction`).
 What bias G leaves does not shrink with the label's pixels while the profile's standard error
 does: a label of more than PRECISION_PIXELS pixels reports the covariance of that many of them.
+The labels are corrected together (:class:`Integrated` holds all their pixels): each call of the
+reference model evaluates the rows of every label still stepping, and each label's numbers are
+those it would have alone.
 """
 from __future__ import annotations
 
@@ -68,29 +71,46 @@ PRECISION_PIXELS = 128
 
 
 class Integrated:
-    """The terms of one label's integrated chi2 G (see the module's docstring) on the pixels of
-    ``raw`` (a raw dict of the label's pixels), own parameters from ``beta`` (pixels, own; the
-    profile's values at the label's), chi2 scale ``s2``.  Its methods take K values of the shared
-    parameters at once (``thetas`` (K, S); the modes ``u`` (K, p, own), the population's mean
-    ``mu`` (K, own); its variance ``D`` (own,) is common): one call of the reference model per
-    iteration for all of them."""
+    """The terms of the integrated chi2 G (see the module's docstring) of several labels at once:
+    label j's pixels those of ``raws[j]`` (a raw dict), its own parameters from ``betas[j]``
+    (pixels, own; the profile's values at the label's), its chi2 scale ``s2[j]``.  Its methods
+    work on the labels ``ls`` (indices into those given, ascending) and take K values of each
+    one's shared parameters at once (``thetas`` (K, len(ls), S)); the modes ``u`` (K, rows, own)
+    over the rows of those labels' pixels (:meth:`rows`), the populations' means ``mu`` (K,
+    len(ls), own) and variances ``D`` (len(ls), own; held over the K values): one call of the
+    reference model per iteration for all of them.  Every label's numbers are those it would
+    have alone (every operation is row by row, or a label's own sum)."""
 
-    def __init__(self, setup, names, shared, raw, beta, s2, lo, hi):
+    def __init__(self, setup, names, shared, raws, betas, s2, lo, hi):
         self.names = list(names)
         self.si = [self.names.index(n) for n in shared]
         self.bi = [self.names.index(n) for n in self.names if n not in shared]
         self.lo, self.hi = lo, hi
-        self.s2 = float(s2)
+        sizes = np.array([b.shape[0] for b in betas])
+        self.start = np.concatenate([[0], np.cumsum(sizes)])
+        raw = {k: (v if (v.ndim == 1 and k in ANGLES) else np.concatenate([r[k] for r in raws]))
+               for k, v in raws[0].items()}
         blk = Block(raw, setup, 1)
         self.p = blk.p
+        self.s2 = np.repeat(np.asarray(s2, float), sizes)  # each pixel's label's
         #: the reference model's residual rows of the pixels
         self.res = PixelResiduals(setup, blk, self.names, np.arange(self.p), setup.use_f00, few_nk=True)
         b = self.bi
-        f = np.clip((beta - lo[b]) / (hi[b] - lo[b]), EDGE, 1 - EDGE)
-        self.beta = beta
-        self.u = np.log(f / (1 - f))[None]
-        self.mu = self.u.mean(axis=1)
-        self.D = np.maximum(self.u[0].var(axis=0), 1e-2)
+        self.beta = np.concatenate(betas)
+        f = np.clip((self.beta - lo[b]) / (hi[b] - lo[b]), EDGE, 1 - EDGE)
+        self.u = np.log(f / (1 - f))
+        self.mu = np.stack([self.u[self.pixels(j)].mean(axis=0) for j in range(sizes.size)])
+        self.D = np.stack([np.maximum(self.u[self.pixels(j)].var(axis=0), 1e-2) for j in range(sizes.size)])
+
+    def pixels(self, j):
+        """The rows of label j's pixels."""
+        return slice(self.start[j], self.start[j + 1])
+
+    def rows(self, ls):
+        """The rows of the pixels of the labels ``ls`` in order, and each one's position in ``ls``."""
+        sizes = np.diff(self.start)[ls]
+        return np.concatenate([np.arange(self.start[j], self.start[j + 1]) for j in ls]), np.repeat(
+            np.arange(len(ls)), sizes)
 
     def own(self, u):
         """The own parameters at logit coordinates ``u`` and their derivatives dx/du."""
@@ -101,39 +121,41 @@ class Integrated:
 
     def _at(self, th, u, mu, D, pix):
         """(Q, H, g) of rows of (shared values ``th`` (B, S), modes ``u`` (B, own), mean ``mu``
-        (B, own)) of the pixels ``pix``: forward differences along the own parameters only
-        (scipy's steps, inwards at an upper bound)."""
+        and variance ``D`` (B, own)) of the pixels ``pix``: forward differences along the own
+        parameters only (scipy's steps, inwards at an upper bound)."""
         B, o = u.shape
         x, dx = self.own(u)
         X = np.empty((B, len(self.names)))
         X[:, self.si] = th
         X[:, self.bi] = x
         h = fd_steps(x, self.hi[self.bi])
-        R = self.res.varied(X, self.bi, h, pix) / np.sqrt(self.s2)
+        R = self.res.varied(X, self.bi, h, pix) / np.sqrt(self.s2[pix])[:, None, None]
         r = R[:, 0]
         Ju = (R[:, 1:] - r[:, None]) * (dx / h)[:, :, None]
         pr = (u - mu) / np.sqrt(D)
         Q = np.einsum("pm,pm->p", r, r) + np.einsum("pi,pi->p", pr, pr)
-        H = np.einsum("pim,pjm->pij", Ju, Ju) + np.diag(1.0 / D)[None]
+        H = np.einsum("pim,pjm->pij", Ju, Ju) + (1.0 / D)[:, :, None] * np.eye(o)
         g = np.einsum("pim,pm->pi", Ju, r) + pr / np.sqrt(D)
         return Q, H, g
 
-    def modes(self, thetas, u, mu, D):
+    def modes(self, thetas, u, mu, D, ls):
         """Each pixel's mode of its own parameters at every theta (Levenberg-Marquardt from
         ``u``, a pixel's iterations ending where its step changes its Q by less than MODE_TOL):
-        (u, Q (K, p), H (K, p, own, own))."""
-        K, p, o = u.shape
-        th, mu = np.repeat(thetas, p, axis=0), np.repeat(mu, p, axis=0)
-        pix = np.tile(np.arange(p), K)
-        u = u.reshape(K * p, o).copy()
+        (u, Q (K, rows), H (K, rows, own, own))."""
+        K, R, o = u.shape
+        rows, which = self.rows(ls)
+        th, mu = thetas[:, which].reshape(K * R, -1), mu[:, which].reshape(K * R, o)
+        D = np.tile(D[which], (K, 1))
+        pix = np.tile(rows, K)
+        u = u.reshape(K * R, o).copy()
         Q, H, g = self._at(th, u, mu, D, pix)
-        lam = np.full(K * p, 1e-3)
+        lam = np.full(K * R, 1e-3)
         eye = np.eye(o)
-        on = np.arange(K * p)
+        on = np.arange(K * R)
         for _ in range(MODE_ITERATIONS):
             Hd = H[on] + (lam[on, None] * np.einsum("pii->pi", H[on]))[..., None] * eye
             un = np.clip(u[on] - np.linalg.solve(Hd, g[on][..., None])[..., 0], -U_MAX, U_MAX)
-            Qn, Hn, gn = self._at(th[on], un, mu[on], D, pix[on])
+            Qn, Hn, gn = self._at(th[on], un, mu[on], D[on], pix[on])
             better = Qn < Q[on]
             done = np.abs(Q[on] - Qn) < MODE_TOL
             b = on[better]
@@ -142,58 +164,78 @@ class Integrated:
             on = on[~done]
             if on.size == 0:
                 break
-        return u.reshape(K, p, o), Q.reshape(K, p), H.reshape(K, p, o, o)
+        return u.reshape(K, R, o), Q.reshape(K, R), H.reshape(K, R, o, o)
 
-    def mean_step(self, u, mu, D, H):
-        """The Newton step of the population's mean with the pixels' modes following it (the
+    def _spans(self, ls):
+        """Each label of ``ls``: the slice of its rows among theirs (:meth:`rows`)."""
+        ends = np.cumsum(np.diff(self.start)[ls])
+        return [slice(e - n, e) for e, n in zip(ends, np.diff(self.start)[ls])]
+
+    def mean_step(self, u, mu, D, H, ls):
+        """The Newton step of each population's mean with its pixels' modes following it (the
         Schur complement of their joint problem): (mu, the modes predicted there)."""
-        Di = 1.0 / D
         Hi = np.linalg.inv(H)
-        M = u.shape[1] * np.diag(Di)[None] - np.einsum("i,kpij,j->kij", Di, Hi, Di)
-        dm = np.linalg.solve(M, (Di * (u - mu[:, None, :]).sum(axis=1))[..., None])[..., 0]
-        return mu + dm, np.clip(u + np.einsum("kpij,kj->kpi", Hi, Di * dm), -U_MAX, U_MAX)
+        mu, u = mu.copy(), u.copy()
+        for j, sl in enumerate(self._spans(ls)):
+            Di, Hj, uj = 1.0 / D[j], np.ascontiguousarray(Hi[:, sl]), np.ascontiguousarray(u[:, sl])
+            M = uj.shape[1] * np.diag(Di)[None] - np.einsum("i,kpij,j->kij", Di, Hj, Di)
+            dm = np.linalg.solve(M, (Di * (uj - mu[:, j, None, :]).sum(axis=1))[..., None])[..., 0]
+            mu[:, j] = mu[:, j] + dm
+            u[:, sl] = np.clip(uj + np.einsum("kpij,kj->kpi", Hj, Di * dm), -U_MAX, U_MAX)
+        return mu, u
 
-    def population(self, thetas, u, mu, D, rounds, variance):
-        """The population's mean (and its ``variance`` with a Laplace EM update, one theta only,
-        else held) fitted at ``thetas`` by ``rounds`` of (modes, :meth:`mean_step`):
+    def population(self, thetas, u, mu, D, rounds, variance, ls):
+        """The populations' means (and their ``variance`` with a Laplace EM update, one theta
+        only, else held) fitted at ``thetas`` by ``rounds`` of (modes, :meth:`mean_step`):
         (u, mu, D, Q, H), Q, H the modes' at the end."""
         for _ in range(rounds):
-            u, Q, H = self.modes(thetas, u, mu, D)
+            u, Q, H = self.modes(thetas, u, mu, D, ls)
             if variance:
-                D = np.maximum(u[0].var(axis=0) + np.einsum("pii->pi", np.linalg.inv(H[0])).mean(axis=0), 1e-4)
-                u, Q, H = self.modes(thetas, u, mu, D)
-            mu, u = self.mean_step(u, mu, D, H)
-        u, Q, H = self.modes(thetas, u, mu, D)
+                D = np.stack([np.maximum(u[0, sl].var(axis=0) + np.einsum("pii->pi", np.linalg.inv(H[0, sl])).mean(
+                    axis=0), 1e-4) for sl in self._spans(ls)])
+                u, Q, H = self.modes(thetas, u, mu, D, ls)
+            mu, u = self.mean_step(u, mu, D, H, ls)
+        u, Q, H = self.modes(thetas, u, mu, D, ls)
         return u, mu, D, Q, H
 
-    def fit_population(self, theta, rounds=EM_ROUNDS):
-        """The population's mean and variance at ``theta`` (S,) (from the stored), stored."""
-        self.u, self.mu, self.D, _, _ = self.population(theta[None], self.u, self.mu, self.D, rounds, True)
+    def fit_population(self, theta, ls, rounds=EM_ROUNDS):
+        """The populations' means and variances of the labels ``ls`` at ``theta`` (len(ls), S)
+        (from the stored), stored."""
+        rows, _ = self.rows(ls)
+        u, mu, D, _, _ = self.population(theta[None], self.u[rows][None], self.mu[ls][None], self.D[ls], rounds, True,
+                                         ls)
+        self.u[rows], self.mu[ls], self.D[ls] = u[0], mu[0], D
 
-    def terms(self, thetas, rounds=0):
+    def terms(self, thetas, ls, rounds=0):
         """Each pixel's term Q_p + log det H_p + log det D of G at every theta of ``thetas``
-        (K, S): (K, p), the population's mean refitted by ``rounds`` of :meth:`population` from
-        the stored one (which is kept)."""
+        (K, len(ls), S): (K, rows), the populations' means refitted by ``rounds`` of
+        :meth:`population` from the stored ones (which are kept)."""
         K = thetas.shape[0]
-        u, mu = np.repeat(self.u, K, axis=0), np.repeat(self.mu, K, axis=0)
-        _, _, D, Q, H = self.population(thetas, u, mu, self.D, rounds, False)
-        return Q + np.linalg.slogdet(H)[1] + np.log(D).sum()
+        rows, which = self.rows(ls)
+        u, mu = np.repeat(self.u[rows][None], K, axis=0), np.repeat(self.mu[ls][None], K, axis=0)
+        _, _, D, Q, H = self.population(thetas, u, mu, self.D[ls], rounds, False, ls)
+        return Q + np.linalg.slogdet(H)[1] + np.log(D).sum(axis=1)[which]
 
-    def profile_gradient(self, theta):
-        """The gradient of the subsample's profile F = sum_p min_beta chi2_p / s2 at the label's
-        values ``theta`` (S,) (natural units), where every pixel's own parameters are the profile's
-        (its minimum at theta: the envelope theorem, bounds included): every pixel's 2 J_p^T r_p
-        (pixels, S), J_p the central differences of its residuals along the shared parameters."""
-        S = len(self.si)
-        X = np.empty((self.p, len(self.names)))
-        X[:, self.si], X[:, self.bi] = theta, self.beta
+    def profile_gradient(self, theta, j):
+        """The gradient of label j's subsample's profile F = sum_p min_beta chi2_p / s2 at its
+        values ``theta`` (S,) (natural units), where every pixel's own parameters are the
+        profile's (its minimum at theta: the envelope theorem, bounds included): every pixel's
+        2 J_p^T r_p (pixels, S), J_p the central differences of its residuals along the shared
+        parameters."""
+        S, sl = len(self.si), self.pixels(j)
+        p = sl.stop - sl.start
+        X = np.empty((p, len(self.names)))
+        X[:, self.si], X[:, self.bi] = theta, self.beta[sl]
         lo, hi = self.lo[self.si], self.hi[self.si]
         h = np.cbrt(np.finfo(float).eps) * np.maximum(1.0, np.abs(theta))
         up, down = np.minimum(theta + h, hi), np.maximum(theta - h, lo)
         pts = np.repeat(X[:, None, :], 2 * S + 1, axis=1)
-        for j, c in enumerate(self.si):
-            pts[:, 1 + j, c], pts[:, 1 + S + j, c] = up[j], down[j]
-        R = self.res.rows(pts.reshape(-1, X.shape[1])).reshape(self.p, 2 * S + 1, -1) / np.sqrt(self.s2)
+        for i, c in enumerate(self.si):
+            pts[:, 1 + i, c], pts[:, 1 + S + i, c] = up[i], down[i]
+        res = self.res
+        mine = PixelResiduals(res.setup, res.blk, self.names, np.arange(sl.start, sl.stop), res.intensity, res.w,
+                              res.few_nk)
+        R = mine.rows(pts.reshape(-1, X.shape[1])).reshape(p, 2 * S + 1, -1) / np.sqrt(self.s2[sl.start])
         J = (R[:, 1:1 + S] - R[:, 1 + S:]) / (up - down)[None, :, None]
         return 2.0 * np.einsum("psm,pm->ps", J, R[:, 0])
 
@@ -230,55 +272,75 @@ def integrated_correction(st, theta, sums, ok, pixels=None):
     picks = subsample(st, PIXELS if pixels is None else pixels)
     subs = st.gather(picks)
     out = theta.copy()
+    labels, raws, betas, totals, ses = [], [], [], [], []
     for L in np.flatnonzero(ok):
         beta = st.beta[picks[L]]
         keep = np.all(np.isfinite(beta), axis=1)
         total = np.count_nonzero(st.fitted & (st.lab == L))
-        thin = picks[L].size < total
         se = np.sqrt(np.clip(np.diag(cov[L]), 0, None) * (total / picks[L].size))  # scaled coordinates
         if keep.sum() < 3 or not np.all(np.isfinite(se) & (se > 0)):
             continue
-        raw = {k: (v if (v.ndim == 1 and k in ANGLES) else v[keep]) for k, v in subs[L].items()}
-        itg = Integrated(setup, names, st.shared, raw, beta[keep], s2[L], st.lo, st.hi)
-        itg.fit_population(theta[L])
-        t = theta[L] / span
-        lo, hi = st.lo[s] / span, st.hi[s] / span
-        cf = itg.profile_gradient(theta[L]) * span if thin else np.zeros((1, len(s)))
-        tilt, noise = cf.sum(axis=0), 0.0  # the subsample's noise in F's gradient
-        for r in range(NEWTON_ROUNDS):
-            g, H, c = stencil(itg, t, se, lo, hi, span)
-            if thin and r == 0:
-                noise = spread(c - cf, H, total)
-            d = newton(g - tilt, H, se)
-            t = np.clip(t + d, lo, hi)
-            if np.all(np.abs(d) < 0.2 * se) or r == NEWTON_ROUNDS - 1:
-                break
-            itg.fit_population(t * span, POPULATION_ROUNDS)
-        if positive_inverse(H) is None:
+        labels.append(L)
+        raws.append({k: (v if (v.ndim == 1 and k in ANGLES) else v[keep]) for k, v in subs[L].items()})
+        betas.append(beta[keep])
+        totals.append(total)
+        ses.append(se)
+    if not labels:
+        return out, cov
+    n = len(labels)
+    thin = [picks[L].size < total for L, total in zip(labels, totals)]
+    itg = Integrated(setup, names, st.shared, raws, betas, s2[labels], st.lo, st.hi)
+    itg.fit_population(theta[labels], np.arange(n))
+    t, se = theta[labels] / span, np.array(ses)
+    lo, hi = st.lo[s] / span, st.hi[s] / span
+    cf = [itg.profile_gradient(theta[L], j) * span if thin[j] else np.zeros((1, len(s))) for j, L in enumerate(labels)]
+    tilt, noise, H = [c.sum(axis=0) for c in cf], [0.0] * n, [None] * n  # tilt: the subsample's noise in F's gradient
+    todo = np.arange(n)
+    for r in range(NEWTON_ROUNDS):
+        going = []
+        for j, (g, H[j], c) in zip(todo, stencil(itg, t[todo], se[todo], lo, hi, span, todo)):
+            if thin[j] and r == 0:
+                noise[j] = spread(c - cf[j], H[j], totals[j])
+            d = newton(g - tilt[j], H[j], se[j])
+            t[j] = np.clip(t[j] + d, lo, hi)
+            if not (np.all(np.abs(d) < 0.2 * se[j]) or r == NEWTON_ROUNDS - 1):
+                going.append(j)
+        if not going:
+            break
+        todo = np.array(going)
+        itg.fit_population(t[todo] * span, todo, POPULATION_ROUNDS)
+    for j, L in enumerate(labels):
+        if positive_inverse(H[j]) is None:
             continue
-        out[L] = t * span
-        if thin:
-            cov[L] = cov[L] + noise
-        cov[L] = cov[L] * max(1.0, total / PRECISION_PIXELS)
+        out[L] = t[j] * span
+        if thin[j]:
+            cov[L] = cov[L] + noise[j]
+        cov[L] = cov[L] * max(1.0, totals[j] / PRECISION_PIXELS)
     return out, cov
 
 
-def stencil(itg, t, se, lo, hi, span):
-    """G's quadratic model at ``t`` (scaled) fitted per pixel over the 3^S points t + (-1, 0, 1)
-    STEP standard errors ``se`` in every shared parameter (inside the bounds ``lo``, ``hi``):
-    (gradient, Hessian) of the sum and every pixel's gradient (pixels, S) at t."""
-    S = t.size
+def stencil(itg, t, se, lo, hi, span, ls):
+    """G's quadratic model of each label of ``ls`` at its ``t`` (len(ls), S; scaled) fitted per
+    pixel over the 3^S points t + (-1, 0, 1) STEP standard errors ``se`` in every shared parameter
+    (inside the bounds ``lo``, ``hi``): per label (gradient, Hessian) of its sum and every
+    pixel's gradient (pixels, S) at t."""
+    S = t.shape[1]
     offs = np.array(list(product((-1.0, 0.0, 1.0), repeat=S)))
-    pts = np.clip(t + offs * STEP * se, lo, hi)
-    vals = itg.terms(pts * span, POPULATION_ROUNDS).T  # (p, 3^S)
-    d = pts - t
+    pts = np.clip(t[None] + offs[:, None] * STEP * se[None], lo, hi)  # (3^S, labels, S)
+    vals = itg.terms(pts * span, ls, POPULATION_ROUNDS)  # (3^S, rows)
     i, j = np.triu_indices(S)
-    X = np.column_stack([np.ones(len(d)), d, d[:, i] * d[:, j] * np.where(i == j, 0.5, 1.0)])
-    coef = np.linalg.lstsq(X, vals.T, rcond=None)[0]  # (1 + S + S (S + 1) / 2, p)
-    c = coef[1:1 + S].T
-    H = np.zeros((S, S))
-    H[i, j] = H[j, i] = coef[1 + S:].sum(axis=1)
-    return c.sum(axis=0), H, c
+    fits, end = [], 0
+    for m, size in enumerate(np.diff(itg.start)[ls]):
+        d = pts[:, m] - t[m]
+        X = np.column_stack([np.ones(len(d)), d, d[:, i] * d[:, j] * np.where(i == j, 0.5, 1.0)])
+        mine = np.ascontiguousarray(vals[:, end:end + size])
+        coef = np.linalg.lstsq(X, mine, rcond=None)[0]  # (1 + S + S (S + 1) / 2, p)
+        end += size
+        c = coef[1:1 + S].T
+        H = np.zeros((S, S))
+        H[i, j] = H[j, i] = coef[1 + S:].sum(axis=1)
+        fits.append((c.sum(axis=0), H, c))
+    return fits
 
 
 def spread(a, H, total):
