@@ -354,20 +354,27 @@ def spread(a, H, total):
     return Hi @ (np.cov(a.T).reshape(H.shape) * p * (1.0 - p / total)) @ Hi
 
 
+def positive_definite(H):
+    """Whether the symmetric H is finite and positive definite."""
+    with np.errstate(all="ignore"):
+        return bool(np.all(np.isfinite(H)) and np.all(np.linalg.eigvalsh(H) > 0))
+
+
 def positive_inverse(H):
     """H^-1 where the symmetric H is positive definite and its inverse finite, else None."""
+    if not positive_definite(H):
+        return None
     with np.errstate(all="ignore"):
-        if not (np.all(np.isfinite(H)) and np.all(np.linalg.eigvalsh(H) > 0)):
-            return None
         Hi = np.linalg.inv(H)
     return Hi if np.all(np.isfinite(Hi)) else None
 
 
 def newton(g, H, se):
     """The Newton step of G (in scaled coordinates), at most MAX_STEP standard errors ``se`` per
-    parameter; along the gradient scaled by the diagonal where H is not positive definite."""
+    parameter; along the gradient scaled by the diagonal where H is not positive definite (or
+    not finite)."""
     with np.errstate(all="ignore"):
-        if np.all(np.linalg.eigvalsh(H) > 0):
+        if positive_definite(H):
             d = -np.linalg.solve(H, g)
         else:
             d = -g / np.maximum(np.abs(np.diag(H)), 1e-300)
