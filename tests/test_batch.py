@@ -356,3 +356,30 @@ def test_pixels_outside_their_intervals_are_marked(dev, tmp_path, capsys):
     np.savez(tmp_path / "stack.npz", **data)
     assert main(["fit-image", str(tmp_path / "stack.npz"), "--out", str(tmp_path / "fit.zarr"), "--no-progress"]) == 0
     assert f"note: {note}" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("intensity", [False, True])
+def test_forward_differences_by_parts_are_those_of_the_stacked_points(intensity):
+    """``fd_jacobian(..., varied=PixelResiduals.varied)`` (the label stage's sums, the numpy
+    backend's descents) gives the residuals and Jacobians of the stacked points bit for bit, every
+    parameter free (ks as log ks with intensities), on pixels that share their geometry."""
+    from pbrdf_cl.fitting.common import fd_jacobian
+    from pbrdf_cl.fitting.images.pixels import Block, PixelResiduals, descent_bounds
+
+    truth = dict(n=1.6, k=2.139, sigma=0.5, ks=0.9, kd=0.15, c=-0.3)
+    rng = np.random.default_rng(3)
+    dop = pbrdf_cl.dop(TI, TR, **truth) + rng.normal(0, 0.003, (6, 30))
+    data = dict(dop=dop, theta_i=TI, theta_r=TR)
+    if intensity:
+        data["f00"] = pbrdf_cl.brdf(TI, TR, **truth) * (1 + rng.normal(0, 0.01, (6, 30)))
+    job = B.BatchJob(data)
+    names = job.names
+    blk = Block(job.source.rows(0, 6), job.setup, 1)
+    lo, hi = descent_bounds(job.setup, names)
+    X = lo + (hi - lo) * rng.uniform(size=(6, len(names)))  # the descent's coordinates (log ks)
+    X[0] = hi  # inward steps at the upper bounds
+    res = PixelResiduals(job.setup, blk, names, np.arange(6), job.setup.use_f00)
+    r0, J0 = fd_jacobian(res.rows, X, lo, hi)
+    r1, J1 = fd_jacobian(res.rows, X, lo, hi, varied=res.varied)
+    assert r0.tobytes() == r1.tobytes() and J0.tobytes() == J1.tobytes()
+    assert J0.shape == (6, len(names), 60 if intensity else 30) and np.all(np.isfinite(J0))

@@ -71,21 +71,27 @@ def fd_steps(x, hi):
 CENTRAL_STEP = 1e-6
 
 
-def fd_jacobian(rows, X, lo, hi, scheme="2-point"):
+def fd_jacobian(rows, X, lo, hi, scheme="2-point", varied=None):
     """Finite-difference Jacobians of a batched residual function at P points at once, the points
     and all their steps in one call of ``rows`` ((B, d) parameter vectors -> (B, M) residuals).
 
     ``scheme`` "2-point": scipy's forward differences (:func:`fd_steps`: relative step sqrt(eps),
     inwards at an upper bound); "central": steps of ``CENTRAL_STEP`` of each bound range either
-    side, cut (one-sided) at a bound.  Returns (R, J): the residuals at ``X`` (P, M) and the
-    Jacobians (P, d, M), ``J[p, j]`` the derivative along parameter j."""
+    side, cut (one-sided) at a bound.  ``varied`` (optional, "2-point" only): a function giving
+    what ``rows`` gives of the points and their steps, (X, columns, steps (P, d)) -> (P, d + 1,
+    M) (:meth:`pbrdf_cl.fitting.images.pixels.PixelResiduals.varied`, which computes each part of
+    the model again only for the steps that move it).  Returns (R, J): the residuals at ``X``
+    (P, M) and the Jacobians (P, d, M), ``J[p, j]`` the derivative along parameter j."""
     X = np.asarray(X, float)
     P, d = X.shape
     base = X[:, None, :]
     if scheme == "2-point":
         h = fd_steps(X, hi)
-        pts = np.concatenate([base, base + h[:, :, None] * np.eye(d)[None]], axis=1)
-        R = rows(pts.reshape(-1, d)).reshape(P, d + 1, -1)
+        if varied is not None:
+            R = varied(X, list(range(d)), h)
+        else:
+            pts = np.concatenate([base, base + h[:, :, None] * np.eye(d)[None]], axis=1)
+            R = rows(pts.reshape(-1, d)).reshape(P, d + 1, -1)
         J = R[:, 1:] - R[:, :1]
         J /= h[:, :, None]  # in place: of a big data set each (P, d, M) array is tens of MB
         return R[:, 0], J

@@ -251,7 +251,7 @@ class Passes:
         Xi = internal(X, job.names)
         few = all(n in self.shared or n not in job.names for n in ("n", "k"))  # n, k the label's
         res = PixelResiduals(setup, sub, job.names, np.arange(sub.p), setup.use_f00, few_nk=few)
-        r, J = fd_jacobian(res.rows, Xi, self.lo, self.hi)
+        r, J = fd_jacobian(res.rows, Xi, self.lo, self.hi, varied=res.varied)
         chi2 = np.einsum("pm,pm->p", r, r)
         M = sub.valid.shape[1]
         with np.errstate(divide="ignore", invalid="ignore"):

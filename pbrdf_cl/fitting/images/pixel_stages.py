@@ -278,7 +278,7 @@ def _lm_numpy(eng, setup, blk, X0, names, dtype, iterations, intensity):
     res = PixelResiduals(setup, blk, names, pix, intensity)
     Xi = internal(X0, names).reshape(S * p, D)
     X, sse, _ = lm_batch(res.rows, Xi, lo, hi, iterations, rows_apart=False)
-    r, J = fd_jacobian(res.rows, X, lo, hi)
+    r, J = fd_jacobian(res.rows, X, lo, hi, varied=res.varied)
     sse = np.einsum("pm,pm->p", r, r)
     jtj = np.einsum("pim,pjm->pij", J, J)
     return Descent(external(X, names).reshape(S, p, D), sse.reshape(S, p), jtj.reshape(S, p, D, D),
