@@ -251,6 +251,24 @@ def test_the_modes_of_the_own_parameters_end_pixel_by_pixel(dev, monkeypatch):
     assert rows == [p, p]
 
 
+def test_the_label_stage_descends_and_the_pixel_pass_fits(dev, monkeypatch):
+    """The label stage's start descends every pixel's own parameters from the grid (as its
+    refinement does) rather than fitting each with the usual stages: ``fit_block`` runs only in
+    the per-pixel pass, once per label and block, at the label's final values."""
+    from pbrdf_cl.fitting.images import pixel_fit
+
+    calls, fit = [], pixel_fit._fit_pixels  # what fit_block runs, wherever it is called from
+    monkeypatch.setattr(pixel_fit, "_fit_pixels", lambda eng, held, *a, **k: calls.append(held.fixed) or
+                        fit(eng, held, *a, **k))
+    data, lab = two_materials(8, 8, 0.006, seed=2)
+    job = LabelJob(data, labels=lab)
+    res = job.prepare(dev)
+    assert calls == []
+    out = job.fit_rows(dev, 0, 8)
+    assert [(c["n"], c["k"]) for c in calls] == [tuple(t) for t in res.theta]
+    assert np.all(out["status"] >= 0)
+
+
 def test_the_labels_are_corrected_together_as_each_alone(dev, monkeypatch):
     """:func:`label_adjust.integrated_correction` corrects every label in the same calls of the
     reference model, with the numbers each label has when it is corrected alone (bit for bit),

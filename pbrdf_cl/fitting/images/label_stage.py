@@ -14,8 +14,9 @@ in passes over the blocks of the stack (a label's pixels may lie in every block)
    SUBSAMPLE of the label's pixels held in memory): the SEEDS lowest local minima of the label's
    profile and the median of its pixels' own best nodes, each refined by a few Gauss-Newton
    steps (as in 3.) on the subsample and ranked by the subsample's chi2; the best seeds the
-   label, and every pixel is fitted with theta held there
-   (:func:`pbrdf_cl.fitting.images.pixel_fit.fit_block`, the usual stages for its own parameters).  The
+   label, and every pixel's own parameters are descended with theta held there (from the
+   GRID_STARTS best nodes of the grid of its own parameters, as in 3.; the per-pixel pass fits
+   them with the usual stages once the label's values are final).  The
    best end of another basin is refined on all the pixels too where its subsample chi2, scaled to
    the label, lies within RUNNER_UP_CHI2 of the best's; the basin of lower label chi2 is kept;
 3. the refinement, variable projection: each pass moves theta by a damped Gauss-Newton step on
@@ -74,7 +75,6 @@ from ..common import GOODNESS_P, X_RESOLUTION, fd_jacobian, valid_covariance
 from ..setup import PARAMETERS
 from . import label_search as search
 from .label_adjust import integrated_correction
-from .pixel_fit import fit_block
 from .pixels import Block, PixelResiduals, descent_bounds, grid_points, grid_values, internal, regions
 from .statistics import DETERMINED_FRACTION, truncated_interval
 
@@ -298,36 +298,6 @@ class Passes:
                 parts[c].append(row_parts((off + idx) // self.row, np.full(idx.size, L), vals, self.ids.size))
         return trial, parts
 
-    def start_block(self, r0, r1, fitted, active, theta):
-        """:meth:`_Stage.start` on rows r0..r1 (``fitted``: their pixels' marks): (the pixels whose
-        fit failed (p,), every pixel's own parameters (p, own; NaN where not fitted), the block's
-        :meth:`values` summed per row)."""
-        setup = self.job.setup
-        S = len(self.shared)
-        raw = self.job.source.rows(r0, r1)
-        off = r0 * self.row
-        lab = self.lab[off:off + raw["dop"].shape[0]]
-        fit = fitted & active[np.maximum(lab, 0)]
-        failed = np.zeros(lab.size, bool)
-        kept = np.full((lab.size, len(self.own)), np.nan)
-        parts = []
-        for L in np.unique(lab[fit]):
-            idx = np.flatnonzero(fit & (lab == L))
-            held = held_setup(setup, self.shared, theta[L])
-            out = fit_block(self.eng, held, take(raw, idx), self.order_own, self.rstart_own, self.own)
-            beta = out["x"]
-            if setup.use_f00 and "kd" in self.own:  # reported kd to the descent's kd/ks
-                beta[:, self.own.index("kd")] /= beta[:, self.own.index("ks")]
-            good = np.all(np.isfinite(beta), axis=1)
-            failed[idx[~good]] = True
-            idx, beta = idx[good], beta[good]
-            if idx.size:
-                kept[idx] = beta
-                at = np.broadcast_to(theta[L], (idx.size, S))
-                vals = self.values(setup, Block(take(raw, idx), setup, 1), at, beta)
-                parts.append(row_parts((off + idx) // self.row, np.full(idx.size, L), vals, self.ids.size))
-        return failed, kept, parts
-
     def descend(self, held, blk, previous):
         """Each pixel's own parameters at a trial theta (``held``): the best end of float32
         descents (``batch_lm``, LM_ITERATIONS) from its ``previous`` values (None: none) and
@@ -427,19 +397,17 @@ class _Stage(Passes):
         return np.stack([t.total for t in sums])
 
     def start(self, theta, active):
-        """The pass at the seeds ``theta`` (L, S): every pixel's own parameters fitted from scratch
-        with theta held (:func:`pbrdf_cl.fitting.images.pixel_fit.fit_block`: the usual stages) into
-        ``beta`` (a pixel whose fit fails leaves the label stage); the labels' sums there."""
-        S = len(self.shared)
-        sums = RowSums(self.ids.size, 5 + S * S + S)
-        for off, (failed, kept, parts) in self._blocks("start", "start",
-                                                       lambda off, p: (self.fitted[off:off + p].copy(), active, theta)):
-            self.fitted[off:off + failed.size] &= ~failed
-            mine = np.all(np.isfinite(kept), axis=1)
-            self.beta[off + np.flatnonzero(mine)] = kept[mine]
-            for part in parts:
-                sums.add_parts(*part)
-        return sums.total
+        """The pass at the seeds ``theta`` (L, S): every pixel's own parameters descended from the
+        grid of its own parameters alone (:meth:`evaluate` with ``start``) into ``beta`` (a pixel
+        whose descent fails leaves the label stage); the labels' sums there.  (The refinement's
+        passes descend them again at every step, each from its previous values and the grid; the
+        per-pixel pass fits them with the usual stages at the label's final values.)"""
+        sums = self.evaluate(theta[None], active, start=True)[0]
+        mine = self.fitted & active[np.maximum(self.lab, 0)]
+        kept = np.all(np.isfinite(self.trial_beta[0]), axis=1)
+        self.fitted &= ~(mine & ~kept)
+        self.beta[mine & kept] = self.trial_beta[0, mine & kept]
+        return sums
 
     def gather(self, picks):
         """One pass over the stack: the raw rows of the pixels ``picks`` (a list per label of flat

@@ -34,7 +34,7 @@ def run_label_block(job, token, kind, device, backend, r0, r1, *args):
     token : str
         The label stage's run: the worker builds its ``Passes`` once per run (dropping another
         run's, so that a long-lived worker keeps one stack).
-    kind : {"profile", "start", "evaluate", "gather"}
+    kind : {"profile", "evaluate", "gather"}
         The pass.
     device, backend
         The engine each worker builds once (``pbrdf_cl.store.cluster.worker_engine``).
