@@ -666,6 +666,24 @@ def test_the_label_sums_compute_fresnel_once_per_n_k(monkeypatch):
     assert rows == [blk.p * 6, 3]
 
 
+def test_fresnel_rows_are_the_reference_taken_back_as_read():
+    """``pixels.fresnel_rows`` of rows of (n, k) in runs (two labels' values, one repeated
+    later) is the reference's Fresnel of every row bit for bit, each field taken back to the rows
+    only once it is read."""
+    from pbrdf_cl.fitting.images import pixels as P
+    from pbrdf_cl.model import reference
+
+    g = reference.geometry(TI[None], TR[None], np.full((1, 30), 180.0))
+    n = np.repeat([1.6, 1.4, 1.6, 1.6 + 1e-9], [3, 2, 2, 1])[:, None]
+    k = np.repeat([2.139, 0.5, 2.139, 2.139], [3, 2, 2, 1])[:, None]
+    rows = P.fresnel_rows(n, k, g)
+    ref = reference.fresnel(n, k, g.cb, g.sb)
+    assert "Rs" not in vars(rows)
+    for name in ("Rs", "Rp", "diff"):
+        assert getattr(rows, name).tobytes() == getattr(ref, name).tobytes(), name
+    assert "re_x" not in vars(rows) and rows.re_x.tobytes() == ref.re_x.tobytes()
+
+
 def test_the_correction_varies_each_part_of_the_model_only_with_its_parameters(monkeypatch):
     """The integrated correction's rows (every pixel and its forward differences along sigma, kd
     and c) are :meth:`PixelResiduals.rows` of the stacked points bit for bit, with the shadowing

@@ -372,17 +372,31 @@ class PixelResiduals:
         return np.where(np.isfinite(r), r, 1e150)
 
 
+class _RowsOf:
+    """The fields of :func:`pbrdf_cl.model.reference.fresnel` computed per distinct (n, k) (``f``),
+    each taken back to the rows (``inv``) when it is first read: the DOP and intensity rows read
+    three of its five."""
+
+    def __init__(self, f, inv):
+        self._f, self._inv = f, inv
+
+    def __getattr__(self, name):
+        v = getattr(self._f, name)[self._inv]
+        setattr(self, name, v)
+        return v
+
+
 def fresnel_rows(n, k, g):
     """:func:`pbrdf_cl.model.reference.fresnel` of rows of (n, k) (each (B, 1) or a number) over
     the geometry ``g`` shared by the rows ((1, M)), computed once per distinct (n, k) and taken
-    back to the rows: element by element the same numbers (every operation is elementwise)."""
+    back to the rows (each field as it is read): element by element the same numbers (every
+    operation is elementwise)."""
     B = max(np.size(n), np.size(k))
     nk = np.stack([np.broadcast_to(np.asarray(n, float), (B, 1))[:, 0],
                    np.broadcast_to(np.asarray(k, float), (B, 1))[:, 0]], axis=1)
     starts = np.flatnonzero(np.concatenate([[True], np.any(nk[1:] != nk[:-1], axis=1)]))  # runs of equal rows
-    u, inv = np.unique(nk[starts], axis=0, return_inverse=True)
-    f = reference.fresnel(u[:, :1], u[:, 1:], g.cb, g.sb)
-    inv = np.repeat(inv.ravel(), np.diff(np.append(starts, B)))
-    for name, v in vars(f).items():
-        setattr(f, name, v[inv])
-    return f
+    # distinct (n, k) in the order np.unique(axis=0) gives (complex numbers sort by real, then
+    # imaginary part), without its structured view
+    u, inv = np.unique(nk[starts, 0] + 1j * nk[starts, 1], return_inverse=True)
+    f = reference.fresnel(u.real[:, None], u.imag[:, None], g.cb, g.sb)
+    return _RowsOf(f, np.repeat(inv.ravel(), np.diff(np.append(starts, B))))
