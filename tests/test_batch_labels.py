@@ -308,7 +308,8 @@ def test_a_runner_up_that_joins_the_kept_basin_changes_nothing(dev, monkeypatch)
 def test_the_labels_are_corrected_together_as_each_alone(dev, monkeypatch):
     """:func:`label_adjust.integrated_correction` corrects every label in the same calls of the
     reference model, with the numbers each label has when it is corrected alone (bit for bit),
-    in fewer calls than one label after the other."""
+    in fewer calls than one label after the other; in groups of at most GROUP_PIXELS pixels
+    (one label each here) the same numbers again."""
     from pbrdf_cl.fitting.images import label_adjust as la
     from pbrdf_cl.fitting.images import label_stage as ls
     from pbrdf_cl.fitting.images import pixels as P
@@ -328,6 +329,11 @@ def test_the_labels_are_corrected_together_as_each_alone(dev, monkeypatch):
         np.testing.assert_array_equal(alone[1][L], both[1][L])
     assert not np.array_equal(both[0], theta)  # corrected
     assert together < len(calls) - together, (together, len(calls) - together)
+    monkeypatch.setattr(la, "GROUP_PIXELS", 1)  # groups of one label: memory bounded by a label's
+    calls.clear()
+    grouped = la.integrated_correction(st, theta, sums, ok)
+    assert grouped[0].tobytes() == both[0].tobytes() and grouped[1].tobytes() == both[1].tobytes()
+    assert len(calls) > together
 
 
 def test_the_integrated_likelihood_steps_to_its_minimum():

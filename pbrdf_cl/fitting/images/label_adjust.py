@@ -27,9 +27,9 @@ a larger label the correction is that subsample's, its sampling noise taken out 
 gradient there and its remaining noise added to the interval (:func:`integrated_correction`).
 What bias G leaves does not shrink with the label's pixels while the profile's standard error
 does: a label of more than PRECISION_PIXELS pixels reports the covariance of that many of them.
-The labels are corrected together (:class:`Integrated` holds all their pixels): each call of the
-reference model evaluates the rows of every label still stepping, and each label's numbers are
-those it would have alone.
+The labels are corrected together, in groups of at most GROUP_PIXELS pixels (:class:`Integrated`
+holds a group's pixels): each call of the reference model evaluates the rows of every label of
+the group still stepping, and each label's numbers are those it would have alone.
 """
 from __future__ import annotations
 
@@ -63,6 +63,9 @@ MAX_STEP = 3.0
 POPULATION_ROUNDS = 2
 #: Pixels of each label G is evaluated on (all of a smaller label; evenly spaced).
 PIXELS = 128
+#: Labels are corrected together in groups of at most this many pixels (one label at least): the
+#: model's temporaries then take a few tens of MB whatever the number of labels.
+GROUP_PIXELS = 1024
 #: The most pixels whose precision a corrected label's interval claims: a larger label's
 #: covariance is that of this many of its pixels (its own times pixels / PRECISION_PIXELS).  What
 #: bias G leaves is about the same whatever the label's size while its standard error shrinks
@@ -266,7 +269,6 @@ def integrated_correction(st, theta, sums, ok, pixels=None):
     it.  (G's own curvature, 2 H^-1, and the sandwich of the pixels' gradients both covered less
     than the profile's: docs/joint_images.md.)"""
     setup, names = st.job.setup, st.job.names
-    s, span = st.si, st.span[st.si]
     s2 = st.scale(sums)
     cov = st.covariance(sums).cov.copy()
     picks = subsample(st, PIXELS if pixels is None else pixels)
@@ -285,15 +287,37 @@ def integrated_correction(st, theta, sums, ok, pixels=None):
         betas.append(beta[keep])
         totals.append(total)
         ses.append(se)
-    if not labels:
-        return out, cov
-    n = len(labels)
-    thin = [picks[L].size < total for L, total in zip(labels, totals)]
-    itg = Integrated(setup, names, st.shared, raws, betas, s2[labels], st.lo, st.hi)
-    itg.fit_population(theta[labels], np.arange(n))
-    t, se = theta[labels] / span, np.array(ses)
+    sizes, start = [b.shape[0] for b in betas], 0
+    while start < len(labels):  # groups of labels of at most GROUP_PIXELS pixels (one label at least)
+        end = start + 1
+        while end < len(labels) and sum(sizes[start:end + 1]) <= GROUP_PIXELS:
+            end += 1
+        grp = labels[start:end]
+        itg = Integrated(setup, names, st.shared, raws[start:end], betas[start:end], s2[grp], st.lo, st.hi)
+        thin = [picks[L].size < total for L, total in zip(grp, totals[start:end])]
+        for j, t, noise in _corrected(st, itg, theta[grp], np.array(ses[start:end]), totals[start:end], thin):
+            L = grp[j]
+            if t is None:
+                continue
+            out[L] = t
+            if noise is not None:
+                cov[L] = cov[L] + noise
+            cov[L] = cov[L] * max(1.0, totals[start + j] / PRECISION_PIXELS)
+        start = end
+    return out, cov
+
+
+def _corrected(st, itg, theta, se, totals, thin):
+    """The corrected values of the labels of ``itg`` from their values ``theta`` (n, S) and
+    standard errors ``se`` (n, S, scaled coordinates; ``totals``: their pixels, ``thin``: whether
+    ``itg`` holds a subsample of them): per label (its index among them, its values or None
+    where G has no positive curvature, the correction's noise to add to its covariance)."""
+    s, span = st.si, st.span[st.si]
+    n = theta.shape[0]
+    itg.fit_population(theta, np.arange(n))
+    t = theta / span
     lo, hi = st.lo[s] / span, st.hi[s] / span
-    cf = [itg.profile_gradient(theta[L], j) * span if thin[j] else np.zeros((1, len(s))) for j, L in enumerate(labels)]
+    cf = [itg.profile_gradient(theta[j], j) * span if thin[j] else np.zeros((1, len(s))) for j in range(n)]
     tilt, noise, H = [c.sum(axis=0) for c in cf], [0.0] * n, [None] * n  # tilt: the subsample's noise in F's gradient
     todo = np.arange(n)
     for r in range(NEWTON_ROUNDS):
@@ -309,14 +333,8 @@ def integrated_correction(st, theta, sums, ok, pixels=None):
             break
         todo = np.array(going)
         itg.fit_population(t[todo] * span, todo, POPULATION_ROUNDS)
-    for j, L in enumerate(labels):
-        if positive_inverse(H[j]) is None:
-            continue
-        out[L] = t[j] * span
-        if thin[j]:
-            cov[L] = cov[L] + noise[j]
-        cov[L] = cov[L] * max(1.0, totals[j] / PRECISION_PIXELS)
-    return out, cov
+    return [(j, None if positive_inverse(H[j]) is None else t[j] * span, noise[j] if thin[j] else None)
+            for j in range(n)]
 
 
 def stencil(itg, t, se, lo, hi, span, ls):
