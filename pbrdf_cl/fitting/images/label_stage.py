@@ -13,12 +13,14 @@ in passes over the blocks of the stack (a label's pixels may lie in every block)
 2. the search (:mod:`pbrdf_cl.fitting.images.label_search`, on an evenly spaced subsample of at most
    SUBSAMPLE of the label's pixels held in memory): the SEEDS lowest local minima of the label's
    profile and the median of its pixels' own best nodes, each refined by a few Gauss-Newton
-   steps (as in 3.) on the subsample and ranked by the subsample's chi2; the best seeds the
+   steps (as in 3.) on the subsample and ranked by the subsample's chi2; the best, refined on to
+   the subsample's optimum (at most ``label_search.POLISH_ROUNDS`` more steps), seeds the
    label, and every pixel's own parameters are descended with theta held there (from the
    GRID_STARTS best nodes of the grid of its own parameters, as in 3.; the per-pixel pass fits
    them with the usual stages once the label's values are final).  The
    best end of another basin is refined on all the pixels too where its subsample chi2, scaled to
-   the label, lies within RUNNER_UP_CHI2 of the best's; the basin of lower label chi2 is kept;
+   the label, lies within RUNNER_UP_CHI2 of the best's and it stays apart from the best's basin
+   when refined further on the subsample; the basin of lower label chi2 is kept;
 3. the refinement, variable projection: each pass moves theta by a damped Gauss-Newton step on
    F from the sums over the label's pixels of the Schur complement of each pixel's normal
    equations (the information on theta left once the pixel's own parameters are eliminated) and
@@ -425,31 +427,41 @@ class _Stage(Passes):
 
     def local_fit(self, raw, theta, rounds, beta=None):
         """The shared parameters of one label refined on the in-memory pixels ``raw`` from ``theta``:
-        each pixel's own parameters descended there (:meth:`descend`, from ``beta`` where given),
-        then up to ``rounds`` damped Gauss-Newton steps (:meth:`step`) kept where the chi2 of these
-        pixels falls.  Returns (theta, sums of :meth:`values` over the pixels, beta); a pixel whose
-        descent fails counts nowhere."""
+        each pixel's own parameters descended there (:meth:`local_at`, from ``beta`` where given),
+        then up to ``rounds`` damped Gauss-Newton steps (:meth:`local_steps`) kept where the chi2
+        of these pixels falls.  Returns (theta, sums of :meth:`values` over the pixels, beta); a
+        pixel whose descent fails counts nowhere."""
+        beta, sums = self.local_at(raw, theta, beta)
+        theta, sums, beta, _ = self.local_steps(raw, theta, sums, beta, rounds)
+        return theta, sums, beta
+
+    def local_at(self, raw, theta, previous=None):
+        """The own parameters of the in-memory pixels ``raw`` descended (:meth:`descend`, from
+        ``previous`` where given) with the shared held at ``theta``: (beta, the sums of
+        :meth:`values` over the pixels whose values are finite)."""
         setup, S = self.job.setup, len(self.shared)
-        sub = Block(raw, setup, 1)
+        held = held_setup(setup, self.shared, theta)
+        b = self.descend(held, Block(raw, held, self.lanes), previous)
+        v = self.values(setup, Block(raw, setup, 1), np.broadcast_to(theta, (b.shape[0], S)), b)
+        return b, v[np.all(np.isfinite(v), axis=1)].sum(axis=0)
 
-        def at(t, previous):
-            held = held_setup(setup, self.shared, t)
-            b = self.descend(held, Block(raw, held, self.lanes), previous)
-            v = self.values(setup, sub, np.broadcast_to(t, (sub.p, S)), b)
-            return b, v[np.all(np.isfinite(v), axis=1)].sum(axis=0)
-
-        beta, sums = at(theta, beta)
-        lam = np.array([1e-3])
+    def local_steps(self, raw, theta, sums, beta, rounds, lam=1e-3):
+        """Up to ``rounds`` damped Gauss-Newton steps (:meth:`step`, Marquardt damping ``lam``) of
+        one label's shared parameters on the in-memory pixels ``raw`` from ``theta`` (``sums``,
+        ``beta``: :meth:`local_at` there), each kept where the chi2 of these pixels falls; they
+        stop where a step would lower it by less than CHI2_TOL (times its chi2 scale).  Returns
+        (theta, sums, beta, lam): a later call resumes where this one stopped."""
+        lam = np.array([lam], float)
         for _ in range(rounds):
             trial, predicted = self.step(theta[None], sums[None], lam)
             if predicted[0] <= CHI2_TOL * self.scale(sums[None])[0]:
                 break
-            b, v = at(trial[0], beta)
+            b, v = self.local_at(raw, trial[0], beta)
             if v[3] < sums[3]:
                 theta, sums, beta, lam = trial[0], v, b, lam / 3.0
             else:
                 lam = lam * 10.0
-        return theta, sums, beta
+        return theta, sums, beta, float(lam[0])
 
     def unpack(self, sums):
         """(pixels, rows, floor^2 sum, chi2, sse, Schur (L, S, S), gradient (L, S)) from sums."""
