@@ -360,6 +360,26 @@ def test_the_refinement_starts_at_the_subsample_optimum(dev, monkeypatch):
     assert res.rounds <= 4 and not np.any(gap < label_stage.search.RUNNER_UP_CHI2), (res.rounds, gap)
 
 
+def test_the_search_skips_a_step_it_has_just_rejected(dev, monkeypatch):
+    """A damped step of the subsample's refinement hardly shorter than the one just rejected
+    (label_stage.SAME_STEP; the chi2 rose along it by more than the fall it predicted) is
+    rejected without descending the pixels again: on this stack every candidate's steps from a
+    far node were rejected alike, now with fewer descents and the same labels bit for bit."""
+    from pbrdf_cl.fitting.images import label_stage
+
+    data, lab = two_materials(16, 16, 0.003, seed=1)
+    calls, at = [], label_stage._Stage.local_at
+    monkeypatch.setattr(label_stage._Stage, "local_at", lambda *a: calls.append(1) or at(*a))
+    res = LabelJob(data, labels=lab).prepare(dev)
+    skipped = len(calls)
+    monkeypatch.setattr(label_stage, "SAME_STEP", 0.0)
+    calls.clear()
+    every = LabelJob(data, labels=lab).prepare(dev)
+    assert skipped <= len(calls) - 5, (skipped, len(calls))
+    np.testing.assert_array_equal(res.theta, every.theta)
+    np.testing.assert_array_equal(res.ci95, every.ci95)
+
+
 def test_the_label_search_leaves_k_0_where_k_is_larger(dev):
     """Seeds 35 and 39 at DOP noise 0.01: every candidate's refinement for the dielectric (truth
     n 1.4, k 0.5) ended at k = 0, where the chi2's derivative in k vanishes (k enters as k^2), so
