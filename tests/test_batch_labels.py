@@ -380,6 +380,29 @@ def test_the_search_skips_a_step_it_has_just_rejected(dev, monkeypatch):
     np.testing.assert_array_equal(res.ci95, every.ci95)
 
 
+def test_the_search_prepares_each_subsample_once(dev, monkeypatch):
+    """The search prepares each label's subsample once (``_Stage.local_blocks``: the blocks of its
+    descents and of its sums), not at every trial value; a prepared subsample and its raw rows
+    give the same descents and sums bit for bit."""
+    from pbrdf_cl.fitting.images import label_stage
+
+    made, searching, Block, rank = [], [], label_stage.Block, label_stage.search.rank_seeds
+    monkeypatch.setattr(label_stage, "Block", lambda *a: made.append(bool(searching)) or Block(*a))
+
+    def ranked(st, subs, *a):
+        searching.append(1)
+        out = rank(st, subs, *a)
+        searching.clear()
+        th = np.array([1.45, 0.6])
+        for x, y in zip(st.local_at(subs[1], th), st.local_at(st.local_blocks(subs[1]), th)):
+            np.testing.assert_array_equal(x, y)
+        return out
+    monkeypatch.setattr(label_stage.search, "rank_seeds", ranked)
+    data, lab = two_materials(8, 8, 0.006, seed=2)
+    LabelJob(data, labels=lab).prepare(dev)
+    assert sum(made) == 2 * 2, sum(made)
+
+
 def test_the_label_search_leaves_k_0_where_k_is_larger(dev):
     """Seeds 35 and 39 at DOP noise 0.01: every candidate's refinement for the dielectric (truth
     n 1.4, k 0.5) ended at k = 0, where the chi2's derivative in k vanishes (k enters as k^2), so

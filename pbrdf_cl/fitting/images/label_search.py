@@ -4,8 +4,9 @@ its chi2), the optional parametric bootstrap of the estimator inverted as a test
 (:func:`binding_correction`) and, without ``dop_std``, the goodness-of-fit test of each label (:func:`f_test`).
 
 Both take the label stage (``pbrdf_cl.fitting.images.label_stage._Stage``) as ``st`` and use only its
-public methods (``local_fit``, ``local_at``, ``local_steps``, ``scale``); the subsample is a fixed,
-evenly spaced choice of each label's fitted pixels (:func:`subsample`), so the results do not depend on the blocks.
+public methods (``local_fit``, ``local_blocks``, ``local_at``, ``local_steps``, ``scale``); the
+subsample is a fixed, evenly spaced choice of each label's fitted pixels (:func:`subsample`), so
+the results do not depend on the blocks.
 """
 from __future__ import annotations
 
@@ -87,21 +88,21 @@ def rank_seeds(st, subs, cand, ok, pixels):
     runner = np.full((L_n, S), np.nan)
     gap = np.full(L_n, np.inf)
     for L in np.flatnonzero(ok):
-        ends = []
+        ends, sub = [], st.local_blocks(subs[L])
         for c in range(cand.shape[0]):
             t = cand[c, L]
             if not np.all(np.isfinite(t)) or any(np.array_equal(t, cand[d, L]) for d in range(c)):
                 continue
-            ends.append(short_fit(st, subs[L], t))
+            ends.append(short_fit(st, sub, t))
         for t in inward_starts(st, [e[0] for e in ends if e is not None]):
-            ends.append(short_fit(st, subs[L], t))
+            ends.append(short_fit(st, sub, t))
         ends = sorted((e for e in ends if e is not None), key=lambda e: e[1][3])
         if not ends:
             best[L] = cand[0, L]
             continue
-        first = polish(st, subs[L], ends[0])
+        first = polish(st, sub, ends[0])
         best[L] = first[0]
-        runner[L], gap[L] = runner_up(st, subs[L], ends, first, pixels[L])
+        runner[L], gap[L] = runner_up(st, sub, ends, first, pixels[L])
     return best, runner, gap
 
 

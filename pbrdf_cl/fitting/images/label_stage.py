@@ -438,26 +438,37 @@ class _Stage(Passes):
         then up to ``rounds`` damped Gauss-Newton steps (:meth:`local_steps`) kept where the chi2
         of these pixels falls.  Returns (theta, sums of :meth:`values` over the pixels, beta); a
         pixel whose descent fails counts nowhere."""
+        raw = self.local_blocks(raw)
         beta, sums = self.local_at(raw, theta, beta)
         theta, sums, beta, _ = self.local_steps(raw, theta, sums, beta, rounds)
         return theta, sums, beta
 
+    def local_blocks(self, raw):
+        """The in-memory pixels ``raw`` prepared once for :meth:`local_at` (which takes either):
+        (raw, their block for the descents, their block for :meth:`values`)."""
+        if isinstance(raw, tuple):
+            return raw
+        setup = self.job.setup  # a block does not depend on the values held (held_setup)
+        return raw, Block(raw, setup, self.lanes), Block(raw, setup, 1)
+
     def local_at(self, raw, theta, previous=None):
-        """The own parameters of the in-memory pixels ``raw`` descended (:meth:`descend`, from
-        ``previous`` where given) with the shared held at ``theta``: (beta, the sums of
-        :meth:`values` over the pixels whose values are finite)."""
+        """The own parameters of the in-memory pixels ``raw`` (or :meth:`local_blocks` of them)
+        descended (:meth:`descend`, from ``previous`` where given) with the shared held at
+        ``theta``: (beta, the sums of :meth:`values` over the pixels whose values are finite)."""
+        _, blk, sub = self.local_blocks(raw)
         setup, S = self.job.setup, len(self.shared)
-        held = held_setup(setup, self.shared, theta)
-        b = self.descend(held, Block(raw, held, self.lanes), previous)
-        v = self.values(setup, Block(raw, setup, 1), np.broadcast_to(theta, (b.shape[0], S)), b)
+        b = self.descend(held_setup(setup, self.shared, theta), blk, previous)
+        v = self.values(setup, sub, np.broadcast_to(theta, (b.shape[0], S)), b)
         return b, v[np.all(np.isfinite(v), axis=1)].sum(axis=0)
 
     def local_steps(self, raw, theta, sums, beta, rounds, lam=1e-3):
         """Up to ``rounds`` damped Gauss-Newton steps (:meth:`step`, Marquardt damping ``lam``) of
-        one label's shared parameters on the in-memory pixels ``raw`` from ``theta`` (``sums``,
-        ``beta``: :meth:`local_at` there), each kept where the chi2 of these pixels falls; they
-        stop where a step would lower it by less than CHI2_TOL (times its chi2 scale).  Returns
-        (theta, sums, beta, lam): a later call resumes where this one stopped."""
+        one label's shared parameters on the in-memory pixels ``raw`` (or :meth:`local_blocks` of
+        them) from ``theta`` (``sums``, ``beta``: :meth:`local_at` there), each kept where the
+        chi2 of these pixels falls; they stop where a step would lower it by less than CHI2_TOL
+        (times its chi2 scale).  Returns (theta, sums, beta, lam): a later call resumes where this
+        one stopped."""
+        raw = self.local_blocks(raw)
         lam, span, rejected = np.array([lam], float), self.span[self.si], None
         for _ in range(rounds):
             trial, predicted = self.step(theta[None], sums[None], lam)
