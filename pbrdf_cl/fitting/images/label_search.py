@@ -76,9 +76,8 @@ def rank_seeds(st, subs, cand, ok, pixels):
     """Every candidate seed ``cand`` (C, L, S) of each label refined on the label's subsample
     ``subs`` (``st.local_at``, ``st.local_steps``: RANK_ROUNDS steps) and ranked by the
     subsample's chi2; the best end then refined on, up to POLISH_ROUNDS more steps (the seed of
-    the refinement on all the pixels, which then starts near its optimum), and so is each end of
-    another basin whose chi2 lies within RUNNER_UP_CHI2 of it (one that comes within SAME_BASIN
-    of the best end joins its basin: the next is tried).
+    the refinement on all the pixels, which then starts near its optimum).  The runner-up and
+    its gap are those of the ends as ranked (:func:`runner_up`).
 
     Returns (best, runner_up, gap): the best end (L, S); the best end of another basin (NaN where
     none); the runner-up's chi2 above the best's, scaled by ``pixels`` over the subsample's pixels
@@ -100,34 +99,20 @@ def rank_seeds(st, subs, cand, ok, pixels):
         if not ends:
             best[L] = cand[0, L]
             continue
-        first = polish(st, sub, ends[0])
-        best[L] = first[0]
-        runner[L], gap[L] = runner_up(st, sub, ends, first, pixels[L])
+        best[L] = polish(st, sub, ends[0])[0]
+        runner[L], gap[L] = runner_up(st, ends, pixels[L])
     return best, runner, gap
 
 
-def runner_up(st, raw, ends, first, pixels):
+def runner_up(st, ends, pixels):
     """Of one label's subsample ``ends`` (chi2 order), the first end of another basin than the
-    best's (``ends[0]``, refined on to ``first``): one whose chi2 lies within RUNNER_UP_CHI2 of
-    the best's is refined on (POLISH_ROUNDS) and skipped where it joins the best's basin.  Returns
-    (its theta, its chi2 above the best's scaled to the label's ``pixels`` and chi2 scale), or
-    (NaN, inf) where none."""
+    best's (``ends[0]``; as its RANK_ROUNDS steps left it, before it is refined on): (its theta, its
+    chi2 above the best's scaled to the label's ``pixels`` and chi2 scale), or (NaN, inf) where
+    none."""
     span = st.span[st.si]
-    scale = st.scale(first[1][None])[0]
-
-    def apart(theta):
-        return all(np.any(np.abs(theta - u) > SAME_BASIN * span) for u in (ends[0][0], first[0]))
-
-    def above(sums):
-        return (sums[3] - first[1][3]) * pixels / sums[0] / scale
-    for end in ends[1:]:
-        if not apart(end[0]):
-            continue
-        if above(end[1]) < RUNNER_UP_CHI2:
-            end = polish(st, raw, end)
-            if not apart(end[0]):
-                continue
-        return end[0], above(end[1])
+    for theta, sums, _, _ in ends[1:]:
+        if np.any(np.abs(theta - ends[0][0]) > SAME_BASIN * span):
+            return theta, (sums[3] - ends[0][1][3]) * pixels / sums[0] / st.scale(ends[0][1][None])[0]
     return np.nan, np.inf
 
 

@@ -17,10 +17,9 @@ in passes over the blocks of the stack (a label's pixels may lie in every block)
    the subsample's optimum (at most ``label_search.POLISH_ROUNDS`` more steps), seeds the
    label, and every pixel's own parameters are descended with theta held there (from the
    GRID_STARTS best nodes of the grid of its own parameters, as in 3.; the per-pixel pass fits
-   them with the usual stages once the label's values are final).  The
-   best end of another basin is refined on all the pixels too where its subsample chi2, scaled to
-   the label, lies within RUNNER_UP_CHI2 of the best's and it stays apart from the best's basin
-   when refined further on the subsample; the basin of lower label chi2 is kept;
+   them with the usual stages once the label's values are final).  The best end of another
+   basin is refined on all the pixels too where its subsample chi2, scaled to the label, lies
+   within RUNNER_UP_CHI2 of the best's (both as ranked); the basin of lower label chi2 is kept;
 3. the refinement, variable projection: each pass moves theta by a damped Gauss-Newton step on
    F from the sums over the label's pixels of the Schur complement of each pixel's normal
    equations (the information on theta left once the pixel's own parameters are eliminated) and
