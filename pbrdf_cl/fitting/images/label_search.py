@@ -4,8 +4,9 @@ its chi2), the optional parametric bootstrap of the estimator inverted as a test
 (:func:`binding_correction`) and, without ``dop_std``, the goodness-of-fit test of each label (:func:`f_test`).
 
 Both take the label stage (``pbrdf_cl.fitting.images.label_stage._Stage``) as ``st`` and use only its
-public methods (``local_fit``, ``scale``); the subsample is a fixed, evenly spaced choice of each
-label's fitted pixels (:func:`subsample`), so the results do not depend on the blocks.
+public methods (``local_fit``, ``local_blocks``, ``local_at``, ``local_steps``, ``scale``); the
+subsample is a fixed, evenly spaced choice of each label's fitted pixels (:func:`subsample`), so
+the results do not depend on the blocks.
 """
 from __future__ import annotations
 
@@ -19,6 +20,10 @@ from .pixels import Block, PixelResiduals, internal
 SUBSAMPLE = 32
 #: Gauss-Newton steps of each candidate seed on the subsample before they are ranked.
 RANK_ROUNDS = 3
+#: Further Gauss-Newton steps at most of the best end on the subsample (and of an end of another
+#: basin that may be refined on all the pixels), so that the refinement on all the pixels starts
+#: near its optimum.
+POLISH_ROUNDS = 12
 #: Candidates whose subsample refinements end closer than this fraction of the bounds (in every
 #: shared parameter) are one basin.
 SAME_BASIN = 0.02
@@ -69,7 +74,10 @@ def median_node(st, nodes_of_pixels):
 
 def rank_seeds(st, subs, cand, ok, pixels):
     """Every candidate seed ``cand`` (C, L, S) of each label refined on the label's subsample
-    ``subs`` (``st.local_fit``, RANK_ROUNDS steps) and ranked by the subsample's chi2.
+    ``subs`` (``st.local_at``, ``st.local_steps``: RANK_ROUNDS steps) and ranked by the
+    subsample's chi2; the best end then refined on, up to POLISH_ROUNDS more steps (the seed of
+    the refinement on all the pixels, which then starts near its optimum).  The runner-up and
+    its gap are those of the ends as ranked (:func:`runner_up`).
 
     Returns (best, runner_up, gap): the best end (L, S); the best end of another basin (NaN where
     none); the runner-up's chi2 above the best's, scaled by ``pixels`` over the subsample's pixels
@@ -78,31 +86,48 @@ def rank_seeds(st, subs, cand, ok, pixels):
     best = np.full((L_n, S), np.nan)
     runner = np.full((L_n, S), np.nan)
     gap = np.full(L_n, np.inf)
-    span = st.span[st.si]
     for L in np.flatnonzero(ok):
-        ends = []
+        ends, sub = [], st.local_blocks(subs[L])
         for c in range(cand.shape[0]):
             t = cand[c, L]
             if not np.all(np.isfinite(t)) or any(np.array_equal(t, cand[d, L]) for d in range(c)):
                 continue
-            theta, sums, _ = st.local_fit(subs[L], t, RANK_ROUNDS)
-            if np.isfinite(sums[3]) and sums[0] > 0:
-                ends.append((sums[3], theta, sums))
-        for t in inward_starts(st, [e[1] for e in ends]):
-            theta, sums, _ = st.local_fit(subs[L], t, RANK_ROUNDS)
-            if np.isfinite(sums[3]) and sums[0] > 0:
-                ends.append((sums[3], theta, sums))
+            ends.append(short_fit(st, sub, t))
+        for t in inward_starts(st, [e[0] for e in ends if e is not None]):
+            ends.append(short_fit(st, sub, t))
+        ends = sorted((e for e in ends if e is not None), key=lambda e: e[1][3])
         if not ends:
             best[L] = cand[0, L]
             continue
-        ends.sort(key=lambda e: e[0])
-        best[L] = ends[0][1]
-        for chi2, theta, sums in ends[1:]:
-            if np.any(np.abs(theta - best[L]) > SAME_BASIN * span):
-                runner[L] = theta
-                gap[L] = (chi2 - ends[0][0]) * pixels[L] / sums[0] / st.scale(ends[0][2][None])[0]
-                break
+        best[L] = polish(st, sub, ends[0])[0]
+        runner[L], gap[L] = runner_up(st, ends, pixels[L])
     return best, runner, gap
+
+
+def runner_up(st, ends, pixels):
+    """Of one label's subsample ``ends`` (chi2 order), the first end of another basin than the
+    best's (``ends[0]``; as its RANK_ROUNDS steps left it, before it is refined on): (its theta, its
+    chi2 above the best's scaled to the label's ``pixels`` and chi2 scale), or (NaN, inf) where
+    none."""
+    span = st.span[st.si]
+    for theta, sums, _, _ in ends[1:]:
+        if np.any(np.abs(theta - ends[0][0]) > SAME_BASIN * span):
+            return theta, (sums[3] - ends[0][1][3]) * pixels / sums[0] / st.scale(ends[0][1][None])[0]
+    return np.nan, np.inf
+
+
+def polish(st, raw, end):
+    """An ``end`` of :func:`short_fit` refined on (POLISH_ROUNDS steps at most, its damping on)."""
+    theta, sums, beta, lam = end
+    return st.local_steps(raw, theta, sums, beta, POLISH_ROUNDS, lam)
+
+
+def short_fit(st, raw, theta):
+    """A candidate seed ``theta`` refined on the subsample ``raw`` (RANK_ROUNDS steps): (theta,
+    sums, beta, damping) as ``st.local_steps`` returns them, or None where no pixel counts."""
+    beta, sums = st.local_at(raw, theta)
+    end = st.local_steps(raw, theta, sums, beta, RANK_ROUNDS)
+    return end if np.isfinite(end[1][3]) and end[1][0] > 0 else None
 
 
 def inward_starts(st, ends):
