@@ -269,42 +269,6 @@ def test_the_label_stage_descends_and_the_pixel_pass_fits(dev, monkeypatch):
     assert np.all(out["status"] >= 0)
 
 
-def test_a_runner_up_that_joins_the_kept_basin_changes_nothing(dev, monkeypatch):
-    """A runner-up basin whose refinement on all the pixels comes within JOIN_SE standard errors
-    of the kept values has joined their basin: it stops there, the kept values, intervals and
-    status stay (no other basin marks the label ambiguous).  Here the search's runner-up of the
-    first label is put 3 standard errors from its best end."""
-    from pbrdf_cl.fitting.images import label_search as ls
-    from pbrdf_cl.fitting.images import label_stage
-
-    data, lab = two_materials(8, 8, 0.006, seed=2)
-    rank = ls.rank_seeds
-
-    def alone(st, subs, cand, ok, pixels):
-        best, runner, gap = rank(st, subs, cand, ok, pixels)
-        return best, np.full_like(runner, np.nan), np.full_like(gap, np.inf)
-    monkeypatch.setattr(label_stage.search, "rank_seeds", alone)
-    first = LabelJob(data, labels=lab).prepare(dev)
-    profile_only = LabelJob(data, labels=lab)
-    profile_only.integrated = False
-    plain = profile_only.prepare(dev)  # the refinement's end (32 pixels a label: no interval floor)
-    near = np.where([[True], [False]], plain.theta + 3 * plain.stderr, np.nan)
-
-    def runner_up(st, subs, cand, ok, pixels):
-        best, runner, gap = rank(st, subs, cand, ok, pixels)
-        return best, near, np.array([0.0, np.inf])
-    monkeypatch.setattr(label_stage.search, "rank_seeds", runner_up)
-    refits = []
-    refit = label_stage.refit_runner_up
-    monkeypatch.setattr(label_stage, "refit_runner_up", lambda *a: refits.append(refit(*a)) or refits[-1])
-    second = LabelJob(data, labels=lab).prepare(dev)
-    assert len(refits) == 1 and refits[0][4] >= 1  # the runner-up was refined
-    np.testing.assert_array_equal(second.theta, first.theta)
-    np.testing.assert_array_equal(second.ci95, first.ci95)
-    np.testing.assert_array_equal(second.status, first.status)
-    assert np.all(second.status != 3) and second.rounds > first.rounds
-
-
 def test_the_labels_are_corrected_together_as_each_alone(dev, monkeypatch):
     """:func:`label_adjust.integrated_correction` corrects every label in the same calls of the
     reference model, with the numbers each label has when it is corrected alone (bit for bit),

@@ -19,9 +19,7 @@ in passes over the blocks of the stack (a label's pixels may lie in every block)
    GRID_STARTS best nodes of the grid of its own parameters, as in 3.; the per-pixel pass fits
    them with the usual stages once the label's values are final).  The best end of another
    basin is refined on all the pixels too where its subsample chi2, scaled to the label, lies
-   within RUNNER_UP_CHI2 of the best's (both as ranked); the basin of lower label chi2 is kept
-   (a refinement that comes within JOIN_SE standard errors of the kept values has joined their
-   basin: it stops there, and they stay);
+   within RUNNER_UP_CHI2 of the best's (both as ranked); the basin of lower label chi2 is kept;
 3. the refinement, variable projection: each pass moves theta by a damped Gauss-Newton step on
    F from the sums over the label's pixels of the Schur complement of each pixel's normal
    equations (the information on theta left once the pixel's own parameters are eliminated) and
@@ -96,10 +94,6 @@ GRID_STARTS = 3
 #: The refinement of a label stops where a step would lower its chi2 by less than this (times the
 #: label's reduced chi2 without dop_std): a tenth of a standard error moves chi2 by 0.01.
 CHI2_TOL = 1e-2
-#: The refinement of a label's runner-up basin (:func:`refit_runner_up`) stops where it comes
-#: within this many of the kept values' standard errors (in every shared parameter): it has
-#: joined the kept basin, whose values stay.
-JOIN_SE = 1.0
 #: A damped step of the subsample's refinement (:meth:`_Stage.local_steps`) that differs by less
 #: than this fraction of its length (scaled to the bounds) from the step just rejected, along
 #: which the chi2 rose by more than the fall it predicted, is rejected too without its pixels
@@ -513,12 +507,10 @@ class _Stage(Passes):
         predicted = -np.einsum("li,li->l", g, du) - 0.5 * np.einsum("li,lij,lj->l", du, A, du)
         return trial, predicted
 
-    def refine(self, theta, sums, active, join=None):
+    def refine(self, theta, sums, active):
         """Passes of the refinement (:meth:`step`, :meth:`evaluate`) until no active label's F
-        falls, or (``join``: values (L, S) and tolerances (L, S)) a label's values come within the
-        tolerances of the ``join`` values; returns (theta, sums, not converged, passes, joined)."""
+        falls; returns (theta, sums, not converged, passes)."""
         lam = np.full(self.ids.size, 1e-3)
-        joined = np.zeros(self.ids.size, bool)
         self.beta[~self.fitted] = np.nan
         rounds = 0
         for _ in range(MAX_ROUNDS):
@@ -537,10 +529,7 @@ class _Stage(Passes):
             lam = np.where(better, lam / 3.0, np.where(active, lam * 10.0, lam))
             active &= better | (lam < 1e8)
             active &= ~(better & (chi2 - new[:, 3] <= tol))
-            if join is not None:
-                joined |= active & np.all(np.abs(theta - join[0]) <= join[1], axis=1)
-                active &= ~joined
-        return theta, sums, active, rounds, joined
+        return theta, sums, active, rounds
 
     def dof(self, sums):
         """Each label's degrees of freedom: its residuals less its pixels' own parameters and the shared."""
@@ -617,13 +606,13 @@ class _Stage(Passes):
         status[active] = 0
         return se, ci, determined, status, dof
 
-    def full_fit(self, theta, ok, join=None):
+    def full_fit(self, theta, ok):
         """Every pixel of the labels ``ok`` fitted at ``theta`` (:meth:`start`), then
-        :meth:`refine` (with ``join``): (theta, sums, ok, not converged, passes, joined)."""
+        :meth:`refine`: (theta, sums, ok, not converged, passes)."""
         sums = self.start(theta, ok)
         ok = ok & (sums[:, 0] >= self.job.min_label_pixels)
-        theta, sums, active, rounds, joined = self.refine(theta, sums, ok.copy(), join)
-        return theta, sums, ok, active, rounds, joined
+        theta, sums, active, rounds = self.refine(theta, sums, ok.copy())
+        return theta, sums, ok, active, rounds
 
 
 def run_label_stage(job, eng, progress=False, workers=None):
@@ -664,7 +653,7 @@ def run_label_stage(job, eng, progress=False, workers=None):
     picks = search.subsample(st)
     subs = st.gather(picks)
     best, runner, gap = search.rank_seeds(st, subs, cand, ok, pixels)
-    theta, sums, ok, active, rounds, _ = st.full_fit(best, ok)
+    theta, sums, ok, active, rounds = st.full_fit(best, ok)
     other = np.full(theta.shape + (2,), np.nan)
     second = ok & (gap < search.RUNNER_UP_CHI2)
     if second.any():
@@ -720,20 +709,16 @@ def label_goodness(st, sums, subs, picks, theta, ok, pixels):
 
 def refit_runner_up(st, theta, sums, active, runner, second):
     """The labels ``second`` fitted again on all their pixels from their runner-up basin
-    ``runner``; per label the basin of lower chi2 kept (its pixels' own parameters too), unless
-    the refinement came within JOIN_SE of the kept values' standard errors (it joined their basin:
-    they stay, and there is no other basin).  Returns (theta, sums, not converged, other,
-    passes): ``other`` (L, S, 2) the interval of the basin not kept where its chi2 lies within
-    CHI2_95 (times the chi2 scale) of the kept one's, else NaN."""
+    ``runner``; per label the basin of lower chi2 kept (its pixels' own parameters too).  Returns
+    (theta, sums, not converged, other, passes): ``other`` (L, S, 2) the interval of the basin not
+    kept where its chi2 lies within CHI2_95 (times the chi2 scale) of the kept one's, else NaN."""
     beta, fitted = st.beta.copy(), st.fitted.copy()
-    se1, ci1, _, sc1 = st.gauss(theta, sums)
-    near = JOIN_SE * np.where(np.isfinite(se1), se1, 0.0)
-    t2, s2, ok2, a2, rounds, joined = st.full_fit(np.where(second[:, None], runner, theta), second.copy(),
-                                                  (theta, near))
-    ok2 &= second & ~joined
+    t2, s2, ok2, a2, rounds = st.full_fit(np.where(second[:, None], runner, theta), second.copy())
+    ok2 &= second
     better = ok2 & (s2[:, 3] < sums[:, 3])
     keep_first = np.isin(st.lab, np.flatnonzero(second & ~better))
     st.beta[keep_first], st.fitted[keep_first] = beta[keep_first], fitted[keep_first]
+    _, ci1, _, sc1 = st.gauss(theta, sums)
     _, ci2, _, sc2 = st.gauss(t2, s2)
     close = ok2 & (np.abs(s2[:, 3] - sums[:, 3]) < CHI2_95 * np.maximum(sc1, sc2))
     other = np.where((close & better)[:, None, None], ci1, np.where((close & ~better)[:, None, None], ci2, np.nan))
