@@ -106,15 +106,19 @@ def test_a_large_label_claims_the_precision_of_precision_pixels(dev, monkeypatch
     from pbrdf_cl.fitting.images import label_adjust as la
 
     data, lab = two_materials(16, 16, 0.006, seed=3)  # 128 pixels a label
+    default = la.PRECISION_PIXELS
     floored = LabelJob(data, labels=lab).prepare(dev)
     monkeypatch.setattr(la, "PRECISION_PIXELS", 32)
     fewer = LabelJob(data, labels=lab).prepare(dev)
+    monkeypatch.setattr(la, "PRECISION_PIXELS", 128)
+    at_size = LabelJob(data, labels=lab).prepare(dev)
     monkeypatch.setattr(la, "PRECISION_PIXELS", 10 ** 9)
     own = LabelJob(data, labels=lab).prepare(dev)
-    np.testing.assert_array_equal(floored.theta, own.theta)
-    np.testing.assert_array_equal(fewer.theta, own.theta)
-    np.testing.assert_array_equal(floored.stderr, own.stderr)  # 128 pixels: no more than that
+    for res in (floored, fewer, at_size):
+        np.testing.assert_array_equal(res.theta, own.theta)
+    np.testing.assert_array_equal(at_size.stderr, own.stderr)  # 128 pixels: no more than that
     np.testing.assert_allclose(fewer.stderr, 2.0 * own.stderr, rtol=1e-12)
+    np.testing.assert_allclose(floored.stderr, np.sqrt(max(1.0, 128 / default)) * own.stderr, rtol=1e-12)
 
 
 def test_the_bootstrap_inverted_as_a_test_is_opt_in_and_reproducible(dev):

@@ -257,9 +257,10 @@ class UnsharedLabelJob(BatchJob):
 #: What the labels' intervals leave out (the result's ``label_interval_note``; the CLI prints it).
 LABEL_INTERVAL_NOTE = ("the label values are corrected for the bias that the pixels' many own parameters give the "
                        "shared ones (their integrated likelihood); what bias remains does not shrink with the "
-                       "label's pixels, so a label of more than 128 pixels has the interval of 128 of them; the "
+                       "label's pixels, so a label of more than 96 pixels has the interval of 96 of them; the "
                        "intervals covered the truth 48 of 48 times on the two-material bench (128 pixels a label) "
-                       "and 216 of 228 on stacks of 72 to 2048 pixels a label (docs/joint_images.md)")
+                       "and 177 of 192 on stacks of 72 and 128 pixels a label at DOP noise 0.006-0.01 "
+                       "(docs/joint_images.md)")
 #: ... and with ``LabelJob.integrated`` off: the profile's values.
 PROFILE_INTERVAL_NOTE = ("the label intervals leave out the bias that the pixels' many own parameters give the shared "
                          "ones: on the two-material bench they covered the truth 16 of 16 times at DOP noise 0.003, "
