@@ -75,6 +75,14 @@ GROUP_PIXELS = 1024
 PRECISION_PIXELS = 96
 
 
+def spans(start, ls):
+    """Each label of ``ls`` (labels j holding rows start[j]..start[j + 1]): the slice of its rows
+    among the rows of the labels ``ls`` laid end to end, in order."""
+    sizes = np.diff(start)[ls]
+    ends = np.cumsum(sizes)
+    return [slice(e - n, e) for e, n in zip(ends, sizes)]
+
+
 class Integrated:
     """The terms of the integrated chi2 G (see the module's docstring) of several labels at once:
     label j's pixels those of ``raws[j]`` (a raw dict), its own parameters from ``betas[j]``
@@ -173,8 +181,7 @@ class Integrated:
 
     def _spans(self, ls):
         """Each label of ``ls``: the slice of its rows among theirs (:meth:`rows`)."""
-        ends = np.cumsum(np.diff(self.start)[ls])
-        return [slice(e - n, e) for e, n in zip(ends, np.diff(self.start)[ls])]
+        return spans(self.start, ls)
 
     def mean_step(self, u, mu, D, H, ls):
         """The Newton step of each population's mean with its pixels' modes following it (the
@@ -297,14 +304,14 @@ def integrated_correction(st, theta, sums, ok, pixels=None):
         grp = labels[start:end]
         itg = Integrated(setup, names, st.shared, raws[start:end], betas[start:end], s2[grp], st.lo, st.hi)
         thin = [picks[L].size < total for L, total in zip(grp, totals[start:end])]
-        for j, t, noise in _corrected(st, itg, theta[grp], np.array(ses[start:end]), totals[start:end], thin):
-            L = grp[j]
+        corrected = _corrected(st, itg, theta[grp], np.array(ses[start:end]), totals[start:end], thin)
+        for L, total, (t, noise) in zip(grp, totals[start:end], corrected):
             if t is None:
                 continue
             out[L] = t
             if noise is not None:
                 cov[L] = cov[L] + noise
-            cov[L] = cov[L] * max(1.0, totals[start + j] / PRECISION_PIXELS)
+            cov[L] = cov[L] * max(1.0, total / PRECISION_PIXELS)
         start = end
     return out, cov
 
@@ -312,8 +319,8 @@ def integrated_correction(st, theta, sums, ok, pixels=None):
 def _corrected(st, itg, theta, se, totals, thin):
     """The corrected values of the labels of ``itg`` from their values ``theta`` (n, S) and
     standard errors ``se`` (n, S, scaled coordinates; ``totals``: their pixels, ``thin``: whether
-    ``itg`` holds a subsample of them): per label (its index among them, its values or None
-    where G has no positive curvature, the correction's noise to add to its covariance)."""
+    ``itg`` holds a subsample of them): per label, in order, (its values or None where G has no
+    positive curvature, the correction's noise to add to its covariance or None)."""
     s, span = st.si, st.span[st.si]
     n = theta.shape[0]
     itg.fit_population(theta, np.arange(n))
@@ -335,7 +342,7 @@ def _corrected(st, itg, theta, se, totals, thin):
             break
         todo = np.array(going)
         itg.fit_population(t[todo] * span, todo, POPULATION_ROUNDS)
-    return [(j, None if positive_inverse(H[j]) is None else t[j] * span, noise[j] if thin[j] else None)
+    return [(None if positive_inverse(H[j]) is None else t[j] * span, noise[j] if thin[j] else None)
             for j in range(n)]
 
 
@@ -349,13 +356,11 @@ def stencil(itg, t, se, lo, hi, span, ls):
     pts = np.clip(t[None] + offs[:, None] * STEP * se[None], lo, hi)  # (3^S, labels, S)
     vals = itg.terms(pts * span, ls, POPULATION_ROUNDS)  # (3^S, rows)
     i, j = np.triu_indices(S)
-    fits, end = [], 0
-    for m, size in enumerate(np.diff(itg.start)[ls]):
+    fits = []
+    for m, sl in enumerate(spans(itg.start, ls)):
         d = pts[:, m] - t[m]
         X = np.column_stack([np.ones(len(d)), d, d[:, i] * d[:, j] * np.where(i == j, 0.5, 1.0)])
-        mine = np.ascontiguousarray(vals[:, end:end + size])
-        coef = np.linalg.lstsq(X, mine, rcond=None)[0]  # (1 + S + S (S + 1) / 2, p)
-        end += size
+        coef = np.linalg.lstsq(X, np.ascontiguousarray(vals[:, sl]), rcond=None)[0]  # (1 + S + S (S + 1) / 2, p)
         c = coef[1:1 + S].T
         H = np.zeros((S, S))
         H[i, j] = H[j, i] = coef[1 + S:].sum(axis=1)
