@@ -152,7 +152,7 @@ def bench_points(eng, rows, rng, size, repeats, sample):
             args += [b, np.int32(1)]
 
         def run(kern=kern, lanes=lanes, args=args):  # this iteration's kernel and buffers
-            eng.launch(kern, (size // lanes,), *args, local_size=(_engine.VECTOR_LOCAL_SIZE,))
+            eng.launch(kern, (size // lanes,), *args, local_size=(_engine.POINT_LOCAL_SIZE,))
             eng.queue.finish()
         run()
         rate, sec = median_rate(run, size // lanes * lanes, repeats)
@@ -358,7 +358,7 @@ def bench_mitsuba(eng, rows, rng, size, repeats):
         args += [eng.to_device(np.full(lanes, MITSUBA_MATERIAL[n]) if one else geo[n], "float32"), np.int32(not one)]
 
     def ours_kernel():
-        eng.launch(kern, (size // lanes,), *args, local_size=(_engine.VECTOR_LOCAL_SIZE,))
+        eng.launch(kern, (size // lanes,), *args, local_size=(_engine.POINT_LOCAL_SIZE,))
         eng.queue.finish()
 
     def mitsuba_kernel():

@@ -57,10 +57,20 @@ from .fallback import (
 )
 from .numpy_engine import NumpyEngine
 from .opencl import Engine
-from .sources import DTYPES, POINT_INPUTS, VECTOR_LOCAL_SIZE, build_options, cl, kernel_dir, kernels_sha256
+from .sources import (
+    DTYPES,
+    POINT_INPUTS,
+    POINT_LOCAL_SIZE,
+    VECTOR_LOCAL_SIZE,
+    build_options,
+    cl,
+    kernel_dir,
+    kernels_sha256,
+)
 from .transfers import aligned_empty, compact_values
 
-__all__ = ["BACKENDS", "DRIVER_MESSAGES", "DTYPES", "POINT_INPUTS", "VECTOR_LOCAL_SIZE", "DeviceUnusableError",
+__all__ = ["BACKENDS", "DRIVER_MESSAGES", "DTYPES", "POINT_INPUTS", "POINT_LOCAL_SIZE", "VECTOR_LOCAL_SIZE",
+           "DeviceUnusableError",
            "DeviceWarning", "Engine", "KernelBuildError", "NumpyEngine", "OpenCLUnavailableError", "ProbeResult",
            "ProgramUnusableError", "aligned_empty", "build_options", "candidates", "check_backend", "cl",
            "compact_values",

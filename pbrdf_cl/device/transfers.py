@@ -13,7 +13,7 @@ import math
 import numpy as np
 
 from ..model import quantities
-from .sources import DTYPES, POINT_INPUTS, VECTOR_LOCAL_SIZE, cl
+from .sources import DTYPES, POINT_INPUTS, POINT_LOCAL_SIZE, cl
 
 #: Points per kernel launch; bounds the temporary device memory of one call.
 LAUNCH_POINTS = 1 << 22
@@ -150,7 +150,7 @@ def launch_points(eng, kern, parts, n, out, npdt, lanes, vec, host, rules=None):
         args.append(rules_buffer(eng, rules))
     # a small work-group: PoCL keeps every work-item's private state of a group on one
     # thread's stack, and the vector kernels' state overflows it in large groups
-    eng.launch(kern, (n // lanes,), *args, local_size=(VECTOR_LOCAL_SIZE,) if vec else None)
+    eng.launch(kern, (n // lanes,), *args, local_size=(POINT_LOCAL_SIZE,) if vec else None)
     done()
 
 
@@ -213,7 +213,7 @@ class _TransferPipeline:
                 if self.plan is not None:
                     args.append(rules_buffer(self.eng, rule_table(self.plan, start)))
                 ran = self.eng.launch(self.kern, (padded // self.lanes,), *args,
-                                      local_size=(VECTOR_LOCAL_SIZE,) if self.vec else None, wait_for=uploads)
+                                      local_size=(POINT_LOCAL_SIZE,) if self.vec else None, wait_for=uploads)
                 w = self.width
                 if padded == count:
                     dst = out[start * w:(start + count) * w]
