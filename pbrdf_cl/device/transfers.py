@@ -148,8 +148,9 @@ def launch_points(eng, kern, parts, n, out, npdt, lanes, vec, host, rules=None):
             args.append(np.int32(0 if p.size == 1 else 1))
     if rules is not None:
         args.append(rules_buffer(eng, rules))
-    # a small work-group: PoCL keeps every work-item's private state of a group on one
-    # thread's stack, and the vector kernels' state overflows it in large groups
+    # a small work-group (POINT_LOCAL_SIZE): PoCL keeps every work-item's private state of a
+    # group on one thread's stack, and the vector kernels' state overflows it in the large groups
+    # it picks itself
     eng.launch(kern, (n // lanes,), *args, local_size=(POINT_LOCAL_SIZE,) if vec else None)
     done()
 
