@@ -43,6 +43,11 @@
  * (and pb_bits, of pb_math.h, the integer vector of the same element width). */
 #ifdef PB_VECTOR_REAL
 typedef PB_CAT(PB_SCALAR, PB_VECTOR_REAL) real;
+/* the N lanes of real at any element-aligned global address (as vloadN / vstoreN: PoCL 3.0 calls
+ * those builtins out of line), for the per-point and LM kernels */
+typedef real __attribute__((aligned(sizeof(PB_SCALAR)))) pb_real_unaligned;
+#define pb_vl(i, p) (((const __global pb_real_unaligned *)(p))[i])
+#define pb_vs(v, i, p) (((__global pb_real_unaligned *)(p))[i] = (v))
 #else
 typedef PB_SCALAR real;
 #endif

@@ -225,10 +225,7 @@ __kernel void batch_grid_channel_factors(__global real *best, __global real *arg
 #else /* PB_VECTOR_REAL: the LM stage */
 
 #define PB_N PB_VECTOR_REAL
-/* vloadN / vstoreN of the N lanes (pbrdf.h's pb_vload: PoCL 3.0 calls the builtins out of line) */
-typedef real __attribute__((aligned(sizeof(PB_SCALAR)))) pb_real_unaligned;
-#define pb_vl(i, p) (((const __global pb_real_unaligned *)(p))[i])
-#define pb_vs(v, i, p) (((__global pb_real_unaligned *)(p))[i] = (v))
+/* the N lanes read and written with pbrdf.h's pb_vl / pb_vs */
 typedef PB_SCALAR scalar;
 
 #ifdef PBRDF_DOUBLE

@@ -166,16 +166,14 @@ __kernel void objective_points(__global real *sse, const int P,
 
 #else  /* PB_VECTOR_REAL */
 
-/* N points as one vector at any element-aligned address (vloadN/vstoreN: PoCL 3.0 calls these
- * out of line) */
-typedef real __attribute__((aligned(sizeof(PB_SCALAR)))) pb_real_unaligned;
-#define pb_vstoren(v, i, p) (((__global pb_real_unaligned *)(p))[i] = (v))
+/* N points as one vector at any element-aligned address (pbrdf.h's pb_vs) */
+#define pb_vstoren(v, i, p) pb_vs(v, i, p)
 /* input x of stride s (0 or 1) for the N points of work-item i (an if: PoCL 3.0's compiler
  * crashes on a ?: between a vload and a broadcast) */
 inline real pb_in(__global const PB_SCALAR *x, const int s, const int i)
 {
     if (s)
-        return ((__global const pb_real_unaligned *)x)[i];
+        return pb_vl(i, x);
     return (real)x[0];
 }
 #define PB_IN(x, s) pb_in(x, s, i)
@@ -205,7 +203,7 @@ inline real pb_in_rule(__global const PB_SCALAR *x, __constant const uint *r, co
 {
     const uint kind = r[PB_R_KIND];
     if (kind == 1)
-        return ((__global const pb_real_unaligned *)x)[i];
+        return pb_vl(i, x);
     if (kind == 0)
         return (real)x[0];
     const uint div = r[PB_R_DIV], mod = r[PB_R_MOD];
@@ -213,7 +211,7 @@ inline real pb_in_rule(__global const PB_SCALAR *x, __constant const uint *r, co
     if (div == 1) {
         uint q = r[PB_R_Q0] + u;
         q -= PB_UDIV(q, r[PB_R_MOD_M], r[PB_R_MOD_S]) * mod;
-        return ((__global const pb_real_unaligned *)(x + q))[0];
+        return pb_vl(0, x + q);
     }
     const uint qd = PB_UDIV(u, r[PB_R_DIV_M], r[PB_R_DIV_S]);
     uint q = r[PB_R_Q0] + qd;
