@@ -166,8 +166,7 @@ __kernel void objective_points(__global real *sse, const int P,
 
 #else  /* PB_VECTOR_REAL */
 
-/* N points as one vector at any element-aligned address (pbrdf.h's pb_vs) */
-#define pb_vstoren(v, i, p) pb_vs(v, i, p)
+/* N points are read and written as one vector at any element-aligned address (pbrdf.h's pb_vl, pb_vs) */
 /* input x of stride s (0 or 1) for the N points of work-item i (an if: PoCL 3.0's compiler
  * crashes on a ?: between a vload and a broadcast) */
 inline real pb_in(__global const PB_SCALAR *x, const int s, const int i)
@@ -253,13 +252,13 @@ inline real pb_in_rule(__global const PB_SCALAR *x, __constant const uint *r, co
 __kernel void dop_points_vec(__global PB_SCALAR *out, PB_VEC_ARGS)
 {
     PB_VEC_BODY
-    pb_vstoren(PB_IN_DOMAIN ? pb_dop_of(f, pb_diffuse2_over_K(g, sigma, v_ks, G, v_kd, v_c)) : (real)NAN, i, out);
+    pb_vs(PB_IN_DOMAIN ? pb_dop_of(f, pb_diffuse2_over_K(g, sigma, v_ks, G, v_kd, v_c)) : (real)NAN, i, out);
 }
 
 __kernel void brdf_points_vec(__global PB_SCALAR *out, PB_VEC_ARGS)
 {
     PB_VEC_BODY
-    pb_vstoren(PB_IN_DOMAIN ? pb_brdf(f, logK, fd) : (real)NAN, i, out);
+    pb_vs(PB_IN_DOMAIN ? pb_brdf(f, logK, fd) : (real)NAN, i, out);
 }
 
 /* The twins with inputs read through their rules (broadcast inputs sent once; kind 1 inputs
@@ -267,13 +266,13 @@ __kernel void brdf_points_vec(__global PB_SCALAR *out, PB_VEC_ARGS)
 __kernel void dop_bcast_points_vec(__global PB_SCALAR *out, const int nvec, PB_BCAST_ARGS(PB_SCALAR))
 {
     PB_VEC_BODY_OF(PB_IN_RULE)
-    pb_vstoren(PB_IN_DOMAIN ? pb_dop_of(f, pb_diffuse2_over_K(g, sigma, v_ks, G, v_kd, v_c)) : (real)NAN, i, out);
+    pb_vs(PB_IN_DOMAIN ? pb_dop_of(f, pb_diffuse2_over_K(g, sigma, v_ks, G, v_kd, v_c)) : (real)NAN, i, out);
 }
 
 __kernel void brdf_bcast_points_vec(__global PB_SCALAR *out, const int nvec, PB_BCAST_ARGS(PB_SCALAR))
 {
     PB_VEC_BODY_OF(PB_IN_RULE)
-    pb_vstoren(PB_IN_DOMAIN ? pb_brdf(f, logK, fd) : (real)NAN, i, out);
+    pb_vs(PB_IN_DOMAIN ? pb_brdf(f, logK, fd) : (real)NAN, i, out);
 }
 
 /* quantity_outer's vector form for the vector quantities: N consecutive parameter sets (dimension 0,
@@ -297,13 +296,13 @@ __kernel void brdf_bcast_points_vec(__global PB_SCALAR *out, const int nvec, PB_
 __kernel void dop_outer_vec(__global PB_SCALAR *out, PB_OUTER_VEC_ARGS)
 {
     PB_OUTER_VEC_BODY
-    pb_vstoren(pb_dop(f, logK, fd), at, out);
+    pb_vs(pb_dop(f, logK, fd), at, out);
 }
 
 __kernel void brdf_outer_vec(__global PB_SCALAR *out, PB_OUTER_VEC_ARGS)
 {
     PB_OUTER_VEC_BODY
-    pb_vstoren(pb_brdf(f, logK, fd), at, out);
+    pb_vs(pb_brdf(f, logK, fd), at, out);
 }
 
 #endif  /* PB_VECTOR_REAL */
