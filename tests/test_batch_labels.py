@@ -324,18 +324,61 @@ def test_the_integrated_likelihood_steps_to_its_minimum():
 
     one = SimpleNamespace(start=np.array([0, P]))
     t, se = np.array([0.41, 0.19]), np.array([0.01, 0.02])
-    ((g, H, c),) = la.stencil(SimpleNamespace(terms=terms, **vars(one)), t[None], se[None], np.zeros(2), np.ones(2),
-                              span, [0])
+    ((g, H, c, G0),) = la.stencil(SimpleNamespace(terms=terms, **vars(one)), t[None], se[None], np.zeros(2),
+                                  np.ones(2), span, [0])
     np.testing.assert_allclose(H, 2 * P * B, rtol=1e-9)
+    assert G0 == terms((t * span)[None, None], [0]).sum()  # G at t
     np.testing.assert_allclose(c, 2 * (t - centre) @ B, rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(g, c.sum(axis=0), rtol=1e-12)
     d = la.newton(g, H, np.array([1.0, 1.0]))
     np.testing.assert_allclose(t + d, centre.mean(axis=0), rtol=0, atol=1e-12)
     assert np.all(np.abs(la.newton(g, H, se)) <= la.MAX_STEP * se + 1e-15)
     one_d = SimpleNamespace(terms=lambda th, ls, rounds=0: 3.0 * (th[:, 0, :1] / 4.0 - centre[:, 0]) ** 2, **vars(one))
-    ((g1, H1, c1),) = la.stencil(one_d, t[None, :1], se[None, :1], np.zeros(1), np.ones(1), span[:1], [0])  # one shared
+    ((g1, H1, c1, _),) = la.stencil(one_d, t[None, :1], se[None, :1], np.zeros(1), np.ones(1), span[:1],
+                                    [0])  # one shared
     np.testing.assert_allclose(H1, [[6.0 * P]], rtol=1e-9)
     np.testing.assert_allclose(c1[:, 0], 6.0 * (t[0] - centre[:, 0]), rtol=1e-9, atol=1e-12)
+
+
+def test_the_correction_steps_downhill_where_the_integrated_likelihood_is_not_convex():
+    """Where G is not convex at a label's values (its minimum lies farther along the valley of
+    correlated shared parameters than the stencil reaches: a low-n, high-k metal at DOP noise 0.01,
+    n = 1.32, k = 3.0, whose label values it left 8 standard errors off), the correction steps
+    downhill along the profile's metric (:func:`label_adjust.downhill`), then by Newton's steps
+    where G is convex, to G's minimum.  G here: a narrow valley along (1, 1) with a Gaussian well,
+    the label's values 3 well widths from its centre, where G is concave along the valley."""
+    from types import SimpleNamespace
+
+    from pbrdf_cl.fitting.images import label_adjust as la
+
+    P, span, L = 4, np.array([4.0, 10.0]), 0.02
+    centre = np.array([0.30, 0.25])  # G's minimum, coordinates scaled to the bounds
+    v, w = np.array([1.0, 1.0]) / np.sqrt(2), np.array([1.0, -1.0]) / np.sqrt(2)
+
+    def G(u):  # (..., 2) scaled coordinates
+        d = u - centre
+        return 1e5 * (d @ w) ** 2 - 1e3 * np.exp(-0.5 * ((d @ v) / L) ** 2)
+
+    itg = SimpleNamespace(start=np.array([0, P]), fit_population=lambda *a, **k: None,
+                          terms=lambda thetas, ls, rounds=0: np.repeat(G(thetas[:, 0] / span)[:, None] / P, P, axis=1))
+    st = SimpleNamespace(si=[0, 1], span=span, lo=np.array([1.0, 0.0]), hi=np.array([5.0, 10.0]))
+    start = centre + 3 * L * v
+    se = np.array([0.005, 0.005])
+    metric = (se[0] ** 2) * (10 * np.outer(v, v) + 0.1 * np.outer(w, w))  # the profile's: long along the valley
+    ((_, H, _, _),) = la.stencil(itg, start[None], se[None], np.zeros(2), np.ones(2), span, [0])
+    assert not la.positive_definite(H)  # concave along the valley there
+    ((theta, noise),) = la._corrected(st, itg, (start * span)[None], se[None], metric[None], [P], [False])
+    assert noise is None
+    np.testing.assert_allclose(theta / span, centre, atol=0.1 * se[0])
+    # a convex G keeps its Newton steps alone, as before: at most NEWTON_ROUNDS stencils
+    calls = []
+    bowl = SimpleNamespace(start=np.array([0, P]), fit_population=lambda *a, **k: None,
+                           terms=lambda thetas, ls, rounds=0: calls.append(1) or np.repeat(
+                               (1e5 * ((thetas[:, 0] / span - centre) ** 2).sum(axis=-1))[:, None] / P, P, axis=1))
+    near = centre + 2 * se[0] * v  # within a Newton step of the minimum (MAX_STEP standard errors)
+    ((theta, _),) = la._corrected(st, bowl, (near * span)[None], se[None], metric[None], [P], [False])
+    np.testing.assert_allclose(theta / span, centre, atol=1e-9)
+    assert len(calls) <= la.NEWTON_ROUNDS
 
 
 def test_the_label_search_finds_the_best_basin(dev):

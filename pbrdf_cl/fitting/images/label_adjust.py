@@ -19,7 +19,10 @@ chi2 scale.  The population's mean and variance are fitted at the profile's valu
 the mean by Newton steps with the modes following it, :meth:`Integrated.mean_step`); at every
 other theta the mean is fitted again and the variance held.  From the profile's values, up to
 NEWTON_ROUNDS Newton steps on G, each from G's quadratic fitted over a 3 x 3 stencil of one
-profile standard error (:func:`stencil`, :func:`newton`).  The intervals stay the profile's
+profile standard error (:func:`stencil`, :func:`newton`); where that quadratic is not convex (G's
+minimum lies farther along the profile's valley of correlated n and k than the stencil reaches),
+steps downhill along the profile's metric first (:func:`downhill`), up to DOWNHILL_ROUNDS rounds
+in all.  The intervals stay the profile's
 (its covariance, centred on the corrected values).  Everything is evaluated with the reference
 model's residual rows (:class:`~pbrdf_cl.fitting.images.pixels.PixelResiduals`) on the host, on at
 most PIXELS of the label's pixels, evenly spaced and gathered in one more pass over the stack: on
@@ -60,6 +63,10 @@ STEP = 1.0
 #: refitted (POPULATION_ROUNDS of EM) at each new point.
 NEWTON_ROUNDS = 2
 MAX_STEP = 3.0
+#: Rounds in all of a label whose G is not convex at its values (:func:`downhill`), and the
+#: fractions of its step along the profile's metric where G is evaluated.
+DOWNHILL_ROUNDS = 6
+LINE_STEPS = (1.0 / 3.0, 2.0 / 3.0, 1.0)
 POPULATION_ROUNDS = 2
 #: Pixels of each label G is evaluated on (all of a smaller label; evenly spaced).
 PIXELS = 128
@@ -272,7 +279,8 @@ def integrated_correction(st, theta, sums, ok, pixels=None):
     F at t0: no tilt, and the profile's covariance.
 
     Returns (theta_c (L, S), cov), unchanged where the label has too few pixels, no finite
-    standard error or G no positive curvature: cov (L, S, S) the profile's covariance (the label
+    standard error, or G neither a positive curvature nor a lower point along the profile's
+    valley (:func:`_corrected`): cov (L, S, S) the profile's covariance (the label
     stage's intervals; plus the correction's noise on a subsample; times pixels / PRECISION_PIXELS
     on a label of more pixels) in coordinates scaled to the bounds, as ``st.covariance`` gives
     it.  (G's own curvature, 2 H^-1, and the sandwich of the pixels' gradients both covered less
@@ -283,7 +291,7 @@ def integrated_correction(st, theta, sums, ok, pixels=None):
     picks = subsample(st, PIXELS if pixels is None else pixels)
     subs = st.gather(picks)
     out = theta.copy()
-    labels, raws, betas, totals, ses = [], [], [], [], []
+    labels, raws, betas, totals, ses, metrics = [], [], [], [], [], []
     for L in np.flatnonzero(ok):
         beta = st.beta[picks[L]]
         keep = np.all(np.isfinite(beta), axis=1)
@@ -296,6 +304,7 @@ def integrated_correction(st, theta, sums, ok, pixels=None):
         betas.append(beta[keep])
         totals.append(total)
         ses.append(se)
+        metrics.append(cov[L] * (total / picks[L].size))
     sizes, start = [b.shape[0] for b in betas], 0
     while start < len(labels):  # groups of labels of at most GROUP_PIXELS pixels (one label at least)
         end = start + 1
@@ -304,7 +313,8 @@ def integrated_correction(st, theta, sums, ok, pixels=None):
         grp = labels[start:end]
         itg = Integrated(setup, names, st.shared, raws[start:end], betas[start:end], s2[grp], st.lo, st.hi)
         thin = [picks[L].size < total for L, total in zip(grp, totals[start:end])]
-        corrected = _corrected(st, itg, theta[grp], np.array(ses[start:end]), totals[start:end], thin)
+        corrected = _corrected(st, itg, theta[grp], np.array(ses[start:end]), np.array(metrics[start:end]),
+                               totals[start:end], thin)
         for L, total, (t, noise) in zip(grp, totals[start:end], corrected):
             if t is None:
                 continue
@@ -316,11 +326,18 @@ def integrated_correction(st, theta, sums, ok, pixels=None):
     return out, cov
 
 
-def _corrected(st, itg, theta, se, totals, thin):
+def _corrected(st, itg, theta, se, metric, totals, thin):
     """The corrected values of the labels of ``itg`` from their values ``theta`` (n, S) and
-    standard errors ``se`` (n, S, scaled coordinates; ``totals``: their pixels, ``thin``: whether
-    ``itg`` holds a subsample of them): per label, in order, (its values or None where G has no
-    positive curvature, the correction's noise to add to its covariance or None)."""
+    standard errors ``se`` (n, S, scaled coordinates; ``metric``: the subsample's profile covariance
+    (n, S, S), scaled; ``totals``: their pixels, ``thin``: whether ``itg`` holds a subsample of them):
+    per label, in order, (its values or None where G has no positive curvature and no lower point
+    along the profile's valley, the correction's noise to add to its covariance or None).
+
+    Each round fits G's quadratic over the stencil (:func:`stencil`) and takes its Newton step
+    (:func:`newton`) where that is positive definite.  Where it is not (G is not convex there:
+    its minimum lies farther along the profile's valley of correlated n and k than a stencil
+    reaches), the label steps downhill instead (:func:`downhill`), along the profile's metric, for
+    up to DOWNHILL_ROUNDS rounds in all."""
     s, span = st.si, st.span[st.si]
     n = theta.shape[0]
     itg.fit_population(theta, np.arange(n))
@@ -328,22 +345,59 @@ def _corrected(st, itg, theta, se, totals, thin):
     lo, hi = st.lo[s] / span, st.hi[s] / span
     cf = [itg.profile_gradient(theta[j], j) * span if thin[j] else np.zeros((1, len(s))) for j in range(n)]
     tilt, noise, H = [c.sum(axis=0) for c in cf], [0.0] * n, [None] * n  # tilt: the subsample's noise in F's gradient
+    moved = np.zeros(n, bool)  # stepped downhill where G is not convex
     todo = np.arange(n)
-    for r in range(NEWTON_ROUNDS):
-        going = []
-        for j, (g, H[j], c) in zip(todo, stencil(itg, t[todo], se[todo], lo, hi, span, todo)):
+    for r in range(DOWNHILL_ROUNDS):
+        going, down = [], []
+        fits = stencil(itg, t[todo], se[todo], lo, hi, span, todo)
+        for j, (g, H[j], c, G0) in zip(todo, fits):
             if thin[j] and r == 0:
                 noise[j] = spread(c - cf[j], H[j], totals[j])
-            d = newton(g - tilt[j], H[j], se[j])
-            t[j] = np.clip(t[j] + d, lo, hi)
-            if not (np.all(np.abs(d) < 0.2 * se[j]) or r == NEWTON_ROUNDS - 1):
-                going.append(j)
+            if positive_definite(H[j]):
+                d = newton(g - tilt[j], H[j], se[j])
+                t[j] = np.clip(t[j] + d, lo, hi)
+                if not (np.all(np.abs(d) < 0.2 * se[j]) or r == (DOWNHILL_ROUNDS if moved[j] else NEWTON_ROUNDS) - 1):
+                    going.append(j)
+            else:
+                down.append((j, g - tilt[j], G0))
+        if down:
+            js = [j for j, _, _ in down]
+            steps = downhill(itg, t[js], se[js], metric[js], np.array([g for _, g, _ in down]),
+                             np.array([G0 for _, _, G0 in down]), np.array([tilt[j] for j in js]), lo, hi, span, js)
+            for j, d in zip(js, steps):
+                if np.any(d != 0):
+                    t[j] = np.clip(t[j] + d, lo, hi)
+                    moved[j] = True
+                    if r < DOWNHILL_ROUNDS - 1:
+                        going.append(j)
         if not going:
             break
-        todo = np.array(going)
+        todo = np.array(sorted(going))
         itg.fit_population(t[todo] * span, todo, POPULATION_ROUNDS)
-    return [(None if positive_inverse(H[j]) is None else t[j] * span, noise[j] if thin[j] else None)
+    return [(t[j] * span if moved[j] or positive_inverse(H[j]) is not None else None, noise[j] if thin[j] else None)
             for j in range(n)]
+
+
+def downhill(itg, t, se, metric, g, G0, tilt, lo, hi, span, ls):
+    """The steps of the labels ``ls`` whose G is not convex at ``t`` (len(ls), S; scaled): along
+    the profile's metric (-``metric`` g, the subsample's profile covariance times the gradient
+    ``g`` of G less its ``tilt``: along the valley of correlated shared parameters, where the
+    diagonal's step would cross it), at most MAX_STEP standard errors ``se`` per parameter, the
+    best of LINE_STEPS fractions of it where G less the tilt is lower there than at ``t`` (G there:
+    ``G0``), else no step (zeros)."""
+    p = -np.einsum("lij,lj->li", metric, g)
+    scale = np.max(np.abs(p) / se, axis=1)
+    p = p * np.where(scale > 0, MAX_STEP / np.where(scale > 0, scale, 1.0), 0.0)[:, None]
+    a = np.asarray(LINE_STEPS)
+    pts = np.clip(t[None] + a[:, None, None] * p[None], lo, hi)  # (K, labels, S)
+    vals = itg.terms(pts * span, np.asarray(ls), POPULATION_ROUNDS)
+    out = np.zeros_like(t)
+    for m, sl in enumerate(spans(itg.start, ls)):
+        G = vals[:, sl].sum(axis=1) - (pts[:, m] - t[m]) @ tilt[m]
+        best = int(np.argmin(G))
+        if G[best] < G0[m]:
+            out[m] = pts[best, m] - t[m]
+    return out
 
 
 def stencil(itg, t, se, lo, hi, span, ls):
@@ -364,7 +418,7 @@ def stencil(itg, t, se, lo, hi, span, ls):
         c = coef[1:1 + S].T
         H = np.zeros((S, S))
         H[i, j] = H[j, i] = coef[1 + S:].sum(axis=1)
-        fits.append((c.sum(axis=0), H, c))
+        fits.append((c.sum(axis=0), H, c, float(vals[len(offs) // 2, sl].sum())))
     return fits
 
 
