@@ -101,8 +101,9 @@ def test_large_label_intervals_cover_the_truth(dev):
 
 
 def test_a_large_label_claims_the_precision_of_precision_pixels(dev, monkeypatch):
-    """A corrected label of P > PRECISION_PIXELS pixels reports the covariance of PRECISION_PIXELS
-    of them: its standard errors sqrt(P / PRECISION_PIXELS) times its own, the values the same."""
+    """A label of P > PRECISION_PIXELS pixels, corrected or not, reports the covariance of
+    PRECISION_PIXELS of them: its standard errors sqrt(P / PRECISION_PIXELS) times its own, the
+    values the same."""
     from pbrdf_cl.fitting.images import label_adjust as la
 
     data, lab = two_materials(16, 16, 0.006, seed=3)  # 128 pixels a label
@@ -119,6 +120,14 @@ def test_a_large_label_claims_the_precision_of_precision_pixels(dev, monkeypatch
     np.testing.assert_array_equal(at_size.stderr, own.stderr)  # 128 pixels: no more than that
     np.testing.assert_allclose(fewer.stderr, 2.0 * own.stderr, rtol=1e-12)
     np.testing.assert_allclose(floored.stderr, np.sqrt(max(1.0, 128 / default)) * own.stderr, rtol=1e-12)
+    # a label the correction leaves as it is (G with no minimum it can reach) keeps the floor
+    monkeypatch.setattr(la, "PRECISION_PIXELS", 32)
+    monkeypatch.setattr(la, "_corrected", lambda st, itg, theta, *a: [(None, None)] * theta.shape[0])
+    kept = LabelJob(data, labels=lab).prepare(dev)
+    monkeypatch.setattr(la, "PRECISION_PIXELS", 10 ** 9)
+    bare = LabelJob(data, labels=lab).prepare(dev)
+    np.testing.assert_array_equal(kept.theta, bare.theta)
+    np.testing.assert_allclose(kept.stderr, 2.0 * bare.stderr, rtol=1e-12)
 
 
 def test_the_bootstrap_inverted_as_a_test_is_opt_in_and_reproducible(dev):

@@ -282,9 +282,9 @@ def integrated_correction(st, theta, sums, ok, pixels=None):
     standard error, or G neither a positive curvature nor a lower point along the profile's
     valley (:func:`_corrected`): cov (L, S, S) the profile's covariance (the label
     stage's intervals; plus the correction's noise on a subsample; times pixels / PRECISION_PIXELS
-    on a label of more pixels) in coordinates scaled to the bounds, as ``st.covariance`` gives
-    it.  (G's own curvature, 2 H^-1, and the sandwich of the pixels' gradients both covered less
-    than the profile's: docs/joint_images.md.)"""
+    on a label of more pixels, corrected or not) in coordinates scaled to the bounds, as
+    ``st.covariance`` gives it.  (G's own curvature, 2 H^-1, and the sandwich of the pixels'
+    gradients both covered less than the profile's: docs/joint_images.md.)"""
     setup, names = st.job.setup, st.job.names
     s2 = st.scale(sums)
     cov = st.covariance(sums).cov.copy()
@@ -316,11 +316,11 @@ def integrated_correction(st, theta, sums, ok, pixels=None):
         corrected = _corrected(st, itg, theta[grp], np.array(ses[start:end]), np.array(metrics[start:end]),
                                totals[start:end], thin)
         for L, total, (t, noise) in zip(grp, totals[start:end], corrected):
-            if t is None:
-                continue
-            out[L] = t
-            if noise is not None:
-                cov[L] = cov[L] + noise
+            if t is not None:
+                out[L] = t
+                if noise is not None:
+                    cov[L] = cov[L] + noise
+            # the floor holds uncorrected values too: the profile's bias is G's and more
             cov[L] = cov[L] * max(1.0, total / PRECISION_PIXELS)
         start = end
     return out, cov
