@@ -390,6 +390,31 @@ def test_the_correction_steps_downhill_where_the_integrated_likelihood_is_not_co
     assert len(calls) <= la.NEWTON_ROUNDS
 
 
+def test_a_label_left_at_k_0_is_fitted_again_from_inside(dev, monkeypatch):
+    """The bundled synthetic stack (per-pixel geometry, 32x32, DOP noise 0.01, seed 10; labels its
+    material map): the refinement on all the pixels left the dielectric (n = 1.405, k = 0.229) at
+    k = 0, where the model's derivative in k vanishes, with a standard error of 1.6e-9 (the
+    pseudo-inverse's zero along a direction the data do not see) and an interval [0, 2.3e-7]
+    that missed the truth.  Now its standard error there is infinite (the interval spans k's
+    bounds, the label undetermined), and the label is fitted again from 2% of k's range inside:
+    it ends lower in chi2 (by 9 when measured) and its intervals cover the truth."""
+    from pbrdf_cl.fitting.images import label_stage as ls
+    from pbrdf_cl.io.imagestack import MATERIALS, synthetic_stack
+
+    ds = synthetic_stack(size=32, noise=0.01, seed=10)
+    lab = ds["material"].values.astype(np.int64) + 1  # 1 metal, 2 dielectric
+    truth = MATERIALS["dielectric"]
+    res = LabelJob(ds, labels=lab).prepare(dev)
+    d = list(res.ids).index(2)
+    for i, p in enumerate(("n", "k")):
+        assert res.ci95[d, i, 0] <= truth[p] <= res.ci95[d, i, 1], (p, res.ci95[d, i], truth[p])
+    assert res.theta[d, 1] > 0.05 and np.all(np.isfinite(res.stderr[d]))
+    monkeypatch.setattr(ls, "unseen_on_bound", lambda st, theta, sums: np.zeros(theta.shape[0], bool))
+    stuck = LabelJob(ds, labels=lab).prepare(dev)
+    assert stuck.theta[d, 1] == 0.0 and stuck.chi2[d] > res.chi2[d]
+    assert np.isinf(stuck.stderr[d, 1]) and tuple(stuck.ci95[d, 1]) == (0.0, 10.0) and stuck.status[d] == 4
+
+
 def test_the_label_search_finds_the_best_basin(dev):
     """The configuration where the profile's seeds all lay in another basin of the dielectric
     (n = 3.12, k = 0.08, a label chi2 four times the truth's, reported as converged): the

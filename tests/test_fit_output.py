@@ -175,6 +175,10 @@ def test_valid_covariance_repairs_only_what_is_invalid():
     np.testing.assert_allclose(np.diag(v.cov)[:2], [1.0, 1.0], rtol=1e-12)  # the variances are kept
     note = v.note(["a", "b", "c", "d"])
     assert "not symmetric" in note and "not positive semi-definite" in note and "the variance of c, d" in note
+    # its own output given again is kept: the NaN rows of c and d leave a and b their variances
+    again = valid_covariance(v.cov)
+    np.testing.assert_array_equal(again.undefined, v.undefined)
+    np.testing.assert_array_equal(again.cov, v.cov)
     # batched: each matrix on its own
     both = valid_covariance(np.stack([np.pad(ok, ((0, 2), (0, 2))) + np.diag([0, 0, 1.0, 1.0]), bad]))
     np.testing.assert_array_equal(both.repaired, [False, True])

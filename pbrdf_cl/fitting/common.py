@@ -274,7 +274,10 @@ def valid_covariance(cov):
     d = C.shape[-1]
     diag = np.einsum("...ii->...i", C)
     with np.errstate(invalid="ignore"):
-        undefined = ~(np.isfinite(diag) & (diag > 0)) | ~np.all(np.isfinite(C), axis=-1)
+        undefined = ~(np.isfinite(diag) & (diag > 0))
+        # a covariance not finite against a parameter that has a variance (a row and column NaN
+        # against one without: this function's own output, given again, is unchanged)
+        undefined |= np.any(~np.isfinite(C) & ~undefined[..., None, :], axis=-1)
     both = undefined[..., :, None] | undefined[..., None, :]
     se = np.sqrt(np.where(undefined, 1.0, diag))
     scale = se[..., :, None] * se[..., None, :]

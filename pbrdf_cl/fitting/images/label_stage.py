@@ -25,8 +25,12 @@ in passes over the blocks of the stack (a label's pixels may lie in every block)
    equations (the information on theta left once the pixel's own parameters are eliminated) and
    of the reduced gradient, then re-descends every pixel's own parameters at the new theta
    (``batch_lm`` from the previous ones) and keeps the step where F fell (per label; Marquardt
-   damping otherwise), until F stops falling;
-4. the intervals: the covariance of theta is the inverse of the summed Schur complements, scaled
+   damping otherwise), until F stops falling.  A label left with a shared parameter on a bound
+   where the data do not see it (k = 0: the model depends on k through k^2, so no Gauss-Newton
+   step leaves it, :func:`unseen_on_bound`) is refined again on all the pixels from 2% of that
+   parameter's range inside, and the basin of lower chi2 kept, as for the runner-up (2.);
+4. the intervals: the covariance of theta is the inverse of the summed Schur complements (an
+   infinite variance for a parameter along a direction they do not see), scaled
    by the label's reduced chi2 where ``dop_std`` is not given; the central 95% truncated to the
    bounds (Student's t without ``dop_std``), then cross-checked against the label's profile on
    the grid: a node whose profile (an upper bound of the true one) lies within chi2 3.84 (times
@@ -77,7 +81,7 @@ from ..setup import PARAMETERS
 from . import label_search as search
 from .label_adjust import integrated_correction
 from .pixels import Block, PixelResiduals, descent_bounds, grid_points, grid_values, internal, regions
-from .statistics import DETERMINED_FRACTION, truncated_interval
+from .statistics import DETERMINED_FRACTION, NULL_RCOND, null_parameters, truncated_interval
 
 #: Passes of the refinement at most (each one pass over the stack).
 MAX_ROUNDS = 20
@@ -544,15 +548,23 @@ class _Stage(Passes):
 
     def covariance(self, sums, given=None):
         """Each label's covariance of the shared parameters, in coordinates scaled to the bounds:
-        the inverse of its summed Schur complements times its chi2 scale, or ``given`` (L, S, S,
-        scaled coordinates: the bootstrap's, :func:`pbrdf_cl.fitting.images.label_search.binding_correction`)
-        where given, made valid (:func:`pbrdf_cl.fitting.common.valid_covariance`; NaN where a
-        variance cannot be computed)."""
+        the inverse of its summed Schur complements times its chi2 scale (the pseudo-inverse, with
+        an infinite variance for a parameter along a direction they do not see: k at k = 0,
+        where the model's derivative in k vanishes, :func:`~pbrdf_cl.fitting.images.statistics.null_parameters`),
+        or ``given`` (L, S, S, scaled coordinates: the bootstrap's,
+        :func:`pbrdf_cl.fitting.images.label_search.binding_correction`) where given, made valid
+        (:func:`pbrdf_cl.fitting.common.valid_covariance`; NaN where a variance cannot be computed)."""
         if given is not None:
             return valid_covariance(given)
         A = self.unpack(sums)[5]
         with np.errstate(all="ignore"):
-            return valid_covariance(np.linalg.pinv(A, rcond=1e-12, hermitian=True) * self.scale(sums)[:, None, None])
+            cov = np.linalg.pinv(A, rcond=NULL_RCOND, hermitian=True) * self.scale(sums)[:, None, None]
+            seen = np.all(np.isfinite(A), axis=(1, 2))
+            null = np.zeros(A.shape[:2], bool)
+            if seen.any():
+                null[seen] = null_parameters(*np.linalg.eigh(A[seen]))
+            np.einsum("lii->li", cov)[...] = np.where(null, np.inf, np.einsum("lii->li", cov))
+            return valid_covariance(cov)
 
     def natural(self, cov, inverse=False):
         """A covariance (L, S, S) scaled to the bounds in the shared parameters' units (or back)."""
@@ -659,6 +671,11 @@ def run_label_stage(job, eng, progress=False, workers=None):
     if second.any():
         theta, sums, active, other, more = refit_runner_up(st, theta, sums, active, runner, second)
         rounds += more
+    stuck = ok & unseen_on_bound(st, theta, sums)
+    if stuck.any():  # k = 0, where no descent can leave it: fitted again from inside, the better kept
+        theta, sums, active, inside, more = refit_runner_up(st, theta, sums, active, inward_of(st, theta), stuck)
+        other = np.where(np.isfinite(inside), inside, other)
+        rounds += more
     p_value, fits, test = label_goodness(st, sums, subs, picks, theta, ok, pixels)
     s = st.si
     given = None
@@ -726,6 +743,27 @@ def refit_runner_up(st, theta, sums, active, runner, second):
     sums = np.where(better[:, None], s2, sums)
     active = np.where(better, a2, active)
     return theta, sums, active, other, rounds
+
+
+def unseen_on_bound(st, theta, sums):
+    """The labels (L,) with a shared parameter on one of its bounds (within 1e-6 of its range)
+    whose variance the data do not give there (:meth:`_Stage.covariance`): k at k = 0, where the
+    model's derivative in k vanishes (it depends on k through k^2), so that the refinement's
+    Gauss-Newton steps cannot leave it even where k > 0 fits the data better (the search's
+    subsample refinements start again from inside such a bound, :data:`label_search.INWARD`;
+    the refinement on all the pixels can still end there)."""
+    s, span = st.si, st.span[st.si]
+    bound = (theta <= st.lo[s] + 1e-6 * span) | (theta >= st.hi[s] - 1e-6 * span)
+    return np.any(bound & st.covariance(sums).undefined, axis=1)
+
+
+def inward_of(st, theta):
+    """``theta`` (L, S) with every shared parameter on a bound moved the first of
+    :data:`label_search.INWARD` fractions of its range inside."""
+    s, span = st.si, st.span[st.si]
+    lo, hi = st.lo[s], st.hi[s]
+    f = search.INWARD[0]
+    return np.where(theta <= lo + 1e-6 * span, lo + f * span, np.where(theta >= hi - 1e-6 * span, hi - f * span, theta))
 
 
 def seed_nodes(profile, shape, count):

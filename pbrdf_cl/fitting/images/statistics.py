@@ -38,6 +38,21 @@ def truncated_interval(x, se, lo, hi, dof):
     return lo95, hi95
 
 
+#: A direction of an information matrix (coordinates scaled to the bounds) whose eigenvalue is at
+#: most this fraction of the largest is one the data do not see: an infinite variance along it.
+NULL_RCOND = 1e-12
+
+
+def null_parameters(eigval, eigvec, rcond=NULL_RCOND):
+    """The parameters (..., d) of information matrices (their eigenvalues (..., d) and eigenvectors
+    (..., d, d), coordinates scaled to the bounds) with a component along a direction the data do
+    not see (an eigenvalue at most ``rcond`` times the largest): their variance is infinite, not
+    the pseudo-inverse's zero along that direction."""
+    top = np.maximum(eigval.max(axis=-1, keepdims=True), 1e-300)
+    unseen = ~(eigval > rcond * top)
+    return np.einsum("...ik,...k->...i", eigvec ** 2 > 1e-12, unseen.astype(float)) > 0
+
+
 def _covariances(jtj, s2, span):
     """Covariance (p, D, D) from J^T J in internal coordinates (pseudo-inverse in coordinates
     scaled to the bounds: a direction the data do not see gets an infinite variance), made valid
@@ -47,11 +62,11 @@ def _covariances(jtj, s2, span):
     eigval, eigvec = np.linalg.eigh(A)
     top = np.maximum(eigval.max(axis=1, keepdims=True), 1e-300)
     with np.errstate(divide="ignore", invalid="ignore"):
-        inv = np.where(eigval > 1e-12 * top, 1.0 / eigval, np.inf)
+        inv = np.where(eigval > NULL_RCOND * top, 1.0 / eigval, np.inf)
     # infinite variance along a null direction: var_i = sum_k v_ik^2 / l_k (inf where v_ik != 0)
     with np.errstate(invalid="ignore"):
         cov = np.einsum("pik,pk,pjk->pij", eigvec, np.where(np.isinf(inv), 0.0, inv), eigvec)
-        null = np.einsum("pik,pk->pi", eigvec ** 2 > 1e-12, np.isinf(inv).astype(float)) > 0
+        null = null_parameters(eigval, eigvec)
     cov = cov * span[None, :, None] * span[None, None, :] * s2[:, None, None]
     var = np.where(null, np.inf, np.einsum("pii->pi", cov))
     # valid (symmetric positive semi-definite), NaN in the rows and columns of the parameters of
