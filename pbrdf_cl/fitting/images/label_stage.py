@@ -26,9 +26,10 @@ in passes over the blocks of the stack (a label's pixels may lie in every block)
    of the reduced gradient, then re-descends every pixel's own parameters at the new theta
    (``batch_lm`` from the previous ones) and keeps the step where F fell (per label; Marquardt
    damping otherwise), until F stops falling.  A label left with a shared parameter on a bound
-   where the data do not see it (k = 0: the model depends on k through k^2, so no Gauss-Newton
+   that the data hardly see there (k = 0: the model depends on k through k^2, so no Gauss-Newton
    step leaves it, :func:`unseen_on_bound`) is refined again on all the pixels from 2% of that
-   parameter's range inside, and the basin of lower chi2 kept, as for the runner-up (2.);
+   parameter's range inside, and the basin of lower chi2 kept, as for the runner-up (2.; the
+   bound's end, where the two lie within 3.84, counted in the interval as its values alone);
 4. the intervals: the covariance of theta is the inverse of the summed Schur complements (an
    infinite variance for a parameter along a direction they do not see), scaled
    by the label's reduced chi2 where ``dop_std`` is not given; the central 95% truncated to the
@@ -673,7 +674,8 @@ def run_label_stage(job, eng, progress=False, workers=None):
         rounds += more
     stuck = ok & unseen_on_bound(st, theta, sums)
     if stuck.any():  # k = 0, where no descent can leave it: fitted again from inside, the better kept
-        theta, sums, active, inside, more = refit_runner_up(st, theta, sums, active, inward_of(st, theta), stuck)
+        theta, sums, active, inside, more = refit_runner_up(st, theta, sums, active, inward_of(st, theta), stuck,
+                                                            point_first=True)
         other = np.where(np.isfinite(inside), inside, other)
         rounds += more
     p_value, fits, test = label_goodness(st, sums, subs, picks, theta, ok, pixels)
@@ -724,11 +726,14 @@ def label_goodness(st, sums, subs, picks, theta, ok, pixels):
     return p_value, fits, test
 
 
-def refit_runner_up(st, theta, sums, active, runner, second):
+def refit_runner_up(st, theta, sums, active, runner, second, point_first=False):
     """The labels ``second`` fitted again on all their pixels from their runner-up basin
     ``runner``; per label the basin of lower chi2 kept (its pixels' own parameters too).  Returns
     (theta, sums, not converged, other, passes): ``other`` (L, S, 2) the interval of the basin not
-    kept where its chi2 lies within CHI2_95 (times the chi2 scale) of the kept one's, else NaN."""
+    kept where its chi2 lies within CHI2_95 (times the chi2 scale) of the kept one's, else NaN;
+    with ``point_first``, the first basin's interval is its values alone (a label left on a bound
+    the data hardly see, :func:`unseen_on_bound`: its Gaussian interval there is the central 95%
+    of an almost uniform spread over the bounds, which leaves out the bound itself)."""
     beta, fitted = st.beta.copy(), st.fitted.copy()
     t2, s2, ok2, a2, rounds = st.full_fit(np.where(second[:, None], runner, theta), second.copy())
     ok2 &= second
@@ -736,6 +741,8 @@ def refit_runner_up(st, theta, sums, active, runner, second):
     keep_first = np.isin(st.lab, np.flatnonzero(second & ~better))
     st.beta[keep_first], st.fitted[keep_first] = beta[keep_first], fitted[keep_first]
     _, ci1, _, sc1 = st.gauss(theta, sums)
+    if point_first:
+        ci1 = np.stack([theta, theta], axis=-1)
     _, ci2, _, sc2 = st.gauss(t2, s2)
     close = ok2 & (np.abs(s2[:, 3] - sums[:, 3]) < CHI2_95 * np.maximum(sc1, sc2))
     other = np.where((close & better)[:, None, None], ci1, np.where((close & ~better)[:, None, None], ci2, np.nan))
@@ -745,16 +752,25 @@ def refit_runner_up(st, theta, sums, active, runner, second):
     return theta, sums, active, other, rounds
 
 
+#: A shared parameter on a bound whose standard error there exceeds this fraction of its range
+#: (or has none) is one the data hardly see there (:func:`unseen_on_bound`).
+UNSEEN_SE = 0.25
+
+
 def unseen_on_bound(st, theta, sums):
     """The labels (L,) with a shared parameter on one of its bounds (within 1e-6 of its range)
-    whose variance the data do not give there (:meth:`_Stage.covariance`): k at k = 0, where the
-    model's derivative in k vanishes (it depends on k through k^2), so that the refinement's
-    Gauss-Newton steps cannot leave it even where k > 0 fits the data better (the search's
-    subsample refinements start again from inside such a bound, :data:`label_search.INWARD`;
-    the refinement on all the pixels can still end there)."""
+    that the data hardly see there: no variance, or a standard error of more than UNSEEN_SE of
+    its range (:meth:`_Stage.covariance`).  k at k = 0 is one: the model's derivative in k
+    vanishes there (it depends on k through k^2), so that the refinement's Gauss-Newton steps
+    cannot leave it even where k > 0 fits the data better (the search's subsample refinements
+    start again from inside such a bound, :data:`label_search.INWARD`; the refinement on all the
+    pixels can still end there)."""
     s, span = st.si, st.span[st.si]
     bound = (theta <= st.lo[s] + 1e-6 * span) | (theta >= st.hi[s] - 1e-6 * span)
-    return np.any(bound & st.covariance(sums).undefined, axis=1)
+    cov = st.covariance(sums)
+    with np.errstate(invalid="ignore"):
+        weak = cov.undefined | ~(np.einsum("lii->li", cov.cov) <= UNSEEN_SE ** 2)  # scaled coordinates
+    return np.any(bound & weak, axis=1)
 
 
 def inward_of(st, theta):
