@@ -256,6 +256,23 @@ class Covariance:
         return "; ".join(parts) or None
 
 
+#: A direction of an information matrix (coordinates scaled to the bounds) whose eigenvalue is at
+#: most this fraction of the largest is one the data do not see: an infinite variance along it.
+NULL_RCOND = 1e-12
+
+
+def null_parameters(eigval, eigvec, rcond=NULL_RCOND, share=1e-12):
+    """The parameters (..., d) of information matrices (their eigenvalues (..., d) and eigenvectors
+    (..., d, d), coordinates scaled to the bounds) with a component along a direction the data do
+    not see (an eigenvalue at most ``rcond`` times the largest), its square more than ``share``:
+    their variance is infinite, not the pseudo-inverse's zero along that direction.  (With a
+    ``share`` of 1/2, only the parameter that direction mostly is: :func:`pbrdf_cl.fit`'s rule,
+    where a parameter that the direction barely moves keeps the intervals of its own data.)"""
+    top = np.maximum(eigval.max(axis=-1, keepdims=True), 1e-300)
+    unseen = ~(eigval > rcond * top)
+    return np.einsum("...ik,...k->...i", eigvec ** 2 > share, unseen.astype(float)) > 0
+
+
 def valid_covariance(cov):
     """A covariance (..., d, d) made valid, or said not to be: the one place every fit's covariance
     passes through (:func:`pbrdf_cl.fit`, :func:`pbrdf_cl.fit_joint`, the pixels and the labels

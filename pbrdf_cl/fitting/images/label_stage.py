@@ -77,12 +77,12 @@ import numpy as np
 
 from ...io.source import ANGLES
 from .. import report
-from ..common import GOODNESS_P, X_RESOLUTION, fd_jacobian, valid_covariance
+from ..common import GOODNESS_P, NULL_RCOND, X_RESOLUTION, fd_jacobian, null_parameters, valid_covariance
 from ..setup import PARAMETERS
 from . import label_search as search
 from .label_adjust import integrated_correction
 from .pixels import Block, PixelResiduals, descent_bounds, grid_points, grid_values, internal, regions
-from .statistics import DETERMINED_FRACTION, NULL_RCOND, null_parameters, truncated_interval
+from .statistics import DETERMINED_FRACTION, truncated_interval
 
 #: Passes of the refinement at most (each one pass over the stack).
 MAX_ROUNDS = 20
@@ -550,8 +550,9 @@ class _Stage(Passes):
     def covariance(self, sums, given=None):
         """Each label's covariance of the shared parameters, in coordinates scaled to the bounds:
         the inverse of its summed Schur complements times its chi2 scale (the pseudo-inverse, with
-        an infinite variance for a parameter along a direction they do not see: k at k = 0,
-        where the model's derivative in k vanishes, :func:`~pbrdf_cl.fitting.images.statistics.null_parameters`),
+        an infinite variance for the parameter that a direction they do not see mostly is: k at
+        k = 0, where the model's derivative in k vanishes,
+        :func:`~pbrdf_cl.fitting.common.null_parameters`, as :func:`pbrdf_cl.fit` has it),
         or ``given`` (L, S, S, scaled coordinates: the bootstrap's,
         :func:`pbrdf_cl.fitting.images.label_search.binding_correction`) where given, made valid
         (:func:`pbrdf_cl.fitting.common.valid_covariance`; NaN where a variance cannot be computed)."""
@@ -563,7 +564,7 @@ class _Stage(Passes):
             seen = np.all(np.isfinite(A), axis=(1, 2))
             null = np.zeros(A.shape[:2], bool)
             if seen.any():
-                null[seen] = null_parameters(*np.linalg.eigh(A[seen]))
+                null[seen] = null_parameters(*np.linalg.eigh(A[seen]), share=0.5)
             np.einsum("lii->li", cov)[...] = np.where(null, np.inf, np.einsum("lii->li", cov))
             return valid_covariance(cov)
 

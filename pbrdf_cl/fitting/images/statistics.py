@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from .. import report
-from ..common import X_RESOLUTION, valid_covariance
+from ..common import NULL_RCOND, X_RESOLUTION, null_parameters, valid_covariance
 from .pixels import PixelResiduals, descent_bounds, internal
 
 #: A parameter counts as determined by a pixel's data where its 95% interval is narrower than
@@ -36,21 +36,6 @@ def truncated_interval(x, se, lo, hi, dof):
     lo95 = np.where(np.isfinite(lo95), np.clip(lo95, lo, hi), lo)
     hi95 = np.where(np.isfinite(hi95), np.clip(hi95, lo, hi), hi)
     return lo95, hi95
-
-
-#: A direction of an information matrix (coordinates scaled to the bounds) whose eigenvalue is at
-#: most this fraction of the largest is one the data do not see: an infinite variance along it.
-NULL_RCOND = 1e-12
-
-
-def null_parameters(eigval, eigvec, rcond=NULL_RCOND):
-    """The parameters (..., d) of information matrices (their eigenvalues (..., d) and eigenvectors
-    (..., d, d), coordinates scaled to the bounds) with a component along a direction the data do
-    not see (an eigenvalue at most ``rcond`` times the largest): their variance is infinite, not
-    the pseudo-inverse's zero along that direction."""
-    top = np.maximum(eigval.max(axis=-1, keepdims=True), 1e-300)
-    unseen = ~(eigval > rcond * top)
-    return np.einsum("...ik,...k->...i", eigvec ** 2 > 1e-12, unseen.astype(float)) > 0
 
 
 def _covariances(jtj, s2, span):

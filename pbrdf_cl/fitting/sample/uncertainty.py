@@ -8,7 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..common import X_RESOLUTION, fd_jacobian, valid_covariance
+from ..common import X_RESOLUTION, fd_jacobian, null_parameters, valid_covariance
 from .basins import local_spacing
 from .stages import StageResult
 
@@ -99,18 +99,30 @@ def _posterior_intervals(names, J, x, se, lo, hi, grid, dist, min_se, n_points, 
             g = _grid_cdf(prof / chi2_unit, vals, n_points, sigma_known)
             g_a, g_b = _central_interval([g], x[i], se_i, lo[i], hi[i], vals)
             if g_b - g_a >= GRID_RESOLVED_CELLS * local_spacing(vals, int(np.argmin(prof))):
-                cdfs.append(g)
+                # where the local approximation says nothing (an infinite standard error: the
+                # uniform prior), the profile alone
+                cdfs = [g] if np.isinf(se_i) else cdfs + [g]
         ci[n] = _central_interval(cdfs, x[i], se_i, lo[i], hi[i], grid.axes.get(n, ()))
     return ci
 
 
+#: The pseudo-inverse's cutoff of J^T J (a fraction of its largest singular value).
+PINV_RCOND = 1e-15
+
+
 def _covariance(J, s2, scale):
     """Covariance s2 (J^T J)^+ and, in parameters scaled by their bound ranges, the condition
-    number and eigen-decomposition of J^T J."""
+    number and eigen-decomposition of J^T J.  The parameter that a direction the data do not see
+    there mostly is (an eigenvalue at most NULL_RCOND of the largest, scaled: k at k = 0, where
+    the model's derivative in k vanishes) gets an infinite variance, not the small one the
+    pseudo-inverse leaves it where it cuts that direction off
+    (:func:`~pbrdf_cl.fitting.common.null_parameters`; k = 0 had come out +- 5e-6); the others
+    keep theirs (the direction moves them by a few millionths of their ranges)."""
     JtJ = J.T @ J
-    cov = s2 * np.linalg.pinv(JtJ, rcond=1e-15)
+    cov = s2 * np.linalg.pinv(JtJ, rcond=PINV_RCOND)
     Js = J * scale[None, :]
     w, v = np.linalg.eigh(Js.T @ Js)
+    np.fill_diagonal(cov, np.where(null_parameters(w, v, share=0.5), np.inf, np.diag(cov)))
     cond = w[-1] / w[0] if w[0] > 0 else np.inf
     return cov, cond, (w, v)
 
