@@ -24,6 +24,9 @@ import numpy as np
 #: Resolution of the located optimum, as a fraction of each parameter's bound range: the
 #: smallest half-width a 95% interval is given.
 X_RESOLUTION = 1e-8
+#: A value within this fraction of its bound range of a bound is on that bound (the fit's notes,
+#: the one-sided intervals at a bound, the label stage's refit from inside).
+BOUND_TOL = 1e-6
 #: Without given uncertainties (no dop_std) the DOP noise is estimated from the residuals, and an
 #: exact fit (noise-free synthetic data; as many distinct geometries as free parameters) would make
 #: it zero and every interval a point.  The estimate is never taken below a floor: the standard

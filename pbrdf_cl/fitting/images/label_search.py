@@ -13,6 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from ...io.source import ANGLES
+from ..common import BOUND_TOL
 from .pixel_fit import fit_block
 from .pixels import Block, PixelResiduals, internal
 
@@ -137,7 +138,7 @@ def inward_starts(st, ends):
     lo, hi, span = st.lo[st.si], st.hi[st.si], st.span[st.si]
     starts, seen = [], []
     for t in ends:
-        low, high = t <= lo + 1e-6 * span, t >= hi - 1e-6 * span
+        low, high = t <= lo + BOUND_TOL * span, t >= hi - BOUND_TOL * span
         if not (low | high).any() or any(np.array_equal(t, u) for u in seen):
             continue
         seen.append(t)

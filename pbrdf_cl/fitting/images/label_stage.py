@@ -77,7 +77,7 @@ import numpy as np
 
 from ...io.source import ANGLES
 from .. import report
-from ..common import GOODNESS_P, NULL_RCOND, X_RESOLUTION, fd_jacobian, null_parameters, valid_covariance
+from ..common import BOUND_TOL, GOODNESS_P, NULL_RCOND, X_RESOLUTION, fd_jacobian, null_parameters, valid_covariance
 from ..setup import PARAMETERS
 from . import label_search as search
 from .label_adjust import integrated_correction
@@ -759,7 +759,7 @@ UNSEEN_SE = 0.25
 
 
 def unseen_on_bound(st, theta, sums):
-    """The labels (L,) with a shared parameter on one of its bounds (within 1e-6 of its range)
+    """The labels (L,) with a shared parameter on one of its bounds (within BOUND_TOL of its range)
     that the data hardly see there: no variance, or a standard error of more than UNSEEN_SE of
     its range (:meth:`_Stage.covariance`).  k at k = 0 is one: the model's derivative in k
     vanishes there (it depends on k through k^2), so that the refinement's Gauss-Newton steps
@@ -767,7 +767,7 @@ def unseen_on_bound(st, theta, sums):
     start again from inside such a bound, :data:`label_search.INWARD`; the refinement on all the
     pixels can still end there)."""
     s, span = st.si, st.span[st.si]
-    bound = (theta <= st.lo[s] + 1e-6 * span) | (theta >= st.hi[s] - 1e-6 * span)
+    bound = (theta <= st.lo[s] + BOUND_TOL * span) | (theta >= st.hi[s] - BOUND_TOL * span)
     cov = st.covariance(sums)
     with np.errstate(invalid="ignore"):
         weak = cov.undefined | ~(np.einsum("lii->li", cov.cov) <= UNSEEN_SE ** 2)  # scaled coordinates
@@ -780,7 +780,8 @@ def inward_of(st, theta):
     s, span = st.si, st.span[st.si]
     lo, hi = st.lo[s], st.hi[s]
     f = search.INWARD[0]
-    return np.where(theta <= lo + 1e-6 * span, lo + f * span, np.where(theta >= hi - 1e-6 * span, hi - f * span, theta))
+    return np.where(theta <= lo + BOUND_TOL * span, lo + f * span,
+                    np.where(theta >= hi - BOUND_TOL * span, hi - f * span, theta))
 
 
 def seed_nodes(profile, shape, count):

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..common import X_RESOLUTION, fd_jacobian, null_parameters, valid_covariance
+from ..common import BOUND_TOL, X_RESOLUTION, fd_jacobian, null_parameters, valid_covariance
 from .basins import local_spacing
 from .stages import StageResult
 
@@ -99,15 +99,32 @@ def _posterior_intervals(names, J, x, se, lo, hi, grid, dist, min_se, n_points, 
             g = _grid_cdf(prof / chi2_unit, vals, n_points, sigma_known)
             g_a, g_b = _central_interval([g], x[i], se_i, lo[i], hi[i], vals)
             if g_b - g_a >= GRID_RESOLVED_CELLS * local_spacing(vals, int(np.argmin(prof))):
-                # where the local approximation says nothing (an infinite standard error: the
-                # uniform prior), the profile alone
-                cdfs = [g] if np.isinf(se_i) else cdfs + [g]
+                if np.isinf(se_i):
+                    # the local approximation says nothing (an infinite standard error: the
+                    # uniform prior): the profile alone, one-sided from a bound the best value
+                    # is on (k = 0, where the profile is flattest: a central interval would
+                    # leave out the values the data fit best)
+                    ci[n] = _profile_alone(g, x[i], lo[i], hi[i], vals)
+                    continue
+                cdfs.append(g)
         ci[n] = _central_interval(cdfs, x[i], se_i, lo[i], hi[i], grid.axes.get(n, ()))
     return ci
 
 
 #: The pseudo-inverse's cutoff of J^T J (a fraction of its largest singular value).
 PINV_RCOND = 1e-15
+
+
+def _profile_alone(g, x, lo, hi, nodes):
+    """The 95% interval of the grid profile's distribution ``g`` alone: from the bound ``x`` lies on
+    (within BOUND_TOL of the range) to its 95% quantile (or from its 5% quantile), else its central
+    95%."""
+    tol = BOUND_TOL * (hi - lo)
+    if x <= lo + tol:
+        return lo, _central_interval([g], x, np.inf, lo, hi, nodes, level=0.90)[1]
+    if x >= hi - tol:
+        return _central_interval([g], x, np.inf, lo, hi, nodes, level=0.90)[0], hi
+    return _central_interval([g], x, np.inf, lo, hi, nodes)
 
 
 def _covariance(J, s2, scale):

@@ -8,7 +8,7 @@ import numpy as np
 from ...io.measurements import duplicates_note
 from ...results import Result
 from .. import report
-from ..common import DOP_NOISE_FLOOR, OUTSIDE_FOOTNOTE, OUTSIDE_MARK, outside_interval, outside_note
+from ..common import BOUND_TOL, DOP_NOISE_FLOOR, OUTSIDE_FOOTNOTE, OUTSIDE_MARK, outside_interval, outside_note
 from ..sample.result import FIT_STATUS, reported_stderr
 from ..setup import PARAMETERS
 
@@ -187,7 +187,7 @@ def _joint_notes(setup, labels, x, lo, hi, unc):
         if b - a > UNDETERMINED_FRACTION * span:
             notes.append(f"{name} is not determined by the joint data: its 95% interval [{a:.4g}, {b:.4g}] spans "
                          f"{(b - a) / span:.0%} of its bounds")
-        tol = 1e-6 * span
+        tol = BOUND_TOL * span
         side = "lower" if x[i] <= lo[i] + tol else ("upper" if x[i] >= hi[i] - tol else None)
         if side:
             notes.append(f"{name} = {x[i]:.4g} is on its {side} bound: the data push it there")
