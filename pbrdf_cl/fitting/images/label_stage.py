@@ -31,7 +31,7 @@ in passes over the blocks of the stack (a label's pixels may lie in every block)
    parameter's range inside, and the basin of lower chi2 kept, as for the runner-up (2.; the
    bound's end, where the two lie within 3.84, counted in the interval as its values alone);
 4. the intervals: the covariance of theta is the inverse of the summed Schur complements (an
-   infinite variance for a parameter along a direction they do not see), scaled
+   infinite variance for the parameter that a direction they do not see mostly is), scaled
    by the label's reduced chi2 where ``dop_std`` is not given; the central 95% truncated to the
    bounds (Student's t without ``dop_std``), then cross-checked against the label's profile on
    the grid: a node whose profile (an upper bound of the true one) lies within chi2 3.84 (times
