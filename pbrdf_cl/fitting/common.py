@@ -259,6 +259,13 @@ class Covariance:
         return "; ".join(parts) or None
 
 
+def on_bound(x, lo, hi):
+    """(on the lower bound, on the upper): where ``x`` lies within BOUND_TOL of its range ``hi -
+    lo`` of each bound, elementwise."""
+    tol = BOUND_TOL * (hi - lo)
+    return x <= lo + tol, x >= hi - tol
+
+
 #: A direction of an information matrix (coordinates scaled to the bounds) whose eigenvalue is at
 #: most this fraction of the largest is one the data do not see: an infinite variance along it.
 NULL_RCOND = 1e-12

@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from ...io.source import ANGLES
-from ..common import BOUND_TOL
+from ..common import on_bound
 from .pixel_fit import fit_block
 from .pixels import Block, PixelResiduals, internal
 
@@ -135,16 +135,21 @@ def inward_starts(st, ends):
     """Starts moved inside the bounds from the candidates' subsample ``ends`` (a list of (S,)) that
     have a shared parameter on a bound: that parameter :data:`INWARD` fractions of its bounds
     inside, the others as they are (each distinct end once)."""
-    lo, hi, span = st.lo[st.si], st.hi[st.si], st.span[st.si]
     starts, seen = [], []
     for t in ends:
-        low, high = t <= lo + BOUND_TOL * span, t >= hi - BOUND_TOL * span
-        if not (low | high).any() or any(np.array_equal(t, u) for u in seen):
+        if not np.any(on_bound(t, st.lo[st.si], st.hi[st.si])) or any(np.array_equal(t, u) for u in seen):
             continue
         seen.append(t)
-        for f in INWARD:
-            starts.append(np.where(low, lo + f * span, np.where(high, hi - f * span, t)))
+        starts += [moved_inside(st, t, f) for f in INWARD]
     return starts
+
+
+def moved_inside(st, theta, f):
+    """``theta`` (..., S) with every shared parameter on a bound (:func:`~pbrdf_cl.fitting.common.on_bound`)
+    moved the fraction ``f`` of its range inside, the others as they are."""
+    lo, hi, span = st.lo[st.si], st.hi[st.si], st.span[st.si]
+    low, high = on_bound(theta, lo, hi)
+    return np.where(low, lo + f * span, np.where(high, hi - f * span, theta))
 
 
 def simulate(st, raw, theta, beta, s2, rng):

@@ -77,7 +77,7 @@ import numpy as np
 
 from ...io.source import ANGLES
 from .. import report
-from ..common import BOUND_TOL, GOODNESS_P, NULL_RCOND, X_RESOLUTION, fd_jacobian, null_parameters, valid_covariance
+from ..common import GOODNESS_P, NULL_RCOND, X_RESOLUTION, fd_jacobian, null_parameters, on_bound, valid_covariance
 from ..setup import PARAMETERS
 from . import label_search as search
 from .label_adjust import integrated_correction
@@ -675,8 +675,8 @@ def run_label_stage(job, eng, progress=False, workers=None):
         rounds += more
     stuck = ok & unseen_on_bound(st, theta, sums)
     if stuck.any():  # k = 0, where no descent can leave it: fitted again from inside, the better kept
-        theta, sums, active, inside, more = refit_runner_up(st, theta, sums, active, inward_of(st, theta), stuck,
-                                                            point_first=True)
+        start = search.moved_inside(st, theta, search.INWARD[0])
+        theta, sums, active, inside, more = refit_runner_up(st, theta, sums, active, start, stuck, point_first=True)
         other = np.where(np.isfinite(inside), inside, other)
         rounds += more
     p_value, fits, test = label_goodness(st, sums, subs, picks, theta, ok, pixels)
@@ -759,29 +759,18 @@ UNSEEN_SE = 0.25
 
 
 def unseen_on_bound(st, theta, sums):
-    """The labels (L,) with a shared parameter on one of its bounds (within BOUND_TOL of its range)
+    """The labels (L,) with a shared parameter on one of its bounds (:func:`~pbrdf_cl.fitting.common.on_bound`)
     that the data hardly see there: no variance, or a standard error of more than UNSEEN_SE of
     its range (:meth:`_Stage.covariance`).  k at k = 0 is one: the model's derivative in k
     vanishes there (it depends on k through k^2), so that the refinement's Gauss-Newton steps
     cannot leave it even where k > 0 fits the data better (the search's subsample refinements
     start again from inside such a bound, :data:`label_search.INWARD`; the refinement on all the
     pixels can still end there)."""
-    s, span = st.si, st.span[st.si]
-    bound = (theta <= st.lo[s] + BOUND_TOL * span) | (theta >= st.hi[s] - BOUND_TOL * span)
+    low, high = on_bound(theta, st.lo[st.si], st.hi[st.si])
     cov = st.covariance(sums)
     with np.errstate(invalid="ignore"):
         weak = cov.undefined | ~(np.einsum("lii->li", cov.cov) <= UNSEEN_SE ** 2)  # scaled coordinates
-    return np.any(bound & weak, axis=1)
-
-
-def inward_of(st, theta):
-    """``theta`` (L, S) with every shared parameter on a bound moved the first of
-    :data:`label_search.INWARD` fractions of its range inside."""
-    s, span = st.si, st.span[st.si]
-    lo, hi = st.lo[s], st.hi[s]
-    f = search.INWARD[0]
-    return np.where(theta <= lo + BOUND_TOL * span, lo + f * span,
-                    np.where(theta >= hi - BOUND_TOL * span, hi - f * span, theta))
+    return np.any((low | high) & weak, axis=1)
 
 
 def seed_nodes(profile, shape, count):

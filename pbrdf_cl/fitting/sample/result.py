@@ -11,7 +11,7 @@ from ...compute import pointwise
 from ...io.measurements import duplicates_note
 from ...results import Result
 from .. import report
-from ..common import BOUND_TOL, DOP_NOISE_FLOOR, OUTSIDE_MARK, dop_resolution, outside_interval, outside_note
+from ..common import DOP_NOISE_FLOOR, OUTSIDE_MARK, dop_resolution, on_bound, outside_interval, outside_note
 from ..setup import F00_REL_STD, MODEL_PARAMS, PARAMETERS
 
 #: FitResult.status -> message (scipy's convention: success is status > 0).
@@ -286,8 +286,8 @@ def _bound_notes(names, x, lo, hi, ci95):
     intervals (:func:`pbrdf_cl.fitting.common.outside_note`)."""
     notes, outside = [], []
     for i, n in enumerate(names):
-        tol = BOUND_TOL * (hi[i] - lo[i])
-        side = "lower" if x[i] <= lo[i] + tol else ("upper" if x[i] >= hi[i] - tol else None)
+        low, high = on_bound(x[i], lo[i], hi[i])
+        side = "lower" if low else ("upper" if high else None)
         a, b = ci95[n]
         if side:
             notes.append(f"{n} = {x[i]:.4g} is on its {side} bound: the data push it there (the optimum may lie "

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..common import BOUND_TOL, X_RESOLUTION, fd_jacobian, null_parameters, valid_covariance
+from ..common import X_RESOLUTION, fd_jacobian, null_parameters, on_bound, valid_covariance
 from .basins import local_spacing
 from .stages import StageResult
 
@@ -117,12 +117,12 @@ PINV_RCOND = 1e-15
 
 def _profile_alone(g, x, lo, hi, nodes):
     """The 95% interval of the grid profile's distribution ``g`` alone: from the bound ``x`` lies on
-    (within BOUND_TOL of the range) to its 95% quantile (or from its 5% quantile), else its central
+    (:func:`~pbrdf_cl.fitting.common.on_bound`) to its 95% quantile (or from its 5% quantile), else its central
     95%."""
-    tol = BOUND_TOL * (hi - lo)
-    if x <= lo + tol:
+    low, high = on_bound(x, lo, hi)
+    if low:
         return lo, _central_interval([g], x, np.inf, lo, hi, nodes, level=0.90)[1]
-    if x >= hi - tol:
+    if high:
         return _central_interval([g], x, np.inf, lo, hi, nodes, level=0.90)[0], hi
     return _central_interval([g], x, np.inf, lo, hi, nodes)
 

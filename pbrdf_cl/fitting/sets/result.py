@@ -8,7 +8,7 @@ import numpy as np
 from ...io.measurements import duplicates_note
 from ...results import Result
 from .. import report
-from ..common import BOUND_TOL, DOP_NOISE_FLOOR, OUTSIDE_FOOTNOTE, OUTSIDE_MARK, outside_interval, outside_note
+from ..common import DOP_NOISE_FLOOR, OUTSIDE_FOOTNOTE, OUTSIDE_MARK, on_bound, outside_interval, outside_note
 from ..sample.result import FIT_STATUS, reported_stderr
 from ..setup import PARAMETERS
 
@@ -187,8 +187,8 @@ def _joint_notes(setup, labels, x, lo, hi, unc):
         if b - a > UNDETERMINED_FRACTION * span:
             notes.append(f"{name} is not determined by the joint data: its 95% interval [{a:.4g}, {b:.4g}] spans "
                          f"{(b - a) / span:.0%} of its bounds")
-        tol = BOUND_TOL * span
-        side = "lower" if x[i] <= lo[i] + tol else ("upper" if x[i] >= hi[i] - tol else None)
+        low, high = on_bound(x[i], lo[i], hi[i])
+        side = "lower" if low else ("upper" if high else None)
         if side:
             notes.append(f"{name} = {x[i]:.4g} is on its {side} bound: the data push it there")
     outside = [f"{n}'s best value {x[i]:.4g} lies outside its 95% interval [{unc.ci95[n][0]:.4g}, {unc.ci95[n][1]:.4g}]"
