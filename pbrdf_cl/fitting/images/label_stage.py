@@ -32,8 +32,10 @@ in passes over the blocks of the stack (a label's pixels may lie in every block)
    bound's end, where the two lie within 3.84, counted in the interval as its values alone);
 4. the intervals: the covariance of theta is the inverse of the summed Schur complements (an
    infinite variance for the parameter that a direction they do not see mostly is), scaled
-   by the label's reduced chi2 where ``dop_std`` is not given; the central 95% truncated to the
-   bounds (Student's t without ``dop_std``), then cross-checked against the label's profile on
+   by the label's reduced chi2 where ``dop_std`` is not given; the values +- 1.96 standard errors
+   (Student's t without ``dop_std``) cut at the bounds, k's holding that of k^2 too (the DOP
+   depends on k through k^2: near k = 0 the likelihood is Gaussian in k^2;
+   :func:`~pbrdf_cl.fitting.images.statistics.bounded_interval`), then cross-checked against the label's profile on
    the grid: a node whose profile (an upper bound of the true one) lies within chi2 3.84 (times
    the reduced chi2) of the minimum but outside the interval widens it to cover that node and
    marks the label ambiguous, as does another basin (2.) whose label chi2 lies within 3.84 of the
@@ -82,7 +84,7 @@ from ..setup import PARAMETERS
 from . import label_search as search
 from .label_adjust import integrated_correction
 from .pixels import Block, PixelResiduals, descent_bounds, grid_points, grid_values, internal, regions
-from .statistics import DETERMINED_FRACTION, truncated_interval
+from .statistics import DETERMINED_FRACTION, bounded_interval
 
 #: Passes of the refinement at most (each one pass over the stack).
 MAX_ROUNDS = 20
@@ -575,25 +577,29 @@ class _Stage(Passes):
         return cov / f if inverse else cov * f
 
     def gauss(self, theta, sums, given=None):
-        """Standard errors and the central 95% intervals (truncated to the bounds; Student's t
-        without dop_std) of every label at ``theta`` from its sums (or the covariance ``given``,
-        see :meth:`covariance`); returns (se, ci, dof, chi2 scale).  A variance that cannot be
-        computed gives an infinite standard error (the interval spans the bounds)."""
+        """Standard errors and the 95% intervals (the estimate +- 1.96 standard errors, Student's t
+        without dop_std, cut at the bounds, k's holding that of k^2 too where the data see k
+        through k^2, every fit but one of polarimetric channels:
+        :func:`~pbrdf_cl.fitting.images.statistics.bounded_interval`) of every label at ``theta``
+        from its sums (or the covariance ``given``, see :meth:`covariance`); returns (se, ci, dof,
+        chi2 scale).  A variance that cannot be computed gives an infinite standard error (the
+        interval spans the bounds)."""
         setup = self.job.setup
         s, span = self.si, self.span[self.si]
         dof, s2 = self.dof(sums), self.scale(sums)
         with np.errstate(invalid="ignore"):
             se = np.sqrt(np.clip(np.einsum("lii->li", self.covariance(sums, given).cov), 0, None)) * span
         se = np.where(np.isfinite(se), se, np.inf)
-        ci = np.stack(truncated_interval(theta, np.maximum(se, X_RESOLUTION * span), self.lo[s], self.hi[s],
-                                         None if setup.sigma_known else dof[:, None]), axis=-1)
+        square = np.array([n == "k" and not setup.channels for n in self.shared])
+        ci = np.stack(bounded_interval(theta, np.maximum(se, X_RESOLUTION * span), self.lo[s], self.hi[s],
+                                       None if setup.sigma_known else dof[:, None], square), axis=-1)
         return se, ci, dof, s2
 
     def intervals(self, theta, sums, profile, active, given=None, other=None):
         """Standard errors, 95% intervals, ``determined`` and the status of every label (see the
-        module's docstring): :meth:`gauss` with the covariance ``given``, widened to the profile's nodes
-        the data allow and to ``other`` (L, S, 2: another basin's interval, NaN where none) where
-        given, either marking the label ambiguous."""
+        module's docstring): :meth:`gauss` with the covariance ``given``, widened to the profile's
+        nodes the data allow and to ``other`` (L, S, 2: another basin's interval, NaN where none)
+        where given, either marking the label ambiguous."""
         chi2 = self.unpack(sums)[3]
         s, span = self.si, self.span[self.si]
         lo, hi = self.lo[s], self.hi[s]

@@ -280,8 +280,9 @@ def label_variables(ds, job):
         ds[f"label_{n}"] = (dims, res.theta[:, j], {"units": "1", "long_name": f"{n} shared by the label's pixels"})
         ds[f"label_{n}_stderr"] = (dims, res.stderr[:, j], {"units": "1", "long_name": f"standard error of label {n}"})
         ds[f"label_{n}_ci95"] = (dims + ("bound",), res.ci95[:, j],
-                                 {"units": "1", "long_name": f"95% interval of label {n} (truncated to the bounds; "
-                                                             "widened to the profile's nodes it allows)"})
+                                 {"units": "1", "long_name": f"95% interval of label {n} (+- 1.96 standard errors cut "
+                                                             "at the bounds, k's holding k^2's; widened to the "
+                                                             "profile's nodes it allows)"})
         ds[f"label_{n}_outside_ci95"] = (dims, outside_interval(res.theta[:, j], res.ci95[:, j, 0], res.ci95[:, j, 1]),
                                          {"long_name": OUTSIDE_FOOTNOTE})
     ds["label_corr"] = (dims + ("shared_param", "shared_param_2"), res.corr,
