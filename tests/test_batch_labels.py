@@ -445,7 +445,8 @@ def test_bounded_intervals_cover_a_truth_on_a_bound():
     through k^2, covers k = 0 at the nominal rate too (the estimator of k^2 Gaussian, k its square
     root, k's standard error that of the delta method), where a Gaussian in k covers it 84% of
     the time.  Every interval holds its estimate."""
-    from pbrdf_cl.fitting.images.statistics import bounded_interval, truncated_interval
+    from pbrdf_cl.fitting.common import bounded_interval
+    from pbrdf_cl.fitting.images.statistics import truncated_interval
     rng = np.random.default_rng(0)
     se = 0.05
     x = np.maximum(0.0, rng.normal(0.0, se, 4000))  # a bounded estimator of a truth on the bound 0

@@ -433,7 +433,11 @@ def test_a_joint_fit_that_does_not_describe_its_data_has_valid_matrices_and_mark
     """Issue #34 items 3 and 4 for fit_joint: in-plane sets labelled phi = 0 gave correlations of
     9.7 and inf, not symmetric; now the covariance is valid or NaN with a note, the standard
     errors are NaN where it is, and every best value outside its interval is marked (*) in the
-    summary, listed in ``outside_ci95`` and flagged in ``to_dataset()``."""
+    summary, listed in ``outside_ci95`` and flagged in ``to_dataset()``.  Issue #37 round 8: the
+    best n, k and kd of each set, on their bounds with no standard error, were such values (the
+    uniform prior's central 95%, n in [1.1, 4.9], k in [0.25, 9.75], left them out); now their
+    intervals are the grid profile's alone, from the bound to the nodes around its 95%, and hold
+    them."""
     sets = {s: from_arrays(m.theta_i, m.theta_r, m.dop, 0.0, m.dop_std) for s, m in three_sets().items()
             if s != "633"}
     r = pbrdf_cl.fit_joint(sets, shared=("sigma", "c"))
@@ -452,5 +456,40 @@ def test_a_joint_fit_that_does_not_describe_its_data_has_valid_matrices_and_mark
         assert r.outside_ci95[s] == outside
         for p in r.ci95[s]:
             assert bool(ds["outside_ci95"].sel(set=s, param=p)) == (p in outside)
-    assert any(r.outside_ci95.values()) and OUTSIDE_MARK in text
-    assert sum(OUTSIDE_MARK in n for n in r.notes) == 1
+    for s in r.sets:
+        assert r.x[s]["n"] == 1.0 and r.x[s]["k"] < 1e-6 and (r.ci95[s]["n"][0], r.ci95[s]["k"][0]) == (1.0, 0.0)
+        assert r.ci95[s]["n"][1] < 1.1 and r.ci95[s]["k"][1] < 0.25
+    assert (OUTSIDE_MARK in text) == any(r.outside_ci95.values())
+    assert sum(OUTSIDE_MARK in n for n in r.notes) == int(any(r.outside_ci95.values()))
+
+
+def test_the_stacked_sets_compute_each_factor_once_per_run_bit_for_bit(monkeypatch):
+    """The joint rows of several sets side by side, as finite-difference Jacobians ask for them (a
+    point, then the point moved along each parameter in turn), compute each factor of the model
+    once per run of consecutive rows with the same values of its parameters (stages.same_runs):
+    of each point's 12 rows (sigma, c, then n, k, kd of each set moved) the Fresnel terms for 10,
+    the specular scale for 3, the diffuse term for 8; the residuals are those of every row
+    computed as it comes, bit for bit."""
+    from pbrdf_cl.fitting.common import fd_jacobian, fd_steps
+    from pbrdf_cl.fitting.sample import stages
+    from pbrdf_cl.fitting.sets import joint
+    setup = joint.check_joint_args(three_sets(), ("sigma", "c"), "six-param", None, None, "paper")
+    resid = joint.JointResiduals(setup)
+    assert resid.stack is not None
+    rng = np.random.default_rng(3)
+    X = setup.lo + rng.uniform(0.2, 0.8, (3, setup.lo.size)) * (setup.hi - setup.lo)
+    sizes = {}
+    for name, compute in (("fresnel", stages.Model._fresnel), ("scale", stages.Model._log_scale),
+                          ("diffuse", stages.Model._diffuse)):
+        def counted(self, p, name=name, compute=compute):
+            sizes.setdefault(name, []).append(int(np.shape(p["n" if name == "fresnel" else "kd" if name == "diffuse"
+                                                            else "sigma"])[0]))
+            return compute(self, p)
+        monkeypatch.setattr(stages.Model, f"_{name if name != 'scale' else 'log_scale'}", counted)
+    runs = fd_jacobian(resid.rows, X, setup.lo, setup.hi)
+    assert {k: v[-1] for k, v in sizes.items()} == {"fresnel": 3 * 10, "scale": 3 * 3, "diffuse": 3 * 8}
+    monkeypatch.setattr(stages, "RUN_ROWS", 10 ** 9)
+    alone = fd_jacobian(resid.rows, X, setup.lo, setup.hi)
+    for a, b in zip(runs, alone):
+        np.testing.assert_array_equal(a, b)
+    assert np.all(fd_steps(X, setup.hi) != 0)

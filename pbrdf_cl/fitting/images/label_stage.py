@@ -35,7 +35,7 @@ in passes over the blocks of the stack (a label's pixels may lie in every block)
    by the label's reduced chi2 where ``dop_std`` is not given; the values +- 1.96 standard errors
    (Student's t without ``dop_std``) cut at the bounds, k's holding that of k^2 too (the DOP
    depends on k through k^2: near k = 0 the likelihood is Gaussian in k^2;
-   :func:`~pbrdf_cl.fitting.images.statistics.bounded_interval`), then cross-checked against the label's profile on
+   :func:`~pbrdf_cl.fitting.common.bounded_interval`), then cross-checked against the label's profile on
    the grid: a node whose profile (an upper bound of the true one) lies within chi2 3.84 (times
    the reduced chi2) of the minimum but outside the interval widens it to cover that node and
    marks the label ambiguous, as does another basin (2.) whose label chi2 lies within 3.84 of the
@@ -79,12 +79,21 @@ import numpy as np
 
 from ...io.source import ANGLES
 from .. import report
-from ..common import GOODNESS_P, NULL_RCOND, X_RESOLUTION, fd_jacobian, null_parameters, on_bound, valid_covariance
+from ..common import (
+    GOODNESS_P,
+    NULL_RCOND,
+    X_RESOLUTION,
+    bounded_interval,
+    fd_jacobian,
+    null_parameters,
+    on_bound,
+    valid_covariance,
+)
 from ..setup import PARAMETERS
 from . import label_search as search
 from .label_adjust import integrated_correction
 from .pixels import Block, PixelResiduals, descent_bounds, grid_points, grid_values, internal, regions
-from .statistics import DETERMINED_FRACTION, bounded_interval
+from .statistics import DETERMINED_FRACTION
 
 #: Passes of the refinement at most (each one pass over the stack).
 MAX_ROUNDS = 20
@@ -580,7 +589,7 @@ class _Stage(Passes):
         """Standard errors and the 95% intervals (the estimate +- 1.96 standard errors, Student's t
         without dop_std, cut at the bounds, k's holding that of k^2 too where the data see k
         through k^2, every fit but one of polarimetric channels:
-        :func:`~pbrdf_cl.fitting.images.statistics.bounded_interval`) of every label at ``theta``
+        :func:`~pbrdf_cl.fitting.common.bounded_interval`) of every label at ``theta``
         from its sums (or the covariance ``given``, see :meth:`covariance`); returns (se, ci, dof,
         chi2 scale).  A variance that cannot be computed gives an infinite standard error (the
         interval spans the bounds)."""
