@@ -160,13 +160,7 @@ def per_run(compute, p, names):
     if first.size == rows:
         return compute(p)
     inverse = inverse.reshape(-1)
-    out = compute({**p, **{n: key[first, j:j + 1] for j, n in enumerate(names)}})
-    if isinstance(out, np.ndarray):
-        return out[inverse]
-    spread = copy.copy(out)
-    for field, value in vars(out).items():
-        setattr(spread, field, value[inverse])
-    return spread
+    return spread_rows(compute({**p, **{n: key[first, j:j + 1] for j, n in enumerate(names)}}), inverse)
 
 
 #: Rows of several sets side by side from which :meth:`Model.factors` computes each factor once per
@@ -195,7 +189,12 @@ def same_runs(compute, p, names):
     if first.size == rows:
         return compute(p)
     inverse = np.cumsum(start) - 1
-    out = compute({**p, **{n: p[n][first] for n in varying}})
+    return spread_rows(compute({**p, **{n: p[n][first] for n in varying}}), inverse)
+
+
+def spread_rows(out, inverse):
+    """The rows ``inverse`` of a factor computed for distinct rows (an array, or the Fresnel terms'
+    fields each)."""
     if isinstance(out, np.ndarray):
         return out[inverse]
     spread = copy.copy(out)
