@@ -285,13 +285,14 @@ def null_parameters(eigval, eigvec, rcond=NULL_RCOND, share=1e-12):
 
 def bounded_interval(x, se, lo, hi, dof, square=False):
     """The 95% intervals x +- z se (z Student's t's quantile with ``dof`` where given, else the
-    normal's) cut at the bounds [lo, hi], elementwise: the labels' intervals, and where
-    :func:`pbrdf_cl.fit`'s reach a bound
-    (:func:`~pbrdf_cl.fitting.sample.uncertainty.uncertainty_stage`).  They always hold x,
-    and they hold a bound x lies on or near as often as a value inside: a truth on a bound (k = 0
-    of a dielectric) is covered at the nominal rate, where the central 95% of the Gaussian
-    truncated to the bounds (:func:`truncated_interval`) leaves the bound out whenever x lies within
-    a few hundredths of a standard error of it.
+    normal's) cut at the bounds [lo, hi], elementwise: the image fits' intervals (the pixels' and
+    the labels'), and where :func:`pbrdf_cl.fit`'s reach a bound
+    (:func:`~pbrdf_cl.fitting.sample.uncertainty.uncertainty_stage`).  They always hold x, and
+    they hold a bound x lies on or near as often as a value inside: a truth on a bound (k = 0 of a
+    dielectric, kd = 0 of a metal) is covered at the nominal rate, where the central 95% of the
+    Gaussian truncated to the bounds (their rule until issue #37's round 8) leaves the bound out
+    whenever x lies within a few hundredths of a standard error of it (a metal's kd = 0 was
+    covered by 2% of its pixels, now by 99-100%).
 
     ``square`` (broadcasting, e.g. per parameter): a parameter whose lower bound is 0 and which the
     data see through its square there (k, on which the DOP depends through k^2: near k = 0 the

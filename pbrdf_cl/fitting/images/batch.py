@@ -18,8 +18,8 @@ fitted on its own, by the stages of :func:`pbrdf_cl.fit` reshaped for many pixel
     in float64, derivatives by forward differences of the device functions of
     ``kernels/pbrdf.h``; with intensities (``f00``/``s0``) a last float64 run adds ks (as log
     ks) and the intensity residuals, as :func:`pbrdf_cl.fit`'s intensity stage;
-(c) the best start per pixel, covariance from J^T J, 95% intervals (the central 95% of the
-    Gaussian, or Student's t, truncated to the bounds), and a status per pixel.
+(c) the best start per pixel, covariance from J^T J, 95% intervals (the best values +- 1.96
+    standard errors, Student's t without known noise, cut at the bounds), and a status per pixel.
 
 On the numpy backend the same stages run with ``reference.py`` (the grid from
 ``dense.NumpyTables``, the descent by ``lm_batch`` itself): slower, for machines without a

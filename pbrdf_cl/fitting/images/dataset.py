@@ -204,7 +204,8 @@ def make_dataset(job, out, seconds):
         ds[f"{n}_stderr"] = (dims, out["stderr"][:, j].reshape(shape),
                              {"units": units[n], "long_name": f"standard error of {n}"})
         ds[f"{n}_ci95"] = (dims + ("bound",), out["ci95"][:, j].reshape(shape + (2,)),
-                           {"units": units[n], "long_name": f"95% interval of {n} (truncated to the bounds)"})
+                           {"units": units[n],
+                            "long_name": f"95% interval of {n} (+- 1.96 standard errors cut at the bounds)"})
         ds[f"{n}_outside_ci95"] = (dims, outside_interval(out["x"][:, j], out["ci95"][:, j, 0],
                                                           out["ci95"][:, j, 1]).reshape(shape),
                                    {"long_name": OUTSIDE_FOOTNOTE})

@@ -1,5 +1,8 @@
 """Per-pixel statistics of an image fit (:func:`statistics`): covariance from J^T J, 95% intervals
-(the central 95% of the Gaussian, or Student's t, truncated to the bounds), ``determined``,
+(the best values +- 1.96 standard errors, Student's t without known noise, cut at the bounds:
+:func:`~pbrdf_cl.fitting.common.bounded_interval`; a pixel's k, poorly determined by its few
+measurements, without the labels' hull with k^2's interval, which would take a metal's pixels'
+intervals to k = 0 that a fit held there rejects), ``determined``,
 ambiguity, the status codes of :data:`pbrdf_cl.fitting.images.dataset.PIXEL_STATUS` and each pixel's
 goodness-of-fit test (as :func:`pbrdf_cl.fit` tests a fit)."""
 from __future__ import annotations
@@ -7,35 +10,12 @@ from __future__ import annotations
 import numpy as np
 
 from .. import report
-from ..common import NULL_RCOND, X_RESOLUTION, null_parameters, valid_covariance
+from ..common import NULL_RCOND, X_RESOLUTION, bounded_interval, null_parameters, valid_covariance
 from .pixels import PixelResiduals, descent_bounds, internal
 
 #: A parameter counts as determined by a pixel's data where its 95% interval is narrower than
 #: this fraction of its bound range.
 DETERMINED_FRACTION = 0.5
-
-
-def truncated_interval(x, se, lo, hi, dof):
-    """The central 95% of N(x, se) (Student's t with ``dof`` where given) truncated to [lo, hi],
-    elementwise."""
-    from scipy import special
-    if dof is None:
-        cdf, ppf = special.ndtr, special.ndtri
-    else:
-        def cdf(z):
-            return special.stdtr(dof, z)
-
-        def ppf(q):
-            return special.stdtrit(dof, q)
-    with np.errstate(all="ignore"):
-        a, b = cdf((lo - x) / se), cdf((hi - x) / se)
-        span = b - a
-        lo95 = x + se * ppf(np.clip(a + 0.025 * span, 1e-300, 1 - 1e-16))
-        hi95 = x + se * ppf(np.clip(a + 0.975 * span, 1e-300, 1 - 1e-16))
-    # where the truncated mass is numerically nothing (x far outside +- many se of both bounds)
-    lo95 = np.where(np.isfinite(lo95), np.clip(lo95, lo, hi), lo)
-    hi95 = np.where(np.isfinite(hi95), np.clip(hi95, lo, hi), hi)
-    return lo95, hi95
 
 
 def _covariances(jtj, s2, span):
@@ -87,7 +67,7 @@ def statistics(setup, blk, names, xb, chi2, jtj, settled, X_all, sse_all, nfev):
         sel = known == kind
         if not sel.any():
             continue
-        l_, h_ = truncated_interval(xi[sel], se_i[sel], lo, hi, None if kind else dof[sel][:, None])
+        l_, h_ = bounded_interval(xi[sel], se_i[sel], lo, hi, None if kind else dof[sel][:, None])
         lo95[sel], hi95[sel] = l_, h_
     determined = (hi95 - lo95) < DETERMINED_FRACTION * span
     ci = np.stack([lo95, hi95], axis=-1)
@@ -110,8 +90,8 @@ def statistics(setup, blk, names, xb, chi2, jtj, settled, X_all, sse_all, nfev):
             xb[:, d] = ratio * ks
             se[:, d] = np.sqrt(np.clip(var, 0, None))
             kd_hi = setup.hi[setup.free.index("kd")] * ks
-            l_, h_ = truncated_interval(xb[:, d], np.maximum(se[:, d], resolution[d] * ks), 0.0 * ks, kd_hi,
-                                         None if setup.sigma_known else dof)
+            l_, h_ = bounded_interval(xb[:, d], np.maximum(se[:, d], resolution[d] * ks), 0.0 * ks, kd_hi,
+                                      None if setup.sigma_known else dof)
             ci[:, d, 0], ci[:, d, 1] = l_, h_
     # ambiguity: another start within one unit of chi2, more than 2 standard errors away
     unit = np.where(setup.sigma_known, 1.0, s2)
