@@ -283,6 +283,19 @@ def null_parameters(eigval, eigvec, rcond=NULL_RCOND, share=1e-12):
     return np.einsum("...ik,...k->...i", eigvec ** 2 > share, unseen.astype(float)) > 0
 
 
+#: chi^2 of one parameter's 95% interval: the likelihood-ratio test's rise (the label stage's
+#: profile cross-check, the fit's test of a bound).
+CHI2_95 = 3.841458820694124
+
+
+def seen_through_square(names, polarimetric):
+    """Which of the parameters ``names`` (``k``, ``k[set]``, ...) the data see through their
+    square at their lower bound 0 (``square`` of :func:`bounded_interval`): k, wherever the data
+    are the DOP or intensities (Rs and Rp depend on k through k^2), not polarimetric channels
+    (circular components see k itself)."""
+    return np.array([not polarimetric and n.split("[")[0] == "k" for n in names], dtype=bool)
+
+
 def bounded_interval(x, se, lo, hi, dof, square=False):
     """The 95% intervals x +- z se (z Student's t's quantile with ``dof`` where given, else the
     normal's) cut at the bounds [lo, hi], elementwise: the image fits' intervals (the pixels' and

@@ -80,6 +80,7 @@ import numpy as np
 from ...io.source import ANGLES
 from .. import report
 from ..common import (
+    CHI2_95,
     GOODNESS_P,
     NULL_RCOND,
     X_RESOLUTION,
@@ -87,6 +88,7 @@ from ..common import (
     fd_jacobian,
     null_parameters,
     on_bound,
+    seen_through_square,
     valid_covariance,
 )
 from ..setup import PARAMETERS
@@ -117,8 +119,6 @@ CHI2_TOL = 1e-2
 #: weakly determined direction.  On the bench's 16x16 and 32x32 stacks (24) none of the 161
 #: steps so skipped would have lowered the chi2 (of those within 0.1 of the step, 6 would have).
 SAME_STEP = 0.05
-#: chi2 of one parameter's 95% interval (the profile cross-check's threshold, times the reduced chi2).
-CHI2_95 = 3.841458820694124
 #: The status of each label: code -> (name, meaning).
 LABEL_STATUS = {
     1: ("converged", "the refinement converged inside the bounds"),
@@ -599,9 +599,9 @@ class _Stage(Passes):
         with np.errstate(invalid="ignore"):
             se = np.sqrt(np.clip(np.einsum("lii->li", self.covariance(sums, given).cov), 0, None)) * span
         se = np.where(np.isfinite(se), se, np.inf)
-        square = np.array([n == "k" and not setup.channels for n in self.shared])
         ci = np.stack(bounded_interval(theta, np.maximum(se, X_RESOLUTION * span), self.lo[s], self.hi[s],
-                                       None if setup.sigma_known else dof[:, None], square), axis=-1)
+                                       None if setup.sigma_known else dof[:, None],
+                                       seen_through_square(self.shared, setup.channels)), axis=-1)
         return se, ci, dof, s2
 
     def intervals(self, theta, sums, profile, active, given=None, other=None):

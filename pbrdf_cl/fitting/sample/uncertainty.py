@@ -9,12 +9,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..common import (
+    CHI2_95,
     X_RESOLUTION,
     bounded_interval,
     fd_jacobian,
     lm_batch,
     null_parameters,
     on_bound,
+    seen_through_square,
     valid_covariance,
 )
 from .basins import local_spacing
@@ -92,16 +94,13 @@ def uncertainty_stage(residuals, x, lo, hi, grid, dop_sse, n_points, sigma_known
 
 
 def squared_parameters(residuals):
-    """Which of ``residuals.free`` the data see through their square at their lower bound 0: k
-    (``k``, ``k[set]``) where every residual is of the DOP (or an intensity: Rs and Rp depend on k
-    through k^2), not of polarimetric channels (circular components see k itself)."""
+    """Which of ``residuals.free`` the data see through their square at their lower bound 0
+    (:func:`~pbrdf_cl.fitting.common.seen_through_square`): polarimetric where any set's residuals
+    are not the DOP's (or intensities')."""
     parts = getattr(residuals, "parts", [residuals])
-    dop = all(isinstance(p, Residuals) for p in parts)
-    return np.array([dop and (n == "k" or n.startswith("k[")) for n in residuals.free])
+    return seen_through_square(residuals.free, not all(isinstance(p, Residuals) for p in parts))
 
 
-#: The rise of chi^2 (in units of the noise variance) the likelihood-ratio test of a bound allows.
-CHI2_95 = 3.841458820694124
 #: Levenberg-Marquardt iterations of the fits held at a bound (:func:`_bounds_allowed`) at most, in
 #: rounds of BOUND_ROUND; a round that lowers chi^2 by less than BOUND_STALL of its distance to
 #: the threshold ends a test.
@@ -158,9 +157,8 @@ def _bounds_allowed(residuals, x, lo, hi, tests, threshold):
     :data:`BOUND_ROUND` iterations, at most :data:`BOUND_ITERATIONS` in all; a test ends where it
     comes within the threshold (allowed) or where a round lowered its chi^2 by less than
     :data:`BOUND_STALL` of its distance to the threshold (not allowed)."""
-    allowed = np.zeros(len(tests), bool)
     if not tests:
-        return list(allowed)
+        return []
     which = np.array([i for i, _ in tests])
     at = np.array([v for _, v in tests], dtype=float)
     X = np.repeat(x[None], len(tests), axis=0)
@@ -170,12 +168,11 @@ def _bounds_allowed(residuals, x, lo, hi, tests, threshold):
         Z = Y[:, :-2].copy()
         Z[np.arange(len(Z)), Y[:, -2].astype(np.intp)] = Y[:, -1]
         return residuals.rows(Z)
-    live = np.arange(len(tests))
     r = rows(np.column_stack([X, which, at]))
     sse = np.einsum("pm,pm->p", r, r)
+    allowed = sse <= threshold
+    live = np.flatnonzero(~allowed)
     for _ in range(0, BOUND_ITERATIONS, BOUND_ROUND):
-        allowed[live] = sse[live] <= threshold
-        live = live[~allowed[live]]
         if not live.size:
             break
         X[live], new, _ = lm_batch(rows, X[live], lo, hi, BOUND_ROUND, extra=np.column_stack([which[live], at[live]]))
@@ -183,8 +180,6 @@ def _bounds_allowed(residuals, x, lo, hi, tests, threshold):
         sse[live] = np.minimum(sse[live], new)
         allowed[live] = sse[live] <= threshold
         live = live[~allowed[live] & ~stalled]
-        if not live.size:
-            break
     return list(allowed)
 
 
