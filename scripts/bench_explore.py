@@ -283,4 +283,7 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    except RuntimeError as exc:  # no browser, a server that did not start: one line, not a traceback
+        sys.exit(f"bench_explore: {str(exc).splitlines()[0]}")
