@@ -258,12 +258,17 @@ def interleaved_rates(funcs, work, repeats, settle=0.2):
     ``repeats`` times after one warm-up each, ``settle`` seconds apart (a thread pool that spins
     after its work, as Dr.Jit's does, slowed the next call by 7-10%): medians of ``work`` per wall
     second, and per CPU second of this process (all its threads) times ``os.cpu_count()`` (the rate
-    of a machine given to this process alone: the fairer figure where other work shares the cores)."""
+    of a machine given to this process alone: the fairer figure where other work shares the cores).
+    The order turns by one at each repeat, so that no call always follows the same one: an
+    end-to-end call (fresh arrays of 8.4 M points, its pages faulted in, freed) slowed the call
+    after it by up to 8% on a 2-core Xeon, and in a fixed order that was always our kernel."""
     times = {name: [] for name in funcs}
     for func in funcs.values():
         func()
-    for _ in range(repeats):
-        for name, func in funcs.items():
+    names = list(funcs)
+    for r in range(repeats):
+        for name in names[r % len(names):] + names[:r % len(names)]:
+            func = funcs[name]
             time.sleep(settle)
             w, c = time.perf_counter(), time.process_time()
             func()

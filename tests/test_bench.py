@@ -81,6 +81,20 @@ def test_bench_skips_the_cluster_row_without_dask_distributed(monkeypatch, capsy
     assert "dask.distributed is not installed" in capsys.readouterr().out
 
 
+def test_interleaved_rates_turn_the_order_so_that_no_call_always_follows_the_same_one():
+    """An end-to-end call slowed the call after it; in a fixed order that was always the same row."""
+    from pbrdf_cl import bench
+    calls = []
+    funcs = {name: (lambda name=name: calls.append(name) or sum(range(10000))) for name in "abc"}
+    rates = bench.interleaved_rates(funcs, 1.0, 6, settle=0.0)
+    assert set(rates) == set("abc") and all(w > 0 and c > 0 for w, c in rates.values())
+    timed = calls[3:]  # after one warm-up call each
+    assert len(timed) == 18 and all(timed.count(n) == 6 for n in "abc")
+    before = {n: {timed[i - 1] for i in range(1, len(timed)) if timed[i] == n} for n in "abc"}
+    assert all(len(prev) == 2 for prev in before.values()), before  # each follows both others
+    assert [timed[3 * r] for r in range(6)] == list("abcabc")  # each leads in turn
+
+
 @requires_opencl
 def test_bench_skips_the_mitsuba_rows_without_mitsuba(monkeypatch, capsys):
     import numpy as np
