@@ -249,6 +249,8 @@ def main(argv=None):
                     help="ask the browser every 2 ms whether the update has come (the bench before issue #37), "
                          "instead of having it call back")
     args = ap.parse_args(argv)
+    if not args.loads or args.client == "browser":
+        drive.require_browser("bench_explore")
     if args.loads:
         page_loads(args.loads, args.every, args.client, args.device)
         return
@@ -283,7 +285,4 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    try:
-        main()
-    except RuntimeError as exc:  # no browser, a server that did not start: one line, not a traceback
-        sys.exit(f"bench_explore: {str(exc).splitlines()[0]}")
+    main()

@@ -59,6 +59,7 @@ def main(argv=None):
     ap.add_argument("--out", default=str(ROOT / "docs"))
     args = ap.parse_args(argv)
     out = Path(args.out)
+    drive.require_browser("explore_screenshots")
     with drive.session(width=1800, height=1700) as (driver, url):
         shot(driver, f"{url}?A={STEEL}&B={ROUGH}&show=AB&q=dop", out / "explore_curves_fit.png", [load_and_fit])
         shot(driver, f"{url}?A={STEEL}&q=aop&map=hemisphere&ti=40", out / "explore_hemisphere_aop.png")

@@ -44,6 +44,14 @@ def find_browser():
     return (binary, driver), ""
 
 
+def require_browser(prog):
+    """Exit the script ``prog`` with one line naming what is missing where :func:`find_browser`
+    finds no browser (before any server starts)."""
+    found, why = find_browser()
+    if found is None:
+        sys.exit(f"{prog}: {why}")
+
+
 def start_server(data=None, extra=(), timeout=120):
     """Start ``pbrdf-cl explore --port 0 --no-browser`` in a child process; (process, page URL)."""
     cmd = [sys.executable, "-m", "pbrdf_cl", "explore", "--port", "0", "--no-browser", *extra]
