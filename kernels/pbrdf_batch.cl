@@ -36,7 +36,8 @@
  *                      points outwards held, steps projected onto the bounds, forward-difference
  *                      Jacobians (each column recomputes only the factor its parameter enters).
  *   Build options: PB_D free parameters; PB_X_N, PB_X_K, PB_X_SIGMA, PB_X_KD, PB_X_C, PB_X_KS the
- *   slot of each parameter in x (-1: fixed at base[]); PB_INTENSITY adds the F00 residuals
+ *   slot of each parameter in x (-1: fixed at base[]; PB_BASE_ROWS: at base[i * P + pixel], each
+ *   pixel's own fixed values); PB_INTENSITY adds the F00 residuals
  *   (then kd in x is kd/ks and ks enters x as log ks); PB_PIXEL_GEOMETRY reads the geometry table
  *   per pixel instead of shared (pb_geom_at); PB_GEODESIC the geodesic acceleration; PB_LOG_N, PB_LOG_K,
  *   PB_LOG_KD: x holds log(n - 1), log k, log kd instead of n, k, kd (a corner's coordinates:
@@ -244,20 +245,28 @@ typedef PB_SCALAR scalar;
 /* parameter value: x[slot] when free, else the base value */
 #define PB_SLOT(s) ((s) >= 0 ? (s) : 0)
 #define PB_PAR(s, fixed) ((s) >= 0 ? x[PB_SLOT(s)] : (real)(fixed))
+/* the fixed parameters' values: base[i] (i = n, k, sigma, ks, kd, c), the same for every problem, or
+ * with PB_BASE_ROWS base[i * P + p] per pixel (the lanes' pixels p0 ..; the problems of several
+ * held values in one launch: the label stage's candidates) */
+#ifdef PB_BASE_ROWS
+#define PB_BASE(i) pb_vl(0, base + (size_t)(i) * P + p0)
+#else
+#define PB_BASE(i) ((real)base[i])
+#endif
 
 typedef struct {
     real n, k, sigma, ks, kd, c;  /* kd absolute (kd/ks times ks with intensities) */
 } pb_par;
 
-inline pb_par pb_params(const real *x, __global const scalar *base)
+inline pb_par pb_params(const real *x, __global const scalar *base, const int P, const int p0)
 {
     pb_par p;
-    p.n = PB_PAR(PB_X_N, base[0]);
-    p.k = PB_PAR(PB_X_K, base[1]);
-    p.sigma = PB_PAR(PB_X_SIGMA, base[2]);
-    p.ks = PB_X_KS >= 0 ? exp(x[PB_SLOT(PB_X_KS)]) : (real)base[3];
-    p.kd = PB_PAR(PB_X_KD, base[4]);
-    p.c = PB_PAR(PB_X_C, base[5]);
+    p.n = PB_PAR(PB_X_N, PB_BASE(0));
+    p.k = PB_PAR(PB_X_K, PB_BASE(1));
+    p.sigma = PB_PAR(PB_X_SIGMA, PB_BASE(2));
+    p.ks = PB_X_KS >= 0 ? exp(x[PB_SLOT(PB_X_KS)]) : PB_BASE(3);
+    p.kd = PB_PAR(PB_X_KD, PB_BASE(4));
+    p.c = PB_PAR(PB_X_C, PB_BASE(5));
 /* a corner's coordinates (the descent along its valley): log(n - 1), log k, log kd/ks */
 #ifdef PB_LOG_N
     p.n = (real)1 + exp(p.n);
@@ -380,14 +389,14 @@ inline void pb_evaluate(const real *x, const real *h, __global const scalar *bas
         for (int j = 0; j < PB_D; j++)
             A[i * PB_D + j] = (real)0;
     }
-    const pb_par p = pb_params(x, base);
+    const pb_par p = pb_params(x, base, P, p0);
     /* the parameters one step along each free coordinate */
     real xs[PB_D];
     pb_par ps[PB_D];
     for (int i = 0; i < PB_D; i++) {
         for (int j = 0; j < PB_D; j++)
             xs[j] = x[j] + (i == j ? h[j] : (real)0);
-        ps[i] = pb_params(xs, base);
+        ps[i] = pb_params(xs, base, P, p0);
     }
 #ifdef PB_CHANNELS
     /* M polarimetric channels in groups of PB_NQ consecutive channels at one geometry (the quantities
@@ -518,7 +527,7 @@ inline void pb_accel_rhs(const real *x, const real *du, const real *span, const 
         xv[i] = clamp(x[i] + hv * du[i] * span[i], (real)lo[i], (real)hi[i]);
         b[i] = (real)0;
     }
-    const pb_par p = pb_params(xv, base);
+    const pb_par p = pb_params(xv, base, P, p0);
     for (int m = 0; m < M; m++) {
         const int o = m * P + p0;
         const pb_geom g = pb_geom_at(geo, m, p0, M, P);

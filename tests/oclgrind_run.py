@@ -132,6 +132,29 @@ def main():
     if not np.isfinite(res.sse.values).all():
         raise SystemExit("fit_batch's corner stage under Oclgrind: non-finite results")
     batches += 1
+    # the label stage's descents at several held values as one batch: batch_lm's PB_BASE_ROWS build
+    # (every pixel its own n, k) and batch_grid_fixed (the tables of two values in one pass), each
+    # pixel's result its own alone's
+    from pbrdf_cl.fitting.images.job import BatchJob as _Job
+    from pbrdf_cl.fitting.images.label_stage import held_setup
+    from pbrdf_cl.fitting.images.pixels import Block as _Block
+    from pbrdf_cl.fitting.images.pixels import grid_values, regions
+    job = _Job(dict(dop=d, theta_i=m_ti, theta_r=m_tr), grid_shape=shape, n_starts=2)
+    blk = _Block(job.read_rows(0, 3), job.setup, eng.call("batch_lanes"))
+    helds = [held_setup(job.setup, ("n", "k"), t) for t in ([1.5, 2.0], [1.7, 2.3])]
+    order, rstart = regions(grid_values(helds[0]), helds[0].free)
+    best, _ = eng.call("batch_grid_fixed", helds, blk, order, rstart)
+    for c, held in enumerate(helds):
+        if not np.array_equal(best[c], eng.call("batch_grid", held, blk, order, rstart)[0]):
+            raise SystemExit("batch_grid_fixed under Oclgrind differs from one grid per value")
+    X0 = np.tile([0.5, 0.15, -0.3], (1, 3, 1))
+    rows = {"n": np.array([1.5, 1.7, 1.5]), "k": np.array([2.0, 2.3, 2.0])}
+    for dtype in ("float32", "float64"):
+        got = eng.call("batch_lm", helds[0], blk, X0, helds[0].free, dtype, 2, False, fixed_rows=rows).x[0]
+        for i, c in enumerate((0, 1, 0)):
+            one = eng.call("batch_lm", helds[c], blk, X0, helds[c].free, dtype, 2, False).x[0, i]
+            if not np.array_equal(got[i], one):
+                raise SystemExit(f"batch_lm {dtype} with fixed_rows under Oclgrind differs from one value held")
     # polarimetric channels (s1, s2 under a 45-degree source and an AoP, out of plane): the value table
     # and the channel minima (shared geometry and states: also the ranking table of the corner stage,
     # whose trigger is still infinite, and its PB_LOG_* builds with PB_CHANNELS), the per-pixel channel
@@ -179,7 +202,8 @@ def main():
                 raise SystemExit(f"outer {quantity} {dtype}: Oclgrind result differs from the reference")
             outers += 1
     print("ran", 2 * 3 * 5, "kernel configurations and", bcasts, "broadcast evaluations and", configs,
-          "grid configurations and", batches, "batch fits and", channel_grids, "float64 channel grids and", outers,
+          "grid configurations and", batches, "batch fits and 2 batches of held values and", channel_grids,
+          "float64 channel grids and", outers,
           "outer evaluations")
 
 

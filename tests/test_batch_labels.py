@@ -548,8 +548,8 @@ def test_the_search_skips_a_step_it_has_just_rejected(dev, monkeypatch):
     from pbrdf_cl.fitting.images import label_stage
 
     data, lab = two_materials(16, 16, 0.003, seed=1)
-    calls, at = [], label_stage._Stage.local_at
-    monkeypatch.setattr(label_stage._Stage, "local_at", lambda *a: calls.append(1) or at(*a))
+    calls, at = [], label_stage._Stage.local_at_many
+    monkeypatch.setattr(label_stage._Stage, "local_at_many", lambda st, items: calls.extend(items) or at(st, items))
     res = LabelJob(data, labels=lab).prepare(dev)
     skipped = len(calls)
     monkeypatch.setattr(label_stage, "SAME_STEP", 0.0)
@@ -581,6 +581,75 @@ def test_the_search_prepares_each_subsample_once(dev, monkeypatch):
     data, lab = two_materials(8, 8, 0.006, seed=2)
     LabelJob(data, labels=lab).prepare(dev)
     assert sum(made) == 2 * 2, sum(made)
+
+
+def _subsamples(job, st, sizes=(12, 9)):
+    """The first pixels of each label of ``job`` (``sizes``), prepared as the search's subsamples."""
+    from pbrdf_cl.fitting.images import label_stage
+
+    raw = job.read_rows(0, job.source.shape[0])
+    return [st.local_blocks(label_stage.take(raw, np.flatnonzero(job.label_index == L)[:n]))
+            for L, n in enumerate(sizes)]
+
+
+@pytest.mark.parametrize("backend", ["opencl", "numpy"])
+def test_descents_at_several_values_are_one_batch_as_each_alone(dev, backend):
+    """The label stage descends the pixels' own parameters at several values of the shared ones
+    as one batch: the pixels stacked once per value, each held at its own (``batch_lm``'s
+    ``fixed_rows``, the kernel's PB_BASE_ROWS build), the grids of every value in one pass
+    (``batch_grid_fixed``: their tables streamed past the pixels once).  Every pixel's grid
+    minima and descent are those it has alone, bit for bit, on the device and on the numpy
+    backend, with and without previous values, over one label's pixels and two labels'."""
+    from pbrdf_cl.device.engine import NumpyEngine
+    from pbrdf_cl.fitting.images import label_stage
+
+    eng = dev if backend == "opencl" else NumpyEngine()
+    data, lab = two_materials(8, 8, 0.006, seed=2)
+    job = LabelJob(data, labels=lab)
+    st = label_stage._Stage(job, eng, False)
+    (_, b1, _), (_, b2, _) = _subsamples(job, st)
+    thetas = np.array([[1.5, 2.0], [1.62, 2.25], [1.4, 0.5]])
+    helds = [label_stage.held_setup(job.setup, st.shared, t) for t in thetas]
+    best, arg = eng.call("batch_grid_fixed", helds, b1, st.order_own, st.rstart_own)
+    for c, held in enumerate(helds):
+        b, a = eng.call("batch_grid", held, b1, st.order_own, st.rstart_own)
+        np.testing.assert_array_equal(best[c], b)
+        np.testing.assert_array_equal(arg[c], a)
+    together = st.descend(thetas, b1)
+    assert together.shape == (3, b1.p, 3) and np.isfinite(together).all()
+    previous = together[::-1].copy()  # another value's ends: somewhat off, as after a step
+    again = st.descend(thetas, b1, previous)
+    both = st.descend_sets([(thetas[:2], b1, None), (thetas[2:], b2, None)])
+    for c in range(3):
+        np.testing.assert_array_equal(together[c], st.descend(thetas[c:c + 1], b1)[0])
+        np.testing.assert_array_equal(again[c], st.descend(thetas[c:c + 1], b1, previous[c:c + 1])[0])
+    np.testing.assert_array_equal(both[0], together[:2])
+    np.testing.assert_array_equal(both[1][0], st.descend(thetas[2:], b2)[0])
+    assert not np.array_equal(together[0], together[1])  # the values held differ, and so do the ends
+
+
+def test_the_subsample_steps_of_several_candidates_are_one_batch_as_each_alone(dev):
+    """The search refines every candidate of every label in step (``_Stage.local_steps_many``:
+    each round's trial values of all of them descended and summed as one batch,
+    ``local_at_many``); each candidate's end (values, sums, own parameters, damping) is the one
+    its refinement alone reaches, bit for bit, however many rounds each takes."""
+    from pbrdf_cl.fitting.images import label_stage
+
+    data, lab = two_materials(8, 8, 0.006, seed=2)
+    job = LabelJob(data, labels=lab)
+    st = label_stage._Stage(job, dev, False)
+    blocks = _subsamples(job, st)
+    items = [(blocks[0], np.array([1.5, 1.8])), (blocks[0], np.array([1.75, 2.6])), (blocks[1], np.array([1.3, 0.3])),
+             (blocks[1], np.array([1.6, 0.05]))]
+    starts = st.local_at_many([(b, t, None) for b, t in items])
+    ends = st.local_steps_many([(b, t, sums, beta, 4, 1e-3) for (b, t), (beta, sums) in zip(items, starts)])
+    for (b, t), (beta, sums), end in zip(items, starts, ends):
+        alone = st.local_at(b, t)
+        for x, y in zip((beta, sums), alone):
+            np.testing.assert_array_equal(x, y)
+        for x, y in zip(end, st.local_steps(b, t, sums, beta, 4)):
+            np.testing.assert_array_equal(x, y)
+    assert len({round(e[3], 12) for e in ends}) > 1  # their damping ended apart: they did not step alike
 
 
 def test_the_label_search_leaves_k_0_where_k_is_larger(dev):

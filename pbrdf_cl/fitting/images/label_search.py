@@ -4,7 +4,8 @@ its chi2), the optional parametric bootstrap of the estimator inverted as a test
 (:func:`binding_correction`) and, without ``dop_std``, the goodness-of-fit test of each label (:func:`f_test`).
 
 Both take the label stage (``pbrdf_cl.fitting.images.label_stage._Stage``) as ``st`` and use only its
-public methods (``local_fit``, ``local_blocks``, ``local_at``, ``local_steps``, ``scale``); the
+public methods (``local_fit``, ``local_blocks``, ``local_at``, ``local_steps`` and their batches
+``local_at_many``, ``local_steps_many``, ``scale``); the
 subsample is a fixed, evenly spaced choice of each label's fitted pixels (:func:`subsample`), so
 the results do not depend on the blocks.
 """
@@ -78,7 +79,9 @@ def rank_seeds(st, subs, cand, ok, pixels):
     ``subs`` (``st.local_at``, ``st.local_steps``: RANK_ROUNDS steps) and ranked by the
     subsample's chi2; the best end then refined on, up to POLISH_ROUNDS more steps (the seed of
     the refinement on all the pixels, which then starts near its optimum).  The runner-up and
-    its gap are those of the ends as ranked (:func:`runner_up`).
+    its gap are those of the ends as ranked (:func:`runner_up`).  The candidates of every label
+    are refined together, each step of all of them one batch (``st.local_steps_many``); each
+    end is the one it has alone.
 
     Returns (best, runner_up, gap): the best end (L, S); the best end of another basin (NaN where
     none); the runner-up's chi2 above the best's, scaled by ``pixels`` over the subsample's pixels
@@ -87,21 +90,25 @@ def rank_seeds(st, subs, cand, ok, pixels):
     best = np.full((L_n, S), np.nan)
     runner = np.full((L_n, S), np.nan)
     gap = np.full(L_n, np.inf)
-    for L in np.flatnonzero(ok):
-        ends, sub = [], st.local_blocks(subs[L])
-        for c in range(cand.shape[0]):
-            t = cand[c, L]
-            if not np.all(np.isfinite(t)) or any(np.array_equal(t, cand[d, L]) for d in range(c)):
-                continue
-            ends.append(short_fit(st, sub, t))
-        for t in inward_starts(st, [e[0] for e in ends if e is not None]):
-            ends.append(short_fit(st, sub, t))
-        ends = sorted((e for e in ends if e is not None), key=lambda e: e[1][3])
-        if not ends:
+    labels = np.flatnonzero(ok)
+    blocks = {L: st.local_blocks(subs[L]) for L in labels}
+    seeds = [(L, cand[c, L]) for L in labels for c in range(cand.shape[0])
+             if np.all(np.isfinite(cand[c, L])) and not any(np.array_equal(cand[c, L], cand[d, L]) for d in range(c))]
+    ends = {L: [] for L in labels}
+    for (L, _), end in zip(seeds, short_fits(st, [(blocks[L], t) for L, t in seeds])):
+        ends[L].append(end)
+    inward = [(L, t) for L in labels for t in inward_starts(st, [e[0] for e in ends[L] if e is not None])]
+    for (L, _), end in zip(inward, short_fits(st, [(blocks[L], t) for L, t in inward])):
+        ends[L].append(end)
+    ranked = {L: sorted((e for e in ends[L] if e is not None), key=lambda e: e[1][3]) for L in labels}
+    found = [L for L in labels if ranked[L]]
+    for L in labels:
+        if not ranked[L]:
             best[L] = cand[0, L]
-            continue
-        best[L] = polish(st, sub, ends[0])[0]
-        runner[L], gap[L] = runner_up(st, ends, pixels[L])
+    polished = st.local_steps_many([(blocks[L], *ranked[L][0][:3], POLISH_ROUNDS, ranked[L][0][3]) for L in found])
+    for L, end in zip(found, polished):
+        best[L] = end[0]
+        runner[L], gap[L] = runner_up(st, ranked[L], pixels[L])
     return best, runner, gap
 
 
@@ -117,18 +124,14 @@ def runner_up(st, ends, pixels):
     return np.nan, np.inf
 
 
-def polish(st, raw, end):
-    """An ``end`` of :func:`short_fit` refined on (POLISH_ROUNDS steps at most, its damping on)."""
-    theta, sums, beta, lam = end
-    return st.local_steps(raw, theta, sums, beta, POLISH_ROUNDS, lam)
-
-
-def short_fit(st, raw, theta):
-    """A candidate seed ``theta`` refined on the subsample ``raw`` (RANK_ROUNDS steps): (theta,
-    sums, beta, damping) as ``st.local_steps`` returns them, or None where no pixel counts."""
-    beta, sums = st.local_at(raw, theta)
-    end = st.local_steps(raw, theta, sums, beta, RANK_ROUNDS)
-    return end if np.isfinite(end[1][3]) and end[1][0] > 0 else None
+def short_fits(st, items):
+    """Candidate seeds (a list of (``st.local_blocks`` of a subsample, theta)) each refined on its
+    subsample (RANK_ROUNDS steps), all as one batch: per item (theta, sums, beta, damping) as
+    ``st.local_steps`` returns them, or None where no pixel counts."""
+    starts = st.local_at_many([(blocks, theta, None) for blocks, theta in items])
+    ends = st.local_steps_many([(blocks, theta, sums, beta, RANK_ROUNDS, 1e-3)
+                                for (blocks, theta), (beta, sums) in zip(items, starts)])
+    return [end if np.isfinite(end[1][3]) and end[1][0] > 0 else None for end in ends]
 
 
 def inward_starts(st, ends):

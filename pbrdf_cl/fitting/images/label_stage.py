@@ -94,7 +94,7 @@ from ..common import (
 from ..setup import PARAMETERS
 from . import label_search as search
 from .label_adjust import integrated_correction
-from .pixels import Block, PixelResiduals, descent_bounds, grid_points, grid_values, internal, regions
+from .pixels import Block, PixelResiduals, descent_bounds, grid_points, grid_values, internal, regions, stack_blocks
 from .statistics import DETERMINED_FRACTION
 
 #: Passes of the refinement at most (each one pass over the stack).
@@ -309,40 +309,75 @@ class Passes:
         fit = fitted & active[np.maximum(lab, 0)]
         trial = np.full((C, lab.size, len(self.own)), np.nan)
         parts = [[] for _ in range(C)]
-        for L in np.unique(lab[fit]):
-            idx = np.flatnonzero(fit & (lab == L))
-            sub_raw = take(raw, idx)
-            sub = Block(sub_raw, setup, 1)
+        labels = np.unique(lab[fit])
+        if not labels.size:
+            return trial, parts
+        idxs = [np.flatnonzero(fit & (lab == L)) for L in labels]
+        raws = [take(raw, idx) for idx in idxs]
+        # every label's pixels at every candidate as one batch (descend_sets), then their values
+        betas = self.descend_sets([(thetas[:, L], Block(r, setup, self.lanes),
+                                    None if previous is None else np.broadcast_to(previous[idx], (C,) + idx.shape +
+                                                                                  previous.shape[1:]))
+                                   for L, idx, r in zip(labels, idxs, raws)])
+        subs = stack_blocks([Block(r, setup, 1) for r in raws], [C] * labels.size)
+        at = np.concatenate([np.repeat(thetas[:, L], idx.size, axis=0) for L, idx in zip(labels, idxs)])
+        vals = self.values(setup, subs, at.reshape(-1, S), np.concatenate([b.reshape(-1, b.shape[2]) for b in betas]))
+        row = 0
+        for L, idx, beta in zip(labels, idxs, betas):
             for c in range(C):
-                held = held_setup(setup, self.shared, thetas[c, L])
-                before = None if previous is None else previous[idx]
-                beta = self.descend(held, Block(sub_raw, held, self.lanes), before)
-                trial[c, idx] = beta
-                vals = self.values(setup, sub, np.broadcast_to(thetas[c, L], (idx.size, S)), beta)
-                parts[c].append(row_parts((off + idx) // self.row, np.full(idx.size, L), vals, self.ids.size))
+                trial[c, idx] = beta[c]
+                v = vals[row:row + idx.size]
+                row += idx.size
+                parts[c].append(row_parts((off + idx) // self.row, np.full(idx.size, L), v, self.ids.size))
         return trial, parts
 
-    def descend(self, held, blk, previous):
-        """Each pixel's own parameters at a trial theta (``held``): the best end of float32
-        descents (``batch_lm``, LM_ITERATIONS) from its ``previous`` values (None: none) and
-        from the GRID_STARTS best region minima of the grid of its own parameters at that theta
-        (a pixel's own parameters can jump to another basin as theta moves), polished
-        (POLISH_ITERATIONS in float64 where the device has it)."""
-        best, arg = self.eng.call("batch_grid", held, blk, self.order_own, self.rstart_own)
-        top = np.argsort(np.asarray(best, float), axis=0, kind="stable")[:GRID_STARTS]
-        X = grid_points(held, self.order_own, np.take_along_axis(arg, top, axis=0))  # (T, p, free)
+    def descend(self, thetas, blk, previous=None):
+        """Each pixel's own parameters at trial values ``thetas`` (C, S) of the shared ones, (C, p,
+        own): the best end of float32 descents (``batch_lm``, LM_ITERATIONS) from its ``previous``
+        values (C, p, own; None: none) and from the GRID_STARTS best region minima of the grid of
+        its own parameters at that value (a pixel's own parameters can jump to another basin as
+        theta moves), polished (POLISH_ITERATIONS in float64 where the device has it).
+        :meth:`descend_sets` of one set."""
+        return self.descend_sets([(thetas, blk, previous)])[0]
+
+    def descend_sets(self, sets):
+        """:meth:`descend` of several sets of pixels (a list of (thetas (C, S), block, previous)), all
+        as one batch: every set's pixels stacked once per value (:func:`stack_blocks`), each held at
+        its own (``batch_lm``'s ``fixed_rows``), a set's grids in one pass (``batch_grid_fixed``);
+        every pixel's result is the one it has alone.  ``previous`` given for every set or for
+        none.  Returns a list of (C, p, own)."""
+        setup = self.job.setup
+        X, fixed, prev, held = [], [], [], None
+        for thetas, blk, previous in sets:
+            helds = [held_setup(setup, self.shared, t) for t in thetas]
+            held = helds[0]
+            best, arg = self.eng.call("batch_grid_fixed", helds, blk, self.order_own, self.rstart_own)  # (C, R, p)
+            top = np.argsort(np.asarray(best, float), axis=1, kind="stable")[:, :GRID_STARTS]
+            X += [grid_points(h, self.order_own, np.take_along_axis(a, t, axis=0)) for h, a, t in zip(helds, arg, top)]
+            fixed.append(np.repeat(thetas, blk.p, axis=0))
+            if previous is not None:
+                prev.append(np.asarray(previous).reshape(-1, len(self.own)))
+        X = np.concatenate(X, axis=1)  # (T, pixels, free)
+        fixed = np.concatenate(fixed)
         cols = [self.own.index(n) for n in held.free]
-        starts = np.ones((X.shape[0], blk.p, len(self.own)))  # ks (with intensities) from 1
+        starts = np.ones(X.shape[:2] + (len(self.own),))  # ks (with intensities) from 1
         starts[:, :, cols] = X
-        if previous is not None:
-            starts = np.concatenate([previous[None], starts])
-        d = self.eng.call("batch_lm", held, blk, starts, self.own, "float32", LM_ITERATIONS, held.use_f00)
+        prev = np.concatenate(prev) if prev else None
+        if prev is not None:
+            starts = np.concatenate([prev[None], starts])
+        blk = stack_blocks([b for _, b, _ in sets], [len(t) for t, _, _ in sets])
+        kw = {}
+        if np.any(fixed != fixed[:1]):  # several values held: each pixel its own
+            kw["fixed_rows"] = {n: fixed[:, j] for j, n in enumerate(self.shared)}
+        d = self.eng.call("batch_lm", held, blk, starts, self.own, "float32", LM_ITERATIONS, held.use_f00, **kw)
         pick = np.argmin(np.where(np.isfinite(d.sse), d.sse, np.inf), axis=0)
         x = d.x[pick, np.arange(blk.p)]
-        if previous is not None:  # the float32 descent cannot better a float64 optimum: keep it
-            x = np.where((pick == 0)[:, None], previous, x)
-        return self.eng.call("batch_lm", held, blk, x[None], self.own, self.dtype, POLISH_ITERATIONS,
-                             held.use_f00).x[0]
+        if prev is not None:  # the float32 descent cannot better a float64 optimum: keep it
+            x = np.where((pick == 0)[:, None], prev, x)
+        x = self.eng.call("batch_lm", held, blk, x[None], self.own, self.dtype, POLISH_ITERATIONS, held.use_f00,
+                          **kw).x[0]
+        sizes = [len(t) * b.p for t, b, _ in sets]
+        return [x[e - n:e].reshape(len(t), b.p, -1) for e, n, (t, b, _) in zip(np.cumsum(sizes), sizes, sets)]
 
     def gather_block(self, r0, r1, picks):
         """The raw rows of the pixels ``picks`` of rows r0..r1 (per label, indices in the block):
@@ -470,11 +505,36 @@ class _Stage(Passes):
         """The own parameters of the in-memory pixels ``raw`` (or :meth:`local_blocks` of them)
         descended (:meth:`descend`, from ``previous`` where given) with the shared held at
         ``theta``: (beta, the sums of :meth:`values` over the pixels whose values are finite)."""
-        _, blk, sub = self.local_blocks(raw)
+        return self.local_at_many([(self.local_blocks(raw), theta, previous)])[0]
+
+    def local_at_many(self, items):
+        """:meth:`local_at` of several (:meth:`local_blocks`, theta, previous) at once, as one batch
+        (:meth:`descend_sets`, :meth:`values` of the stacked pixels; those with ``previous`` and
+        those without as two): each result is the one it has alone.  Returns a list of (beta, sums)."""
         setup, S = self.job.setup, len(self.shared)
-        b = self.descend(held_setup(setup, self.shared, theta), blk, previous)
-        v = self.values(setup, sub, np.broadcast_to(theta, (b.shape[0], S)), b)
-        return b, v[np.all(np.isfinite(v), axis=1)].sum(axis=0)
+        out = [None] * len(items)
+        for first in (True, False):
+            mine = [i for i, item in enumerate(items) if (item[2] is None) == first]
+            if not mine:
+                continue
+            groups = {}  # the items of each subsample, in order of first appearance
+            for i in mine:
+                groups.setdefault(id(items[i][0][1]), []).append(i)
+            groups = list(groups.values())
+            sets = [(np.stack([np.asarray(items[i][1], float) for i in g]), items[g[0]][0][1],
+                     None if first else np.stack([items[i][2] for i in g])) for g in groups]
+            betas = self.descend_sets(sets)
+            thetas = np.concatenate([np.repeat(t, b.shape[1], axis=0) for (t, _, _), b in zip(sets, betas)])
+            subs = stack_blocks([items[g[0]][0][2] for g in groups], [len(g) for g in groups])
+            own = np.concatenate([b.reshape(-1, b.shape[2]) for b in betas])
+            v = self.values(setup, subs, thetas.reshape(-1, S), own)
+            row = 0
+            for g, b in zip(groups, betas):
+                for c, i in enumerate(g):
+                    vc = v[row:row + b.shape[1]]
+                    row += b.shape[1]
+                    out[i] = (b[c], vc[np.all(np.isfinite(vc), axis=1)].sum(axis=0))
+        return out
 
     def local_steps(self, raw, theta, sums, beta, rounds, lam=1e-3):
         """Up to ``rounds`` damped Gauss-Newton steps (:meth:`step`, Marquardt damping ``lam``) of
@@ -483,22 +543,39 @@ class _Stage(Passes):
         chi2 of these pixels falls; they stop where a step would lower it by less than CHI2_TOL
         (times its chi2 scale).  Returns (theta, sums, beta, lam): a later call resumes where this
         one stopped."""
-        raw = self.local_blocks(raw)
-        lam, span, rejected = np.array([lam], float), self.span[self.si], None
-        for _ in range(rounds):
-            trial, predicted = self.step(theta[None], sums[None], lam)
-            if predicted[0] <= CHI2_TOL * self.scale(sums[None])[0]:
-                break
-            du = (trial[0] - theta) / span
-            if rejected is not None and np.linalg.norm(du - rejected) < SAME_STEP * np.linalg.norm(rejected):
-                lam = lam * 10.0  # the step just rejected, hardly shorter: rejected again, unevaluated
-                continue
-            b, v = self.local_at(raw, trial[0], beta)
-            if v[3] < sums[3]:
-                theta, sums, beta, lam, rejected = trial[0], v, b, lam / 3.0, None
-            else:  # a step along which the chi2 rose by more than the fall it predicted is remembered
-                lam, rejected = lam * 10.0, du if v[3] - sums[3] > predicted[0] else None
-        return theta, sums, beta, float(lam[0])
+        return self.local_steps_many([(self.local_blocks(raw), theta, sums, beta, rounds, lam)])[0]
+
+    def local_steps_many(self, items):
+        """:meth:`local_steps` of several (:meth:`local_blocks`, theta, sums, beta, rounds, lam) in
+        step: each round's trial points of all of them evaluated as one batch
+        (:meth:`local_at_many`); each result is the one it has alone.  Returns a list of (theta,
+        sums, beta, lam)."""
+        span = self.span[self.si]
+        state = [dict(blocks=blocks, theta=theta, sums=sums, beta=beta, left=rounds, lam=np.array([lam], float),
+                      rejected=None) for blocks, theta, sums, beta, rounds, lam in items]
+        live = [q for q in state if q["left"] > 0]
+        while live:
+            trials = []
+            for q in live:
+                q["left"] -= 1
+                trial, predicted = self.step(q["theta"][None], q["sums"][None], q["lam"])
+                if predicted[0] <= CHI2_TOL * self.scale(q["sums"][None])[0]:
+                    q["left"] = 0
+                    continue
+                du = (trial[0] - q["theta"]) / span
+                rejected = q["rejected"]
+                if rejected is not None and np.linalg.norm(du - rejected) < SAME_STEP * np.linalg.norm(rejected):
+                    q["lam"] = q["lam"] * 10.0  # the step just rejected, hardly shorter: rejected again, unevaluated
+                    continue
+                trials.append((q, trial[0], du, predicted[0]))
+            ends = self.local_at_many([(q["blocks"], t, q["beta"]) for q, t, _, _ in trials])
+            for (q, t, du, predicted), (b, v) in zip(trials, ends):
+                if v[3] < q["sums"][3]:
+                    q.update(theta=t, sums=v, beta=b, lam=q["lam"] / 3.0, rejected=None)
+                else:  # a step along which the chi2 rose by more than the fall it predicted is remembered
+                    q.update(lam=q["lam"] * 10.0, rejected=du if v[3] - q["sums"][3] > predicted else None)
+            live = [q for q in live if q["left"] > 0]
+        return [(q["theta"], q["sums"], q["beta"], float(q["lam"][0])) for q in state]
 
     def unpack(self, sums):
         """(pixels, rows, floor^2 sum, chi2, sse, Schur (L, S, S), gradient (L, S)) from sums."""

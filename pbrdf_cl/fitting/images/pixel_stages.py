@@ -23,6 +23,8 @@ through ``reference.py`` in float64.
 """
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from ...compute import dense, pointwise
@@ -132,6 +134,29 @@ def _grid_numpy(eng, setup, blk, order, rstart):
     return best, arg
 
 
+@ops.implements("batch_grid_fixed", "opencl")
+def _grid_fixed_opencl(eng, setups, blk, order, rstart):
+    """``batch_grid`` of the same pixels under several ``setups`` (one grid of the free parameters,
+    other values held: the label stage's candidates), (best (C, R, p), arg (C, R, p)).  Of the DOP at
+    shared geometry, one table of every setup's grid points (one per-point launch) streamed past
+    the pixels once (regions of setup c: c R .. (c + 1) R; every region's minimum as it is alone);
+    else one ``batch_grid`` per setup."""
+    if not (blk.shared and blk.spec is None) or len(setups) == 1:
+        return _each_grid(eng, setups, blk, order, rstart)
+    C, G, R = len(setups), order.size, rstart.size - 1
+    T = _table_dop(eng, setups[0], blk.angles, [grid_values(s) for s in setups], order)
+    starts = (rstart[:-1][None] + G * np.arange(C)[:, None]).ravel()
+    best, arg = eng.call("batch_table_minima", blk, T, np.append(starts, C * G).astype(rstart.dtype))
+    return best.reshape(C, R, -1), arg.reshape(C, R, -1) - G * np.arange(C)[:, None, None]
+
+
+@ops.implements("batch_grid_fixed", "numpy")
+def _each_grid(eng, setups, blk, order, rstart):
+    """:func:`_grid_fixed_opencl` as one ``batch_grid`` per setup."""
+    out = [eng.call("batch_grid", s, blk, order, rstart) for s in setups]
+    return np.stack([b for b, _ in out]), np.stack([a for _, a in out])
+
+
 @ops.implements("batch_table_minima", "opencl")
 def _table_minima_opencl(eng, blk, T, rstart):
     """Each region's least objective over the points of a DOP table ``T`` (G, M) at the shared
@@ -175,11 +200,13 @@ def _table_minima_numpy(eng, blk, T, rstart):
 
 def _table_dop(eng, setup, angles, v, order):
     """DOP of every grid point at the shared geometry, (G, M) in region order (the engine's
-    per-point path: pbrdf.h)."""
+    per-point path: pbrdf.h); ``v`` the grid's values (:func:`grid_values`), or a list of several
+    grids of the same shape: their tables one after another, (len(v) G, M)."""
     ti, tr, ph = angles
-    sizes = [v[n].size for n in PARAMETERS]
+    vs = v if isinstance(v, list) else [v]
+    sizes = [vs[0][n].size for n in PARAMETERS]
     unr = np.unravel_index(order, sizes)
-    p = {n: v[n][unr[i]][:, None] for i, n in enumerate(PARAMETERS)}
+    p = {n: np.concatenate([w[n][unr[i]] for w in vs])[:, None] for i, n in enumerate(PARAMETERS)}
     out = pointwise.dop(ti[None, :], tr[None, :], ph[None, :], shadowing=setup.shadowing, dtype="float32", engine=eng,
                   **p)
     return np.ascontiguousarray(out, np.float32)
@@ -209,12 +236,14 @@ def _ranking_table_numpy(eng, blk, params, shadowing):
 
 
 @ops.implements("batch_lm", "opencl")
-def device_lm(eng, setup, blk, X0, names, dtype, iterations, intensity, coords=LogKs):
+def device_lm(eng, setup, blk, X0, names, dtype, iterations, intensity, coords=LogKs, fixed_rows=None):
     """The LM kernel (``batch_lm``) from starts X0 (S, p, D) (external coordinates) over ``names``,
     ``intensity``: with the F00 residuals: a :class:`~pbrdf_cl.fitting.images.pixels.Descent` (X (S, p, D),
     sse (S, p), JtJ (S, p, D, D) in the descent's coordinates, settled (S, p)).  ``coords``: the
     descent's coordinates, :class:`~pbrdf_cl.fitting.images.pixels.LogKs` or a corner's
-    (:class:`pbrdf_cl.fitting.images.corners.Corner`, its PB_LOG_* build; JtJ then in those)."""
+    (:class:`pbrdf_cl.fitting.images.corners.Corner`, its PB_LOG_* build; JtJ then in those).
+    ``fixed_rows``: name -> (p,) each pixel's own value of parameters ``setup`` holds (its PB_BASE_ROWS
+    build; the label stage's candidates, every pixel of one as if held at its values alone)."""
     npdt = DTYPES[dtype]
     S, p, D = X0.shape
     P = blk.P
@@ -232,6 +261,8 @@ def device_lm(eng, setup, blk, X0, names, dtype, iterations, intensity, coords=L
 
     for n in coords.logged:
         defines[f"PB_LOG_{n.upper()}"] = None
+    if fixed_rows:
+        defines["PB_BASE_ROWS"] = None
     if not blk.shared:
         defines["PB_PIXEL_GEOMETRY"] = None
     if blk.spec is not None:
@@ -243,6 +274,12 @@ def device_lm(eng, setup, blk, X0, names, dtype, iterations, intensity, coords=L
     Xi[:, :, p:] = ((lo + hi) / 2)[:, None, None]
     Xi = np.ascontiguousarray(Xi.reshape(D, Q), npdt)
     base = np.array([setup.base.get(n, 0.0) for n in PARAMETERS], npdt)
+    if fixed_rows:  # (6, P): every pixel's values, the padding's those of the first pixel
+        rows = np.repeat(base[:, None].astype(float), P, axis=1)
+        for n, v in fixed_rows.items():
+            rows[PARAMETERS.index(n), :p] = v
+            rows[PARAMETERS.index(n), p:] = v[0] if p else 0.0
+        base = np.ascontiguousarray(rows, npdt).ravel()
     import pyopencl as cl
     bX = cl.Buffer(eng.context, cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR, hostbuf=Xi)  # in and out
     sse, jtj, settled = np.empty(Q, npdt), np.empty((D * D, Q), npdt), np.empty(Q, npdt)
@@ -269,9 +306,23 @@ def device_lm(eng, setup, blk, X0, names, dtype, iterations, intensity, coords=L
 
 
 @ops.implements("batch_lm", "numpy")
-def _lm_numpy(eng, setup, blk, X0, names, dtype, iterations, intensity):
+def _lm_numpy(eng, setup, blk, X0, names, dtype, iterations, intensity, fixed_rows=None):
     """:func:`device_lm` on the numpy backend (float64 whatever ``dtype``):
-    :func:`~pbrdf_cl.fitting.common.lm_batch` over every pixel x start."""
+    :func:`~pbrdf_cl.fitting.common.lm_batch` over every pixel x start (with ``fixed_rows``, over
+    the pixels of each distinct row of fixed values in turn, ``setup`` holding them)."""
+    if fixed_rows:
+        keys = list(fixed_rows)
+        vals = np.stack([np.asarray(fixed_rows[n], float) for n in keys], axis=1)
+        out = None
+        for row in np.unique(vals, axis=0):
+            idx = np.flatnonzero(np.all(vals == row, axis=1))
+            held = replace(setup, fixed={**setup.fixed, **{n: float(v) for n, v in zip(keys, row)}})
+            d = _lm_numpy(eng, held, blk.subset(idx), X0[:, idx], names, dtype, iterations, intensity)
+            if out is None:
+                out = Descent(*[np.zeros(a.shape[:1] + (blk.p,) + a.shape[2:], a.dtype) for a in d])
+            for a, b in zip(out, d):
+                a[:, idx] = b
+        return out
     S, p, D = X0.shape
     lo, hi = descent_bounds(setup, names)
     pix = np.tile(np.arange(p), S)

@@ -217,6 +217,20 @@ class Block:
         return np.ascontiguousarray(self.padded(a).T, dtype=dtype)
 
 
+def stack_blocks(blocks, copies):
+    """One block of the pixels of ``blocks`` (blocks of one stack: the same setup, lanes and any
+    shared geometry), those of ``blocks[i]`` ``copies[i]`` times over, in order: the pixels of
+    several batches of descents as one."""
+    if len(blocks) == 1:
+        b = blocks[0]
+        return b if copies[0] == 1 else b.subset(np.tile(np.arange(b.p), copies[0]))
+    first = blocks[0]
+    raw = {k: (v if (v.ndim == 1 and k in ANGLES + INCIDENT) else
+               np.concatenate([b.raw[k] for b, c in zip(blocks, copies) for _ in range(c)]))
+           for k, v in first.raw.items()}
+    return Block(raw, first.setup, first.lanes)
+
+
 def _map_ks(X, names, func):
     """A copy of the parameter vectors X with ``func`` applied to their ks coordinate (if any)."""
     X = np.array(X, float)
