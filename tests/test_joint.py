@@ -493,3 +493,24 @@ def test_the_stacked_sets_compute_each_factor_once_per_run_bit_for_bit(monkeypat
     for a, b in zip(runs, alone):
         np.testing.assert_array_equal(a, b)
     assert np.all(fd_steps(X, setup.hi) != 0)
+
+
+@pytest.mark.parametrize("shape", [(5, 7, 4, 6, 3), (1, 9, 2, 5, 1), (6,), (3, 4)])
+def test_the_profiles_of_each_own_axis_are_numpys_minima(shape):
+    """``each_own_axis`` reduces every axis in place (``axis_min``: halving, odd lengths and a
+    leading axis included) and gives numpy's minima bit for bit, NaN propagating alike, whatever
+    axes are the sets' own and in whatever order the shared ones lie between them."""
+    from pbrdf_cl.fitting.sets.joint import axis_min, each_own_axis
+
+    rng = np.random.default_rng(len(shape))
+    a = rng.random(shape, dtype=np.float32)
+    a.flat[a.size // 3] = np.nan
+    for axis in range(a.ndim):
+        np.testing.assert_array_equal(axis_min(a, axis), a.min(axis=axis, keepdims=True))
+    for own in ([0, 1, 3], [3, 1], [4], [1, 2, 0, 4], []):
+        own = [j for j in own if j < a.ndim]
+        got = each_own_axis(a, own)
+        assert len(got) == len(own)
+        for j, m in zip(own, got):
+            others = tuple(x for x in own if x != j)
+            np.testing.assert_array_equal(m, a.min(axis=others, keepdims=True) if others else a)
