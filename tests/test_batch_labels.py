@@ -628,12 +628,16 @@ def test_descents_at_several_values_are_one_batch_as_each_alone(dev, backend):
     assert not np.array_equal(together[0], together[1])  # the values held differ, and so do the ends
 
 
-def test_the_subsample_steps_of_several_candidates_are_one_batch_as_each_alone(dev):
+@pytest.mark.parametrize("batch_pixels", [4096, 20])
+def test_the_subsample_steps_of_several_candidates_are_one_batch_as_each_alone(dev, monkeypatch, batch_pixels):
     """The search refines every candidate of every label in step (``_Stage.local_steps_many``:
     each round's trial values of all of them descended and summed as one batch,
-    ``local_at_many``); each candidate's end (values, sums, own parameters, damping) is the one
-    its refinement alone reaches, bit for bit, however many rounds each takes."""
+    ``local_at_many``, of at most ``BATCH_PIXELS`` pixels); each candidate's end (values, sums,
+    own parameters, damping) is the one its refinement alone reaches, bit for bit, however many
+    rounds each takes and however the batches split."""
     from pbrdf_cl.fitting.images import label_stage
+
+    monkeypatch.setattr(label_stage, "BATCH_PIXELS", batch_pixels)
 
     data, lab = two_materials(8, 8, 0.006, seed=2)
     job = LabelJob(data, labels=lab)

@@ -119,6 +119,10 @@ CHI2_TOL = 1e-2
 #: weakly determined direction.  On the bench's 16x16 and 32x32 stacks (24) none of the 161
 #: steps so skipped would have lowered the chi2 (of those within 0.1 of the step, 6 would have).
 SAME_STEP = 0.05
+#: Pixels at most of one batch of the subsample's descents (:meth:`_Stage.local_at_many`: every
+#: label's candidates, each its subsample's pixels): the memory of its arrays stays that of a few
+#: thousand pixels whatever the number of labels.
+BATCH_PIXELS = 4096
 #: The status of each label: code -> (name, meaning).
 LABEL_STATUS = {
     1: ("converged", "the refinement converged inside the bounds"),
@@ -510,13 +514,24 @@ class _Stage(Passes):
     def local_at_many(self, items):
         """:meth:`local_at` of several (:meth:`local_blocks`, theta, previous) at once, as one batch
         (:meth:`descend_sets`, :meth:`values` of the stacked pixels; those with ``previous`` and
-        those without as two): each result is the one it has alone.  Returns a list of (beta, sums)."""
+        those without apart, in batches of at most BATCH_PIXELS pixels): each result is the one
+        it has alone.  Returns a list of (beta, sums)."""
         setup, S = self.job.setup, len(self.shared)
         out = [None] * len(items)
+        batches = []  # those with previous and those without apart, each in batches of BATCH_PIXELS
         for first in (True, False):
-            mine = [i for i, item in enumerate(items) if (item[2] is None) == first]
-            if not mine:
-                continue
+            mine, pixels = [], 0
+            for i, item in enumerate(items):
+                if (item[2] is None) != first:
+                    continue
+                if mine and pixels + item[0][1].p > BATCH_PIXELS:
+                    batches.append((first, mine))
+                    mine, pixels = [], 0
+                mine.append(i)
+                pixels += item[0][1].p
+            if mine:
+                batches.append((first, mine))
+        for first, mine in batches:
             groups = {}  # the items of each subsample, in order of first appearance
             for i in mine:
                 groups.setdefault(id(items[i][0][1]), []).append(i)
