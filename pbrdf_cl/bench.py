@@ -250,6 +250,10 @@ def _fractions_of_earlier_limits(rows, row, dtype, bytes_per_unit):
 #: alpha = sqrt(2) sigma (docs/model.md).  With kd = 0 the DOP is (Rs - Rp) / (Rs + Rp) at the facet
 #: angle in both models, whatever their shadowing: the two must agree to float32 rounding.
 MITSUBA_MATERIAL = dict(n=1.5, k=2.125, sigma=0.3, ks=1.0, kd=0.0, c=0.0)
+#: A diffuse term added to the Mitsuba material for one more row of our kernel: a conductor (kd = 0)
+#: takes the DOP kernels' short path, which skips the shadowing and the diffuse term its DOP does not
+#: depend on; with kd > 0 the whole kernel runs (Mitsuba's roughconductor has no diffuse term to add).
+DIFFUSE_MATERIAL = dict(kd=0.2, c=-0.3)
 MITSUBA_VARIANT = "llvm_ad_mono_polarized"
 
 
@@ -339,7 +343,10 @@ def bench_mitsuba(eng, rows, rng, size, repeats):
     directions computed in the same fused kernel: the same inputs as ours).  End to end: numpy
     float32 degrees in, numpy DOP out.  Each row's ``ours_over_mitsuba`` compares it with its
     counterpart (our kernel with Mitsuba's from directions; ``ours_over_mitsuba_degrees`` with
-    Mitsuba's from degrees).  Skipped with a note where mitsuba or a libLLVM is missing."""
+    Mitsuba's from degrees).  One more row times our kernel on the same points with a diffuse term
+    (:data:`DIFFUSE_MATERIAL`): the conductor's DOP takes the kernel's short path (kd = 0: no
+    shadowing, no diffuse term), this one the whole kernel; its ratio is to Mitsuba's conductor,
+    which has no diffuse term.  Skipped with a note where mitsuba or a libLLVM is missing."""
     if not eng.has_kernels:
         return
     threads = getattr(getattr(eng, "device", None), "max_compute_units", None) or os.cpu_count() or 1
@@ -357,13 +364,21 @@ def bench_mitsuba(eng, rows, rng, size, repeats):
     dr.eval(wi, wo)
     kern = eng.kernel("dop_points_vec", "float32", "paper")
     out = eng.empty(size * 4)
-    args = [out, np.int32(size // lanes)]
-    for n in INPUTS:
-        one = n not in geo  # the material: one value, stride 0
-        args += [eng.to_device(np.full(lanes, MITSUBA_MATERIAL[n]) if one else geo[n], "float32"), np.int32(not one)]
+
+    def kernel_args(material):
+        args = [out, np.int32(size // lanes)]
+        for n in INPUTS:
+            one = n not in geo  # the material: one value, stride 0
+            args += [eng.to_device(np.full(lanes, material[n]) if one else geo[n], "float32"), np.int32(not one)]
+        return args
+    args, args_diffuse = kernel_args(MITSUBA_MATERIAL), kernel_args({**MITSUBA_MATERIAL, **DIFFUSE_MATERIAL})
 
     def ours_kernel():
         eng.launch(kern, (size // lanes,), *args, local_size=(_engine.POINT_LOCAL_SIZE,))
+        eng.queue.finish()
+
+    def ours_diffuse_kernel():
+        eng.launch(kern, (size // lanes,), *args_diffuse, local_size=(_engine.POINT_LOCAL_SIZE,))
         eng.queue.finish()
 
     def mitsuba_kernel():
@@ -382,17 +397,19 @@ def bench_mitsuba(eng, rows, rng, size, repeats):
     want, s0 = (np.asarray(a).reshape(-1) for a in mdop(wi, wo, with_s0=True))
     lit = s0 > 1e-10  # where S1^2 + S2^2 of Mitsuba's float32 lobe stays clear of underflow
     agree = float(np.max(np.abs(ours_e2e()[lit] - want[lit]))) if lit.any() else float("nan")
-    rates = interleaved_rates(dict(ours_kernel=ours_kernel, mitsuba_kernel=mitsuba_kernel,
-                                   mitsuba_degrees_kernel=mitsuba_degrees_kernel, ours_e2e=ours_e2e,
-                                   mitsuba_e2e=mitsuba_e2e), size, repeats)
+    rates = interleaved_rates(dict(ours_kernel=ours_kernel, ours_diffuse_kernel=ours_diffuse_kernel,
+                                   mitsuba_kernel=mitsuba_kernel, mitsuba_degrees_kernel=mitsuba_degrees_kernel,
+                                   ours_e2e=ours_e2e, mitsuba_e2e=mitsuba_e2e), size, repeats)
     version = mi.__version__
+    diffuse = ", ".join(f"{n} {v:g}" for n, v in DIFFUSE_MATERIAL.items())
     labels = dict(ours_kernel="per-point kernel, Mitsuba's points (kernel)",
+                  ours_diffuse_kernel=f"per-point kernel, Mitsuba's points, {diffuse} (kernel)",
                   mitsuba_kernel=f"Mitsuba {version} roughconductor, resident directions (kernel)",
                   mitsuba_degrees_kernel=f"Mitsuba {version} roughconductor, resident degrees (kernel)",
                   ours_e2e="pbrdf_cl.dop, Mitsuba's points (end-to-end)",
                   mitsuba_e2e=f"Mitsuba {version} roughconductor from numpy (end-to-end)")
-    pairs = dict(ours_kernel="mitsuba_kernel", mitsuba_kernel="ours_kernel", mitsuba_degrees_kernel="ours_kernel",
-                 ours_e2e="mitsuba_e2e", mitsuba_e2e="ours_e2e")
+    pairs = dict(ours_kernel="mitsuba_kernel", ours_diffuse_kernel="mitsuba_kernel", mitsuba_kernel="ours_kernel",
+                 mitsuba_degrees_kernel="ours_kernel", ours_e2e="mitsuba_e2e", mitsuba_e2e="ours_e2e")
     for name, (rate, cpu_rate) in rates.items():
         ours, theirs = (name, pairs[name]) if name.startswith("ours") else (pairs[name], name)
         row = dict(path=labels[name], dtype="float32", rate=rate, unit="evals/s", seconds=size / rate, n=size,

@@ -121,7 +121,8 @@ def test_bench_mitsuba_rows_agree_with_the_model(tmp_path):
         pytest.skip("Mitsuba's LLVM variant is unavailable here")
     rows = []
     bench.bench_mitsuba(pbrdf_cl.get_default_engine(), rows, np.random.default_rng(0), 1 << 14, 1)
-    assert len(rows) == 5 and all(r["rate"] > 0 and r["cpu_rate"] > 0 for r in rows)
+    assert len(rows) == 6 and all(r["rate"] > 0 and r["cpu_rate"] > 0 for r in rows)
+    assert sum("kd 0.2" in r["path"] for r in rows) == 1  # the whole kernel, beside the conductor's short path
     assert sum("resident degrees" in r["path"] for r in rows) == 1 and rows[0]["ours_over_mitsuba_degrees"] > 0
     assert {r["path"].split(" (")[-1] for r in rows} == {"kernel)", "end-to-end)"}
     assert all(r["max_abs_err"] <= 2e-5 for r in rows), rows
