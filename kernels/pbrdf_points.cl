@@ -234,39 +234,43 @@ inline real pb_in_rule(__global const PB_SCALAR *x, __constant const uint *r, co
      (sigma < PB_INF) & (v_ks > (real)0) & (v_ks < PB_INF) & (v_kd >= (real)0) & (v_kd < PB_INF) &   \
      (v_c >= (real)-1) & (v_c <= (real)0))
 
-/* The N points of work-item i, their inputs read by IN(buffer, stride, rule number): the
- * geometry and the Fresnel terms (PB_VEC_FRESNEL_OF), then the shadowing, the specular scale and
- * the diffuse term (PB_VEC_BODY_OF). */
-#define PB_VEC_FRESNEL_OF(IN)                                                \
+/* The N points of work-item i, their inputs read by IN(buffer, stride, rule number). */
+#define PB_VEC_BODY_OF(IN)                                                   \
     const int i = get_global_id(0);                                          \
     if (i >= nvec) return;                                                   \
     const real v_ti = IN(ti, s_ti, 0), v_tr = IN(tr, s_tr, 1), v_ph = IN(ph, s_ph, 2); \
     const real v_n = IN(nn, s_n, 3), v_k = IN(kk, s_k, 4), sigma = IN(sg, s_sg, 5);   \
     const real v_ks = IN(ks, s_ks, 6), v_kd = IN(kd, s_kd, 7), v_c = IN(cc, s_c, 8);  \
     pb_geom g = pb_geometry(v_ti, v_tr, v_ph);                               \
-    pb_fresnel_t f = pb_fresnel(v_n, v_k, g.cb, g.sb);
-#define PB_VEC_BODY_OF(IN)                                                   \
-    PB_VEC_FRESNEL_OF(IN)                                                    \
+    pb_fresnel_t f = pb_fresnel(v_n, v_k, g.cb, g.sb);                       \
     const real G = pb_shadowing_factor(g, sigma, PBRDF_SHADOWING);           \
     const real logK = pb_log_specular_scale(g, sigma, v_ks, G);              \
     const real fd = pb_diffuse(g, v_kd, v_c);
 #define PB_VEC_BODY PB_VEC_BODY_OF(PB_IN_STRIDED)
 
-/* The DOP of the N points of work-item i.  Where none of them has a diffuse term (kd = 0 on every
- * lane: a conductor), 2 fd / K is 0 (pb_diffuse2_over_K) and the DOP is (Rs - Rp) / (Rs + Rp),
- * whatever sigma, ks and the shadowing: those are not computed, the same values bit for bit (at
- * the bench's conductor, about twice the points per second). */
-#define PB_DOP_VEC_OF(IN)                                                    \
-    PB_VEC_FRESNEL_OF(IN)                                                    \
-    real fd2_K = (real)0;                                                    \
-    if (!all(v_kd == (real)0))                                               \
-        fd2_K = pb_diffuse2_over_K(g, sigma, v_ks, pb_shadowing_factor(g, sigma, PBRDF_SHADOWING), v_kd, v_c); \
-    pb_vs(PB_IN_DOMAIN ? pb_dop_of(f, fd2_K) : (real)NAN, i, out);
-
 /* nvec work-items of N points each: the arrays hold nvec * N points (the host pads). */
 __kernel void dop_points_vec(__global PB_SCALAR *out, PB_VEC_ARGS)
 {
-    PB_DOP_VEC_OF(PB_IN_STRIDED)
+    PB_VEC_BODY
+    pb_vs(PB_IN_DOMAIN ? pb_dop_of(f, pb_diffuse2_over_K(g, sigma, v_ks, G, v_kd, v_c)) : (real)NAN, i, out);
+}
+
+/* The DOP of a conductor (kd = 0 at every point: the host picks it where kd is one value, 0): then
+ * 2 fd / K is 0 (pb_diffuse2_over_K) and the DOP is (Rs - Rp) / (Rs + Rp), whatever sigma, ks and
+ * the shadowing, which are not computed; the same values as dop_points_vec's bit for bit (a kernel
+ * of its own: a branch on kd inside dop_points_vec slowed the whole kernel by 5-10%). */
+#define PB_CONDUCTOR_BODY_OF(IN)                                             \
+    const int i = get_global_id(0);                                          \
+    if (i >= nvec) return;                                                   \
+    const real v_ti = IN(ti, s_ti, 0), v_tr = IN(tr, s_tr, 1), v_ph = IN(ph, s_ph, 2); \
+    const real v_n = IN(nn, s_n, 3), v_k = IN(kk, s_k, 4), sigma = IN(sg, s_sg, 5);   \
+    const real v_ks = IN(ks, s_ks, 6), v_kd = IN(kd, s_kd, 7), v_c = IN(cc, s_c, 8);  \
+    const pb_geom g = pb_geometry(v_ti, v_tr, v_ph);                         \
+    pb_vs(PB_IN_DOMAIN ? pb_dop_of(pb_fresnel(v_n, v_k, g.cb, g.sb), (real)0) : (real)NAN, i, out);
+
+__kernel void dop_conductor_points_vec(__global PB_SCALAR *out, PB_VEC_ARGS)
+{
+    PB_CONDUCTOR_BODY_OF(PB_IN_STRIDED)
 }
 
 __kernel void brdf_points_vec(__global PB_SCALAR *out, PB_VEC_ARGS)
@@ -279,7 +283,13 @@ __kernel void brdf_points_vec(__global PB_SCALAR *out, PB_VEC_ARGS)
  * hold nvec * N points, padded by the host; kind 2 indices stay below mod for padding too). */
 __kernel void dop_bcast_points_vec(__global PB_SCALAR *out, const int nvec, PB_BCAST_ARGS(PB_SCALAR))
 {
-    PB_DOP_VEC_OF(PB_IN_RULE)
+    PB_VEC_BODY_OF(PB_IN_RULE)
+    pb_vs(PB_IN_DOMAIN ? pb_dop_of(f, pb_diffuse2_over_K(g, sigma, v_ks, G, v_kd, v_c)) : (real)NAN, i, out);
+}
+
+__kernel void dop_conductor_bcast_points_vec(__global PB_SCALAR *out, const int nvec, PB_BCAST_ARGS(PB_SCALAR))
+{
+    PB_CONDUCTOR_BODY_OF(PB_IN_RULE)
 }
 
 __kernel void brdf_bcast_points_vec(__global PB_SCALAR *out, const int nvec, PB_BCAST_ARGS(PB_SCALAR))

@@ -35,6 +35,7 @@ import numpy as np
 from .compute import dense
 from .compute.pointwise import dop as api_dop
 from .device import engine as _engine
+from .device.transfers import vector_kernel
 from .fitting.objective import objective
 from .model import reference
 
@@ -250,9 +251,10 @@ def _fractions_of_earlier_limits(rows, row, dtype, bytes_per_unit):
 #: alpha = sqrt(2) sigma (docs/model.md).  With kd = 0 the DOP is (Rs - Rp) / (Rs + Rp) at the facet
 #: angle in both models, whatever their shadowing: the two must agree to float32 rounding.
 MITSUBA_MATERIAL = dict(n=1.5, k=2.125, sigma=0.3, ks=1.0, kd=0.0, c=0.0)
-#: A diffuse term added to the Mitsuba material for one more row of our kernel: a conductor (kd = 0)
-#: takes the DOP kernels' short path, which skips the shadowing and the diffuse term its DOP does not
-#: depend on; with kd > 0 the whole kernel runs (Mitsuba's roughconductor has no diffuse term to add).
+#: A diffuse term added to the Mitsuba material for one more row of our kernel: the conductor (kd = 0)
+#: takes the conductor's DOP kernel (``dop_conductor_points_vec``), which leaves out the shadowing and
+#: the diffuse term its DOP does not depend on; with kd > 0 the whole kernel runs (Mitsuba's
+#: roughconductor has no diffuse term to add).
 DIFFUSE_MATERIAL = dict(kd=0.2, c=-0.3)
 MITSUBA_VARIANT = "llvm_ad_mono_polarized"
 
@@ -344,9 +346,10 @@ def bench_mitsuba(eng, rows, rng, size, repeats):
     float32 degrees in, numpy DOP out.  Each row's ``ours_over_mitsuba`` compares it with its
     counterpart (our kernel with Mitsuba's from directions; ``ours_over_mitsuba_degrees`` with
     Mitsuba's from degrees).  One more row times our kernel on the same points with a diffuse term
-    (:data:`DIFFUSE_MATERIAL`): the conductor's DOP takes the kernel's short path (kd = 0: no
-    shadowing, no diffuse term), this one the whole kernel; its ratio is to Mitsuba's conductor,
-    which has no diffuse term.  Skipped with a note where mitsuba or a libLLVM is missing."""
+    (:data:`DIFFUSE_MATERIAL`): the conductor's DOP runs the conductor's kernel, as
+    :func:`pbrdf_cl.dop` does (kd = 0: no shadowing, no diffuse term), this one the whole kernel;
+    its ratio is to Mitsuba's conductor, which has no diffuse term.  Skipped with a note where
+    mitsuba or a libLLVM is missing."""
     if not eng.has_kernels:
         return
     threads = getattr(getattr(eng, "device", None), "max_compute_units", None) or os.cpu_count() or 1
@@ -362,7 +365,9 @@ def bench_mitsuba(eng, rows, rng, size, repeats):
     dr.eval(*degrees)
     wi, wo = directions(*degrees)
     dr.eval(wi, wo)
-    kern = eng.kernel("dop_points_vec", "float32", "paper")
+    # the kernel pbrdf_cl.dop runs for each material (the conductor's: its DOP alone)
+    kern = eng.kernel(f"{vector_kernel('dop', MITSUBA_MATERIAL)}_points_vec", "float32", "paper")
+    kern_diffuse = eng.kernel(f"{vector_kernel('dop', DIFFUSE_MATERIAL)}_points_vec", "float32", "paper")
     out = eng.empty(size * 4)
 
     def kernel_args(material):
@@ -378,7 +383,7 @@ def bench_mitsuba(eng, rows, rng, size, repeats):
         eng.queue.finish()
 
     def ours_diffuse_kernel():
-        eng.launch(kern, (size // lanes,), *args_diffuse, local_size=(_engine.POINT_LOCAL_SIZE,))
+        eng.launch(kern_diffuse, (size // lanes,), *args_diffuse, local_size=(_engine.POINT_LOCAL_SIZE,))
         eng.queue.finish()
 
     def mitsuba_kernel():

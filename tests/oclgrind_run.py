@@ -45,12 +45,16 @@ def main():
                     ok = np.allclose(out, ref, rtol=1e-4, atol=1e-5 * scale)
                 if not ok:
                     raise SystemExit(f"{func.__name__} {dtype} {shadowing}: Oclgrind result differs from the reference")
-    # the DOP of points without a diffuse term (kd = 0 on every lane: the shadowing skipped)
+    # the DOP of a conductor (kd one value, 0: the conductor's kernel, no shadowing)
     for dtype in ("float32", "float64"):
         out = pbrdf_cl.dop(ti, tr, phi, dtype=dtype, engine=eng, **dict(kw, kd=0.0))
         ref = pbrdf_cl.dop(ti, tr, phi, backend="numpy", **dict(kw, kd=0.0))
         if not np.allclose(out, ref, rtol=1e-4, atol=1e-5):
             raise SystemExit(f"dop {dtype} with kd = 0: Oclgrind result differs from the reference")
+        out = pbrdf_cl.dop(ti[:5, None], tr[None, :7], 150.0, dtype=dtype, engine=eng, **dict(kw, k=2.0, kd=0.0))
+        ref = pbrdf_cl.dop(ti[:5, None], tr[None, :7], 150.0, backend="numpy", **dict(kw, k=2.0, kd=0.0))
+        if not np.allclose(out, ref, rtol=1e-4, atol=1e-5):
+            raise SystemExit(f"broadcast dop {dtype} with kd = 0: Oclgrind result differs from the reference")
     # the broadcast twins (inputs read through their index rules, pbrdf_points.cl): blocks that
     # straddle a vector (theta_r every 17 points), a trailing axis that wraps (sigma, 17 values), a
     # block shorter than a vector (widened: kd every 3 points) and a period shorter than one (phi,

@@ -118,30 +118,37 @@ def test_scalar_path_relies_on_the_host_checks(scalar, rng, func):
 
 
 # --------------------------------------------------------------------------------------------
-# the DOP of points without a diffuse term
+# the DOP of a conductor
 
 @pytest.mark.parametrize("dtype", ["float32", "float64"])
-def test_the_dop_without_a_diffuse_term_skips_what_it_does_not_depend_on(engine, rng, dtype):
-    """Where every point of a vector has kd = 0 (a conductor) the DOP kernels skip the shadowing,
-    the specular scale and the diffuse term (2 fd / K is 0 there): the same values bit for bit as
-    the full path (the points computed beside points with kd > 0 in their vectors), the
-    reference's, and the same whatever sigma, ks and the shadowing; the broadcast twin alike."""
+def test_the_dop_of_a_conductor_runs_its_own_kernel_with_the_same_values(engine, rng, dtype, monkeypatch):
+    """Where kd is one value, 0 (a conductor), the DOP runs the conductor's kernels
+    (``dop_conductor_points_vec`` and its broadcast twin), which leave out the shadowing, the
+    specular scale and the diffuse term (2 fd / K is 0 there): the same values bit for bit as the
+    whole kernel's (kd given as an array of zeros), the reference's, and the same whatever sigma,
+    ks and the shadowing."""
+    built, kernel = [], type(engine).kernel
+    monkeypatch.setattr(type(engine), "kernel", lambda self, name, *a, **k: built.append(name) or kernel(self, name,
+                                                                                                       *a, **k))
     inp = random_inputs(rng, 2000)
     m = inp["kd"].size
-    inp["kd"] = np.zeros(m)
-    mixed = dict(inp, kd=np.where(np.arange(m) % 2 == 1, 0.3, 0.0))  # every vector holds kd > 0
-    fast = call(pbrdf_cl.dop, inp, dtype=dtype, engine=engine)
-    full = call(pbrdf_cl.dop, mixed, dtype=dtype, engine=engine)
-    np.testing.assert_array_equal(fast[::2], full[::2])
-    ref = call(pbrdf_cl.dop, inp, backend="numpy")
+    zeros = dict(inp, kd=np.zeros(m))
+    whole = call(pbrdf_cl.dop, zeros, dtype=dtype, engine=engine)
+    assert built[-1] == "dop_points_vec"
+    one = dict(inp, kd=0.0)
+    fast = call(pbrdf_cl.dop, one, dtype=dtype, engine=engine)
+    assert built[-1] == "dop_conductor_points_vec"
+    np.testing.assert_array_equal(fast, whole)
+    ref = call(pbrdf_cl.dop, zeros, backend="numpy")
     assert np.max(np.abs(fast.astype(float) - ref)) <= (4e-5 if dtype == "float32" else 2e-12)
-    other = dict(inp, sigma=rng.uniform(0.05, 1.0, m), ks=rng.uniform(0.1, 2, m))
+    other = dict(one, sigma=rng.uniform(0.05, 1.0, m), ks=rng.uniform(0.1, 2, m))
     for shadowing in ("paper", "smith", "none"):
         np.testing.assert_array_equal(call(pbrdf_cl.dop, other, dtype=dtype, engine=engine, shadowing=shadowing), fast)
     # the broadcast twin (inputs read through their index rules): theta_r along a second axis
     ti, tr = inp["theta_i"][:50], inp["theta_r"][:40]
     kw = dict(n=1.5, k=2.125, sigma=0.3, ks=1.0, c=0.0, dtype=dtype, engine=engine)
     twin = pbrdf_cl.dop(ti[:, None], tr[None, :], 180.0, kd=0.0, **kw)
-    grid = pbrdf_cl.dop(np.repeat(ti, 40), np.tile(tr, 50), np.full(2000, 180.0), kd=np.where(np.arange(2000) % 2, 0.3,
-                                                                                               0.0), **kw)
-    np.testing.assert_array_equal(twin.ravel()[::2], grid[::2])
+    assert built[-1] == "dop_conductor_bcast_points_vec"
+    np.testing.assert_array_equal(twin, pbrdf_cl.dop(ti[:, None], tr[None, :], 180.0, kd=np.zeros((50, 40)), **kw))
+    with pytest.raises(ValueError, match="sigma"):  # its inputs are checked as the whole kernel's
+        call(pbrdf_cl.dop, dict(one, sigma=np.where(np.arange(m) == 5, -1.0, 0.3)), dtype=dtype, engine=engine)

@@ -29,6 +29,17 @@ CONVERT_POINTS = 1 << 19
 TABLE_POINTS = 1 << 19
 
 
+def vector_kernel(quantity, flat):
+    """The stem of the vector per-point kernels of ``quantity`` for the inputs ``flat`` (name ->
+    values, one value where it is the same at every point): ``dop_conductor`` for the DOP where kd
+    is one value, 0 (a conductor: the DOP then depends on neither the shadowing nor sigma nor ks,
+    and that kernel does not compute them; the same values bit for bit), else the quantity's name."""
+    kd = flat.get("kd")
+    if quantity == "dop" and kd is not None and np.size(kd) == 1 and float(np.ravel(kd)[0]) == 0.0:
+        return "dop_conductor"
+    return quantity
+
+
 def evaluate(eng, quantity, inputs, shape, dtype, shadowing):
     """``quantity`` at every point of ``shape`` on the OpenCL engine ``eng``: the work of
     :meth:`pbrdf_cl.device.opencl.Engine.evaluate` (see there)."""
@@ -43,11 +54,12 @@ def evaluate(eng, quantity, inputs, shape, dtype, shadowing):
     if size == 0:
         return out.reshape(shape + q.trailing)
     plan, flat, values = point_inputs(eng, inputs, shape, npdt, lanes)
+    name = vector_kernel(q.name, flat)
     if values:  # a broadcast input: the twin kernel, reading each input through its rule
-        kern = (eng.kernel(f"{q.name}_bcast_points_vec", dtype, shadowing) if vec
+        kern = (eng.kernel(f"{name}_bcast_points_vec", dtype, shadowing) if vec
                 else eng.kernel("quantity_bcast_points", dtype, shadowing, q.name))
     else:
-        kern = (eng.kernel(f"{q.name}_points_vec", dtype, shadowing) if vec
+        kern = (eng.kernel(f"{name}_points_vec", dtype, shadowing) if vec
                 else eng.kernel("quantity_points", dtype, shadowing, q.name))
         plan = None
     if eng.overlaps_transfers:
