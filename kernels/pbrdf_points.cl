@@ -235,12 +235,14 @@ inline real pb_in_rule(__global const PB_SCALAR *x, __constant const uint *r, co
      (v_c >= (real)-1) & (v_c <= (real)0))
 
 /* The N points of work-item i, their inputs read by IN(buffer, stride, rule number). */
-#define PB_VEC_BODY_OF(IN)                                                   \
+#define PB_VEC_INPUTS_OF(IN)                                                 \
     const int i = get_global_id(0);                                          \
     if (i >= nvec) return;                                                   \
     const real v_ti = IN(ti, s_ti, 0), v_tr = IN(tr, s_tr, 1), v_ph = IN(ph, s_ph, 2); \
     const real v_n = IN(nn, s_n, 3), v_k = IN(kk, s_k, 4), sigma = IN(sg, s_sg, 5);   \
-    const real v_ks = IN(ks, s_ks, 6), v_kd = IN(kd, s_kd, 7), v_c = IN(cc, s_c, 8);  \
+    const real v_ks = IN(ks, s_ks, 6), v_kd = IN(kd, s_kd, 7), v_c = IN(cc, s_c, 8);
+#define PB_VEC_BODY_OF(IN)                                                   \
+    PB_VEC_INPUTS_OF(IN)                                                     \
     pb_geom g = pb_geometry(v_ti, v_tr, v_ph);                               \
     pb_fresnel_t f = pb_fresnel(v_n, v_k, g.cb, g.sb);                       \
     const real G = pb_shadowing_factor(g, sigma, PBRDF_SHADOWING);           \
@@ -258,13 +260,9 @@ __kernel void dop_points_vec(__global PB_SCALAR *out, PB_VEC_ARGS)
 /* The DOP of a conductor (kd = 0 at every point: the host picks it where kd is one value, 0): then
  * 2 fd / K is 0 (pb_diffuse2_over_K) and the DOP is (Rs - Rp) / (Rs + Rp), whatever sigma, ks and
  * the shadowing, which are not computed; the same values as dop_points_vec's bit for bit (a kernel
- * of its own: a branch on kd inside dop_points_vec slowed the whole kernel by 5-10%). */
+ * of its own: a branch on kd inside dop_points_vec slowed the whole kernel by 5-11%). */
 #define PB_CONDUCTOR_BODY_OF(IN)                                             \
-    const int i = get_global_id(0);                                          \
-    if (i >= nvec) return;                                                   \
-    const real v_ti = IN(ti, s_ti, 0), v_tr = IN(tr, s_tr, 1), v_ph = IN(ph, s_ph, 2); \
-    const real v_n = IN(nn, s_n, 3), v_k = IN(kk, s_k, 4), sigma = IN(sg, s_sg, 5);   \
-    const real v_ks = IN(ks, s_ks, 6), v_kd = IN(kd, s_kd, 7), v_c = IN(cc, s_c, 8);  \
+    PB_VEC_INPUTS_OF(IN)                                                     \
     const pb_geom g = pb_geometry(v_ti, v_tr, v_ph);                         \
     pb_vs(PB_IN_DOMAIN ? pb_dop_of(pb_fresnel(v_n, v_k, g.cb, g.sb), (real)0) : (real)NAN, i, out);
 
