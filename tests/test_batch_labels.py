@@ -628,6 +628,32 @@ def test_descents_at_several_values_are_one_batch_as_each_alone(dev, backend):
     assert not np.array_equal(together[0], together[1])  # the values held differ, and so do the ends
 
 
+def test_the_numpy_descents_at_held_rows_leave_nan_rows_unfitted():
+    """The numpy backend's ``batch_lm`` with ``fixed_rows`` runs each distinct row of held values
+    (told apart by their bits) in turn: a row held at NaN fits nothing (its objective the worst,
+    never the zeros of a "perfect" fit, which the pick of the best start would take); no pixels
+    give empty arrays of the right shapes."""
+    from pbrdf_cl.device.engine import NumpyEngine
+    from pbrdf_cl.fitting.images import label_stage
+
+    eng = NumpyEngine()
+    data, lab = two_materials(8, 8, 0.006, seed=2)
+    job = LabelJob(data, labels=lab)
+    st = label_stage._Stage(job, eng, False)
+    (_, blk, _), _ = _subsamples(job, st, (4, 3))
+    held = label_stage.held_setup(job.setup, st.shared, [1.5, 2.0])
+    X0 = np.tile([0.4, 0.2, -0.3], (1, 4, 1))
+    rows = {"n": np.array([1.5, np.nan, 1.6, 1.5]), "k": np.array([2.0, 2.0, 2.2, 2.0])}
+    d = eng.call("batch_lm", held, blk, X0, st.own, "float64", 3, False, fixed_rows=rows)
+    assert d.x.shape == (1, 4, 3) and d.jtj.shape == (1, 4, 3, 3) and d.settled.dtype == bool
+    assert not d.sse[0, 1] <= 100 * d.sse[0, [0, 2, 3]].max(), d.sse
+    alone = eng.call("batch_lm", held, blk, X0, st.own, "float64", 3, False)  # every pixel at held's 1.5, 2.0
+    np.testing.assert_array_equal(d.x[0, [0, 3]], alone.x[0, [0, 3]])
+    none = eng.call("batch_lm", held, blk.subset(np.arange(0)), X0[:, :0], st.own, "float64", 3, False,
+                    fixed_rows={n: v[:0] for n, v in rows.items()})
+    assert none.x.shape == (1, 0, 3) and none.sse.shape == (1, 0)
+
+
 @pytest.mark.parametrize("batch_pixels", [4096, 20])
 def test_the_subsample_steps_of_several_candidates_are_one_batch_as_each_alone(dev, monkeypatch, batch_pixels):
     """The search refines every candidate of every label in step (``_Stage.local_steps_many``:

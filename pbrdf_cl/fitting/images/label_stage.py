@@ -514,8 +514,8 @@ class _Stage(Passes):
     def local_at_many(self, items):
         """:meth:`local_at` of several (:meth:`local_blocks`, theta, previous) at once, as one batch
         (:meth:`descend_sets`, :meth:`values` of the stacked pixels; those with ``previous`` and
-        those without apart, in batches of at most BATCH_PIXELS pixels): each result is the one
-        it has alone.  Returns a list of (beta, sums)."""
+        those without apart, in batches of at most BATCH_PIXELS pixels, or of one item that alone
+        holds more): each result is the one it has alone.  Returns a list of (beta, sums)."""
         setup, S = self.job.setup, len(self.shared)
         out = [None] * len(items)
         batches = []  # those with previous and those without apart, each in batches of BATCH_PIXELS

@@ -144,10 +144,11 @@ def _grid_fixed_opencl(eng, setups, blk, order, rstart):
     if not (blk.shared and blk.spec is None) or len(setups) == 1:
         return _each_grid(eng, setups, blk, order, rstart)
     C, G, R = len(setups), order.size, rstart.size - 1
+    assert C * G <= 1 << 24, "batch_grid_table's float32 indices are exact below 2^24 table points"
     T = _table_dop(eng, setups[0], blk.angles, [grid_values(s) for s in setups], order)
     starts = (rstart[:-1][None] + G * np.arange(C)[:, None]).ravel()
     best, arg = eng.call("batch_table_minima", blk, T, np.append(starts, C * G).astype(rstart.dtype))
-    return best.reshape(C, R, -1), arg.reshape(C, R, -1) - G * np.arange(C)[:, None, None]
+    return best.reshape(C, R, blk.p), arg.reshape(C, R, blk.p) - G * np.arange(C)[:, None, None]
 
 
 @ops.implements("batch_grid_fixed", "numpy")
@@ -312,14 +313,16 @@ def _lm_numpy(eng, setup, blk, X0, names, dtype, iterations, intensity, fixed_ro
     the pixels of each distinct row of fixed values in turn, ``setup`` holding them)."""
     if fixed_rows:
         keys = list(fixed_rows)
-        vals = np.stack([np.asarray(fixed_rows[n], float) for n in keys], axis=1)
-        out = None
-        for row in np.unique(vals, axis=0):
-            idx = np.flatnonzero(np.all(vals == row, axis=1))
+        vals = np.ascontiguousarray(np.stack([np.asarray(fixed_rows[n], float) for n in keys], axis=1))
+        S, p, D = X0.shape
+        out = Descent(np.full((S, p, D), np.nan), np.full((S, p), np.nan), np.full((S, p, D, D), np.nan),
+                      np.zeros((S, p), bool))
+        # the distinct rows told apart by their bits (NaN rows, -0 and +0 each as they are)
+        _, first, inv = np.unique(vals.view(np.int64), axis=0, return_index=True, return_inverse=True)
+        for g, row in enumerate(vals[first]):
+            idx = np.flatnonzero(inv.reshape(-1) == g)
             held = replace(setup, fixed={**setup.fixed, **{n: float(v) for n, v in zip(keys, row)}})
             d = _lm_numpy(eng, held, blk.subset(idx), X0[:, idx], names, dtype, iterations, intensity)
-            if out is None:
-                out = Descent(*[np.zeros(a.shape[:1] + (blk.p,) + a.shape[2:], a.dtype) for a in d])
             for a, b in zip(out, d):
                 a[:, idx] = b
         return out
