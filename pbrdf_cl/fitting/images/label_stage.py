@@ -306,7 +306,7 @@ class Passes:
         their own parameters, None: from the grid alone): (their own parameters at each candidate
         (C, p, own), NaN where not fitted; per candidate the block's :meth:`values` summed per row)."""
         setup = self.job.setup
-        C, S = thetas.shape[0], len(self.shared)
+        C = thetas.shape[0]
         raw = self.job.source.rows(r0, r1)
         off = r0 * self.row
         lab = self.lab[off:off + raw["dop"].shape[0]]
@@ -318,22 +318,28 @@ class Passes:
             return trial, parts
         idxs = [np.flatnonzero(fit & (lab == L)) for L in labels]
         raws = [take(raw, idx) for idx in idxs]
-        # every label's pixels at every candidate as one batch (descend_sets), then their values
-        betas = self.descend_sets([(thetas[:, L], Block(r, setup, self.lanes),
-                                    None if previous is None else np.broadcast_to(previous[idx], (C,) + idx.shape +
-                                                                                  previous.shape[1:]))
-                                   for L, idx, r in zip(labels, idxs, raws)])
-        subs = stack_blocks([Block(r, setup, 1) for r in raws], [C] * labels.size)
-        at = np.concatenate([np.repeat(thetas[:, L], idx.size, axis=0) for L, idx in zip(labels, idxs)])
-        vals = self.values(setup, subs, at.reshape(-1, S), np.concatenate([b.reshape(-1, b.shape[2]) for b in betas]))
-        row = 0
-        for L, idx, beta in zip(labels, idxs, betas):
+        # every label's pixels at every candidate as one batch
+        done = self.values_sets([(thetas[:, L], Block(r, setup, self.lanes),
+                                  None if previous is None else np.broadcast_to(previous[idx], (C,) + idx.shape +
+                                                                                previous.shape[1:]))
+                                 for L, idx, r in zip(labels, idxs, raws)], [Block(r, setup, 1) for r in raws])
+        for L, idx, (beta, vals) in zip(labels, idxs, done):
             for c in range(C):
                 trial[c, idx] = beta[c]
-                v = vals[row:row + idx.size]
-                row += idx.size
-                parts[c].append(row_parts((off + idx) // self.row, np.full(idx.size, L), v, self.ids.size))
+                parts[c].append(row_parts((off + idx) // self.row, np.full(idx.size, L), vals[c], self.ids.size))
         return trial, parts
+
+    def values_sets(self, sets, subs):
+        """:meth:`descend_sets` of ``sets``, then :meth:`values` of every pixel at each of its set's
+        values, all as one call (``subs``: each set's pixels' block for the sums, lanes 1): per set
+        (own parameters (C, p, own), values (C, p, sums))."""
+        betas = self.descend_sets(sets)
+        thetas = np.concatenate([np.repeat(t, b.shape[1], axis=0) for (t, _, _), b in zip(sets, betas)])
+        own = np.concatenate([b.reshape(-1, b.shape[2]) for b in betas])
+        v = self.values(self.job.setup, stack_blocks(subs, [len(t) for t, _, _ in sets]),
+                        thetas.reshape(-1, len(self.shared)), own)
+        ends = np.cumsum([b.shape[0] * b.shape[1] for b in betas])
+        return [(b, v[e - b.shape[0] * b.shape[1]:e].reshape(b.shape[:2] + (-1,))) for b, e in zip(betas, ends)]
 
     def descend(self, thetas, blk, previous=None):
         """Each pixel's own parameters at trial values ``thetas`` (C, S) of the shared ones, (C, p,
@@ -516,7 +522,6 @@ class _Stage(Passes):
         (:meth:`descend_sets`, :meth:`values` of the stacked pixels; those with ``previous`` and
         those without apart, in batches of at most BATCH_PIXELS pixels, or of one item that alone
         holds more): each result is the one it has alone.  Returns a list of (beta, sums)."""
-        setup, S = self.job.setup, len(self.shared)
         out = [None] * len(items)
         batches = []  # those with previous and those without apart, each in batches of BATCH_PIXELS
         for first in (True, False):
@@ -538,17 +543,10 @@ class _Stage(Passes):
             groups = list(groups.values())
             sets = [(np.stack([np.asarray(items[i][1], float) for i in g]), items[g[0]][0][1],
                      None if first else np.stack([items[i][2] for i in g])) for g in groups]
-            betas = self.descend_sets(sets)
-            thetas = np.concatenate([np.repeat(t, b.shape[1], axis=0) for (t, _, _), b in zip(sets, betas)])
-            subs = stack_blocks([items[g[0]][0][2] for g in groups], [len(g) for g in groups])
-            own = np.concatenate([b.reshape(-1, b.shape[2]) for b in betas])
-            v = self.values(setup, subs, thetas.reshape(-1, S), own)
-            row = 0
-            for g, b in zip(groups, betas):
+            done = self.values_sets(sets, [items[g[0]][0][2] for g in groups])
+            for g, (b, v) in zip(groups, done):
                 for c, i in enumerate(g):
-                    vc = v[row:row + b.shape[1]]
-                    row += b.shape[1]
-                    out[i] = (b[c], vc[np.all(np.isfinite(vc), axis=1)].sum(axis=0))
+                    out[i] = (b[c], v[c][np.all(np.isfinite(v[c]), axis=1)].sum(axis=0))
         return out
 
     def local_steps(self, raw, theta, sums, beta, rounds, lam=1e-3):
