@@ -237,9 +237,10 @@ def test_the_integrated_likelihood_on_a_subsample_leaves_its_noise_out(dev, monk
 
 def test_the_modes_of_the_own_parameters_end_pixel_by_pixel(dev, monkeypatch):
     """:meth:`label_adjust.Integrated.modes` stops each pixel's Levenberg-Marquardt iterations
-    where its step changes its Q by less than MODE_TOL: every pixel's Q within 1e-4 of its mode's
-    (iterated to 1e-12), on fewer rows than every pixel at every iteration; from the modes, one
-    step each."""
+    where its step changes its Q by less than MODE_TOL, or its quadratic model says it would:
+    every pixel's Q within 1e-4 of its mode's (iterated to 1e-12), on fewer rows than every
+    pixel at every iteration; from the modes, no step is evaluated (the model's one call at the
+    start)."""
     from pbrdf_cl.fitting.images import label_adjust as la
     from pbrdf_cl.fitting.images import pixels as P
 
@@ -260,8 +261,9 @@ def test_the_modes_of_the_own_parameters_end_pixel_by_pixel(dev, monkeypatch):
     assert np.all(np.abs(Q - Q_ref) < 1e-4), np.abs(Q - Q_ref).max()
     monkeypatch.setattr(la, "MODE_TOL", 1e-5)
     rows.clear()
-    itg.modes(th, u_ref, itg.mu[None, :1], itg.D[:1], ls)
-    assert rows == [p, p]
+    u2, Q2, _ = itg.modes(th, u_ref, itg.mu[None, :1], itg.D[:1], ls)
+    assert rows == [p]
+    assert np.array_equal(u2, u_ref) and np.array_equal(Q2, Q_ref)
 
 
 def test_the_label_stage_descends_and_the_pixel_pass_fits(dev, monkeypatch):
