@@ -1033,3 +1033,33 @@ def test_labels_on_workers_equal_in_memory(tmp_path):
     ds = pbrdf_cl.fit_batch(data, labels=lab, store=tmp_path / "fit.zarr", workers=2)
     for name in ("label_n", "label_k", "label_n_ci95", "label_chi2", "n", "k", "sigma", "kd", "c", "chi2", "status"):
         np.testing.assert_array_equal(ds[name].values, mem[name].values, err_msg=name)
+
+
+def test_the_fields_every_pixel_shares_are_kept_whole():
+    """One rule for which raw fields of a block the pixels share (angles and incident states given
+    per measurement, (M,)): taking pixels, stacking blocks and a block's subset keep those whole and
+    index every other field, a per-pixel mask (p,) and per-pixel angles (p, M) included."""
+    from pbrdf_cl.fitting.images import pixels as P
+    from pbrdf_cl.fitting.setup import FitSetup
+
+    M, p = 6, 4
+    raw = {"dop": np.arange(p * M, dtype=float).reshape(p, M) / 100, "theta_i": np.full(M, 30.0),
+           "theta_r": np.linspace(10.0, 60.0, M), "phi": np.full((p, M), 180.0), "in_s1": np.full(M, 0.5),
+           "mask": np.array([True, False, True, True])}
+    got = P.take(raw, np.array([2, 0, 2]))
+    for k in ("theta_i", "theta_r", "in_s1"):
+        assert got[k] is raw[k]
+    for k in ("dop", "phi", "mask"):
+        assert np.array_equal(got[k], raw[k][[2, 0, 2]])
+    both = P.concatenate([raw, got])
+    assert both["in_s1"] is raw["in_s1"] and both["theta_r"] is raw["theta_r"]
+    assert np.array_equal(both["dop"], np.concatenate([raw["dop"], raw["dop"][[2, 0, 2]]]))
+    assert np.array_equal(both["mask"], np.concatenate([raw["mask"], raw["mask"][[2, 0, 2]]]))
+    setup = J.BatchJob({k: v[None] for k, v in raw.items() if k not in ("in_s1", "mask")}).setup
+    blk = P.Block({k: v for k, v in raw.items() if k != "in_s1"}, setup, 1)
+    sub = blk.subset(np.array([3, 1]))
+    assert sub.raw["theta_r"] is raw["theta_r"] and np.array_equal(sub.raw["phi"], raw["phi"][[3, 1]])
+    assert np.array_equal(sub.mask, raw["mask"][[3, 1]]) and sub.p == 2
+    two = P.stack_blocks([blk, sub], [1, 2])
+    assert two.p == p + 4 and two.raw["theta_i"] is raw["theta_i"]
+    assert np.array_equal(two.obs, np.concatenate([blk.obs, sub.obs, sub.obs]))

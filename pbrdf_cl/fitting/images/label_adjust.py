@@ -40,10 +40,9 @@ from itertools import product
 
 import numpy as np
 
-from ...io.source import ANGLES
 from ..common import fd_steps
 from .label_search import subsample
-from .pixels import Block, PixelResiduals
+from .pixels import Block, PixelResiduals, concatenate, take
 
 #: Whether the label stage corrects its values by default (``LabelJob.integrated``).
 INTEGRATED = True
@@ -109,9 +108,7 @@ class Integrated:
         self.lo, self.hi = lo, hi
         sizes = np.array([b.shape[0] for b in betas])
         self.start = np.concatenate([[0], np.cumsum(sizes)])
-        raw = {k: (v if (v.ndim == 1 and k in ANGLES) else np.concatenate([r[k] for r in raws]))
-               for k, v in raws[0].items()}
-        blk = Block(raw, setup, 1)
+        blk = Block(concatenate(raws), setup, 1)
         self.p = blk.p
         self.s2 = np.repeat(np.asarray(s2, float), sizes)  # each pixel's label's
         #: the reference model's residual rows of the pixels
@@ -310,7 +307,7 @@ def integrated_correction(st, theta, sums, ok, pixels=None):
         if keep.sum() < 3 or not np.all(np.isfinite(se) & (se > 0)):
             continue
         labels.append(L)
-        raws.append({k: (v if (v.ndim == 1 and k in ANGLES) else v[keep]) for k, v in subs[L].items()})
+        raws.append(take(subs[L], keep))
         betas.append(beta[keep])
         totals.append(total)
         ses.append(se)

@@ -13,10 +13,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ...io.source import ANGLES
 from ..common import on_bound
 from .pixel_fit import fit_block
-from .pixels import Block, PixelResiduals, internal
+from .pixels import Block, PixelResiduals, internal, take
 
 #: Pixels of each label in the subsample (all of a smaller label).
 SUBSAMPLE = 32
@@ -210,7 +209,7 @@ def binding_correction(st, subs, picks, theta, cov, s2, ok, replicates=BOOT_REPL
         se = np.sqrt(np.clip(np.diag(cov[L]), 0, None))
         if keep.sum() < 2 or replicates < 1 or not np.all(np.isfinite(se)):
             continue
-        raw = {k: (v if (v.ndim == 1 and k in ANGLES) else v[keep]) for k, v in subs[L].items()}
+        raw = take(subs[L], keep)
         beta = st.beta[idx[keep]]
         step = np.maximum(DESIGN_STEP * se, 1e-3 * span)
         points = np.clip(theta[L] + DESIGN[:1 + 2 * S, :S] * step, lo, hi)
@@ -283,7 +282,7 @@ def f_test(st, subs, picks, theta, ok, pixels):
         keep = np.all(np.isfinite(beta), axis=1)
         if keep.sum() < 2:
             continue
-        raw = {k: (v if (v.ndim == 1 and k in ANGLES) else v[keep]) for k, v in subs[L].items()}
+        raw = take(subs[L], keep)
         vals = st.values(setup, Block(raw, setup, 1), np.broadcast_to(theta[L], (int(keep.sum()), S)), beta[keep])
         own = fit_block(st.eng, setup, raw, job.order, job.rstart, job.names)["chi2"]
         good = np.isfinite(vals[:, 3]) & np.isfinite(own)

@@ -77,7 +77,6 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ...io.source import ANGLES
 from .. import report
 from ..common import (
     CHI2_95,
@@ -94,7 +93,18 @@ from ..common import (
 from ..setup import PARAMETERS
 from . import label_search as search
 from .label_adjust import integrated_correction
-from .pixels import Block, PixelResiduals, descent_bounds, grid_points, grid_values, internal, regions, stack_blocks
+from .pixels import (
+    Block,
+    PixelResiduals,
+    concatenate,
+    descent_bounds,
+    grid_points,
+    grid_values,
+    internal,
+    regions,
+    stack_blocks,
+    take,
+)
 from .statistics import DETERMINED_FRACTION
 
 #: Passes of the refinement at most (each one pass over the stack).
@@ -195,11 +205,6 @@ def held_setup(setup, shared, theta):
     """``setup`` with the ``shared`` parameters held at ``theta`` (the per-pixel fits of a label)."""
     fixed = {**setup.fixed, **{n: float(t) for n, t in zip(shared, theta)}}
     return replace(setup, fixed=fixed, axes={n: a for n, a in setup.axes.items() if n not in shared})
-
-
-def take(raw, idx):
-    """The pixels ``idx`` of a block's raw rows (shared angles kept)."""
-    return {k: (v if (v.ndim == 1 and k in ANGLES) else v[idx]) for k, v in raw.items()}
 
 
 def row_parts(rows, lab, values, n_labels):
@@ -489,8 +494,7 @@ class _Stage(Passes):
             for L, part in enumerate(got):
                 if part is not None:
                     parts[L].append(part)
-        return [None if not ps else {k: (ps[0][k] if (ps[0][k].ndim == 1 and k in ANGLES) else
-                                         np.concatenate([q[k] for q in ps])) for k in ps[0]} for ps in parts]
+        return [concatenate(ps) if ps else None for ps in parts]
 
     def local_fit(self, raw, theta, rounds, beta=None):
         """The shared parameters of one label refined on the in-memory pixels ``raw`` from ``theta``:

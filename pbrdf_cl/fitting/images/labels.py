@@ -25,10 +25,10 @@ from ..setup import check_shared
 from . import label_adjust, label_search
 from .dataset import empty_outputs, make_dataset
 from .job import BLOCK_BUDGET, N_STARTS, BatchJob
-from .label_stage import LABEL_STATUS, held_setup, run_label_stage, take
+from .label_stage import LABEL_STATUS, held_setup, run_label_stage
 from .label_workers import WorkerBlocks
 from .pixel_fit import fit_block
-from .pixels import grid_values, regions
+from .pixels import grid_values, regions, take
 
 #: The parameters the pixels of a label share by default: the complex index.
 DEFAULT_SHARED = ("n", "k")

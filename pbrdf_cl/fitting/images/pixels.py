@@ -109,6 +109,23 @@ def channel_spec(raw, quantities, shared):
     return type(ch)(**{f: getattr(ch, f).reshape((p, C) + getattr(ch, f).shape[1:]) for f in ch.__dataclass_fields__})
 
 
+def is_shared(name, values):
+    """Whether the raw field ``name`` of a block is one value per measurement that every pixel
+    shares: an angle or an incident state given as (M,) (every other field is per pixel, (p, ...))."""
+    return values.ndim == 1 and name in ANGLES + INCIDENT
+
+
+def take(raw, idx):
+    """The pixels ``idx`` (repeats allowed) of a block's raw fields, the shared ones kept (:func:`is_shared`)."""
+    return {k: (v if is_shared(k, v) else v[idx]) for k, v in raw.items()}
+
+
+def concatenate(raws):
+    """The pixels of several raw dicts of one stack, in order, the shared fields those of the first
+    (:func:`is_shared`)."""
+    return {k: (v if is_shared(k, v) else np.concatenate([r[k] for r in raws])) for k, v in raws[0].items()}
+
+
 class Block:
     """One block of pixels prepared for the stages: flat (p, M) arrays, weights, validity; with
     polarimetric quantities (``setup.channels``) the M measurements are C channels (one number
@@ -193,8 +210,7 @@ class Block:
 
     def subset(self, idx):
         """The block of pixels ``idx`` (repeats allowed) of this one."""
-        raw = {k: (v if (v.ndim == 1 and k in ANGLES + INCIDENT) else v[idx]) for k, v in self.raw.items()}
-        return Block(raw, self.setup, self.lanes)
+        return Block(take(self.raw, idx), self.setup, self.lanes)
 
     def channel_model(self, pix):
         """The reference model of this block's channels for the pixels ``pix`` (repeats allowed):
@@ -225,10 +241,7 @@ def stack_blocks(blocks, copies):
         b = blocks[0]
         return b if copies[0] == 1 else b.subset(np.tile(np.arange(b.p), copies[0]))
     first = blocks[0]
-    raw = {k: (v if (v.ndim == 1 and k in ANGLES + INCIDENT) else
-               np.concatenate([b.raw[k] for b, c in zip(blocks, copies) for _ in range(c)]))
-           for k, v in first.raw.items()}
-    return Block(raw, first.setup, first.lanes)
+    return Block(concatenate([b.raw for b, c in zip(blocks, copies) for _ in range(c)]), first.setup, first.lanes)
 
 
 def _map_ks(X, names, func):
