@@ -240,7 +240,8 @@ def test_the_modes_of_the_own_parameters_end_pixel_by_pixel(dev, monkeypatch):
     where its step changes its Q by less than MODE_TOL, or its quadratic model says it would:
     every pixel's Q within 1e-4 of its mode's (iterated to 1e-12), on fewer rows than every
     pixel at every iteration; from the modes, no step is evaluated (the model's one call at the
-    start)."""
+    start); moved to another population, the modes' terms are those an evaluation gives
+    (:meth:`reprior`), and the modes from there need no first evaluation."""
     from pbrdf_cl.fitting.images import label_adjust as la
     from pbrdf_cl.fitting.images import pixels as P
 
@@ -253,17 +254,36 @@ def test_the_modes_of_the_own_parameters_end_pixel_by_pixel(dev, monkeypatch):
     rows, varied = [], P.PixelResiduals.varied
     monkeypatch.setattr(P.PixelResiduals, "varied", lambda self, X, *a: rows.append(len(X)) or varied(self, X, *a))
     start = np.clip(itg.u[None, :p] + 0.5, -la.U_MAX, la.U_MAX)
-    u, Q, H = itg.modes(th, start, itg.mu[None, :1], itg.D[:1], ls)
+    u, Q, H, g = itg.modes(th, start, itg.mu[None, :1], itg.D[:1], ls)
     assert len(rows) > 2 and sum(rows) < len(rows) * p, rows
     monkeypatch.setattr(la, "MODE_TOL", 1e-12)
     monkeypatch.setattr(la, "MODE_ITERATIONS", 40)
-    u_ref, Q_ref, _ = itg.modes(th, start, itg.mu[None, :1], itg.D[:1], ls)
+    u_ref, Q_ref, H_ref, g_ref = itg.modes(th, start, itg.mu[None, :1], itg.D[:1], ls)
     assert np.all(np.abs(Q - Q_ref) < 1e-4), np.abs(Q - Q_ref).max()
     monkeypatch.setattr(la, "MODE_TOL", 1e-5)
     rows.clear()
-    u2, Q2, _ = itg.modes(th, u_ref, itg.mu[None, :1], itg.D[:1], ls)
+    u2, Q2, _, _ = itg.modes(th, u_ref, itg.mu[None, :1], itg.D[:1], ls)
     assert rows == [p]
     assert np.array_equal(u2, u_ref) and np.array_equal(Q2, Q_ref)
+    # the population moved: (Q, H, g) of the modes under the new prior without evaluating the model,
+    # as an evaluation there gives them
+    mu, D = itg.mu[None, :1], itg.D[:1]
+    mu2, D2 = mu + 0.3, D * 1.7
+    rows.clear()
+    Qr, Hr, gr = itg.reprior((Q_ref, H_ref, g_ref), u_ref, mu, D, mu2, D2, ls)
+    assert rows == []
+    Qe, He, ge = itg._at(np.repeat(th[0], p, axis=0), u_ref[0], np.repeat(mu2[0], p, axis=0), np.repeat(D2, p, axis=0),
+                         np.arange(p))
+    assert np.allclose(Qr[0], Qe, rtol=1e-12, atol=1e-10) and np.allclose(Hr[0], He, rtol=1e-12, atol=1e-10)
+    assert np.allclose(gr[0], ge, rtol=1e-12, atol=1e-10)
+    # and the modes from there skip their first evaluation, to the same modes
+    rows.clear()
+    _, Qa, _, _ = itg.modes(th, u_ref, mu2, D2, ls, (Qr, Hr, gr))
+    given = list(rows)
+    rows.clear()
+    _, Qb, _, _ = itg.modes(th, u_ref, mu2, D2, ls)
+    assert rows[0] == p and sum(given) < sum(rows) and len(given) < len(rows), (given, rows)
+    assert np.all(np.abs(Qa - Qb) < 1e-4)
 
 
 def test_the_label_stage_descends_and_the_pixel_pass_fits(dev, monkeypatch):

@@ -156,18 +156,22 @@ class Integrated:
         g = np.einsum("pim,pm->pi", Ju, r) + pr / np.sqrt(D)
         return Q, H, g
 
-    def modes(self, thetas, u, mu, D, ls):
+    def modes(self, thetas, u, mu, D, ls, at=None):
         """Each pixel's mode of its own parameters at every theta (Levenberg-Marquardt from
         ``u``, a pixel's iterations ending where its step changes its Q by less than MODE_TOL, or
         where the step's quadratic model says it would, before the step is evaluated): (u, Q (K,
-        rows), H (K, rows, own, own)) at the last point evaluated."""
+        rows), H (K, rows, own, own), g (K, rows, own)) at the last point.  ``at``: (Q, H, g) at
+        ``u`` where known (:meth:`reprior`), else evaluated there first."""
         K, R, o = u.shape
         rows, which = self.rows(ls)
         th, mu = thetas[:, which].reshape(K * R, -1), mu[:, which].reshape(K * R, o)
         D = np.tile(D[which], (K, 1))
         pix = np.tile(rows, K)
         u = u.reshape(K * R, o).copy()
-        Q, H, g = self._at(th, u, mu, D, pix)
+        if at is None:
+            Q, H, g = self._at(th, u, mu, D, pix)
+        else:
+            Q, H, g = (a.reshape((K * R,) + a.shape[2:]).copy() for a in at)
         lam = np.full(K * R, 1e-3)
         eye = np.eye(o)
         on = np.arange(K * R)
@@ -191,7 +195,18 @@ class Integrated:
             on = on[~done]
             if on.size == 0:
                 break
-        return u.reshape(K, R, o), Q.reshape(K, R), H.reshape(K, R, o, o)
+        return u.reshape(K, R, o), Q.reshape(K, R), H.reshape(K, R, o, o), g.reshape(K, R, o)
+
+    def reprior(self, at, u, mu, D, mu2, D2, ls):
+        """(Q, H, g) of :meth:`modes` at ``u`` under the populations (``mu``, ``D``) moved to
+        (``mu2``, ``D2``): only the prior's terms change, the model is not evaluated again."""
+        Q, H, g = at
+        which = self.rows(ls)[1]
+        s, s2 = np.sqrt(D[which]), np.sqrt(D2[which])
+        a, b = (u - mu[:, which]) / s, (u - mu2[:, which]) / s2
+        Q = Q - np.einsum("kpi,kpi->kp", a, a) + np.einsum("kpi,kpi->kp", b, b)
+        H = H + (1.0 / D2[which] - 1.0 / D[which])[..., None] * np.eye(u.shape[-1])
+        return Q, H, g - a / s + b / s2
 
     def _spans(self, ls):
         """Each label of ``ls``: the slice of its rows among theirs (:meth:`rows`)."""
@@ -199,29 +214,31 @@ class Integrated:
 
     def mean_step(self, u, mu, D, H, ls):
         """The Newton step of each population's mean with its pixels' modes following it (the
-        Schur complement of their joint problem): (mu, the modes predicted there)."""
+        Schur complement of their joint problem): the means there (the modes follow in the next
+        :meth:`modes`, whose first step is the one this step predicts for them)."""
         Hi = np.linalg.inv(H)
-        mu, u = mu.copy(), u.copy()
+        mu = mu.copy()
         for j, sl in enumerate(self._spans(ls)):
             Di, Hj, uj = 1.0 / D[j], np.ascontiguousarray(Hi[:, sl]), np.ascontiguousarray(u[:, sl])
             M = uj.shape[1] * np.diag(Di)[None] - np.einsum("i,kpij,j->kij", Di, Hj, Di)
-            dm = np.linalg.solve(M, (Di * (uj - mu[:, j, None, :]).sum(axis=1))[..., None])[..., 0]
-            mu[:, j] = mu[:, j] + dm
-            u[:, sl] = np.clip(uj + np.einsum("kpij,kj->kpi", Hj, Di * dm), -U_MAX, U_MAX)
-        return mu, u
+            mu[:, j] = mu[:, j] + np.linalg.solve(M, (Di * (uj - mu[:, j, None, :]).sum(axis=1))[..., None])[..., 0]
+        return mu
 
     def population(self, thetas, u, mu, D, rounds, variance, ls):
         """The populations' means (and their ``variance`` with a Laplace EM update, one theta
         only, else held) fitted at ``thetas`` by ``rounds`` of (modes, :meth:`mean_step`):
         (u, mu, D, Q, H), Q, H the modes' at the end."""
+        at = None  # the modes' (Q, H, g) where known: moved with the population (reprior), not evaluated
         for _ in range(rounds):
-            u, Q, H = self.modes(thetas, u, mu, D, ls)
+            u, *at = self.modes(thetas, u, mu, D, ls, at)
             if variance:
-                D = np.stack([np.maximum(u[0, sl].var(axis=0) + np.einsum("pii->pi", np.linalg.inv(H[0, sl])).mean(
+                D2 = np.stack([np.maximum(u[0, sl].var(axis=0) + np.einsum("pii->pi", np.linalg.inv(at[1][0, sl])).mean(
                     axis=0), 1e-4) for sl in self._spans(ls)])
-                u, Q, H = self.modes(thetas, u, mu, D, ls)
-            mu, u = self.mean_step(u, mu, D, H, ls)
-        u, Q, H = self.modes(thetas, u, mu, D, ls)
+                at, D = self.reprior(at, u, mu, D, mu, D2, ls), D2
+                u, *at = self.modes(thetas, u, mu, D, ls, at)
+            mu2 = self.mean_step(u, mu, D, at[1], ls)
+            at, mu = self.reprior(at, u, mu, D, mu2, D, ls), mu2
+        u, Q, H, _ = self.modes(thetas, u, mu, D, ls, at)
         return u, mu, D, Q, H
 
     def fit_population(self, theta, ls, rounds=EM_ROUNDS):
