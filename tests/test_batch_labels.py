@@ -1060,7 +1060,6 @@ def test_the_fields_every_pixel_shares_are_kept_whole():
     per measurement, (M,)): taking pixels, stacking blocks and a block's subset keep those whole and
     index every other field, a per-pixel mask (p,) and per-pixel angles (p, M) included."""
     from pbrdf_cl.fitting.images import pixels as P
-    from pbrdf_cl.fitting.setup import FitSetup
 
     M, p = 6, 4
     raw = {"dop": np.arange(p * M, dtype=float).reshape(p, M) / 100, "theta_i": np.full(M, 30.0),
