@@ -119,6 +119,7 @@ class Integrated:
         self.u = np.log(f / (1 - f))
         self.mu = np.stack([self.u[self.pixels(j)].mean(axis=0) for j in range(sizes.size)])
         self.D = np.stack([np.maximum(self.u[self.pixels(j)].var(axis=0), 1e-2) for j in range(sizes.size)])
+        self.theta = np.full((sizes.size, len(self.si)), np.nan)  # where the stored modes were fitted
 
     def pixels(self, j):
         """The rows of label j's pixels."""
@@ -247,17 +248,50 @@ class Integrated:
         rows, _ = self.rows(ls)
         u, mu, D, _, _ = self.population(theta[None], self.u[rows][None], self.mu[ls][None], self.D[ls], rounds, True,
                                          ls)
-        self.u[rows], self.mu[ls], self.D[ls] = u[0], mu[0], D
+        self.u[rows], self.mu[ls], self.D[ls], self.theta[ls] = u[0], mu[0], D, theta
 
     def terms(self, thetas, ls, rounds=0):
         """Each pixel's term Q_p + log det H_p + log det D of G at every theta of ``thetas``
         (K, len(ls), S): (K, rows), the populations' means refitted by ``rounds`` of
-        :meth:`population` from the stored ones (which are kept)."""
+        :meth:`population` from the stored ones (which are kept), moved to each theta to first
+        order (:meth:`predicted`) where the stored ones have their values."""
         K = thetas.shape[0]
         rows, which = self.rows(ls)
         u, mu = np.repeat(self.u[rows][None], K, axis=0), np.repeat(self.mu[ls][None], K, axis=0)
+        if np.all(np.isfinite(self.theta[ls])):
+            u, mu = self.predicted(thetas, u, mu, ls)
         _, _, D, Q, H = self.population(thetas, u, mu, self.D[ls], rounds, False, ls)
         return Q + np.linalg.slogdet(H)[1] + np.log(D).sum(axis=1)[which]
+
+    def predicted(self, thetas, u, mu, ls):
+        """The starts of the modes ``u`` and the populations' means ``mu`` (stored ones, one copy per
+        theta) at ``thetas`` (K, len(ls), S): where they move to from the stored values, to first
+        order: the modes with the means held (:meth:`response`), then the means' Newton step with
+        the modes following it (:meth:`mean_step`).  The population's rounds of :meth:`terms` go on
+        from there (fewer of the model's evaluations: the modes' first iterations start near their
+        ends)."""
+        K, which = thetas.shape[0], self.rows(ls)[1]
+        dU, H = self.response(ls)
+        u = np.clip(u + np.einsum("pis,kps->kpi", dU, (thetas - self.theta[ls][None])[:, which]), -U_MAX, U_MAX)
+        mu2 = self.mean_step(u, mu, self.D[ls], np.broadcast_to(H, (K,) + H.shape), ls)
+        follow = np.einsum("pij,kpj->kpi", np.linalg.inv(H), ((mu2 - mu) / self.D[ls][None])[:, which])
+        return np.clip(u + follow, -U_MAX, U_MAX), mu2
+
+    def response(self, ls):
+        """The stored modes' first-order move with the shared values of their labels ``ls``, du/dtheta
+        (rows, own, S; natural units) at the stored values, modes and populations: -H^-1 J_u^T
+        J_theta (forward differences; the populations held), and the modes' H there."""
+        rows, which = self.rows(ls)
+        x, dx = self.own(self.u[rows])
+        X = np.empty((rows.size, len(self.names)))
+        X[:, self.si], X[:, self.bi] = self.theta[ls][which], x
+        o = len(self.bi)
+        h = np.concatenate([fd_steps(x, self.hi[self.bi]), fd_steps(X[:, self.si], self.hi[self.si])], axis=1)
+        R = self.res.varied(X, self.bi + self.si, h, rows) / np.sqrt(self.s2[rows])[:, None, None]
+        d = (R[:, 1:] - R[:, :1]) / h[:, :, None]
+        Ju, Jt = d[:, :o] * dx[:, :, None], d[:, o:]
+        H = np.einsum("pim,pjm->pij", Ju, Ju) + (1.0 / self.D[ls][which])[:, :, None] * np.eye(o)
+        return -np.linalg.solve(H, np.einsum("pim,psm->pis", Ju, Jt)), H
 
     def profile_gradient(self, theta, j):
         """The gradient of label j's subsample's profile F = sum_p min_beta chi2_p / s2 at its
