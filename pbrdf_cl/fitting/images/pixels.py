@@ -7,6 +7,7 @@ and the reference model's residual rows of many pixels (:class:`PixelResiduals`)
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from typing import NamedTuple
 
 import numpy as np
@@ -173,18 +174,18 @@ class Block:
         else:
             self.fobs = self.fw = None
         self.count = valid.sum(axis=1)
-        self.distinct = self._distinct_geometries()
-        self.one_incidence = self._one_incidence()
-        self.noise_floor = self._noise_floor(setup.noise_floor)
 
-    def _noise_floor(self, floor):
+    # made when first read (many blocks, a descent's, read none of them)
+    @cached_property
+    def noise_floor(self):
         """Each pixel's floor of the noise estimate without dop_std, as :func:`pbrdf_cl.fit`'s
         (:func:`pbrdf_cl.fitting.common.dop_noise_floor`): the rounding error of the DOP resolution
         of its valid values (invalid ones are 0 in ``obs``, exact at any resolution), at least
-        ``floor``."""
-        return np.maximum(floor, dop_resolution(self.obs, axis=1) / np.sqrt(12.0))
+        the setup's ``noise_floor``."""
+        return np.maximum(self.setup.noise_floor, dop_resolution(self.obs, axis=1) / np.sqrt(12.0))
 
-    def _distinct_geometries(self):
+    @cached_property
+    def distinct(self):
         """Distinct valid (theta_i, theta_r, phi) per pixel; of channels, distinct valid (geometry,
         incident and normalising vectors, component, kind): distinct numbers measured."""
         cols = [np.broadcast_to(a, self.valid.shape) for a in self.angles]
@@ -199,7 +200,8 @@ class Block:
         distinct = 1 + (s[:, 1:] != s[:, :-1]).sum(axis=1)
         return distinct - (~self.valid).any(axis=1)
 
-    def _one_incidence(self):
+    @cached_property
+    def one_incidence(self):
         """Per pixel, whether its valid measurements share one angle of incidence (their valleys
         are long: :data:`pbrdf_cl.fitting.images.pixel_fit.ONE_INCIDENCE_SCHEDULE`)."""
         ti = np.broadcast_to(self.angles[0], self.valid.shape)
