@@ -276,32 +276,34 @@ def label_variables(ds, job):
     ``label_cov_note`` where a label's covariance was projected or is NaN."""
     res = job.result
     dims = ("label",)
+    new = {}  # assigned at once: one merge, not one per variable
     for j, n in enumerate(res.shared):
-        ds[f"label_{n}"] = (dims, res.theta[:, j], {"units": "1", "long_name": f"{n} shared by the label's pixels"})
-        ds[f"label_{n}_stderr"] = (dims, res.stderr[:, j], {"units": "1", "long_name": f"standard error of label {n}"})
-        ds[f"label_{n}_ci95"] = (dims + ("bound",), res.ci95[:, j],
+        new[f"label_{n}"] = (dims, res.theta[:, j], {"units": "1", "long_name": f"{n} shared by the label's pixels"})
+        new[f"label_{n}_stderr"] = (dims, res.stderr[:, j], {"units": "1", "long_name": f"standard error of label {n}"})
+        new[f"label_{n}_ci95"] = (dims + ("bound",), res.ci95[:, j],
                                  {"units": "1", "long_name": f"95% interval of label {n} (+- 1.96 standard errors cut "
                                                              "at the bounds, k's holding k^2's; widened to the "
                                                              "profile's nodes it allows)"})
-        ds[f"label_{n}_outside_ci95"] = (dims, outside_interval(res.theta[:, j], res.ci95[:, j, 0], res.ci95[:, j, 1]),
+        new[f"label_{n}_outside_ci95"] = (dims, outside_interval(res.theta[:, j], res.ci95[:, j, 0], res.ci95[:, j, 1]),
                                          {"long_name": OUTSIDE_FOOTNOTE})
-    ds["label_corr"] = (dims + ("shared_param", "shared_param_2"), res.corr,
+    new["label_corr"] = (dims + ("shared_param", "shared_param_2"), res.corr,
                         {"units": "1", "long_name": "correlation of the label's shared parameters (NaN where it "
                                                     "cannot be computed; see label_cov_note)"})
-    ds["label_pixels"] = (dims, res.pixels, {"long_name": "pixels fitted in the label stage"})
-    ds["label_chi2"] = (dims, res.chi2, {"long_name": "weighted sum of squared residuals over the label's pixels"})
-    ds["label_sse"] = (dims, res.sse, {"units": "1", "long_name": "sum of squared DOP residuals over the label's "
+    new["label_pixels"] = (dims, res.pixels, {"long_name": "pixels fitted in the label stage"})
+    new["label_chi2"] = (dims, res.chi2, {"long_name": "weighted sum of squared residuals over the label's pixels"})
+    new["label_sse"] = (dims, res.sse, {"units": "1", "long_name": "sum of squared DOP residuals over the label's "
                                                                   "pixels"})
-    ds["label_dof"] = (dims, res.dof, {"long_name": "degrees of freedom: residuals less every fitted parameter"})
-    ds["label_p_value"] = (dims, res.p_value, {"units": "1", "long_name": "p-value of the label's goodness-of-fit "
+    new["label_dof"] = (dims, res.dof, {"long_name": "degrees of freedom: residuals less every fitted parameter"})
+    new["label_p_value"] = (dims, res.p_value, {"units": "1", "long_name": "p-value of the label's goodness-of-fit "
                                                "test: " + _LABEL_TESTS[res.goodness_test][1]})
-    ds["label_fits_data"] = (dims, res.fits_data, {
+    new["label_fits_data"] = (dims, res.fits_data, {
         "long_name": f"whether the label's shared values describe its pixels' data: label_p_value >= {GOODNESS_P:g}",
         "flag_values": [1, 0, -1], "flag_meanings": "fits does_not_fit not_tested"})
-    ds["label_status"] = (dims, res.status, {
+    new["label_status"] = (dims, res.status, {
         "long_name": "label fit status", "flag_values": list(LABEL_STATUS),
         "status_codes": "; ".join(f"{c}: {n} ({m})" for c, (n, m) in LABEL_STATUS.items()),
         "flag_meanings": " ".join(n for n, _ in LABEL_STATUS.values())})
+    ds = ds.assign(new)
     ds = ds.assign_coords(label=res.ids, shared_param=list(res.shared), shared_param_2=list(res.shared))
     ds.attrs.update(shared=" ".join(res.shared), label_rounds=int(res.rounds),
                     shared_note=("the pixels of a label share " + ", ".join(res.shared) + ": their per-pixel values, "
