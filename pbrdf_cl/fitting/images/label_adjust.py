@@ -138,19 +138,31 @@ class Integrated:
         w = self.hi[b] - self.lo[b]
         return self.lo[b] + w * s, w * s * (1.0 - s)
 
-    def _at(self, th, u, mu, D, pix):
-        """(Q, H, g) of rows of (shared values ``th`` (B, S), modes ``u`` (B, own), mean ``mu``
-        and variance ``D`` (B, own)) of the pixels ``pix``: forward differences along the own
-        parameters only (scipy's steps, inwards at an upper bound)."""
+    def _jacobian(self, th, u, pix, shared=False):
+        """The residual rows r (B, rows; over the labels' chi2 scales) of the pixels ``pix`` at
+        shared values ``th`` (B, S) and modes ``u`` (B, own), their forward differences along the
+        own parameters in logit coordinates, Ju (B, own, rows), and with ``shared`` along the
+        shared ones too, Jt (B, S, rows; natural units; else None): scipy's steps, inwards at an
+        upper bound."""
         B, o = u.shape
         x, dx = self.own(u)
         X = np.empty((B, len(self.names)))
         X[:, self.si] = th
         X[:, self.bi] = x
-        h = fd_steps(x, self.hi[self.bi])
-        R = self.res.varied(X, self.bi, h, pix) / np.sqrt(self.s2[pix])[:, None, None]
+        h, cols = fd_steps(x, self.hi[self.bi]), self.bi
+        if shared:
+            h, cols = np.concatenate([h, fd_steps(th, self.hi[self.si])], axis=1), self.bi + self.si
+        R = self.res.varied(X, cols, h, pix) / np.sqrt(self.s2[pix])[:, None, None]
         r = R[:, 0]
-        Ju = (R[:, 1:] - r[:, None]) * (dx / h)[:, :, None]
+        Ju = (R[:, 1:1 + o] - r[:, None]) * (dx / h[:, :o])[:, :, None]
+        return r, Ju, (R[:, 1 + o:] - r[:, None]) / h[:, o:, None] if shared else None
+
+    def _at(self, th, u, mu, D, pix):
+        """(Q, H, g) of rows of (shared values ``th`` (B, S), modes ``u`` (B, own), mean ``mu``
+        and variance ``D`` (B, own)) of the pixels ``pix``: forward differences along the own
+        parameters only (:meth:`_jacobian`)."""
+        o = u.shape[1]
+        r, Ju, _ = self._jacobian(th, u, pix)
         pr = (u - mu) / np.sqrt(D)
         Q = np.einsum("pm,pm->p", r, r) + np.einsum("pi,pi->p", pr, pr)
         H = np.einsum("pim,pjm->pij", Ju, Ju) + (1.0 / D)[:, :, None] * np.eye(o)
@@ -282,15 +294,8 @@ class Integrated:
         (rows, own, S; natural units) at the stored values, modes and populations: -H^-1 J_u^T
         J_theta (forward differences; the populations held), and the modes' H there."""
         rows, which = self.rows(ls)
-        x, dx = self.own(self.u[rows])
-        X = np.empty((rows.size, len(self.names)))
-        X[:, self.si], X[:, self.bi] = self.theta[ls][which], x
-        o = len(self.bi)
-        h = np.concatenate([fd_steps(x, self.hi[self.bi]), fd_steps(X[:, self.si], self.hi[self.si])], axis=1)
-        R = self.res.varied(X, self.bi + self.si, h, rows) / np.sqrt(self.s2[rows])[:, None, None]
-        d = (R[:, 1:] - R[:, :1]) / h[:, :, None]
-        Ju, Jt = d[:, :o] * dx[:, :, None], d[:, o:]
-        H = np.einsum("pim,pjm->pij", Ju, Ju) + (1.0 / self.D[ls][which])[:, :, None] * np.eye(o)
+        _, Ju, Jt = self._jacobian(self.theta[ls][which], self.u[rows], rows, shared=True)
+        H = np.einsum("pim,pjm->pij", Ju, Ju) + (1.0 / self.D[ls][which])[:, :, None] * np.eye(Ju.shape[1])
         return -np.linalg.solve(H, np.einsum("pim,psm->pis", Ju, Jt)), H
 
     def profile_gradient(self, theta, j):
