@@ -1045,13 +1045,15 @@ def test_the_label_sums_compute_fresnel_once_per_n_k(monkeypatch):
     assert rows == [blk.p * 6, 3]
 
 
-def test_fresnel_rows_are_the_reference_taken_back_as_read():
+@pytest.mark.parametrize("few_runs", [64, 0])
+def test_fresnel_rows_are_the_reference_taken_back_as_read(monkeypatch, few_runs):
     """``pixels.fresnel_rows`` of rows of (n, k) in runs (two labels' values, one repeated
     later) is the reference's Fresnel of every row bit for bit, each field taken back to the rows
-    only once it is read."""
+    only once it is read: computed per run (few runs) or per distinct value (many)."""
     from pbrdf_cl.fitting.images import pixels as P
     from pbrdf_cl.model import reference
 
+    monkeypatch.setattr(P, "FEW_RUNS", few_runs)
     g = reference.geometry(TI[None], TR[None], np.full((1, 30), 180.0))
     n = np.repeat([1.6, 1.4, 1.6, 1.6 + 1e-9], [3, 2, 2, 1])[:, None]
     k = np.repeat([2.139, 0.5, 2.139, 2.139], [3, 2, 2, 1])[:, None]

@@ -295,6 +295,8 @@ class LogKs:
 #: again only when a parameter they depend on moves (the diffuse term, kd times the Minnaert
 #: factor, is made for every row).
 DEPENDS = dict(fresnel=MEMBERS["index"], specular=MEMBERS["specular"], minnaert=("c",))
+#: The parameters the diffuse term kd/pi (cos ti cos tr)^c depends on (kd is kd/ks with intensities: ks too).
+DIFFUSE = MEMBERS["diffuse"] + ("ks",)
 
 
 class PixelResiduals:
@@ -341,13 +343,21 @@ class PixelResiduals:
         g = self._shared_geometry()[0]
         p = self._params(X)
         base = {part: self._part(part, p, g) for part in DEPENDS}
-        out = [self._residuals(*base.values(), p["kd"], pix)]
+        # what the moves share with the base point: the rows' data, and 1/K and the diffuse term
+        # where the move leaves them (the same numbers, made once)
+        data = (blk.obs[pix], np.sqrt(self.w[pix]))
+        with np.errstate(over="ignore"):
+            inv_K = np.exp(-base["specular"])
+        fd = reference.diffuse_of(p["kd"], base["minnaert"])
+        out = [self._residuals(*base.values(), p["kd"], pix, data, inv_K, fd)]
         for j, c in enumerate(cols):
             Xj = X.copy()
             Xj[:, c] += h[:, j]
             pj = self._params(Xj)
-            parts = [self._part(part, pj, g) if self.names[c] in deps else base[part] for part, deps in DEPENDS.items()]
-            out.append(self._residuals(*parts, pj["kd"], pix))
+            moves = [part for part, deps in DEPENDS.items() if self.names[c] in deps]
+            parts = [self._part(part, pj, g) if part in moves else base[part] for part in DEPENDS]
+            out.append(self._residuals(*parts, pj["kd"], pix, data, None if "specular" in moves else inv_K,
+                                       fd if self.names[c] not in DIFFUSE else None))
         return np.stack(out, axis=1)
 
     def _shared_geometry(self):
@@ -391,14 +401,23 @@ class PixelResiduals:
         return reference.shadowing_of(*[reference.shadow_S(ct, st, sigma, variant)[:, inv]
                                         for ct, st, inv in self._shared_geometry()[1]])
 
-    def _residuals(self, f, log_k, minnaert, kd, pix):
-        """The weighted residual rows of the pixels ``pix`` from the model's parts and kd."""
+    def _residuals(self, f, log_k, minnaert, kd, pix, data=None, inv_K=None, fd=None):
+        """The weighted residual rows of the pixels ``pix`` from the model's parts and kd; ``data``
+        (their DOP and the square roots of its weights), ``inv_K`` (exp(-``log_k``)) and ``fd``
+        (the diffuse term of ``kd`` and ``minnaert``) where already made."""
         blk = self.blk
-        fd = reference.diffuse_of(kd, minnaert)
-        r = (reference.dop(f, log_k, fd) - blk.obs[pix]) * np.sqrt(self.w[pix])
+        obs, sw = (blk.obs[pix], np.sqrt(self.w[pix])) if data is None else data
+        fd = reference.diffuse_of(kd, minnaert) if fd is None else fd
+        with np.errstate(over="ignore"):  # reference.dop's
+            r = (reference.dop_at(f, np.exp(-log_k) if inv_K is None else inv_K, fd) - obs) * sw
         if self.intensity:
             r = np.concatenate([r, (reference.brdf(f, log_k, fd) - blk.fobs[pix]) * np.sqrt(blk.fw[pix])], axis=1)
         return np.where(np.isfinite(r), r, 1e150)
+
+
+#: Up to this many runs of equal (n, k) rows, :func:`fresnel_rows` computes the Fresnel terms once
+#: per run without first finding the distinct values among them.
+FEW_RUNS = 64
 
 
 class _RowsOf:
@@ -417,15 +436,21 @@ class _RowsOf:
 
 def fresnel_rows(n, k, g):
     """:func:`pbrdf_cl.model.reference.fresnel` of rows of (n, k) (each (B, 1) or a number) over
-    the geometry ``g`` shared by the rows ((1, M)), computed once per distinct (n, k) and taken
-    back to the rows (each field as it is read): element by element the same numbers (every
-    operation is elementwise)."""
+    the geometry ``g`` shared by the rows ((1, M)), computed once per run of equal rows (once per
+    distinct (n, k) where the runs are many) and taken back to the rows (each field as it is
+    read): element by element the same numbers (every operation is elementwise)."""
     B = max(np.size(n), np.size(k))
-    nk = np.stack([np.broadcast_to(np.asarray(n, float), (B, 1))[:, 0],
-                   np.broadcast_to(np.asarray(k, float), (B, 1))[:, 0]], axis=1)
-    starts = np.flatnonzero(np.concatenate([[True], np.any(nk[1:] != nk[:-1], axis=1)]))  # runs of equal rows
-    # distinct (n, k) in the order np.unique(axis=0) gives (complex numbers sort by real, then
-    # imaginary part), without its structured view
-    u, inv = np.unique(nk[starts, 0] + 1j * nk[starts, 1], return_inverse=True)
+    n1 = np.broadcast_to(np.asarray(n, float), (B, 1))[:, 0]
+    k1 = np.broadcast_to(np.asarray(k, float), (B, 1))[:, 0]
+    change = np.ones(B, bool)
+    np.not_equal(n1[1:], n1[:-1], out=change[1:])
+    change[1:] |= k1[1:] != k1[:-1]
+    starts = np.flatnonzero(change)  # runs of equal rows
+    lengths = np.diff(np.append(starts, B))
+    if starts.size <= FEW_RUNS:
+        f = reference.fresnel(n1[starts][:, None], k1[starts][:, None], g.cb, g.sb)
+        return _RowsOf(f, np.repeat(np.arange(starts.size), lengths))
+    # distinct (n, k) (complex numbers sort by real, then imaginary part)
+    u, inv = np.unique(n1[starts] + 1j * k1[starts], return_inverse=True)
     f = reference.fresnel(u.real[:, None], u.imag[:, None], g.cb, g.sb)
-    return _RowsOf(f, np.repeat(inv.ravel(), np.diff(np.append(starts, B))))
+    return _RowsOf(f, np.repeat(inv.ravel(), lengths))
