@@ -5,6 +5,8 @@ memory budget, the store holds the same, and bad labels or shared names are refu
 Issue #34: a label over two materials fails its goodness-of-fit test (the pixels' own tests pass:
 their own parameters absorb the misfit) and the CLI names it in a WARNING; a correct labelling
 passes quietly; the labels' correlations are valid."""
+import sys
+
 import numpy as np
 import pytest
 
@@ -361,11 +363,14 @@ def test_the_labels_are_corrected_together_as_each_alone(dev, monkeypatch):
     """:func:`label_adjust.integrated_correction` corrects every label in the same calls of the
     reference model, with the numbers each label has when it is corrected alone (bit for bit),
     in fewer calls than one label after the other; in groups of at most GROUP_PIXELS pixels
-    (one label each here) the same numbers again."""
+    (one label each here) the same numbers again, and spread over two processes (one label each,
+    the second in a forked child; :mod:`pbrdf_cl.fitting.processes`) too."""
+    from pbrdf_cl.fitting import processes
     from pbrdf_cl.fitting.images import label_adjust as la
     from pbrdf_cl.fitting.images import label_stage as ls
     from pbrdf_cl.fitting.images import pixels as P
 
+    monkeypatch.setenv(processes.ENV, "1")  # the calls counted here are this process's
     seen, correct = [], ls.integrated_correction
     monkeypatch.setattr(ls, "integrated_correction", lambda *a: seen.append(a) or correct(*a))
     data, lab = two_materials(8, 8, 0.006, seed=2)
@@ -386,6 +391,14 @@ def test_the_labels_are_corrected_together_as_each_alone(dev, monkeypatch):
     grouped = la.integrated_correction(st, theta, sums, ok)
     assert grouped[0].tobytes() == both[0].tobytes() and grouped[1].tobytes() == both[1].tobytes()
     assert len(calls) > together
+    if sys.platform.startswith("linux"):
+        monkeypatch.delenv(processes.ENV)
+        monkeypatch.setattr(processes, "host_processes", lambda: 2)  # on a machine of one core too
+        forks, fork = [], processes._fork
+        monkeypatch.setattr(processes, "_fork", lambda *a: forks.append(1) or fork(*a))
+        spread = la.integrated_correction(st, theta, sums, ok)
+        assert forks == [1]
+        assert spread[0].tobytes() == both[0].tobytes() and spread[1].tobytes() == both[1].tobytes()
 
 
 def test_the_integrated_likelihood_steps_to_its_minimum():
@@ -1023,8 +1036,9 @@ def test_the_per_pixel_pass_starts_from_the_label_stage(dev, monkeypatch):
 
 def test_the_label_sums_compute_fresnel_once_per_n_k(monkeypatch):
     """The label stage's residual rows (a label's pixels, all at its n, k, and their finite
-    differences) compute the Fresnel terms once per distinct (n, k): the same numbers bit for
-    bit as row by row, on 3 rows of Fresnel terms instead of every row's."""
+    differences) compute the Fresnel terms once per distinct (n, k) (once per run of equal rows
+    where the runs are at most FEW_RUNS): the same numbers bit for bit as row by row, on 3 rows
+    of Fresnel terms instead of every row's."""
     from pbrdf_cl.fitting.common import fd_jacobian
     from pbrdf_cl.fitting.images import pixels as P
     from pbrdf_cl.model import reference
@@ -1040,9 +1054,13 @@ def test_the_label_sums_compute_fresnel_once_per_n_k(monkeypatch):
     monkeypatch.setattr(reference, "fresnel", lambda n, *a: rows.append(np.shape(n)[0]) or fresnel(n, *a))
     out = [fd_jacobian(P.PixelResiduals(job.setup, blk, job.names, np.arange(blk.p), False, few_nk=few).rows, X, lo, hi)
            for few in (False, True)]
-    np.testing.assert_array_equal(out[0][0], out[1][0])
-    np.testing.assert_array_equal(out[0][1], out[1][1])
-    assert rows == [blk.p * 6, 3]
+    monkeypatch.setattr(P, "FEW_RUNS", 0)
+    out.append(fd_jacobian(P.PixelResiduals(job.setup, blk, job.names, np.arange(blk.p), False, few_nk=True).rows,
+                           X, lo, hi))
+    for o in out[1:]:
+        np.testing.assert_array_equal(out[0][0], o[0])
+        np.testing.assert_array_equal(out[0][1], o[1])
+    assert rows[0] == blk.p * 6 and 3 < rows[1] <= 64 and rows[2] == 3
 
 
 @pytest.mark.parametrize("few_runs", [64, 0])

@@ -32,7 +32,9 @@ What bias G leaves does not shrink with the label's pixels while the profile's s
 does: a label of more than PRECISION_PIXELS pixels reports the covariance of that many of them.
 The labels are corrected together, in groups of at most GROUP_PIXELS pixels (:class:`Integrated`
 holds a group's pixels): each call of the reference model evaluates the rows of every label of
-the group still stepping, and each label's numbers are those it would have alone.
+the group still stepping, and each label's numbers are those it would have alone.  With several
+labels the groups are spread over the machine's cores, in forked processes on Linux
+(:func:`pbrdf_cl.fitting.processes.spread`; ``PBRDF_CL_HOST_PROCESSES=1``: all here): the same numbers.
 """
 from __future__ import annotations
 
@@ -40,6 +42,7 @@ from itertools import product
 
 import numpy as np
 
+from .. import processes
 from ..common import fd_steps
 from .label_search import subsample
 from .pixels import Block, PixelResiduals, concatenate, take
@@ -368,24 +371,31 @@ def integrated_correction(st, theta, sums, ok, pixels=None):
         totals.append(total)
         ses.append(se)
         metrics.append(cov[L] * (total / picks[L].size))
-    sizes, start = [b.shape[0] for b in betas], 0
-    while start < len(labels):  # groups of labels of at most GROUP_PIXELS pixels (one label at least)
-        end = start + 1
-        while end < len(labels) and sum(sizes[start:end + 1]) <= GROUP_PIXELS:
-            end += 1
-        grp = labels[start:end]
-        itg = Integrated(setup, names, st.shared, raws[start:end], betas[start:end], s2[grp], st.lo, st.hi)
-        thin = [picks[L].size < total for L, total in zip(grp, totals[start:end])]
-        corrected = _corrected(st, itg, theta[grp], np.array(ses[start:end]), np.array(metrics[start:end]),
-                               totals[start:end], thin)
-        for L, total, (t, noise) in zip(grp, totals[start:end], corrected):
-            if t is not None:
-                out[L] = t
-                if noise is not None:
-                    cov[L] = cov[L] + noise
-            # the floor holds uncorrected values too: the profile's bias is G's and more
-            cov[L] = cov[L] * max(1.0, total / PRECISION_PIXELS)
-        start = end
+    sizes = [b.shape[0] for b in betas]
+
+    def correct(share):  # the labels of a share (positions in ``labels``), in groups of at most GROUP_PIXELS
+        done, start = [], 0
+        while start < len(share):  # (one label at least)
+            end = start + 1
+            while end < len(share) and sum(sizes[i] for i in share[start:end + 1]) <= GROUP_PIXELS:
+                end += 1
+            grp = share[start:end]
+            itg = Integrated(setup, names, st.shared, [raws[i] for i in grp], [betas[i] for i in grp],
+                             s2[[labels[i] for i in grp]], st.lo, st.hi)
+            done += _corrected(st, itg, theta[[labels[i] for i in grp]], np.array([ses[i] for i in grp]),
+                               np.array([metrics[i] for i in grp]), [totals[i] for i in grp],
+                               [picks[labels[i]].size < totals[i] for i in grp])
+            start = end
+        return done
+
+    # each label's numbers are those it has alone: its share and group do not change them
+    for L, total, (t, noise) in zip(labels, totals, processes.spread(correct, range(len(labels)), sizes)):
+        if t is not None:
+            out[L] = t
+            if noise is not None:
+                cov[L] = cov[L] + noise
+        # the floor holds uncorrected values too: the profile's bias is G's and more
+        cov[L] = cov[L] * max(1.0, total / PRECISION_PIXELS)
     return out, cov
 
 

@@ -1,0 +1,151 @@
+"""Host work spread over this machine's cores in forked processes (:func:`spread`).
+
+Some of the fits' host work is many small numpy operations on independent problems (a label's
+integrated correction: a few hundred calls of the reference model on a few hundred rows each).
+Such work holds the GIL for most of its time, so threads add no speed; forked processes do.
+:func:`spread` splits the items into shares, one per usable core (at most), computes the first
+share here and each other share in a child forked for it, which sends its results back through a
+pipe and ends with ``os._exit`` (no exit handlers, no finalisers).
+
+Where this is safe and where it is used: on Linux only (``os.fork``), for work of numpy on the
+host alone: a child never calls the OpenCL driver, whose threads it does not have, nor anything
+that another thread of this process may hold a lock of (it imports nothing, logs nothing, prints
+nothing; its garbage collector is off).  Whatever a child does not deliver (it failed, or it did
+not answer in time: ``WAIT_FACTOR`` times as long as this process's own share took, at least
+``WAIT_MIN`` seconds) is computed here after all, so the results are the same either way, only
+slower.  ``PBRDF_CL_HOST_PROCESSES=1`` keeps all the work in this process (another number: at most
+that many processes).
+"""
+from __future__ import annotations
+
+import gc
+import os
+import pickle
+import select
+import signal
+import sys
+import time
+import warnings
+
+#: How long a child's share is waited for, once this process's own is done: this many times as
+#: long as that took, and at least WAIT_MIN seconds; then it is computed here.
+WAIT_FACTOR = 10.0
+WAIT_MIN = 30.0
+#: The environment variable that bounds the processes (1: all the work here).
+ENV = "PBRDF_CL_HOST_PROCESSES"
+
+
+def host_processes():
+    """How many processes :func:`spread` may use: the cores this process may run on (1 where
+    ``os.fork`` is not available or the platform is not Linux), at most ``PBRDF_CL_HOST_PROCESSES``."""
+    if not sys.platform.startswith("linux") or not hasattr(os, "fork"):
+        return 1
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        cores = os.cpu_count() or 1
+    limit = os.environ.get(ENV, "").strip()
+    if limit:
+        try:
+            cores = min(cores, int(limit))
+        except ValueError:
+            raise ValueError(f"{ENV}: {limit!r} is not a whole number of processes") from None
+    return max(1, cores)
+
+
+def shares(weights, n):
+    """The items (indices of ``weights``, the work of each) split into at most ``n`` shares of
+    about equal weight (the heaviest first, each to the lightest share), each share's items in
+    ascending order; no empty share."""
+    n = max(1, min(int(n), len(weights)))
+    load, out = [0.0] * n, [[] for _ in range(n)]
+    for i in sorted(range(len(weights)), key=lambda i: (-float(weights[i]), i)):
+        s = min(range(n), key=lambda s: (load[s], s))
+        load[s] += float(weights[i])
+        out[s].append(i)
+    return [sorted(s) for s in out if s]
+
+
+def spread(fn, items, weights=None, processes=None):
+    """``fn(share)`` of every share of ``items`` (:func:`shares` by ``weights``, default equal),
+    the first here, the others in forked children where :func:`host_processes` (or
+    ``processes``) allows more than one: ``fn`` takes a list of items and returns a list of as
+    many results (picklable).  Returns the results in the order of ``items``: the same as
+    ``fn(items)`` gives where ``fn``'s result for an item does not depend on the other items of
+    its share."""
+    items = list(items)
+    n = host_processes() if processes is None else processes
+    parts = shares([1.0] * len(items) if weights is None else weights, n)
+    if len(parts) < 2:
+        return list(fn(items))
+    children = []
+    try:
+        for part in parts[1:]:
+            children.append((part, _fork(fn, [items[i] for i in part])))
+        t0 = time.monotonic()
+        results = {0: list(fn([items[i] for i in parts[0]]))}
+        deadline = time.monotonic() + max(WAIT_MIN, WAIT_FACTOR * (time.monotonic() - t0))
+        for s, (part, (pid, fd)) in enumerate(children, start=1):
+            got = _receive(pid, fd, deadline)
+            results[s] = got if got is not None and len(got) == len(part) else list(fn([items[i] for i in part]))
+    finally:
+        for _, (pid, fd) in children:
+            _end(pid, fd)
+    out = [None] * len(items)
+    for s, part in enumerate(parts):
+        for i, r in zip(part, results[s]):
+            out[i] = r
+    return out
+
+
+def _fork(fn, share):
+    """A child computing ``fn(share)``: (its pid, the read end of its pipe)."""
+    r, w = os.pipe()
+    with warnings.catch_warnings():  # Python 3.12+ warns of fork in a process with threads: see the module
+        warnings.simplefilter("ignore", DeprecationWarning)
+        pid = os.fork()
+    if pid == 0:  # the child: compute, send, and end without running anything of the parent's
+        try:
+            os.close(r)
+            gc.disable()
+            signal.signal(signal.SIGINT, signal.SIG_DFL)
+            payload = pickle.dumps(list(fn(share)), protocol=pickle.HIGHEST_PROTOCOL)
+            view = memoryview(payload)
+            while view:
+                view = view[os.write(w, view):]
+        finally:
+            os._exit(0)
+    os.close(w)
+    return pid, r
+
+
+def _receive(pid, fd, deadline):
+    """The child's results, or None where it sent none complete by ``deadline``."""
+    chunks = []
+    while True:
+        left = deadline - time.monotonic()
+        if left <= 0 or not select.select([fd], [], [], left)[0]:
+            return None
+        chunk = os.read(fd, 1 << 20)
+        if not chunk:
+            break
+        chunks.append(chunk)
+    try:
+        return pickle.loads(b"".join(chunks))
+    except Exception:  # a child that ended before it sent everything
+        return None
+
+
+def _end(pid, fd):
+    """Close the pipe, and end and reap the child (killed where it has not ended)."""
+    try:
+        os.close(fd)
+    except OSError:
+        pass
+    try:
+        done, _ = os.waitpid(pid, os.WNOHANG)
+        if done == 0:
+            os.kill(pid, signal.SIGKILL)
+            os.waitpid(pid, 0)
+    except (ChildProcessError, ProcessLookupError):
+        pass
