@@ -120,3 +120,14 @@ def test_the_environment_bounds_the_processes(monkeypatch):
     assert P.host_processes() >= 1
     monkeypatch.setattr(P.sys, "platform", "darwin")
     assert P.host_processes() == 1
+
+
+@linux
+def test_without_a_process_to_be_had_the_share_is_computed_here(monkeypatch):
+    def no_fork():
+        raise BlockingIOError(11, "Resource temporarily unavailable")
+    monkeypatch.setattr(P.os, "fork", no_fork)
+    opened = len(os.listdir("/proc/self/fd"))
+    out = P.spread(squares, range(5), processes=2)
+    assert [v for v, _ in out] == [0, 1, 4, 9, 16] and {pid for _, pid in out} == {os.getpid()}
+    assert len(os.listdir("/proc/self/fd")) == opened  # the pipe closed

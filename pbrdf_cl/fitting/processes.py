@@ -15,6 +15,13 @@ not answer in time: ``WAIT_FACTOR`` times as long as this process's own share to
 ``WAIT_MIN`` seconds) is computed here after all, so the results are the same either way, only
 slower.  ``PBRDF_CL_HOST_PROCESSES=1`` keeps all the work in this process (another number: at most
 that many processes).
+
+What a fork costs: a few milliseconds, and once more on this process's next host work after it
+(its first writes to memory it shared with the child; measured on a 2-core Xeon, the next
+``pbrdf_cl.fit`` took 40-50 ms longer, once).  So only work of a hundred milliseconds and more
+that splits evenly is spread: the labels' integrated correction (a 32x32 two-label fit 35 ms
+faster, end to end).  :func:`pbrdf_cl.fit_joint`'s separate fits were tried and lost more than
+they gained (their lockstep batching too): they stay in one process.
 """
 from __future__ import annotations
 
@@ -78,18 +85,21 @@ def spread(fn, items, weights=None, processes=None):
     parts = shares([1.0] * len(items) if weights is None else weights, n)
     if len(parts) < 2:
         return list(fn(items))
-    children = []
+    children = {}  # share -> (pid, fd)
     try:
-        for part in parts[1:]:
-            children.append((part, _fork(fn, [items[i] for i in part])))
+        for s, part in enumerate(parts[1:], start=1):
+            try:
+                children[s] = _fork(fn, [items[i] for i in part])
+            except OSError:  # no process or pipe to be had (a limit): computed here
+                pass
         t0 = time.monotonic()
         results = {0: list(fn([items[i] for i in parts[0]]))}
         deadline = time.monotonic() + max(WAIT_MIN, WAIT_FACTOR * (time.monotonic() - t0))
-        for s, (part, (pid, fd)) in enumerate(children, start=1):
-            got = _receive(pid, fd, deadline)
+        for s, part in enumerate(parts[1:], start=1):
+            got = _receive(children[s][1], deadline) if s in children else None
             results[s] = got if got is not None and len(got) == len(part) else list(fn([items[i] for i in part]))
     finally:
-        for _, (pid, fd) in children:
+        for pid, fd in children.values():
             _end(pid, fd)
     out = [None] * len(items)
     for s, part in enumerate(parts):
@@ -99,11 +109,17 @@ def spread(fn, items, weights=None, processes=None):
 
 
 def _fork(fn, share):
-    """A child computing ``fn(share)``: (its pid, the read end of its pipe)."""
+    """A child computing ``fn(share)``: (its pid, the read end of its pipe); OSError where none
+    can be made."""
     r, w = os.pipe()
-    with warnings.catch_warnings():  # Python 3.12+ warns of fork in a process with threads: see the module
-        warnings.simplefilter("ignore", DeprecationWarning)
-        pid = os.fork()
+    try:
+        with warnings.catch_warnings():  # Python 3.12+ warns of fork in a process with threads: see the module
+            warnings.simplefilter("ignore", DeprecationWarning)
+            pid = os.fork()
+    except OSError:
+        os.close(r)
+        os.close(w)
+        raise
     if pid == 0:  # the child: compute, send, and end without running anything of the parent's
         try:
             os.close(r)
@@ -119,8 +135,9 @@ def _fork(fn, share):
     return pid, r
 
 
-def _receive(pid, fd, deadline):
-    """The child's results, or None where it sent none complete by ``deadline``."""
+def _receive(fd, deadline):
+    """The results a child sent through its pipe ``fd``, or None where it sent none complete by
+    ``deadline``."""
     chunks = []
     while True:
         left = deadline - time.monotonic()
