@@ -131,3 +131,16 @@ def test_without_a_process_to_be_had_the_share_is_computed_here(monkeypatch):
     out = P.spread(squares, range(5), processes=2)
     assert [v for v, _ in out] == [0, 1, 4, 9, 16] and {pid for _, pid in out} == {os.getpid()}
     assert len(os.listdir("/proc/self/fd")) == opened  # the pipe closed
+
+
+@linux
+def test_spread_from_a_thread_forks_too(forked):
+    """Called from a thread other than the main one (an app's worker thread), a child still
+    computes its share."""
+    import threading
+    out = []
+    t = threading.Thread(target=lambda: out.append(P.spread(squares, range(4), processes=2)))
+    t.start()
+    t.join(60)
+    assert [v for v, _ in out[0]] == [0, 1, 4, 9] and len({pid for _, pid in out[0]}) == 2
+    assert all(gone(pid) for pid in forked)

@@ -124,7 +124,10 @@ def _fork(fn, share):
         try:
             os.close(r)
             gc.disable()
-            signal.signal(signal.SIGINT, signal.SIG_DFL)
+            try:  # an interrupt ends the child at once (this process recomputes nothing then: it stops too)
+                signal.signal(signal.SIGINT, signal.SIG_DFL)
+            except ValueError:  # not the main thread (an embedding that forbids it): the default stays
+                pass
             payload = pickle.dumps(list(fn(share)), protocol=pickle.HIGHEST_PROTOCOL)
             view = memoryview(payload)
             while view:
