@@ -16,11 +16,11 @@ not answer in time: ``WAIT_FACTOR`` times as long as this process's own share to
 slower.  ``PBRDF_CL_HOST_PROCESSES=1`` keeps all the work in this process (another number: at most
 that many processes).
 
-What a fork costs: a few milliseconds, and once more on this process's next host work after it
-(its first writes to memory it shared with the child; measured on a 2-core Xeon, the next
-``pbrdf_cl.fit`` took 40-50 ms longer, once).  So only work of a hundred milliseconds and more
-that splits evenly is spread: the labels' integrated correction (a 32x32 two-label fit 35 ms
-faster, end to end).  :func:`pbrdf_cl.fit_joint`'s separate fits were tried and lost more than
+What a fork costs: a few milliseconds, and some more in this process's host work after it
+(measured on a 2-core Xeon: the first two ``pbrdf_cl.fit`` calls after a fork took 40-60 ms longer
+each, the later ones not).  So only work of a hundred milliseconds and more that splits evenly is
+spread: the labels' integrated correction (a 32x32 two-label fit 35 ms faster, end to end, the
+cost included).  :func:`pbrdf_cl.fit_joint`'s separate fits were tried and lost more than
 they gained (their lockstep batching too): they stay in one process.
 """
 from __future__ import annotations
