@@ -144,3 +144,24 @@ def test_spread_from_a_thread_forks_too(forked):
     t.join(60)
     assert [v for v, _ in out[0]] == [0, 1, 4, 9] and len({pid for _, pid in out[0]}) == 2
     assert all(gone(pid) for pid in forked)
+
+
+@linux
+def test_a_pipe_numbered_above_1024_is_read(forked):
+    """Processes with many open files (a cluster's sockets, stores) get pipes numbered above
+    select()'s limit of 1024: the results come back all the same."""
+    import resource
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if hard != resource.RLIM_INFINITY and hard < 1200:
+        pytest.skip("the open-file limit is below 1200")
+    resource.setrlimit(resource.RLIMIT_NOFILE, (max(soft, 1200), hard))
+    held = []
+    try:
+        while not held or held[-1] < 1030:
+            held.append(os.open(os.devnull, os.O_RDONLY))
+        out = P.spread(squares, range(4), processes=2)
+    finally:
+        for fd in held:
+            os.close(fd)
+        resource.setrlimit(resource.RLIMIT_NOFILE, (soft, hard))
+    assert [v for v, _ in out] == [0, 1, 4, 9] and len({pid for _, pid in out}) == 2

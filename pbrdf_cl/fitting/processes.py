@@ -142,9 +142,11 @@ def _receive(fd, deadline):
     """The results a child sent through its pipe ``fd``, or None where it sent none complete by
     ``deadline``."""
     chunks = []
+    poll = select.poll()  # (not select.select: no limit on the descriptor's number)
+    poll.register(fd, select.POLLIN | select.POLLHUP)
     while True:
         left = deadline - time.monotonic()
-        if left <= 0 or not select.select([fd], [], [], left)[0]:
+        if left <= 0 or not poll.poll(left * 1000.0):
             return None
         chunk = os.read(fd, 1 << 20)
         if not chunk:
