@@ -17,8 +17,9 @@ slower.  ``PBRDF_CL_HOST_PROCESSES=1`` keeps all the work in this process (anoth
 that many processes).
 
 What a fork costs: a few milliseconds, and some more in this process's host work after it
-(measured on a 2-core Xeon: the first two ``pbrdf_cl.fit`` calls after a fork took 40-60 ms longer
-each, the later ones not).  So only work of a hundred milliseconds and more that splits evenly is
+(measured on a 2-core Xeon, 0.18 s fits: one of the first two ``pbrdf_cl.fit`` calls after a fork
+took 40-60 ms longer, the later ones not; the cause not found: not the page faults of copy on
+write, a few thousand, nor OpenBLAS's threads).  So only work of a hundred milliseconds and more that splits evenly is
 spread: the labels' integrated correction (a 32x32 two-label fit 35 ms faster, end to end, the
 cost included).  :func:`pbrdf_cl.fit_joint`'s separate fits were tried and lost more than
 they gained (their lockstep batching too): they stay in one process.
