@@ -228,11 +228,11 @@ class Integrated:
         """Each label of ``ls``: the slice of its rows among theirs (:meth:`rows`)."""
         return spans(self.start, ls)
 
-    def mean_step(self, u, mu, D, H, ls):
+    def mean_step(self, u, mu, D, Hi, ls):
         """The Newton step of each population's mean with its pixels' modes following it (the
-        Schur complement of their joint problem): the means there (the modes follow in the next
-        :meth:`modes`, whose first step is the one this step predicts for them)."""
-        Hi = np.linalg.inv(H)
+        Schur complement of their joint problem; ``Hi`` the inverses of the modes' H): the means
+        there (the modes follow in the next :meth:`modes`, whose first step is the one this step
+        predicts for them)."""
         mu = mu.copy()
         for j, sl in enumerate(self._spans(ls)):
             Di, Hj, uj = 1.0 / D[j], np.ascontiguousarray(Hi[:, sl]), np.ascontiguousarray(u[:, sl])
@@ -252,7 +252,7 @@ class Integrated:
                     axis=0), 1e-4) for sl in self._spans(ls)])
                 at, D = self.reprior(at, u, mu, D, mu, D2, ls), D2
                 u, *at = self.modes(thetas, u, mu, D, ls, at)
-            mu2 = self.mean_step(u, mu, D, at[1], ls)
+            mu2 = self.mean_step(u, mu, D, np.linalg.inv(at[1]), ls)
             at, mu = self.reprior(at, u, mu, D, mu2, D, ls), mu2
         u, Q, H, _ = self.modes(thetas, u, mu, D, ls, at)
         return u, mu, D, Q, H
@@ -288,8 +288,9 @@ class Integrated:
         K, which = thetas.shape[0], self.rows(ls)[1]
         dU, H = self.response(ls)
         u = np.clip(u + np.einsum("pis,kps->kpi", dU, (thetas - self.theta[ls][None])[:, which]), -U_MAX, U_MAX)
-        mu2 = self.mean_step(u, mu, self.D[ls], np.broadcast_to(H, (K,) + H.shape), ls)
-        follow = np.einsum("pij,kpj->kpi", np.linalg.inv(H), ((mu2 - mu) / self.D[ls][None])[:, which])
+        Hi = np.linalg.inv(H)  # the same for every theta
+        mu2 = self.mean_step(u, mu, self.D[ls], np.broadcast_to(Hi, (K,) + Hi.shape), ls)
+        follow = np.einsum("pij,kpj->kpi", Hi, ((mu2 - mu) / self.D[ls][None])[:, which])
         return np.clip(u + follow, -U_MAX, U_MAX), mu2
 
     def response(self, ls):

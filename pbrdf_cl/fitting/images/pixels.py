@@ -292,10 +292,10 @@ class LogKs:
 
 
 #: The parts of the model's DOP (and intensity) rows that :meth:`PixelResiduals.varied` computes
-#: again only when a parameter they depend on moves (the diffuse term, kd times the Minnaert
-#: factor, is made for every row).
+#: again only when a parameter they depend on moves (and 1/K with the specular part).
 DEPENDS = dict(fresnel=MEMBERS["index"], specular=MEMBERS["specular"], minnaert=("c",))
-#: The parameters the diffuse term kd/pi (cos ti cos tr)^c depends on (kd is kd/ks with intensities: ks too).
+#: The parameters the diffuse term kd/pi (cos ti cos tr)^c depends on (kd is kd/ks with
+#: intensities: ks too): :meth:`PixelResiduals.varied` makes it again only when one of them moves.
 DIFFUSE = MEMBERS["diffuse"] + ("ks",)
 
 
