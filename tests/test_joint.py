@@ -495,6 +495,47 @@ def test_the_stacked_sets_compute_each_factor_once_per_run_bit_for_bit(monkeypat
     assert np.all(fd_steps(X, setup.hi) != 0)
 
 
+def test_the_stacked_own_rows_compute_each_factor_once_per_run_bit_for_bit(monkeypatch):
+    """The own rows of several sets (each row one set's vector, its geometry gathered), as the
+    batched descents ask for them (a point, then the point moved along each of n, k, sigma, kd, c,
+    lanes of the three sets in turn), compute each factor once per run of consecutive rows of one
+    set with the same values of its parameters: of each lane's 6 rows the Fresnel terms for 4,
+    the specular scale for 3, the diffuse term for 3; the residuals are those of every row
+    computed as it comes, and each set's alone, bit for bit."""
+    from pbrdf_cl.fitting.common import fd_jacobian
+    from pbrdf_cl.fitting.sample import stages
+    from pbrdf_cl.fitting.sets import stack as stack_mod
+    setup = joint.check_joint_args(three_sets(), ("sigma", "c"), "six-param", None, None, "paper")
+    resid = joint.JointResiduals(setup)
+    st = resid.stack
+    lo, hi = setup.setups["435"].lo, setup.setups["435"].hi
+    rng = np.random.default_rng(4)
+    X = lo + rng.uniform(0.2, 0.8, (6, lo.size)) * (hi - lo)
+    which = np.array([0, 1, 2, 2, 0, 1], dtype=float)
+    assert 6 * (lo.size + 1) >= stack_mod.RUN_ROWS
+
+    def rows(Y):  # what lm_batch's extra column gives: the set last
+        return st.tagged_rows(np.column_stack([Y, np.repeat(which, lo.size + 1)]))
+    sizes = {}
+    for name in ("_fresnel", "_log_scale", "_diffuse"):
+        compute = getattr(stages.Model, name)
+
+        def counted(self, p, name=name, compute=compute):
+            sizes.setdefault(name, []).append(len(self.g.cb))
+            return compute(self, p)
+        monkeypatch.setattr(stages.Model, name, counted)
+    runs = fd_jacobian(rows, X, lo, hi)
+    assert {k: v[-1] for k, v in sizes.items()} == {"_fresnel": 6 * 4, "_log_scale": 6 * 3, "_diffuse": 6 * 3}
+    monkeypatch.setattr(stack_mod, "RUN_ROWS", 10 ** 9)
+    every = fd_jacobian(rows, X, lo, hi)
+    for a, b in zip(runs, every):
+        np.testing.assert_array_equal(a, b)
+    for i, w in enumerate(which.astype(int)):
+        alone = fd_jacobian(resid.parts[w].rows, X[i:i + 1], lo, hi)
+        np.testing.assert_array_equal(runs[0][i], alone[0][0])
+        np.testing.assert_array_equal(runs[1][i], alone[1][0])
+
+
 @pytest.mark.parametrize("shape", [(5, 7, 4, 6, 3), (1, 9, 2, 5, 1), (6,), (3, 4)])
 def test_the_profiles_of_each_own_axis_are_numpys_minima(shape):
     """``each_own_axis`` reduces every axis in place (``axis_min``: halving, odd lengths and a

@@ -21,7 +21,9 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from ..sample.stages import DISTINCT_VALUES, Residuals, finite_rows, in_row_blocks
+from ...model import reference
+from ...model.inputs import MEMBERS
+from ..sample.stages import DISTINCT_VALUES, RUN_ROWS, Residuals, finite_rows, in_row_blocks, same_runs
 
 
 class SetStack:
@@ -95,8 +97,26 @@ class SetStack:
         return self.own_rows(Y[:, :-1], Y[:, -1].astype(np.intp))
 
     def _own_rows_of(self, X, which):
-        mdl = self.model.with_geometry(SimpleNamespace(**{k: v[which] for k, v in vars(self.model.g).items()}))
         p = {n: v[which][:, None] for n, v in self.held.items()}
         p.update((n, X[:, j:j + 1]) for j, n in enumerate(self.free))
-        r = finite_rows((mdl.dop_rows(p) - self.dop[which]) / self.std[which])
+        if len(X) >= RUN_ROWS:
+            # each factor once per run of consecutive rows of one set with the same values of its
+            # parameters (stages.same_runs, the set a parameter too: a finite-difference Jacobian's
+            # rows hold most of them), at the geometry of the run's set: the same numbers, bit for bit
+            p[SET] = which[:, None]
+            dop = reference.dop(*(same_runs(lambda q, part=part: getattr(self._at(q[SET][:, 0]), part)(q), p,
+                                            MEMBERS[family] + (SET,)) for part, family in FACTORS))
+        else:
+            dop = self._at(which).dop_rows(p)
+        r = finite_rows((dop - self.dop[which]) / self.std[which])
         return np.where(self.mask[which], r, 0.0) if self.ragged else r
+
+    def _at(self, which):
+        """The model at the geometry of the sets ``which``, one row each."""
+        return self.model.with_geometry(SimpleNamespace(**{k: v[which] for k, v in vars(self.model.g).items()}))
+
+
+#: The model's factors (:class:`~pbrdf_cl.fitting.sample.stages.Model`'s methods) by the families of
+#: their parameters (:data:`~pbrdf_cl.model.inputs.MEMBERS`), and the own rows' set as a parameter.
+FACTORS = (("_fresnel", "index"), ("_log_scale", "specular"), ("_diffuse", "diffuse"))
+SET = "set"
