@@ -102,7 +102,14 @@ __kernel void grid_reduce(__global real *vmin, __global pbidx *vargmin, __global
  * p = (nk * PB_NM + s) * PB_NI + j over M measurements, one work-item per vector (used when the
  * rows of objective_rows would be too long).  Tables as for objective_rows.  The objective kernels
  * add to what sse holds where more is not 0 (the next block of measurements, in the same order
- * and the same precision as one launch over all of them: the same sums, bit for bit). */
+ * and the same precision as one launch over all of them: the same sums, bit for bit).
+ * PB_SETS data sets of the same measurements (default 1): obs and w hold set t's value of
+ * measurement m at [m * PB_SETS + t], and set t's sums follow set t - 1's, count values apart
+ * (each DOP combined once, its residual taken against every set's: each set's sums are those of
+ * a launch for it alone, bit for bit). */
+#ifndef PB_SETS
+#define PB_SETS 1
+#endif
 __kernel void objective_grid(__global real *sse, const pbidx start, const pbidx count,
                              PB_TABLES, __global const real *obs, __global const real *w, const int M,
                              const int more)
@@ -113,13 +120,19 @@ __kernel void objective_grid(__global real *sse, const pbidx start, const pbidx 
     const pbidx j = p % PB_NI; p /= PB_NI;
     const pbidx s = p % PB_NM;
     const pbidx nk = p / PB_NM;
-    real acc = more ? sse[gid] : (real)0;
+    real acc[PB_SETS];
+    for (int t = 0; t < PB_SETS; t++)
+        acc[t] = more ? sse[t * count + gid] : (real)0;
     for (int m = 0; m < M; m++) {
-        const real r = pb_dop_combine(sum[m * PB_NNK + nk], diff[m * PB_NNK + nk], dif[m * PB_NI + j],
-                                      scale[m * PB_NM + s]) - obs[m];
-        acc += w[m] * r * r;
+        const real v = pb_dop_combine(sum[m * PB_NNK + nk], diff[m * PB_NNK + nk], dif[m * PB_NI + j],
+                                      scale[m * PB_NM + s]);
+        for (int t = 0; t < PB_SETS; t++) {
+            const real r = v - obs[m * PB_SETS + t];
+            acc[t] += w[m * PB_SETS + t] * r * r;
+        }
     }
-    sse[gid] = acc;
+    for (int t = 0; t < PB_SETS; t++)
+        sse[t * count + gid] = acc[t];
 }
 
 /* One work-item per row of PB_ROW_LEN contiguous values sharing their outer indices, so the
@@ -172,7 +185,8 @@ __kernel void grid_rows(__global real *out, const pbidx row_start, const pbidx r
 /* The objective by rows: work-item (nk, s) [PB_ROW_LEVEL 1] or nk [level 2] accumulates the
  * PB_ROW_LEN parameter vectors of its row over the M measurements, PB_QB at a time; tables are
  * laid out measurement by measurement: sum/diff[m * PB_NNK + nk], scale[m * PB_NM + s],
- * dif[m * PB_NI + j]. */
+ * dif[m * PB_NI + j].  PB_SETS data sets as objective_grid's: set t's sums rows * PB_ROW_LEN
+ * values after set t - 1's. */
 #ifdef PB_OBJECTIVE
 #define PB_QB 16
 __kernel void objective_rows(__global real *sse, const pbidx row_start, const pbidx rows, PB_TABLES,
@@ -188,41 +202,51 @@ __kernel void objective_rows(__global real *sse, const pbidx row_start, const pb
     const pbidx nk = i;
 #endif
     __global real *o = sse + gid * PB_ROW_LEN;
+    const pbidx set_stride = rows * PB_ROW_LEN;
 #if PB_ROW_LEVEL == 1
     /* whole vectors first, the tail below */
     for (int q0 = 0; q0 + PB_VW <= PB_ROW_LEN; q0 += PB_VW) {
-        realv acc = more ? pb_vload(0, o + q0) : (realv)0;
+        realv acc[PB_SETS];
+        for (int t = 0; t < PB_SETS; t++)
+            acc[t] = more ? pb_vload(0, o + t * set_stride + q0) : (realv)0;
         for (int m = 0; m < M; m++) {
-            const realv r = pb_dop_combine_v((realv)sum[m * PB_NNK + nk], (realv)diff[m * PB_NNK + nk],
-                                             pb_vload(0, dif + m * PB_NI + q0), (realv)scale[m * PB_NM + s])
-                            - (realv)obs[m];
-            acc += (realv)w[m] * r * r;
+            const realv v = pb_dop_combine_v((realv)sum[m * PB_NNK + nk], (realv)diff[m * PB_NNK + nk],
+                                             pb_vload(0, dif + m * PB_NI + q0), (realv)scale[m * PB_NM + s]);
+            for (int t = 0; t < PB_SETS; t++) {
+                const realv r = v - (realv)obs[m * PB_SETS + t];
+                acc[t] += (realv)w[m * PB_SETS + t] * r * r;
+            }
         }
-        pb_vstore(acc, 0, o + q0);
+        for (int t = 0; t < PB_SETS; t++)
+            pb_vstore(acc[t], 0, o + t * set_stride + q0);
     }
     for (int q0 = PB_ROW_LEN / PB_VW * PB_VW; q0 < PB_ROW_LEN; q0 += PB_QB) {
 #else
     for (int q0 = 0; q0 < PB_ROW_LEN; q0 += PB_QB) {
 #endif
-        real acc[PB_QB];
-        for (int q = 0; q < PB_QB; q++)
-            acc[q] = more ? o[min(q0 + q, PB_ROW_LEN - 1)] : (real)0;
+        real acc[PB_SETS][PB_QB];
+        for (int t = 0; t < PB_SETS; t++)
+            for (int q = 0; q < PB_QB; q++)
+                acc[t][q] = more ? o[t * set_stride + min(q0 + q, PB_ROW_LEN - 1)] : (real)0;
         for (int m = 0; m < M; m++) {
             const real su = sum[m * PB_NNK + nk], di = diff[m * PB_NNK + nk];
-            const real ob = obs[m], wm = w[m];
             __global const real *fd = dif + m * PB_NI, *sc = scale + m * PB_NM;
             for (int q = 0; q < PB_QB; q++) {
                 const int qq = min(q0 + q, PB_ROW_LEN - 1);  /* clamped: the tail block re-reads */
 #if PB_ROW_LEVEL == 1
-                const real r = pb_dop_combine(su, di, fd[qq], sc[s]) - ob;
+                const real v = pb_dop_combine(su, di, fd[qq], sc[s]);
 #else
-                const real r = pb_dop_combine(su, di, fd[qq % PB_NI], sc[qq / PB_NI]) - ob;
+                const real v = pb_dop_combine(su, di, fd[qq % PB_NI], sc[qq / PB_NI]);
 #endif
-                acc[q] += wm * r * r;
+                for (int t = 0; t < PB_SETS; t++) {
+                    const real r = v - obs[m * PB_SETS + t];
+                    acc[t][q] += w[m * PB_SETS + t] * r * r;
+                }
             }
         }
-        for (int q = 0; q < PB_QB && q0 + q < PB_ROW_LEN; q++)
-            o[q0 + q] = acc[q];
+        for (int t = 0; t < PB_SETS; t++)
+            for (int q = 0; q < PB_QB && q0 + q < PB_ROW_LEN; q++)
+                o[t * set_stride + q0 + q] = acc[t][q];
     }
 }
 #endif

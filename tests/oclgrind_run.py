@@ -102,6 +102,21 @@ def main():
             configs += 1
         pbrdf_cl.objective(data, points=dict(n=[1.2, 2.0], k=[0.0, 1.0], sigma=[0.3, 0.5]), dtype=dtype, engine=eng)
         configs += 1
+        # several sets at one geometry (PB_SETS): each row level and the per-vector kernel, every
+        # set's SSE that of its own objective; in two measurement blocks (the sums carried over)
+        from pbrdf_cl.io.measurements import as_measurements
+        datas = [as_measurements(dict(data, dop=np.full(7, v))) for v in (0.1, 0.2, 0.4)]
+        for grid in (dict(n=[1.2, 2.0], k=[0.0, 0.5, 1.0, 1.5], sigma=0.3, kd=np.linspace(0, 1, 19)),  # level 1
+                     dict(n=[1.2, 1.6, 2.0, 2.4], k=[0.0, 0.5, 1.0, 1.5], sigma=[0.2, 0.4, 0.6, 0.8, 1.0],
+                          kd=[0.0, 0.3, 0.6, 0.9]),  # level 2
+                     dict(n=[1.2, 2.0], k=[0.0, 1.0], sigma=0.3)):  # per vector
+            for budget in (1 << 20, 1100 if dtype == "float32" else 2200):  # one chunk; chunks and blocks
+                _, sses = G.objective_sets(datas, grid, dtype=dtype, engine=eng, memory_budget=budget)
+                for d, sse in zip(datas, sses):
+                    if not np.array_equal(sse, G.objective(d, grid=grid, dtype=dtype, engine=eng,
+                                                           memory_budget=budget).sse.values):
+                        raise SystemExit(f"objective_sets {dtype}: a set's SSE differs from its own objective's")
+                configs += 1
         # polarimetric channels (Stokes under a polarized source, an AoP, Mueller elements, an
         # intensity): the channel tables and objective_channel_rows / objective_channels
         from pbrdf_cl.model.measurables import channels as make_channels

@@ -196,6 +196,56 @@ def test_objective_chunked_equals_unchunked(rng):
     np.testing.assert_array_equal(part.best["index"], whole.best["index"])
 
 
+def set_measurements(rng, sets, m=40):
+    """``sets`` DOP data sets at one geometry (several wavelengths of one run): checked Measurements."""
+    from pbrdf_cl.io.measurements import as_measurements
+    base = measurements(rng, m)
+    out = []
+    for i in range(sets):
+        d = pbrdf_cl.dop(base["theta_i"], base["theta_r"], base["phi"], n=1.4 + 0.3 * i, k=0.5 * i, sigma=0.4,
+                         kd=0.2, c=-0.4, backend="numpy")
+        std = None if i == 1 else rng.uniform(0.005, 0.02, m)  # one set without its standard deviations
+        out.append(as_measurements(dict(base, dop=np.clip(d + rng.normal(0, 0.01, m), 0, 1), dop_std=std)))
+    return out
+
+
+@pytest.mark.parametrize("grid", [
+    dict(n=np.linspace(1, 3, 5), k=np.linspace(0, 3, 4), sigma=np.linspace(0.1, 0.8, 3), kd=np.linspace(0, 1, 20),
+         c=np.array([-0.6, -0.2])),
+    dict(n=np.linspace(1, 3, 5), k=np.linspace(0, 3, 4), sigma=np.linspace(0.1, 0.8, 6), kd=np.linspace(0, 1, 3)),
+    dict(n=np.linspace(1, 3, 5), k=np.linspace(0, 3, 4), sigma=0.4, kd=0.3, c=-0.4),
+], ids=["rows-level1", "rows-level2", "per-vector"])
+@pytest.mark.parametrize("dtype", ["float64", "float32"])
+@pytest.mark.parametrize("budget", [1 << 26, 6000], ids=["one-chunk", "chunks"])
+def test_objective_sets_are_each_sets_objective_bit_for_bit(rng, grid, dtype, budget, monkeypatch):
+    """Several sets at one geometry in one pass (each DOP combined once for all): each set's SSE is
+    its own objective's, bit for bit, at every row level, in chunks (several chunks of several
+    sets: the sets' rows copied out of each chunk), in measurement blocks (40 measurements, blocks of
+    32: the sums carried from block to block), and in launches of at most OBJECTIVE_SETS sets."""
+    monkeypatch.setattr(G, "OBJECTIVE_SETS", 2)  # 3 sets: one launch of two, one of one
+    datas = set_measurements(rng, 3)
+    names, sses = G.objective_sets(datas, grid, dtype=dtype, memory_budget=budget)
+    assert names == tuple(n for n in G.PARAMETERS if np.ndim(grid.get(n, 0)) > 0)
+    for data, sse in zip(datas, sses):
+        one = G.objective(data, grid=grid, dtype=dtype, memory_budget=budget).sse
+        assert one.dims == names and sse.dtype == one.dtype
+        np.testing.assert_array_equal(sse, one.values)
+    # the sets differ (else a mix-up of their rows would pass)
+    assert not np.array_equal(sses[0], sses[1]) and not np.array_equal(sses[1], sses[2])
+
+
+def test_objective_sets_on_numpy_and_their_refusals(rng):
+    datas = set_measurements(rng, 2, m=9)
+    grid = dict(n=np.linspace(1, 3, 4), k=np.linspace(0, 3, 3), sigma=0.4, kd=np.linspace(0, 1, 5))
+    _, sses = G.objective_sets(datas, grid, dtype="float64", backend="numpy")
+    for data, sse in zip(datas, sses):
+        np.testing.assert_array_equal(sse, G.objective(data, grid=grid, dtype="float64", backend="numpy").sse.values)
+    other = measurements(rng, m=9)
+    from pbrdf_cl.io.measurements import as_measurements
+    with pytest.raises(ValueError, match="set 1 is not measured at the geometry of set 0"):
+        G.objective_sets([datas[0], as_measurements(other)], grid)
+
+
 @pytest.mark.parametrize("axes,fixed,pattern", [
     (dict(theta_x=[1, 2]), dict(n=1.5, k=0, sigma=0.3, theta_i=40, theta_r=30), "unknown axis 'theta_x'"),
     (dict(theta_r=[]), dict(n=1.5, k=0, sigma=0.3, theta_i=40), "axis theta_r is empty"),

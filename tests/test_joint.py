@@ -536,6 +536,33 @@ def test_the_stacked_own_rows_compute_each_factor_once_per_run_bit_for_bit(monke
         np.testing.assert_array_equal(runs[1][i], alone[1][0])
 
 
+def test_sets_at_one_geometry_go_through_the_grid_in_one_pass(monkeypatch):
+    """The grid stage of sets measured at one geometry (the same angles, grid and held values) is
+    one pass over the grid for all of them (stages.grid_stages), each set's grid that of its own
+    grid stage bit for bit; a set measured elsewhere has its own pass."""
+    from pbrdf_cl.fitting.sample import inversion, stages
+    sets = three_sets()
+    m = sets["633"]
+    sets["633"] = from_arrays(m.theta_i, m.theta_r, m.dop, 150.0, m.dop_std)  # out of the plane
+    setup = joint.check_joint_args(sets, None, "six-param", None, None, "paper")
+    resid = joint.JointResiduals(setup)
+    shape = dict(inversion.grid_shape_of("six-param"), n=7, k=6, sigma=5, kd=4, c=3)
+    passes = []
+    grid_stages, grid_stage = joint.grid_stages, joint.grid_stage
+    monkeypatch.setattr(joint, "grid_stages", lambda meases, *a, **k: passes.append(len(meases)) or
+                        grid_stages(meases, *a, **k))
+    monkeypatch.setattr(joint, "grid_stage", lambda *a, **k: passes.append(1) or grid_stage(*a, **k))
+    got = joint.set_grids(setup, resid, shape, "paper", None, "auto", False)
+    assert list(got) == list(setup.names) and sorted(passes) == [1, 2]
+    for s in setup.names:
+        alone = stages.grid_stage(setup.meas[s], setup.setups[s].free, setup.setups[s].grid_axes(shape),
+                                  setup.setups[s].base, "paper")
+        np.testing.assert_array_equal(got[s].value.sse, alone.value.sse)
+        assert got[s].nfev == alone.nfev
+        for p in alone.value.profiles:
+            np.testing.assert_array_equal(got[s].value.profiles[p], alone.value.profiles[p])
+
+
 @pytest.mark.parametrize("shape", [(5, 7, 4, 6, 3), (1, 9, 2, 5, 1), (6,), (3, 4)])
 def test_the_profiles_of_each_own_axis_are_numpys_minima(shape):
     """``each_own_axis`` reduces every axis in place (``axis_min``: halving, odd lengths and a

@@ -37,7 +37,7 @@ def need_oclgrind():
 def test_kernels_run_clean_under_oclgrind():
     proc = run_harness()
     assert proc.returncode == 0, proc.stdout + proc.stderr
-    assert ("ran 30 kernel configurations and 16 broadcast evaluations and 54 grid configurations and 6 batch fits "
+    assert ("ran 30 kernel configurations and 16 broadcast evaluations and 66 grid configurations and 6 batch fits "
             "and 2 batches of held values and 2 float64 channel grids and 8 outer evaluations" in proc.stdout)
     assert proc.stderr.strip() == "", proc.stderr[-5000:]
 

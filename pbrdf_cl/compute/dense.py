@@ -20,7 +20,9 @@ combined with ``reference.grid_<quantity>`` over boxes of the grid, each within
 the same ``memory_budget``; values are float64 whatever ``dtype`` asks for, then cast to it.
 Each computation that differs between the backends is an operation with one implementation per
 backend (:mod:`pbrdf_cl.device.ops`: ``grid_blocks``, ``reduce_grid``, ``objective_blocks``,
-``objective_points``, ``outer``), which the public functions run with ``eng.call``.
+``objective_points``, ``outer``), which the public functions run with ``eng.call``.  The objective
+of several data sets measured at one geometry (:func:`objective_sets`, for the joint fits) makes
+each block's tables once and combines each grid point's DOP once for all of them.
 
 Axes are ordered canonically: theta_i, theta_r, phi, n, k, sigma, ks, kd, c.
 """
@@ -759,6 +761,52 @@ def objective(data, grid=None, points=None, *, k_best=10, dtype="float32", shado
     return ObjectiveResult(sse=sse_da, best=best, n_pairs=P * M, seconds=time.perf_counter() - t0)
 
 
+#: Data sets whose objective one launch of the objective kernels sums (:func:`objective_sets`;
+#: ``PB_SETS``): each set's sums take private memory (PB_QB values each, objective_rows' tail).
+OBJECTIVE_SETS = 8
+
+
+@_engine.falls_back
+def objective_sets(datas, grid, *, dtype="float32", shadowing="paper", engine=None, backend="auto",
+                   memory_budget=DEFAULT_BUDGET, progress=False):
+    """The objective of several DOP data sets measured at one geometry, on the parameter grid
+    ``grid``: ``datas`` are checked :class:`~pbrdf_cl.io.measurements.Measurements` with the same
+    theta_i, theta_r and phi, in the same order (the sets of :func:`pbrdf_cl.fit_joint` at several
+    wavelengths); returns (the grid's axis names, in order; one SSE array per set over them),
+    each set's SSE that of :func:`objective` bit for bit.  On an OpenCL device each block of
+    measurements' tables is made once and each grid point's DOP combined once for
+    :data:`OBJECTIVE_SETS` sets at a time (the residuals and sums per set); on the numpy backend
+    the sets one after another."""
+    from ..ranges import parse_bytes
+    memory_budget = parse_bytes("memory_budget", memory_budget)
+    dtype = pointwise.check_options(shadowing, dtype)
+    first = datas[0]
+    ti, tr, ph = first.theta_i, first.theta_r, first.phi
+    for i, d in enumerate(datas[1:], 1):
+        if not all(np.array_equal(a, b) for a, b in zip((d.theta_i, d.theta_r, d.phi), (ti, tr, ph))):
+            raise ValueError(f"datas: set {i} is not measured at the geometry of set 0 (theta_i, theta_r, phi, "
+                             "in order)")
+    M = ti.size
+    obs = np.stack([d.dop for d in datas], axis=1)
+    w = np.stack([1.0 / d.dop_std ** 2 if d.dop_std is not None else np.ones(M) for d in datas], axis=1)
+    eng = resolve_engine(engine, backend)
+    npdt = DTYPES[dtype]
+    plan = GridPlan({n: v for n, v in grid.items() if np.ndim(v) > 0},
+                    {n: v for n, v in grid.items() if np.ndim(v) == 0}, names=PARAMETERS, defaults=PARAMETER_DEFAULTS)
+    rows, tables_size = objective_rows(plan, M, memory_budget, _table_itemsize(eng, dtype))
+    out = np.empty((len(datas), plan.size), npdt)
+    bar = progress_bar(plan.size * len(datas), progress, "objective")
+    for g0 in range(0, len(datas), OBJECTIVE_SETS):
+        g = slice(g0, min(len(datas), g0 + OBJECTIVE_SETS))
+        for _, host in eng.call("objective_blocks", plan, (ti, tr, ph, obs[:, g], w[:, g]), dtype, shadowing,
+                                memory_budget - tables_size, out[g], rows):
+            if bar is not None:
+                bar.update(host.size)
+    if bar is not None:
+        bar.close()
+    return plan.axis_names, [o.reshape(plan.shape) for o in out]
+
+
 #: Bytes of the factor tables of one block of measurements of the objective on an OpenCL device
 #: (at least OBJECTIVE_BLOCK_ROWS measurements, where the memory budget allows them): a block's
 #: tables stay in the caches while every parameter vector goes through it (at 20,000 measurements
@@ -787,10 +835,16 @@ def _numpy_objective_blocks(eng, plan, meas, dtype, shadowing, room, out, rows):
     """(flat start, SSE) of the parameter grid in boxes, on the numpy backend, written into
     ``out`` when given: the measurements are the tables' geometry list, and a box holds every
     measurement of its parameter vectors; where the tables of all measurements do not fit
-    (``rows`` fewer), block by block (:func:`summed_over_rows`)."""
+    (``rows`` fewer), block by block (:func:`summed_over_rows`).  Observations and weights of
+    several sets ((M, S): :func:`objective_sets`): set by set, each into its row of ``out``."""
     npdt = DTYPES[dtype]
     ti, tr, ph, obs, w = meas
     M = ti.size
+    if np.ndim(obs) == 2:
+        for t in range(obs.shape[1]):
+            yield from _numpy_objective_blocks(eng, plan, (ti, tr, ph, obs[:, t], w[:, t]), dtype, shadowing, room,
+                                               None if out is None else out[t], rows)
+        return
     if rows < M:
         yield from summed_over_rows(plan.size, M, rows, lambda m0, m1: _numpy_objective_blocks(
             eng, plan, [a[m0:m1] for a in meas], "float64", shadowing, room, None, m1 - m0), out, dtype)
@@ -810,14 +864,16 @@ def _numpy_objective_blocks(eng, plan, meas, dtype, shadowing, room, out, rows):
 @ops.implements("objective_blocks", "opencl")
 def _device_objective_blocks(eng, plan, meas, dtype, shadowing, room, out, rows):
     """(flat start, SSE) of the parameter grid in chunks, on the device, read straight into
-    ``out`` when given; the measurements in blocks of at most ``rows``."""
+    ``out`` when given; the measurements in blocks of at most ``rows``.  Observations and weights
+    of several sets ((M, S): :func:`objective_sets`): each block's tables made once and each DOP
+    combined once for every set (``PB_SETS``), the SSE (S, chunk) and ``out`` (S, P)."""
     ti, tr, ph, obs, w = meas
 
     def tables(m0, m1):
         t = Tables(eng, dtype, shadowing, "dop", ti[m0:m1], tr[m0:m1], ph[m0:m1], plan.values)
         return (*t.args(), eng.to_device(obs[m0:m1], dtype), eng.to_device(w[m0:m1], dtype), np.int32(m1 - m0))
     yield from _objective_chunks(eng, plan, dtype, room, out, ("objective_rows", "objective_grid"), tables,
-                                 (ti.size, rows))
+                                 (ti.size, rows), sets=1 if np.ndim(obs) == 1 else obs.shape[1])
 
 
 @ops.implements("objective_channel_blocks", "opencl")
@@ -829,7 +885,7 @@ def _device_channel_blocks(eng, plan, ch, dtype, shadowing, room, out, rows):
                                  tables, (len(ch), rows), PB_CHANNELS=None)
 
 
-def _objective_chunks(eng, plan, dtype, room, out, kernels, make_args, n_rows, **defines):
+def _objective_chunks(eng, plan, dtype, room, out, kernels, make_args, n_rows, sets=1, **defines):
     """(flat start, SSE) of the grid ``plan`` in chunks of ``room`` bytes: the row kernel
     ``kernels[0]`` (or, where rows would be too long, the per-vector ``kernels[1]``) of
     ``pbrdf_grid.cl`` with the tables and data of measurements m0..m1 that ``make_args(m0, m1)``
@@ -837,14 +893,17 @@ def _objective_chunks(eng, plan, dtype, room, out, kernels, make_args, n_rows, *
     most per block); blocks of :data:`OBJECTIVE_BLOCK_BYTES` of tables (OBJECTIVE_BLOCK_ROWS at least), each launch
     adding to the sums of the blocks before it, in the same order as one launch over all (the
     same sums, bit for bit); with several chunks, the tables of several blocks are made again
-    for each chunk."""
+    for each chunk.  ``sets`` > 1: the data of that many sets (``PB_SETS``), the chunks' SSE
+    (sets, chunk) and ``out`` (sets, P)."""
     npdt = DTYPES[dtype]
     itemsize = np.dtype(npdt).itemsize
     _, nnk, nm, ni = family_sizes(plan)
     P = plan.size
-    idx_name, idx_np = _index_type(P)
-    chunk = int(max(64, min(room // itemsize, 2 ** 31 - 1)))
+    idx_name, idx_np = _index_type(P * sets)
+    chunk = int(max(64, min(room // (itemsize * sets), 2 ** 31 - 1)))
     level, row_len = row_level(nnk, nm, ni, 1, chunk, max_level=2)
+    if sets > 1:
+        defines["PB_SETS"] = int(sets)
     prog = grid_program(eng, dtype, (nnk, nm, ni), idx_name, "dop", PB_OBJECTIVE=None, PB_ROW_LEVEL=level,
                         PB_ROW_LEN=row_len, **defines)
     chunk = max(row_len, chunk // row_len * row_len)
@@ -854,7 +913,9 @@ def _objective_chunks(eng, plan, dtype, room, out, kernels, make_args, n_rows, *
     args = make_args(*blocks[0]) if len(blocks) == 1 else None
     for start in range(0, P, chunk):
         count = min(chunk, P - start)
-        host = out[start:start + count] if out is not None else np.empty(count, npdt)
+        shape = (sets, count) if sets > 1 else (count,)
+        view = out[..., start:start + count] if out is not None else None
+        host = view if view is not None and view.flags.c_contiguous else np.empty(shape, npdt)
         buf, done = eng.output(host, accumulate=len(blocks) > 1)
         ran = None
         for b, (m0, m1) in enumerate(blocks):
@@ -867,6 +928,8 @@ def _objective_chunks(eng, plan, dtype, room, out, kernels, make_args, n_rows, *
             else:
                 ran = eng.launch(prog[kernels[1]], (count,), buf, idx_np(start), idx_np(count), *more)
         done()
+        if view is not None and host is not view:  # a chunk of several sets' rows
+            view[...] = host
         yield start, host
 
 

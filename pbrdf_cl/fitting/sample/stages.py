@@ -444,6 +444,28 @@ def grid_stage(meas, free, axes, base, shadowing="paper", *, engine=None, backen
     return StageResult(GridStage(sse, axes, profiles), int(sse.size), time.perf_counter() - t0)
 
 
+def grid_stages(meases, free, axes, base, shadowing="paper", *, engine=None, backend="auto", progress=False,
+                memory_budget=MEMORY_BUDGET):
+    """:func:`grid_stage` of several DOP data sets ``meases`` measured at one geometry (the same
+    theta_i, theta_r, phi in order) on one grid, in one pass (:func:`~pbrdf_cl.compute.dense.objective_sets`:
+    each grid point's DOP combined once for every set); one :class:`StageResult` per set, each
+    set's grid that of :func:`grid_stage` bit for bit, the pass's time shared equally."""
+    import warnings
+    t0 = time.perf_counter()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", pointwise.UnitsWarning)
+        names, sses = dense.objective_sets(list(meases), {**base, **axes}, dtype="float32", shadowing=shadowing,
+                                           engine=engine, backend=backend, progress=progress,
+                                           memory_budget=memory_budget)
+    order = [names.index(n) for n in free]
+    grids = []
+    for sse in sses:
+        sse = sse.transpose(order)
+        grids.append(GridStage(sse, axes, basins.grid_profiles(sse, free)))
+    share = (time.perf_counter() - t0) / len(grids)
+    return [StageResult(g, int(g.sse.size), share) for g in grids]
+
+
 def basin_stage(grid, free, n_basins, rise, profile_seeds=PROFILE_SEEDS):
     """(b) Seeds: the grid's best ``n_basins`` local minima, one per neighbourhood, then up to
     ``profile_seeds`` valleys of its profiles that none of them lies in (behind a ridge at least

@@ -5,8 +5,9 @@ and do not change with the wavelength), the others one value per set.
 The pipeline is :func:`pbrdf_cl.fit`'s, on the stacked residuals of every set:
 
 1. one device grid per set (:func:`~pbrdf_cl.fitting.sample.stages.grid_stage`, the same grid as
-   ``fit``'s).  The joint objective is a sum over sets, and given the shared parameters each
-   set's own parameters are minimised independently, so the profile of the joint grid over the
+   ``fit``'s; sets measured at one geometry go through it in one pass, :func:`set_grids`).  The
+   joint objective is a sum over sets, and given the shared parameters each set's own parameters
+   are minimised independently, so the profile of the joint grid over the
    shared axes is exactly the sum of each set's grid minimised over its own axes
    (:func:`joint_profiles`): the joint grid (the product of every set's own axes) is never made,
    and nothing is lost by not making it;
@@ -52,6 +53,7 @@ from ..sample.stages import (
     StageResult,
     final_bobyqa_stage,
     grid_stage,
+    grid_stages,
     least_squares_stage,
     ranked,
     run_stage,
@@ -165,6 +167,36 @@ def set_grid(meas, setup, part, axes, shadowing, engine, backend, progress, memo
     ch = part.model.ch if meas.polarimetric else None
     return grid_stage(meas, setup.free, axes, setup.base, shadowing, engine=engine, backend=backend,
                       progress=progress, channels=ch, memory_budget=memory_budget)
+
+
+def set_grids(setup, resid, shape, shadowing, engine, backend, progress, memory_budget=MEMORY_BUDGET):
+    """Every set's grid stage (:func:`set_grid`): set name -> its StageResult.  The DOP sets measured
+    at one geometry (the same angles, in order) whose grids have the same axes and held values
+    (several wavelengths of one goniometer run) go through the grid in one pass
+    (:func:`~pbrdf_cl.fitting.sample.stages.grid_stages`: each grid point's DOP is combined once for
+    all of them), each set's grid the same, bit for bit."""
+    out, groups = {}, {}
+    for s, part in zip(setup.names, resid.parts):
+        meas, su = setup.meas[s], setup.setups[s]
+        axes = su.grid_axes(shape)
+        if meas.polarimetric:
+            out[s] = set_grid(meas, su, part, axes, shadowing, engine, backend, progress, memory_budget)
+            continue
+        key = (tuple(np.asarray(a, np.float64).tobytes() for a in (meas.theta_i, meas.theta_r, meas.phi)),
+               tuple(su.free), tuple((n, np.asarray(v, np.float64).tobytes()) for n, v in axes.items()),
+               tuple(sorted((n, float(v)) for n, v in su.base.items())))
+        groups.setdefault(key, []).append((s, part, axes))
+    for members in groups.values():
+        if len(members) == 1:
+            s, part, axes = members[0]
+            out[s] = set_grid(setup.meas[s], setup.setups[s], part, axes, shadowing, engine, backend, progress,
+                              memory_budget)
+            continue
+        su, axes = setup.setups[members[0][0]], members[0][2]
+        done = grid_stages([setup.meas[s] for s, _, _ in members], su.free, axes, su.base, shadowing, engine=engine,
+                           backend=backend, progress=progress, memory_budget=memory_budget)
+        out.update((s, g) for (s, _, _), g in zip(members, done))
+    return {s: out[s] for s in setup.names}
 
 
 def separate_fit(meas, setup, grid_result, n_basins):
@@ -506,8 +538,7 @@ def fit_joint(sets, shared=None, model="six-param", bounds=None, fixed=None, sha
     setup = check_joint_args(sets, shared, model, bounds, fixed, shadowing, set_column)
     shape = grid_shape_of(model, grid_shape)
     resid = JointResiduals(setup)
-    grid_results = {s: set_grid(setup.meas[s], setup.setups[s], part, setup.setups[s].grid_axes(shape), shadowing,
-                                engine, backend, progress, memory_budget) for s, part in zip(setup.names, resid.parts)}
+    grid_results = set_grids(setup, resid, shape, shadowing, engine, backend, progress, memory_budget)
     grids = {s: g.value for s, g in grid_results.items()}
     t_sep = time.perf_counter()
     separate = separate_fits(setup, resid, grid_results, n_basins)
