@@ -22,3 +22,17 @@ class Result(dict):
 
     def __dir__(self):
         return list(self.keys())
+
+
+class ObjectiveResult(Result):
+    """Result of :func:`pbrdf_cl.objective` (attribute access, like scipy's ``OptimizeResult``).
+
+    sse : xarray.DataArray over the parameter axes (grid) or 1-d array (points), or None
+    best : dict of the k best parameter vectors (each parameter an array, best first) and their "sse"
+    n_pairs : parameter vectors x measurements evaluated
+    seconds : wall time
+    """
+
+    def __repr__(self):
+        best = {k: v[0] for k, v in self["best"].items()} if len(self["best"]["sse"]) else {}
+        return f"ObjectiveResult(n_pairs={self['n_pairs']}, seconds={self['seconds']:.3g}, best={best})"

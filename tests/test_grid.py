@@ -242,7 +242,7 @@ def test_objective_sets_on_numpy_and_their_refusals(rng):
         np.testing.assert_array_equal(sse, G.objective(data, grid=grid, dtype="float64", backend="numpy").sse.values)
     other = measurements(rng, m=9)
     from pbrdf_cl.io.measurements import as_measurements
-    with pytest.raises(ValueError, match="set 1 is not measured at the geometry of set 0"):
+    with pytest.raises(ValueError, match="set 1 is not measured at set 0.s angles"):
         G.objective_sets([datas[0], as_measurements(other)], grid)
 
 

@@ -665,21 +665,7 @@ def _reduce_result(plan, over, kept, red, vmin, vmean, varg, quantity, shadowing
     return xr.Dataset(data, coords=coords, attrs=attrs)
 
 
-from ..results import Result  # noqa: E402 (moved; dense.Result stays importable)
-
-
-class ObjectiveResult(Result):
-    """Result of :func:`objective` (attribute access, like scipy's ``OptimizeResult``).
-
-    sse : xarray.DataArray over the parameter axes (grid) or 1-d array (points), or None
-    best : dict of the k best parameter vectors (each parameter an array, best first) and their "sse"
-    n_pairs : parameter vectors x measurements evaluated
-    seconds : wall time
-    """
-
-    def __repr__(self):
-        best = {k: v[0] for k, v in self["best"].items()} if len(self["best"]["sse"]) else {}
-        return f"ObjectiveResult(n_pairs={self['n_pairs']}, seconds={self['seconds']:.3g}, best={best})"
+from ..results import ObjectiveResult, Result  # noqa: E402,F401 (moved; importable from here too)
 
 
 def _update_best(best_idx, best_sse, start, sse, k):
@@ -719,7 +705,7 @@ def objective(data, grid=None, points=None, *, k_best=10, dtype="float32", shado
         op, payload, what = "objective_channel_blocks", data, "channels"
     else:  # checked measurements (pbrdf_cl.objective reads them)
         ti, tr, ph, obs = data.theta_i, data.theta_r, data.phi, data.dop
-        w = 1.0 / data.dop_std ** 2 if data.dop_std is not None else np.ones(ti.size)
+        w = dop_weights(data)
         op, payload, what = "objective_blocks", (ti, tr, ph, obs, w), "DOP"
     eng = resolve_engine(engine, backend)
     npdt = DTYPES[dtype]
@@ -729,9 +715,7 @@ def objective(data, grid=None, points=None, *, k_best=10, dtype="float32", shado
         if w is None:
             raise ValueError("points= takes DOP data; channels take grid=")
         return _objective_points(eng, points, payload, k_best, dtype, shadowing, return_sse, t0, memory_budget)
-    axes = {n: v for n, v in grid.items() if np.ndim(v) > 0}
-    fixed = {n: v for n, v in grid.items() if np.ndim(v) == 0}
-    plan = GridPlan(axes, fixed, names=PARAMETERS, defaults=PARAMETER_DEFAULTS)
+    plan = parameter_plan(grid)
     v = plan.values
     rows, tables_size = objective_rows(plan, M, memory_budget, itemsize)
     P = plan.size
@@ -761,6 +745,17 @@ def objective(data, grid=None, points=None, *, k_best=10, dtype="float32", shado
     return ObjectiveResult(sse=sse_da, best=best, n_pairs=P * M, seconds=time.perf_counter() - t0)
 
 
+def parameter_plan(grid):
+    """The :class:`GridPlan` of a parameter grid (name -> nodes, or a value held) of :func:`objective`."""
+    return GridPlan({n: v for n, v in grid.items() if np.ndim(v) > 0},
+                    {n: v for n, v in grid.items() if np.ndim(v) == 0}, names=PARAMETERS, defaults=PARAMETER_DEFAULTS)
+
+
+def dop_weights(data):
+    """The weights of checked DOP measurements' squared residuals: 1 / dop_std^2, or 1 without it."""
+    return 1.0 / data.dop_std ** 2 if data.dop_std is not None else np.ones(data.theta_i.size)
+
+
 #: Data sets whose objective one launch of the objective kernels sums (:func:`objective_sets`;
 #: ``PB_SETS``): each set's sums take private memory (PB_QB values each, objective_rows' tail).
 OBJECTIVE_SETS = 8
@@ -780,21 +775,16 @@ def objective_sets(datas, grid, *, dtype="float32", shadowing="paper", engine=No
     from ..ranges import parse_bytes
     memory_budget = parse_bytes("memory_budget", memory_budget)
     dtype = pointwise.check_options(shadowing, dtype)
-    first = datas[0]
-    ti, tr, ph = first.theta_i, first.theta_r, first.phi
+    ti, tr, ph = datas[0].theta_i, datas[0].theta_r, datas[0].phi
     for i, d in enumerate(datas[1:], 1):
         if not all(np.array_equal(a, b) for a, b in zip((d.theta_i, d.theta_r, d.phi), (ti, tr, ph))):
-            raise ValueError(f"datas: set {i} is not measured at the geometry of set 0 (theta_i, theta_r, phi, "
-                             "in order)")
-    M = ti.size
+            raise ValueError(f"datas: set {i} is not measured at set 0's angles (theta_i, theta_r, phi, in order)")
     obs = np.stack([d.dop for d in datas], axis=1)
-    w = np.stack([1.0 / d.dop_std ** 2 if d.dop_std is not None else np.ones(M) for d in datas], axis=1)
+    w = np.stack([dop_weights(d) for d in datas], axis=1)
     eng = resolve_engine(engine, backend)
-    npdt = DTYPES[dtype]
-    plan = GridPlan({n: v for n, v in grid.items() if np.ndim(v) > 0},
-                    {n: v for n, v in grid.items() if np.ndim(v) == 0}, names=PARAMETERS, defaults=PARAMETER_DEFAULTS)
-    rows, tables_size = objective_rows(plan, M, memory_budget, _table_itemsize(eng, dtype))
-    out = np.empty((len(datas), plan.size), npdt)
+    plan = parameter_plan(grid)
+    rows, tables_size = objective_rows(plan, ti.size, memory_budget, _table_itemsize(eng, dtype))
+    out = np.empty((len(datas), plan.size), DTYPES[dtype])
     bar = progress_bar(plan.size * len(datas), progress, "objective")
     for g0 in range(0, len(datas), OBJECTIVE_SETS):
         g = slice(g0, min(len(datas), g0 + OBJECTIVE_SETS))
