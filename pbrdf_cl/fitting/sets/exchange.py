@@ -58,7 +58,9 @@ def own_grid_seeds(setup, grid, name, shared_values):
     for p, v in shared_values.items():
         if p in free:
             index[free.index(p)] = int(np.argmin(np.abs(grid.axes[p] - v)))
-    sub = grid.sse[tuple(index)]  # the own axes, in free order: setup.own's order
+    # the own axes, in free order (setup.own's order), copied once: a strided view was copied again by
+    # each flattening and read slowly by each gather of the searches below
+    sub = np.ascontiguousarray(grid.sse[tuple(index)])
     idxs = basins.grid_basins(sub, EXCHANGE_SEEDS, pool=EXCHANGE_POOL)
     idxs += basins.bound_seeds(sub, idxs)
     return [basins.grid_point(grid.axes, own, idx) for idx in idxs]
