@@ -134,11 +134,12 @@ class JointResiduals:
         self.parts = [set_residuals(setup.meas[s], setup.setups[s]) for s in setup.names]
         self.index = [setup.index(s) for s in setup.names]
         self.stack = SetStack.of(self.parts)  # every set in one model call, where they can be
+        self.columns = np.stack(self.index, axis=1) if self.stack is not None else None  # (free, sets)
 
     def rows(self, X):
         X = np.atleast_2d(X)
         if self.stack is not None and self.stack.fits(len(X)):
-            return self.stack.joint_rows(X, self.index)
+            return self.stack.joint_rows(X, self.columns)
         return np.concatenate([r.rows(X[:, ix]) for r, ix in zip(self.parts, self.index)], axis=1)
 
     def split(self, x):

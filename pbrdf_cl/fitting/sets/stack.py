@@ -54,6 +54,7 @@ class SetStack:
         names = sorted(set().union(*(p.base for p in parts)))
         # held parameters: one value per set, (1, S, 1) for the joint rows, (S,) for the own rows
         self.held = {n: np.array([float(p.base[n]) for p in parts]) for n in names}
+        self.held_rows = {n: v[None, :, None] for n, v in self.held.items()}
 
     @classmethod
     def of(cls, parts):
@@ -74,13 +75,14 @@ class SetStack:
         each factor directly: a set evaluated alone does the same)."""
         return rows * self.width * len(self.sizes) < DISTINCT_VALUES
 
-    def joint_rows(self, X, index):
+    def joint_rows(self, X, columns):
         """The stacked residuals of the joint vectors ``X`` (B, d): set i's free parameters are
-        ``X[:, index[i]]``; (B, total measurements), set by set."""
-        p = {n: v[None, :, None] for n, v in self.held.items()}
-        cols = np.stack(index, axis=1)  # (free, S)
+        ``X[:, columns[:, i]]`` (``columns``: (free, sets), each set's joint columns, as
+        ``np.stack(index, axis=1)`` of the sets' column indices); (B, total measurements), set by set."""
+        p = dict(self.held_rows)
+        values = X[:, columns]  # (B, free, sets): one gather, each parameter a view of it
         for j, n in enumerate(self.free):
-            p[n] = X[:, cols[j]][:, :, None]
+            p[n] = values[:, j, :, None]
         r = (self.model.dop_rows(p) - self.dop) / self.std
         return finite_rows(r.reshape(len(X), -1)[:, self.cells] if self.ragged else r.reshape(len(X), -1))
 
