@@ -106,10 +106,12 @@ __kernel void grid_reduce(__global real *vmin, __global pbidx *vargmin, __global
  * PB_SETS data sets of the same measurements (default 1): obs and w hold set t's value of
  * measurement m at [m * PB_SETS + t], and set t's sums follow set t - 1's, count values apart
  * (each DOP combined once, its residual taken against every set's: each set's sums are those of
- * a launch for it alone, bit for bit). */
+ * a launch for it alone, bit for bit).  The loops over the sets are unrolled (PB_UNROLL): PoCL 3.0
+ * (LLVM 14, the PyPI wheel) kept their sums in memory otherwise, and three sets took twice as long. */
 #ifndef PB_SETS
 #define PB_SETS 1
 #endif
+#define PB_UNROLL _Pragma("unroll")
 __kernel void objective_grid(__global real *sse, const pbidx start, const pbidx count,
                              PB_TABLES, __global const real *obs, __global const real *w, const int M,
                              const int more)
@@ -121,17 +123,17 @@ __kernel void objective_grid(__global real *sse, const pbidx start, const pbidx 
     const pbidx s = p % PB_NM;
     const pbidx nk = p / PB_NM;
     real acc[PB_SETS];
-    for (int t = 0; t < PB_SETS; t++)
+    PB_UNROLL for (int t = 0; t < PB_SETS; t++)
         acc[t] = more ? sse[t * count + gid] : (real)0;
     for (int m = 0; m < M; m++) {
         const real v = pb_dop_combine(sum[m * PB_NNK + nk], diff[m * PB_NNK + nk], dif[m * PB_NI + j],
                                       scale[m * PB_NM + s]);
-        for (int t = 0; t < PB_SETS; t++) {
+        PB_UNROLL for (int t = 0; t < PB_SETS; t++) {
             const real r = v - obs[m * PB_SETS + t];
             acc[t] += w[m * PB_SETS + t] * r * r;
         }
     }
-    for (int t = 0; t < PB_SETS; t++)
+    PB_UNROLL for (int t = 0; t < PB_SETS; t++)
         sse[t * count + gid] = acc[t];
 }
 
@@ -207,17 +209,17 @@ __kernel void objective_rows(__global real *sse, const pbidx row_start, const pb
     /* whole vectors first, the tail below */
     for (int q0 = 0; q0 + PB_VW <= PB_ROW_LEN; q0 += PB_VW) {
         realv acc[PB_SETS];
-        for (int t = 0; t < PB_SETS; t++)
+        PB_UNROLL for (int t = 0; t < PB_SETS; t++)
             acc[t] = more ? pb_vload(0, o + t * set_stride + q0) : (realv)0;
         for (int m = 0; m < M; m++) {
             const realv v = pb_dop_combine_v((realv)sum[m * PB_NNK + nk], (realv)diff[m * PB_NNK + nk],
                                              pb_vload(0, dif + m * PB_NI + q0), (realv)scale[m * PB_NM + s]);
-            for (int t = 0; t < PB_SETS; t++) {
+            PB_UNROLL for (int t = 0; t < PB_SETS; t++) {
                 const realv r = v - (realv)obs[m * PB_SETS + t];
                 acc[t] += (realv)w[m * PB_SETS + t] * r * r;
             }
         }
-        for (int t = 0; t < PB_SETS; t++)
+        PB_UNROLL for (int t = 0; t < PB_SETS; t++)
             pb_vstore(acc[t], 0, o + t * set_stride + q0);
     }
     for (int q0 = PB_ROW_LEN / PB_VW * PB_VW; q0 < PB_ROW_LEN; q0 += PB_QB) {
@@ -225,7 +227,7 @@ __kernel void objective_rows(__global real *sse, const pbidx row_start, const pb
     for (int q0 = 0; q0 < PB_ROW_LEN; q0 += PB_QB) {
 #endif
         real acc[PB_SETS][PB_QB];
-        for (int t = 0; t < PB_SETS; t++)
+        PB_UNROLL for (int t = 0; t < PB_SETS; t++)
             for (int q = 0; q < PB_QB; q++)
                 acc[t][q] = more ? o[t * set_stride + min(q0 + q, PB_ROW_LEN - 1)] : (real)0;
         for (int m = 0; m < M; m++) {
@@ -238,13 +240,13 @@ __kernel void objective_rows(__global real *sse, const pbidx row_start, const pb
 #else
                 const real v = pb_dop_combine(su, di, fd[qq % PB_NI], sc[qq / PB_NI]);
 #endif
-                for (int t = 0; t < PB_SETS; t++) {
+                PB_UNROLL for (int t = 0; t < PB_SETS; t++) {
                     const real r = v - obs[m * PB_SETS + t];
                     acc[t][q] += w[m * PB_SETS + t] * r * r;
                 }
             }
         }
-        for (int t = 0; t < PB_SETS; t++)
+        PB_UNROLL for (int t = 0; t < PB_SETS; t++)
             for (int q = 0; q < PB_QB && q0 + q < PB_ROW_LEN; q++)
                 o[t * set_stride + q0 + q] = acc[t][q];
     }
