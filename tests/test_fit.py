@@ -267,6 +267,21 @@ def test_interval_pieces_interpolate_between_sharp_and_flat():
     assert a == pytest.approx(1.2, abs=1e-6) and b == pytest.approx(4.8, abs=1e-6)
 
 
+def test_the_standard_cdfs_are_scipy_stats_bit_for_bit():
+    """The posterior's local piece takes its CDF from scipy.special (StandardCdf: ndtr, stdtr),
+    without scipy.stats' argument handling of each call: the same numbers as norm.cdf and
+    t(dof).cdf, bit for bit, infinities and NaN included, and the same truncated CDF."""
+    from scipy.stats import norm
+    from scipy.stats import t as student_t
+    x = np.concatenate([np.random.default_rng(7).normal(0, 4, 5000), [np.inf, -np.inf, 0.0, -0.0, np.nan]])
+    np.testing.assert_array_equal(uncertainty.StandardCdf().cdf(x), norm.cdf(x))
+    for dof in (1, 4, 27, 300):
+        np.testing.assert_array_equal(uncertainty.StandardCdf(dof).cdf(x), student_t(dof).cdf(x))
+        mesh = np.linspace(1.0, 5.0, 2001)
+        ours = uncertainty._truncated_cdf(uncertainty.StandardCdf(dof), 2.0, 0.3, 1.0, 5.0)
+        np.testing.assert_array_equal(ours(mesh), uncertainty._truncated_cdf(student_t(dof), 2.0, 0.3, 1.0, 5.0)(mesh))
+
+
 def test_sharp_parameter_is_not_blurred_to_the_grid_cell():
     # kd alone, well determined: its grid axis (16 nodes over [0, 5]) is far coarser than its
     # uncertainty, so the interval is the local one, +-1.96 standard errors
