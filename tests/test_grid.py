@@ -148,12 +148,18 @@ def numpy_sse(data, params):
     return (((d - data["dop"][:, None]) / data["dop_std"][:, None]) ** 2).sum(axis=0)
 
 
-@pytest.mark.parametrize("grid", [
+#: Parameter grids that take each of the objective kernels' paths: rows of level 1 (with a tail), of
+#: level 2, and one vector per work-item.
+OBJECTIVE_GRIDS = [
     dict(n=np.linspace(1, 3, 5), k=np.linspace(0, 3, 4), sigma=np.linspace(0.1, 0.8, 3), kd=np.linspace(0, 1, 20),
          c=np.array([-0.6, -0.2])),
     dict(n=np.linspace(1, 3, 5), k=np.linspace(0, 3, 4), sigma=np.linspace(0.1, 0.8, 6), kd=np.linspace(0, 1, 3)),
     dict(n=np.linspace(1, 3, 5), k=np.linspace(0, 3, 4), sigma=0.4, kd=0.3, c=-0.4),
-], ids=["rows-level1", "rows-level2", "per-vector"])
+]
+OBJECTIVE_PATHS = ["rows-level1", "rows-level2", "per-vector"]
+
+
+@pytest.mark.parametrize("grid", OBJECTIVE_GRIDS, ids=OBJECTIVE_PATHS)
 @pytest.mark.parametrize("dtype", ["float64", "float32"])
 def test_objective_grid_equals_numpy_sse(rng, grid, dtype):
     data = measurements(rng)
@@ -209,12 +215,7 @@ def set_measurements(rng, sets, m=40):
     return out
 
 
-@pytest.mark.parametrize("grid", [
-    dict(n=np.linspace(1, 3, 5), k=np.linspace(0, 3, 4), sigma=np.linspace(0.1, 0.8, 3), kd=np.linspace(0, 1, 20),
-         c=np.array([-0.6, -0.2])),
-    dict(n=np.linspace(1, 3, 5), k=np.linspace(0, 3, 4), sigma=np.linspace(0.1, 0.8, 6), kd=np.linspace(0, 1, 3)),
-    dict(n=np.linspace(1, 3, 5), k=np.linspace(0, 3, 4), sigma=0.4, kd=0.3, c=-0.4),
-], ids=["rows-level1", "rows-level2", "per-vector"])
+@pytest.mark.parametrize("grid", OBJECTIVE_GRIDS, ids=OBJECTIVE_PATHS)
 @pytest.mark.parametrize("dtype", ["float64", "float32"])
 @pytest.mark.parametrize("budget", [1 << 26, 6000], ids=["one-chunk", "chunks"])
 def test_objective_sets_are_each_sets_objective_bit_for_bit(rng, grid, dtype, budget, monkeypatch):
