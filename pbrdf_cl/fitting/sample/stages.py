@@ -431,14 +431,17 @@ def grid_stage(meas, free, axes, base, shadowing="paper", *, engine=None, backen
     """(a) The objective on the grid ``axes`` (name -> nodes, one per free parameter) with the
     other parameters at ``base``, on the OpenCL device (float32), and its profiles: of the DOP of
     ``meas``, or of polarimetric ``channels`` (:class:`~pbrdf_cl.model.measurables.Channels`); the
-    measurements' tables in blocks within ``memory_budget`` (:func:`pbrdf_cl.objective`'s)."""
+    measurements' tables in blocks within ``memory_budget`` (:func:`pbrdf_cl.objective`'s).  The
+    DOP's as :func:`grid_stages`' of one set (the SSE alone: no labelled array, no best nodes)."""
     import warnings
+    if channels is None:
+        return grid_stages([meas], free, axes, base, shadowing, engine=engine, backend=backend, progress=progress,
+                           memory_budget=memory_budget)[0]
     t0 = time.perf_counter()
     with warnings.catch_warnings():  # fit's argument check gives the radians warning, once
         warnings.simplefilter("ignore", pointwise.UnitsWarning)
-        obj = dense.objective(meas if channels is None else channels, grid={**base, **axes}, k_best=1,
-                              dtype="float32", shadowing=shadowing, engine=engine, backend=backend,
-                              progress=progress, memory_budget=memory_budget)
+        obj = dense.objective(channels, grid={**base, **axes}, k_best=1, dtype="float32", shadowing=shadowing,
+                              engine=engine, backend=backend, progress=progress, memory_budget=memory_budget)
     sse = obj.sse.transpose(*free).values
     profiles = basins.grid_profiles(sse, free)
     return StageResult(GridStage(sse, axes, profiles), int(sse.size), time.perf_counter() - t0)
