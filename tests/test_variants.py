@@ -273,9 +273,9 @@ SMALL_GRID = dict(n=12, k=16, sigma=8, kd=8, c=6)
 @pytest.mark.parametrize("shadowing", SHADOWINGS)
 def test_fit_with_each_variant_recovers_the_truth(each_device, shadowing, monkeypatch):
     data = dict(theta_i=TI, theta_r=TR, dop=pbrdf_cl.dop(TI, TR, 180.0, shadowing=shadowing, backend="numpy", **TRUTH))
-    used = []  # the grid stage's objective: on the device, with the fit's variant
-    objective = G.objective
-    monkeypatch.setattr(G, "objective", lambda *a, **kw: used.append(kw) or objective(*a, **kw))
+    used = []  # the grid stage's objective (of one set, dense.objective_sets): on the device, with the fit's variant
+    objective = G.objective_sets
+    monkeypatch.setattr(G, "objective_sets", lambda *a, **kw: used.append(kw) or objective(*a, **kw))
     r = pbrdf_cl.fit(data, shadowing=shadowing, grid_shape=SMALL_GRID, engine=each_device)
     assert [(kw["shadowing"], kw["engine"]) for kw in used] == [(shadowing, each_device)]
     assert r.shadowing == shadowing and r.sse <= 1e-12
