@@ -188,6 +188,19 @@ def _frozen(X, Xt, du, span, held):
     return same & np.all(reach < room, axis=1)
 
 
+def run_starts(*columns):
+    """Where the runs of equal consecutive rows begin: a bool array over the rows, True at the first
+    row and at each row that differs from the row before it in any of ``columns`` (arrays whose
+    first axis is the row, all of the same length)."""
+    rows = len(columns[0])
+    start = np.zeros(rows, bool)
+    start[:1] = True
+    for c in columns:
+        differ = c[1:] != c[:-1]
+        start[1:] |= differ.any(axis=tuple(range(1, differ.ndim))) if differ.ndim > 1 else differ
+    return start
+
+
 def dop_resolution(dop, max_decimals=DOP_MAX_DECIMALS, axis=None):
     """The DOP resolution of the values: 10 ** -d for the fewest decimals d (at most
     ``max_decimals``) that write every value exactly, or 0.0 where none does; with ``axis``, of

@@ -16,7 +16,7 @@ from ...io.source import ANGLES, INCIDENT
 from ...model import measurables, reference
 from ...model.inputs import MEMBERS
 from ..channels import ChannelModel
-from ..common import dop_resolution
+from ..common import dop_resolution, run_starts
 from ..setup import F00_REL_STD, PARAMETERS, FitSetup
 
 #: Grid nodes per free parameter of the batched grid stage (coarser than :func:`pbrdf_cl.fit`'s: the
@@ -442,10 +442,7 @@ def fresnel_rows(n, k, g):
     B = max(np.size(n), np.size(k))
     n1 = np.broadcast_to(np.asarray(n, float), (B, 1))[:, 0]
     k1 = np.broadcast_to(np.asarray(k, float), (B, 1))[:, 0]
-    change = np.ones(B, bool)
-    np.not_equal(n1[1:], n1[:-1], out=change[1:])
-    change[1:] |= k1[1:] != k1[:-1]
-    starts = np.flatnonzero(change)  # runs of equal rows
+    starts = np.flatnonzero(run_starts(n1, k1))  # runs of equal rows
     lengths = np.diff(np.append(starts, B))
     if starts.size <= FEW_RUNS:
         f = reference.fresnel(n1[starts][:, None], k1[starts][:, None], g.cb, g.sb)

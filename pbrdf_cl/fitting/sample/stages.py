@@ -16,7 +16,7 @@ import numpy as np
 from ...compute import dense, pointwise
 from ...model import reference
 from ...model.inputs import MEMBERS
-from ..common import fd_jacobian, lm_batch
+from ..common import fd_jacobian, lm_batch, run_starts
 from . import basins
 
 #: Extra seeds from valleys of the grid's profiles that none of the grid's best local minima lies in.
@@ -180,11 +180,7 @@ def same_runs(compute, p, names):
     varying = [n for n in names if np.ndim(p[n]) and np.shape(p[n])[0] == rows]  # the others broadcast
     if rows < 2 or not varying:
         return compute(p)
-    cols = [np.asarray(p[n]).reshape(rows, -1) for n in varying]
-    key = cols[0] if len(cols) == 1 else np.concatenate(cols, axis=1)
-    start = np.empty(rows, bool)
-    start[0] = True
-    np.any(key[1:] != key[:-1], axis=1, out=start[1:])
+    start = run_starts(*(np.asarray(p[n]) for n in varying))
     first = np.flatnonzero(start)
     if first.size == rows:
         return compute(p)
