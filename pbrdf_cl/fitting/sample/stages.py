@@ -99,9 +99,7 @@ class Model:
         if self.g.cb.ndim > 1:
             B = max((np.shape(v)[0] for v in p.values() if np.ndim(v) > self.g.cb.ndim), default=0)
             if B >= RUN_ROWS:  # several sets side by side, against rows of (B, sets, 1)
-                return (same_runs(self._fresnel, p, MEMBERS["index"]),
-                        same_runs(self._log_scale, p, MEMBERS["specular"]),
-                        same_runs(self._diffuse, p, MEMBERS["diffuse"]))
+                return tuple(same_runs(getattr(self, part), p, MEMBERS[family]) for part, family in FACTORS)
             return self._fresnel(p), self._log_scale(p), self._diffuse(p)
         rows = max((np.shape(v)[0] for v in p.values() if np.ndim(v)), default=1)
         many = rows * self.g.cb.size >= DISTINCT_VALUES
@@ -110,8 +108,7 @@ class Model:
             if many or (all(n in runs or np.ndim(p[n]) == 0 for n in names) and any(n in runs for n in names)):
                 return per_run(compute, p, names)
             return compute(p)
-        return (factor(self._fresnel, MEMBERS["index"]), factor(self._log_scale, MEMBERS["specular"]),
-                factor(self._diffuse, MEMBERS["diffuse"]))
+        return tuple(factor(getattr(self, part), MEMBERS[family]) for part, family in FACTORS)
 
     def f00(self, p):
         return reference.brdf(*self.parts(p))
@@ -121,6 +118,9 @@ class Model:
         return reference.brdf(*self.factors(p))
 
 
+#: The model's factors, :class:`Model`'s methods, in :func:`~pbrdf_cl.model.reference.dop`'s order,
+#: each with the family of the parameters it depends on (:data:`~pbrdf_cl.model.inputs.MEMBERS`).
+FACTORS = (("_fresnel", "index"), ("_log_scale", "specular"), ("_diffuse", "diffuse"))
 #: Batches of parameter rows times measurements from which :meth:`Model.dop_rows` computes each
 #: factor once per distinct row (the finite-difference steps move one parameter at a time).
 DISTINCT_VALUES = 1 << 16

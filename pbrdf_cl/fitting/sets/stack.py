@@ -23,7 +23,15 @@ import numpy as np
 
 from ...model import reference
 from ...model.inputs import MEMBERS
-from ..sample.stages import DISTINCT_VALUES, RUN_ROWS, Residuals, finite_rows, in_row_blocks, same_runs
+from ..sample.stages import (
+    DISTINCT_VALUES,
+    FACTORS,
+    RUN_ROWS,
+    Residuals,
+    finite_rows,
+    in_row_blocks,
+    same_runs,
+)
 
 
 class SetStack:
@@ -118,7 +126,5 @@ class SetStack:
         return self.model.with_geometry(SimpleNamespace(**{k: v[which] for k, v in vars(self.model.g).items()}))
 
 
-#: The model's factors (:class:`~pbrdf_cl.fitting.sample.stages.Model`'s methods) by the families of
-#: their parameters (:data:`~pbrdf_cl.model.inputs.MEMBERS`), and the own rows' set as a parameter.
-FACTORS = (("_fresnel", "index"), ("_log_scale", "specular"), ("_diffuse", "diffuse"))
+#: The own rows' set, as a parameter of :func:`~pbrdf_cl.fitting.sample.stages.same_runs`' rows.
 SET = "set"
