@@ -381,11 +381,11 @@ def integrated_correction(st, theta, sums, ok, pixels=None):
             while end < len(share) and sum(sizes[i] for i in share[start:end + 1]) <= GROUP_PIXELS:
                 end += 1
             grp = share[start:end]
-            itg = Integrated(setup, names, st.shared, [raws[i] for i in grp], [betas[i] for i in grp],
-                             s2[[labels[i] for i in grp]], st.lo, st.hi)
-            done += _corrected(st, itg, theta[[labels[i] for i in grp]], np.array([ses[i] for i in grp]),
-                               np.array([metrics[i] for i in grp]), [totals[i] for i in grp],
-                               [picks[labels[i]].size < totals[i] for i in grp])
+            Ls = [labels[i] for i in grp]
+            itg = Integrated(setup, names, st.shared, [raws[i] for i in grp], [betas[i] for i in grp], s2[Ls],
+                             st.lo, st.hi)
+            done += _corrected(st, itg, theta[Ls], np.array([ses[i] for i in grp]), np.array([metrics[i] for i in grp]),
+                               [totals[i] for i in grp], [picks[L].size < totals[i] for L, i in zip(Ls, grp)])
             start = end
         return done
 

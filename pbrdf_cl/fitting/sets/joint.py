@@ -180,12 +180,10 @@ def set_grids(setup, resid, shape, shadowing, engine, backend, progress, memory_
     for s, part in zip(setup.names, resid.parts):
         meas, su = setup.meas[s], setup.setups[s]
         axes = su.grid_axes(shape)
-        if meas.polarimetric:
-            out[s] = set_grid(meas, su, part, axes, shadowing, engine, backend, progress, memory_budget)
-            continue
-        key = (tuple(np.asarray(a, np.float64).tobytes() for a in (meas.theta_i, meas.theta_r, meas.phi)),
-               tuple(su.free), tuple((n, np.asarray(v, np.float64).tobytes()) for n, v in axes.items()),
-               tuple(sorted((n, float(v)) for n, v in su.base.items())))
+        key = (s,) if meas.polarimetric else (  # a polarimetric set: a pass of its own
+            tuple(np.asarray(a, np.float64).tobytes() for a in (meas.theta_i, meas.theta_r, meas.phi)),
+            tuple(su.free), tuple((n, np.asarray(v, np.float64).tobytes()) for n, v in axes.items()),
+            tuple(sorted((n, float(v)) for n, v in su.base.items())))
         groups.setdefault(key, []).append((s, part, axes))
     for members in groups.values():
         if len(members) == 1:
