@@ -7,6 +7,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 import pbrdf_cl
@@ -126,3 +127,24 @@ def test_bench_mitsuba_rows_agree_with_the_model(tmp_path):
     assert sum("resident degrees" in r["path"] for r in rows) == 1 and rows[0]["ours_over_mitsuba_degrees"] > 0
     assert {r["path"].split(" (")[-1] for r in rows} == {"kernel)", "end-to-end)"}
     assert all(r["max_abs_err"] <= 2e-5 for r in rows), rows
+
+
+def test_bench_joint_image_stacks_hold_their_materials_in_their_label_maps():
+    """scripts/bench_joint_image.py's ``--stack`` images: every label of the map holds its own
+    (n, k), and the noise-free DOP of the stack is the model's at those values, pixel by pixel."""
+    sys.path.insert(0, str(ROOT / "scripts"))
+    try:
+        import bench_joint_image as bench
+    finally:
+        sys.path.remove(str(ROOT / "scripts"))
+    for kind, (ti, tr, truth, ranges) in bench.STACKS.items():
+        data, lab, got = bench.stack(12, 0.0, 3, kind)
+        assert got == truth and sorted(np.unique(lab)) == sorted(truth), kind
+        assert data["dop"].shape == (12, 12, ti.size) and np.all(data["dop_std"] == 0.0)
+        for L, (n, k) in truth.items():
+            where = np.argwhere(lab == L)
+            i, j = where[len(where) // 2]
+            rng = np.random.default_rng(3)
+            own = {a: rng.uniform(lo, hi, (12, 12, 1))[i, j] for a, lo, hi in ranges}
+            want = np.abs(pbrdf_cl.dop(ti, tr, n=n, k=k, **own, backend="numpy"))
+            np.testing.assert_allclose(data["dop"][i, j], want, rtol=0, atol=1e-15, err_msg=f"{kind} label {L}")
