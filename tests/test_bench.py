@@ -141,10 +141,10 @@ def test_bench_joint_image_stacks_hold_their_materials_in_their_label_maps():
         data, lab, got = bench.stack(12, 0.0, 3, kind)
         assert got == truth and sorted(np.unique(lab)) == sorted(truth), kind
         assert data["dop"].shape == (12, 12, ti.size) and np.all(data["dop_std"] == 0.0)
+        rng = np.random.default_rng(3)  # the stack's own parameters, drawn as it draws them
+        own = {a: rng.uniform(lo, hi, (12, 12, 1)) for a, lo, hi in ranges}
         for L, (n, k) in truth.items():
             where = np.argwhere(lab == L)
             i, j = where[len(where) // 2]
-            rng = np.random.default_rng(3)
-            own = {a: rng.uniform(lo, hi, (12, 12, 1))[i, j] for a, lo, hi in ranges}
-            want = np.abs(pbrdf_cl.dop(ti, tr, n=n, k=k, **own, backend="numpy"))
+            want = np.abs(pbrdf_cl.dop(ti, tr, n=n, k=k, **{a: v[i, j] for a, v in own.items()}, backend="numpy"))
             np.testing.assert_allclose(data["dop"][i, j], want, rtol=0, atol=1e-15, err_msg=f"{kind} label {L}")
