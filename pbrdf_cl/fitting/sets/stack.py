@@ -60,7 +60,7 @@ class SetStack:
         self.ragged = bool((sizes < width).any())
         self.cells = np.flatnonzero(self.mask.reshape(-1))  # the joint rows' columns, set by set
         names = sorted(set().union(*(p.base for p in parts)))
-        # held parameters: one value per set, (1, S, 1) for the joint rows, (S,) for the own rows
+        # held parameters: one value per set, (S,) for the own rows, and (1, S, 1) for the joint rows
         self.held = {n: np.array([float(p.base[n]) for p in parts]) for n in names}
         self.held_rows = {n: v[None, :, None] for n, v in self.held.items()}
 
